@@ -1,0 +1,51 @@
+"""What a fit returns: the spline, its metrics, run statistics and a readable verdict."""
+
+from __future__ import annotations
+
+from typing import Any
+
+import equinox as eqx
+
+from ._spline import ImplicitSpline
+
+
+class RESULTS(eqx.Enumeration):
+    """How a run ended. ``jurs.RESULTS[sol.result]`` gives the message."""
+
+    successful = "converged: |E_new - E_old| < tol (eq. 38)"
+    max_steps_reached = (
+        "stopped after max_steps without meeting |E_new - E_old| < tol; Algorithm 1 returns "
+        "here too, the result is usable but the energy was still moving"
+    )
+    nonfinite = (
+        "the energy became NaN or Inf; the last finite iterate was kept. Lower tau or lambda "
+        "(the regularised PIA step is stable only for small lambda, see IURS)"
+    )
+
+
+class Solution(eqx.Module):
+    """Result of :func:`jurs.fit` or :func:`jurs.solve`.
+
+    Attributes:
+        spline: the fitted :class:`ImplicitSpline` (call it on (n, 2) points).
+        metrics: ``E``, ``E_d``, ``R``, ``E_ave``, ``E_max``, ``mu`` (eq. 35-37; see
+            :func:`jurs.metrics`) and ``lam``, the lambda that ``E`` uses.
+        stats: ``num_steps`` and ``energy_history`` (``max_steps + 1`` entries: the energy
+            before the first step and after each step, NaN past ``num_steps``).
+        result: a :class:`RESULTS` item; ``sol.message`` reads it.
+        state: the solver's final state (for warm starts and inspection).
+    """
+
+    spline: ImplicitSpline
+    metrics: dict[str, Any]
+    stats: dict[str, Any]
+    result: RESULTS
+    state: Any
+
+    @property
+    def message(self) -> str:
+        return RESULTS[self.result]
+
+    @property
+    def succeeded(self) -> bool:
+        return self.result == RESULTS.successful

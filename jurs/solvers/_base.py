@@ -1,0 +1,48 @@
+"""The interface every jurs solver implements."""
+
+from __future__ import annotations
+
+import abc
+from typing import Any, Generic, TypeVar
+
+import equinox as eqx
+import jax.numpy as jnp
+from jax import Array
+
+from .._problem import Problem
+from .._solution import RESULTS
+from .._spline import ImplicitSpline
+
+State = TypeVar("State")
+
+
+class AbstractSolver(eqx.Module, Generic[State]):
+    """An immutable solver: hyperparameters as fields, the iterate in an explicit state.
+
+    The driver (:func:`jurs.solve`) owns the loop: it calls :meth:`init` once, then
+    :meth:`step` until ``|E_new - E_old| < tol`` (eq. 38), :meth:`terminate` says so, the
+    energy stops being finite, or ``max_steps`` steps have run.
+
+    Subclasses define the fields ``max_steps`` (static int), ``tol`` and ``lam`` (the
+    lambda that the reported energy ``E = E_d + lam R`` uses).
+    """
+
+    max_steps: eqx.AbstractVar[int]
+    tol: eqx.AbstractVar[Any]
+    lam: eqx.AbstractVar[Any]
+
+    @abc.abstractmethod
+    def init(self, problem: Problem, spline: ImplicitSpline) -> tuple[State, Array]:
+        """Initial state from a starting spline; returns ``(state, energy)``."""
+
+    @abc.abstractmethod
+    def step(self, problem: Problem, state: State) -> tuple[State, Array]:
+        """One iteration; returns ``(new_state, energy)``."""
+
+    @abc.abstractmethod
+    def to_spline(self, problem: Problem, state: State) -> ImplicitSpline:
+        """The spline a state stands for."""
+
+    def terminate(self, problem: Problem, state: State) -> tuple[Array, RESULTS]:
+        """Solver-specific stop (e.g. a direct solve is done after one step)."""
+        return jnp.array(False), RESULTS.successful

@@ -1,0 +1,71 @@
+"""The one loop every solver runs in."""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+
+from .._energy import metrics as compute_metrics
+from .._problem import Problem
+from .._solution import RESULTS, Solution
+from .._spline import ImplicitSpline
+from ._base import AbstractSolver
+
+
+def solve(solver: AbstractSolver, problem: Problem, spline: ImplicitSpline | None = None,
+          *, throw: bool = True) -> Solution:
+    """Run ``solver`` on ``problem`` from ``spline`` (default: C = 0, w = 1, as Algorithm 1).
+
+    The loop is a ``jax.lax.while_loop``: it stops when ``|E_new - E_old| < solver.tol``
+    (eq. 38), when the solver's :meth:`terminate` says so, after ``solver.max_steps`` steps,
+    or when the energy is NaN/Inf. A non-finite step is not accepted: the solution keeps the
+    last finite iterate, and with ``throw=True`` a runtime error is raised. Reaching
+    ``max_steps`` is reported in ``sol.result`` but never raised: Algorithm 1 stops there
+    by design. Traceable: jit, grad and vmap go through it.
+    """
+    if spline is None:
+        dtype = problem.samples.dtype
+        spline = ImplicitSpline(
+            jnp.zeros(problem.shape, dtype), jnp.ones(problem.shape, dtype), problem.lower,
+            problem.upper,
+        )
+    max_steps = solver.max_steps
+    state, energy = solver.init(problem, spline)
+    history = jnp.full((max_steps + 1,), jnp.nan, dtype=energy.dtype).at[0].set(energy)
+    done, _ = solver.terminate(problem, state)
+
+    def cond(carry):
+        k, _, _, _, _, stop = carry
+        return (k < max_steps) & ~stop
+
+    def body(carry):
+        k, state, energy, _, history, _ = carry
+        new_state, new_energy = solver.step(problem, state)
+        finite = jnp.isfinite(new_energy)
+        # Keep the last finite iterate so a diverging run loses nothing.
+        state = jax.tree_util.tree_map(
+            lambda new, old: jnp.where(finite, new, old), new_state, state
+        )
+        converged = jnp.abs(new_energy - energy) < solver.tol
+        stop_now, _ = solver.terminate(problem, state)
+        history = history.at[k + 1].set(new_energy)
+        stop = ~finite | converged | stop_now
+        energy = jnp.where(finite, new_energy, energy)
+        return k + 1, state, energy, ~finite, history, stop
+
+    init = (jnp.array(0), state, energy, ~jnp.isfinite(energy), history, done | ~jnp.isfinite(energy))
+    k, state, energy, nonfinite, history, stop = jax.lax.while_loop(cond, body, init)
+    _, solver_result = solver.terminate(problem, state)
+    result = RESULTS.where(
+        nonfinite,
+        RESULTS.nonfinite,
+        RESULTS.where(stop, solver_result, RESULTS.max_steps_reached),
+    )
+    fitted = solver.to_spline(problem, state)
+    if throw:
+        fitted = eqx.error_if(fitted, nonfinite, RESULTS[RESULTS.nonfinite])
+    metrics = compute_metrics(problem, fitted, solver.lam)
+    metrics["lam"] = jnp.asarray(solver.lam, dtype=energy.dtype)
+    stats = {"num_steps": k, "energy_history": history}
+    return Solution(spline=fitted, metrics=metrics, stats=stats, result=result, state=state)

@@ -1,0 +1,90 @@
+"""IURS: the paper's Algorithm 1, alternating weight-gradient and regularised PIA steps."""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax.numpy as jnp
+from jax import Array
+
+from .._energy import regulariser, regulariser_grad, residuals, transpose_apply, weight_grad_rows
+from .._problem import Problem, check_nonnegative
+from .._spline import ImplicitSpline
+from ._base import AbstractSolver
+
+
+class IURSState(eqx.Module):
+    control: Array  # C
+    weights: Array  # w
+    weight_grad: Array  # nabla_w E_d at (C, w): computed with the energy, used by the next step
+    mu: Array  # eq. 25 for the current weights
+
+
+class IURS(AbstractSolver[IURSState]):
+    """Implicit uniform rational spline reconstruction (Algorithm 1, Sections III-IV).
+
+    Each step:
+      1. weights: ``w <- max(w - tau nabla_w E_d, min_weight)`` (eq. 20, projected);
+      2. rebuild the collocation D of eq. 23 with the new w and its ``mu`` (eq. 25);
+      3. coefficients: ``C <- C + mu D^T (b - D C) - lam nabla_C R(C)`` (eq. 33);
+      4. energy ``E = E_d + lam R(C)`` (eq. 35); stop when ``|E_new - E_old| < tol`` (eq. 38).
+
+    **Positive weights.** The paper asks for non-negative weights, but W(x) = 0 is a pole
+    of g; step 1 is therefore a projected gradient step onto ``w >= min_weight`` (default
+    1e-6; g is invariant under scaling all weights, so only ratios matter).
+
+    **Which lambda.** ``lam`` is the paper's lambda of eq. 33, and the reported
+    ``E = E_d + lam R`` is eq. 35 with it. For fixed weights the fixed point of eq. 33
+    minimises ``E_d + (2 lam / mu) R``: the objective's lambda is ``2 lam / mu`` (see
+    :func:`jurs.objective_lam`). The step is stable only while ``mu ||D^T D|| +
+    4 lam ||L|| < 2`` with ``||L|| <= 8``, so ``lam`` must stay well below 1/16; larger values
+    diverge and end with ``RESULTS.nonfinite``.
+
+    ``tau = 0, lam = 0`` is exactly I-PIA (:class:`IPIA`) on the B-spline.
+    """
+
+    tau: float = 1e-2
+    lam: float = 0.0
+    max_steps: int = eqx.field(static=True, default=200)
+    tol: float = 1e-7
+    min_weight: float = 1e-6
+
+    def __check_init__(self):
+        for name in ("tau", "lam", "tol"):
+            check_nonnegative(name, getattr(self, name))
+        check_nonnegative("min_weight", self.min_weight, strict=True)
+        if int(self.max_steps) < 0:
+            raise ValueError(f"max_steps must be >= 0, got {self.max_steps}")
+
+    def _energy_and_weight_grad(self, problem, control, weights):
+        r, wb, denom, g = residuals(problem, control, weights)
+        grad_w = transpose_apply(problem, weight_grad_rows(problem, control, r, wb, denom, g))
+        return jnp.sum(r * r) + self.lam * regulariser(control), grad_w
+
+    def init(self, problem: Problem, spline: ImplicitSpline):
+        energy, grad_w = self._energy_and_weight_grad(problem, spline.control, spline.weights)
+        mu = jnp.zeros((), energy.dtype)  # set by the first step, from the new weights
+        return IURSState(spline.control, spline.weights, grad_w, mu), energy
+
+    def step(self, problem: Problem, state: IURSState):
+        # 1. eq. 20, projected onto w >= min_weight.
+        weights = jnp.maximum(state.weights - self.tau * state.weight_grad, self.min_weight)
+        # 2. collocation rows R_ij = w_ij B_ij / W with the new weights; residual of the old C.
+        r, wb, denom, _ = residuals(problem, state.control, weights)
+        rows = wb * (problem.mask / denom)[:, None]  # padding rows are 0
+        # D^T r and the column sums of D (for mu, eq. 25) in one pass over the samples.
+        dtr, col_sums = transpose_apply(problem, jnp.stack([rows * r[:, None], rows], axis=1))
+        mu = 2.0 / jnp.max(col_sums)
+        # 3. eq. 33: C + mu D^T (b - DC) - lam grad R(C).
+        control = state.control - mu * dtr - self.lam * regulariser_grad(state.control)
+        # 4. eq. 35 at the new (C, w), with nabla_w E_d there for the next step.
+        energy, grad_w = self._energy_and_weight_grad(problem, control, weights)
+        return IURSState(control, weights, grad_w, mu), energy
+
+    def to_spline(self, problem: Problem, state: IURSState) -> ImplicitSpline:
+        return ImplicitSpline(state.control, state.weights, problem.lower, problem.upper)
+
+
+def objective_lam(lam, mu):
+    """The objective lambda that the paper's eq. 33 with ``lam`` and step ``mu`` minimises:
+    the fixed point of eq. 33 solves ``nabla E_d + (2 lam / mu) nabla R = 0``."""
+    return 2.0 * lam / mu
