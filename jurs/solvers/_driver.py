@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import equinox as eqx
+import equinox.internal as eqxi
 import jax
 import jax.numpy as jnp
 
@@ -55,7 +56,12 @@ def solve(solver: AbstractSolver, problem: Problem, spline: ImplicitSpline | Non
         return k + 1, state, energy, ~finite, history, stop
 
     init = (jnp.array(0), state, energy, ~jnp.isfinite(energy), history, done | ~jnp.isfinite(energy))
-    k, state, energy, nonfinite, history, stop = jax.lax.while_loop(cond, body, init)
+    # A checkpointed loop runs as a plain while loop forward and, unlike lax.while_loop,
+    # can be reverse-differentiated (jax.grad of a loss of the fit), with O(log) memory.
+    # The history buffer is written in place.
+    k, state, energy, nonfinite, history, stop = eqxi.while_loop(
+        cond, body, init, max_steps=max(max_steps, 1), kind="checkpointed", buffers=lambda c: c[4]
+    )
     _, solver_result = solver.terminate(problem, state)
     result = RESULTS.where(
         nonfinite,
