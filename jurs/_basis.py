@@ -79,22 +79,26 @@ def tensor_basis(bx: Array, by: Array) -> Array:
 
 
 def grid_to_patches(grid: Array) -> Array:
-    """``(N, M)`` coefficients -> ``(cells, 16)``: the 4 x 4 block each cell sees.
+    """``(..., N, M)`` coefficients -> ``(..., cells, 16)``: the 4 x 4 block each cell sees.
 
-    Gathering a patch row per sample is one contiguous row read, much cheaper than 16
-    scattered element reads.
+    Gathering one patch row per cell (or bucket of samples) is one contiguous read, much
+    cheaper than 16 scattered element reads.
     """
-    n, m = grid.shape[0] - 3, grid.shape[1] - 3
-    blocks = [grid[a : a + n, b : b + m] for a in range(4) for b in range(4)]
-    return jnp.stack(blocks, axis=-1).reshape(n * m, NUM_LOCAL)
+    n, m = grid.shape[-2] - 3, grid.shape[-1] - 3
+    blocks = [grid[..., a : a + n, b : b + m] for a in range(4) for b in range(4)]
+    return jnp.stack(blocks, axis=-1).reshape(grid.shape[:-2] + (n * m, NUM_LOCAL))
 
 
 def patches_to_grid(patches: Array, shape: tuple[int, int]) -> Array:
-    """Adjoint of :func:`grid_to_patches`: add each cell's 16 values back onto the grid."""
+    """Adjoint of :func:`grid_to_patches`: add each cell's 16 values back onto the grid.
+
+    ``(..., cells, 16)`` -> ``(..., N, M)``.
+    """
     n, m = shape[0] - 3, shape[1] - 3
-    blocks = patches.reshape(n, m, NUM_LOCAL)
-    grid = jnp.zeros(shape, dtype=patches.dtype)
+    lead = patches.shape[:-2]
+    blocks = patches.reshape(lead + (n, m, NUM_LOCAL))
+    grid = jnp.zeros(lead + tuple(shape), dtype=patches.dtype)
     for a in range(4):
         for b in range(4):
-            grid = grid.at[a : a + n, b : b + m].add(blocks[..., a * 4 + b])
+            grid = grid.at[..., a : a + n, b : b + m].add(blocks[..., a * 4 + b])
     return grid

@@ -1,8 +1,13 @@
 """Energies, metrics, the PIA step size and the hand-derived gradients.
 
-All functions take the coefficient grids C and w explicitly and touch each sample's 16
-local terms only: D (3m x NM) is never formed. ``D^T v`` is one segment sum of 16-wide rows
-per cell followed by a fold of the cell patches onto the grid (:func:`transpose_apply`).
+Everything is written with the two linear maps of :mod:`jurs._spline`: ``F`` (coefficient
+grid -> values at the samples) and its transpose ``T``. With ``W = F(w)``:
+
+* ``g = F(w C) / W`` (eq. 14) and the collocation transpose ``D^T v = w * T(v / W)``;
+* ``nabla_C E_d = 2 D^T r`` and ``nabla_w E_d = 2 (C * T(r / W) - T(r g / W))`` (DESIGN 2).
+
+D (3m x NM) is never formed, nor any (samples x 16) array of its rows. Arrays indexed by
+sample are in the problem's slot order (see :class:`jurs.Problem`).
 """
 
 from __future__ import annotations
@@ -11,37 +16,30 @@ import jax
 import jax.numpy as jnp
 from jax import Array
 
-from ._basis import grid_to_patches, num_cells, patches_to_grid
+from ._basis import num_cells, patches_to_grid
 from ._problem import Problem
-from ._spline import ImplicitSpline, rational_terms
+from ._spline import ImplicitSpline, bspline_transpose, rational_terms, rational_values
 
 
-def transpose_apply(problem: Problem, rows: Array) -> Array:
-    """Sum per-sample 16-term rows onto the grid: ``sum_k rows[k, ..., j]`` at the
-    coefficient of term j. With ``rows = D_k * v_k`` this is ``D^T v``.
+def rational_residuals(problem: Problem, control: Array, weights: Array):
+    """``(r, W, g)`` at the slots: ``r = g(x_k) - b_k`` (0 at padding), ``W = W(x_k)`` and
+    ``g(x_k)`` (eq. 14, 18)."""
+    denom, g = rational_values(problem.local, control, weights)
+    return problem.slot_mask * (g - problem.slot_targets), denom, g
 
-    ``rows`` is ``(n, 16)`` -> ``(N, M)``, or ``(n, c, 16)`` -> ``(c, N, M)`` for several
-    products in one pass over the samples (one segment sum, one read of the cell indices).
+
+def collocation_transpose(problem: Problem, weights: Array, denom: Array, values: Array) -> Array:
+    """``D^T v`` for the collocation D of eq. 23 (rows ``w_ij B_ij / W``): ``w * T(v / W)``.
+
+    ``values`` may carry leading axes (several vectors in one pass); masked slots count 0.
     """
-    per_cell = jax.ops.segment_sum(rows, problem.local.cell, num_segments=num_cells(problem.shape))
-    if rows.ndim == 2:
-        return patches_to_grid(per_cell, problem.shape)
-    return jax.vmap(lambda p: patches_to_grid(p, problem.shape), in_axes=1)(per_cell)
-
-
-def residuals(problem: Problem, control: Array, weights: Array):
-    """``r = g(x_k) - b_k`` at the 3m samples (0 at masked-out padding), with the rational
-    terms it was built from.
-
-    Returns ``(r, wb, denom, g)``, see :func:`jurs._spline.rational_terms`.
-    """
-    wb, denom, g = rational_terms(problem.local, control, weights)
-    return problem.mask * (g - problem.targets), wb, denom, g
+    return weights * bspline_transpose(problem.local, problem.slot_mask * values / denom,
+                                       problem.shape)
 
 
 def data_energy(problem: Problem, control: Array, weights: Array) -> Array:
     """E_d(C, w) = sum_k (g(x_k) - b_k)^2 over all 3m samples (eq. 16; eq. 6 when w = 1)."""
-    r = residuals(problem, control, weights)[0]
+    r = rational_residuals(problem, control, weights)[0]
     return jnp.sum(r * r)
 
 
@@ -73,37 +71,52 @@ def regulariser_grad(control: Array) -> Array:
 
 def data_energy_grad_control(problem: Problem, control: Array, weights: Array) -> Array:
     """nabla_C E_d = 2 D^T r, hand-derived (DESIGN 2)."""
-    r, wb, denom, _ = residuals(problem, control, weights)
-    return 2.0 * transpose_apply(problem, wb * (r / denom)[:, None])
+    r, denom, _ = rational_residuals(problem, control, weights)
+    return 2.0 * collocation_transpose(problem, weights, denom, r)
 
 
-def weight_grad_rows(problem: Problem, control: Array, r: Array, wb: Array, denom: Array,
-                     g: Array) -> Array:
-    """Per-sample terms of nabla_w E_d (eq. 19): ``2 r_k B_ij(x_k) (C_ij - g_k) / W_k``.
-
-    ``B_ij = wb / w_ij``; written as ``wb (C_ij - g) / (w_ij W)`` it would divide by w, so
-    the plain basis products are used instead.
-    """
-    c_rows = grid_to_patches(control)[problem.local.cell]
-    return problem.local.products * (2.0 * r / denom)[:, None] * (c_rows - g[:, None])
+def weight_gradient(problem: Problem, control: Array, r: Array, denom: Array, g: Array) -> Array:
+    """nabla_w E_d (eq. 19) from the residuals: ``2 sum_k r_k B_ij(x_k) (C_ij - g_k) / W_k``
+    = ``2 (C * T(r / W) - T(r g / W))``, hand-derived (DESIGN 2)."""
+    t = bspline_transpose(problem.local, jnp.stack([r / denom, r * g / denom]), problem.shape)
+    return 2.0 * (control * t[0] - t[1])
 
 
 def data_energy_grad_weights(problem: Problem, control: Array, weights: Array) -> Array:
     """nabla_w E_d = 2 sum_k r_k B_i B_j(x_k) (C_ij - g(x_k)) / W(x_k) (eq. 19), hand-derived."""
-    r, wb, denom, g = residuals(problem, control, weights)
-    return transpose_apply(problem, weight_grad_rows(problem, control, r, wb, denom, g))
+    r, denom, g = rational_residuals(problem, control, weights)
+    return weight_gradient(problem, control, r, denom, g)
 
 
 def collocation_column_sums(problem: Problem, weights: Array) -> Array:
     """Column sums of D (eq. 23) as an (N, M) grid. D >= 0 with unit row sums, so
-    ||D^T D||_inf equals the largest of these (DESIGN 2). Masked samples are not rows."""
-    _, wb, denom, _ = residuals(problem, jnp.zeros_like(weights), weights)
-    return transpose_apply(problem, wb * (problem.mask / denom)[:, None])
+    ||D^T D||_inf equals the largest of these (DESIGN 2). Masked slots are not rows."""
+    denom = rational_values(problem.local, jnp.zeros_like(weights), weights)[0]
+    return collocation_transpose(problem, weights, denom, jnp.ones_like(denom))
 
 
 def step_size(problem: Problem, weights: Array) -> Array:
     """mu = 2 / ||D^T D||_inf (eq. 13 and 25), without forming D^T D."""
     return 2.0 / jnp.max(collocation_column_sums(problem, weights))
+
+
+def residuals(problem: Problem, control: Array, weights: Array):
+    """Residuals with the explicit collocation rows of eq. 23, for row-based algorithms
+    and checks: ``(r, wb, denom, g)`` with row ``k`` of D equal to ``wb[k] / denom[k]``
+    (see :func:`jurs._spline.rational_terms`). ``r`` is 0 at padding slots."""
+    wb, denom, g = rational_terms(problem.local, control, weights)
+    return problem.slot_mask * (g - problem.slot_targets), wb, denom, g
+
+
+def transpose_apply(problem: Problem, rows: Array) -> Array:
+    """Sum explicit per-slot 16-term rows onto the grid: ``sum_k rows[k, ..., j]`` at the
+    coefficient of term j; with ``rows = D_k v_k`` this is ``D^T v``.
+
+    ``rows`` is ``(S, 16)`` -> ``(N, M)``, or ``(S, c, 16)`` -> ``(c, N, M)``. The solvers use
+    the cheaper :func:`collocation_transpose`; this is for row-based algorithms.
+    """
+    per_cell = jax.ops.segment_sum(rows, problem.local.cell, num_segments=num_cells(problem.shape))
+    return patches_to_grid(jnp.moveaxis(per_cell, 0, -2), problem.shape)
 
 
 def metrics(problem: Problem, spline: ImplicitSpline, lam=0.0) -> dict[str, Array]:
@@ -114,16 +127,15 @@ def metrics(problem: Problem, spline: ImplicitSpline, lam=0.0) -> dict[str, Arra
     also returned, and ``mu`` of eq. 25 for the spline's weights. Padding (``mask`` 0) is
     left out of every sum.
     """
-    r = residuals(problem, spline.control, spline.weights)[0]
-    m = problem.num_points
-    on_data = r[:m]  # targets there are 0, so r = g(P_i) (0 at padding)
+    r = rational_residuals(problem, spline.control, spline.weights)[0]
+    on_data = problem.slot_data * r  # targets there are 0, so r = g(P_i)
     e_d = jnp.sum(r * r)
     reg = regulariser(spline.control)
     return {
         "E": e_d + lam * reg,
         "E_d": e_d,
         "R": reg,
-        "E_ave": jnp.sum(on_data * on_data) / jnp.sum(problem.mask[:m]),
+        "E_ave": jnp.sum(on_data * on_data) / jnp.sum(problem.slot_data),
         "E_max": jnp.max(jnp.abs(on_data)),
         "mu": step_size(problem, spline.weights),
     }

@@ -6,7 +6,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
-from ._problem import DEFAULT_MARGIN, make_problem, normalise_grid, validate_inputs
+from ._problem import DEFAULT_MARGIN, make_problem, normalise_grid
 from ._solution import Solution
 from ._spline import ImplicitSpline
 from .solvers import AbstractSolver, IURS, solve
@@ -20,9 +20,7 @@ def _as_arrays(tree, dtype):
 
 
 @eqx.filter_jit
-def _fit(points, normals, offset, eps, domain, margin, mask, solver, init, shape, throw):
-    problem = make_problem(points, normals, grid=shape, offset=offset, eps=eps, domain=domain,
-                           margin=margin, mask=mask, dtype=points.dtype)
+def _solve(problem, solver, init, throw):
     return solve(solver, problem, init, throw=throw)
 
 
@@ -38,6 +36,7 @@ def fit(
     margin: float = DEFAULT_MARGIN,
     init: ImplicitSpline | None = None,
     mask=None,
+    bucket_size: int | None = None,
     throw: bool = True,
 ) -> Solution:
     """Fit an implicit spline whose zero set passes through ``points``.
@@ -55,6 +54,7 @@ def fit(
         init: starting spline on the same box and grid; default C = 0, w = 1.
         mask: optional ``(m,)`` booleans, False marking padding points that take no part
             (for ``jax.vmap`` over clouds padded to one size).
+        bucket_size: sample layout, see :func:`jurs.make_problem` (None chooses).
         throw: raise if the energy becomes NaN/Inf (the last finite iterate is kept either
             way; ``sol.result`` says what happened).
 
@@ -66,13 +66,11 @@ def fit(
     solver = IURS() if solver is None else solver
     if not isinstance(solver, AbstractSolver):
         raise TypeError(f"solver must be a jurs solver, got {type(solver).__name__}")
-    validate_inputs(points, normals, offset=offset, eps=eps, domain=domain)
     dtype = jnp.result_type(float)
-    points = jnp.asarray(points, dtype)
-    normals = jnp.asarray(normals, dtype)
-    if domain is not None:
-        domain = jnp.asarray(domain, dtype)
     if init is not None and tuple(init.shape) != shape:
         raise ValueError(f"init spline has grid {init.shape}, expected {shape}")
-    return _fit(points, normals, jnp.asarray(offset, dtype), jnp.asarray(eps, dtype), domain,
-                margin, mask, _as_arrays(solver, dtype), init, shape, throw)
+    # The problem is built outside the solver's jit: its sample layout is chosen on the
+    # host from concrete data (see make_problem); under a caller's jit/grad/vmap it is traced.
+    problem = make_problem(points, normals, grid=shape, offset=offset, eps=eps, domain=domain,
+                           margin=margin, mask=mask, bucket_size=bucket_size, dtype=dtype)
+    return _solve(problem, _as_arrays(solver, dtype), init, throw)

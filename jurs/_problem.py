@@ -14,6 +14,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
+from ._basis import flat_cell, locate, num_cells
 from ._spline import LocalBasis, local_basis
 
 #: Default margin added around the samples' bounding box, as a fraction of its longest side.
@@ -23,26 +24,78 @@ DEFAULT_MARGIN = 0.05
 class Problem(eqx.Module):
     """A fitting problem: samples, targets, the box and the grid, and their local basis.
 
-    Build it with :func:`make_problem`. ``shape`` is static (it fixes array sizes); all
-    other fields are arrays, so a Problem can be traced, differentiated and batched.
+    Build it with :func:`make_problem`. ``samples``, ``targets`` and ``mask`` are in the
+    paper's order (eq. 4, 9: the m data points first). The solvers work on *slots*: the same
+    samples regrouped into buckets that share a cell (see :mod:`jurs._spline`), with padding
+    slots whose ``slot_mask`` is 0. ``slot_sample`` says which sample each slot holds.
+    ``shape`` is static; all other fields are arrays, so a Problem can be traced,
+    differentiated and batched.
     """
 
     points: Array  # (m, 2) data points P
     normals: Array  # (m, 2) unit outward normals
     samples: Array  # (3m, 2): P, P + d n, P - d n  (eq. 4)
     targets: Array  # (3m,): 0, +eps, -eps  (eq. 5, 9)
+    mask: Array  # (3m,) 1.0 for real samples, 0.0 for padding points (batched fits)
     lower: Array  # (2,) box corner
     upper: Array  # (2,) box corner
     offset: Array  # d
     eps: Array  # epsilon
-    mask: Array  # (3m,) 1.0 for real samples, 0.0 for padding (batched fits)
-    local: LocalBasis  # basis of the 3m samples on the grid
+    local: LocalBasis  # basis at the slots
+    slot_sample: Array  # (S,) int32 index into samples
+    slot_targets: Array  # (S,) b at each slot
+    slot_mask: Array  # (S,) 1.0 where the slot holds a real sample, else 0.0
+    slot_data: Array  # (S,) 1.0 where the slot holds a real data point P_i (target 0)
     shape: tuple[int, int] = eqx.field(static=True)
 
     @property
     def num_points(self) -> int:
-        """m, the number of data points (padding included, see ``mask``)."""
+        """m, the number of data points (padding points included, see ``mask``)."""
         return self.points.shape[0]
+
+
+#: Below this many samples the automatic layout keeps one sample per bucket: the fit then
+#: compiles once per problem size, whatever the data, and is already fast.
+BUCKET_MIN_SAMPLES = 1 << 14
+#: Largest automatic bucket size.
+MAX_BUCKET_SIZE = 64
+
+
+def choose_bucket_size(cells: np.ndarray, count: int) -> int:
+    """Automatic bucket size: 1 for small problems, else the largest power of two not above
+    the median number of samples per occupied cell (at most ``MAX_BUCKET_SIZE``), so that
+    most buckets are full and padding stays below about half the slots."""
+    if cells.shape[0] < BUCKET_MIN_SAMPLES:
+        return 1
+    counts = np.bincount(cells, minlength=count)
+    median = float(np.median(counts[counts > 0]))
+    return int(min(MAX_BUCKET_SIZE, 2 ** int(np.floor(np.log2(max(median, 1.0))))))
+
+
+def bucket_layout(cells: np.ndarray, bucket_size: int, count: int):
+    """Group sample indices into buckets of ``bucket_size`` samples sharing a cell.
+
+    ``cells`` (S,) is each sample's flat cell, ``count`` the number of cells. Returns
+    ``(slot_sample, valid)``, both ``(num_buckets * bucket_size,)``: the sample in each slot
+    and whether it is real. Padding slots repeat their bucket's first sample (so the basis
+    stays well defined) and have ``valid`` False. A cell with more samples than a bucket
+    holds gets several buckets.
+    """
+    k = bucket_size
+    order = np.argsort(cells, kind="stable")
+    sorted_cells = cells[order]
+    counts = np.bincount(cells, minlength=count)
+    cell_start = np.cumsum(counts) - counts
+    rank = np.arange(cells.shape[0]) - cell_start[sorted_cells]  # position within its cell
+    buckets_per_cell = -(-counts // k)
+    first_bucket = np.cumsum(buckets_per_cell) - buckets_per_cell
+    slot = (first_bucket[sorted_cells] + rank // k) * k + rank % k
+    slot_sample = np.full(int(buckets_per_cell.sum()) * k, -1, dtype=np.int64)
+    slot_sample[slot] = order
+    slot_sample = slot_sample.reshape(-1, k)
+    valid = slot_sample >= 0
+    slot_sample = np.where(valid, slot_sample, slot_sample[:, :1])
+    return slot_sample.reshape(-1).astype(np.int32), valid.reshape(-1)
 
 
 def offset_samples(points: Array, normals: Array, offset, eps):
@@ -159,6 +212,37 @@ def validate_inputs(points, normals, *, offset, eps, domain=None) -> None:
         _validate_domain(domain, np.concatenate([p, p + d * n, p - d * n]), p.shape[0])
 
 
+@eqx.filter_jit
+def _geometry(points, normals, offset, eps, domain, margin, mask):
+    """Samples, targets, mask and box (one compiled call)."""
+    dtype = points.dtype
+    normals = normals / jnp.linalg.norm(normals, axis=1, keepdims=True)
+    samples, targets = offset_samples(points, normals, offset, eps)
+    if mask is None:
+        sample_mask = jnp.ones(samples.shape[0], dtype=dtype)
+    else:
+        sample_mask = jnp.tile(jnp.asarray(mask).astype(dtype), 3)
+    if domain is None:
+        lower, upper = auto_domain(samples, margin, None if mask is None else sample_mask)
+    else:
+        lower, upper = domain[0], domain[1]
+    return normals, samples, targets, sample_mask, lower, upper
+
+
+@eqx.filter_jit
+def _slots(samples, targets, sample_mask, lower, upper, slot_sample, valid, shape, bucket_size):
+    """Per-slot basis, targets and masks (one compiled call)."""
+    m = samples.shape[0] // 3
+    xy = samples[slot_sample]
+    slot_mask = sample_mask[slot_sample] * valid
+    return (
+        local_basis(xy, lower, upper, shape, bucket_size),
+        targets[slot_sample],
+        slot_mask,
+        slot_mask * (slot_sample < m),
+    )
+
+
 def make_problem(
     points,
     normals,
@@ -169,6 +253,7 @@ def make_problem(
     domain=None,
     margin: float = DEFAULT_MARGIN,
     mask=None,
+    bucket_size: int | None = None,
     dtype=None,
 ) -> Problem:
     """Build the fitting :class:`Problem` of eq. 4-5 and 9.
@@ -184,6 +269,9 @@ def make_problem(
         mask: optional ``(m,)`` booleans; points with False are padding and take no part in
             the fit, the box or the metrics. Lets clouds of different sizes share one shape
             so that a fit can be ``jax.vmap``-ed over a padded batch.
+        bucket_size: samples per bucket of the slot layout. ``None`` chooses (see
+            :func:`choose_bucket_size`); 1 keeps the paper's order, one sample a bucket.
+            Sizes above 1 need concrete (untraced) inputs: the layout is computed on the host.
         dtype: floating dtype; default float64 when ``jax_enable_x64`` is on, else float32.
 
     Raises:
@@ -193,30 +281,52 @@ def make_problem(
     """
     shape = normalise_grid(grid)
     validate_inputs(points, normals, offset=offset, eps=eps, domain=domain)
+    if bucket_size is not None and (int(bucket_size) != bucket_size or bucket_size < 1):
+        raise ValueError(f"bucket_size must be a positive int, got {bucket_size!r}")
     dtype = dtype or jnp.result_type(float)
     points = jnp.asarray(points, dtype=dtype)
-    normals = jnp.asarray(normals, dtype=dtype)
-    normals = normals / jnp.linalg.norm(normals, axis=1, keepdims=True)
-    samples, targets = offset_samples(points, normals, offset, eps)
-    if mask is None:
-        sample_mask = jnp.ones(samples.shape[0], dtype=dtype)
+    if mask is not None and tuple(jnp.shape(mask)) != (points.shape[0],):
+        raise ValueError(f"mask must have shape ({points.shape[0]},), got {jnp.shape(mask)}")
+    normals, samples, targets, sample_mask, lower, upper = _geometry(
+        points,
+        jnp.asarray(normals, dtype=dtype),
+        jnp.asarray(offset, dtype=dtype),
+        jnp.asarray(eps, dtype=dtype),
+        None if domain is None else jnp.asarray(domain, dtype=dtype),
+        margin,
+        mask,
+    )
+    concrete = _is_concrete(samples, lower, upper)
+    if bucket_size is not None and bucket_size > 1 and not concrete:
+        raise ValueError("bucket_size > 1 needs concrete inputs (the layout is built on the host)")
+    if concrete and bucket_size != 1:
+        cell, _ = locate(samples, lower, upper, shape)
+        cells = np.asarray(flat_cell(cell, shape))
+        bucket_size = bucket_size or choose_bucket_size(cells, num_cells(shape))
     else:
-        sample_mask = jnp.tile(jnp.asarray(mask).astype(dtype), 3)
-    if domain is None:
-        lower, upper = auto_domain(samples, margin, None if mask is None else sample_mask)
+        bucket_size = 1
+    if bucket_size == 1:
+        slot_sample = jnp.arange(samples.shape[0], dtype=jnp.int32)
+        valid = jnp.ones(samples.shape[0], dtype=bool)
     else:
-        lower = jnp.asarray(domain[0], dtype=dtype)
-        upper = jnp.asarray(domain[1], dtype=dtype)
+        slot_sample, valid = bucket_layout(cells, bucket_size, num_cells(shape))
+    local, slot_targets, slot_mask, slot_data = _slots(
+        samples, targets, sample_mask, lower, upper, slot_sample, valid, shape, bucket_size
+    )
     return Problem(
         points=points,
         normals=normals,
         samples=samples,
         targets=targets,
+        mask=sample_mask,
         lower=lower,
         upper=upper,
         offset=jnp.asarray(offset, dtype=dtype),
         eps=jnp.asarray(eps, dtype=dtype),
-        mask=sample_mask,
-        local=local_basis(samples, lower, upper, shape),
+        local=local,
+        slot_sample=jnp.asarray(slot_sample),
+        slot_targets=slot_targets,
+        slot_mask=slot_mask,
+        slot_data=slot_data,
         shape=shape,
     )

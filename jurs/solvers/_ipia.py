@@ -8,7 +8,8 @@ import equinox as eqx
 import jax.numpy as jnp
 from jax import Array
 
-from .._energy import residuals, step_size, transpose_apply
+from .._energy import rational_residuals, step_size
+from .._spline import bspline_transpose
 from .._problem import Problem, check_nonnegative
 from .._spline import ImplicitSpline
 from ._base import AbstractSolver
@@ -41,15 +42,15 @@ class IPIA(AbstractSolver[IPIAState]):
     def init(self, problem: Problem, spline: ImplicitSpline):
         control = spline.control
         ones = jnp.ones_like(control)
-        r = residuals(problem, control, ones)[0]
+        r = rational_residuals(problem, control, ones)[0]
         return IPIAState(control, r, step_size(problem, ones)), jnp.sum(r * r)
 
     def step(self, problem: Problem, state: IPIAState):
         ones = jnp.ones_like(state.control)
-        _, wb, _, _ = residuals(problem, state.control, ones)  # wb = B (w = 1, W = 1)
-        # eq. 11, with r = DC - b:  C + mu D^T (b - DC) = C - mu D^T r
-        control = state.control - state.mu * transpose_apply(problem, wb * state.residual[:, None])
-        r = residuals(problem, control, ones)[0]
+        # eq. 11 with r = DC - b: C + mu D^T (b - DC) = C - mu D^T r, and D^T = T for w = 1.
+        dtr = bspline_transpose(problem.local, state.residual, problem.shape)
+        control = state.control - state.mu * dtr
+        r = rational_residuals(problem, control, ones)[0]
         return IPIAState(control, r, state.mu), jnp.sum(r * r)
 
     def to_spline(self, problem: Problem, state: IPIAState) -> ImplicitSpline:

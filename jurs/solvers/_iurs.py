@@ -6,9 +6,15 @@ import equinox as eqx
 import jax.numpy as jnp
 from jax import Array
 
-from .._energy import regulariser, regulariser_grad, residuals, transpose_apply, weight_grad_rows
+from .._energy import (
+    collocation_transpose,
+    rational_residuals,
+    regulariser,
+    regulariser_grad,
+    weight_gradient,
+)
 from .._problem import Problem, check_nonnegative
-from .._spline import ImplicitSpline
+from .._spline import ImplicitSpline, bspline_values
 from ._base import AbstractSolver
 
 
@@ -55,10 +61,14 @@ class IURS(AbstractSolver[IURSState]):
         if int(self.max_steps) < 0:
             raise ValueError(f"max_steps must be >= 0, got {self.max_steps}")
 
-    def _energy_and_weight_grad(self, problem, control, weights):
-        r, wb, denom, g = residuals(problem, control, weights)
-        grad_w = transpose_apply(problem, weight_grad_rows(problem, control, r, wb, denom, g))
-        return jnp.sum(r * r) + self.lam * regulariser(control), grad_w
+    def _energy_and_weight_grad(self, problem, control, weights, denom=None):
+        if denom is None:
+            r, denom, g = rational_residuals(problem, control, weights)
+        else:  # W = F(w) is already known for these weights: one B-spline evaluation less
+            g = bspline_values(problem.local, weights * control) / denom
+            r = problem.slot_mask * (g - problem.slot_targets)
+        energy = jnp.sum(r * r) + self.lam * regulariser(control)
+        return energy, weight_gradient(problem, control, r, denom, g)
 
     def init(self, problem: Problem, spline: ImplicitSpline):
         energy, grad_w = self._energy_and_weight_grad(problem, spline.control, spline.weights)
@@ -68,16 +78,16 @@ class IURS(AbstractSolver[IURSState]):
     def step(self, problem: Problem, state: IURSState):
         # 1. eq. 20, projected onto w >= min_weight.
         weights = jnp.maximum(state.weights - self.tau * state.weight_grad, self.min_weight)
-        # 2. collocation rows R_ij = w_ij B_ij / W with the new weights; residual of the old C.
-        r, wb, denom, _ = residuals(problem, state.control, weights)
-        rows = wb * (problem.mask / denom)[:, None]  # padding rows are 0
-        # D^T r and the column sums of D (for mu, eq. 25) in one pass over the samples.
-        dtr, col_sums = transpose_apply(problem, jnp.stack([rows * r[:, None], rows], axis=1))
+        # 2. D of eq. 23 with the new weights, applied to the residual of the current C;
+        #    D^T r and the column sums of D (for mu, eq. 25) share one pass.
+        r, denom, _ = rational_residuals(problem, state.control, weights)
+        dtr, col_sums = collocation_transpose(problem, weights, denom,
+                                              jnp.stack([r, jnp.ones_like(r)]))
         mu = 2.0 / jnp.max(col_sums)
         # 3. eq. 33: C + mu D^T (b - DC) - lam grad R(C).
         control = state.control - mu * dtr - self.lam * regulariser_grad(state.control)
         # 4. eq. 35 at the new (C, w), with nabla_w E_d there for the next step.
-        energy, grad_w = self._energy_and_weight_grad(problem, control, weights)
+        energy, grad_w = self._energy_and_weight_grad(problem, control, weights, denom)
         return IURSState(control, weights, grad_w, mu), energy
 
     def to_spline(self, problem: Problem, state: IURSState) -> ImplicitSpline:
