@@ -25,7 +25,7 @@ def rational_residuals(problem: Problem, control: Array, weights: Array):
     """``(r, W, g)`` at the slots: ``r = g(x_k) - b_k`` (0 at padding), ``W = W(x_k)`` and
     ``g(x_k)`` (eq. 14, 18)."""
     denom, g = rational_values(problem.local, control, weights)
-    return problem.slot_mask * (g - problem.slot_targets), denom, g
+    return problem.mask * (g - problem.targets), denom, g
 
 
 def collocation_transpose(problem: Problem, weights: Array, denom: Array, values: Array) -> Array:
@@ -33,7 +33,7 @@ def collocation_transpose(problem: Problem, weights: Array, denom: Array, values
 
     ``values`` may carry leading axes (several vectors in one pass); masked slots count 0.
     """
-    return weights * bspline_transpose(problem.local, problem.slot_mask * values / denom,
+    return weights * bspline_transpose(problem.local, problem.mask * values / denom,
                                        problem.shape)
 
 
@@ -105,7 +105,7 @@ def residuals(problem: Problem, control: Array, weights: Array):
     and checks: ``(r, wb, denom, g)`` with row ``k`` of D equal to ``wb[k] / denom[k]``
     (see :func:`jurs._spline.rational_terms`). ``r`` is 0 at padding slots."""
     wb, denom, g = rational_terms(problem.local, control, weights)
-    return problem.slot_mask * (g - problem.slot_targets), wb, denom, g
+    return problem.mask * (g - problem.targets), wb, denom, g
 
 
 def transpose_apply(problem: Problem, rows: Array) -> Array:
@@ -128,14 +128,14 @@ def metrics(problem: Problem, spline: ImplicitSpline, lam=0.0) -> dict[str, Arra
     left out of every sum.
     """
     r = rational_residuals(problem, spline.control, spline.weights)[0]
-    on_data = problem.slot_data * r  # targets there are 0, so r = g(P_i)
+    on_data = problem.is_data * r  # targets there are 0, so r = g(P_i)
     e_d = jnp.sum(r * r)
     reg = regulariser(spline.control)
     return {
         "E": e_d + lam * reg,
         "E_d": e_d,
         "R": reg,
-        "E_ave": jnp.sum(on_data * on_data) / jnp.sum(problem.slot_data),
+        "E_ave": jnp.sum(on_data * on_data) / jnp.sum(problem.is_data),
         "E_max": jnp.max(jnp.abs(on_data)),
         "mu": step_size(problem, spline.weights),
     }

@@ -24,33 +24,32 @@ DEFAULT_MARGIN = 0.05
 class Problem(eqx.Module):
     """A fitting problem: samples, targets, the box and the grid, and their local basis.
 
-    Build it with :func:`make_problem`. ``samples``, ``targets`` and ``mask`` are in the
-    paper's order (eq. 4, 9: the m data points first). The solvers work on *slots*: the same
-    samples regrouped into buckets that share a cell (see :mod:`jurs._spline`), with padding
-    slots whose ``slot_mask`` is 0. ``slot_sample`` says which sample each slot holds.
-    ``shape`` is static; all other fields are arrays, so a Problem can be traced,
-    differentiated and batched.
+    Build it with :func:`make_problem`. Every per-sample array (``samples``, ``targets``,
+    ``mask``, ``is_data``, ``local``) is indexed the same way, by *slot*: the 3m samples of
+    eq. 4 regrouped into buckets that share a cell (see :mod:`jurs._spline`), plus padding
+    slots with ``mask`` 0. ``sample_index`` maps each slot to the paper's order (eq. 9: the
+    m data points, then the outer, then the inner offsets). With ``bucket_size`` 1 the slots
+    are exactly the paper's order. ``shape`` is static; all other fields are arrays, so a
+    Problem can be traced, differentiated and batched.
     """
 
     points: Array  # (m, 2) data points P
     normals: Array  # (m, 2) unit outward normals
-    samples: Array  # (3m, 2): P, P + d n, P - d n  (eq. 4)
-    targets: Array  # (3m,): 0, +eps, -eps  (eq. 5, 9)
-    mask: Array  # (3m,) 1.0 for real samples, 0.0 for padding points (batched fits)
+    samples: Array  # (S, 2) sample positions, P or P +/- d n (eq. 4)
+    targets: Array  # (S,) b: 0, +eps or -eps (eq. 5, 9)
+    mask: Array  # (S,) 1.0 for real samples, 0.0 for padding (layout or batched fits)
+    is_data: Array  # (S,) 1.0 where the slot holds a real data point P_i (target 0)
+    sample_index: Array  # (S,) int32 position in the paper's order [P, P + d n, P - d n]
     lower: Array  # (2,) box corner
     upper: Array  # (2,) box corner
     offset: Array  # d
     eps: Array  # epsilon
-    local: LocalBasis  # basis at the slots
-    slot_sample: Array  # (S,) int32 index into samples
-    slot_targets: Array  # (S,) b at each slot
-    slot_mask: Array  # (S,) 1.0 where the slot holds a real sample, else 0.0
-    slot_data: Array  # (S,) 1.0 where the slot holds a real data point P_i (target 0)
+    local: LocalBasis  # basis at the samples
     shape: tuple[int, int] = eqx.field(static=True)
 
     @property
     def num_points(self) -> int:
-        """m, the number of data points (padding points included, see ``mask``)."""
+        """m, the number of data points (padding points included)."""
         return self.points.shape[0]
 
 
@@ -231,11 +230,12 @@ def _geometry(points, normals, offset, eps, domain, margin, mask):
 
 @eqx.filter_jit
 def _slots(samples, targets, sample_mask, lower, upper, slot_sample, valid, shape, bucket_size):
-    """Per-slot basis, targets and masks (one compiled call)."""
+    """Per-slot positions, basis, targets and masks (one compiled call)."""
     m = samples.shape[0] // 3
     xy = samples[slot_sample]
     slot_mask = sample_mask[slot_sample] * valid
     return (
+        xy,
         local_basis(xy, lower, upper, shape, bucket_size),
         targets[slot_sample],
         slot_mask,
@@ -310,23 +310,21 @@ def make_problem(
         valid = jnp.ones(samples.shape[0], dtype=bool)
     else:
         slot_sample, valid = bucket_layout(cells, bucket_size, num_cells(shape))
-    local, slot_targets, slot_mask, slot_data = _slots(
+    slot_xy, local, slot_targets, slot_mask, slot_data = _slots(
         samples, targets, sample_mask, lower, upper, slot_sample, valid, shape, bucket_size
     )
     return Problem(
         points=points,
         normals=normals,
-        samples=samples,
-        targets=targets,
-        mask=sample_mask,
+        samples=slot_xy,
+        targets=slot_targets,
+        mask=slot_mask,
+        is_data=slot_data,
+        sample_index=jnp.asarray(slot_sample),
         lower=lower,
         upper=upper,
         offset=jnp.asarray(offset, dtype=dtype),
         eps=jnp.asarray(eps, dtype=dtype),
         local=local,
-        slot_sample=jnp.asarray(slot_sample),
-        slot_targets=slot_targets,
-        slot_mask=slot_mask,
-        slot_data=slot_data,
         shape=shape,
     )

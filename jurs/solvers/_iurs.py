@@ -66,7 +66,7 @@ class IURS(AbstractSolver[IURSState]):
             r, denom, g = rational_residuals(problem, control, weights)
         else:  # W = F(w) is already known for these weights: one B-spline evaluation less
             g = bspline_values(problem.local, weights * control) / denom
-            r = problem.slot_mask * (g - problem.slot_targets)
+            r = problem.mask * (g - problem.targets)
         energy = jnp.sum(r * r) + self.lam * regulariser(control)
         return energy, weight_gradient(problem, control, r, denom, g)
 
