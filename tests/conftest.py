@@ -1,0 +1,36 @@
+"""Shared test setup: the maths runs in float64 (E_ave sits at 1e-6..1e-8)."""
+
+import jax
+import matplotlib
+import numpy as np
+import pytest
+from scipy.interpolate import BSpline
+
+jax.config.update("jax_enable_x64", True)
+matplotlib.use("Agg")
+
+
+def dense_basis(xy, lower, upper, shape):
+    """All N*M tensor-product B-spline values at ``xy`` as a dense (n, N*M) matrix, built
+    independently of jurs with scipy (knots: uniform, extended 3 cells past the box)."""
+    columns = []
+    for axis in range(2):
+        n = shape[axis]
+        h = (upper[axis] - lower[axis]) / (n - 3)
+        knots = lower[axis] + (np.arange(n + 4) - 3.0) * h
+        columns.append(BSpline.design_matrix(np.asarray(xy)[:, axis], knots, 3).toarray())
+    bx, by = columns
+    return (bx[:, :, None] * by[:, None, :]).reshape(len(xy), -1)
+
+
+def dense_collocation(problem, weights):
+    """D of eq. 23 (rows w_ij B_ij / W), dense, in the problem's slot order (test sizes only)."""
+    basis = dense_basis(np.asarray(problem.samples), np.asarray(problem.lower),
+                        np.asarray(problem.upper), problem.shape)
+    wb = basis * np.asarray(weights).ravel()[None, :]
+    return wb / wb.sum(axis=1, keepdims=True)
+
+
+@pytest.fixture
+def rng():
+    return np.random.default_rng(1234)

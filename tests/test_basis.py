@@ -1,0 +1,133 @@
+"""The uniform cubic basis, the local-term maps and the spline evaluation."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from conftest import dense_basis
+from jax.test_util import check_grads
+
+import jurs
+from jurs._basis import grid_to_patches, patches_to_grid
+
+
+def random_points(rng, n, lower=(-1.0, 2.0), upper=(3.0, 5.0)):
+    lower, upper = np.asarray(lower), np.asarray(upper)
+    return lower + (upper - lower) * rng.random((n, 2)), lower, upper
+
+
+@pytest.mark.parametrize("shape", [(4, 4), (9, 9), (7, 12)])
+def test_partition_of_unity(rng, shape):
+    xy, lower, upper = random_points(rng, 500)
+    local = jurs.local_basis(jnp.asarray(xy), jnp.asarray(lower), jnp.asarray(upper), shape)
+    sums = np.asarray(local.products.sum(axis=1))
+    np.testing.assert_allclose(sums, 1.0, atol=1e-14)
+    assert np.all(np.asarray(local.products) >= 0)
+    # On the box corners too (the last cell is closed on the right).
+    corners = jnp.asarray([lower, upper, [lower[0], upper[1]]])
+    corner_sums = jurs.local_basis(corners, jnp.asarray(lower), jnp.asarray(upper), shape).products.sum(1)
+    np.testing.assert_allclose(np.asarray(corner_sums), 1.0, atol=1e-14)
+
+
+@pytest.mark.parametrize("shape", [(4, 5), (9, 9), (13, 8)])
+def test_basis_matches_scipy(rng, shape):
+    xy, lower, upper = random_points(rng, 200)
+    local = jurs.local_basis(jnp.asarray(xy), jnp.asarray(lower), jnp.asarray(upper), shape)
+    # Scatter the 16 local terms into a dense row per point.
+    ours = np.zeros((len(xy), shape[0] * shape[1]))
+    patch_index = np.asarray(grid_to_patches(jnp.arange(shape[0] * shape[1]).reshape(shape)))
+    cols = patch_index[np.asarray(local.cell)]
+    np.put_along_axis(ours, cols, np.asarray(local.products), axis=1)
+    np.testing.assert_allclose(ours, dense_basis(xy, lower, upper, shape), atol=1e-14)
+
+
+def test_cubic_derivatives_match_autodiff():
+    t = jnp.linspace(-0.2, 1.2, 31)
+    auto = jax.vmap(jax.jacfwd(jurs.cubic_weights))(t)
+    np.testing.assert_allclose(np.asarray(jurs.cubic_derivatives(t)), np.asarray(auto), atol=1e-14)
+
+
+def test_patch_maps_are_adjoint(rng):
+    shape = (8, 6)
+    grid = jnp.asarray(rng.standard_normal(shape))
+    patches = jnp.asarray(rng.standard_normal(((shape[0] - 3) * (shape[1] - 3), 16)))
+    lhs = jnp.vdot(grid_to_patches(grid), patches)
+    rhs = jnp.vdot(grid, patches_to_grid(patches, shape))
+    np.testing.assert_allclose(float(lhs), float(rhs), rtol=1e-13)
+
+
+@pytest.mark.parametrize("bucket_size", [1, 4])
+def test_transpose_is_adjoint_of_values(rng, bucket_size):
+    points, normals = jurs.datasets.example1(400)
+    problem = jurs.make_problem(points, normals, grid=(8, 7), bucket_size=bucket_size)
+    grid = jnp.asarray(rng.standard_normal((8, 7)))
+    values = jnp.asarray(rng.standard_normal(problem.samples.shape[0]))
+    lhs = jnp.vdot(jurs.bspline_values(problem.local, grid), values)
+    rhs = jnp.vdot(grid, jurs.bspline_transpose(problem.local, values, problem.shape))
+    np.testing.assert_allclose(float(lhs), float(rhs), rtol=1e-12)
+
+
+def test_rational_evaluation_against_definition(rng):
+    shape = (7, 9)
+    xy, lower, upper = random_points(rng, 100)
+    control = rng.standard_normal(shape)
+    weights = 0.5 + rng.random(shape)
+    spline = jurs.ImplicitSpline(jnp.asarray(control), jnp.asarray(weights), jnp.asarray(lower),
+                                 jnp.asarray(upper))
+    basis = dense_basis(xy, lower, upper, shape)
+    expected = basis @ (weights * control).ravel() / (basis @ weights.ravel())  # eq. 14
+    np.testing.assert_allclose(np.asarray(spline(jnp.asarray(xy))), expected, rtol=1e-12, atol=1e-14)
+    # One point in, one value out.
+    np.testing.assert_allclose(float(spline(jnp.asarray(xy[0]))), expected[0], rtol=1e-12)
+    # All weights 1: the B-spline f of eq. 2.
+    bspline = jurs.ImplicitSpline.bspline(jnp.asarray(control), lower, upper)
+    np.testing.assert_allclose(np.asarray(bspline(jnp.asarray(xy))), basis @ control.ravel(), atol=1e-12)
+
+
+def test_check_grads_spline_evaluation(rng):
+    shape = (6, 6)
+    xy, lower, upper = random_points(rng, 20)
+    lower, upper = jnp.asarray(lower), jnp.asarray(upper)
+
+    def evaluate(control, weights, xy):
+        return jurs.ImplicitSpline(control, weights, lower, upper)(xy)
+
+    args = (jnp.asarray(rng.standard_normal(shape)), jnp.asarray(0.5 + rng.random(shape)),
+            jnp.asarray(xy))
+    check_grads(evaluate, args, order=2, modes=("fwd", "rev"), eps=1e-6)
+
+
+def test_spatial_gradient(rng):
+    shape = (8, 8)
+    xy, lower, upper = random_points(rng, 10)
+    spline = jurs.ImplicitSpline(jnp.asarray(rng.standard_normal(shape)),
+                                 jnp.asarray(0.5 + rng.random(shape)), jnp.asarray(lower),
+                                 jnp.asarray(upper))
+    grad = np.asarray(spline.grad(jnp.asarray(xy)))
+    h = 1e-6
+    for axis in range(2):
+        step = np.zeros(2)
+        step[axis] = h
+        fd = (np.asarray(spline(jnp.asarray(xy + step))) - np.asarray(spline(jnp.asarray(xy - step)))) / (2 * h)
+        np.testing.assert_allclose(grad[:, axis], fd, rtol=1e-6, atol=1e-8)
+
+
+def test_spline_rejects_bad_grids():
+    with pytest.raises(ValueError, match="at least 4"):
+        jurs.ImplicitSpline(jnp.zeros((3, 5)), jnp.ones((3, 5)), jnp.zeros(2), jnp.ones(2))
+    with pytest.raises(ValueError, match="matching"):
+        jurs.ImplicitSpline(jnp.zeros((5, 5)), jnp.ones((5, 6)), jnp.zeros(2), jnp.ones(2))
+
+
+def test_bucket_layout_groups_samples_by_cell():
+    points, normals = jurs.datasets.example1(300)
+    flat = jurs.make_problem(points, normals, grid=(10, 10), bucket_size=1)
+    bucketed = jurs.make_problem(points, normals, grid=(10, 10), bucket_size=8)
+    k = bucketed.local.bucket_size
+    cells = np.asarray(bucketed.local.cell).reshape(-1, k)
+    assert (cells == cells[:, :1]).all(), "a bucket spans one cell"
+    index = np.asarray(bucketed.sample_index)[np.asarray(bucketed.mask) > 0]
+    assert sorted(index.tolist()) == list(range(900)), "every sample in exactly one real slot"
+    np.testing.assert_allclose(np.asarray(bucketed.samples)[np.asarray(bucketed.mask) > 0],
+                               np.asarray(flat.samples)[index])
+    assert float(bucketed.is_data.sum()) == 300
