@@ -1,0 +1,88 @@
+"""Built-in curves, noise, and reading points from files."""
+
+import numpy as np
+import pytest
+from matplotlib.path import Path
+
+import jurs
+from jurs import datasets
+
+
+@pytest.mark.parametrize("make", [datasets.example1, datasets.ellipse])
+def test_curves_have_unit_outward_normals(make):
+    points, normals = make(200)
+    assert points.shape == normals.shape == (200, 2)
+    np.testing.assert_allclose(np.linalg.norm(normals, axis=1), 1.0)
+    outline = Path(points)
+    assert not outline.contains_points(points + 0.05 * normals).any()
+    assert outline.contains_points(points - 0.05 * normals).all()
+
+
+def test_example1_is_the_papers_curve():
+    points, _ = datasets.example1(120)
+    t = np.linspace(0, 2 * np.pi, 120, endpoint=False)
+    np.testing.assert_allclose(points[:, 0], 4 * np.cos(t))
+    np.testing.assert_allclose(points[:, 1], np.sin(t) * (3 - 5 * np.sin(t)))
+
+
+def test_noise_is_seeded():
+    a = datasets.example10(seed=1)
+    b = datasets.example10(seed=1)
+    c = datasets.example10(seed=2)
+    np.testing.assert_array_equal(a[0], b[0])
+    assert not np.allclose(a[0], c[0])
+    assert a[0].shape == (500, 2) and datasets.example9()[0].shape == (400, 2)
+    clean = datasets.ellipse(500)[0]
+    assert 0.02 < np.std(a[0] - clean) < 0.08  # sigma = 0.05
+    np.testing.assert_allclose(np.linalg.norm(a[1], axis=1), 1.0)
+    with pytest.raises(ValueError):
+        datasets.add_noise(*datasets.ellipse(10), sigma=-1.0)
+
+
+@pytest.mark.parametrize("suffix", [".csv", ".npy", ".txt"])
+def test_round_trip(tmp_path, suffix):
+    points, normals = datasets.example1(25)
+    path = tmp_path / f"cloud{suffix}"
+    datasets.save_points(path, points, normals)
+    p2, n2 = datasets.load_points(path)
+    np.testing.assert_allclose(p2, points, rtol=1e-15)
+    np.testing.assert_allclose(n2, normals, rtol=1e-15)
+
+
+def test_whitespace_without_header(tmp_path):
+    path = tmp_path / "cloud.txt"
+    path.write_text("0 0 0 1\n1 0 1 0\n# a comment\n0 1 -1 0\n")
+    points, normals = datasets.load_points(path)
+    assert points.shape == (3, 2)
+
+
+@pytest.mark.parametrize(
+    "text, message",
+    [
+        ("x,y,nx,ny\n0,0,1,0\n1,1,0\n", r"row 3: expected 4 columns"),
+        ("x,y,nx,ny\n0,0,1,0\n1,abc,0,1\n", r"row 3: y = 'abc' is not a number"),
+        ("x,y,nx,ny\n0,0,1,0\n1,nan,0,1\n", r"row 3 has NaN or Inf"),
+        ("x,y,nx,ny\n0,0,0,0\n", r"row 2 has a zero-length normal"),
+        ("x,y,nx,ny\n", r"no data rows"),
+        ("", r"no data rows"),
+        ("a,b,c,d\n0,0,1,0\n", r"row 1: header must be x, y, nx, ny"),
+    ],
+)
+def test_bad_csv(tmp_path, text, message):
+    path = tmp_path / "bad.csv"
+    path.write_text(text)
+    with pytest.raises(ValueError, match=message) as info:
+        datasets.load_points(path)
+    assert str(path) in str(info.value)
+
+
+def test_bad_npy(tmp_path):
+    path = tmp_path / "bad.npy"
+    np.save(path, np.ones((5, 3)))
+    with pytest.raises(ValueError, match="expected 4 columns"):
+        datasets.load_points(path)
+    np.save(path, np.array(["a", "b"]))
+    with pytest.raises(ValueError, match="not numeric"):
+        datasets.load_points(path)
+    with pytest.raises(FileNotFoundError):
+        datasets.load_points(tmp_path / "missing.csv")
