@@ -18,7 +18,7 @@ demo: $(STAMP)
 	$(VENV)/bin/jurs demo
 
 test: $(STAMP)
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q --nbmake tests notebooks
 
 bench: $(STAMP)
 	$(PY) benchmarks/step_speed.py

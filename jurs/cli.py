@@ -1,22 +1,322 @@
-"""The ``jurs`` command line."""
+"""The ``jurs`` command line.
+
+    jurs demo [--output DIR]      the paper's Example 1 by I-PIA and IURS (table + figure)
+    jurs fit FILE [options]       fit a point cloud with normals (CSV, TXT or NPY; columns
+                                  x, y, nx, ny) and write, into --output:
+                                    metrics.json     fit and level-set metrics, settings
+                                    spline.npz       the spline (jurs.load_spline reads it)
+                                    fit.png          heatmap of g, zero set, data, offsets
+                                    zero_level.csv   zero-level polylines: component, closed,
+                                                     supplementary, x, y
+
+Bad input files give one line on stderr naming the file and the row, exit code 2, and
+write nothing. A fit that diverges (NaN energy) exits with code 1 and writes nothing.
+"""
 
 from __future__ import annotations
 
 import argparse
+import json
+import math
+import os
+import shutil
 import sys
+import tempfile
+import time
+
+EXIT_BAD_INPUT = 2
+EXIT_FIT_FAILED = 1
+OUTPUTS = ("metrics.json", "spline.npz", "fit.png", "zero_level.csv")
 
 
-def main(argv=None) -> int:
-    parser = argparse.ArgumentParser(prog="jurs", description=__doc__)
+class InputError(Exception):
+    """A problem with the user's input file or options: one line, exit code 2."""
+
+
+def _grid(text: str):
+    try:
+        parts = [int(p) for p in text.lower().replace("*", "x").split("x")]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"grid must be N or NxM, got {text!r}") from None
+    if len(parts) == 1:
+        parts *= 2
+    if len(parts) != 2 or min(parts) < 4:
+        raise argparse.ArgumentTypeError(f"grid must be N or NxM with N, M >= 4, got {text!r}")
+    return tuple(parts)
+
+
+def _nonneg(text: str) -> float:
+    try:
+        v = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
+    if not math.isfinite(v) or v < 0:
+        raise argparse.ArgumentTypeError(f"must be a finite number >= 0, got {text!r}")
+    return v
+
+
+def _positive(text: str) -> float:
+    v = _nonneg(text)
+    if v == 0:
+        raise argparse.ArgumentTypeError(f"must be > 0, got {text!r}")
+    return v
+
+
+def _solver_names():
+    import jurs
+
+    names = ["iurs", "ipia"]
+    if hasattr(jurs, "LeastSquares"):
+        names.append("lstsq")
+    return names
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="jurs", description="Implicit curve reconstruction with uniform rational splines.",
+        epilog="Run 'jurs fit --help' for the fit options.")
     sub = parser.add_subparsers(dest="command", required=True)
     demo = sub.add_parser("demo", help="fit the paper's Example 1 with IPIA and IURS")
     demo.add_argument("--output", default="demo-output", help="folder for the figure")
+
+    f = sub.add_parser(
+        "fit", help="fit a point cloud with normals from a CSV, TXT or NPY file",
+        description="Fit an implicit spline to points with outward normals and write "
+                    "metrics.json, spline.npz, fit.png and zero_level.csv to --output.",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
+    f.add_argument("file", help="CSV/TXT (columns x, y, nx, ny; optional header) or NPY (m, 4)")
+    f.add_argument("--grid", type=_grid, default=(9, 9), metavar="N[xM]",
+                   help="basis functions along x and y")
+    f.add_argument("--solver", default="iurs", choices=_solver_names(),
+                   help="iurs: Algorithm 1 (rational); ipia: I-PIA (B-spline); "
+                        "lstsq: exact least squares (B-spline), when available")
+    f.add_argument("--lam", type=_nonneg, default=0.0,
+                   help="regularisation weight: eq. 33's lambda for iurs (keep it well below "
+                        "1/16), the objective's lambda in E_d + lam R for lstsq; ipia has none")
+    f.add_argument("--tau", type=_nonneg, default=1e-2, help="weight step size (iurs, eq. 20)")
+    f.add_argument("-d", "--offset", type=_positive, default=0.1, help="offset distance d")
+    f.add_argument("--eps", type=_positive, default=0.01, help="target value at the offsets")
+    f.add_argument("--steps", type=int, default=200,
+                   help="maximum number of steps (iurs, ipia; lstsq solves once)")
+    f.add_argument("--tol", type=_nonneg, default=1e-7,
+                   help="stop when |E_new - E_old| < tol (eq. 38); 0 runs all steps")
+    f.add_argument("-o", "--output", default="jurs-output", help="output folder")
+    f.add_argument("--resolution", type=int, default=512,
+                   help="level-set grid nodes along the longer side of the box")
+    f.add_argument("--threshold", type=_positive, default=None,
+                   help="distance to the data above which a zero-level component is "
+                        "supplementary; None means 2 d")
+    f.add_argument("-q", "--quiet", action="store_true", help="no progress bar or summary")
+    return parser
+
+
+def read_input(path: str):
+    """Points and normals from ``path``; every problem raises :class:`InputError` with a
+    one-line message naming the file (and the row where there is one)."""
+    import numpy as np
+
+    from . import datasets
+
+    if os.path.isdir(path):
+        raise InputError(f"{path}: is a folder, not a file")
+    if path.lower().endswith(".npy") and os.path.exists(path):
+        try:
+            arr = np.load(path, allow_pickle=False, mmap_mode="r")
+        except Exception as exc:
+            raise InputError(f"{path}: not a readable .npy array ({_one_line(exc)})") from None
+        if arr.ndim != 2 or arr.shape[1] != 4:
+            raise InputError(f"{path}: expected an (m, 4) array of rows x, y, nx, ny, "
+                             f"got shape {arr.shape}")
+    try:
+        points, normals = datasets.load_points(path)
+    except (ValueError, OSError) as exc:
+        msg = _one_line(exc)
+        raise InputError(msg if msg.startswith(path) else f"{path}: {msg}") from None
+    if len(points) < 3:
+        raise InputError(f"{path}: need at least 3 data rows, got {len(points)}")
+    return points, normals
+
+
+def _one_line(exc) -> str:
+    return " ".join(str(exc).split())
+
+
+def make_solver(name: str, *, lam: float, tau: float, steps: int, tol: float):
+    """The solver named on the command line."""
+    import jurs
+
+    if steps < 0:
+        raise InputError(f"--steps must be >= 0, got {steps}")
+    if name == "ipia":
+        if lam:
+            raise InputError("--lam is not supported by ipia (I-PIA has no regulariser); "
+                             "use --solver iurs")
+        return jurs.IPIA(max_steps=steps, tol=tol)
+    if name == "iurs":
+        return jurs.IURS(tau=tau, lam=lam, max_steps=steps, tol=tol)
+    if name == "lstsq":
+        return jurs.LeastSquares(lam=lam)
+    raise InputError(f"unknown solver {name!r}")
+
+
+class ProgressBar:
+    """A one-line progress bar on stderr, drawn only once a run has taken over ``delay``
+    seconds (short fits print nothing)."""
+
+    def __init__(self, label: str, delay: float = 1.0, width: int = 30, stream=None,
+                 enabled: bool = True):
+        self.label, self.delay, self.width = label, delay, width
+        self.stream = sys.stderr if stream is None else stream
+        self.enabled = enabled
+        self.start = time.perf_counter()
+        self.drawn = False
+
+    def __call__(self, done: int, total: int) -> None:
+        elapsed = time.perf_counter() - self.start
+        if not self.enabled or (elapsed < self.delay and not self.drawn):
+            return
+        frac = done / total if total else 1.0
+        bar = "#" * int(round(frac * self.width))
+        self.stream.write(f"\r{self.label} [{bar:<{self.width}}] {done}/{total} steps "
+                          f"{elapsed:5.1f} s")
+        self.stream.flush()
+        self.drawn = True
+
+    def close(self) -> None:
+        if self.drawn:
+            self.stream.write("\n")
+            self.stream.flush()
+
+
+def _json_safe(value):
+    """Floats for 0-d arrays; non-finite numbers as null (strict JSON has no NaN/Inf)."""
+    import numpy as np
+
+    if isinstance(value, dict):
+        return {k: _json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_json_safe(v) for v in value]
+    if isinstance(value, (str, bool)) or value is None:
+        return value
+    arr = np.asarray(value)
+    if arr.ndim == 0:
+        if np.issubdtype(arr.dtype, np.integer):
+            return int(arr)
+        v = float(arr)
+        return v if math.isfinite(v) else None
+    return [_json_safe(v) for v in arr.tolist()]
+
+
+def run_fit(args) -> int:
+    """``jurs fit``: read, fit, analyse, then write all outputs at once (or none)."""
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    import jurs
+    from . import levelset as ls
+    from . import plot
+    from ._progress import fit_in_chunks
+
+    path = args.file
+    points, normals = read_input(path)
+    solver = make_solver(args.solver, lam=args.lam, tau=args.tau, steps=args.steps, tol=args.tol)
+    if args.resolution < 16:
+        raise InputError(f"--resolution must be >= 16, got {args.resolution}")
+    if os.path.exists(args.output) and not os.path.isdir(args.output):
+        raise InputError(f"{args.output}: exists and is not a folder")
+    settings = dict(grid=args.grid, offset=args.offset, eps=args.eps)
+    try:  # data-dependent checks (e.g. degenerate clouds) before any work
+        jurs.make_problem(points, normals, **settings)
+    except ValueError as exc:
+        raise InputError(f"{path}: {_one_line(exc)}") from None
+
+    bar = ProgressBar(f"{args.solver} {args.grid[0]}x{args.grid[1]}", enabled=not args.quiet)
+    t0 = time.perf_counter()
+    sol, _ = fit_in_chunks(points, normals, solver=solver, callback=bar, throw=False, **settings)
+    jax.block_until_ready(sol.spline)
+    seconds = time.perf_counter() - t0
+    bar.close()
+    if sol.result == jurs.RESULTS.nonfinite:
+        print(f"jurs: error: {path}: the fit diverged ({sol.message}); nothing written",
+              file=sys.stderr)
+        return EXIT_FIT_FAILED
+
+    report = ls.analyze(sol.spline, points, offset=args.offset, threshold=args.threshold,
+                        resolution=args.resolution)
+    metrics = {k: v for k, v in sol.metrics.items()}
+    metrics.update(num_steps=int(sol.stats["num_steps"]), result=sol.message,
+                   converged=bool(sol.succeeded), time_s=seconds)
+    metrics.update(report.as_dict())
+    record = {
+        "input": os.path.abspath(path),
+        "num_points": int(len(points)),
+        "settings": {"solver": args.solver, "grid": list(args.grid), "lam": args.lam,
+                     "tau": args.tau if args.solver == "iurs" else None, "offset": args.offset,
+                     "eps": args.eps, "steps": args.steps, "tol": args.tol},
+        "metrics": metrics,
+    }
+
+    out = os.path.abspath(args.output)
+    parent = os.path.dirname(out)
+    os.makedirs(parent, exist_ok=True)
+    tmp = tempfile.mkdtemp(prefix=".jurs-", dir=parent)
+    try:
+        with open(os.path.join(tmp, "metrics.json"), "w") as fh:
+            json.dump(_json_safe(record), fh, indent=2, allow_nan=False)
+            fh.write("\n")
+        jurs.save_spline(os.path.join(tmp, "spline.npz"), sol.spline)
+        table = ls.polylines_table(report.components)
+        np.savetxt(os.path.join(tmp, "zero_level.csv"), table, delimiter=",",
+                   header="component,closed,supplementary,x,y", comments="",
+                   fmt=["%d", "%d", "%d", "%.10g", "%.10g"])
+        name = os.path.basename(path)
+        fig = plot.plot_fit(
+            sol.spline, points, normals, args.offset, levelset=report,
+            title=(f"{name}: {args.solver}, grid {args.grid[0]}x{args.grid[1]}, "
+                   f"lam = {args.lam:g}\nE_ave = {float(sol.metrics['E_ave']):.3e}, "
+                   f"{report.num_components} component(s), "
+                   f"{report.num_supplementary} supplementary"))
+        fig.savefig(os.path.join(tmp, "fit.png"), dpi=130)
+        plt.close(fig)
+        if not os.path.exists(out):
+            os.replace(tmp, out)
+        else:
+            for f in OUTPUTS:
+                os.replace(os.path.join(tmp, f), os.path.join(out, f))
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+
+    if not args.quiet:
+        print(f"{path}: {len(points)} points, {args.solver}, grid {args.grid[0]}x{args.grid[1]}: "
+              f"{metrics['num_steps']} steps in {seconds:.2f} s ({sol.message.split(':')[0]})")
+        print(f"  E_ave = {float(sol.metrics['E_ave']):.4e}, E_max = "
+              f"{float(sol.metrics['E_max']):.4e}, zero set: {report.num_components} "
+              f"component(s), {report.num_supplementary} supplementary, chamfer = "
+              f"{report.chamfer:.3g}")
+        print(f"  wrote {', '.join(OUTPUTS)} to {args.output}")
+    return 0
+
+
+def main(argv=None) -> int:
+    """Entry point of the ``jurs`` console script; returns the exit code."""
+    parser = build_parser()
     args = parser.parse_args(argv)
     if args.command == "demo":
         from .demo import run
 
         run(args.output)
-    return 0
+        return 0
+    try:
+        return run_fit(args)
+    except InputError as exc:
+        print(f"jurs: error: {exc}", file=sys.stderr)
+        return EXIT_BAD_INPUT
 
 
 if __name__ == "__main__":

@@ -1,0 +1,221 @@
+"""The ``jurs`` command line: a fit round trip, bad files, the progress machinery."""
+
+import jax
+
+jax.config.update("jax_enable_x64", True)
+
+import io  # noqa: E402
+import json  # noqa: E402
+import os  # noqa: E402
+import subprocess  # noqa: E402
+import sys  # noqa: E402
+from pathlib import Path  # noqa: E402
+
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
+
+import jurs  # noqa: E402
+from jurs import cli  # noqa: E402
+
+# 20 steps run in one chunk (see jurs._progress.chunk_size), so the fit compiled here is the
+# one a direct jurs.fit with the same start and throw=False uses: the tests stay fast.
+FIT_ARGS = ["--steps", "20", "--tol", "0", "-q", "--resolution", "200"]
+
+
+@pytest.fixture(scope="module")
+def example1_csv(tmp_path_factory):
+    path = tmp_path_factory.mktemp("data") / "example1.csv"
+    jurs.datasets.save_points(path, *jurs.datasets.example1(120))
+    return path
+
+
+def test_fit_round_trip(example1_csv, tmp_path):
+    out = tmp_path / "result"
+    rc = cli.main(["fit", str(example1_csv), "-o", str(out), "--grid", "9x9", *FIT_ARGS])
+    assert rc == 0
+    assert sorted(os.listdir(out)) == sorted(cli.OUTPUTS)
+    assert not [p for p in os.listdir(tmp_path) if p.startswith(".jurs-")]  # temp dir gone
+
+    record = json.loads((out / "metrics.json").read_text())
+    m = record["metrics"]
+    for key in ("E", "E_d", "R", "E_ave", "E_max", "mu", "lam", "num_steps", "num_components",
+                "num_supplementary", "supplementary_length", "num_tiny_loops", "chamfer",
+                "hausdorff", "zero_area_fraction"):
+        assert key in m, key
+    assert m["num_steps"] == 20
+    assert record["settings"]["grid"] == [9, 9] and record["num_points"] == 120
+
+    # The saved spline is the one jurs.fit gives with the same settings.
+    points, normals = jurs.datasets.load_points(example1_csv)
+    problem = jurs.make_problem(points, normals, grid=(9, 9))
+    start = jurs.ImplicitSpline.bspline(np.zeros((9, 9)), problem.lower, problem.upper)
+    direct = jurs.fit(points, normals, grid=(9, 9), solver=jurs.IURS(max_steps=20, tol=0.0),
+                      init=start, throw=False)
+    spline = jurs.load_spline(out / "spline.npz")
+    assert isinstance(spline, jurs.ImplicitSpline)
+    np.testing.assert_allclose(np.asarray(spline.control), np.asarray(direct.spline.control),
+                               rtol=0, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(spline.weights), np.asarray(direct.spline.weights),
+                               rtol=0, atol=1e-12)
+    assert m["E_ave"] == pytest.approx(float(direct.metrics["E_ave"]), rel=1e-9)
+
+    # The polylines lie on the zero set of the saved spline, one component per id.
+    table = np.loadtxt(out / "zero_level.csv", delimiter=",", skiprows=1, ndmin=2)
+    assert len(np.unique(table[:, 0])) == m["num_components"]
+    assert int(table[:, 2].max(initial=0) > 0) == int(m["num_supplementary"] > 0)
+    g = np.asarray(spline(table[:, 3:]))
+    assert np.max(np.abs(g)) < 1e-2 * 0.01  # |g| << eps on the curve (linear interpolation)
+
+    assert (out / "fit.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+    # Re-running into the same folder replaces the outputs.
+    (out / "spline.npz").unlink()
+    (out / "metrics.json").write_text("old")
+    assert cli.main(["fit", str(example1_csv), "-o", str(out), *FIT_ARGS]) == 0
+    assert sorted(os.listdir(out)) == sorted(cli.OUTPUTS)
+    assert json.loads((out / "metrics.json").read_text())["metrics"] == m | {
+        "time_s": json.loads((out / "metrics.json").read_text())["metrics"]["time_s"]}
+
+
+def test_npy_input(tmp_path):
+    p, n = jurs.datasets.example1(120)
+    path = tmp_path / "example1.npy"
+    jurs.datasets.save_points(path, 0.5 * p + 1.0, n)
+    rc = cli.main(["fit", str(path), "-o", str(tmp_path / "o"), *FIT_ARGS])
+    assert rc == 0
+    m = json.loads((tmp_path / "o" / "metrics.json").read_text())["metrics"]
+    assert m["num_components"] == 1 and m["num_supplementary"] == 0
+
+
+GOOD = "x,y,nx,ny\n1,0,1,0\n0,1,0,1\n-1,0,-1,0\n0,-1,0,-1\n"
+BAD_TEXT = {
+    "missing_column": ("x,y,nx,ny\n1,0,1,0\n0,1,0\n-1,0,-1,0\n", "row 3"),
+    "non_number": ("x,y,nx,ny\n1,0,1,0\n0,abc,0,1\n-1,0,-1,0\n0,-1,0,-1\n", "row 3"),
+    "nan": ("x,y,nx,ny\n1,0,1,0\n0,1,0,1\n-1,nan,-1,0\n0,-1,0,-1\n", "row 4"),
+    "empty": ("", "no data rows"),
+    "header_only": ("x,y,nx,ny\n", "no data rows"),
+    "too_few_rows": ("x,y,nx,ny\n1,0,1,0\n0,1,0,1\n", "at least 3"),
+    "zero_normal": ("1 0 1 0\n0 1 0 0\n-1 0 -1 0\n0 -1 0 -1\n", "row 2"),
+    "extra_column": ("1;0;1;0\n0;1;0;1;5\n-1;0;-1;0\n", "row 2"),
+}
+
+
+def _check_failure(capsys, args, out, path, needle):
+    rc = cli.main(args)
+    err = capsys.readouterr().err
+    assert rc == 2
+    lines = err.strip().splitlines()
+    assert len(lines) == 1, err
+    assert str(path) in lines[0] and needle in lines[0], lines[0]
+    assert not out.exists()
+    assert not [p for p in os.listdir(out.parent) if p.startswith(".jurs-")]
+
+
+@pytest.mark.parametrize("kind", sorted(BAD_TEXT))
+def test_bad_text_files(kind, tmp_path, capsys):
+    text, needle = BAD_TEXT[kind]
+    path = tmp_path / f"{kind}.csv"
+    path.write_text(text)
+    out = tmp_path / "out"
+    _check_failure(capsys, ["fit", str(path), "-o", str(out), *FIT_ARGS], out, path, needle)
+
+
+@pytest.mark.parametrize("kind, array, needle", [
+    ("three_columns", np.ones((5, 3)), "shape (5, 3)"),
+    ("one_dimensional", np.ones(8), "shape (8,)"),
+    ("three_dimensional", np.ones((2, 5, 4)), "shape (2, 5, 4)"),
+    ("nan_row", np.array([[1, 0, 1, 0], [0, 1, 0, 1], [np.nan, 0, -1, 0], [0, -1, 0, -1.0]]),
+     "row 3"),
+    ("strings", np.array([["a", "b", "c", "d"]] * 4), "not numeric"),
+])
+def test_bad_npy_files(kind, array, needle, tmp_path, capsys):
+    path = tmp_path / f"{kind}.npy"
+    np.save(path, array)
+    out = tmp_path / "out"
+    _check_failure(capsys, ["fit", str(path), "-o", str(out), *FIT_ARGS], out, path, needle)
+
+
+def test_missing_file_and_folder(tmp_path, capsys):
+    out = tmp_path / "out"
+    missing = tmp_path / "nope.csv"
+    _check_failure(capsys, ["fit", str(missing), "-o", str(out)], out, missing, "no such file")
+    _check_failure(capsys, ["fit", str(tmp_path), "-o", str(out)], out, tmp_path, "folder")
+
+
+def test_failed_run_leaves_existing_outputs_alone(tmp_path, capsys):
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "metrics.json").write_text("old")
+    path = tmp_path / "bad.csv"
+    path.write_text(BAD_TEXT["nan"][0])
+    assert cli.main(["fit", str(path), "-o", str(out), *FIT_ARGS]) == 2
+    assert os.listdir(out) == ["metrics.json"] and (out / "metrics.json").read_text() == "old"
+
+
+def test_bad_options_exit_2(tmp_path, capsys):
+    path = tmp_path / "good.csv"
+    path.write_text(GOOD)
+    for args in (["--grid", "3"], ["--offset", "-1"], ["--lam", "nan"], ["--solver", "xyz"]):
+        with pytest.raises(SystemExit) as exc:
+            cli.main(["fit", str(path), "-o", str(tmp_path / "o"), *args])
+        assert exc.value.code == 2
+    assert cli.main(["fit", str(path), "-o", str(tmp_path / "o"), "--solver", "ipia",
+                     "--lam", "0.1"]) == 2
+    assert "ipia" in capsys.readouterr().err
+    assert not (tmp_path / "o").exists()
+
+
+def test_console_script_exit_code(tmp_path):
+    script = Path(sys.executable).parent / "jurs"
+    if not script.exists():
+        pytest.skip("console script not installed")
+    path = tmp_path / "bad.csv"
+    path.write_text(BAD_TEXT["non_number"][0])
+    proc = subprocess.run([str(script), "fit", str(path), "-o", str(tmp_path / "o")],
+                          capture_output=True, text=True, timeout=120)
+    assert proc.returncode == 2
+    assert proc.stderr.strip().count("\n") == 0 and "row 3" in proc.stderr
+    assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.parametrize("solver", [
+    jurs.IURS(tau=1e-2, lam=0.005, max_steps=60, tol=0.0),
+    jurs.IPIA(max_steps=60, tol=0.0),
+    jurs.IURS(max_steps=300, tol=1e-6),  # converges early, mid-chunk
+])
+def test_chunked_run_equals_one_run(solver):
+    """The progress bar's chunked run follows the iterates of one run."""
+    p, n = jurs.datasets.example1(120)
+    one = jurs.fit(p, n, solver=solver)
+    calls = []
+    chunked, snaps = jurs.fit_in_chunks(p, n, solver=solver, checkpoints=(0, 10, 30),
+                                        callback=lambda d, t: calls.append((d, t)))
+    for key in ("control", "weights"):
+        np.testing.assert_allclose(np.asarray(getattr(chunked.spline, key)),
+                                   np.asarray(getattr(one.spline, key)), rtol=0, atol=1e-13)
+    assert int(chunked.stats["num_steps"]) == int(one.stats["num_steps"])
+    assert chunked.result == one.result
+    np.testing.assert_allclose(chunked.stats["energy_history"],
+                               np.asarray(one.stats["energy_history"]), rtol=1e-12)
+    assert len(calls) > 1 and calls[-1][0] == int(one.stats["num_steps"])
+    assert sorted(snaps) == [0, 10, 30]
+    assert float(np.abs(np.asarray(snaps[0].control)).max()) == 0.0
+    if isinstance(solver, jurs.IURS) and solver.lam:  # one snapshot checked against a run
+        ten = jurs.fit(p, n, solver=jurs.IURS(tau=1e-2, lam=0.005, max_steps=10, tol=0.0))
+        np.testing.assert_allclose(np.asarray(snaps[10].control), np.asarray(ten.spline.control),
+                                   rtol=0, atol=1e-13)
+
+
+def test_progress_bar_only_after_delay():
+    quiet = io.StringIO()
+    bar = cli.ProgressBar("x", delay=60, stream=quiet)
+    bar(5, 10)
+    bar.close()
+    assert quiet.getvalue() == ""
+    loud = io.StringIO()
+    bar = cli.ProgressBar("fit", delay=0, width=10, stream=loud)
+    bar(5, 10)
+    bar(10, 10)
+    bar.close()
+    text = loud.getvalue()
+    assert "5/10 steps" in text and "[##########]" in text and text.endswith("\n")

@@ -1,0 +1,192 @@
+"""Zero-level sets: extraction, supplementary components, tiny loops, distances."""
+
+import jax
+
+jax.config.update("jax_enable_x64", True)
+
+import jax.numpy as jnp  # noqa: E402
+import numpy as np  # noqa: E402
+import pytest  # noqa: E402
+
+import jurs  # noqa: E402
+from jurs import levelset as ls  # noqa: E402
+
+
+class Analytic:
+    """An analytic implicit function on a box, callable like an ImplicitSpline."""
+
+    def __init__(self, f, lower=(-1.5, -1.5), upper=(1.5, 1.5)):
+        self.f = f
+        self.lower = np.asarray(lower, float)
+        self.upper = np.asarray(upper, float)
+
+    def __call__(self, xy):
+        return self.f(jnp.asarray(xy))
+
+
+def circle_samples(n, radius=1.0, centre=(0.0, 0.0)):
+    t = np.linspace(0, 2 * np.pi, n, endpoint=False)
+    return np.stack([centre[0] + radius * np.cos(t), centre[1] + radius * np.sin(t)], axis=1)
+
+
+def dist(xy, centre):
+    return jnp.linalg.norm(xy - jnp.asarray(centre), axis=1)
+
+
+@pytest.fixture(scope="module")
+def circle_fit():
+    points, normals = jurs.datasets.ellipse(100, a=2.0, b=2.0)
+    sol = jurs.fit(points, normals, grid=(9, 9), solver=jurs.IPIA(max_steps=200, tol=0.0))
+    return points, sol
+
+
+def test_well_fitted_circle_has_one_component(circle_fit):
+    points, sol = circle_fit
+    report = ls.analyze(sol.spline, points, offset=0.1, reference=circle_samples(2000, 2.0))
+    assert report.num_components == 1
+    assert report.num_supplementary == 0
+    assert report.num_tiny_loops == 0
+    (c,) = report.components
+    assert c.closed
+    assert c.length == pytest.approx(2 * np.pi * 2.0, rel=0.01)
+    assert c.mean_distance < report.threshold
+    assert report.threshold == pytest.approx(0.2)
+    assert report.chamfer < 0.02  # the fit follows the circle closely
+    assert report.zero_area_fraction == 0.0
+
+
+def test_extra_closed_curve_far_from_data_is_supplementary():
+    # Zero set: the unit circle (the data) and a circle of radius 0.3 around (1.1, 1.1).
+    f = Analytic(lambda xy: (dist(xy, (0, 0)) - 1.0) * (dist(xy, (1.1, 1.1)) - 0.3))
+    data = circle_samples(200)
+    report = ls.analyze(f, data, offset=0.05)
+    assert report.num_components == 2
+    assert report.num_supplementary == 1
+    (extra,) = report.supplementary
+    assert extra.closed
+    assert extra.length == pytest.approx(2 * np.pi * 0.3, rel=0.01)
+    assert report.supplementary_length == pytest.approx(extra.length)
+    # Its mean distance to the data: the mean over the small circle of | |p| - 1 |.
+    phi = np.linspace(0, 2 * np.pi, 10000, endpoint=False)
+    ring = np.stack([1.1 + 0.3 * np.cos(phi), 1.1 + 0.3 * np.sin(phi)], axis=1)
+    expected = np.mean(np.abs(np.linalg.norm(ring, axis=1) - 1.0))
+    assert extra.mean_distance == pytest.approx(expected, abs=0.01)  # data spacing 0.03
+    main = [c for c in report.components if not c.supplementary][0]
+    assert main.length == pytest.approx(2 * np.pi, rel=0.01)
+    # A threshold above the extra loop's distance makes it ordinary.
+    assert ls.analyze(f, data, threshold=1.0).num_supplementary == 0
+
+
+def test_extra_loop_in_a_spline_is_counted(circle_fit):
+    points, sol = circle_fit
+    s = sol.spline
+    # Push two corner coefficients (far from the circle) well below zero: g < 0 there
+    # makes a closed loop in the positive outside region.
+    control = s.control.at[0:2, 0:2].set(-0.2)
+    bumped = jurs.ImplicitSpline(control, s.weights, s.lower, s.upper)
+    report = ls.analyze(bumped, points, offset=0.1)
+    assert report.num_supplementary == 1
+    assert report.num_components == 2
+    assert ls.analyze(s, points, offset=0.1).num_supplementary == 0
+
+
+def test_chamfer_of_exact_circle_is_at_grid_spacing_level():
+    f = Analytic(lambda xy: dist(xy, (0, 0)) - 1.0)
+    ref = circle_samples(4000)
+    for resolution in (64, 512):
+        report = ls.analyze(f, ref[::40], reference=ref, resolution=resolution)
+        h = report.cell_size
+        assert report.chamfer < 0.25 * h
+        assert report.hausdorff < h
+        assert report.reference == "reference curve"
+    # Not trivially small: a circle of radius 1.05 is 0.05 away.
+    shifted = Analytic(lambda xy: dist(xy, (0, 0)) - 1.05)
+    report = ls.analyze(shifted, ref[::40], reference=ref)
+    assert report.chamfer == pytest.approx(0.05, abs=0.002)
+    assert report.hausdorff == pytest.approx(0.05, abs=0.002)
+
+
+def test_default_distances_are_to_the_data_points():
+    f = Analytic(lambda xy: dist(xy, (0, 0)) - 1.0)
+    data = circle_samples(50)
+    report = ls.analyze(f, data)
+    assert report.reference == "data points"
+    # Gaps between data points: the zero set's farthest point is half a chord away.
+    half_gap = np.sin(np.pi / 50)
+    assert report.hausdorff == pytest.approx(half_gap, rel=0.05)
+
+
+def test_tiny_loop_is_counted():
+    xs, ys, h = ls.sampling_grid((-1.5, -1.5), (1.5, 1.5), 128)
+    node = np.array([xs[100], ys[100]])  # a loop around one grid node
+    f = Analytic(lambda xy: (dist(xy, (0, 0)) - 1.0) * (dist(xy, node) - 0.4 * h))
+    report = ls.analyze(f, circle_samples(200), resolution=128)
+    assert report.num_components == 2
+    assert report.num_tiny_loops == 1
+    assert report.num_supplementary == 1
+    tiny = [c for c in report.components if c.tiny][0]
+    assert tiny.closed and tiny.length < 4 * h
+
+
+def test_open_components_and_empty_zero_set():
+    line = Analytic(lambda xy: xy[:, 0] - 0.25)
+    report = ls.analyze(line, np.array([[0.25, -1.0], [0.25, 0.0], [0.25, 1.0]]))
+    assert report.num_components == 1 and not report.components[0].closed
+    assert report.components[0].length == pytest.approx(3.0, rel=1e-6)
+    empty = Analytic(lambda xy: jnp.sum(xy**2, axis=1) + 1.0)
+    report = ls.analyze(empty, circle_samples(10))
+    assert report.num_components == 0 and report.num_supplementary == 0
+    assert report.chamfer == np.inf and report.hausdorff == np.inf
+    assert report.as_dict()["num_components"] == 0
+
+
+def test_plateau_of_zeros_is_reported():
+    # g vanishes identically for x < 0: the zero set there is an area.
+    f = Analytic(lambda xy: jnp.maximum(xy[:, 0], 0.0) * (dist(xy, (0, 0)) - 1.0))
+    report = ls.analyze(f, circle_samples(100), resolution=128)
+    assert report.zero_area_fraction == pytest.approx(0.5, abs=0.02)
+
+
+def test_resolution_default_and_grid():
+    xs, ys, h = ls.sampling_grid((0, 0), (4, 2))
+    assert len(xs) == ls.DEFAULT_RESOLUTION >= 512
+    assert len(ys) == 257 and h == pytest.approx(4 / 511)
+    with pytest.raises(ValueError):
+        ls.sampling_grid((0, 0), (0, 1))
+    with pytest.raises(ValueError, match="points"):
+        ls.analyze(Analytic(lambda xy: xy[:, 0]), np.zeros((3, 3)))
+
+
+def test_float32_spline_does_not_crash(circle_fit):
+    points, sol = circle_fit
+    s = sol.spline
+    s32 = jurs.ImplicitSpline(*(jnp.asarray(getattr(s, k), jnp.float32)
+                                for k in ("control", "weights", "lower", "upper")))
+    r32 = ls.analyze(s32, points, resolution=256)
+    r64 = ls.analyze(s, points, resolution=256)
+    assert r32.num_components == r64.num_components == 1
+    assert r32.chamfer == pytest.approx(r64.chamfer, rel=1e-3)
+
+
+def test_polylines_table_and_zero_level_set(circle_fit):
+    points, sol = circle_fit
+    lines = ls.zero_level_set(sol.spline, resolution=200)
+    assert len(lines) == 1 and lines[0][1]
+    report = ls.analyze(sol.spline, points, resolution=200)
+    table = ls.polylines_table(report.components)
+    assert table.shape == (len(report.components[0].polyline), 5)
+    np.testing.assert_allclose(table[:, 3:], lines[0][0])
+
+
+def test_spline_save_load_roundtrip(tmp_path, circle_fit):
+    _, sol = circle_fit
+    path = tmp_path / "s.npz"
+    jurs.save_spline(path, sol.spline)
+    back = jurs.load_spline(path)
+    xy = np.random.default_rng(0).uniform(-2, 2, (50, 2))
+    np.testing.assert_array_equal(np.asarray(back(xy)), np.asarray(sol.spline(xy)))
+    np.savez(tmp_path / "bad.npz", control=np.zeros((9, 9)))
+    with pytest.raises(ValueError, match="missing"):
+        jurs.load_spline(tmp_path / "bad.npz")
+    with pytest.raises(FileNotFoundError):
+        jurs.load_spline(tmp_path / "nope.npz")
