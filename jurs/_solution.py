@@ -18,8 +18,9 @@ class RESULTS(eqx.Enumeration):
         "here too, the result is usable but the energy was still moving"
     )
     nonfinite = (
-        "the energy became NaN or Inf; the last finite iterate was kept. Lower tau or lambda "
-        "(the regularised PIA step is stable only for small lambda, see IURS)"
+        "the energy became NaN or Inf; the last finite iterate was kept. For IURS lower tau "
+        "or lambda (eq. 33 is stable only for small lambda); for other solvers see their "
+        "docstrings"
     )
 
 

@@ -87,8 +87,8 @@ COLUMNS = ("x", "y", "nx", "ny")
 
 def _from_table(rows: np.ndarray, path: str, first_row: int) -> tuple[np.ndarray, np.ndarray]:
     if rows.ndim != 2 or rows.shape[1] != 4:
-        width = rows.shape[1] if rows.ndim == 2 else "?"
-        raise ValueError(f"{path}: expected 4 columns x, y, nx, ny, got {width}")
+        raise ValueError(f"{path}: expected an (m, 4) table with columns x, y, nx, ny, "
+                         f"got shape {rows.shape}")
     if rows.shape[0] == 0:
         raise ValueError(f"{path}: no data rows")
     bad = ~np.isfinite(rows).all(axis=1)

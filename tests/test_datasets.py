@@ -79,7 +79,10 @@ def test_bad_csv(tmp_path, text, message):
 def test_bad_npy(tmp_path):
     path = tmp_path / "bad.npy"
     np.save(path, np.ones((5, 3)))
-    with pytest.raises(ValueError, match="expected 4 columns"):
+    with pytest.raises(ValueError, match=r"expected an \(m, 4\) table .* got shape \(5, 3\)"):
+        datasets.load_points(path)
+    np.save(path, np.ones(8))
+    with pytest.raises(ValueError, match=r"got shape \(8,\)"):
         datasets.load_points(path)
     np.save(path, np.array(["a", "b"]))
     with pytest.raises(ValueError, match="not numeric"):
