@@ -10,6 +10,9 @@ from . import datasets
 from ._basis import cubic_derivatives, cubic_weights
 from ._energy import (
     collocation_column_sums,
+    collocation_transpose,
+    rational_residuals,
+    weight_gradient,
     data_energy,
     data_energy_grad_control,
     data_energy_grad_weights,
@@ -24,9 +27,18 @@ from ._energy import (
     transpose_apply,
 )
 from ._fit import fit
-from ._problem import Problem, auto_domain, make_problem, offset_samples
+from ._io import load_spline, save_spline
+from ._progress import fit_in_chunks
+from ._problem import Problem, auto_domain, bucket_layout, make_problem, offset_samples
 from ._solution import RESULTS, Solution
-from ._spline import ImplicitSpline, LocalBasis, local_basis
+from ._spline import (
+    ImplicitSpline,
+    LocalBasis,
+    bspline_transpose,
+    bspline_values,
+    local_basis,
+    rational_values,
+)
 from .solvers import IPIA, IURS, AbstractSolver, objective_lam, solve
 
 __version__ = "0.1.0"
@@ -37,5 +49,23 @@ __all__ = [
     "data_energy", "data_energy_grad_control", "data_energy_grad_weights", "datasets", "eta",
     "fit", "grid_laplacian", "local_basis", "make_problem", "metrics", "objective",
     "objective_lam", "offset_samples", "regulariser", "regulariser_grad", "residuals", "solve",
-    "step_size", "transpose_apply",
+    "step_size", "transpose_apply", "collocation_transpose", "rational_residuals",
+    "weight_gradient", "bspline_transpose", "bspline_values", "rational_values", "bucket_layout",
 ]
+__all__ += ["fit_in_chunks", "load_spline", "save_spline"]
+
+# Issue 3: exact solve, normal equations, general-purpose solver wrappers.
+from ._normal import NormalEquations, normal_equations
+from .solvers import (
+    JaxoptGaussNewton,
+    JaxoptLBFGS,
+    JaxoptLevenbergMarquardt,
+    JointLevenbergMarquardt,
+    LeastSquares,
+    OptimistixLeastSquares,
+    OptimistixMinimiser,
+)
+
+__all__ += ["JaxoptGaussNewton", "JaxoptLBFGS", "JaxoptLevenbergMarquardt",
+            "JointLevenbergMarquardt", "LeastSquares", "NormalEquations",
+            "OptimistixLeastSquares", "OptimistixMinimiser", "normal_equations"]

@@ -12,10 +12,17 @@ from ._spline import ImplicitSpline
 class RESULTS(eqx.Enumeration):
     """How a run ended. ``jurs.RESULTS[sol.result]`` gives the message."""
 
-    successful = "converged: |E_new - E_old| < tol (eq. 38)"
+    successful = (
+        "converged: the solver's stop rule was met (for the paper's iterations "
+        "|E_new - E_old| < tol, eq. 38; for a direct solve, the solve succeeded)"
+    )
     max_steps_reached = (
         "stopped after max_steps without meeting |E_new - E_old| < tol; Algorithm 1 returns "
         "here too, the result is usable but the energy was still moving"
+    )
+    failed = (
+        "the solver's inner method failed (for example a singular linear system); the "
+        "iterate is not certified, see the solver's state for its own verdict"
     )
     nonfinite = (
         "the energy became NaN or Inf; the last finite iterate was kept. For IURS lower tau "

@@ -1,0 +1,40 @@
+"""Shared helpers for the benchmark scripts: timing, machine description, result files."""
+
+from __future__ import annotations
+
+import json
+import os
+import platform
+import time
+
+import jax
+import numpy as np
+
+RESULTS = os.path.join(os.path.dirname(__file__), "results")
+
+
+def machine() -> str:
+    device = jax.devices()[0]
+    return (f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
+            f"JAX {jax.__version__} on {device.platform}:{device.device_kind}")
+
+
+def time_call(fn, *args, repeats: int = 20):
+    """``(first_call_s, median_warm_s)``; the first call includes compilation."""
+    t0 = time.perf_counter()
+    jax.block_until_ready(fn(*args))
+    first = time.perf_counter() - t0
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        jax.block_until_ready(fn(*args))
+        times.append(time.perf_counter() - t0)
+    return first, float(np.median(times))
+
+
+def write_results(name: str, payload: dict, markdown: str) -> None:
+    os.makedirs(RESULTS, exist_ok=True)
+    with open(os.path.join(RESULTS, f"{name}.json"), "w") as fh:
+        json.dump(payload, fh, indent=2)
+    with open(os.path.join(RESULTS, f"{name}.md"), "w") as fh:
+        fh.write(markdown)

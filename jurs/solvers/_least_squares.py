@@ -1,0 +1,169 @@
+"""LeastSquares: the exact minimiser of E_d + lam R for fixed weights, in one linear solve."""
+
+from __future__ import annotations
+
+from typing import ClassVar
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import lineax as lx
+from jax import Array
+
+from .._energy import objective
+from .._normal import (
+    DEFAULT_CHUNK,
+    HALF,
+    normal_equations,
+    stencil_matvec,
+    stencil_to_dense,
+)
+from .._problem import Problem, check_nonnegative
+from .._solution import RESULTS
+from .._spline import ImplicitSpline
+from ._base import AbstractSolver
+
+#: Largest grid (N * M coefficients) that the default linear solver solves densely
+#: (Cholesky); above it, Jacobi-preconditioned CG on the stencil. Measured on a 2-core CPU
+#: (benchmarks/solvers.py, Example 10): Cholesky 4.6 vs CG 7.7 ms at 9 x 9, 8.1 vs 9.1 ms at
+#: 16 x 16, 21.8 vs 13.6 ms at 32 x 32, 580 vs 48 ms at 64 x 64.
+DENSE_MAX_COEFFICIENTS = 256
+
+
+class LeastSquaresState(eqx.Module):
+    control: Array  # C
+    weights: Array  # the fixed w
+    done: Array  # bool: the solve has run
+    result: lx.RESULTS  # the linear solver's verdict
+
+
+def default_linear_solver(shape: tuple[int, int]) -> lx.AbstractLinearSolver:
+    """Cholesky on the assembled matrix for small grids, CG on the stencil above
+    :data:`DENSE_MAX_COEFFICIENTS` coefficients."""
+    if shape[0] * shape[1] <= DENSE_MAX_COEFFICIENTS:
+        return lx.Cholesky()
+    return lx.CG(rtol=1e-10, atol=1e-12, max_steps=10 * shape[0] * shape[1])
+
+
+def _is_matrix_free(solver: lx.AbstractLinearSolver) -> bool:
+    return isinstance(solver, (lx.CG, lx.BiCGStab, lx.GMRES))
+
+
+def solve_normal_equations(stencil: Array, rhs: Array, start: Array,
+                           linear_solver: lx.AbstractLinearSolver, ridge=0.0):
+    """Solve ``stencil * C = rhs`` (a symmetric positive semi-definite stencil) with lineax.
+
+    Coefficients whose diagonal is 0 are in no sample's support and (with lam = 0)
+    unconstrained: they keep their value in ``start``, which makes the rest of the system
+    positive definite whenever the data determine it. Matrix-free solvers (CG, BiCGStab,
+    GMRES) get the stencil as an operator and a Jacobi preconditioner; others the
+    assembled ``NM x NM`` matrix. Returns ``(C, lineax result)``.
+    """
+    diag = stencil[:, :, HALF, HALF]
+    unseen = diag <= 0
+    # A PSD matrix with a zero diagonal entry has that whole row and column zero: put 1 on
+    # the diagonal and the start value on the right, and that coefficient stays put.
+    # ``ridge`` (relative to the largest diagonal) bounds the condition number.
+    diag = jnp.where(unseen, 1.0, diag + ridge * jnp.max(diag))
+    stencil = stencil.at[:, :, HALF, HALF].set(diag)
+    rhs = jnp.where(unseen, start, rhs)
+    tags = lx.positive_semidefinite_tag
+    if _is_matrix_free(linear_solver):
+        operator = lx.FunctionLinearOperator(lambda c: stencil_matvec(stencil, c), rhs, tags)
+        # The preconditioner and initial guess change the path, not the solution: no
+        # gradient through them (lineax refuses tangents in `options`).
+        inv_diag = jax.lax.stop_gradient(1.0 / stencil[:, :, HALF, HALF])
+        jacobi = lx.FunctionLinearOperator(lambda c: inv_diag * c, rhs, tags)
+        sol = lx.linear_solve(operator, rhs, linear_solver, throw=False,
+                              options={"preconditioner": jacobi,
+                                       "y0": jax.lax.stop_gradient(start)})
+        return sol.value, sol.result
+    operator = lx.MatrixLinearOperator(stencil_to_dense(stencil), tags)
+    sol = lx.linear_solve(operator, rhs.ravel(), linear_solver, throw=False)
+    return sol.value.reshape(rhs.shape), sol.result
+
+
+class LeastSquares(AbstractSolver[LeastSquaresState]):
+    """Exact minimiser of ``E_d(C) + lam R(C)`` for fixed weights (DESIGN 3).
+
+    Solves the normal equations ``(D^T D + 2 lam L) C = D^T b`` once: ``D^T D`` is
+    assembled as a 49-point stencil in one pass over the samples
+    (:func:`jurs.normal_equations`, never the dense collocation), then handed to a lineax
+    solver: Cholesky on the assembled matrix for grids up to
+    :data:`DENSE_MAX_COEFFICIENTS` coefficients, Jacobi-preconditioned CG on the stencil
+    above (or the ``linear_solver`` given). One driver step; the result is the point the
+    paper's iterations (I-PIA, eq. 11; IURS's eq. 33 with fixed w) converge to.
+
+    Args:
+        lam: the objective's lambda (``E = E_d + lam R``, eq. 32), not the paper's eq. 33
+            lambda; convert with :func:`jurs.objective_lam`.
+        keep_weights: False (default) fits a polynomial B-spline (w = 1; eq. 6); True keeps
+            the start spline's weights fixed and solves for C with the rational rows of
+            eq. 23.
+        linear_solver: a lineax solver for the symmetric positive (semi-)definite system;
+            default per grid size, see :func:`default_linear_solver`.
+        chunk_size: samples accumulated at once when assembling rational rows.
+        ridge: a Tikhonov term ``ridge * max(diag(D^T D)) * I`` added to the system
+            (default 1e-14). It only matters when the system is numerically singular
+            (``lam = 0`` on sparse data), where it keeps the solve finite and the
+            coefficients bounded: on Example 1 at 9 x 9 it raises E_d by 0.015 % and lowers
+            max |C| from 1.4e3 to 1.2e3; on Example 9 at 20 x 20 it lowers max |C| from
+            4.9e10 to 7.7e3 (measured, float64). In float32 it is below rounding. 0
+            disables it, for the exact minimiser.
+
+    With ``lam = 0`` the minimiser is not unique where the data do not determine it:
+    coefficients that no sample touches keep their start value (0 by default). The
+    remaining unregularised system is very ill-conditioned on sparse data (a condition
+    number of ~1e13 on Example 1, 9 x 9): its exact minimiser puts coefficients of 1e5 in
+    empty corners to gain 0.5 % of E_d. Use ``lam > 0`` for a sensible surface; in float32
+    the unregularised solve can lose all accuracy.
+    """
+
+    lam: float = 0.0
+    keep_weights: bool = eqx.field(static=True, default=False)
+    linear_solver: lx.AbstractLinearSolver | None = None
+    chunk_size: int = eqx.field(static=True, default=DEFAULT_CHUNK)
+    ridge: float = 1e-14
+
+    max_steps: ClassVar[int] = 1  # one exact solve
+    tol: ClassVar[float] = 0.0  # the driver's energy test is moot: terminate() stops it
+
+    def __check_init__(self):
+        check_nonnegative("lam", self.lam)
+        check_nonnegative("ridge", self.ridge)
+        if int(self.chunk_size) < 1:
+            raise ValueError(f"chunk_size must be >= 1, got {self.chunk_size}")
+        if self.linear_solver is not None and not isinstance(self.linear_solver,
+                                                             lx.AbstractLinearSolver):
+            raise TypeError(f"linear_solver must be a lineax solver, got {self.linear_solver!r}")
+
+    def _weights(self, spline: ImplicitSpline) -> Array:
+        return spline.weights if self.keep_weights else jnp.ones_like(spline.control)
+
+    def init(self, problem: Problem, spline: ImplicitSpline):
+        weights = self._weights(spline)
+        energy = objective(problem, spline.control, weights, self.lam)
+        return LeastSquaresState(spline.control, weights, jnp.array(False),
+                                 lx.RESULTS.successful), energy
+
+    def step(self, problem: Problem, state: LeastSquaresState):
+        normal = normal_equations(problem, state.weights if self.keep_weights else None,
+                                  chunk_size=self.chunk_size)
+        linear_solver = self.linear_solver or default_linear_solver(problem.shape)
+        control, result = solve_normal_equations(normal.regularised(self.lam), normal.rhs,
+                                                 state.control, linear_solver, self.ridge)
+        energy = objective(problem, control, state.weights, self.lam)
+        return LeastSquaresState(control, state.weights, jnp.array(True), result), energy
+
+    def terminate(self, problem: Problem, state: LeastSquaresState):
+        # A CG that hits its step cap still leaves a usable iterate; other failures do not.
+        result = RESULTS.where(
+            state.result == lx.RESULTS.successful,
+            RESULTS.successful,
+            RESULTS.where(state.result == lx.RESULTS.max_steps_reached,
+                          RESULTS.max_steps_reached, RESULTS.failed),
+        )
+        return state.done, result
+
+    def to_spline(self, problem: Problem, state: LeastSquaresState) -> ImplicitSpline:
+        return ImplicitSpline(state.control, state.weights, problem.lower, problem.upper)

@@ -1,0 +1,196 @@
+"""Normal equations (stencil assembly) and the exact LeastSquares solve."""
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import lineax as lx
+import numpy as np
+import pytest
+from conftest import dense_collocation
+
+import jurs
+from jurs import _normal
+
+jax.config.update("jax_enable_x64", True)
+
+LAM = 1e-4  # objective lambda used where the unregularised problem is too ill-posed
+
+# Jitted once per solver configuration: op-by-op (eager) runs of the driver are slow.
+solve = eqx.filter_jit(jurs.solve)
+normal_equations = eqx.filter_jit(jurs.normal_equations)
+
+
+def least_squares(lam, **kwargs):
+    """LeastSquares with lam as an array, so that jitted solves share one compilation."""
+    return jurs.LeastSquares(lam=jnp.asarray(lam), **kwargs)
+
+
+@pytest.fixture(scope="module")
+def example1_problem():
+    points, normals = jurs.datasets.example1(120)
+    return jurs.make_problem(points, normals, grid=(9, 10), offset=0.1, eps=0.01)
+
+
+def test_bspline_stencil_matches_dense_normal_equations(example1_problem):
+    problem = example1_problem
+    d = dense_collocation(problem, np.ones(problem.shape))
+    b = np.asarray(problem.targets)
+    normal = normal_equations(problem)
+    np.testing.assert_allclose(normal.to_dense(), d.T @ d, atol=1e-13)
+    np.testing.assert_allclose(np.asarray(normal.rhs).ravel(), d.T @ b, atol=1e-15)
+    # 49 non-zeros a row at most (cubic 2D), and exactly 49 for an interior coefficient.
+    nnz = np.diff(_normal.stencil_to_scipy(normal.stencil).indptr)
+    assert nnz.max() == 49
+    control = jax.random.normal(jax.random.PRNGKey(0), problem.shape)
+    np.testing.assert_allclose(normal.matvec(control).ravel(), d.T @ d @ np.ravel(control),
+                               atol=1e-12)
+    np.testing.assert_allclose(normal.data_energy(control),
+                               jurs.data_energy(problem, control, jnp.ones(problem.shape)),
+                               rtol=1e-12)
+
+
+def test_rational_stencil_chunked_matches_dense(example1_problem):
+    problem = example1_problem
+    weights = jnp.exp(0.4 * jax.random.normal(jax.random.PRNGKey(1), problem.shape))
+    d = dense_collocation(problem, weights)
+    # chunk_size 100 forces several scan blocks and a zero-padded last block.
+    normal = normal_equations(problem, weights, chunk_size=100)
+    np.testing.assert_allclose(normal.to_dense(), d.T @ d, atol=1e-13)
+    np.testing.assert_allclose(np.asarray(normal.rhs).ravel(), d.T @ np.asarray(problem.targets),
+                               atol=1e-15)
+
+
+def test_masked_samples_do_not_contribute():
+    points, normals = jurs.datasets.example1(60)
+    padded_p = np.concatenate([points, points[:7] + 0.3])
+    padded_n = np.concatenate([normals, normals[:7]])
+    mask = np.arange(67) < 60
+    domain = ((-5.0, -9.0), (5.0, 3.0))
+    full = jurs.make_problem(padded_p, padded_n, grid=8, mask=mask, domain=domain)
+    plain = jurs.make_problem(points, normals, grid=8, domain=domain)
+    for weights in (None, jnp.ones((8, 8))):
+        a = normal_equations(full, weights)
+        b = normal_equations(plain, weights)
+        np.testing.assert_allclose(a.stencil, b.stencil, atol=1e-14)
+        np.testing.assert_allclose(a.rhs, b.rhs, atol=1e-15)
+
+
+def test_laplacian_stencil_is_grid_laplacian():
+    control = jax.random.normal(jax.random.PRNGKey(2), (6, 9))
+    lap = _normal.laplacian_stencil((6, 9))
+    np.testing.assert_allclose(_normal.stencil_matvec(lap, control), jurs.grid_laplacian(control),
+                               atol=1e-14)
+
+
+@pytest.mark.parametrize("lam", [0.0, LAM])
+def test_least_squares_is_the_minimiser(example1_problem, lam):
+    """Against an independent dense solve of the same objective (SVD least squares on the
+    stacked [D; sqrt(2 lam) differences] system)."""
+    problem = example1_problem
+    sol = solve(least_squares(lam, ridge=0.0), problem)  # the exact minimiser, no ridge
+    assert sol.succeeded and int(sol.stats["num_steps"]) == 1
+    d = dense_collocation(problem, np.ones(problem.shape))
+    n, m = problem.shape
+    eye_n, eye_m = np.eye(n), np.eye(m)
+    diff_x = np.kron(np.diff(eye_n, axis=0), eye_m)
+    diff_y = np.kron(eye_n, np.diff(eye_m, axis=0))
+    stacked = np.concatenate([d, np.sqrt(2 * lam) * diff_x, np.sqrt(2 * lam) * diff_y])
+    rhs = np.concatenate([np.asarray(problem.targets), np.zeros(stacked.shape[0] - d.shape[0])])
+    best = np.linalg.lstsq(stacked, rhs, rcond=1e-14)[0]
+    best_energy = float(np.sum((stacked @ best - rhs) ** 2))
+    energy = float(sol.metrics["E"])
+    assert abs(energy - best_energy) <= 1e-9 * best_energy
+    np.testing.assert_allclose(sol.metrics["E_d"] + lam * sol.metrics["R"], energy, rtol=1e-12)
+    # Gradient of the objective vanishes at the solution (hand-derived gradients).
+    grad = (jurs.data_energy_grad_control(problem, sol.spline.control, sol.spline.weights)
+            + lam * jurs.regulariser_grad(sol.spline.control))
+    scale = jnp.abs(jurs.data_energy_grad_control(problem, jnp.zeros(problem.shape),
+                                                  sol.spline.weights)).max()
+    assert float(jnp.abs(grad).max()) < 1e-8 * float(scale)
+
+
+def test_cg_and_cholesky_agree(example1_problem):
+    chol = solve(least_squares(LAM, linear_solver=lx.Cholesky()), example1_problem)
+    cg = solve(least_squares(LAM, linear_solver=lx.CG(rtol=1e-12, atol=1e-14,
+                                                                   max_steps=2000)),
+                    example1_problem)
+    assert cg.succeeded
+    np.testing.assert_allclose(cg.spline.control, chol.spline.control, atol=1e-7)
+    np.testing.assert_allclose(cg.metrics["E"], chol.metrics["E"], rtol=1e-10)
+
+
+def test_keep_weights_solves_for_fixed_rational_weights(example1_problem):
+    problem = example1_problem
+    weights = jnp.exp(0.3 * jax.random.normal(jax.random.PRNGKey(3), problem.shape))
+    start = jurs.ImplicitSpline(jnp.zeros(problem.shape), weights, problem.lower, problem.upper)
+    sol = solve(least_squares(LAM, keep_weights=True), problem, start)
+    np.testing.assert_array_equal(sol.spline.weights, weights)
+    grad = (jurs.data_energy_grad_control(problem, sol.spline.control, weights)
+            + LAM * jurs.regulariser_grad(sol.spline.control))
+    assert float(jnp.abs(grad).max()) < 1e-12
+    # The default ignores the start weights and fits the B-spline.
+    bspline = solve(least_squares(LAM), problem, start)
+    np.testing.assert_array_equal(bspline.spline.weights, jnp.ones(problem.shape))
+
+
+def test_least_squares_is_the_fixed_point_of_the_paper_iteration(example1_problem):
+    """IURS with tau = 0 is eq. 33 with fixed w; its fixed point minimises E_d + (2 lam/mu) R
+    (jurs.objective_lam): from the exact solution, one step must not move C."""
+    problem = example1_problem
+    mu = jurs.step_size(problem, jnp.ones(problem.shape))
+    paper_lam = 1e-3
+    exact = solve(least_squares(jurs.objective_lam(paper_lam, mu)), problem)
+    iurs = solve(jurs.IURS(tau=0.0, lam=paper_lam, max_steps=1), problem, exact.spline)
+    np.testing.assert_allclose(iurs.spline.control, exact.spline.control, atol=1e-12)
+
+
+@pytest.fixture(scope="module")
+def example1_9x9():
+    points, normals = jurs.datasets.example1(120)
+    problem = jurs.make_problem(points, normals, grid=9, offset=0.1, eps=0.01)
+    return problem, solve(least_squares(0.0), problem)
+
+
+def test_example1_energy(example1_9x9):
+    """Example 1 on the paper's 9 x 9 grid (d = 0.1, eps = 0.01): the exact B-spline fit
+    beats 200 I-PIA steps, which chase the same minimiser from C = 0."""
+    problem, sol = example1_9x9
+    ipia = solve(jurs.IPIA(max_steps=200), problem)
+    assert float(sol.metrics["E_d"]) < float(ipia.metrics["E_d"])
+    assert float(sol.metrics["E_d"]) < 2.6e-4
+
+
+def test_ridge_keeps_singular_solves_bounded():
+    """Unregularised on noisy data at 20 x 20 the normal equations are numerically
+    singular: without the ridge the solve puts coefficients of ~1e10 where no data are;
+    the default ridge keeps them bounded at a negligible cost in energy."""
+    points, normals = jurs.datasets.example9()
+    problem = jurs.make_problem(points, normals, grid=20)
+    plain = solve(least_squares(0.0, ridge=0.0), problem, throw=False)
+    ridged = solve(least_squares(0.0), problem)
+    assert float(jnp.abs(ridged.spline.control).max()) < 1e5
+    assert float(jnp.abs(plain.spline.control).max()) > 100 * float(jnp.abs(ridged.spline.control).max())
+    e_plain, e_ridged = float(plain.metrics["E_d"]), float(ridged.metrics["E_d"])
+    assert e_plain <= e_ridged <= 1.02 * e_plain
+    with pytest.raises(ValueError, match="ridge"):
+        jurs.LeastSquares(ridge=-1.0)
+
+
+def test_float32_runs(example1_9x9):
+    problem64, exact = example1_9x9
+    points, normals = jurs.datasets.example1(120)
+    problem = jurs.make_problem(points, normals, grid=9, dtype=jnp.float32)
+    sol = solve(least_squares(np.float32(0.0)), problem)
+    assert sol.spline.control.dtype == jnp.float32
+    assert bool(sol.succeeded) and np.isfinite(float(sol.metrics["E"]))
+    # Even the ill-conditioned unregularised solve lands close in energy.
+    np.testing.assert_allclose(float(sol.metrics["E"]), float(exact.metrics["E"]), rtol=1e-3)
+
+
+def test_bad_arguments():
+    with pytest.raises(ValueError, match="lam"):
+        jurs.LeastSquares(lam=-1.0)
+    with pytest.raises(ValueError, match="chunk_size"):
+        jurs.LeastSquares(chunk_size=0)
+    with pytest.raises(TypeError, match="lineax"):
+        jurs.LeastSquares(linear_solver="cholesky")
