@@ -18,7 +18,7 @@ from ._basis import flat_cell, locate, num_cells
 from ._spline import LocalBasis, local_basis
 
 #: Default margin added around the samples' bounding box, as a fraction of its longest side.
-DEFAULT_MARGIN = 0.05
+DEFAULT_MARGIN = 0.1
 
 
 class Problem(eqx.Module):

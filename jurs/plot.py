@@ -100,7 +100,8 @@ def plot_fit(spline: ImplicitSpline, points=None, normals=None, offset=None, *, 
     if levelset is not None and levelset.num_supplementary:
         ax.plot([], [], "-", color=SUPPLEMENTARY_COLOUR,
                 label=f"supplementary g = 0 ({levelset.num_supplementary})")
-    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.1), ncol=3, fontsize=8, frameon=False)
+    # Below the x-axis label, not on it.
+    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.14), ncol=3, fontsize=8, frameon=False)
     _finish(ax, title)
     return fig
 

@@ -1,0 +1,77 @@
+"""Warm time of one IURS / I-PIA step on a large cloud, and the first call's compile time.
+
+Default: 1e5 points of Example 1 (3e5 samples), 64 x 64 grid, float64. The baseline, run in
+the same process, is the same step on the generic layout (one sample a bucket, the layout
+every traced fit uses); the ratio shows what the cell-bucketed layout buys.
+
+    python benchmarks/step_speed.py [--points 100000] [--grid 64]
+"""
+
+from __future__ import annotations
+
+import argparse
+import sys
+import time
+
+import jax
+
+jax.config.update("jax_enable_x64", True)
+import jax.numpy as jnp  # noqa: E402
+
+import jurs  # noqa: E402
+
+sys.path.insert(0, __file__.rsplit("/", 1)[0])
+from _common import machine, time_call, write_results  # noqa: E402
+
+
+@jax.jit
+def _step(solver, problem, state):
+    return solver.step(problem, state)
+
+
+def measure(points, normals, grid, solver, bucket_size):
+    t0 = time.perf_counter()
+    problem = jax.block_until_ready(
+        jurs.make_problem(points, normals, grid=grid, bucket_size=bucket_size))
+    build = time.perf_counter() - t0
+    spline = jurs.ImplicitSpline(jnp.zeros(grid), jnp.ones(grid), problem.lower, problem.upper)
+    state, _ = jax.jit(solver.init)(problem, spline)
+    state, _ = _step(solver, problem, state)  # a state with moved weights
+    _step.clear_cache()  # so the first timed call compiles, as a user's first call does
+    first, warm = time_call(_step, solver, problem, state)
+    return {"layout": f"bucket_size={problem.local.bucket_size}", "slots": int(problem.samples.shape[0]),
+            "build_s": build, "compile_s": first - warm, "warm_ms": warm * 1e3}
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--points", type=int, default=100_000)
+    parser.add_argument("--grid", type=int, default=64)
+    args = parser.parse_args(argv)
+    grid = (args.grid, args.grid)
+    points, normals = jurs.datasets.example1(args.points)
+    rows = []
+    for name, solver in [("IURS (tau=1e-2, lam=1e-3)", jurs.IURS(tau=1e-2, lam=1e-3)),
+                         ("IPIA", jurs.IPIA())]:
+        fast = measure(points, normals, grid, solver, None)
+        base = measure(points, normals, grid, solver, 1)
+        rows.append({"solver": name, "fast": fast, "baseline": base,
+                     "speedup": base["warm_ms"] / fast["warm_ms"]})
+
+    lines = [f"# One solver step: {args.points} points ({3 * args.points} samples), grid {grid[0]}x{grid[1]}, float64",
+             "", f"Machine: {machine()}", "",
+             "| solver | layout | slots | warm step | first call compile | problem build | baseline (generic layout) warm | speedup |",
+             "|---|---|---|---|---|---|---|---|"]
+    for r in rows:
+        f, b = r["fast"], r["baseline"]
+        lines.append(f"| {r['solver']} | {f['layout']} | {f['slots']} | {f['warm_ms']:.1f} ms | "
+                     f"{f['compile_s']:.2f} s | {f['build_s']:.2f} s | {b['warm_ms']:.1f} ms | "
+                     f"{r['speedup']:.1f}x |")
+    text = "\n".join(lines) + "\n"
+    print(text)
+    write_results(f"step_speed_{args.points}_{args.grid}",
+                  {"points": args.points, "grid": grid, "machine": machine(), "rows": rows}, text)
+
+
+if __name__ == "__main__":
+    main()
