@@ -118,10 +118,10 @@ def timed_fit(points, normals, grid, solver):
     return sol, warm, max(first - warm, 0.0)
 
 
-def short_result(message: str) -> str:
-    if message.startswith("converged"):
-        return "converged"
-    return "max_steps" if message.startswith("stopped") else "non-finite"
+def short_result(sol) -> str:
+    names = {jurs.RESULTS.successful: "converged", jurs.RESULTS.max_steps_reached: "max_steps",
+             jurs.RESULTS.failed: "failed", jurs.RESULTS.nonfinite: "non-finite"}
+    return next(name for item, name in names.items() if sol.result == item)
 
 
 def inner_steps(sol):
@@ -141,7 +141,7 @@ def run_block(title, points, normals, grid, solvers):
             "E_max": m["E_max"], "lam": m["lam"],
             "E_over_exact": m["E"] / reference["E"],
             "E_ave_over_exact": m["E_ave"] / reference["E_ave"],
-            "steps": inner_steps(sol), "result": short_result(sol.message),
+            "steps": inner_steps(sol), "result": short_result(sol),
             "warm_s": warm, "compile_s": compile_s,
         })
         r = rows[-1]
@@ -187,7 +187,7 @@ def markdown(rows, linear_rows):
     for r in rows:
         lines.append(
             f"| {r['case']} | {r['solver']} | {r['E']:.4e} | {r['E_over_exact']:.6f} | "
-            f"{r['E_ave']:.3e} | {r['E_ave_over_exact']:.3f} | {r['steps']} | {short_result(r['result'])} | "
+            f"{r['E_ave']:.3e} | {r['E_ave_over_exact']:.3f} | {r['steps']} | {r['result']} | "
             f"{r['warm_s'] * 1e3:.1f} ms | {r['compile_s']:.1f} s |")
     lines += ["", "## Which solver (derived from the rows above)", ""]
     for case in dict.fromkeys(r["case"] for r in rows):

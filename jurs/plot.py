@@ -101,7 +101,7 @@ def plot_fit(spline: ImplicitSpline, points=None, normals=None, offset=None, *, 
         ax.plot([], [], "-", color=SUPPLEMENTARY_COLOUR,
                 label=f"supplementary g = 0 ({levelset.num_supplementary})")
     # Below the x-axis label, not on it.
-    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.14), ncol=3, fontsize=8, frameon=False)
+    ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.14), ncol=2, fontsize=8, frameon=False)
     _finish(ax, title)
     return fig
 
