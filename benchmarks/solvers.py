@@ -119,9 +119,9 @@ def timed_fit(points, normals, grid, solver):
 
 
 def short_result(sol) -> str:
-    names = {jurs.RESULTS.successful: "converged", jurs.RESULTS.max_steps_reached: "max_steps",
-             jurs.RESULTS.failed: "failed", jurs.RESULTS.nonfinite: "non-finite"}
-    return next(name for item, name in names.items() if sol.result == item)
+    names = [(jurs.RESULTS.successful, "converged"), (jurs.RESULTS.max_steps_reached, "max_steps"),
+             (jurs.RESULTS.failed, "failed"), (jurs.RESULTS.nonfinite, "non-finite")]
+    return next(name for item, name in names if sol.result == item)
 
 
 def inner_steps(sol):
