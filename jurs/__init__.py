@@ -28,8 +28,9 @@ from ._energy import (
 )
 from ._fit import fit
 from ._io import load_spline, save_spline
-from ._progress import fit_in_chunks
+from ._normal import NormalEquations, normal_equations
 from ._problem import Problem, auto_domain, bucket_layout, make_problem, offset_samples
+from ._progress import fit_in_chunks
 from ._solution import RESULTS, Solution
 from ._spline import (
     ImplicitSpline,
@@ -39,33 +40,34 @@ from ._spline import (
     local_basis,
     rational_values,
 )
-from .solvers import IPIA, IURS, AbstractSolver, objective_lam, solve
-
-__version__ = "0.1.0"
-
-__all__ = [
-    "AbstractSolver", "IPIA", "IURS", "ImplicitSpline", "LocalBasis", "Problem", "RESULTS",
-    "Solution", "auto_domain", "collocation_column_sums", "cubic_derivatives", "cubic_weights",
-    "data_energy", "data_energy_grad_control", "data_energy_grad_weights", "datasets", "eta",
-    "fit", "grid_laplacian", "local_basis", "make_problem", "metrics", "objective",
-    "objective_lam", "offset_samples", "regulariser", "regulariser_grad", "residuals", "solve",
-    "step_size", "transpose_apply", "collocation_transpose", "rational_residuals",
-    "weight_gradient", "bspline_transpose", "bspline_values", "rational_values", "bucket_layout",
-]
-__all__ += ["fit_in_chunks", "load_spline", "save_spline"]
-
-# Issue 3: exact solve, normal equations, general-purpose solver wrappers.
-from ._normal import NormalEquations, normal_equations
 from .solvers import (
+    IPIA,
+    IURS,
+    AbstractSolver,
     JaxoptGaussNewton,
     JaxoptLBFGS,
     JaxoptLevenbergMarquardt,
     JointLevenbergMarquardt,
     LeastSquares,
+    NormalIPIA,
     OptimistixLeastSquares,
     OptimistixMinimiser,
+    objective_lam,
+    solve,
 )
 
-__all__ += ["JaxoptGaussNewton", "JaxoptLBFGS", "JaxoptLevenbergMarquardt",
-            "JointLevenbergMarquardt", "LeastSquares", "NormalEquations",
-            "OptimistixLeastSquares", "OptimistixMinimiser", "normal_equations"]
+__version__ = "0.1.0"
+
+__all__ = [
+    "AbstractSolver", "IPIA", "IURS", "ImplicitSpline", "JaxoptGaussNewton", "JaxoptLBFGS",
+    "JaxoptLevenbergMarquardt", "JointLevenbergMarquardt", "LeastSquares", "LocalBasis",
+    "NormalEquations", "NormalIPIA", "OptimistixLeastSquares", "OptimistixMinimiser",
+    "Problem", "RESULTS", "Solution", "auto_domain", "bspline_transpose", "bspline_values",
+    "bucket_layout", "collocation_column_sums", "collocation_transpose", "cubic_derivatives",
+    "cubic_weights", "data_energy", "data_energy_grad_control", "data_energy_grad_weights",
+    "datasets", "eta", "fit", "fit_in_chunks", "grid_laplacian", "load_spline", "local_basis",
+    "make_problem", "metrics", "normal_equations", "objective", "objective_lam",
+    "offset_samples", "rational_residuals", "rational_values", "regulariser",
+    "regulariser_grad", "residuals", "save_spline", "solve", "step_size", "transpose_apply",
+    "weight_gradient",
+]

@@ -198,3 +198,17 @@ def test_fit_is_differentiable_and_batchable():
     fit_one = lambda p: jurs.fit(p, normals, solver=jurs.IPIA(max_steps=5, tol=0.0)).metrics["E_d"]
     batched = jax.vmap(fit_one)(batch)
     np.testing.assert_allclose(np.asarray(batched), [float(fit_one(p)) for p in batch], rtol=1e-12)
+
+
+@pytest.mark.parametrize("bucket_size", [1, 16])
+def test_normal_form_ipia_follows_ipia(bucket_size):
+    """The normal-equation form gives I-PIA's iterates and energies, on either layout."""
+    points, normals = jurs.datasets.example1(700)
+    problem = jurs.make_problem(points, normals, grid=(12, 12), bucket_size=bucket_size)
+    per_sample = jurs.solve(jurs.IPIA(max_steps=80, tol=0.0), problem)
+    normal_form = jurs.solve(jurs.NormalIPIA(max_steps=80, tol=0.0), problem)
+    np.testing.assert_allclose(np.asarray(normal_form.spline.control),
+                               np.asarray(per_sample.spline.control), rtol=1e-10, atol=1e-14)
+    np.testing.assert_allclose(np.asarray(normal_form.stats["energy_history"]),
+                               np.asarray(per_sample.stats["energy_history"]), rtol=1e-10)
+    np.testing.assert_allclose(float(normal_form.state.mu), float(per_sample.metrics["mu"]), rtol=1e-12)
