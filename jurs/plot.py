@@ -16,7 +16,7 @@ import matplotlib.pyplot as plt
 import numpy as np
 
 from ._spline import ImplicitSpline
-from .levelset import evaluate_grid
+from .levelset import evaluate_grid, sampling_grid
 
 #: Colour of the zero curve, and of supplementary components when they are highlighted.
 ZERO_COLOUR = "k"
@@ -29,11 +29,8 @@ def evaluate_on_grid(spline: ImplicitSpline, resolution: int = 400, box=None):
     ``resolution`` points along the longer side. Returns ``(xs, ys, values)`` with
     ``values[j, i] = g(xs[i], ys[j])``.
     """
-    lower, upper = (np.asarray(spline.lower), np.asarray(spline.upper)) if box is None else map(np.asarray, box)
-    extent = upper - lower
-    counts = np.maximum(2, np.round(resolution * extent / extent.max()).astype(int))
-    xs = np.linspace(lower[0], upper[0], counts[0])
-    ys = np.linspace(lower[1], upper[1], counts[1])
+    lower, upper = (spline.lower, spline.upper) if box is None else box
+    xs, ys, _ = sampling_grid(lower, upper, resolution)
     return xs, ys, evaluate_grid(spline, xs, ys)
 
 
