@@ -18,7 +18,13 @@ from jax import Array
 
 from ._basis import num_cells, patches_to_grid
 from ._problem import Problem
-from ._spline import ImplicitSpline, bspline_transpose, rational_terms, rational_values
+from ._spline import (
+    ImplicitSpline,
+    bspline_transpose,
+    bspline_values,
+    rational_terms,
+    rational_values,
+)
 
 
 def rational_residuals(problem: Problem, control: Array, weights: Array):
@@ -26,6 +32,12 @@ def rational_residuals(problem: Problem, control: Array, weights: Array):
     ``g(x_k)`` (eq. 14, 18)."""
     denom, g = rational_values(problem.local, control, weights)
     return problem.mask * (g - problem.targets), denom, g
+
+
+def bspline_residuals(problem: Problem, control: Array) -> Array:
+    """``r = f(x_k) - b_k`` at the slots for the polynomial B-spline f of eq. 2 (w = 1, so
+    W = 1 by the partition of unity and one evaluation suffices); 0 at padding."""
+    return problem.mask * (bspline_values(problem.local, control) - problem.targets)
 
 
 def collocation_transpose(problem: Problem, weights: Array, denom: Array, values: Array) -> Array:

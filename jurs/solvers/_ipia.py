@@ -8,31 +8,19 @@ import equinox as eqx
 import jax.numpy as jnp
 from jax import Array
 
-from .._energy import rational_residuals, step_size
+from .._energy import bspline_residuals, step_size
 from .._normal import NormalEquations, normal_equations
-from .._spline import bspline_transpose
 from .._problem import Problem, check_nonnegative
-from .._spline import ImplicitSpline
-from ._base import AbstractSolver
+from .._spline import ImplicitSpline, bspline_transpose
+from ._base import AbstractSolver, State
 
 
-class IPIAState(eqx.Module):
-    control: Array  # C
-    residual: Array  # r = D C - b at the current C (3m,)
-    mu: Array  # eq. 13, fixed: D does not change
-
-
-class IPIA(AbstractSolver[IPIAState]):
-    """I-PIA, eq. 11-13: ``C <- C + mu D^T (b - D C)`` with ``mu = 2 / ||D^T D||_inf``.
-
-    A polynomial B-spline (all weights 1). It is gradient descent on E_d with step mu/2 and
-    tends to the least-squares minimiser, slowly. Stops when ``|E_new - E_old| < tol``
-    (eq. 38) or after ``max_steps``. ``lam`` is always 0 (no regulariser in Section II).
-    """
+class _AbstractPIA(AbstractSolver[State]):
+    """Shared by the two forms of I-PIA: settings, checks, and a B-spline (w = 1) result.
+    The state carries the coefficients as ``state.control``."""
 
     max_steps: int = eqx.field(static=True, default=200)
     tol: float = 1e-7
-
     lam: ClassVar[float] = 0.0  # Section II has no regulariser
 
     def __check_init__(self):
@@ -40,23 +28,36 @@ class IPIA(AbstractSolver[IPIAState]):
         if int(self.max_steps) < 0:
             raise ValueError(f"max_steps must be >= 0, got {self.max_steps}")
 
+    def to_spline(self, problem: Problem, state) -> ImplicitSpline:
+        return ImplicitSpline(state.control, jnp.ones_like(state.control), problem.lower,
+                              problem.upper)
+
+
+class IPIAState(eqx.Module):
+    control: Array  # C
+    residual: Array  # r = D C - b at the current C, one entry a sample slot
+    mu: Array  # eq. 13, fixed: D does not change
+
+
+class IPIA(_AbstractPIA[IPIAState]):
+    """I-PIA, eq. 11-13: ``C <- C + mu D^T (b - D C)`` with ``mu = 2 / ||D^T D||_inf``.
+
+    A polynomial B-spline (all weights 1). It is gradient descent on E_d with step mu/2 and
+    tends to the least-squares minimiser, slowly. Stops when ``|E_new - E_old| < tol``
+    (eq. 38) or after ``max_steps``. ``lam`` is always 0 (no regulariser in Section II).
+    """
+
     def init(self, problem: Problem, spline: ImplicitSpline):
-        control = spline.control
-        ones = jnp.ones_like(control)
-        r = rational_residuals(problem, control, ones)[0]
-        return IPIAState(control, r, step_size(problem, ones)), jnp.sum(r * r)
+        r = bspline_residuals(problem, spline.control)
+        mu = step_size(problem, jnp.ones_like(spline.control))
+        return IPIAState(spline.control, r, mu), jnp.sum(r * r)
 
     def step(self, problem: Problem, state: IPIAState):
-        ones = jnp.ones_like(state.control)
         # eq. 11 with r = DC - b: C + mu D^T (b - DC) = C - mu D^T r, and D^T = T for w = 1.
         dtr = bspline_transpose(problem.local, state.residual, problem.shape)
         control = state.control - state.mu * dtr
-        r = rational_residuals(problem, control, ones)[0]
+        r = bspline_residuals(problem, control)
         return IPIAState(control, r, state.mu), jnp.sum(r * r)
-
-    def to_spline(self, problem: Problem, state: IPIAState) -> ImplicitSpline:
-        return ImplicitSpline(state.control, jnp.ones_like(state.control), problem.lower,
-                              problem.upper)
 
 
 class NormalIPIAState(eqx.Module):
@@ -65,7 +66,7 @@ class NormalIPIAState(eqx.Module):
     mu: Array  # eq. 13
 
 
-class NormalIPIA(AbstractSolver[NormalIPIAState]):
+class NormalIPIA(_AbstractPIA[NormalIPIAState]):
     """I-PIA (eq. 11-13) in normal-equation form: ``C <- C - mu (D^T D C - D^T b)``.
 
     The same iterates as :class:`IPIA` (to rounding), but ``D^T D`` (a 49-point stencil)
@@ -74,15 +75,6 @@ class NormalIPIA(AbstractSolver[NormalIPIAState]):
     That last form cancels: in float32 the energy (and so the ``tol`` test) is only good to
     about ``1e-7 b.b``. Use it for large clouds; :class:`IPIA` for the paper's per-sample form.
     """
-
-    max_steps: int = eqx.field(static=True, default=200)
-    tol: float = 1e-7
-    lam: ClassVar[float] = 0.0  # Section II has no regulariser
-
-    def __check_init__(self):
-        check_nonnegative("tol", self.tol)
-        if int(self.max_steps) < 0:
-            raise ValueError(f"max_steps must be >= 0, got {self.max_steps}")
 
     def init(self, problem: Problem, spline: ImplicitSpline):
         normal = normal_equations(problem)
@@ -94,7 +86,3 @@ class NormalIPIA(AbstractSolver[NormalIPIAState]):
         normal = state.normal
         control = state.control - state.mu * (normal.matvec(state.control) - normal.rhs)  # eq. 11
         return NormalIPIAState(control, normal, state.mu), normal.data_energy(control)
-
-    def to_spline(self, problem: Problem, state: NormalIPIAState) -> ImplicitSpline:
-        return ImplicitSpline(state.control, jnp.ones_like(state.control), problem.lower,
-                              problem.upper)
