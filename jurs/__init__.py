@@ -26,6 +26,7 @@ from ._energy import (
     step_size,
     transpose_apply,
 )
+from ._defaults import Settings, auto_settings
 from ._fit import fit
 from ._io import load_spline, save_spline
 from ._normal import NormalEquations, normal_equations
@@ -62,7 +63,7 @@ __all__ = [
     "AbstractSolver", "IPIA", "IURS", "ImplicitSpline", "JaxoptGaussNewton", "JaxoptLBFGS",
     "JaxoptLevenbergMarquardt", "JointLevenbergMarquardt", "LeastSquares", "LocalBasis",
     "NormalEquations", "NormalIPIA", "OptimistixLeastSquares", "OptimistixMinimiser",
-    "Problem", "RESULTS", "Solution", "auto_domain", "bspline_transpose", "bspline_values",
+    "Problem", "RESULTS", "Settings", "Solution", "auto_domain", "auto_settings", "bspline_transpose", "bspline_values",
     "bucket_layout", "collocation_column_sums", "collocation_transpose", "cubic_derivatives",
     "cubic_weights", "data_energy", "data_energy_grad_control", "data_energy_grad_weights",
     "datasets", "eta", "fit", "fit_in_chunks", "grid_laplacian", "load_spline", "local_basis",

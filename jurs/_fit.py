@@ -2,14 +2,17 @@
 
 from __future__ import annotations
 
+import dataclasses
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+from ._defaults import Settings, auto_settings
 from ._problem import DEFAULT_MARGIN, make_problem, normalise_grid
 from ._solution import Solution
 from ._spline import ImplicitSpline
-from .solvers import AbstractSolver, IURS, solve
+from .solvers import AbstractSolver, LeastSquares, solve
 
 
 def _as_arrays(tree, dtype):
@@ -28,10 +31,10 @@ def fit(
     points,
     normals,
     *,
-    grid=(9, 9),
+    grid=None,
     solver: AbstractSolver | None = None,
-    offset=0.1,
-    eps=0.01,
+    offset=None,
+    eps=None,
     domain=None,
     margin: float = DEFAULT_MARGIN,
     init: ImplicitSpline | None = None,
@@ -41,14 +44,20 @@ def fit(
 ) -> Solution:
     """Fit an implicit spline whose zero set passes through ``points``.
 
+    With nothing but points and normals, the grid, the offset d, eps and the solver are
+    chosen from the data (:func:`jurs.auto_settings`: cells a few point spacings or noise
+    widths wide, d from the spacing and noise, the exact solve :class:`jurs.LeastSquares`
+    with a scale-free lambda); ``sol.settings`` records the choices. Give any of them to
+    override; the paper's Example 1 settings are ``grid=(9, 9), offset=0.1, eps=0.01``.
+
     Args:
         points: ``(m, 2)`` data points.
         normals: ``(m, 2)`` outward normals (normalised here).
-        grid: ``N`` or ``(N, M)`` basis functions along x and y (>= 4). Default: the
-            paper's Example 1 grid, 9 x 9.
-        solver: any jurs solver; default ``IURS()`` (Algorithm 1, tau = 1e-2, lam = 0).
-        offset: d, distance of the offset samples (eq. 4); default 0.1 as in the paper.
-        eps: target value at the offsets (eq. 5); default 0.01 as in the paper.
+        grid: ``N`` or ``(N, M)`` basis functions along x and y (>= 4); None chooses.
+        solver: any jurs solver; None: ``LeastSquares(lam=settings.lam)``, the regularised
+            exact solve. A solver given keeps its own lambda.
+        offset: d, distance of the offset samples (eq. 4); None chooses.
+        eps: target value at the offsets (eq. 5); None takes ``eps = d``.
         domain: ``((x_min, y_min), (x_max, y_max))`` or None for the samples' bounding box
             plus ``margin`` x its longest side.
         init: starting spline on the same box and grid; default C = 0, w = 1.
@@ -60,10 +69,20 @@ def fit(
 
     Returns:
         :class:`jurs.Solution`. Jit-compiled inside; traceable, so ``jax.grad`` and
-        ``jax.vmap`` go through it (input checks run only on concrete inputs).
+        ``jax.vmap`` go through it once ``grid``, ``offset``, ``eps`` and ``solver`` are
+        given (automatic choices need concrete points; input checks run only on concrete
+        inputs).
     """
+    settings = None
+    if grid is None or offset is None or eps is None or solver is None:
+        if mask is not None:
+            raise ValueError("automatic settings do not take a mask; pass grid, offset, eps "
+                             "and solver explicitly for padded batches")
+        settings = auto_settings(points, normals, grid=grid, offset=offset, eps=eps,
+                                 domain=domain, margin=margin)
+        grid, offset, eps = settings.grid, settings.offset, settings.eps
+        solver = LeastSquares(lam=settings.lam) if solver is None else solver
     shape = normalise_grid(grid)
-    solver = IURS() if solver is None else solver
     if not isinstance(solver, AbstractSolver):
         raise TypeError(f"solver must be a jurs solver, got {type(solver).__name__}")
     dtype = jnp.result_type(float)
@@ -73,4 +92,5 @@ def fit(
     # host from concrete data (see make_problem); under a caller's jit/grad/vmap it is traced.
     problem = make_problem(points, normals, grid=shape, offset=offset, eps=eps, domain=domain,
                            margin=margin, mask=mask, bucket_size=bucket_size, dtype=dtype)
-    return _solve(problem, _as_arrays(solver, dtype), init, throw)
+    sol = _solve(problem, _as_arrays(solver, dtype), init, throw)
+    return sol if settings is None else dataclasses.replace(sol, settings=settings)

@@ -16,6 +16,7 @@ from typing import Callable
 import jax.numpy as jnp
 import numpy as np
 
+from ._defaults import auto_settings
 from ._fit import fit
 from ._problem import make_problem
 from ._solution import RESULTS, Solution
@@ -71,12 +72,19 @@ def fit_in_chunks(points, normals, *, solver: AbstractSolver, chunk: int | None 
             chunk = int(np.gcd(chunk, c)) if c else chunk
     chunk = max(1, int(chunk))
     snapshots = {}
+    settings = None
+    if any(fit_kwargs.get(k) is None for k in ("grid", "offset", "eps")):
+        # Choose once, so every chunk fits the same problem.
+        keys = ("grid", "offset", "eps", "domain", "margin")
+        settings = auto_settings(points, normals, **{k: fit_kwargs[k] for k in keys
+                                                     if fit_kwargs.get(k) is not None})
+        fit_kwargs.update(grid=settings.grid, offset=settings.offset, eps=settings.eps)
     init = fit_kwargs.pop("init", None)
     if init is None:
         # An explicit start (C = 0, w = 1, as the solvers' default) so every chunk has the
         # same argument structure and the fit compiles once.
         keys = ("offset", "eps", "domain", "margin", "mask")
-        problem = make_problem(points, normals, grid=fit_kwargs.get("grid", (9, 9)),
+        problem = make_problem(points, normals, grid=fit_kwargs["grid"],
                                **{k: fit_kwargs[k] for k in keys if k in fit_kwargs})
         init = ImplicitSpline(jnp.zeros(problem.shape, problem.lower.dtype),
                               jnp.ones(problem.shape, problem.lower.dtype),
@@ -110,4 +118,4 @@ def fit_in_chunks(points, normals, *, solver: AbstractSolver, chunk: int | None 
     h = np.concatenate(history)
     full[: len(h)] = h
     stats = dict(sol.stats, num_steps=np.asarray(done), energy_history=full)
-    return Solution(sol.spline, sol.metrics, stats, sol.result, sol.state), snapshots
+    return Solution(sol.spline, sol.metrics, stats, sol.result, sol.state, settings), snapshots

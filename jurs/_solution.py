@@ -42,6 +42,8 @@ class Solution(eqx.Module):
             before the first step and after each step, NaN past ``num_steps``).
         result: a :class:`RESULTS` item; ``sol.message`` reads it.
         state: the solver's final state (for warm starts and inspection).
+        settings: the :class:`jurs.Settings` that :func:`jurs.fit` chose automatically, or
+            None when every setting was given.
     """
 
     spline: ImplicitSpline
@@ -49,6 +51,7 @@ class Solution(eqx.Module):
     stats: dict[str, Any]
     result: RESULTS
     state: Any
+    settings: Any = eqx.field(static=True, default=None)
 
     @property
     def message(self) -> str:

@@ -65,7 +65,7 @@ def _positive(text: str) -> float:
 def _solver_names():
     import jurs
 
-    names = ["iurs", "ipia"]
+    names = ["auto", "iurs", "ipia"]
     if hasattr(jurs, "LeastSquares"):
         names.append("lstsq")
     return names
@@ -85,17 +85,22 @@ def build_parser() -> argparse.ArgumentParser:
                     "metrics.json, spline.npz, fit.png and zero_level.csv to --output.",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     f.add_argument("file", help="CSV/TXT (columns x, y, nx, ny; optional header) or NPY (m, 4)")
-    f.add_argument("--grid", type=_grid, default=(9, 9), metavar="N[xM]",
-                   help="basis functions along x and y")
-    f.add_argument("--solver", default="iurs", choices=_solver_names(),
-                   help="iurs: Algorithm 1 (rational); ipia: I-PIA (B-spline); "
-                        "lstsq: exact least squares (B-spline), when available")
-    f.add_argument("--lam", type=_nonneg, default=0.0,
+    f.add_argument("--grid", type=_grid, default=None, metavar="N[xM]",
+                   help="basis functions along x and y; None chooses from the data "
+                        "(jurs.auto_settings)")
+    f.add_argument("--solver", default="auto", choices=_solver_names(),
+                   help="auto: exact least squares with the automatic lambda; iurs: "
+                        "Algorithm 1 (rational); ipia: I-PIA (B-spline); lstsq: exact least "
+                        "squares (B-spline) with --lam")
+    f.add_argument("--lam", type=_nonneg, default=None,
                    help="regularisation weight: eq. 33's lambda for iurs (keep it well below "
-                        "1/16), the objective's lambda in E_d + lam R for lstsq; ipia has none")
+                        "1/16; None is 0), the objective's lambda in E_d + lam R for lstsq "
+                        "and auto (None chooses); ipia has none")
     f.add_argument("--tau", type=_nonneg, default=1e-2, help="weight step size (iurs, eq. 20)")
-    f.add_argument("-d", "--offset", type=_positive, default=0.1, help="offset distance d")
-    f.add_argument("--eps", type=_positive, default=0.01, help="target value at the offsets")
+    f.add_argument("-d", "--offset", type=_positive, default=None,
+                   help="offset distance d; None chooses from the data")
+    f.add_argument("--eps", type=_positive, default=None,
+                   help="target value at the offsets; None takes d")
     f.add_argument("--steps", type=int, default=200,
                    help="maximum number of steps (iurs, ipia; lstsq solves once)")
     f.add_argument("--tol", type=_nonneg, default=1e-7,
@@ -141,12 +146,17 @@ def _one_line(exc) -> str:
     return " ".join(str(exc).split())
 
 
-def make_solver(name: str, *, lam: float, tau: float, steps: int, tol: float):
-    """The solver named on the command line."""
+def make_solver(name: str, *, lam: float | None, tau: float, steps: int, tol: float,
+                auto_lam: float = 0.0):
+    """The solver named on the command line (``auto_lam``: the automatic lambda, used by
+    ``auto`` when ``--lam`` is not given)."""
     import jurs
 
     if steps < 0:
         raise InputError(f"--steps must be >= 0, got {steps}")
+    if name == "auto":
+        return jurs.LeastSquares(lam=auto_lam if lam is None else lam)
+    lam = 0.0 if lam is None else lam
     if name == "ipia":
         if lam:
             raise InputError("--lam is not supported by ipia (I-PIA has no regulariser); "
@@ -225,18 +235,23 @@ def run_fit(args) -> int:
 
     path = args.file
     points, normals = read_input(path)
-    solver = make_solver(args.solver, lam=args.lam, tau=args.tau, steps=args.steps, tol=args.tol)
     if args.resolution < 16:
         raise InputError(f"--resolution must be >= 16, got {args.resolution}")
     if os.path.exists(args.output) and not os.path.isdir(args.output):
         raise InputError(f"{args.output}: exists and is not a folder")
-    settings = dict(grid=args.grid, offset=args.offset, eps=args.eps)
     try:  # data-dependent checks (e.g. degenerate clouds) before any work
+        chosen = jurs.auto_settings(points, normals, grid=args.grid, offset=args.offset,
+                                    eps=args.eps)
+        settings = dict(grid=chosen.grid, offset=chosen.offset, eps=chosen.eps)
         jurs.make_problem(points, normals, **settings)
     except ValueError as exc:
         raise InputError(f"{path}: {_one_line(exc)}") from None
+    solver = make_solver(args.solver, lam=args.lam, tau=args.tau, steps=args.steps,
+                         tol=args.tol, auto_lam=chosen.lam)
+    grid, offset = chosen.grid, chosen.offset
+    lam = float(getattr(solver, "lam", 0.0))
 
-    bar = ProgressBar(f"{args.solver} {args.grid[0]}x{args.grid[1]}", enabled=not args.quiet)
+    bar = ProgressBar(f"{args.solver} {grid[0]}x{grid[1]}", enabled=not args.quiet)
     t0 = time.perf_counter()
     sol, _ = fit_in_chunks(points, normals, solver=solver, callback=bar, throw=False, **settings)
     jax.block_until_ready(sol.spline)
@@ -247,7 +262,7 @@ def run_fit(args) -> int:
               file=sys.stderr)
         return EXIT_FIT_FAILED
 
-    report = ls.analyze(sol.spline, points, offset=args.offset, threshold=args.threshold,
+    report = ls.analyze(sol.spline, points, offset=offset, threshold=args.threshold,
                         resolution=args.resolution)
     metrics = {k: v for k, v in sol.metrics.items()}
     metrics.update(num_steps=int(sol.stats["num_steps"]), result=sol.message,
@@ -256,9 +271,10 @@ def run_fit(args) -> int:
     record = {
         "input": os.path.abspath(path),
         "num_points": int(len(points)),
-        "settings": {"solver": args.solver, "grid": list(args.grid), "lam": args.lam,
-                     "tau": args.tau if args.solver == "iurs" else None, "offset": args.offset,
-                     "eps": args.eps, "steps": args.steps, "tol": args.tol},
+        "settings": {"solver": args.solver, "grid": list(grid), "lam": lam,
+                     "tau": args.tau if args.solver == "iurs" else None, "offset": offset,
+                     "eps": chosen.eps, "steps": args.steps, "tol": args.tol,
+                     "chosen_from_data": chosen.as_dict()},
         "metrics": metrics,
     }
 
@@ -277,9 +293,9 @@ def run_fit(args) -> int:
                    fmt=["%d", "%d", "%d", "%.10g", "%.10g"])
         name = os.path.basename(path)
         fig = plot.plot_fit(
-            sol.spline, points, normals, args.offset, levelset=report,
-            title=(f"{name}: {args.solver}, grid {args.grid[0]}x{args.grid[1]}, "
-                   f"lam = {args.lam:g}\nE_ave = {float(sol.metrics['E_ave']):.3e}, "
+            sol.spline, points, normals, offset, levelset=report,
+            title=(f"{name}: {args.solver}, grid {grid[0]}x{grid[1]}, "
+                   f"lam = {lam:.3g}\nE_ave = {float(sol.metrics['E_ave']):.3e}, "
                    f"{report.num_components} component(s), "
                    f"{report.num_supplementary} supplementary"))
         fig.savefig(os.path.join(tmp, "fit.png"), dpi=130)
@@ -293,7 +309,7 @@ def run_fit(args) -> int:
         shutil.rmtree(tmp, ignore_errors=True)
 
     if not args.quiet:
-        print(f"{path}: {len(points)} points, {args.solver}, grid {args.grid[0]}x{args.grid[1]}: "
+        print(f"{path}: {len(points)} points, {args.solver}, grid {grid[0]}x{grid[1]}: "
               f"{metrics['num_steps']} steps in {seconds:.2f} s ({sol.message.split(':')[0]})")
         print(f"  E_ave = {float(sol.metrics['E_ave']):.4e}, E_max = "
               f"{float(sol.metrics['E_max']):.4e}, zero set: {report.num_components} "

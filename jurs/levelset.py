@@ -283,8 +283,9 @@ def analyze(
     """Extract and measure the zero-level set of ``spline`` (see the module docstring).
 
     Args:
-        spline: an :class:`jurs.ImplicitSpline` (anything callable on ``(n, 2)`` arrays with
-            ``lower``/``upper`` works, given ``box``).
+        spline: an :class:`jurs.ImplicitSpline` (anything jit-callable on ``(n, 2)`` arrays
+            with ``lower``/``upper`` works, given ``box``; for other functions, e.g. NumPy
+            or SciPy ones, sample them yourself and call :func:`analyze_grid`).
         points: ``(m, 2)`` data points the fit was made from.
         offset: d of the fit; the default threshold is ``2 d``.
         threshold: distance above which a component is supplementary (overrides ``offset``).
@@ -299,6 +300,28 @@ def analyze(
     Returns:
         :class:`LevelSetReport`.
     """
+    xs, ys, _ = sampling_grid(*_box(spline, box), resolution)
+    return analyze_grid(xs, ys, evaluate_grid(spline, xs, ys), points, offset=offset,
+                        threshold=threshold, reference=reference, tiny_cells=tiny_cells,
+                        zero_tol=zero_tol)
+
+
+def analyze_grid(
+    xs,
+    ys,
+    values,
+    points,
+    *,
+    offset: float = 0.1,
+    threshold: float | None = None,
+    reference=None,
+    tiny_cells: float = DEFAULT_TINY_CELLS,
+    zero_tol: float = 1e-12,
+) -> LevelSetReport:
+    """:func:`analyze` for a function already sampled on a grid: ``values[j, i]`` at
+    ``(xs[i], ys[j])``, with ``xs``/``ys`` from :func:`sampling_grid` (any implicit function
+    can be measured this way, so other methods are compared on equal terms). The cell size
+    is the spacing along the longer side; other arguments as in :func:`analyze`."""
     points = np.asarray(points, float)
     if points.ndim != 2 or points.shape[1] != 2 or len(points) == 0:
         raise ValueError(f"points must have shape (m, 2) with m >= 1, got {points.shape}")
@@ -308,8 +331,11 @@ def analyze(
         threshold = DEFAULT_THRESHOLD_FACTOR * float(offset)
     if not threshold > 0:
         raise ValueError(f"threshold must be positive, got {threshold}")
-    xs, ys, h = sampling_grid(*_box(spline, box), resolution)
-    values = evaluate_grid(spline, xs, ys)
+    xs, ys, values = np.asarray(xs, float), np.asarray(ys, float), np.asarray(values, float)
+    if values.shape != (len(ys), len(xs)):
+        raise ValueError(f"values must have shape (len(ys), len(xs)) = {(len(ys), len(xs))}, "
+                         f"got {values.shape}")
+    h = float(max(xs[-1] - xs[0], ys[-1] - ys[0]) / (max(len(xs), len(ys)) - 1))
     scale = float(np.nanmax(np.abs(values))) if np.isfinite(values).any() else 0.0
     zero_area = float(np.mean(np.abs(values) <= zero_tol * scale))
     lines = contour_lines(xs, ys, values)
@@ -319,7 +345,7 @@ def analyze(
     zero = [resample(c.polyline, h / 2) for c in components]
     zero = np.concatenate(zero) if zero else np.empty((0, 2))
     chamfer, hausdorff = chamfer_hausdorff(zero, target)
-    return LevelSetReport(tuple(components), float(threshold), h, int(resolution),
+    return LevelSetReport(tuple(components), float(threshold), h, max(len(xs), len(ys)),
                           float(tiny_cells), zero_area, chamfer, hausdorff,
                           "data points" if reference is None else "reference curve")
 

@@ -10,6 +10,10 @@ jax.config.update("jax_enable_x64", True)
 matplotlib.use("Agg")
 
 
+#: The paper's Example 1 settings (fit's defaults are chosen from the data instead).
+PAPER = dict(grid=(9, 9), offset=0.1, eps=0.01)
+
+
 def dense_basis(xy, lower, upper, shape):
     """All N*M tensor-product B-spline values at ``xy`` as a dense (n, N*M) matrix, built
     independently of jurs with scipy (knots: uniform, extended 3 cells past the box)."""

@@ -16,10 +16,12 @@ import pytest  # noqa: E402
 
 import jurs  # noqa: E402
 from jurs import cli  # noqa: E402
+from conftest import PAPER  # noqa: E402
 
 # 20 steps run in one chunk (see jurs._progress.chunk_size), so the fit compiled here is the
 # one a direct jurs.fit with the same start and throw=False uses: the tests stay fast.
 FIT_ARGS = ["--steps", "20", "--tol", "0", "-q", "--resolution", "200"]
+PAPER_ARGS = ["--solver", "iurs", "--grid", "9x9", "-d", "0.1", "--eps", "0.01"]
 
 
 @pytest.fixture(scope="module")
@@ -31,7 +33,7 @@ def example1_csv(tmp_path_factory):
 
 def test_fit_round_trip(example1_csv, tmp_path):
     out = tmp_path / "result"
-    rc = cli.main(["fit", str(example1_csv), "-o", str(out), "--grid", "9x9", *FIT_ARGS])
+    rc = cli.main(["fit", str(example1_csv), "-o", str(out), *PAPER_ARGS, *FIT_ARGS])
     assert rc == 0
     assert sorted(os.listdir(out)) == sorted(cli.OUTPUTS)
     assert not [p for p in os.listdir(tmp_path) if p.startswith(".jurs-")]  # temp dir gone
@@ -49,8 +51,8 @@ def test_fit_round_trip(example1_csv, tmp_path):
     points, normals = jurs.datasets.load_points(example1_csv)
     problem = jurs.make_problem(points, normals, grid=(9, 9))
     start = jurs.ImplicitSpline.bspline(np.zeros((9, 9)), problem.lower, problem.upper)
-    direct = jurs.fit(points, normals, grid=(9, 9), solver=jurs.IURS(max_steps=20, tol=0.0),
-                      init=start, throw=False)
+    direct = jurs.fit(points, normals, solver=jurs.IURS(max_steps=20, tol=0.0),
+                      init=start, throw=False, **PAPER)  # the CLI's defaults
     spline = jurs.load_spline(out / "spline.npz")
     assert isinstance(spline, jurs.ImplicitSpline)
     np.testing.assert_allclose(np.asarray(spline.control), np.asarray(direct.spline.control),
@@ -71,7 +73,7 @@ def test_fit_round_trip(example1_csv, tmp_path):
     # Re-running into the same folder replaces the outputs.
     (out / "spline.npz").unlink()
     (out / "metrics.json").write_text("old")
-    assert cli.main(["fit", str(example1_csv), "-o", str(out), *FIT_ARGS]) == 0
+    assert cli.main(["fit", str(example1_csv), "-o", str(out), *PAPER_ARGS, *FIT_ARGS]) == 0
     assert sorted(os.listdir(out)) == sorted(cli.OUTPUTS)
     assert json.loads((out / "metrics.json").read_text())["metrics"] == m | {
         "time_s": json.loads((out / "metrics.json").read_text())["metrics"]["time_s"]}
@@ -83,8 +85,15 @@ def test_npy_input(tmp_path):
     jurs.datasets.save_points(path, 0.5 * p + 1.0, n)
     rc = cli.main(["fit", str(path), "-o", str(tmp_path / "o"), *FIT_ARGS])
     assert rc == 0
-    m = json.loads((tmp_path / "o" / "metrics.json").read_text())["metrics"]
+    record = json.loads((tmp_path / "o" / "metrics.json").read_text())
+    m = record["metrics"]
     assert m["num_components"] == 1 and m["num_supplementary"] == 0
+    # The default solver is the exact solve with the settings chosen from the data.
+    chosen = jurs.auto_settings(0.5 * p + 1.0, n)
+    assert record["settings"]["solver"] == "auto" and m["num_steps"] == 1
+    assert record["settings"]["grid"] == list(chosen.grid)
+    assert record["settings"]["lam"] == pytest.approx(chosen.lam, rel=1e-12)
+    assert record["settings"]["offset"] == pytest.approx(chosen.offset, rel=1e-12)
 
 
 GOOD = "x,y,nx,ny\n1,0,1,0\n0,1,0,1\n-1,0,-1,0\n0,-1,0,-1\n"
@@ -186,9 +195,9 @@ def test_console_script_exit_code(tmp_path):
 def test_chunked_run_equals_one_run(solver):
     """The progress bar's chunked run follows the iterates of one run."""
     p, n = jurs.datasets.example1(120)
-    one = jurs.fit(p, n, solver=solver)
+    one = jurs.fit(p, n, solver=solver, **PAPER)
     calls = []
-    chunked, snaps = jurs.fit_in_chunks(p, n, solver=solver, checkpoints=(0, 10, 30),
+    chunked, snaps = jurs.fit_in_chunks(p, n, solver=solver, checkpoints=(0, 10, 30), **PAPER,
                                         callback=lambda d, t: calls.append((d, t)))
     for key in ("control", "weights"):
         np.testing.assert_allclose(np.asarray(getattr(chunked.spline, key)),
@@ -201,7 +210,7 @@ def test_chunked_run_equals_one_run(solver):
     assert sorted(snaps) == [0, 10, 30]
     assert float(np.abs(np.asarray(snaps[0].control)).max()) == 0.0
     if isinstance(solver, jurs.IURS) and solver.lam:  # one snapshot checked against a run
-        ten = jurs.fit(p, n, solver=jurs.IURS(tau=1e-2, lam=0.005, max_steps=10, tol=0.0))
+        ten = jurs.fit(p, n, solver=jurs.IURS(tau=1e-2, lam=0.005, max_steps=10, tol=0.0), **PAPER)
         np.testing.assert_allclose(np.asarray(snaps[10].control), np.asarray(ten.spline.control),
                                    rtol=0, atol=1e-13)
 

@@ -72,12 +72,12 @@ def test_vmap_over_padded_batch_matches_single_fits():
     solver = jurs.LeastSquares(lam=1e-4)
 
     def fit_one(p, n, mask):
-        sol = jurs.fit(p, n, grid=8, solver=solver, mask=mask)
+        sol = jurs.fit(p, n, grid=8, offset=0.1, eps=0.01, solver=solver, mask=mask)
         return sol.spline.control, sol.spline.lower, sol.metrics["E"], sol.metrics["E_ave"]
 
     batched = jax.vmap(fit_one)(points, normals, masks)
     for k, (p, n) in enumerate(clouds):
-        single = jurs.fit(p, n, grid=8, solver=solver)
+        single = jurs.fit(p, n, grid=8, offset=0.1, eps=0.01, solver=solver)
         np.testing.assert_allclose(batched[0][k], single.spline.control, rtol=1e-9, atol=1e-12)
         np.testing.assert_allclose(batched[1][k], single.spline.lower, rtol=1e-12)
         np.testing.assert_allclose(batched[2][k], single.metrics["E"], rtol=1e-9)

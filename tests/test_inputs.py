@@ -14,6 +14,8 @@ def cloud():
 def fit_small(points, normals, **kw):
     kw.setdefault("solver", jurs.IPIA(max_steps=2))
     kw.setdefault("grid", (6, 6))
+    kw.setdefault("offset", 0.1)
+    kw.setdefault("eps", 0.01)
     return jurs.fit(points, normals, **kw)
 
 

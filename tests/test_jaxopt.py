@@ -23,9 +23,9 @@ def test_jurs_works_without_jaxopt():
         sys.modules["jaxopt"] = None  # makes `import jaxopt` raise ImportError
         import jurs
         points, normals = jurs.datasets.example1(40)
-        jurs.fit(points, normals, grid=6, solver=jurs.LeastSquares(lam=1e-4))
+        jurs.fit(points, normals, grid=6, offset=0.1, eps=0.01, solver=jurs.LeastSquares(lam=1e-4))
         try:
-            jurs.fit(points, normals, grid=6, solver=jurs.JaxoptLBFGS())
+            jurs.fit(points, normals, grid=6, offset=0.1, eps=0.01, solver=jurs.JaxoptLBFGS())
         except ImportError as exc:
             assert "jurs[jaxopt]" in str(exc), exc
             print("ok")
@@ -41,7 +41,7 @@ jaxopt = pytest.importorskip("jaxopt")
 @pytest.fixture(scope="module")
 def example1():
     points, normals = jurs.datasets.example1(120)
-    reference = jurs.fit(points, normals, grid=9, solver=jurs.LeastSquares(lam=LAM))
+    reference = jurs.fit(points, normals, grid=9, offset=0.1, eps=0.01, solver=jurs.LeastSquares(lam=LAM))
     return points, normals, float(reference.metrics["E"])
 
 
@@ -52,7 +52,7 @@ def example1():
 ], ids=["LBFGS", "GaussNewton", "LevenbergMarquardt"])
 def test_fixed_weight_jaxopt_solvers_agree_with_least_squares(example1, solver):
     points, normals, reference = example1
-    sol = jurs.fit(points, normals, grid=9, solver=solver)
+    sol = jurs.fit(points, normals, grid=9, offset=0.1, eps=0.01, solver=solver)
     energy = float(sol.metrics["E"])
     assert abs(energy - reference) <= 1e-6 * reference
     history = np.asarray(sol.stats["energy_history"])
@@ -64,7 +64,7 @@ def test_joint_jaxopt_levenberg_marquardt_improves_on_the_bspline(example1):
     solver = jurs.JaxoptLevenbergMarquardt(lam=LAM, joint=True, max_steps=30,
                                            options=(("solver", "cholesky"),
                                                     ("materialize_jac", True)))
-    sol = jurs.fit(points, normals, grid=9, solver=solver)
+    sol = jurs.fit(points, normals, grid=9, offset=0.1, eps=0.01, solver=solver)
     assert float(sol.metrics["E"]) < reference
     assert float(sol.spline.weights.min()) > 0
 

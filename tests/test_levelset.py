@@ -36,7 +36,7 @@ def dist(xy, centre):
 @pytest.fixture(scope="module")
 def circle_fit():
     points, normals = jurs.datasets.ellipse(100, a=2.0, b=2.0)
-    sol = jurs.fit(points, normals, grid=(9, 9), solver=jurs.IPIA(max_steps=200, tol=0.0))
+    sol = jurs.fit(points, normals, grid=(9, 9), offset=0.1, eps=0.01, solver=jurs.IPIA(max_steps=200, tol=0.0))
     return points, sol
 
 

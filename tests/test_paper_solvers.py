@@ -5,7 +5,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from conftest import dense_collocation
+from conftest import PAPER, dense_collocation
 
 import jurs
 
@@ -112,8 +112,8 @@ def test_iurs_step_is_algorithm1(rng):
 
 def test_weights_stay_positive():
     points, normals = jurs.datasets.example1(80)
-    sol = jurs.fit(points, normals, grid=(9, 9), solver=jurs.IURS(tau=50.0, max_steps=100, min_weight=1e-3),
-                   throw=False)
+    sol = jurs.fit(points, normals, solver=jurs.IURS(tau=50.0, max_steps=100, min_weight=1e-3),
+                   throw=False, **PAPER)
     weights = np.asarray(sol.spline.weights)
     assert weights.min() >= 1e-3
     assert np.isfinite(weights).all()
@@ -122,9 +122,8 @@ def test_weights_stay_positive():
 def test_example1_paper_settings():
     """Example 1 as in the paper: 120 points, 9 x 9, d = 0.1, eps = 0.01, tau = 1e-2, 200 steps."""
     points, normals = jurs.datasets.example1(120)
-    settings = dict(grid=(9, 9), offset=0.1, eps=0.01)
-    ipia = jurs.fit(points, normals, solver=jurs.IPIA(max_steps=200, tol=0.0), **settings)
-    iurs = jurs.fit(points, normals, solver=jurs.IURS(tau=1e-2, max_steps=200, tol=0.0), **settings)
+    ipia = jurs.fit(points, normals, solver=jurs.IPIA(max_steps=200, tol=0.0), **PAPER)
+    iurs = jurs.fit(points, normals, solver=jurs.IURS(tau=1e-2, max_steps=200, tol=0.0), **PAPER)
     assert int(ipia.stats["num_steps"]) == int(iurs.stats["num_steps"]) == 200
     assert float(ipia.metrics["E_ave"]) <= 2e-6  # paper: 1.27e-6
     assert float(ipia.metrics["E_max"]) <= 5e-3  # paper: 2.19e-3
@@ -138,11 +137,11 @@ def test_example1_paper_settings():
 
 def test_results_and_stop_rule():
     points, normals = jurs.datasets.example1(60)
-    capped = jurs.fit(points, normals, solver=jurs.IPIA(max_steps=30, tol=0.0))
+    capped = jurs.fit(points, normals, solver=jurs.IPIA(max_steps=30, tol=0.0), **PAPER)
     assert capped.result == jurs.RESULTS.max_steps_reached
     assert int(capped.stats["num_steps"]) == 30
     assert "max_steps" in capped.message
-    converged = jurs.fit(points, normals, solver=jurs.IPIA(max_steps=500, tol=1e-5))
+    converged = jurs.fit(points, normals, solver=jurs.IPIA(max_steps=500, tol=1e-5), **PAPER)
     assert converged.result == jurs.RESULTS.successful and converged.succeeded
     k = int(converged.stats["num_steps"])
     history = np.asarray(converged.stats["energy_history"])
@@ -157,22 +156,22 @@ def test_divergence_keeps_last_finite_iterate():
     keeps the last finite iterate; with throw=True it raises."""
     points, normals = jurs.datasets.example1(60)
     solver = jurs.IURS(tau=1e-2, lam=2.0, max_steps=2000, tol=0.0)
-    sol = jurs.fit(points, normals, solver=solver, throw=False)
+    sol = jurs.fit(points, normals, solver=solver, throw=False, **PAPER)
     assert sol.result == jurs.RESULTS.nonfinite
     assert int(sol.stats["num_steps"]) < 2000
     assert np.isfinite(np.asarray(sol.spline.control)).all()
     assert all(np.isfinite(float(v)) for v in sol.metrics.values())
     with pytest.raises(eqx.EquinoxRuntimeError, match="NaN or Inf"):
-        jax.block_until_ready(jurs.fit(points, normals, solver=solver, throw=True))
+        jax.block_until_ready(jurs.fit(points, normals, solver=solver, throw=True, **PAPER))
 
 
 def test_float32_still_behaves():
     points, normals = jurs.datasets.example1(120)
     with jax.enable_x64(False):
-        sol = jurs.fit(points, normals, solver=jurs.IURS(max_steps=200, tol=0.0))
+        sol = jurs.fit(points, normals, solver=jurs.IURS(max_steps=200, tol=0.0), **PAPER)
         assert sol.spline.control.dtype == jnp.float32
         e_ave32 = float(sol.metrics["E_ave"])
-    sol64 = jurs.fit(points, normals, solver=jurs.IURS(max_steps=200, tol=0.0))
+    sol64 = jurs.fit(points, normals, solver=jurs.IURS(max_steps=200, tol=0.0), **PAPER)
     assert sol.result == jurs.RESULTS.max_steps_reached
     np.testing.assert_allclose(e_ave32, float(sol64.metrics["E_ave"]), rtol=1e-2)
 
@@ -184,7 +183,8 @@ def test_fit_is_differentiable_and_batchable():
     domain = ((-5.0, -9.0), (5.0, 1.5))
 
     def loss(pts):
-        sol = jurs.fit(pts, normals, solver=jurs.IURS(max_steps=5, tol=0.0), domain=domain)
+        sol = jurs.fit(pts, normals, solver=jurs.IURS(max_steps=5, tol=0.0), domain=domain,
+                       **PAPER)
         return jnp.mean(sol.spline(held_out) ** 2)
 
     grad = np.asarray(jax.grad(loss)(jnp.asarray(points)))
@@ -195,7 +195,8 @@ def test_fit_is_differentiable_and_batchable():
         fd = (loss(jnp.asarray(points + e)) - loss(jnp.asarray(points - e))) / (2 * h)
         np.testing.assert_allclose(grad[row, col], float(fd), rtol=1e-5)
     batch = jnp.stack([jnp.asarray(points), jnp.asarray(points) * 1.1])
-    fit_one = lambda p: jurs.fit(p, normals, solver=jurs.IPIA(max_steps=5, tol=0.0)).metrics["E_d"]
+    fit_one = lambda p: jurs.fit(p, normals, solver=jurs.IPIA(max_steps=5, tol=0.0),
+                                 **PAPER).metrics["E_d"]
     batched = jax.vmap(fit_one)(batch)
     np.testing.assert_allclose(np.asarray(batched), [float(fit_one(p)) for p in batch], rtol=1e-12)
 

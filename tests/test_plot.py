@@ -15,6 +15,7 @@ import pytest  # noqa: E402
 
 import jurs  # noqa: E402
 import jurs.plot as jplot  # noqa: E402
+from conftest import PAPER  # noqa: E402
 from jurs import levelset as ls  # noqa: E402
 
 
@@ -27,7 +28,7 @@ def data():
 def run(data):
     p, n = data
     return jurs.fit_in_chunks(p, n, solver=jurs.IURS(max_steps=40, tol=0.0),
-                              checkpoints=(0, 10, 40))
+                              checkpoints=(0, 10, 40), **PAPER)
 
 
 def _map_axes(fig):
@@ -101,7 +102,7 @@ def test_plot_iterations(run, data, tmp_path):
 def test_plot_energy_history(run, data, tmp_path):
     sol, _ = run
     p, n = data
-    ipia = jurs.fit(p, n, solver=jurs.IPIA(max_steps=40, tol=0.0))
+    ipia = jurs.fit(p, n, solver=jurs.IPIA(max_steps=40, tol=0.0), **PAPER)
     fig = jplot.plot_energy_history({"IURS": sol, "IPIA": ipia, "array": [1.0, 0.5, np.nan]})
     (ax,) = fig.axes
     assert ax.get_yscale() == "log" and ax.get_xlabel() == "step" and ax.get_ylabel()

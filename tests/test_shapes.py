@@ -118,7 +118,7 @@ def test_fits_as_input_to_jurs():
     import jurs
 
     points, normals = shapes.get("glyph_a", 200)
-    sol = jurs.fit(points, normals, grid=(10, 10), solver=jurs.IPIA(max_steps=100, tol=0.0))
+    sol = jurs.fit(points, normals, grid=(10, 10), offset=0.1, eps=0.01, solver=jurs.IPIA(max_steps=100, tol=0.0))
     inner = points - 0.1 * normals
     g = np.asarray(sol.spline(inner))
     assert np.mean(g < 0) > 0.9

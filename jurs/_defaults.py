@@ -1,0 +1,268 @@
+"""Automatic fit settings from the point cloud: grid, offset d, eps and lambda.
+
+A user with a point cloud does not know which grid, offset or lambda to pick; the paper
+tunes them per example. :func:`auto_settings` reads them off the data with a KD-tree, in
+NumPy on the host (the choices are discrete: a grid size cannot be traced). Every choice is
+*equivariant*: translating, rotating or uniformly scaling the cloud moves the settings with
+it (lengths scale, counts and the scale-free smoothing do not change), so the zero set moves
+with the data.
+
+Measured quantities (all from the data, in data units):
+
+* ``spacing`` s: the median distance from a point to its nearest neighbour.
+* ``noise`` sigma: the median, over points, of the RMS residual of a quadratic fitted to
+  the point's same-facing neighbours in their principal frame (see :func:`estimate_noise`);
+  about 0 on clean samples of a smooth curve, the positional noise otherwise.
+
+Choices (the reasoning is in each function's docstring):
+
+* ``offset`` d (:func:`choose_offset`): half a spacing, or two noise widths, shrunk where
+  it would cross thin parts; ``eps = d``, so g is close to a signed distance near the data.
+  (The fit is linear in the targets, so eps only scales g; it changes neither the zero set
+  nor lambda.)
+* ``grid`` (:func:`choose_grid`): cells a few spacings or noise widths wide, at most
+  ``max_grid`` basis functions along the longer side.
+* ``lam`` (:func:`scale_free_lam`): the objective's lambda of ``E_d + lam R`` from a
+  dimensionless ``smoothing`` (:func:`choose_smoothing`).
+
+The default solver for these settings is the exact solve, :class:`jurs.LeastSquares`: one
+linear solve reaches the minimum that the paper's iterations approach step by step.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+from scipy.spatial import cKDTree
+
+from ._problem import DEFAULT_MARGIN, _is_concrete, normalise_grid, validate_inputs
+
+#: Neighbours used for the noise estimate (the point itself included).
+NOISE_NEIGHBOURS = 16
+#: Default largest grid (basis functions along the longer side).
+DEFAULT_MAX_GRID = 96
+#: Smallest automatic grid along either side.
+MIN_GRID = 8
+
+
+@dataclasses.dataclass(frozen=True)
+class Settings:
+    """What :func:`auto_settings` chose, and the measurements it chose from.
+
+    Attributes:
+        grid: ``(N, M)`` basis functions along x and y.
+        offset: d, distance of the offset samples (eq. 4).
+        eps: target value at the offsets (eq. 5); equal to ``offset``.
+        lam: the objective's lambda in ``E_d + lam R`` (for :class:`jurs.LeastSquares`).
+        smoothing: the dimensionless strength ``lam`` was made from.
+        domain: ``((x_min, y_min), (x_max, y_max))``, the box the grid covers.
+        spacing, noise: the measurements (see the module docstring).
+    """
+
+    grid: tuple[int, int]
+    offset: float
+    eps: float
+    lam: float
+    smoothing: float
+    domain: tuple[tuple[float, float], tuple[float, float]]
+    spacing: float
+    noise: float
+
+    def as_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+def _unit(normals: np.ndarray) -> np.ndarray:
+    return normals / np.linalg.norm(normals, axis=1, keepdims=True)
+
+
+def point_spacing(points: np.ndarray, tree: cKDTree | None = None) -> float:
+    """Median distance from a point to its nearest other point (duplicates skipped)."""
+    tree = cKDTree(points) if tree is None else tree
+    dist = tree.query(points, k=min(len(points), 4))[0][:, 1:]
+    dist = np.where(dist > 0, dist, np.inf).min(axis=1)
+    finite = dist[np.isfinite(dist)]
+    if finite.size == 0:
+        raise ValueError("all points coincide; the cloud has no extent")
+    return float(np.median(finite))
+
+
+def estimate_noise(points: np.ndarray, normals: np.ndarray, tree: cKDTree | None = None,
+                   neighbours: int = NOISE_NEIGHBOURS) -> float:
+    """Positional noise sigma: the median over points of the RMS residual of a quadratic
+    ``v = a + b u + c u^2`` fitted, in the principal frame ``(u, v)`` of the point's
+    ``neighbours`` nearest same-facing neighbours (normals within 60 degrees), to those
+    neighbours. The quadratic absorbs the curvature, so clean samples of a smooth curve give
+    about 0; the residual divides by ``n - 3`` degrees of freedom, so it is unbiased for
+    independent noise. The median ignores corners and the ends of a gap."""
+    m = len(points)
+    k = min(m, neighbours)
+    tree = cKDTree(points) if tree is None else tree
+    idx = tree.query(points, k=k)[1]
+    nb = points[idx]  # (m, k, 2)
+    keep = (np.einsum("mkc,mc->mk", normals[idx], normals) > 0.5).astype(float)
+    count = keep.sum(axis=1)
+    centre = np.einsum("mk,mkc->mc", keep, nb) / count[:, None]
+    rel = nb - centre[:, None, :]
+    cov = np.einsum("mk,mka,mkb->mab", keep, rel, rel)
+    # Principal direction of a 2 x 2 covariance in closed form.
+    angle = 0.5 * np.arctan2(2 * cov[:, 0, 1], cov[:, 0, 0] - cov[:, 1, 1])
+    tangent = np.stack([np.cos(angle), np.sin(angle)], axis=1)
+    u = np.einsum("mkc,mc->mk", rel, tangent)
+    v = np.einsum("mkc,mc->mk", rel, np.stack([-tangent[:, 1], tangent[:, 0]], axis=1))
+    # Scale u to unit RMS so the powers stay conditioned (and finite where all coincide).
+    scale = np.sqrt(np.einsum("mk,mk->m", keep, u * u) / count)
+    scale = np.where(scale > 0, scale, 1.0)
+    un = u / scale[:, None]
+    basis = np.stack([np.ones_like(un), un, un * un], axis=2)  # (m, k, 3)
+    gram = np.einsum("mk,mka,mkb->mab", keep, basis, basis)
+    rhs = np.einsum("mk,mka,mk->ma", keep, basis, v)
+    ok = count >= 6
+    gram[~ok] = np.eye(3)
+    coef = np.linalg.solve(gram + 1e-12 * np.eye(3), rhs[..., None])[..., 0]
+    resid = v - np.einsum("mka,ma->mk", basis, coef)
+    rms = np.sqrt(np.einsum("mk,mk->m", keep, resid * resid) / np.maximum(count - 3, 1))
+    return float(np.median(rms[ok])) if ok.any() else 0.0
+
+
+def offset_agreement(points: np.ndarray, normals: np.ndarray, offset: float,
+                     tree: cKDTree | None = None) -> float:
+    """Fraction of the 2m offset samples ``P_i +/- d n_i`` that lie on their intended side
+    (outside for ``+``, inside for ``-``) of the tangent line of their nearest data point
+    other than ``P_i``.
+
+    It is low for small d on noisy data (a neighbour's noise is larger than d) and for large
+    d where the offsets cross a thin part of the shape or the gap between two parts (they
+    land nearer the far side and read the wrong side there); in between it is near 1.
+    """
+    tree = cKDTree(points) if tree is None else tree
+    own = np.arange(len(points))
+    agree = []
+    for sign in (1.0, -1.0):
+        q = points + sign * offset * normals
+        idx = tree.query(q, k=2)[1]
+        j = np.where(idx[:, 0] == own, idx[:, 1], idx[:, 0])
+        side = np.einsum("mc,mc->m", q - points[j], normals[j])
+        agree.append(sign * side > 0)
+    return float(np.mean(np.concatenate(agree)))
+
+
+#: Dimensionless smoothing on clean clouds and on noise-dominated ones
+#: (see :func:`choose_smoothing`).
+CLEAN_SMOOTHING = 1e-5
+NOISY_SMOOTHING = 1e-3
+
+
+def choose_offset(points: np.ndarray, normals: np.ndarray, spacing: float, noise: float,
+                  tree: cKDTree | None = None) -> float:
+    """Offset d: ``max(s / 2, 2 sigma)``, shrunk where it would cross thin parts.
+
+    Why: d is a finite-difference step for the normal. Half a spacing keeps the offsets
+    inside the band where the data define the curve (on clean data smaller d measured
+    better, down to s / 2); on noisy data the offsets must clear the noise, or the
+    inner and outer samples of neighbouring points interleave, hence ``2 sigma``.
+
+    Thin parts: offsets that cross a thin part of the shape, or the gap between two parts,
+    land on the wrong side of the data nearest to them (:func:`offset_agreement`). Among
+    ``d0, 0.7 d0, 0.7^2 d0, ...`` the largest is taken whose agreement is within 1 % of the
+    best on that ladder: on clean smooth data d0 itself (agreement 1), and on noisy data too
+    (smaller offsets only agree less, noise being closer), but less than d0 where d0 crosses.
+    """
+    d0 = max(0.5 * spacing, 2.0 * noise)
+    ladder = d0 * 0.7 ** np.arange(6)
+    agreement = np.array([offset_agreement(points, normals, d, tree) for d in ladder])
+    return float(ladder[np.argmax(agreement >= agreement.max() - 0.01)])
+
+
+def choose_grid(lower: np.ndarray, upper: np.ndarray, spacing: float, noise: float,
+                max_grid: int = DEFAULT_MAX_GRID) -> tuple[int, int]:
+    """Basis functions along x and y: cells of side ``h = max(1.5 s, 4 sigma)``, the same
+    along both axes, with at most ``max_grid`` functions along the longer side and at least
+    :data:`MIN_GRID` along each.
+
+    Why: a cell must hold a few points along the curve for the least-squares fit to pin
+    its coefficients (1.5 spacings, on clean data the measured accuracy no longer improved
+    below), and on noisy data a few noise widths, so that each coefficient averages out the
+    noise instead of following it (4 sigma measured best against 2 and 8, in Chamfer
+    distance to the clean curve at 0.5 % noise). The cap bounds time and memory: the exact
+    solve grows with the number of coefficients, not with m.
+    """
+    extent = np.asarray(upper, float) - np.asarray(lower, float)
+    h = max(1.5 * spacing, 4.0 * noise, float(extent.max()) / (max_grid - 3))
+    cells = np.maximum(1, np.ceil(extent / h - 1e-9).astype(int))
+    return tuple(int(max(MIN_GRID, c + 3)) for c in cells)
+
+
+def choose_smoothing(offset: float, noise: float) -> float:
+    """Dimensionless smoothing: from :data:`CLEAN_SMOOTHING` on clean clouds to
+    :data:`NOISY_SMOOTHING` where noise sets the offset (``2 sigma >= d``), on the square of
+    ``2 sigma / d`` between.
+
+    Why: R (eq. 31) is a membrane energy, about ``2 int |grad g|^2``; it keeps g free of
+    spurious zeros away from the data and the system well posed, but near the data it
+    pulls on the slope of g and so on the curve. On clean data the smallest value that
+    keeps the system well posed measured most accurate (1e-5 to 1e-6 alike); on noisy data
+    a larger one measured better (the data no longer deserve to be followed exactly)."""
+    ratio = min(1.0, 2.0 * noise / offset) if offset > 0 else 1.0
+    return float(CLEAN_SMOOTHING + (NOISY_SMOOTHING - CLEAN_SMOOTHING) * ratio ** 2)
+
+
+def scale_free_lam(smoothing: float, num_samples: int, diagonal: float, lower, upper) -> float:
+    """The objective's lambda of ``E_d + lam R`` for a dimensionless ``smoothing``:
+    ``lam = smoothing * S * l^2 / A``, S samples, l the data's bounding-box diagonal, A the
+    area of the box.
+
+    Why this scaling: E_d sums S squared residuals, so it grows with S; R is about
+    ``2 int_box |grad g|^2`` whatever the grid (each neighbour difference of C is about
+    ``h |grad g|`` and there are about ``A / h^2`` of them), so it grows with A and not with
+    N, M. Dividing both out compares a mean squared residual with a mean squared slope
+    times ``l^2``, a length squared that scales with the data. With eps proportional to d,
+    g scales with the units like a length, and lam is then the same for the same shape
+    whatever m, the grid, the units, a translation or a rotation."""
+    area = float(np.prod(np.asarray(upper, float) - np.asarray(lower, float)))
+    return float(smoothing * num_samples * diagonal ** 2 / area)
+
+
+def auto_settings(points, normals, *, grid=None, offset=None, eps=None, domain=None,
+                  margin: float = DEFAULT_MARGIN, smoothing: float | None = None,
+                  max_grid: int = DEFAULT_MAX_GRID) -> Settings:
+    """Choose the grid, offset d, eps and lambda for ``points`` and ``normals``.
+
+    Any of ``grid``, ``offset``, ``eps``, ``domain`` and ``smoothing`` given is kept and the
+    others are chosen around it (see the module docstring and each ``choose_*`` function).
+    Needs concrete (untraced) points: the choices are made on the host. Inside ``jax.jit``,
+    ``jax.grad`` or ``jax.vmap`` call this once outside and pass the settings in.
+
+    Returns:
+        :class:`Settings`.
+    """
+    if not _is_concrete(points, normals):
+        raise ValueError(
+            "automatic settings need concrete points (they are chosen on the host); inside "
+            "jit/grad/vmap pass grid, offset and eps explicitly, e.g. from "
+            "jurs.auto_settings(points, normals) called outside")
+    validate_inputs(points, normals, offset=1.0 if offset is None else offset,
+                    eps=1.0 if eps is None else eps, domain=None)
+    p = np.asarray(points, float)
+    n = _unit(np.asarray(normals, float))
+    tree = cKDTree(p)
+    spacing = point_spacing(p, tree)
+    noise = estimate_noise(p, n, tree)
+    d = choose_offset(p, n, spacing, noise, tree) if offset is None else float(offset)
+    e = d if eps is None else float(eps)
+    if domain is None:
+        samples = np.concatenate([p, p + d * n, p - d * n])
+        lo, hi = samples.min(axis=0), samples.max(axis=0)
+        pad = margin * float(np.max(hi - lo))
+        lower, upper = lo - pad, hi + pad
+    else:
+        lower, upper = (np.asarray(c, float) for c in domain)
+    shape = choose_grid(lower, upper, spacing, noise, max_grid) if grid is None \
+        else normalise_grid(grid)
+    beta = choose_smoothing(d, noise) if smoothing is None else float(smoothing)
+    diagonal = float(np.linalg.norm(p.max(axis=0) - p.min(axis=0)))
+    lam = scale_free_lam(beta, 3 * len(p), diagonal, lower, upper)
+    return Settings(grid=shape, offset=d, eps=e, lam=lam, smoothing=beta,
+                    domain=(tuple(map(float, lower)), tuple(map(float, upper))),
+                    spacing=spacing, noise=noise)
