@@ -44,6 +44,8 @@ NOISE_NEIGHBOURS = 16
 DEFAULT_MAX_GRID = 96
 #: Smallest automatic grid along either side.
 MIN_GRID = 8
+#: Clouds above this many points are measured at this many (evenly strided) of them.
+MAX_PROBES = 20000
 
 
 @dataclasses.dataclass(frozen=True)
@@ -77,10 +79,15 @@ def _unit(normals: np.ndarray) -> np.ndarray:
     return normals / np.linalg.norm(normals, axis=1, keepdims=True)
 
 
-def point_spacing(points: np.ndarray, tree: cKDTree | None = None) -> float:
-    """Median distance from a point to its nearest other point (duplicates skipped)."""
+def _probe(points: np.ndarray, at) -> np.ndarray:
+    return np.arange(len(points)) if at is None else np.asarray(at)
+
+
+def point_spacing(points: np.ndarray, tree: cKDTree | None = None, at=None) -> float:
+    """Median distance from a point to its nearest other point (duplicates skipped),
+    over the points indexed by ``at`` (default all)."""
     tree = cKDTree(points) if tree is None else tree
-    dist = tree.query(points, k=min(len(points), 4))[0][:, 1:]
+    dist = tree.query(points[_probe(points, at)], k=min(len(points), 4))[0][:, 1:]
     dist = np.where(dist > 0, dist, np.inf).min(axis=1)
     finite = dist[np.isfinite(dist)]
     if finite.size == 0:
@@ -89,19 +96,20 @@ def point_spacing(points: np.ndarray, tree: cKDTree | None = None) -> float:
 
 
 def estimate_noise(points: np.ndarray, normals: np.ndarray, tree: cKDTree | None = None,
-                   neighbours: int = NOISE_NEIGHBOURS) -> float:
+                   neighbours: int = NOISE_NEIGHBOURS, at=None) -> float:
     """Positional noise sigma: the median over points of the RMS residual of a quadratic
     ``v = a + b u + c u^2`` fitted, in the principal frame ``(u, v)`` of the point's
     ``neighbours`` nearest same-facing neighbours (normals within 60 degrees), to those
     neighbours. The quadratic absorbs the curvature, so clean samples of a smooth curve give
     about 0; the residual divides by ``n - 3`` degrees of freedom, so it is unbiased for
-    independent noise. The median ignores corners and the ends of a gap."""
-    m = len(points)
-    k = min(m, neighbours)
+    independent noise. The median ignores corners and the ends of a gap. Measured at the
+    points indexed by ``at`` (default all), with neighbours from the whole cloud."""
+    at = _probe(points, at)
+    k = min(len(points), neighbours)
     tree = cKDTree(points) if tree is None else tree
-    idx = tree.query(points, k=k)[1]
-    nb = points[idx]  # (m, k, 2)
-    keep = (np.einsum("mkc,mc->mk", normals[idx], normals) > 0.5).astype(float)
+    idx = tree.query(points[at], k=k)[1]
+    nb = points[idx]  # (probes, k, 2)
+    keep = (np.einsum("mkc,mc->mk", normals[idx], normals[at]) > 0.5).astype(float)
     count = keep.sum(axis=1)
     centre = np.einsum("mk,mkc->mc", keep, nb) / count[:, None]
     rel = nb - centre[:, None, :]
@@ -127,7 +135,7 @@ def estimate_noise(points: np.ndarray, normals: np.ndarray, tree: cKDTree | None
 
 
 def offset_agreement(points: np.ndarray, normals: np.ndarray, offset: float,
-                     tree: cKDTree | None = None) -> float:
+                     tree: cKDTree | None = None, at=None) -> float:
     """Fraction of the 2m offset samples ``P_i +/- d n_i`` that lie on their intended side
     (outside for ``+``, inside for ``-``) of the tangent line of their nearest data point
     other than ``P_i``.
@@ -135,12 +143,13 @@ def offset_agreement(points: np.ndarray, normals: np.ndarray, offset: float,
     It is low for small d on noisy data (a neighbour's noise is larger than d) and for large
     d where the offsets cross a thin part of the shape or the gap between two parts (they
     land nearer the far side and read the wrong side there); in between it is near 1.
+    Measured for the points indexed by ``at`` (default all).
     """
     tree = cKDTree(points) if tree is None else tree
-    own = np.arange(len(points))
+    own = _probe(points, at)
     agree = []
     for sign in (1.0, -1.0):
-        q = points + sign * offset * normals
+        q = points[own] + sign * offset * normals[own]
         idx = tree.query(q, k=2)[1]
         j = np.where(idx[:, 0] == own, idx[:, 1], idx[:, 0])
         side = np.einsum("mc,mc->m", q - points[j], normals[j])
@@ -155,7 +164,7 @@ NOISY_SMOOTHING = 1e-3
 
 
 def choose_offset(points: np.ndarray, normals: np.ndarray, spacing: float, noise: float,
-                  tree: cKDTree | None = None) -> float:
+                  tree: cKDTree | None = None, at=None) -> float:
     """Offset d: ``max(s / 2, 2 sigma)``, shrunk where it would cross thin parts.
 
     Why: d is a finite-difference step for the normal. Half a spacing keeps the offsets
@@ -171,7 +180,7 @@ def choose_offset(points: np.ndarray, normals: np.ndarray, spacing: float, noise
     """
     d0 = max(0.5 * spacing, 2.0 * noise)
     ladder = d0 * 0.7 ** np.arange(6)
-    agreement = np.array([offset_agreement(points, normals, d, tree) for d in ladder])
+    agreement = np.array([offset_agreement(points, normals, d, tree, at) for d in ladder])
     return float(ladder[np.argmax(agreement >= agreement.max() - 0.01)])
 
 
@@ -247,9 +256,12 @@ def auto_settings(points, normals, *, grid=None, offset=None, eps=None, domain=N
     p = np.asarray(points, float)
     n = _unit(np.asarray(normals, float))
     tree = cKDTree(p)
-    spacing = point_spacing(p, tree)
-    noise = estimate_noise(p, n, tree)
-    d = choose_offset(p, n, spacing, noise, tree) if offset is None else float(offset)
+    # Large clouds are measured at an evenly strided subset (the same points wherever the
+    # cloud is placed), against the whole cloud.
+    at = None if len(p) <= MAX_PROBES else np.linspace(0, len(p) - 1, MAX_PROBES).round().astype(int)
+    spacing = point_spacing(p, tree, at)
+    noise = estimate_noise(p, n, tree, at=at)
+    d = choose_offset(p, n, spacing, noise, tree, at) if offset is None else float(offset)
     e = d if eps is None else float(eps)
     if domain is None:
         samples = np.concatenate([p, p + d * n, p - d * n])
