@@ -1,0 +1,808 @@
+"""Speed and memory of jurs against the paper's own algorithm in NumPy and against SciPy's RBF.
+
+One command measures everything and writes ``benchmarks/results/speed.{json,md}``
+(``--quick``: a few-minute smoke run on small sizes, written to ``speed_quick.{json,md}``):
+
+1. **Sweep** over Example 1 clouds of m points (3m samples) and square grids: per solver
+   step of ``IURS(tau=1e-2, lam=1e-3)``, ``IPIA()`` and ``NormalIPIA()`` (whose one-off
+   assembly of D^T D is its ``init``, timed on its own), the warm time, the compile time
+   (first call minus warm) and the peak memory; and ``LeastSquares(lam=1e-4)`` end to end
+   through ``jurs.fit`` (problem building + assembly + solve), first call and warm.
+2. **Baselines**: ``_numpy_port.py``, the paper's Algorithm 1 with a dense collocation
+   matrix rebuilt every step (where that matrix fits in ``DENSE_LIMIT_BYTES``), against the
+   jurs IURS step; and ``scipy.interpolate.RBFInterpolator`` (thin-plate) on the same
+   offset samples against ``jurs.fit(..., solver=LeastSquares(lam=1e-4))``, fit time and
+   Chamfer distance to the exact curve, plus zero-set component counts.
+3. **Targets**: measured value against target, PASS / MISS, at the top of the report.
+
+Every measurement runs in a fresh subprocess (``--worker``), so its peak resident set size
+(VmHWM) belongs to that measurement alone; the report gives the peak and the peak minus
+the RSS after imports, JAX start-up and data creation.
+
+    python benchmarks/speed.py [--quick]
+    python benchmarks/speed.py --from-json benchmarks/results/speed.json   # re-render only
+
+Runs on whatever device JAX picks (CPU here; a GPU if JAX sees one), in float64, and
+records the device.
+"""
+
+from __future__ import annotations
+
+import argparse
+import gc
+import json
+import os
+import resource
+import subprocess
+import sys
+import time
+
+import numpy as np
+
+HERE = os.path.dirname(os.path.abspath(__file__))
+
+# --------------------------------------------------------------------------- configuration
+
+#: Sweep: points m -> grids (N = M). Fine grids on few points are pruned (with 3m samples
+#: far below N*M coefficients the fit is mostly undetermined and says nothing new about
+#: speed), and so is part of the rest, to keep the whole run near 30 minutes on 2 cores.
+FULL_SWEEP = {
+    100: (8, 16, 32),
+    1_000: (8, 16, 32, 64),
+    10_000: (16, 32, 64, 128),
+    100_000: (16, 32, 64, 128, 256),
+    1_000_000: (8, 32, 128, 256),  # 8: the only grid where the dense NumPy port fits at 1e6
+}
+QUICK_SWEEP = {1_000: (16,), 10_000: (128,)}
+
+#: Solvers of the step sweep: (key, label, constructor name and keyword arguments).
+STEP_SOLVERS = {
+    "iurs": ("IURS (tau=1e-2, lam=1e-3)", "IURS", {"tau": 1e-2, "lam": 1e-3}),
+    "ipia": ("IPIA", "IPIA", {}),
+    "normal_ipia": ("NormalIPIA", "NormalIPIA", {}),
+}
+#: The exact solve's objective lambda (sweep, RBF comparison and target).
+LSQ_LAM = 1e-4
+
+#: The dense port runs where one 3m x NM float64 matrix is at most this big (B and D, and
+#: the temporaries of a step, are each this size).
+DENSE_LIMIT_BYTES = 2 * 10**9
+
+#: RBF comparison: points -> jurs grid (finer grids for denser data).
+RBF_GRIDS = {100: 16, 300: 24, 1_000: 32, 2_000: 48, 5_000: 64}
+QUICK_RBF_POINTS = (300,)
+#: Skip the next RBF size when its fit is predicted (O(m^3) from the last one) to exceed this.
+RBF_MAX_PREDICTED_S = 150.0
+#: jurs fits of the RBF comparison, name -> (grid factor, LeastSquares lambda): "main" (the
+#: grid of RBF_GRIDS, lam = LSQ_LAM) is the target's; the others are shown for context:
+#: more smoothing on the same grid, and a grid twice as fine.
+RBF_JURS_VARIANTS = {"main": (1, LSQ_LAM), "smoother": (1, 1e-3), "finer": (2, LSQ_LAM)}
+#: Grid resolution of the zero-set analysis (the same for jurs and the RBF).
+ANALYSIS_RESOLUTION = 512
+#: Dense samples of the exact Example 1 curve (spacing about 3e-5), the Chamfer reference.
+REFERENCE_POINTS = 1_000_000
+#: Resampling spacing of the zero sets for the fine Chamfer distance (see fine_chamfer).
+#: With the reference above, a zero set exactly on the curve measures about 1.7e-5.
+FINE_SPACING = 1e-4
+OFFSET, EPS = 0.1, 0.01
+
+#: The Example-4-size full fit: a 640-point closed shape, 15 x 15, regularised IURS to tol.
+EXAMPLE4 = [
+    {"label": "target: lobes, 640 pts", "shape": "lobes", "points": 640, "grid": 15,
+     "tau": 1e-3, "lam": 2e-3, "target": True},
+    {"label": "paper's Example 4: glyph_B, 639 pts", "shape": "glyph_B", "points": 639,
+     "grid": 15, "tau": 1e-3, "lam": 0.0216, "target": False},
+]
+EXAMPLE4_TOL, EXAMPLE4_MAX_STEPS = 1e-7, 20_000
+
+#: Targets (seconds, bytes, ratios). The values are requirements, not measurements.
+TARGET_IURS_STEP_S = 0.040  # IURS step at 1e6 points / 128 x 128
+TARGET_IURS_PEAK_B = 2 * 2**30  # its peak memory (above the post-import baseline)
+TARGET_NORMAL_STEP_S = 0.002  # NormalIPIA step at 128 x 128, any m
+TARGET_LSQ_S = 1.5  # LeastSquares end to end at 1e6 / 128 x 128, warm
+TARGET_EX4_WARM_S, TARGET_EX4_COLD_S = 0.012, 1.5
+TARGET_RBF_RATIO, TARGET_RBF_POINTS = 100.0, 5_000
+#: "Equal" Chamfer: within this relative margin (the contouring error both share).
+CHAMFER_TOLERANCE = 0.05
+TARGET_POINTS, TARGET_GRID = 1_000_000, 128
+
+WORKER_TIMEOUT_S = 900
+#: A first call slower than this gets a single warm repeat (LeastSquares at 256 x 256).
+LONG_CALL_S = 20.0
+#: Seconds of warm repeats per timed call (at least 3 repeats, see time_repeated).
+STEP_BUDGET_S = 1.5
+
+
+# --------------------------------------------------------------------------- measuring (workers)
+
+def _status_bytes(field: str) -> int | None:
+    """A ``kB`` field of /proc/self/status (VmRSS, VmHWM) in bytes; None off Linux."""
+    try:
+        with open("/proc/self/status") as fh:
+            for line in fh:
+                if line.startswith(field + ":"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return None
+
+
+def rss_bytes() -> int:
+    """Current resident set size (falls back to the peak where /proc is missing)."""
+    return _status_bytes("VmRSS") or peak_bytes()
+
+
+def peak_bytes() -> int:
+    """Peak resident set size of this process (VmHWM; ru_maxrss, in kB on Linux, as fallback)."""
+    return _status_bytes("VmHWM") or resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
+
+
+def _start_jax():
+    """Import jax and jurs in float64 and start the backend, so that the memory baseline
+    taken next already holds the runtime and the measurement holds only the work."""
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    import jax.numpy as jnp
+    import jurs
+
+    jax.block_until_ready(jnp.zeros(8) + 1.0)
+    return jax, jurs
+
+
+def _baseline() -> int:
+    gc.collect()
+    return rss_bytes()
+
+
+def _memory(base: int) -> dict:
+    """Peak RSS, the baseline and their difference; plus the accelerator's own peak where
+    the device reports one (host RSS does not see GPU memory)."""
+    peak = peak_bytes()
+    out = {"rss_base_b": base, "peak_b": peak, "peak_over_base_b": peak - base}
+    try:
+        import jax
+
+        stats = jax.devices()[0].memory_stats() or {}
+        if jax.devices()[0].platform != "cpu" and "peak_bytes_in_use" in stats:
+            out["device_peak_b"] = int(stats["peak_bytes_in_use"])
+    except Exception:  # noqa: BLE001 - memory stats are optional everywhere
+        pass
+    return out
+
+
+def time_repeated(fn, *args, budget_s: float = 2.0, max_repeats: int = 20) -> dict:
+    """Time ``fn(*args)``: one first call (compiling, if ``fn`` is jitted), then warm calls
+    until ``budget_s`` is spent, at least 3 and at most ``max_repeats``, fewer when a call
+    is slow (2 after a first call above ``budget_s``, 1 after one above ``LONG_CALL_S``)
+    so that slow configurations do not take minutes each.
+
+    Returns ``{"first_s", "warm_s" (median), "min_s", "compile_s" (first - warm, >= 0),
+    "repeats", "output"}``; the minimum shows the uncontended speed on a shared machine.
+    """
+    import jax
+
+    t0 = time.perf_counter()
+    out = jax.block_until_ready(fn(*args))
+    first = time.perf_counter() - t0
+    min_repeats = 1 if first > LONG_CALL_S else 2 if first > budget_s else 3
+    times = []
+    while len(times) < max_repeats and (len(times) < min_repeats or sum(times) < budget_s):
+        t0 = time.perf_counter()
+        out = jax.block_until_ready(fn(*args))
+        times.append(time.perf_counter() - t0)
+    warm = float(np.median(times))
+    return {"first_s": first, "warm_s": warm, "min_s": min(times),
+            "compile_s": max(first - warm, 0.0), "repeats": len(times), "output": out}
+
+
+def _timing(t: dict, prefix: str = "") -> dict:
+    """The numbers of :func:`time_repeated`, keys prefixed, without the output."""
+    return {prefix + k: v for k, v in t.items() if k != "output"}
+
+
+def result_name(jurs, sol) -> str:
+    """The short name of ``sol.result`` (``successful``, ``max_steps_reached``, ...)."""
+    for name in ("successful", "max_steps_reached", "failed", "nonfinite"):
+        if bool(sol.result == getattr(jurs.RESULTS, name)):
+            return name
+    return "unknown"
+
+
+def _device_name(jax) -> str:
+    d = jax.devices()[0]
+    return f"{d.platform}:{d.device_kind}"
+
+
+def work_step(spec: dict) -> dict:
+    """One solver step at (m, grid), timed as benchmarks/step_speed.py does: a jitted
+    ``solver.step`` on a state one step in (so the weights have moved), cache cleared so the
+    first timed call compiles. ``init`` (for NormalIPIA: the assembly of D^T D) is timed too."""
+    jax, jurs = _start_jax()
+    import jax.numpy as jnp
+
+    points, normals = jurs.datasets.example1(spec["m"])
+    base = _baseline()
+    _, ctor, kwargs = STEP_SOLVERS[spec["solver"]]
+    solver = getattr(jurs, ctor)(**kwargs)
+    grid = (spec["grid"], spec["grid"])
+
+    t0 = time.perf_counter()
+    problem = jax.block_until_ready(jurs.make_problem(points, normals, grid=grid))
+    build = time.perf_counter() - t0
+    spline = jurs.ImplicitSpline(jnp.zeros(grid), jnp.ones(grid), problem.lower, problem.upper)
+    init = time_repeated(jax.jit(solver.init), problem, spline, budget_s=0.5)
+    state, _ = init["output"]
+
+    @jax.jit
+    def step(solver, problem, state):
+        return solver.step(problem, state)
+
+    state, _ = step(solver, problem, state)  # a state with moved weights
+    step.clear_cache()  # so the first timed call compiles, as a user's first call does
+    timed = time_repeated(step, solver, problem, state, budget_s=STEP_BUDGET_S)
+    return {"build_s": build, **_timing(init, "init_"), **_timing(timed, "step_"),
+            "bucket_size": int(problem.local.bucket_size),
+            "slots": int(problem.samples.shape[0]), "device": _device_name(jax),
+            **_memory(base)}
+
+
+def work_lstsq(spec: dict) -> dict:
+    """``jurs.fit(..., solver=LeastSquares(lam))`` end to end, from NumPy points to a
+    solved spline: problem building (host layout), assembly of D^T D and D^T b, solve."""
+    jax, jurs = _start_jax()
+    points, normals = jurs.datasets.example1(spec["m"])
+    base = _baseline()
+    solver = jurs.LeastSquares(lam=spec["lam"])
+
+    def fit():  # every setting given: no automatic choices (jurs.auto_settings) in the timing
+        return jurs.fit(points, normals, grid=spec["grid"], solver=solver, offset=OFFSET,
+                        eps=EPS)
+
+    timed = time_repeated(fit, budget_s=STEP_BUDGET_S, max_repeats=10)
+    sol = timed["output"]
+    return {**_timing(timed, "fit_"), "result": result_name(jurs, sol),
+            "E_ave": float(sol.metrics["E_ave"]), "device": _device_name(jax),
+            **_memory(base)}
+
+
+def work_port(spec: dict) -> dict:
+    """One step of the dense NumPy port of Algorithm 1 (after one untimed step, as for jurs)."""
+    import _numpy_port as port
+    import jurs.datasets
+
+    points, normals = jurs.datasets.example1(spec["m"])
+    base = _baseline()
+    t0 = time.perf_counter()
+    problem = port.Problem(points, normals, grid=spec["grid"], offset=OFFSET, eps=EPS)
+    build = time.perf_counter() - t0
+    kwargs = {"tau": 1e-2, "lam": 1e-3}
+    state = port.step(problem, port.init(problem, kwargs["lam"]), **kwargs)
+    timed = time_repeated(lambda: port.step(problem, state, **kwargs), budget_s=3.0,
+                          max_repeats=10)
+    return {"build_s": build, **_timing(timed, "step_"), **_memory(base)}
+
+
+def work_example4(spec: dict) -> dict:
+    """A full regularised IURS fit to ``tol``: the first call in this fresh process (cold,
+    compilation included; imports timed apart) and warm calls."""
+    t0 = time.perf_counter()
+    jax, jurs = _start_jax()
+    import jurs.shapes
+
+    import_s = time.perf_counter() - t0
+    points, normals = jurs.shapes.get(spec["shape"], spec["points"])
+    base = _baseline()
+    solver = jurs.IURS(tau=spec["tau"], lam=spec["lam"], tol=EXAMPLE4_TOL,
+                       max_steps=EXAMPLE4_MAX_STEPS)
+
+    def fit():  # the paper's offsets (d = 0.1, eps = 0.01), every setting given
+        return jurs.fit(points, normals, grid=spec["grid"], solver=solver, offset=OFFSET,
+                        eps=EPS)
+
+    timed = time_repeated(fit, budget_s=2.0)
+    sol = timed["output"]
+    return {"import_s": import_s, "cold_s": timed["first_s"], **_timing(timed),
+            "num_steps": int(sol.stats["num_steps"]), "result": result_name(jurs, sol),
+            "E_ave": float(sol.metrics["E_ave"]), "E_max": float(sol.metrics["E_max"]),
+            "device": _device_name(jax), **_memory(base)}
+
+
+def fine_chamfer(xs, ys, values, reference) -> dict:
+    """Chamfer / Hausdorff of the zero set of a sampled function to the reference curve,
+    with both sets dense enough that their own spacing does not set the floor.
+
+    :func:`jurs.levelset.analyze_grid` resamples the zero set at half a grid cell (0.01 at
+    resolution 512 here), so its Chamfer distance cannot fall below about a quarter of that
+    spacing whatever the fit: two good fits tie there. Here the marching-squares polylines
+    are resampled at ``FINE_SPACING`` and compared with ``REFERENCE_POINTS`` samples of the
+    exact curve, which leaves the fit error (plus the second-order contouring error, the
+    same for both methods on the same grid)."""
+    import jurs.levelset as ls
+
+    lines = ls.contour_lines(xs, ys, values)
+    zero = [ls.resample(poly, FINE_SPACING) for poly, _ in lines]
+    zero = np.concatenate(zero) if zero else np.empty((0, 2))
+    chamfer, hausdorff = ls.chamfer_hausdorff(zero, reference)
+    return {"chamfer": chamfer, "hausdorff": hausdorff}
+
+
+def _level_set(xs, ys, values, points, reference) -> dict:
+    """The level-set report (components, Chamfer at the analysis grid's floor) and the
+    fine Chamfer, for one function sampled on the common grid."""
+    import jurs.levelset as ls
+
+    out = ls.analyze_grid(xs, ys, values, points, offset=OFFSET, reference=reference).as_dict()
+    fine = fine_chamfer(xs, ys, values, reference)
+    out.update({"fine_chamfer": fine["chamfer"], "fine_hausdorff": fine["hausdorff"]})
+    return out
+
+
+def work_rbf(spec: dict) -> dict:
+    """RBFInterpolator (thin-plate) vs jurs LeastSquares at m points: fit times and the
+    zero sets' distances to the exact curve, both sampled on the jurs fit's box and grid
+    (the analysis of ``rbf_report``), plus jurs with a second lambda for context."""
+    jax, jurs = _start_jax()
+    import jurs.levelset as ls
+    from _baselines import evaluate_rbf_grid, rbf_fit
+
+    points, normals = jurs.datasets.example1(spec["m"])
+    reference = jurs.datasets.example1(REFERENCE_POINTS)[0]
+    out = {"device": _device_name(jax)}
+    for name, (factor, lam) in RBF_JURS_VARIANTS.items():
+        solver, grid = jurs.LeastSquares(lam=lam), factor * spec["grid"]
+
+        def fit():
+            return jurs.fit(points, normals, grid=grid, solver=solver, offset=OFFSET, eps=EPS)
+
+        timed = time_repeated(fit, budget_s=2.0)
+        sol = timed["output"]
+        # The box does not depend on the grid, so every fit and the RBF share xs, ys.
+        box = (np.asarray(sol.spline.lower), np.asarray(sol.spline.upper))
+        xs, ys, _ = ls.sampling_grid(*box, ANALYSIS_RESOLUTION)
+        values = ls.evaluate_grid(sol.spline, xs, ys)
+        out[f"jurs_{name}"] = {"grid": grid, "lam": lam, **_timing(timed),
+                               **_level_set(xs, ys, values, points, reference)}
+    rbf, rbf_s = rbf_fit(points, normals, offset=OFFSET, eps=EPS)
+    t0 = time.perf_counter()
+    values = evaluate_rbf_grid(rbf, xs, ys)  # the same box and grid as the jurs fits
+    out["rbf"] = {"fit_s": rbf_s, "grid_eval_s": time.perf_counter() - t0,
+                  **_level_set(xs, ys, values, points, reference)}
+    return out
+
+
+WORKERS = {"step": work_step, "lstsq": work_lstsq, "port": work_port,
+           "example4": work_example4, "rbf": work_rbf}
+
+
+def worker_main(spec_json: str) -> None:
+    """Entry point of a measuring subprocess: one JSON result line on stdout."""
+    sys.path.insert(0, HERE)
+    spec = json.loads(spec_json)
+    result = WORKERS[spec["kind"]](spec)
+    print("RESULT " + json.dumps(result), flush=True)
+
+
+# --------------------------------------------------------------------------- orchestration
+
+def run_worker(spec: dict, log) -> dict:
+    """Run one measurement in a fresh Python process; ``{"error": ...}`` if it fails."""
+    t0 = time.perf_counter()
+    try:
+        proc = subprocess.run([sys.executable, os.path.abspath(__file__), "--worker",
+                               json.dumps(spec)], capture_output=True, text=True,
+                              timeout=WORKER_TIMEOUT_S, cwd=HERE)
+    except subprocess.TimeoutExpired:
+        result = {"error": f"timed out after {WORKER_TIMEOUT_S} s"}
+    else:
+        lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("RESULT ")]
+        if proc.returncode == 0 and lines:
+            result = json.loads(lines[-1][len("RESULT "):])
+        else:
+            tail = (proc.stderr or proc.stdout).strip().splitlines()[-3:]
+            result = {"error": f"exit {proc.returncode}: " + " | ".join(tail)}
+    log(f"{time.perf_counter() - t0:6.1f} s  {json.dumps(spec)}"
+        + (f"  ERROR {result['error']}" if "error" in result else ""))
+    return result
+
+
+def run_sweep(sweep: dict, log) -> list[dict]:
+    """Steps of each solver and the LeastSquares fit at every (m, grid) of the sweep."""
+    rows = []
+    for m, grids in sweep.items():
+        for g in grids:
+            row = {"m": m, "samples": 3 * m, "grid": g}
+            for key in STEP_SOLVERS:
+                row[key] = run_worker({"kind": "step", "m": m, "grid": g, "solver": key}, log)
+            row["lstsq"] = run_worker({"kind": "lstsq", "m": m, "grid": g, "lam": LSQ_LAM}, log)
+            rows.append(row)
+    return rows
+
+
+def run_port(sweep_rows: list[dict], log) -> list[dict]:
+    """The dense NumPy port at every sweep configuration where its matrices fit."""
+    sys.path.insert(0, HERE)
+    import _numpy_port as port
+
+    rows = []
+    for r in sweep_rows:
+        size = port.dense_bytes(r["m"], (r["grid"], r["grid"]))
+        if size > DENSE_LIMIT_BYTES:
+            continue
+        res = run_worker({"kind": "port", "m": r["m"], "grid": r["grid"]}, log)
+        ours = r["iurs"].get("step_warm_s")
+        ratio = res["step_warm_s"] / ours if ours and "step_warm_s" in res else None
+        rows.append({"m": r["m"], "grid": r["grid"], "dense_b": size, "port": res,
+                     "jurs_iurs_step_s": ours, "ratio": ratio})
+    return rows
+
+
+def run_rbf(points_list, log) -> list[dict]:
+    """RBF vs jurs at growing m, stopping before an RBF fit predicted to take too long."""
+    rows, last = [], None
+    for m in points_list:
+        if last is not None and "rbf" in last[1]:
+            predicted = last[1]["rbf"]["fit_s"] * (m / last[0]) ** 3
+            if predicted > RBF_MAX_PREDICTED_S:
+                log(f"skip RBF at m={m}: predicted {predicted:.0f} s")
+                rows.append({"m": m, "grid": RBF_GRIDS[m],
+                             "skipped": f"RBF fit predicted to take {predicted:.0f} s"})
+                continue
+        res = run_worker({"kind": "rbf", "m": m, "grid": RBF_GRIDS[m]}, log)
+        rows.append({"m": m, "grid": RBF_GRIDS[m], **res})
+        last = (m, res)
+    return rows
+
+
+def run_example4(log) -> list[dict]:
+    return [{**cfg, **run_worker({"kind": "example4", **cfg}, log)} for cfg in EXAMPLE4]
+
+
+# --------------------------------------------------------------------------- targets
+
+def _find(rows, **keys):
+    for r in rows:
+        if all(r.get(k) == v for k, v in keys.items()):
+            return r
+    return None
+
+
+def _verdict(value, limit, higher_is_better=False) -> str:
+    if value is None:
+        return "not measured"
+    ok = value >= limit if higher_is_better else value <= limit
+    return "PASS" if ok else "MISS"
+
+
+def _target(label, measured, value, limit, required, higher_is_better=False) -> dict:
+    return {"target": label, "measured": measured, "required": required,
+            "verdict": _verdict(value, limit, higher_is_better), "value": value, "limit": limit}
+
+
+def evaluate_targets(sweep, rbf, example4) -> list[dict]:
+    """Each target: what was measured, the requirement and PASS/MISS (from measurements)."""
+    big = _find(sweep, m=TARGET_POINTS, grid=TARGET_GRID) or {"iurs": {}, "lstsq": {}}
+    where = f"{TARGET_POINTS:.0e} points, {TARGET_GRID}x{TARGET_GRID}"
+    iurs, lsq = big["iurs"], big["lstsq"]
+    out = [
+        _target(f"IURS step, {where}, warm (median)", _ms(iurs.get("step_warm_s")),
+                iurs.get("step_warm_s"), TARGET_IURS_STEP_S, f"<= {_ms(TARGET_IURS_STEP_S)}"),
+        _target(f"IURS peak memory, {where} (peak RSS minus RSS after imports and data)",
+                f"{_gb(iurs.get('peak_over_base_b'))} (peak RSS {_gb(iurs.get('peak_b'))})",
+                iurs.get("peak_over_base_b"), TARGET_IURS_PEAK_B,
+                f"<= {_gb(TARGET_IURS_PEAK_B)}"),
+    ]
+    normal = sorted((r["m"], r["normal_ipia"]["step_warm_s"]) for r in sweep
+                    if r["grid"] == TARGET_GRID and "step_warm_s" in r["normal_ipia"])
+    worst = max(normal, key=lambda x: x[1]) if normal else (None, None)
+    out.append(_target(
+        f"NormalIPIA step, {TARGET_GRID}x{TARGET_GRID}, warm, worst over m",
+        f"{_ms(worst[1])} (" + ", ".join(f"{_ms(t)} at m = {m:.0e}" for m, t in normal) + ")"
+        if normal else "—",
+        worst[1], TARGET_NORMAL_STEP_S, f"<= {_ms(TARGET_NORMAL_STEP_S)}"))
+    out.append(_target(
+        f"LeastSquares(lam={LSQ_LAM:g}) through jurs.fit, {where}, end to end incl. assembly",
+        f"warm {_s(lsq.get('fit_warm_s'))}, first call {_s(lsq.get('fit_first_s'))}",
+        lsq.get("fit_warm_s"), TARGET_LSQ_S, f"<= {_s(TARGET_LSQ_S)} (warm)"))
+    for ex4 in example4:
+        label = (f"Full IURS fit ({'target config' if ex4['target'] else 'for context'}): "
+                 f"{ex4['shape']} {ex4['points']} pts, {ex4['grid']}x{ex4['grid']}, "
+                 f"tau={ex4['tau']:g}, lam={ex4['lam']:g}, tol={EXAMPLE4_TOL:g}")
+        out.append(_target(label + ", warm", _ms(ex4.get("warm_s")) + _steps(ex4),
+                           ex4.get("warm_s"), TARGET_EX4_WARM_S, f"<= {_ms(TARGET_EX4_WARM_S)}"))
+        out.append(_target(label + ", cold (first call in a fresh process, compile included)",
+                           _s(ex4.get("cold_s")), ex4.get("cold_s"), TARGET_EX4_COLD_S,
+                           f"<= {_s(TARGET_EX4_COLD_S)}"))
+    out.append(_rbf_target(rbf))
+    out.append(_rbf_target(rbf, "finer"))
+    return out
+
+
+def _rbf_target(rbf, variant: str = "main") -> dict:
+    """>= 100x faster than RBFInterpolator at 5000 points with equal or better Chamfer
+    (the fine Chamfer, "equal" meaning within ``CHAMFER_TOLERANCE``), for one jurs variant."""
+    key = f"jurs_{variant}"
+    r = _find(rbf, m=TARGET_RBF_POINTS)
+    factor, lam = RBF_JURS_VARIANTS[variant]
+    grid = factor * RBF_GRIDS[TARGET_RBF_POINTS]
+    label = (f"jurs LeastSquares(lam={lam:g}), {grid}x{grid}"
+             f"{'' if variant == 'main' else ' (for context)'} vs RBFInterpolator at "
+             f"{TARGET_RBF_POINTS} points: fit-time ratio (warm jurs), fine Chamfer to the "
+             "exact curve")
+    required = (f">= {TARGET_RBF_RATIO:.0f}x and Chamfer <= {1 + CHAMFER_TOLERANCE:g} x RBF's")
+    if r is None or "rbf" not in r:
+        done = [x for x in rbf if "rbf" in x]
+        note = (f"not run (largest m measured: {done[-1]['m']}, ratio "
+                f"{_x(done[-1]['rbf']['fit_s'] / done[-1][key]['warm_s'])})") if done else "not run"
+        return {"target": label, "measured": note, "required": required,
+                "verdict": "not measured"}
+    j, b = r[key], r["rbf"]
+    ratio = b["fit_s"] / j["warm_s"]
+    close = j["fine_chamfer"] <= (1 + CHAMFER_TOLERANCE) * b["fine_chamfer"]
+    ok = ratio >= TARGET_RBF_RATIO and close
+    return {"target": label,
+            "measured": f"{_x(ratio)} (jurs first call: {_x(b['fit_s'] / j['first_s'])}); "
+                        f"Chamfer jurs {j['fine_chamfer']:.2e} vs RBF {b['fine_chamfer']:.2e}",
+            "required": required, "verdict": "PASS" if ok else "MISS"}
+
+
+# --------------------------------------------------------------------------- report
+
+def _ms(s):
+    """Seconds as ms below one second (3 significant digits)."""
+    return "—" if s is None else (f"{s * 1e3:.3g} ms" if s < 1 else f"{s:.3g} s")
+
+
+def _s(s):
+    return "—" if s is None else f"{s:.3g} s"
+
+
+def _gb(b):
+    if b is None:
+        return "—"
+    return f"{b / 2**30:.2f} GiB" if abs(b) >= 2**30 else f"{b / 2**20:.0f} MiB"
+
+
+def _steps(r):
+    return f" ({r['num_steps']} steps, {r['result']})" if "num_steps" in r else ""
+
+
+def _x(ratio):
+    """A speed ratio: 2 significant digits, so that 0.61x does not print as 1x."""
+    return "—" if ratio is None else f"{ratio:.2g}x" if ratio < 100 else f"{ratio:.0f}x"
+
+
+def _table(header, rows):
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    lines += ["| " + " | ".join(str(c) for c in row) + " |" for row in rows]
+    return lines
+
+
+def _err(res):
+    return f"error: {res['error'][:80]}" if "error" in res else None
+
+
+def report(data: dict) -> str:
+    """The markdown report (also printed)."""
+    lines = [f"# Speed{' (QUICK run: small sizes only)' if data['quick'] else ''}", "",
+             f"Machine: {data['machine']}. Device of the measurements: {data['device']}. "
+             f"float64. Whole run: {data['runtime_s'] / 60:.1f} min.",
+             "", "The CPU may be shared with other work: treat timings as indicative.", ""]
+    lines += [f"Note: {n}" for n in data.get("notes", [])] + [""] * bool(data.get("notes"))
+    lines += ["## Targets", ""]
+    lines += _table(["target", "measured", "required", "verdict"],
+                    [[t["target"], t["measured"], t["required"], t["verdict"]]
+                     for t in data["targets"]])
+    lines += ["", "## What is measured", "",
+              "* Data: the paper's Example 1 curve, `jurs.datasets.example1(m)`; 3m samples "
+              "(points and both offsets, d = 0.1, eps = 0.01), box = bounding box + 10 %.",
+              "* **Warm step**: median time of a jitted `solver.step(problem, state)` on a state "
+              "one step in (weights already moved), as in `benchmarks/step_speed.py`; "
+              "**compile** = first call minus warm (the jit cache is cleared first). Repeats: "
+              f"until about {STEP_BUDGET_S:g} s are spent, at least 3 (2 after a first call "
+              f"above that, 1 after one above {LONG_CALL_S:g} s), at most 20; the minimum is "
+              "shown in brackets "
+              "(closest to an unshared machine).",
+              "* **NormalIPIA assembly**: its `init` (D^T D as a 49-point stencil and D^T b), "
+              "warm, and its first call (with compilation), apart from its step.",
+              f"* **LeastSquares**: `jurs.fit(points, normals, grid, solver=LeastSquares("
+              f"lam={LSQ_LAM:g}))` from NumPy arrays to the solved spline: problem building "
+              "(host-side sample layout), assembly and linear solve; first call (compiles) "
+              "and warm (median).",
+              "* **Peak memory**: every measurement runs in a fresh subprocess; *peak* is its "
+              "peak resident set size (VmHWM), *over base* is the peak minus the RSS after "
+              "imports, JAX start-up and data creation, i.e. the memory the problem build, "
+              "the init, XLA compilation and the timed calls took at their worst (at small "
+              "sizes compilation dominates it). Host memory only"
+              + ("; the device's own peak is in the JSON." if data["device"].split(":")[0] != "cpu"
+                 else "."),
+              "* Grid sweep: " + "; ".join(f"m = {int(m):.0e}: {', '.join(map(str, g))}"
+                                          for m, g in data["sweep_config"].items())
+              + " (pruned: fine grids on few points, and part of the rest to keep the run "
+              "short; the 1e6 x 8 x 8 point is there for the NumPy baseline).", ""]
+    lines += _sweep_tables(data["sweep"])
+    lines += _port_table(data["port"])
+    lines += _rbf_table(data["rbf"])
+    lines += _example4_table(data["example4"])
+    return "\n".join(lines) + "\n"
+
+
+def _sweep_tables(sweep) -> list[str]:
+    lines = []
+    for key, (label, _, _) in STEP_SOLVERS.items():
+        extra = ["assembly (init) warm", "assembly first call"] if key == "normal_ipia" else []
+        rows = []
+        for r in sweep:
+            res = r[key]
+            cells = [f"{r['m']:.0e}", f"{r['grid']}x{r['grid']}"]
+            if _err(res):
+                rows.append(cells + [_err(res)] + [""] * (4 + len(extra)))
+                continue
+            cells += [f"{_ms(res['step_warm_s'])} ({_ms(res['step_min_s'])})",
+                      _s(res["step_compile_s"]), _gb(res["peak_over_base_b"]),
+                      _gb(res["peak_b"]), _s(res["build_s"])]
+            if extra:
+                cells += [_ms(res["init_warm_s"]), _s(res["init_first_s"])]
+            rows.append(cells)
+        lines += [f"## {label}: one step", ""]
+        lines += _table(["m", "grid", "warm step (min)", "compile", "peak over base", "peak RSS",
+                         "problem build"] + extra, rows)
+        lines.append("")
+    rows = []
+    for r in sweep:
+        res = r["lstsq"]
+        cells = [f"{r['m']:.0e}", f"{r['grid']}x{r['grid']}"]
+        rows.append(cells + ([_err(res), "", "", "", "", ""] if _err(res) else
+                             [f"{_s(res['fit_warm_s'])} ({_s(res['fit_min_s'])})",
+                              _s(res["fit_first_s"]),
+                              _gb(res["peak_over_base_b"]), _gb(res["peak_b"]),
+                              res.get("result", "—"), f"{res['E_ave']:.2e}"]))
+    lines += [f"## LeastSquares(lam={LSQ_LAM:g}) end to end through jurs.fit", ""]
+    lines += _table(["m", "grid", "warm (min)", "first call", "peak over base", "peak RSS",
+                     "result", "E_ave"], rows)
+    return lines + [""]
+
+
+def _port_table(port_rows) -> list[str]:
+    lines = ["## Baseline: the paper's Algorithm 1 in NumPy (dense D rebuilt every step)", "",
+             "`benchmarks/_numpy_port.py`: dense B (3m x NM) from "
+             "`scipy.interpolate.BSpline.design_matrix` once; per step W = B w, "
+             "D = B * w / W, mu = 2 / max column sum of D, eq. 33 and the weight gradient "
+             "(its iterates equal jurs.IURS's: `tests/test_numpy_port.py`). Same tau = 1e-2, "
+             f"lam = 1e-3. Run where one dense matrix is <= {DENSE_LIMIT_BYTES / 1e9:g} GB.", ""]
+    rows = []
+    for r in port_rows:
+        p = r["port"]
+        cells = [f"{r['m']:.0e}", f"{r['grid']}x{r['grid']}", _gb(r["dense_b"])]
+        rows.append(cells + ([_err(p), "", "", "", ""] if _err(p) else
+                             [_s(p["build_s"]), _ms(p["step_warm_s"]),
+                              _ms(r["jurs_iurs_step_s"]),
+                              _x(r["ratio"]),
+                              _gb(p["peak_over_base_b"])]))
+    lines += _table(["m", "grid", "one dense matrix", "build B", "NumPy step", "jurs IURS step",
+                     "NumPy / jurs", "NumPy peak over base"], rows)
+    return lines + [""]
+
+
+def _rbf_table(rbf_rows) -> list[str]:
+    lines = ["## Baseline: scipy RBFInterpolator (thin-plate) vs jurs LeastSquares", "",
+             "Both on the same 3m offset samples and targets of Example 1. jurs: `jurs.fit("
+             f"points, normals, grid=G, solver=LeastSquares(lam={LSQ_LAM:g}), offset=0.1, "
+             "eps=0.01)` on the grid G listed (from 16 x 16 at 100 points to 64 x 64 at "
+             "5000); RBF: `benchmarks/_baselines.rbf_fit` (fit time = the dense solve; "
+             "evaluation not timed). Both zero sets are sampled on the jurs fit's box at "
+             f"resolution {ANALYSIS_RESOLUTION} and measured with "
+             "`jurs.levelset.analyze_grid` (as `rbf_report` does). **Fine Chamfer**: "
+             "symmetric mean distance between the marching-squares zero set resampled every "
+             f"{FINE_SPACING:g} and {REFERENCE_POINTS} samples of the exact curve; a zero set "
+             "exactly on the curve measures about 1.7e-5, and contouring at this resolution "
+             "adds about 1e-5 to accurate fits (the analysis Chamfer resamples at half a grid "
+             "cell, which puts a floor of about 1.5e-3 under it for any fit). Components: "
+             "all / supplementary (mean distance to the data > 2 d). Last two columns, for "
+             f"context: jurs with lam = {RBF_JURS_VARIANTS['smoother'][1]:g} on G, and "
+             f"lam = {RBF_JURS_VARIANTS['finer'][1]:g} on a grid {RBF_JURS_VARIANTS['finer'][0]}x "
+             "as fine.", ""]
+    rows = []
+    for r in rbf_rows:
+        cells = [r["m"], f"{r['grid']}x{r['grid']}"]
+        if _err(r) or "skipped" in r:
+            rows.append(cells + [_err(r) or f"skipped: {r['skipped']}"] + [""] * 9)
+            continue
+        j, b, k, f = r["jurs_main"], r["rbf"], r["jurs_smoother"], r["jurs_finer"]
+        rows.append(cells + [
+            _s(b["fit_s"]), _ms(j["warm_s"]), _s(j["first_s"]),
+            f"{_x(b['fit_s'] / j['warm_s'])} / {_x(b['fit_s'] / j['first_s'])}",
+            f"{j['fine_chamfer']:.2e} / {b['fine_chamfer']:.2e}",
+            f"{j['chamfer']:.2e} / {b['chamfer']:.2e}",
+            f"{j['fine_hausdorff']:.2e} / {b['fine_hausdorff']:.2e}",
+            f"{j['num_components']}/{j['num_supplementary']} vs "
+            f"{b['num_components']}/{b['num_supplementary']}",
+            f"{k['fine_chamfer']:.2e}, {k['num_components']}/{k['num_supplementary']}, "
+            f"{_ms(k['warm_s'])}",
+            f"{f['grid']}x{f['grid']}: {f['fine_chamfer']:.2e}, "
+            f"{f['num_components']}/{f['num_supplementary']}, {_ms(f['warm_s'])} "
+            f"({_x(b['fit_s'] / f['warm_s'])})"])
+    lines += _table(["m", "G", "RBF fit", "jurs warm", "jurs first call",
+                     "RBF / jurs (warm / first)", "fine Chamfer jurs / RBF",
+                     "analysis Chamfer jurs / RBF", "Hausdorff (fine) jurs / RBF",
+                     "components jurs vs RBF",
+                     f"lam={RBF_JURS_VARIANTS['smoother'][1]:g}: Chamfer, components, warm",
+                     "finer grid: Chamfer, components, warm (RBF / it)"], rows)
+    return lines + [""]
+
+
+def _example4_table(rows_in) -> list[str]:
+    lines = ["## Full regularised IURS fits of Example-4 size", "",
+             f"`jurs.fit(points, normals, grid=15, solver=IURS(tau, lam, tol={EXAMPLE4_TOL:g}, "
+             f"max_steps={EXAMPLE4_MAX_STEPS}))` on `jurs.shapes.get(shape, points)`. Cold: "
+             "the first call in a fresh process, compilation included (imports timed apart); "
+             "warm: median of later calls.", ""]
+    rows = []
+    for r in rows_in:
+        cells = [r["label"], f"{r['grid']}x{r['grid']}", f"{r['tau']:g}", f"{r['lam']:g}"]
+        rows.append(cells + ([_err(r)] + [""] * 6 if _err(r) else
+                             [r["num_steps"], r["result"], _ms(r["warm_s"]), _s(r["cold_s"]),
+                              _s(r["import_s"]), f"{r['E_ave']:.2e}"]))
+    lines += _table(["fit", "grid", "tau", "lam", "steps", "result", "warm", "cold",
+                     "imports", "E_ave"], rows)
+    return lines + [""]
+
+
+# --------------------------------------------------------------------------- main
+
+def rerender(path: str) -> None:
+    """Targets and markdown again from saved measurements (no measuring): rewrites
+    ``benchmarks/results/<name>.{json,md}``, ``<name>`` being the JSON file's name."""
+    with open(path) as fh:
+        data = json.load(fh)
+    data["targets"] = evaluate_targets(data["sweep"], data["rbf"], data["example4"])
+    text = report(data)
+    print(text)
+    sys.path.insert(0, HERE)
+    from _common import write_results
+
+    write_results(os.path.splitext(os.path.basename(path))[0], data, text)
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--quick", action="store_true",
+                        help="small sizes only (a few minutes); writes speed_quick.*")
+    parser.add_argument("--from-json", metavar="PATH",
+                        help="re-render the report (and the targets) from a results JSON")
+    parser.add_argument("--worker", help=argparse.SUPPRESS)
+    args = parser.parse_args(argv)
+    if args.worker:
+        return worker_main(args.worker)
+    if args.from_json:
+        return rerender(args.from_json)
+
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    sys.path.insert(0, HERE)
+    from _common import machine, write_results
+
+    start = time.perf_counter()
+
+    def log(msg):
+        print(f"[{time.perf_counter() - start:7.1f} s] {msg}", file=sys.stderr, flush=True)
+
+    sweep_config = QUICK_SWEEP if args.quick else FULL_SWEEP
+    sweep = run_sweep(sweep_config, log)
+    port = run_port(sweep, log)
+    example4 = run_example4(log)
+    rbf = run_rbf(QUICK_RBF_POINTS if args.quick else tuple(RBF_GRIDS), log)
+    data = {"quick": args.quick, "machine": machine(),
+            "device": f"{jax.devices()[0].platform}:{jax.devices()[0].device_kind}",
+            "sweep_config": {str(m): list(g) for m, g in sweep_config.items()},  # JSON keys
+            "targets": evaluate_targets(sweep, rbf, example4),
+            "sweep": sweep, "port": port, "rbf": rbf, "example4": example4,
+            "runtime_s": time.perf_counter() - start}
+    text = report(data)
+    print(text)
+    write_results("speed_quick" if args.quick else "speed", data, text)
+
+
+if __name__ == "__main__":
+    main()
