@@ -15,22 +15,34 @@ per-cell ``(cells, 16)`` patches.
 from __future__ import annotations
 
 import jax.numpy as jnp
+import numpy as np
+from jax import lax
 from jax import Array
 
 #: Local terms per 2D sample: 4 x 4 tensor products.
 NUM_LOCAL = 16
 
+#: The four cubic pieces of :func:`cubic_weights` in powers of the centred local coordinate
+#: ``s = t - 1/2``: ``B_a(t) = sum_p CENTRED_POWER[a, p] s^p``. On a cell ``|s| <= 1/2`` and
+#: ``sum_p |CENTRED_POWER[a, p]| |s|^p <= 1``, so sums in this basis lose no more to rounding
+#: than sums in the B-spline basis, while a value costs a Horner scheme instead of the four
+#: pieces (the speed of every solver step rests on this).
+CENTRED_POWER = np.array(
+    [[1, -6, 12, -8], [23, -30, -12, 24], [23, 30, -12, -24], [1, 6, 12, 8]], dtype=float
+) / 48.0
 
-def cubic_weights(t: Array) -> Array:
+
+def cubic_weights(t: Array, xp=jnp) -> Array:
     """Values of the four uniform cubic B-spline pieces at ``t`` in ``[0, 1]``; ``(..., 4)``.
 
     Outside ``[0, 1]`` the end pieces are continued as polynomials, so evaluation beyond the
-    box extrapolates smoothly instead of dropping to zero.
+    box extrapolates smoothly instead of dropping to zero. ``xp=numpy`` evaluates on the
+    host (layouts built from concrete data), with the same arithmetic.
     """
     s = 1.0 - t
     t2 = t * t
     t3 = t2 * t
-    return jnp.stack(
+    return xp.stack(
         [s * s * s, 3.0 * t3 - 6.0 * t2 + 4.0, -3.0 * t3 + 3.0 * t2 + 3.0 * t + 1.0, t3],
         axis=-1,
     ) / 6.0
@@ -97,8 +109,67 @@ def patches_to_grid(patches: Array, shape: tuple[int, int]) -> Array:
     n, m = shape[0] - 3, shape[1] - 3
     lead = patches.shape[:-2]
     blocks = patches.reshape(lead + (n, m, NUM_LOCAL))
+    keep = [(0, 0)] * len(lead)
+    # A sum of shifted (zero-padded) blocks: one fused loop, where 16 in-place slice
+    # updates were 16 kernels (their per-kernel cost dominates small fits).
     grid = jnp.zeros(lead + tuple(shape), dtype=patches.dtype)
     for a in range(4):
         for b in range(4):
-            grid = grid.at[..., a : a + n, b : b + m].add(blocks[..., a * 4 + b])
+            grid = grid + jnp.pad(blocks[..., a * 4 + b], keep + [(a, 3 - a), (b, 3 - b)])
     return grid
+
+
+def patch_to_power() -> np.ndarray:
+    """``(16, 16)`` matrix taking a cell's 4 x 4 patch of coefficients (``a * 4 + b``) to
+    the coefficients of the same bicubic in powers ``sx^p sy^q`` of the centred local
+    coordinates (``p * 4 + q``): ``patch @ patch_to_power()``. Its transpose takes power
+    moments ``sum_k v_k sx^p sy^q`` back to the 16 B-spline sums ``sum_k v_k B_a B_b``."""
+    return np.kron(CENTRED_POWER, CENTRED_POWER)
+
+
+def power_values(coeffs, sx: Array, sy: Array) -> Array:
+    """The bicubic ``sum_pq coeffs[p * 4 + q] sx^p sy^q`` by Horner's scheme.
+
+    ``coeffs`` is a sequence of 16 arrays that broadcast against ``sx`` and ``sy`` (for
+    example one value per bucket against one per sample of the bucket).
+    """
+    value = None
+    for p in (3, 2, 1, 0):
+        row = coeffs[p * 4 + 3]
+        for q in (2, 1, 0):
+            row = row * sy + coeffs[p * 4 + q]
+        value = row if value is None else value * sx + row
+    return value
+
+
+def power_moments(sx: Array, sy: Array, values: Array, extra=()):
+    """``sum_k values[c, ..., k] sx_k^p sy_k^q`` over the last axis, for every leading
+    channel ``c``; ``sx, sy (..., K)``, ``values (C, ..., K)`` -> ``(..., C, 16)`` in
+    ``p * 4 + q`` order. ``extra`` arrays (``(..., K)`` each) are summed over the last axis
+    alongside; their sums come back as a second result.
+
+    All the sums are one variadic reduction, so the samples are read once (separate sums
+    would each read them again).
+    """
+    terms = []
+    for v in values:
+        # Each term a short chain of products from v: no power of sx or sy is shared
+        # between channels or calls, so the compiler has no reason to store one.
+        column = v
+        for q in range(4):
+            if q:
+                column = column * sy
+            term = column
+            terms.append(term)
+            for _ in range(3):
+                term = term * sx
+                terms.append(term)
+    order = [p + 4 * q for p in range(4) for q in range(4)]  # terms come q-major
+    terms = [terms[16 * c + j] for c in range(len(values)) for j in order]
+    terms += list(extra)
+    zeros = tuple(jnp.zeros((), t.dtype) for t in terms)
+    sums = lax.reduce(tuple(terms), zeros, lambda a, b: tuple(x + y for x, y in zip(a, b)),
+                      (sx.ndim - 1,))
+    count = 16 * len(values)
+    out = jnp.stack(sums[:count], axis=-1)
+    return out.reshape(out.shape[:-1] + (len(values), NUM_LOCAL)), tuple(sums[count:])

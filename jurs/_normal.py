@@ -32,7 +32,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
-from ._basis import NUM_LOCAL, grid_to_patches, locate, num_cells, patches_to_grid
+from ._basis import NUM_LOCAL, grid_to_patches, num_cells, patches_to_grid
 from ._problem import Problem
 from ._spline import rational_terms
 
@@ -74,6 +74,17 @@ def _bernstein(t: Array, degree: int) -> Array:
     binom = np.array([comb(degree, int(i)) for i in k], float)
     t = t[..., None]
     return jnp.asarray(binom, t.dtype) * t**k * (1.0 - t) ** (degree - k)
+
+
+def _bernstein_terms(t: Array, degree: int) -> list:
+    """The Bernstein basis of ``degree`` at ``t`` as a list of arrays shaped like ``t``,
+    from products only (no ``pow``: inside a reduction every operand would evaluate it)."""
+    s = 1.0 - t
+    tp, sp = [jnp.ones_like(t)], [jnp.ones_like(t)]
+    for _ in range(degree):
+        tp.append(tp[-1] * t)
+        sp.append(sp[-1] * s)
+    return [comb(degree, p) * tp[p] * sp[degree - p] for p in range(degree + 1)]
 
 
 def chunked_segment_sum(rows_fn, inputs, segments: Array, num_segments: int,
@@ -141,17 +152,32 @@ def _gram_to_blocks(gram: Array) -> Array:
 
 
 def _local_coordinates(problem: Problem) -> Array:
-    """``t`` of every sample in its cell (the same :func:`jurs._basis.locate` that built
-    ``problem.local``, so cells agree)."""
-    _, t = locate(problem.samples, problem.lower, problem.upper, problem.shape)
-    return t
+    """``t (S, 2)`` of every sample in its cell (as stored in ``problem.local``)."""
+    return problem.local.t.T
 
 
-def bspline_normal_equations(problem: Problem, chunk_size: int = DEFAULT_CHUNK):
-    """``(stencil, D^T b)`` for the B-spline collocation (w = 1) from per-cell Bernstein
-    moments: 49 + 16 channels a sample, never the 256 products."""
+def _bernstein_moments(problem: Problem, chunk_size: int) -> Array:
+    """Per-cell sums ``(cells, 49 + 16)``: ``sum_k mask Bern6_p(tx) Bern6_q(ty)`` and
+    ``sum_k b_k Bern3_p(tx) Bern3_q(ty)`` over the samples of each cell."""
+    local = problem.local
+    count = num_cells(problem.shape)
+    if local.bucket_size > 1:
+        # Bucketed layout: the 65 sums of each bucket are one variadic reduction over its
+        # slots (no (samples x 65) array, no scatter), then a sorted sum per cell.
+        k = local.bucket_size
+        t = local.t.reshape(2, -1, k)
+        mask = problem.mask.reshape(-1, k)
+        target = (problem.mask * problem.targets).reshape(-1, k)
+        b6x, b6y = _bernstein_terms(t[0], 6), _bernstein_terms(t[1], 6)
+        b3x, b3y = _bernstein_terms(t[0], 3), _bernstein_terms(t[1], 3)
+        terms = [mask * b6x[p] * b6y[q] for p in range(7) for q in range(7)]
+        terms += [target * b3x[p] * b3y[q] for p in range(4) for q in range(4)]
+        zeros = tuple(jnp.zeros((), t.dtype) for _ in terms)
+        sums = jax.lax.reduce(tuple(terms), zeros,
+                              lambda a, b: tuple(x + y for x, y in zip(a, b)), (1,))
+        return jax.ops.segment_sum(jnp.stack(sums, axis=-1), local.bucket_cell,
+                                   num_segments=count, indices_are_sorted=True)
     t = _local_coordinates(problem)
-    dtype = t.dtype
 
     def moments(t, mask, target):
         b6x, b6y = _bernstein(t[:, 0], 6), _bernstein(t[:, 1], 6)
@@ -160,8 +186,15 @@ def bspline_normal_equations(problem: Problem, chunk_size: int = DEFAULT_CHUNK):
         rhs = (b3x[:, :, None] * b3y[:, None, :]).reshape(-1, 16) * target[:, None]
         return jnp.concatenate([gram, rhs], axis=1) * mask[:, None]
 
-    sums = chunked_segment_sum(moments, [t, problem.mask, problem.targets], problem.local.cell,
-                               num_cells(problem.shape), chunk_size)
+    return chunked_segment_sum(moments, [t, problem.mask, problem.targets], local.cell, count,
+                               chunk_size)
+
+
+def bspline_normal_equations(problem: Problem, chunk_size: int = DEFAULT_CHUNK):
+    """``(stencil, D^T b)`` for the B-spline collocation (w = 1) from per-cell Bernstein
+    moments: 49 + 16 channels a sample, never the 256 products."""
+    dtype = problem.local.s.dtype
+    sums = _bernstein_moments(problem, chunk_size)
     gram_moments = sums[:, :49].reshape(-1, 7, 7)
     rhs_moments = sums[:, 49:].reshape(-1, 4, 4)
     products = jnp.asarray(_product_bernstein(), dtype)  # [a, da, p]
@@ -246,6 +279,111 @@ def stencil_to_dense(stencil: Array) -> Array:
     col = jnp.where(valid, i2 * m + j2, 0)
     values = jnp.where(valid, stencil, 0.0)
     return jnp.zeros((n * m, n * m), stencil.dtype).at[row.ravel(), col.ravel()].add(values.ravel())
+
+
+#: Largest diagonal block that :func:`_cholesky_and_inverse` hands to LAPACK. Above about
+#: 1000 entries OpenBLAS runs these kernels threaded, and next to XLA's own threads that was
+#: measured at 10-700 ms a call instead of 0.01-2 ms on a 2-core machine; the larger blocks
+#: are split recursively into matrix products, which XLA runs itself.
+_LAPACK_MAX_BLOCK = 16
+
+
+def _cholesky_and_inverse(a: Array):
+    """``(L, L^-1)`` of a symmetric positive definite matrix ``a = L L^T``, recursively:
+    ``L = [[L1, 0], [B, L2]]`` with ``L1 = chol(A11)``, ``B = A21 L1^-T`` and
+    ``L2 = chol(A22 - B B^T)``."""
+    n = a.shape[0]
+    if n <= _LAPACK_MAX_BLOCK:
+        low = jax.lax.linalg.cholesky(a, symmetrize_input=False)
+        inv = jax.lax.linalg.triangular_solve(low, jnp.eye(n, dtype=a.dtype), left_side=True,
+                                              lower=True)
+        return low, inv
+    h = n // 2
+    l1, i1 = _cholesky_and_inverse(a[:h, :h])
+    b = a[h:, :h] @ i1.T
+    l2, i2 = _cholesky_and_inverse(a[h:, h:] - b @ b.T)
+    zero = jnp.zeros((h, n - h), a.dtype)
+    low = jnp.block([[l1, zero], [b, l2]])
+    inv = jnp.block([[i1, zero], [-(i2 @ b) @ i1, i2]])
+    return low, inv
+
+
+def _row_blocks(stencil_row: Array, row: Array) -> tuple:
+    """The blocks ``A[row i, row i - d]``, ``d = 0..3``, of a stencil's matrix from grid row
+    ``i``'s stencil ``(M, 7, 7)``; zero where ``i - d < 0``. Rows further apart do not couple
+    (``|di| <= 3``), so these and their transposes are all of A."""
+    m = stencil_row.shape[0]
+    out = []
+    for d in range(HALF + 1):
+        band = stencil_row[:, HALF - d, :]  # (M, 7): A[(i, j), (i - d, j + dj)] at 3 + dj
+        # Shear: rows of length M + 7 read back with length M + 6 shift row j right by j,
+        # putting band[j, c] at column j + c, i.e. at j + dj + 3.
+        sheared = jnp.pad(band, ((0, 0), (0, m))).reshape(m * (m + SIDE))
+        block = sheared[: m * (m + SIDE - 1)].reshape(m, m + SIDE - 1)[:, HALF : HALF + m]
+        out.append(jnp.where(row >= d, block, 0.0))
+    return tuple(out)
+
+
+#: Largest ``N * min(N, M)^2`` for which LeastSquares solves directly by
+#: :func:`stencil_cholesky_solve` (its factor takes ``32 N M^2`` bytes in float64: 1 GB at
+#: 256 x 256); above, CG.
+DIRECT_MAX_ENTRIES = 1 << 25
+
+
+def stencil_cholesky_solve(stencil: Array, rhs: Array) -> Array:
+    """Solve ``stencil * C = rhs`` for a symmetric positive definite stencil by a block
+    Cholesky factorisation ``A = L L^T`` in blocks of grid lines.
+
+    Grid lines couple only to lines at most 3 apart, so L is block-banded with 3 blocks below
+    the diagonal; one pass over the lines (a scan) computes them and the inverse of each
+    diagonal block, then two passes solve with L and L^T. Blocks run along the longer axis,
+    so they are as small as possible. Work ``O(N M^3)``, memory ``O(N M^2)`` (``M`` the
+    shorter side): on a 128 x 128 grid about 2.6e9 multiply-adds as 128 x 128 matrix
+    products, against tens of thousands of Jacobi-CG steps for the ill-conditioned systems
+    of sparse data with a small lambda. A direct solve: no tolerance, residual at rounding
+    level. Non-finite output means the matrix was not numerically positive definite.
+    """
+    if rhs.shape[1] > rhs.shape[0]:  # blocks along the shorter side
+        swapped = jnp.transpose(stencil, (1, 0, 3, 2))
+        return stencil_cholesky_solve(swapped, rhs.T).T
+    n, m = rhs.shape
+    dtype = rhs.dtype
+
+    def factor(carry, x):
+        # prev[r, c] = L[i-1-r, i-1-r-(3-c)], inv[r] = L[i-1-r, i-1-r]^-1, r = 0..2.
+        prev, inv = carry
+        a0, a1, a2, a3 = _row_blocks(*x)  # A[i, i - d]
+        l3 = a3 @ inv[2].T
+        l2 = (a2 - l3 @ prev[1, 2].T) @ inv[1].T
+        l1 = (a1 - jnp.concatenate([l3, l2], 1) @ jnp.concatenate([prev[0, 1], prev[0, 2]], 1).T
+              ) @ inv[0].T
+        row = jnp.stack([l3, l2, l1])
+        wide = jnp.concatenate([l3, l2, l1], 1)
+        _, inv_d = _cholesky_and_inverse(a0 - wide @ wide.T)
+        return (jnp.stack([row, prev[0], prev[1]]), jnp.stack([inv_d, inv[0], inv[1]])), (row, inv_d)
+
+    eye = jnp.broadcast_to(jnp.eye(m, dtype=dtype), (3, m, m))
+    carry = (jnp.zeros((3, 3, m, m), dtype), eye)
+    _, (rows, invs) = jax.lax.scan(factor, carry, (stencil, jnp.arange(n)))
+
+    def forward(ys, x):  # y_i = L_ii^-1 (b_i - sum_d L[i, i-d] y_{i-d})
+        row, inv, b = x
+        y = inv @ (b - row[0] @ ys[2] - row[1] @ ys[1] - row[2] @ ys[0])
+        return jnp.stack([y, ys[0], ys[1]]), y
+
+    zeros = jnp.zeros((3, m), dtype)
+    _, y = jax.lax.scan(forward, zeros, (rows, invs, rhs))
+
+    def backward(pending, x):
+        # x_i = L_ii^-T (y_i - sum_d L[i+d, i]^T x_{i+d}); the sums arrive in ``pending``
+        # from the lines already solved, and x_i adds its share to the three lines above.
+        row, inv, yi = x
+        xi = inv.T @ (yi - pending[0])
+        return jnp.stack([pending[1] + row[2].T @ xi, pending[2] + row[1].T @ xi,
+                          row[0].T @ xi]), xi
+
+    _, x = jax.lax.scan(backward, zeros, (rows, invs, y), reverse=True)
+    return x
 
 
 def stencil_to_scipy(stencil) -> "scipy.sparse.csr_matrix":  # noqa: F821

@@ -15,7 +15,7 @@ import numpy as np
 from jax import Array
 
 from ._basis import flat_cell, locate, num_cells
-from ._spline import LocalBasis, local_basis
+from ._spline import TABLE_MAX_SLOTS, LocalBasis, local_basis, with_table
 
 #: Default margin added around the samples' bounding box, as a fraction of its longest side.
 DEFAULT_MARGIN = 0.1
@@ -53,48 +53,70 @@ class Problem(eqx.Module):
         return self.points.shape[0]
 
 
-#: Below this many samples the automatic layout keeps one sample per bucket: the fit then
-#: compiles once per problem size, whatever the data, and is already fast.
-BUCKET_MIN_SAMPLES = 1 << 14
 #: Largest automatic bucket size.
 MAX_BUCKET_SIZE = 64
+#: Largest automatic bucket size of the table form of small problems (their per-bucket
+#: sums are unrolled in one kernel).
+SMALL_MAX_BUCKET_SIZE = 16
 
 
-def choose_bucket_size(cells: np.ndarray, count: int) -> int:
-    """Automatic bucket size: 1 for small problems, else the largest power of two not above
-    the median number of samples per occupied cell (at most ``MAX_BUCKET_SIZE``), so that
-    most buckets are full and padding stays below about half the slots."""
-    if cells.shape[0] < BUCKET_MIN_SAMPLES:
-        return 1
+def choose_bucket_size(cells: np.ndarray, count: int, small: bool = False) -> int:
+    """Automatic bucket size, a power of two: the largest not above the median number of
+    samples per occupied cell (at most ``MAX_BUCKET_SIZE``), so that most buckets are full
+    and padding stays below about half the slots. ``small`` (the table form of small
+    problems): the largest not above half that median (at most ``SMALL_MAX_BUCKET_SIZE``),
+    where padding costs as much as extra buckets (measured on 640-point outlines at
+    15 x 15, median 51 and 25 samples a cell: 16 and 8 were fastest)."""
     counts = np.bincount(cells, minlength=count)
     median = float(np.median(counts[counts > 0]))
-    return int(min(MAX_BUCKET_SIZE, 2 ** int(np.floor(np.log2(max(median, 1.0))))))
+    if not small:
+        cap = MAX_BUCKET_SIZE
+    else:
+        cap, median = SMALL_MAX_BUCKET_SIZE, median / 2.0
+    return int(min(cap, 2 ** int(np.floor(np.log2(max(median, 1.0))))))
 
 
-def bucket_layout(cells: np.ndarray, bucket_size: int, count: int):
+def round_buckets(count: int) -> int:
+    """``count`` buckets rounded up to one of eight sizes an octave (at most 1/8 more),
+    so that clouds of similar size share one compiled fit."""
+    if count <= 32:
+        return count
+    step = 1 << (int(count).bit_length() - 4)
+    return -(-count // step) * step
+
+
+def bucket_layout(cells: np.ndarray, bucket_size: int, count: int,
+                  num_buckets: int | None = None):
     """Group sample indices into buckets of ``bucket_size`` samples sharing a cell.
 
     ``cells`` (S,) is each sample's flat cell, ``count`` the number of cells. Returns
     ``(slot_sample, valid)``, both ``(num_buckets * bucket_size,)``: the sample in each slot
     and whether it is real. Padding slots repeat their bucket's first sample (so the basis
     stays well defined) and have ``valid`` False. A cell with more samples than a bucket
-    holds gets several buckets.
+    holds gets several buckets. Buckets are in cell order; ``num_buckets`` (at least the
+    number needed) appends empty buckets in the last cell.
     """
     k = bucket_size
-    order = np.argsort(cells, kind="stable")
+    # A stable sort by cell; 16-bit keys sort by radix, several times faster.
+    keys = cells.astype(np.uint16) if count <= 1 << 16 else cells
+    order = np.argsort(keys, kind="stable").astype(np.int32)
     sorted_cells = cells[order]
     counts = np.bincount(cells, minlength=count)
-    cell_start = np.cumsum(counts) - counts
-    rank = np.arange(cells.shape[0]) - cell_start[sorted_cells]  # position within its cell
     buckets_per_cell = -(-counts // k)
-    first_bucket = np.cumsum(buckets_per_cell) - buckets_per_cell
-    slot = (first_bucket[sorted_cells] + rank // k) * k + rank % k
-    slot_sample = np.full(int(buckets_per_cell.sum()) * k, -1, dtype=np.int64)
+    first_slot = (np.cumsum(buckets_per_cell) - buckets_per_cell) * k
+    cell_start = np.cumsum(counts) - counts
+    # Position within its cell (rank) plus the cell's first slot: consecutive buckets of a
+    # cell are consecutive slots.
+    slot = (first_slot - cell_start)[sorted_cells] + np.arange(cells.shape[0])
+    needed = int(buckets_per_cell.sum())
+    slot_sample = np.full(max(needed, num_buckets or 0) * k, -1, dtype=np.int32)
     slot_sample[slot] = order
+    slot_sample[needed * k:] = order[-1]
     slot_sample = slot_sample.reshape(-1, k)
     valid = slot_sample >= 0
+    valid[needed:] = False
     slot_sample = np.where(valid, slot_sample, slot_sample[:, :1])
-    return slot_sample.reshape(-1).astype(np.int32), valid.reshape(-1)
+    return slot_sample.reshape(-1), valid.reshape(-1)
 
 
 def offset_samples(points: Array, normals: Array, offset, eps):
@@ -141,6 +163,14 @@ def _is_concrete(*xs) -> bool:
     return not any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(xs))
 
 
+def _as_array(x, dtype=None):
+    """``jnp.asarray(x, dtype)``; concrete values are converted on the host and transferred,
+    which compiles nothing (an eager conversion compiles a small kernel on first use)."""
+    if isinstance(x, jax.Array) or not _is_concrete(x):
+        return jnp.asarray(x, dtype=dtype)
+    return jax.device_put(np.asarray(x, dtype=dtype))
+
+
 def check_nonnegative(name: str, value, *, strict: bool = False) -> None:
     """Raise ValueError unless ``value`` is a finite number >= 0 (> 0 when ``strict``).
 
@@ -167,10 +197,10 @@ def _validate_points(points, normals) -> None:
     if p.shape[0] < 3:
         raise ValueError(f"need at least 3 points, got {p.shape[0]}")
     for name, a in (("points", p), ("normals", n)):
-        bad = ~np.isfinite(a).all(axis=1)
-        if bad.any():
+        if not np.isfinite(a).all():  # one pass; rows only to name the first bad one
+            bad = ~np.isfinite(a).all(axis=1)
             raise ValueError(f"{name} contain NaN or Inf (first at row {int(np.argmax(bad))})")
-    short = np.linalg.norm(n, axis=1) < 1e-12
+    short = np.einsum("ij,ij->i", n, n) < 1e-24  # |n| < 1e-12
     if short.any():
         raise ValueError(f"normals must be non-zero (zero-length normal at row {int(np.argmax(short))})")
 
@@ -211,9 +241,25 @@ def validate_inputs(points, normals, *, offset, eps, domain=None) -> None:
         _validate_domain(domain, np.concatenate([p, p + d * n, p - d * n]), p.shape[0])
 
 
+def _slot_arrays(samples, targets, sample_mask, lower, upper, slot_sample, valid, shape,
+                 bucket_size):
+    """Per-slot positions, basis, targets and masks."""
+    m = samples.shape[0] // 3
+    xy = samples[slot_sample]
+    slot_mask = sample_mask[slot_sample] * valid
+    return (
+        xy,
+        local_basis(xy, lower, upper, shape, bucket_size),
+        targets[slot_sample],
+        slot_mask,
+        slot_mask * (slot_sample < m),
+    )
+
+
 @eqx.filter_jit
-def _geometry(points, normals, offset, eps, domain, margin, mask):
-    """Samples, targets, mask and box (one compiled call)."""
+def _geometry(points, normals, offset, eps, domain, margin, mask, shape, with_slots):
+    """Samples, targets, mask, box and the flat cell of every sample, and with
+    ``with_slots`` the arrays of the one-sample-a-slot layout (one compiled call)."""
     dtype = points.dtype
     normals = normals / jnp.linalg.norm(normals, axis=1, keepdims=True)
     samples, targets = offset_samples(points, normals, offset, eps)
@@ -225,22 +271,16 @@ def _geometry(points, normals, offset, eps, domain, margin, mask):
         lower, upper = auto_domain(samples, margin, None if mask is None else sample_mask)
     else:
         lower, upper = domain[0], domain[1]
-    return normals, samples, targets, sample_mask, lower, upper
+    cells = flat_cell(locate(samples, lower, upper, shape)[0], shape)
+    slots = None
+    if with_slots:
+        index = jnp.arange(samples.shape[0], dtype=jnp.int32)
+        slots = _slot_arrays(samples, targets, sample_mask, lower, upper, index,
+                             jnp.ones(samples.shape[0], dtype=bool), shape, 1)
+    return normals, samples, targets, sample_mask, lower, upper, cells, slots
 
 
-@eqx.filter_jit
-def _slots(samples, targets, sample_mask, lower, upper, slot_sample, valid, shape, bucket_size):
-    """Per-slot positions, basis, targets and masks (one compiled call)."""
-    m = samples.shape[0] // 3
-    xy = samples[slot_sample]
-    slot_mask = sample_mask[slot_sample] * valid
-    return (
-        xy,
-        local_basis(xy, lower, upper, shape, bucket_size),
-        targets[slot_sample],
-        slot_mask,
-        slot_mask * (slot_sample < m),
-    )
+_slots = eqx.filter_jit(_slot_arrays)
 
 
 def make_problem(
@@ -269,9 +309,12 @@ def make_problem(
         mask: optional ``(m,)`` booleans; points with False are padding and take no part in
             the fit, the box or the metrics. Lets clouds of different sizes share one shape
             so that a fit can be ``jax.vmap``-ed over a padded batch.
-        bucket_size: samples per bucket of the slot layout. ``None`` chooses (see
-            :func:`choose_bucket_size`); 1 keeps the paper's order, one sample a bucket.
-            Sizes above 1 need concrete (untraced) inputs: the layout is computed on the host.
+        bucket_size: samples per bucket of the slot layout. ``None`` chooses: up to
+            :data:`jurs._spline.TABLE_MAX_SLOTS` samples the paper's order, one sample a
+            slot, with the table form of :mod:`jurs._spline` (its own buckets, built on the
+            host); above, buckets of :func:`choose_bucket_size`. 1 keeps the paper's order
+            (with the table form when small and concrete). Sizes above 1 need concrete
+            (untraced) inputs: the layout is computed on the host.
         dtype: floating dtype; default float64 when ``jax_enable_x64`` is on, else float32.
 
     Raises:
@@ -284,35 +327,56 @@ def make_problem(
     if bucket_size is not None and (int(bucket_size) != bucket_size or bucket_size < 1):
         raise ValueError(f"bucket_size must be a positive int, got {bucket_size!r}")
     dtype = dtype or jnp.result_type(float)
-    points = jnp.asarray(points, dtype=dtype)
+    points = _as_array(points, dtype)
     if mask is not None and tuple(jnp.shape(mask)) != (points.shape[0],):
         raise ValueError(f"mask must have shape ({points.shape[0]},), got {jnp.shape(mask)}")
-    normals, samples, targets, sample_mask, lower, upper = _geometry(
+    # One sample a slot unless a large concrete problem gets the bucketed layout (built on
+    # the host between two compiled calls); otherwise one call does all.
+    identity = (bucket_size == 1 or not _is_concrete(points, normals, offset, eps, domain, mask)
+                or (bucket_size is None and 3 * points.shape[0] <= TABLE_MAX_SLOTS))
+    normals, samples, targets, sample_mask, lower, upper, cells, slots = _geometry(
         points,
-        jnp.asarray(normals, dtype=dtype),
-        jnp.asarray(offset, dtype=dtype),
-        jnp.asarray(eps, dtype=dtype),
-        None if domain is None else jnp.asarray(domain, dtype=dtype),
+        _as_array(normals, dtype),
+        _as_array(offset, dtype),
+        _as_array(eps, dtype),
+        None if domain is None else _as_array(domain, dtype),
         margin,
         mask,
+        shape,
+        identity,
     )
     concrete = _is_concrete(samples, lower, upper)
     if bucket_size is not None and bucket_size > 1 and not concrete:
         raise ValueError("bucket_size > 1 needs concrete inputs (the layout is built on the host)")
-    if concrete and bucket_size != 1:
-        cell, _ = locate(samples, lower, upper, shape)
-        cells = np.asarray(flat_cell(cell, shape))
-        bucket_size = bucket_size or choose_bucket_size(cells, num_cells(shape))
+    count = num_cells(shape)
+    table = None
+    if concrete and bucket_size in (None, 1) and samples.shape[0] <= TABLE_MAX_SLOTS:
+        # Small problems keep the paper's order, one sample a slot; the table form groups
+        # them into buckets of its own (see jurs._spline).
+        cells = np.asarray(cells)
+        k = choose_bucket_size(cells, count, small=True)
+        needed = int((-(-np.bincount(cells, minlength=count) // k)).sum())
+        order, real = bucket_layout(cells, k, count, round_buckets(needed))
+        table = (order.reshape(-1, k), real.reshape(-1, k))
+        bucket_size = 1
+    elif concrete and bucket_size != 1:
+        cells = np.asarray(cells)
+        bucket_size = bucket_size or choose_bucket_size(cells, count)
     else:
         bucket_size = 1
     if bucket_size == 1:
-        slot_sample = jnp.arange(samples.shape[0], dtype=jnp.int32)
-        valid = jnp.ones(samples.shape[0], dtype=bool)
+        slot_sample = np.arange(samples.shape[0], dtype=np.int32) if concrete else \
+            jnp.arange(samples.shape[0], dtype=jnp.int32)
+        slot_xy, local, slot_targets, slot_mask, slot_data = slots if slots is not None else _slots(
+            samples, targets, sample_mask, lower, upper, slot_sample,
+            np.ones(samples.shape[0], dtype=bool), shape, 1)
     else:
-        slot_sample, valid = bucket_layout(cells, bucket_size, num_cells(shape))
-    slot_xy, local, slot_targets, slot_mask, slot_data = _slots(
-        samples, targets, sample_mask, lower, upper, slot_sample, valid, shape, bucket_size
-    )
+        slot_sample, valid = bucket_layout(cells, bucket_size, count)
+        slot_xy, local, slot_targets, slot_mask, slot_data = _slots(
+            samples, targets, sample_mask, lower, upper, slot_sample, valid, shape, bucket_size
+        )
+    if table is not None:
+        local = with_table(local, *table, shape)
     return Problem(
         points=points,
         normals=normals,
@@ -320,11 +384,11 @@ def make_problem(
         targets=slot_targets,
         mask=slot_mask,
         is_data=slot_data,
-        sample_index=jnp.asarray(slot_sample),
+        sample_index=_as_array(slot_sample),
         lower=lower,
         upper=upper,
-        offset=jnp.asarray(offset, dtype=dtype),
-        eps=jnp.asarray(eps, dtype=dtype),
+        offset=_as_array(offset, dtype),
+        eps=_as_array(eps, dtype),
         local=local,
         shape=shape,
     )

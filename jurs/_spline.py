@@ -14,6 +14,23 @@ Samples are stored in *buckets*: runs of ``bucket_size`` samples that share one 
 bucket reads its 4 x 4 coefficient patch once and its sums over samples are dense
 reductions instead of scatters. ``bucket_size = 1`` (one sample a bucket, any order) is the
 generic layout that works under any JAX transformation.
+
+Two ways to run F and T, chosen by what the :class:`LocalBasis` holds:
+
+* *power form* (large problems): each cell's piece is taken to powers of the centred local
+  coordinates once, a sample costs a Horner scheme, and T sums power moments per bucket
+  (one variadic reduction) before going back to the B-spline basis per cell. Per sample
+  only its two local coordinates are read.
+* *table form* (small problems, :data:`TABLE_MAX_SLOTS`): the samples keep their order (one
+  a slot, no padding), and a table of their own groups them into buckets of one cell: the
+  16 basis products of every table position (0 at its padding) and the flat grid index of
+  every bucket's 16 coefficients are stored, with the permutation between slots and table
+  positions. F gathers on the grid and T scatters onto it directly; a step then runs as a
+  handful of small kernels, which is what counts with a few thousand samples. Table
+  position ``p`` is entry ``p % K`` of bucket ``p // K``. The products are stored twice,
+  term-major (for F, which broadcasts a bucket's coefficient along its entries) and
+  term-minor (for T, which broadcasts an entry's value along its 16 terms): XLA vectorises
+  a loop only along contiguous memory.
 """
 
 from __future__ import annotations
@@ -21,30 +38,42 @@ from __future__ import annotations
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax import Array
 
 from ._basis import (
+    NUM_LOCAL,
+    cell_width,
     cubic_weights,
-    flat_cell,
     grid_to_patches,
-    locate,
     num_cells,
+    patch_to_power,
     patches_to_grid,
+    power_moments,
+    power_values,
     tensor_basis,
 )
 
 
 class LocalBasis(eqx.Module):
-    """The non-zero B-spline values of ``S`` samples and the cell each lives in.
+    """Where ``S`` samples sit on the grid: the cell of each and its local coordinates there.
 
     These depend on the samples, the box and the grid only, never on C or w, so solvers
     build them once and reuse them every step (only the weights move the rational rows).
-    Samples come in buckets of ``bucket_size`` consecutive entries sharing one cell.
+    Samples come in buckets of ``bucket_size`` consecutive entries sharing one cell. The
+    basis values are recomputed from the local coordinates where needed: reading 2 numbers
+    a sample is cheaper than reading 8 stored ones. The optional fields hold the table form
+    (see the module notes).
     """
 
     cell: Array  # (S,) int32 flat cell index
-    bx: Array  # (S, 4) x-direction basis values
-    by: Array  # (S, 4) y-direction basis values
+    s: Array  # (2, S) centred local coordinates t - 1/2 in the cell, x row then y row
+    terms: Array | None = None  # table: (16, B, K) basis products at the table positions
+    terms_t: Array | None = None  # table: the same as (B, K, 16)
+    index: Array | None = None  # table: (B, 16) flat grid index of each bucket's terms
+    order: Array | None = None  # table: (P,) sample slot at each table position
+    position: Array | None = None  # table: (S,) table position of each sample slot
+    filled: Array | None = None  # table: (P,) 1.0 where a table position holds a sample
     bucket_size: int = eqx.field(static=True, default=1)
 
     @property
@@ -57,59 +86,212 @@ class LocalBasis(eqx.Module):
         return self.cell[:: self.bucket_size]
 
     @property
+    def t(self) -> Array:
+        """Local coordinates in the cell, ``(2, S)``; ``[0, 1]`` inside the box."""
+        return self.s + 0.5
+
+    @property
+    def bx(self) -> Array:
+        """x-direction basis values ``B_a(x)``; ``(S, 4)``."""
+        return cubic_weights(self.t[0])
+
+    @property
+    def by(self) -> Array:
+        """y-direction basis values ``B_b(y)``; ``(S, 4)``."""
+        return cubic_weights(self.t[1])
+
+    @property
     def products(self) -> Array:
         """``B_a(x) B_b(y)`` for the 16 local terms; ``(S, 16)``."""
         return tensor_basis(self.bx, self.by)
 
+    def to_layout(self, values: Array) -> Array:
+        """Per-slot ``(..., S)`` values in the layout the kernels work in (``layout=True``
+        of :func:`bspline_values` and :func:`transpose_and_sum`): the slots themselves, or
+        in the table form the table positions, 0 at its padding. Values given to the
+        kernels in this layout must be 0 at the padding."""
+        if self.terms is None:
+            return values
+        return values[..., self.order] * self.filled
+
+    def centred(self):
+        """``(sx, sy)``, the centred local coordinates, as ``(num_buckets, bucket_size)``."""
+        s = self.s.reshape(2, self.num_buckets, self.bucket_size)
+        return s[0], s[1]
+
+
+#: Up to this many samples :func:`jurs.make_problem` builds the table form (16 stored
+#: products a sample, 8 MB in float64 at the limit).
+TABLE_MAX_SLOTS = 1 << 16
+
 
 def local_basis(xy: Array, lower: Array, upper: Array, shape: tuple[int, int],
                 bucket_size: int = 1) -> LocalBasis:
-    """The local basis of the ``(N, M)`` grid on ``[lower, upper]`` at ``xy (S, 2)``.
+    """The local basis of the ``(N, M)`` grid on ``[lower, upper]`` at ``xy (S, 2)``, in the
+    power form.
 
     With ``bucket_size > 1`` the caller guarantees that each run of ``bucket_size``
     consecutive points lies in one cell (see :func:`jurs._problem.bucket_layout`).
     """
-    cell, t = locate(xy, lower, upper, shape)
-    b = cubic_weights(t)  # (S, 2, 4)
-    return LocalBasis(cell=flat_cell(cell, shape), bx=b[:, 0], by=b[:, 1], bucket_size=bucket_size)
+    # As :func:`jurs._basis.locate` (same arithmetic, so the same cells and coordinates),
+    # computed straight into the (2, S) layout, and stored centred: every evaluation works
+    # in s = t - 1/2 (see the module notes), and a subtraction shared by many kernels
+    # would be stored once more by XLA.
+    h = cell_width(lower, upper, shape)
+    u = (xy.T - lower[:, None]) / h[:, None]
+    top = jnp.asarray([shape[0] - 4, shape[1] - 4])[:, None]
+    cell = jnp.clip(jnp.floor(u), 0, top).astype(jnp.int32)
+    return LocalBasis(cell=cell[0] * (shape[1] - 3) + cell[1], s=(u - cell) - 0.5,
+                      bucket_size=bucket_size)
 
 
-def _bucketed(local: LocalBasis):
-    k = local.bucket_size
-    nb = local.num_buckets
-    return local.bx.reshape(nb, k, 4), local.by.reshape(nb, k, 4)
+def with_table(local: LocalBasis, order: np.ndarray, valid: np.ndarray,
+               shape: tuple[int, int]) -> LocalBasis:
+    """``local`` (one sample a slot, concrete) with the table form added, built on the host.
+
+    ``order`` and ``valid``, both ``(B, K)``: the sample at entry ``i`` of table bucket
+    ``b`` (all of a bucket's samples in one cell; padding entries repeat one of them) and
+    whether it is real.
+    """
+    num_buckets, k = order.shape
+    order, valid = order.reshape(-1), valid.reshape(-1)  # position p = b * K + i
+    s = np.asarray(local.s)[:, order]
+    dtype = s.dtype
+    b = cubic_weights(s + 0.5, xp=np)  # (2, P, 4)
+    # Padding positions repeat a sample of their bucket: their values stay finite, and the
+    # transposes weigh them by ``filled`` (0).
+    terms = (b[0][:, :, None] * b[1][:, None, :]).reshape(-1, NUM_LOCAL)  # (P, 16)
+    position = np.zeros(local.cell.shape[0], np.int32)
+    position[order[valid]] = np.nonzero(valid)[0]
+    cell = np.asarray(local.cell)[order[::k]]  # one sample of every bucket
+    first = (cell // (shape[1] - 3)) * shape[1] + cell % (shape[1] - 3)
+    offsets = (np.arange(4)[:, None] * shape[1] + np.arange(4)[None, :]).reshape(NUM_LOCAL)
+    return eqx.tree_at(
+        lambda x: (x.terms, x.terms_t, x.index, x.order, x.position, x.filled), local,
+        # device_put: host arrays of the right dtype, transferred without compiling anything.
+        tuple(jax.device_put(x) for x in (
+            np.ascontiguousarray(terms.T.reshape(NUM_LOCAL, num_buckets, k)),
+            terms.reshape(num_buckets, k, NUM_LOCAL),
+            (first[:, None] + offsets[None, :]).astype(np.int32), order.astype(np.int32),
+            position, valid.astype(dtype))),
+        is_leaf=lambda x: x is None)
 
 
-def bspline_values(local: LocalBasis, grids: Array) -> Array:
+def computed_apart(fn, *args):
+    """``fn(*args)``, evaluated in a kernel of its own and stored.
+
+    XLA fuses an elementwise producer into the kernels that consume it: into a reduction,
+    where the per-sample Horner schemes run several times slower than in an elementwise
+    kernel (measured 4x on 3e6 samples), or into several consumers at once, each then
+    evaluating the spline again. A conditional is a fusion boundary (about 0.4 us). Its
+    predicate is always true but opaque to the compiler (the first integer input, a cell
+    or grid index, is never negative), so the other branch, zeros, never runs; without an
+    integer input both branches are ``fn``.
+    """
+    leaves = jax.tree_util.tree_leaves(args)
+    index = next((x for x in leaves if jnp.issubdtype(x.dtype, jnp.integer)), None)
+    if index is None:
+        leaf = next(x for x in leaves if jnp.issubdtype(x.dtype, jnp.floating))
+        return jax.lax.cond(jnp.isnan(leaf.ravel()[0]), fn, fn, *args)
+    shapes = jax.eval_shape(fn, *args)
+    zeros = lambda *_: jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), shapes)
+    return jax.lax.cond(index.ravel()[0] >= 0, fn, zeros, *args)
+
+
+def power_coefficients(grids: Array) -> Array:
+    """``(C, N, M)`` coefficient grids -> ``(C, cells, 16)``: each cell's bicubic piece in
+    powers of its centred local coordinates (see :func:`jurs._basis.patch_to_power`).
+
+    One 4 x 4 convolution with 16 output channels: the patch gather and the change of
+    basis in a single kernel.
+    """
+    kernel = jnp.asarray(patch_to_power().reshape(4, 4, 1, NUM_LOCAL), grids.dtype)  # HWIO
+    out = jax.lax.conv_general_dilated(
+        grids[..., None], kernel, (1, 1), "VALID", dimension_numbers=("NHWC", "HWIO", "NHWC"),
+        precision=jax.lax.Precision.HIGHEST)
+    return out.reshape(grids.shape[0], -1, NUM_LOCAL)
+
+
+def bspline_values(local: LocalBasis, grids: Array, *, layout: bool = False) -> Array:
     """F: the B-spline ``sum_ij G_ij B_i B_j`` of coefficient grid(s) at the samples.
 
-    ``grids`` is ``(..., N, M)``; returns ``(..., S)``.
+    ``grids`` is ``(..., N, M)``; returns ``(..., S)``. Several grids share one pass over
+    the samples. Power form: each bucket's cell piece is taken to powers once, and each
+    sample costs a Horner scheme (15 multiply-adds a grid); table form: 16 stored products
+    a sample against the gathered patch. ``layout=True`` returns the values in the
+    kernels' layout (:meth:`LocalBasis.to_layout`) instead of per slot.
     """
-    if grids.ndim > 2:
-        # One grid at a time: XLA's CPU batched matmul is several times slower with an
-        # extra batch axis here than two separate calls (measured).
-        flat = grids.reshape((-1,) + grids.shape[-2:])
-        values = jnp.stack([bspline_values(local, g) for g in flat])
-        return values.reshape(grids.shape[:-2] + values.shape[-1:])
-    patches = grid_to_patches(grids)[local.bucket_cell].reshape(local.num_buckets, 4, 4)
-    bx, by = _bucketed(local)
-    along_y = jnp.einsum("bka,bac->bkc", bx, patches)  # batched (K x 4) @ (4 x 4)
-    return jnp.sum(along_y * by, axis=-1).reshape(-1)
+    lead = grids.shape[:-2]
+    flat = grids.reshape((-1,) + grids.shape[-2:])
+    if local.terms is not None:
+        # One gather a grid: a channel axis in the gather comes out channel-minor.
+        patches = jnp.stack([g.reshape(-1)[local.index] for g in flat])  # (C, buckets, 16)
+        values = sum(local.terms[j] * patches[:, :, j, None] for j in range(NUM_LOCAL))
+        values = values.reshape(flat.shape[0], -1)
+        if layout:
+            return values.reshape(lead + values.shape[-1:])
+        values = values[:, local.position]
+    else:
+        coeffs = power_coefficients(flat)[:, local.bucket_cell]  # (C, buckets, 16)
+        sx, sy = local.centred()
+        values = power_values([coeffs[:, :, j, None] for j in range(16)], sx, sy)
+    return values.reshape(lead + (local.cell.shape[0],))
+
+
+def transpose_and_sum(local: LocalBasis, values: Array, shape: tuple[int, int], extra=(), *,
+                      layout: bool = False):
+    """:func:`bspline_transpose` of ``values (C, S)``, and the totals of the ``extra``
+    per-sample arrays ``(S,)`` computed in the same pass over the samples. ``layout=True``:
+    ``values`` and ``extra`` are in the kernels' layout (:meth:`LocalBasis.to_layout`)."""
+    k = local.bucket_size
+    if local.terms is not None:
+        num_buckets = local.index.shape[0]
+        if not layout:
+            values = local.to_layout(values)
+            extra = [local.to_layout(x) for x in extra]
+        v = values.reshape(values.shape[0], num_buckets, -1)
+
+        def bucket_sums(v, terms):  # (C, table buckets, 16)
+            return sum(terms[None, :, i] * v[:, :, i, None] for i in range(terms.shape[1]))
+
+        # In a kernel of its own: fused into the scatter, the sums are laid out as the
+        # scatter's (updates, 1) operand and lose vectorisation (measured 3x slower).
+        per_bucket = computed_apart(lambda index, v, terms: bucket_sums(v, terms), local.index,
+                                    v, local.terms_t)
+        size = shape[0] * shape[1]
+        index = local.index[None] + size * jnp.arange(v.shape[0], dtype=local.index.dtype)[:, None, None]
+        grid = jnp.zeros(v.shape[0] * size, values.dtype).at[index].add(per_bucket)
+        return grid.reshape((v.shape[0],) + tuple(shape)), tuple(jnp.sum(x) for x in extra)
+    if k == 1:
+        # One sample a bucket (the generic layout): nothing to sum per bucket, so each
+        # sample's 16 B-spline products go to its cell directly (the power detour would
+        # only add work).
+        per_sample = local.products[:, None, :] * values.T[:, :, None]  # (S, C, 16)
+        per_cell = jax.ops.segment_sum(per_sample, local.cell, num_segments=num_cells(shape))
+        grid = patches_to_grid(jnp.moveaxis(per_cell, 0, -2), shape)
+        return grid, tuple(jnp.sum(x) for x in extra)
+    v = values.reshape((-1, local.num_buckets, k))
+    sx, sy = local.centred()
+    moments, sums = power_moments(sx, sy, v, [e.reshape(-1, k) for e in extra])
+    per_cell = jax.ops.segment_sum(moments, local.bucket_cell, num_segments=num_cells(shape),
+                                   indices_are_sorted=k > 1)  # (cells, C, 16)
+    patches = per_cell @ jnp.asarray(patch_to_power().T, values.dtype)
+    grid = patches_to_grid(jnp.moveaxis(patches, 0, -2), shape)
+    return grid, tuple(jnp.sum(x) for x in sums)
 
 
 def bspline_transpose(local: LocalBasis, values: Array, shape: tuple[int, int]) -> Array:
     """T, the transpose of :func:`bspline_values`: ``sum_k v_k B_i B_j(x_k)`` on the grid.
 
     ``values`` is ``(..., S)``; returns ``(..., N, M)``. Several value vectors share one
-    pass over the samples.
+    pass over the samples. Power form: per bucket the power moments ``sum_k v_k sx^p sy^q``
+    (one reduction), then per cell, then back to the B-spline basis and onto the grid;
+    table form: per table bucket the 16 sums against the stored products, scattered onto
+    the grid.
     """
     lead = values.shape[:-1]
-    bx, by = _bucketed(local)
-    v = values.reshape(lead + (local.num_buckets, local.bucket_size))
-    per_bucket = jnp.einsum("...bk,bka,bkc->b...ac", v, bx, by)
-    per_bucket = per_bucket.reshape((local.num_buckets,) + lead + (16,))
-    per_cell = jax.ops.segment_sum(per_bucket, local.bucket_cell, num_segments=num_cells(shape))
-    return patches_to_grid(jnp.moveaxis(per_cell, 0, -2), shape)
+    grid, _ = transpose_and_sum(local, values.reshape((-1, values.shape[-1])), shape)
+    return grid.reshape(lead + tuple(shape))
 
 
 def rational_values(local: LocalBasis, control: Array, weights: Array):

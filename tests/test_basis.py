@@ -1,5 +1,6 @@
 """The uniform cubic basis, the local-term maps and the spline evaluation."""
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -8,7 +9,8 @@ from conftest import dense_basis
 from jax.test_util import check_grads
 
 import jurs
-from jurs._basis import grid_to_patches, patches_to_grid
+from jurs import _basis as jurs_basis
+from jurs._basis import CENTRED_POWER, grid_to_patches, patch_to_power, patches_to_grid, power_values
 
 
 def random_points(rng, n, lower=(-1.0, 2.0), upper=(3.0, 5.0)):
@@ -131,3 +133,66 @@ def test_bucket_layout_groups_samples_by_cell():
     np.testing.assert_allclose(np.asarray(bucketed.samples)[np.asarray(bucketed.mask) > 0],
                                np.asarray(flat.samples)[index])
     assert float(bucketed.is_data.sum()) == 300
+
+
+def _without_table(problem):
+    """The same problem with its basis in the power form only (as a traced build has it)."""
+    return eqx.tree_at(lambda p: (p.local.terms, p.local.terms_t, p.local.index, p.local.order,
+                                  p.local.position, p.local.filled), problem,
+                       (None,) * 6, is_leaf=lambda x: x is None)
+
+
+def test_centred_power_basis_is_the_cubic_basis(rng):
+    s = jnp.asarray(rng.random(50) - 0.5)
+    powers = jnp.stack([s**p for p in range(4)], axis=-1)
+    np.testing.assert_allclose(np.asarray(powers @ jnp.asarray(CENTRED_POWER.T)),
+                               np.asarray(jurs.cubic_weights(s + 0.5)), atol=1e-15)
+    # A cell's patch in powers of (sx, sy) evaluates to the same bicubic as in B-splines.
+    patch = rng.standard_normal(16)
+    sx, sy = (jnp.asarray(rng.random(30) - 0.5) for _ in range(2))
+    coeffs = patch @ patch_to_power()
+    by_basis = jurs_basis.tensor_basis(jurs.cubic_weights(sx + 0.5), jurs.cubic_weights(sy + 0.5)) @ patch
+    np.testing.assert_allclose(np.asarray(power_values(list(coeffs), sx, sy)),
+                               np.asarray(by_basis), rtol=1e-13, atol=1e-15)
+
+
+def test_table_and_power_forms_agree(rng):
+    """Small concrete problems keep the paper's order with a table of their own buckets;
+    F and T match the power form (one sample a bucket, and bucketed) on the same samples."""
+    points, normals = jurs.datasets.example1(700)
+    table = jurs.make_problem(points, normals, grid=(11, 9))
+    assert table.local.terms is not None and table.local.bucket_size == 1
+    np.testing.assert_array_equal(np.asarray(table.sample_index), np.arange(2100))
+    local = table.local
+    assert np.all(np.asarray(local.to_layout(jnp.arange(2100.0)))[np.asarray(local.position)]
+                  == np.arange(2100)), "to_layout and position are inverse"
+    cells = np.asarray(local.cell)[np.asarray(local.order)].reshape(local.index.shape[0], -1)
+    assert (cells == cells[:, :1]).all(), "a table bucket spans one cell"
+    power = _without_table(table)
+    bucketed = jurs.make_problem(points, normals, grid=(11, 9), bucket_size=8)
+    real = np.asarray(bucketed.mask) > 0
+    index = np.asarray(bucketed.sample_index)[real]
+    grids = jnp.asarray(rng.standard_normal((2, 11, 9)))
+    values = jnp.asarray(rng.standard_normal((2, 2100)))
+    expected = np.asarray(jurs.bspline_values(power.local, grids))
+    np.testing.assert_allclose(np.asarray(jurs.bspline_values(local, grids)), expected,
+                               rtol=1e-13, atol=1e-14)
+    np.testing.assert_allclose(np.asarray(jurs.bspline_values(bucketed.local, grids))[:, real],
+                               expected[:, index], rtol=1e-13, atol=1e-14)
+    expected = np.asarray(jurs.bspline_transpose(power.local, values, (11, 9)))
+    np.testing.assert_allclose(np.asarray(jurs.bspline_transpose(local, values, (11, 9))),
+                               expected, rtol=1e-12, atol=1e-13)
+    spread = jnp.zeros((2, bucketed.samples.shape[0])).at[:, np.nonzero(real)[0]].set(values[:, index])
+    np.testing.assert_allclose(np.asarray(jurs.bspline_transpose(bucketed.local, spread, (11, 9))),
+                               expected, rtol=1e-12, atol=1e-13)
+
+
+def test_bucket_layout_pads_to_a_rounded_count():
+    cells = np.array([3, 0, 3, 3, 1, 3, 0])
+    slot_sample, valid = jurs.bucket_layout(cells, 2, 5, num_buckets=6)
+    assert slot_sample.shape == (12,) and valid.sum() == 7
+    slots = slot_sample.reshape(-1, 2)
+    assert (cells[slots] == cells[slots[:, :1]]).all()
+    assert sorted(slot_sample[valid].tolist()) == list(range(7))
+    assert not valid[8:].any(), "appended buckets are empty"
+    assert np.all(np.diff(cells[slots[:, 0]]) >= 0), "buckets in cell order"

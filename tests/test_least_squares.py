@@ -194,3 +194,59 @@ def test_bad_arguments():
         jurs.LeastSquares(chunk_size=0)
     with pytest.raises(TypeError, match="lineax"):
         jurs.LeastSquares(linear_solver="cholesky")
+
+
+@pytest.mark.parametrize("shape", [(4, 4), (5, 9), (12, 7)])
+def test_block_cholesky_matches_dense_solve(shape):
+    points, normals = jurs.datasets.example1(150)
+    problem = jurs.make_problem(points, normals, grid=shape, offset=0.1, eps=0.01)
+    normal = normal_equations(problem)
+    system = normal.regularised(1e-3)
+    expected = np.linalg.solve(np.asarray(_normal.stencil_to_dense(system)),
+                               np.asarray(normal.rhs).ravel())
+    got = np.asarray(jax.jit(_normal.stencil_cholesky_solve)(system, normal.rhs)).ravel()
+    np.testing.assert_allclose(got, expected, rtol=1e-10, atol=1e-13 * np.abs(expected).max())
+
+
+def test_bucketed_normal_equations_match_flat():
+    points, normals = jurs.datasets.example1(3000)
+    flat = normal_equations(jurs.make_problem(points, normals, grid=(10, 12), bucket_size=1))
+    bucketed = normal_equations(jurs.make_problem(points, normals, grid=(10, 12), bucket_size=16))
+    np.testing.assert_allclose(bucketed.stencil, flat.stencil, rtol=1e-12, atol=1e-13)
+    np.testing.assert_allclose(bucketed.rhs, flat.rhs, rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(bucketed.target_norm2, flat.target_norm2, rtol=1e-13)
+
+
+def test_large_grid_default_is_direct_and_agrees_with_cg():
+    """Above DENSE_MAX_COEFFICIENTS the default solves lam > 0 by the block Cholesky of the
+    stencil (a direct solve: no CG iterations) and lam = 0 by CG; both are the minimiser."""
+    points, normals = jurs.datasets.example1(400)
+    problem = jurs.make_problem(points, normals, grid=(18, 17), offset=0.1, eps=0.01)
+    assert 18 * 17 > jurs.solvers._least_squares.DENSE_MAX_COEFFICIENTS
+    direct = solve(least_squares(LAM), problem)
+    cg = solve(least_squares(LAM, linear_solver=lx.CG(rtol=1e-13, atol=1e-16, max_steps=20000)),
+               problem)
+    assert direct.succeeded and cg.succeeded
+    np.testing.assert_allclose(direct.spline.control, cg.spline.control, rtol=1e-7, atol=1e-9)
+    np.testing.assert_allclose(direct.metrics["E"], cg.metrics["E"], rtol=1e-11)
+    unregularised = solve(least_squares(0.0), problem, throw=False)
+    assert unregularised.succeeded or unregularised.result == jurs.RESULTS.max_steps_reached
+
+
+def test_gradient_through_the_direct_solve():
+    """jax.grad through a fit that takes the block Cholesky path (implicit differentiation
+    with the same factorisation), against central differences in lambda."""
+    points, normals = (jnp.asarray(a) for a in jurs.datasets.example1(80))
+    held_out = jnp.asarray(jurs.datasets.example1(23)[0]) * 1.03
+
+    def loss(lam):
+        sol = jurs.fit(points, normals, grid=(17, 16), solver=jurs.LeastSquares(lam=lam),
+                       offset=0.1, eps=0.01)
+        return jnp.mean(sol.spline(held_out) ** 2)
+
+    lam = jnp.asarray(1e-3)
+    grad = float(jax.grad(loss)(lam))
+    h = 1e-7
+    fd = (float(loss(lam + h)) - float(loss(lam - h))) / (2 * h)
+    assert abs(fd) > 1e-12
+    assert abs(grad - fd) <= 1e-5 * abs(fd)

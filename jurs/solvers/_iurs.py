@@ -2,19 +2,15 @@
 
 from __future__ import annotations
 
+from functools import partial
+
 import equinox as eqx
 import jax.numpy as jnp
 from jax import Array
 
-from .._energy import (
-    collocation_transpose,
-    rational_residuals,
-    regulariser,
-    regulariser_grad,
-    weight_gradient,
-)
+from .._energy import regulariser, regulariser_grad
 from .._problem import Problem, check_nonnegative
-from .._spline import ImplicitSpline, bspline_values
+from .._spline import ImplicitSpline, bspline_values, computed_apart, transpose_and_sum
 from ._base import AbstractSolver
 
 
@@ -61,14 +57,22 @@ class IURS(AbstractSolver[IURSState]):
         if int(self.max_steps) < 0:
             raise ValueError(f"max_steps must be >= 0, got {self.max_steps}")
 
-    def _energy_and_weight_grad(self, problem, control, weights, denom=None):
-        if denom is None:
-            r, denom, g = rational_residuals(problem, control, weights)
-        else:  # W = F(w) is already known for these weights: one B-spline evaluation less
-            g = bspline_values(problem.local, weights * control) / denom
-            r = problem.mask * (g - problem.targets)
-        energy = jnp.sum(r * r) + self.lam * regulariser(control)
-        return energy, weight_gradient(problem, control, r, denom, g)
+    def _energy_and_weight_grad(self, problem, control, weights, inv_denom=None):
+        # Per-sample values live in the kernels' layout (LocalBasis.to_layout): for small
+        # problems the table's own order, so no step permutes samples back and forth.
+        local = problem.local
+        mask, targets = local.to_layout(problem.mask), local.to_layout(problem.targets)
+        if inv_denom is None:
+            inv_denom = mask / bspline_values(local, weights, layout=True)
+        # W = F(w) is known for these weights: g costs one B-spline evaluation.
+        g = computed_apart(partial(bspline_values, layout=True), local, weights * control)
+        g = g * inv_denom  # eq. 14
+        r = mask * (g - targets)
+        # nabla_w E_d (eq. 19, as weight_gradient) and E_d in one pass over the samples.
+        t, (e_d,) = transpose_and_sum(local, jnp.stack([r * inv_denom, r * g * inv_denom]),
+                                      problem.shape, [r * r], layout=True)
+        energy = e_d + self.lam * regulariser(control)
+        return energy, 2.0 * (control * t[0] - t[1])
 
     def init(self, problem: Problem, spline: ImplicitSpline):
         energy, grad_w = self._energy_and_weight_grad(problem, spline.control, spline.weights)
@@ -76,18 +80,27 @@ class IURS(AbstractSolver[IURSState]):
         return IURSState(spline.control, spline.weights, grad_w, mu), energy
 
     def step(self, problem: Problem, state: IURSState):
+        local = problem.local
+        mask, targets = local.to_layout(problem.mask), local.to_layout(problem.targets)
         # 1. eq. 20, projected onto w >= min_weight.
         weights = jnp.maximum(state.weights - self.tau * state.weight_grad, self.min_weight)
         # 2. D of eq. 23 with the new weights, applied to the residual of the current C;
-        #    D^T r and the column sums of D (for mu, eq. 25) share one pass.
-        r, denom, _ = rational_residuals(problem, state.control, weights)
-        dtr, col_sums = collocation_transpose(problem, weights, denom,
-                                              jnp.stack([r, jnp.ones_like(r)]))
+        #    D^T r and the column sums of D (for mu, eq. 25) share one pass:
+        #    D^T v = w * T(v / W). W and F(w C) are computed together and kept, so that the
+        #    pass over the samples only sums (1/W serves step 4 too).
+        both = computed_apart(partial(bspline_values, layout=True), local,
+                              jnp.stack([weights, weights * state.control]))
+        inv_denom = mask / both[0]
+        g = both[1] * inv_denom  # eq. 14
+        r = mask * (g - targets)
+        grids, _ = transpose_and_sum(local, jnp.stack([r * inv_denom, inv_denom]),
+                                     problem.shape, layout=True)
+        dtr, col_sums = weights * grids
         mu = 2.0 / jnp.max(col_sums)
         # 3. eq. 33: C + mu D^T (b - DC) - lam grad R(C).
         control = state.control - mu * dtr - self.lam * regulariser_grad(state.control)
         # 4. eq. 35 at the new (C, w), with nabla_w E_d there for the next step.
-        energy, grad_w = self._energy_and_weight_grad(problem, control, weights, denom)
+        energy, grad_w = self._energy_and_weight_grad(problem, control, weights, inv_denom)
         return IURSState(control, weights, grad_w, mu), energy
 
     def to_spline(self, problem: Problem, state: IURSState) -> ImplicitSpline:

@@ -13,8 +13,10 @@ from jax import Array
 from .._energy import objective
 from .._normal import (
     DEFAULT_CHUNK,
+    DIRECT_MAX_ENTRIES,
     HALF,
     normal_equations,
+    stencil_cholesky_solve,
     stencil_matvec,
     stencil_to_dense,
 )
@@ -24,9 +26,10 @@ from .._spline import ImplicitSpline
 from ._base import AbstractSolver
 
 #: Largest grid (N * M coefficients) that the default linear solver solves densely
-#: (Cholesky); above it, Jacobi-preconditioned CG on the stencil. Measured on a 2-core CPU
-#: (benchmarks/solvers.py, Example 10): Cholesky 4.6 vs CG 7.7 ms at 9 x 9, 8.1 vs 9.1 ms at
-#: 16 x 16, 21.8 vs 13.6 ms at 32 x 32, 580 vs 48 ms at 64 x 64.
+#: (Cholesky); above it, a block Cholesky of the stencil (lam > 0) or Jacobi-preconditioned
+#: CG (lam = 0). Measured on a 2-core CPU (benchmarks/solvers.py, Example 10): dense
+#: Cholesky 4.6 vs CG 7.7 ms at 9 x 9, 8.1 vs 9.1 ms at 16 x 16, 21.8 vs 13.6 ms at 32 x 32,
+#: 580 vs 48 ms at 64 x 64.
 DENSE_MAX_COEFFICIENTS = 256
 
 
@@ -49,15 +52,30 @@ def _is_matrix_free(solver: lx.AbstractLinearSolver) -> bool:
     return isinstance(solver, (lx.CG, lx.BiCGStab, lx.GMRES))
 
 
+def _direct_stencil_solve(stencil: Array, rhs: Array, start: Array, fallback):
+    """:func:`jurs._normal.stencil_cholesky_solve`, differentiated implicitly like a lineax
+    solve (``lax.custom_linear_solve``: the adjoint system is solved by the same
+    factorisation). If the factorisation breaks down (not numerically positive definite,
+    say in float32), ``fallback`` (Jacobi-CG) solves instead."""
+    control = jax.lax.custom_linear_solve(
+        lambda c: stencil_matvec(stencil, c), rhs,
+        lambda _, b: stencil_cholesky_solve(stencil, b), symmetric=True)
+    return jax.lax.cond(jnp.all(jnp.isfinite(control)),
+                        lambda: (control, lx.RESULTS.successful),
+                        lambda: solve_normal_equations(stencil, rhs, start, fallback))
+
+
 def solve_normal_equations(stencil: Array, rhs: Array, start: Array,
-                           linear_solver: lx.AbstractLinearSolver, ridge=0.0):
+                           linear_solver: lx.AbstractLinearSolver | None, ridge=0.0):
     """Solve ``stencil * C = rhs`` (a symmetric positive semi-definite stencil) with lineax.
 
     Coefficients whose diagonal is 0 are in no sample's support and (with lam = 0)
     unconstrained: they keep their value in ``start``, which makes the rest of the system
     positive definite whenever the data determine it. Matrix-free solvers (CG, BiCGStab,
     GMRES) get the stencil as an operator and a Jacobi preconditioner; others the
-    assembled ``NM x NM`` matrix. Returns ``(C, lineax result)``.
+    assembled ``NM x NM`` matrix; ``None`` the block Cholesky of the stencil
+    (:func:`jurs._normal.stencil_cholesky_solve`, with CG if it breaks down). Returns
+    ``(C, lineax result)``.
     """
     diag = stencil[:, :, HALF, HALF]
     unseen = diag <= 0
@@ -68,6 +86,8 @@ def solve_normal_equations(stencil: Array, rhs: Array, start: Array,
     stencil = stencil.at[:, :, HALF, HALF].set(diag)
     rhs = jnp.where(unseen, start, rhs)
     tags = lx.positive_semidefinite_tag
+    if linear_solver is None:
+        return _direct_stencil_solve(stencil, rhs, start, default_linear_solver(rhs.shape))
     if _is_matrix_free(linear_solver):
         operator = lx.FunctionLinearOperator(lambda c: stencil_matvec(stencil, c), rhs, tags)
         # The preconditioner and initial guess change the path, not the solution: no
@@ -88,11 +108,13 @@ class LeastSquares(AbstractSolver[LeastSquaresState]):
 
     Solves the normal equations ``(D^T D + 2 lam L) C = D^T b`` once: ``D^T D`` is
     assembled as a 49-point stencil in one pass over the samples
-    (:func:`jurs.normal_equations`, never the dense collocation), then handed to a lineax
-    solver: Cholesky on the assembled matrix for grids up to
-    :data:`DENSE_MAX_COEFFICIENTS` coefficients, Jacobi-preconditioned CG on the stencil
-    above (or the ``linear_solver`` given). One driver step; the result is the point the
-    paper's iterations (I-PIA, eq. 11; IURS's eq. 33 with fixed w) converge to.
+    (:func:`jurs.normal_equations`, never the dense collocation), then solved: Cholesky on
+    the assembled matrix for grids up to :data:`DENSE_MAX_COEFFICIENTS` coefficients;
+    above, a block Cholesky of the stencil in grid lines when ``lam > 0``
+    (:func:`jurs._normal.stencil_cholesky_solve`, up to
+    :data:`jurs._normal.DIRECT_MAX_ENTRIES`, 256 x 256) and Jacobi-preconditioned CG when
+    ``lam = 0`` or beyond; or the lineax ``linear_solver`` given. One driver step; the result is the
+    point the paper's iterations (I-PIA, eq. 11; IURS's eq. 33 with fixed w) converge to.
 
     Args:
         lam: the objective's lambda (``E = E_d + lam R``, eq. 32), not the paper's eq. 33
@@ -101,7 +123,7 @@ class LeastSquares(AbstractSolver[LeastSquaresState]):
             the start spline's weights fixed and solves for C with the rational rows of
             eq. 23.
         linear_solver: a lineax solver for the symmetric positive (semi-)definite system;
-            default per grid size, see :func:`default_linear_solver`.
+            default (None) per grid size and lam, as above.
         chunk_size: samples accumulated at once when assembling rational rows.
         ridge: a Tikhonov term ``ridge * max(diag(D^T D)) * I`` added to the system
             (default 1e-14). It only matters when the system is numerically singular
@@ -150,9 +172,22 @@ class LeastSquares(AbstractSolver[LeastSquaresState]):
     def step(self, problem: Problem, state: LeastSquaresState):
         normal = normal_equations(problem, state.weights if self.keep_weights else None,
                                   chunk_size=self.chunk_size)
-        linear_solver = self.linear_solver or default_linear_solver(problem.shape)
-        control, result = solve_normal_equations(normal.regularised(self.lam), normal.rhs,
-                                                 state.control, linear_solver, self.ridge)
+        system = (normal.regularised(self.lam), normal.rhs, state.control)
+        n, m = sorted(problem.shape, reverse=True)
+        if (self.linear_solver is None and n * m > DENSE_MAX_COEFFICIENTS
+                and n * m * m <= DIRECT_MAX_ENTRIES):
+            # lam > 0: the regulariser makes the system positive definite, and a direct
+            # solve beats the tens of thousands of CG steps that sparse data need (18275
+            # on 1e6 points at 128 x 128, lam = 1e-4). lam = 0: numerically singular
+            # systems, where CG's early stop acts as a further regulariser (see ``ridge``).
+            cg = default_linear_solver(problem.shape)
+            control, result = jax.lax.cond(
+                jnp.asarray(self.lam) > 0,
+                lambda: solve_normal_equations(*system, None, self.ridge),
+                lambda: solve_normal_equations(*system, cg, self.ridge))
+        else:
+            linear_solver = self.linear_solver or default_linear_solver(problem.shape)
+            control, result = solve_normal_equations(*system, linear_solver, self.ridge)
         energy = objective(problem, control, state.weights, self.lam)
         return LeastSquaresState(control, state.weights, jnp.array(True), result), energy
 
