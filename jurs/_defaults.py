@@ -36,7 +36,14 @@ import dataclasses
 import numpy as np
 from scipy.spatial import cKDTree
 
-from ._problem import DEFAULT_MARGIN, _is_concrete, normalise_grid, validate_inputs
+from ._problem import (
+    DEFAULT_MARGIN,
+    _is_concrete,
+    auto_domain,
+    normalise_grid,
+    offset_samples,
+    validate_inputs,
+)
 
 #: Neighbours used for the noise estimate (the point itself included).
 NOISE_NEIGHBOURS = 16
@@ -265,11 +272,9 @@ def auto_settings(points, normals, *, grid=None, offset=None, eps=None, domain=N
     noise = estimate_noise(p, n, tree, at=at)
     d = choose_offset(p, n, spacing, noise, tree, at) if offset is None else float(offset)
     e = d if eps is None else float(eps)
-    if domain is None:
-        samples = np.concatenate([p, p + d * n, p - d * n])
-        lo, hi = samples.min(axis=0), samples.max(axis=0)
-        pad = margin * float(np.max(hi - lo))
-        lower, upper = lo - pad, hi + pad
+    if domain is None:  # the box make_problem will take
+        lower, upper = (np.asarray(c, float)
+                        for c in auto_domain(offset_samples(p, n, d, e)[0], margin))
     else:
         lower, upper = (np.asarray(c, float) for c in domain)
     shape = choose_grid(lower, upper, spacing, noise, max_grid) if grid is None \
