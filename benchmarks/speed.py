@@ -11,8 +11,8 @@ One command measures everything and writes ``benchmarks/results/speed.{json,md}`
 2. **Baselines**: ``_numpy_port.py``, the paper's Algorithm 1 with a dense collocation
    matrix rebuilt every step (where that matrix fits in ``DENSE_LIMIT_BYTES``), against the
    jurs IURS step; and ``scipy.interpolate.RBFInterpolator`` (thin-plate) on the same
-   offset samples against ``jurs.fit(..., solver=LeastSquares(lam=1e-4))``, fit time and
-   Chamfer distance to the exact curve, plus zero-set component counts.
+   offset samples against ``jurs.fit(points, normals)`` with its automatic settings, fit
+   time and Chamfer distance to the exact curve, plus zero-set component counts.
 3. **Targets**: measured value against target, PASS / MISS, at the top of the report.
 
 Every measurement runs in a fresh subprocess (``--worker``), so its peak resident set size
@@ -68,15 +68,12 @@ LSQ_LAM = 1e-4
 #: the temporaries of a step, are each this size).
 DENSE_LIMIT_BYTES = 2 * 10**9
 
-#: RBF comparison: points -> jurs grid (finer grids for denser data).
+#: RBF comparison: points -> a coarser jurs grid, shown for context beside the defaults
+#: (which choose their own grid, at most 96 a side).
 RBF_GRIDS = {100: 16, 300: 24, 1_000: 32, 2_000: 48, 5_000: 64}
 QUICK_RBF_POINTS = (300,)
 #: Skip the next RBF size when its fit is predicted (O(m^3) from the last one) to exceed this.
 RBF_MAX_PREDICTED_S = 150.0
-#: jurs fits of the RBF comparison, name -> (grid factor, LeastSquares lambda): "main" (the
-#: grid of RBF_GRIDS, lam = LSQ_LAM) is the target's; the others are shown for context:
-#: more smoothing on the same grid, and a grid twice as fine.
-RBF_JURS_VARIANTS = {"main": (1, LSQ_LAM), "smoother": (1, 1e-3), "finer": (2, LSQ_LAM)}
 #: Grid resolution of the zero-set analysis (the same for jurs and the RBF).
 ANALYSIS_RESOLUTION = 512
 #: Dense samples of the exact Example 1 curve (spacing about 3e-5), the Chamfer reference.
@@ -327,21 +324,23 @@ def fine_chamfer(xs, ys, values, reference) -> dict:
     return {"chamfer": chamfer, "hausdorff": hausdorff}
 
 
-def _level_set(xs, ys, values, points, reference) -> dict:
+def _level_set(xs, ys, values, points, reference, offset=OFFSET) -> dict:
     """The level-set report (components, Chamfer at the analysis grid's floor) and the
     fine Chamfer, for one function sampled on the common grid."""
     import jurs.levelset as ls
 
-    out = ls.analyze_grid(xs, ys, values, points, offset=OFFSET, reference=reference).as_dict()
+    out = ls.analyze_grid(xs, ys, values, points, offset=offset, reference=reference).as_dict()
     fine = fine_chamfer(xs, ys, values, reference)
     out.update({"fine_chamfer": fine["chamfer"], "fine_hausdorff": fine["hausdorff"]})
     return out
 
 
 def work_rbf(spec: dict) -> dict:
-    """RBFInterpolator (thin-plate) vs jurs LeastSquares at m points: fit times and the
-    zero sets' distances to the exact curve, both sampled on the jurs fit's box and grid
-    (the analysis of ``rbf_report``), plus jurs with a second lambda for context."""
+    """RBFInterpolator (thin-plate) vs ``jurs.fit(points, normals)`` with its defaults at m
+    points: fit times and the zero sets' distances to the exact curve. The RBF solves the
+    offset samples and targets the defaults chose (the same 3m samples); both are sampled
+    on the default fit's box and grid (the analysis of ``rbf_report``). For context, jurs
+    also on the coarser grid of RBF_GRIDS with the same settings otherwise."""
     jax, jurs = _start_jax()
     import jurs.levelset as ls
     from _baselines import evaluate_rbf_grid, rbf_fit
@@ -349,25 +348,26 @@ def work_rbf(spec: dict) -> dict:
     points, normals = jurs.datasets.example1(spec["m"])
     reference = jurs.datasets.example1(REFERENCE_POINTS)[0]
     out = {"device": _device_name(jax)}
-    for name, (factor, lam) in RBF_JURS_VARIANTS.items():
-        solver, grid = jurs.LeastSquares(lam=lam), factor * spec["grid"]
-
-        def fit():
-            return jurs.fit(points, normals, grid=grid, solver=solver, offset=OFFSET, eps=EPS)
-
-        timed = time_repeated(fit, budget_s=2.0)
-        sol = timed["output"]
-        # The box does not depend on the grid, so every fit and the RBF share xs, ys.
-        box = (np.asarray(sol.spline.lower), np.asarray(sol.spline.upper))
-        xs, ys, _ = ls.sampling_grid(*box, ANALYSIS_RESOLUTION)
-        values = ls.evaluate_grid(sol.spline, xs, ys)
-        out[f"jurs_{name}"] = {"grid": grid, "lam": lam, **_timing(timed),
-                               **_level_set(xs, ys, values, points, reference)}
-    rbf, rbf_s = rbf_fit(points, normals, offset=OFFSET, eps=EPS)
+    timed = time_repeated(lambda: jurs.fit(points, normals), budget_s=2.0)
+    settings = timed["output"].settings
+    # The box does not depend on the grid, so both fits and the RBF share xs, ys.
+    xs, ys, _ = ls.sampling_grid(*settings.domain, ANALYSIS_RESOLUTION)
+    coarse = dict(grid=spec["grid"], offset=settings.offset, eps=settings.eps,
+                  solver=jurs.LeastSquares(lam=settings.lam))
+    fits = {"main": timed,
+            "coarse": time_repeated(lambda: jurs.fit(points, normals, **coarse), budget_s=2.0)}
+    for name, run in fits.items():
+        spline = run["output"].spline
+        out[f"jurs_{name}"] = {"grid": list(spline.shape), "lam": settings.lam,
+                               "offset": settings.offset, "eps": settings.eps,
+                               **_timing(run),
+                               **_level_set(xs, ys, ls.evaluate_grid(spline, xs, ys), points,
+                                            reference, settings.offset)}
+    rbf, rbf_s = rbf_fit(points, normals, offset=settings.offset, eps=settings.eps)
     t0 = time.perf_counter()
     values = evaluate_rbf_grid(rbf, xs, ys)  # the same box and grid as the jurs fits
     out["rbf"] = {"fit_s": rbf_s, "grid_eval_s": time.perf_counter() - t0,
-                  **_level_set(xs, ys, values, points, reference)}
+                  **_level_set(xs, ys, values, points, reference, settings.offset)}
     return out
 
 
@@ -514,35 +514,32 @@ def evaluate_targets(sweep, rbf, example4) -> list[dict]:
                            _s(ex4.get("cold_s")), ex4.get("cold_s"), TARGET_EX4_COLD_S,
                            f"<= {_s(TARGET_EX4_COLD_S)}"))
     out.append(_rbf_target(rbf))
-    out.append(_rbf_target(rbf, "finer"))
     return out
 
 
-def _rbf_target(rbf, variant: str = "main") -> dict:
+def _rbf_target(rbf) -> dict:
     """>= 100x faster than RBFInterpolator at 5000 points with equal or better Chamfer
-    (the fine Chamfer, "equal" meaning within ``CHAMFER_TOLERANCE``), for one jurs variant."""
-    key = f"jurs_{variant}"
+    (the fine Chamfer, "equal" meaning within ``CHAMFER_TOLERANCE``), for the defaults."""
     r = _find(rbf, m=TARGET_RBF_POINTS)
-    factor, lam = RBF_JURS_VARIANTS[variant]
-    grid = factor * RBF_GRIDS[TARGET_RBF_POINTS]
-    label = (f"jurs LeastSquares(lam={lam:g}), {grid}x{grid}"
-             f"{'' if variant == 'main' else ' (for context)'} vs RBFInterpolator at "
-             f"{TARGET_RBF_POINTS} points: fit-time ratio (warm jurs), fine Chamfer to the "
-             "exact curve")
+    label = (f"jurs.fit(points, normals) defaults vs RBFInterpolator at {TARGET_RBF_POINTS} "
+             "points on the same offset samples: fit-time ratio (warm jurs, automatic "
+             "settings included), fine Chamfer to the exact curve")
     required = (f">= {TARGET_RBF_RATIO:.0f}x and Chamfer <= {1 + CHAMFER_TOLERANCE:g} x RBF's")
     if r is None or "rbf" not in r:
         done = [x for x in rbf if "rbf" in x]
         note = (f"not run (largest m measured: {done[-1]['m']}, ratio "
-                f"{_x(done[-1]['rbf']['fit_s'] / done[-1][key]['warm_s'])})") if done else "not run"
+                f"{_x(done[-1]['rbf']['fit_s'] / done[-1]['jurs_main']['warm_s'])})"
+                ) if done else "not run"
         return {"target": label, "measured": note, "required": required,
                 "verdict": "not measured"}
-    j, b = r[key], r["rbf"]
+    j, b = r["jurs_main"], r["rbf"]
     ratio = b["fit_s"] / j["warm_s"]
     close = j["fine_chamfer"] <= (1 + CHAMFER_TOLERANCE) * b["fine_chamfer"]
     ok = ratio >= TARGET_RBF_RATIO and close
     return {"target": label,
             "measured": f"{_x(ratio)} (jurs first call: {_x(b['fit_s'] / j['first_s'])}); "
-                        f"Chamfer jurs {j['fine_chamfer']:.2e} vs RBF {b['fine_chamfer']:.2e}",
+                        f"Chamfer jurs {j['fine_chamfer']:.2e} vs RBF {b['fine_chamfer']:.2e} "
+                        f"(grid {'x'.join(map(str, j['grid']))})",
             "required": required, "verdict": "PASS" if ok else "MISS"}
 
 
@@ -685,31 +682,29 @@ def _port_table(port_rows) -> list[str]:
 
 
 def _rbf_table(rbf_rows) -> list[str]:
-    lines = ["## Baseline: scipy RBFInterpolator (thin-plate) vs jurs LeastSquares", "",
-             "Both on the same 3m offset samples and targets of Example 1. jurs: `jurs.fit("
-             f"points, normals, grid=G, solver=LeastSquares(lam={LSQ_LAM:g}), offset=0.1, "
-             "eps=0.01)` on the grid G listed (from 16 x 16 at 100 points to 64 x 64 at "
-             "5000); RBF: `benchmarks/_baselines.rbf_fit` (fit time = the dense solve; "
-             "evaluation not timed). Both zero sets are sampled on the jurs fit's box at "
-             f"resolution {ANALYSIS_RESOLUTION} and measured with "
+    lines = ["## Baseline: scipy RBFInterpolator (thin-plate) vs jurs defaults", "",
+             "Example 1 with m points. jurs: `jurs.fit(points, normals)`, every setting "
+             "automatic (grid, d, eps, lambda; `LeastSquares`), timed with the automatic "
+             "settings included. RBF: `benchmarks/_baselines.rbf_fit` on the same 3m offset "
+             "samples and targets (the d and eps the defaults chose; fit time = the dense "
+             "solve; evaluation not timed). Both zero sets are sampled on the default fit's "
+             f"box at resolution {ANALYSIS_RESOLUTION} and measured with "
              "`jurs.levelset.analyze_grid` (as `rbf_report` does). **Fine Chamfer**: "
              "symmetric mean distance between the marching-squares zero set resampled every "
              f"{FINE_SPACING:g} and {REFERENCE_POINTS} samples of the exact curve; a zero set "
              "exactly on the curve measures about 1.7e-5, and contouring at this resolution "
              "adds about 1e-5 to accurate fits (the analysis Chamfer resamples at half a grid "
              "cell, which puts a floor of about 1.5e-3 under it for any fit). Components: "
-             "all / supplementary (mean distance to the data > 2 d). Last two columns, for "
-             f"context: jurs with lam = {RBF_JURS_VARIANTS['smoother'][1]:g} on G, and "
-             f"lam = {RBF_JURS_VARIANTS['finer'][1]:g} on a grid {RBF_JURS_VARIANTS['finer'][0]}x "
-             "as fine.", ""]
+             "all / supplementary (mean distance to the data > 2 d). Last column, for "
+             "context: jurs with the same settings on the coarser grid G.", ""]
     rows = []
     for r in rbf_rows:
-        cells = [r["m"], f"{r['grid']}x{r['grid']}"]
         if _err(r) or "skipped" in r:
-            rows.append(cells + [_err(r) or f"skipped: {r['skipped']}"] + [""] * 9)
+            rows.append([r["m"], _err(r) or f"skipped: {r['skipped']}"] + [""] * 10)
             continue
-        j, b, k, f = r["jurs_main"], r["rbf"], r["jurs_smoother"], r["jurs_finer"]
-        rows.append(cells + [
+        j, b, c = r["jurs_main"], r["rbf"], r["jurs_coarse"]
+        rows.append([
+            r["m"], "x".join(map(str, j["grid"])), f"{j['offset']:.3g}",
             _s(b["fit_s"]), _ms(j["warm_s"]), _s(j["first_s"]),
             f"{_x(b['fit_s'] / j['warm_s'])} / {_x(b['fit_s'] / j['first_s'])}",
             f"{j['fine_chamfer']:.2e} / {b['fine_chamfer']:.2e}",
@@ -717,17 +712,14 @@ def _rbf_table(rbf_rows) -> list[str]:
             f"{j['fine_hausdorff']:.2e} / {b['fine_hausdorff']:.2e}",
             f"{j['num_components']}/{j['num_supplementary']} vs "
             f"{b['num_components']}/{b['num_supplementary']}",
-            f"{k['fine_chamfer']:.2e}, {k['num_components']}/{k['num_supplementary']}, "
-            f"{_ms(k['warm_s'])}",
-            f"{f['grid']}x{f['grid']}: {f['fine_chamfer']:.2e}, "
-            f"{f['num_components']}/{f['num_supplementary']}, {_ms(f['warm_s'])} "
-            f"({_x(b['fit_s'] / f['warm_s'])})"])
-    lines += _table(["m", "G", "RBF fit", "jurs warm", "jurs first call",
+            f"{'x'.join(map(str, c['grid']))}: {c['fine_chamfer']:.2e}, "
+            f"{c['num_components']}/{c['num_supplementary']}, {_ms(c['warm_s'])} "
+            f"({_x(b['fit_s'] / c['warm_s'])})"])
+    lines += _table(["m", "jurs grid", "d", "RBF fit", "jurs warm", "jurs first call",
                      "RBF / jurs (warm / first)", "fine Chamfer jurs / RBF",
                      "analysis Chamfer jurs / RBF", "Hausdorff (fine) jurs / RBF",
                      "components jurs vs RBF",
-                     f"lam={RBF_JURS_VARIANTS['smoother'][1]:g}: Chamfer, components, warm",
-                     "finer grid: Chamfer, components, warm (RBF / it)"], rows)
+                     "coarser grid G: Chamfer, components, warm (RBF / it)"], rows)
     return lines + [""]
 
 
