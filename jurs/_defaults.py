@@ -145,8 +145,8 @@ def estimate_noise(points: np.ndarray, normals: np.ndarray, tree: cKDTree | None
     return float(np.median(rms[ok])) if ok.any() else 0.0
 
 
-def offset_agreement(points: np.ndarray, normals: np.ndarray, offset: float,
-                     tree: cKDTree | None = None, at=None) -> float:
+def offset_agreement(points: np.ndarray, normals: np.ndarray, offset,
+                     tree: cKDTree | None = None, at=None):
     """Fraction of the 2m offset samples ``P_i +/- d n_i`` that lie on their intended side
     (outside for ``+``, inside for ``-``) of the tangent line of their nearest data point
     other than ``P_i``.
@@ -154,18 +154,20 @@ def offset_agreement(points: np.ndarray, normals: np.ndarray, offset: float,
     It is low for small d on noisy data (a neighbour's noise is larger than d) and for large
     d where the offsets cross a thin part of the shape or the gap between two parts (they
     land nearer the far side and read the wrong side there); in between it is near 1.
-    Measured for the points indexed by ``at`` (default all).
+    Measured for the points indexed by ``at`` (default all). ``offset`` may be a 1-D array
+    of offsets (one KD-tree query for all of them); then so is the result.
     """
     tree = cKDTree(points) if tree is None else tree
     own = _probe(points, at)
-    agree = []
-    for sign in (1.0, -1.0):
-        q = points[own] + sign * offset * normals[own]
-        idx = tree.query(q, k=2)[1]
-        j = np.where(idx[:, 0] == own, idx[:, 1], idx[:, 0])
-        side = ((q - points[j]) * normals[j]).sum(axis=1)
-        agree.append(sign * side > 0)
-    return float(np.mean(np.concatenate(agree)))
+    offsets = np.asarray(offset, float)
+    # (offsets, sign, probes): +d then -d for every offset.
+    signed = offsets.reshape(-1, 1, 1) * np.array([1.0, -1.0]).reshape(1, 2, 1)
+    q = points[own] + signed[..., None] * normals[own]
+    idx = tree.query(q.reshape(-1, 2), k=2)[1].reshape(q.shape[:3] + (2,))
+    j = np.where(idx[..., 0] == own, idx[..., 1], idx[..., 0])
+    side = ((q - points[j]) * normals[j]).sum(axis=-1)
+    agreement = (signed * side > 0).mean(axis=(1, 2))
+    return agreement.reshape(offsets.shape) if offsets.ndim else float(agreement[0])
 
 
 #: Dimensionless smoothing on clean clouds and on noise-dominated ones
@@ -194,8 +196,7 @@ def choose_offset(points: np.ndarray, normals: np.ndarray, spacing: float, noise
     first = offset_agreement(points, normals, d0, tree, at)
     if first >= 0.99:  # within 1 % of any agreement (all are <= 1): d0, as the rule says
         return float(d0)
-    agreement = np.array([first] + [offset_agreement(points, normals, d, tree, at)
-                                    for d in ladder[1:]])
+    agreement = np.concatenate([[first], offset_agreement(points, normals, ladder[1:], tree, at)])
     return float(ladder[np.argmax(agreement >= agreement.max() - 0.01)])
 
 

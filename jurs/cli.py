@@ -239,13 +239,12 @@ def run_fit(args) -> int:
         raise InputError(f"--resolution must be >= 16, got {args.resolution}")
     if os.path.exists(args.output) and not os.path.isdir(args.output):
         raise InputError(f"{args.output}: exists and is not a folder")
-    try:  # data-dependent checks (e.g. degenerate clouds) before any work
+    try:  # auto_settings runs make_problem's input checks (e.g. degenerate clouds) first
         chosen = jurs.auto_settings(points, normals, grid=args.grid, offset=args.offset,
                                     eps=args.eps)
-        settings = dict(grid=chosen.grid, offset=chosen.offset, eps=chosen.eps)
-        jurs.make_problem(points, normals, **settings)
     except ValueError as exc:
         raise InputError(f"{path}: {_one_line(exc)}") from None
+    settings = dict(grid=chosen.grid, offset=chosen.offset, eps=chosen.eps)
     solver = make_solver(args.solver, lam=args.lam, tau=args.tau, steps=args.steps,
                          tol=args.tol, auto_lam=chosen.lam)
     grid, offset = chosen.grid, chosen.offset

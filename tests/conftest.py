@@ -38,3 +38,11 @@ def dense_collocation(problem, weights):
 @pytest.fixture
 def rng():
     return np.random.default_rng(1234)
+
+
+@pytest.fixture(scope="session")
+def example1_cloud():
+    """The paper's Example 1 at 120 points: ``(points, normals)``."""
+    import jurs
+
+    return jurs.datasets.example1(120)

@@ -87,6 +87,12 @@ def test_offset_does_not_cross_thin_parts():
     d = _defaults.choose_offset(points, normals, spacing, noise=0.2)
     assert d < width
     assert _defaults.offset_agreement(points, normals, d) == 1.0
+    # The whole ladder in one query gives what one offset at a time gives.
+    ladder = np.array([0.4, 0.28, 0.1, 0.05])
+    batched = _defaults.offset_agreement(points, normals, ladder)
+    assert batched.shape == (4,)
+    np.testing.assert_array_equal(
+        batched, [_defaults.offset_agreement(points, normals, x) for x in ladder])
 
 
 def test_overrides_are_kept(lobes):

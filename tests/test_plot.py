@@ -20,13 +20,8 @@ from jurs import levelset as ls  # noqa: E402
 
 
 @pytest.fixture(scope="module")
-def data():
-    return jurs.datasets.example1(120)
-
-
-@pytest.fixture(scope="module")
-def run(data):
-    p, n = data
+def run(example1_cloud):
+    p, n = example1_cloud
     return jurs.fit_in_chunks(p, n, solver=jurs.IURS(max_steps=40, tol=0.0),
                               checkpoints=(0, 10, 40), **PAPER)
 
@@ -47,9 +42,9 @@ def _saves(fig, tmp_path, name):
     plt.close(fig)
 
 
-def test_plot_fit(run, data, tmp_path):
+def test_plot_fit(run, example1_cloud, tmp_path):
     sol, _ = run
-    p, n = data
+    p, n = example1_cloud
     fig = jplot.plot_fit(sol.spline, p, n, 0.1, title="fit")
     assert isinstance(fig, plt.Figure)
     (ax,) = _map_axes(fig)
@@ -62,9 +57,9 @@ def test_plot_fit(run, data, tmp_path):
     _saves(fig, tmp_path, "fit")
 
 
-def test_plot_fit_highlights_supplementary(run, data, tmp_path):
+def test_plot_fit_highlights_supplementary(run, example1_cloud, tmp_path):
     sol, _ = run
-    p, n = data
+    p, n = example1_cloud
     s = sol.spline
     bumped = jurs.ImplicitSpline(s.control.at[0:2, 0:2].set(-0.2), s.weights, s.lower, s.upper)
     report = ls.analyze(bumped, p, offset=0.1, resolution=256)
@@ -86,9 +81,9 @@ def test_evaluate_on_grid_signature(run):
     np.testing.assert_allclose(v[3, 7], float(sol.spline(np.array([[xs[7], ys[3]]]))[0]))
 
 
-def test_plot_iterations(run, data, tmp_path):
+def test_plot_iterations(run, example1_cloud, tmp_path):
     _, snaps = run
-    p, n = data
+    p, n = example1_cloud
     fig = jplot.plot_iterations(snaps, p, n, 0.1, resolution=80)
     axes = _map_axes(fig)
     assert [ax.get_title() for ax in axes] == ["step 0", "step 10", "step 40"]
@@ -99,9 +94,9 @@ def test_plot_iterations(run, data, tmp_path):
         jplot.plot_iterations({})
 
 
-def test_plot_energy_history(run, data, tmp_path):
+def test_plot_energy_history(run, example1_cloud, tmp_path):
     sol, _ = run
-    p, n = data
+    p, n = example1_cloud
     ipia = jurs.fit(p, n, solver=jurs.IPIA(max_steps=40, tol=0.0), **PAPER)
     fig = jplot.plot_energy_history({"IURS": sol, "IPIA": ipia, "array": [1.0, 0.5, np.nan]})
     (ax,) = fig.axes

@@ -52,13 +52,8 @@ SOLVERS = {
 
 
 @pytest.fixture(scope="module")
-def example1():
-    return jurs.datasets.example1(120)
-
-
-@pytest.fixture(scope="module")
-def fits(example1):
-    points, normals = example1
+def fits(example1_cloud):
+    points, normals = example1_cloud
     return {name: jurs.fit(points, normals, grid=9, solver=solver, offset=0.1, eps=0.01)
             for name, (solver, _) in SOLVERS.items()}
 
@@ -108,10 +103,10 @@ def test_joint_solvers_do_not_end_above_least_squares(fits):
             assert abs(float(jnp.mean(jnp.log(sol.spline.weights)))) < 1e-6, name
 
 
-def test_joint_fit_beats_the_bspline_by_3x_in_e_ave(example1):
+def test_joint_fit_beats_the_bspline_by_3x_in_e_ave(example1_cloud):
     """Done-when of issue 3 (lam = 0, Example 1, 9 x 9): a rational fit reaches an E_ave at
     least 3x below the exact B-spline fit's. (Timing: benchmarks/solvers.py.)"""
-    points, normals = example1
+    points, normals = example1_cloud
     bspline = jurs.fit(points, normals, grid=9, offset=0.1, eps=0.01, solver=jurs.LeastSquares())
     rational = jurs.fit(points, normals, grid=9, offset=0.1, eps=0.01,
                         solver=jurs.JointLevenbergMarquardt(max_steps=100))
@@ -119,8 +114,8 @@ def test_joint_fit_beats_the_bspline_by_3x_in_e_ave(example1):
     assert ratio >= 3.0, ratio
 
 
-def test_optimistix_results_are_mapped(example1):
-    points, normals = example1
+def test_optimistix_results_are_mapped(example1_cloud):
+    points, normals = example1_cloud
     solver = jurs.OptimistixLeastSquares(optx.LevenbergMarquardt(rtol=1e-8, atol=1e-12),
                                          lam=LAM, joint=True, max_steps=2)
     sol = jurs.fit(points, normals, grid=9, offset=0.1, eps=0.01, solver=solver)

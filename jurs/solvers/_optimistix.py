@@ -37,14 +37,23 @@ def map_result(result: optx.RESULTS) -> RESULTS:
 
 
 class _AbstractOptimistix(AbstractSolver[OptimistixState]):
-    """Shared machinery: one driver step runs the whole optimistix solve."""
+    """Shared machinery: one driver step runs the whole optimistix solve. Subclasses say
+    which optimistix entry point runs (``_run``) and their default ``max_steps``."""
 
-    solver: eqx.AbstractVar[Any]
-    lam: eqx.AbstractVar[Any]
-    joint: eqx.AbstractVar[bool]
-    max_steps: eqx.AbstractVar[int]
-    warm_start: eqx.AbstractVar[bool]
-    adjoint: eqx.AbstractVar[optx.AbstractAdjoint]
+    solver: Any
+    lam: Any
+    joint: bool = eqx.field(static=True)
+    max_steps: int = eqx.field(static=True)
+    warm_start: bool = eqx.field(static=True)
+    adjoint: optx.AbstractAdjoint
+
+    default_max_steps: ClassVar[int] = 256
+
+    def __init__(self, solver, *, lam=0.0, joint=False, max_steps=None, warm_start=True,
+                 adjoint=optx.ImplicitAdjoint()):
+        self.solver, self.lam, self.joint = solver, lam, joint
+        self.max_steps = self.default_max_steps if max_steps is None else max_steps
+        self.warm_start, self.adjoint = warm_start, adjoint
 
     tol: ClassVar[float] = 0.0  # the optimistix solver's rtol/atol decide convergence
 
@@ -103,7 +112,8 @@ class OptimistixLeastSquares(_AbstractOptimistix):
             ``lx.Normal(lx.CG(...))`` keeps it matrix-free.
         lam: the objective's lambda (``E = E_d + lam R``).
         joint: optimise the weights too.
-        max_steps: passed to ``optx.least_squares``; the jurs driver runs one step that
+        max_steps: passed to ``optx.least_squares`` (default 256; 1024 for
+            :class:`OptimistixMinimiser`); the jurs driver runs one step that
             contains the whole optimistix solve (``sol.state.num_steps`` counts its
             steps, ``sol.state.result`` its verdict).
         warm_start: joint fits only: start from the exact best C for the start weights.
@@ -111,17 +121,7 @@ class OptimistixLeastSquares(_AbstractOptimistix):
             differentiates the optimality condition, not the iterations.
     """
 
-    solver: optx.AbstractLeastSquaresSolver | optx.AbstractMinimiser
-    lam: Any
-    joint: bool = eqx.field(static=True)
-    max_steps: int = eqx.field(static=True)
-    warm_start: bool = eqx.field(static=True)
-    adjoint: optx.AbstractAdjoint
-
-    def __init__(self, solver, *, lam=0.0, joint=False, max_steps=256, warm_start=True,
-                 adjoint=optx.ImplicitAdjoint()):
-        self.solver, self.lam, self.joint = solver, lam, joint
-        self.max_steps, self.warm_start, self.adjoint = max_steps, warm_start, adjoint
+    default_max_steps: ClassVar[int] = 256
 
     def _run(self, problem: Problem, y0) -> optx.Solution:
         return optx.least_squares(
@@ -143,17 +143,7 @@ class OptimistixMinimiser(_AbstractOptimistix):
                                                      atol=1e-10), max_steps=5000)
     """
 
-    solver: optx.AbstractMinimiser
-    lam: Any
-    joint: bool = eqx.field(static=True)
-    max_steps: int = eqx.field(static=True)
-    warm_start: bool = eqx.field(static=True)
-    adjoint: optx.AbstractAdjoint
-
-    def __init__(self, solver, *, lam=0.0, joint=False, max_steps=1024, warm_start=True,
-                 adjoint=optx.ImplicitAdjoint()):
-        self.solver, self.lam, self.joint = solver, lam, joint
-        self.max_steps, self.warm_start, self.adjoint = max_steps, warm_start, adjoint
+    default_max_steps: ClassVar[int] = 1024
 
     def _run(self, problem: Problem, y0) -> optx.Solution:
         return optx.minimise(
