@@ -442,7 +442,7 @@ def report_markdown(res, quick) -> str:
         out.append(f"  - `{name}`: {jurs.shapes.origin(name)} ({len(jurs.shapes.outline(name))} component(s))")
     out += ["",
             "- Supplementary components: `jurs.levelset.analyze` defaults (zero set on a 512-node "
-            "grid; a component is supplementary when its mean distance to the data exceeds 2d = 0.2).",
+            "grid; a component is supplementary when more than half of its length lies farther than 2d = 0.2 from the data).",
             ""]
 
     # ---- Table 1

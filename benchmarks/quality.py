@@ -419,10 +419,10 @@ def markdown(runs, meta):
             "(so 1.0 means 0.1 % of the diagonal); they are measured from the zero set to "
             f"dense samples of the clean outline (spacing diag / {REFERENCE_DIVISOR}), on a "
             f"{RESOLUTION}-node grid over the fit's box, the same grid for the RBF. A "
-            "*supplementary* component lies on average more than 2 d from the data; a *tiny "
-            "loop* is a closed component shorter than 4 grid cells. The RBF solves the same "
-            "offset samples and targets (jurs's own d and eps) exactly (s = 0) or with "
-            "SciPy's `smoothing` s; on noisy cases the best s is picked by Chamfer distance to "
+            "*supplementary* component has more than half its length farther than 2 d from "
+            "the data; a *tiny loop* is a closed component shorter than 4 grid cells. The "
+            "RBF solves the same offset samples and targets (jurs's own d and eps) exactly "
+            "(s = 0) or with SciPy's `smoothing` s; on noisy cases the best s is picked by Chamfer distance to "
             "the clean outline, which no user could do (an oracle), so the Chamfer target on "
             "noisy cases is a comparison with the RBF at its best. "
             f"Over all runs the jurs/RBF Chamfer ratio (below 1: jurs closer to the true "
@@ -445,8 +445,9 @@ def markdown(runs, meta):
                  and r["jurs"]["num_components"] == r["jurs"]["true_components"]]
         if whole:
             lines[-1] += (
-                " Supplementary is a mean distance to the *data*: a component that bridges a "
-                "gap in the sampling has the gap in that mean. In "
+                " Supplementary is a distance to the *data* (more than half of a component's "
+                "length beyond 2 d): a zero set that bridges a gap in the sampling can still "
+                "reach that. In "
                 + ", ".join(label(r) for r in whole)
                 + " the zero set has the true number of components and the supplementary "
                 "one(s) make up "

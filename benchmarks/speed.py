@@ -695,7 +695,7 @@ def _rbf_table(rbf_rows) -> list[str]:
              "exactly on the curve measures about 1.7e-5, and contouring at this resolution "
              "adds about 1e-5 to accurate fits (the analysis Chamfer resamples at half a grid "
              "cell, which puts a floor of about 1.5e-3 under it for any fit). Components: "
-             "all / supplementary (mean distance to the data > 2 d). Last column, for "
+             "all / supplementary (more than half the length farther than 2 d from the data). Last column, for "
              "context: jurs with the same settings on the coarser grid G.", ""]
     rows = []
     for r in rbf_rows:

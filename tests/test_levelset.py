@@ -71,10 +71,26 @@ def test_extra_closed_curve_far_from_data_is_supplementary():
     ring = np.stack([1.1 + 0.3 * np.cos(phi), 1.1 + 0.3 * np.sin(phi)], axis=1)
     expected = np.mean(np.abs(np.linalg.norm(ring, axis=1) - 1.0))
     assert extra.mean_distance == pytest.approx(expected, abs=0.01)  # data spacing 0.03
+    assert extra.far_fraction == 1.0  # all of it beyond 2 d = 0.1 (its nearest is 0.26)
     main = [c for c in report.components if not c.supplementary][0]
     assert main.length == pytest.approx(2 * np.pi, rel=0.01)
     # A threshold above the extra loop's distance makes it ordinary.
     assert ls.analyze(f, data, threshold=1.0).num_supplementary == 0
+
+
+def test_curve_bridging_a_sampling_gap_is_not_supplementary():
+    """The unit circle sampled on two thirds of its length: the zero set (the whole circle)
+    has the unsampled third's large distances in its mean, above the threshold, but only
+    about a third of its length beyond the threshold, so it is the curve, not an extra one."""
+    f = Analytic(lambda xy: dist(xy, (0, 0)) - 1.0)
+    t = np.linspace(0, 4 * np.pi / 3, 140)
+    data = np.stack([np.cos(t), np.sin(t)], axis=1)
+    report = ls.analyze(f, data, offset=0.05)  # threshold 0.1
+    (c,) = report.components
+    assert c.mean_distance > report.threshold
+    # Beyond 0.1 from both ends of the sampled arc: the gap less 2 x 0.1 (chord ~ arc).
+    assert c.far_fraction == pytest.approx((2 * np.pi / 3 - 0.2) / (2 * np.pi), abs=0.01)
+    assert not c.supplementary and report.num_supplementary == 0
 
 
 def test_extra_loop_in_a_spline_is_counted(circle_fit):
