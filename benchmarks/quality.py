@@ -433,8 +433,10 @@ def markdown(runs, meta):
             f"before every run); the unsmoothed RBF fit is {np.median(times):.1f}x (median; "
             f"{times.min():.1f}x to {times.max():.1f}x) the jurs warm time. The RBF's dense "
             "solve grows as m^3, jurs's time with the grid, so that ratio depends on m. "
-            "Timings are on a 2-core machine shared with other jobs: expect tens of percent "
-            "of noise. "
+            "Timings are medians of a few calls on a 2-core machine"
+            + (f" (load average {meta['load_average']:.1f} when the run began)"
+               if "load_average" in meta else "")
+            + ": expect tens of percent of noise. "
             f"The zero set has the true number of components in "
             f"{sum(r['jurs']['num_components'] == r['jurs']['true_components'] for r in ok)} "
             f"of {len(ok)} jurs runs and in "
@@ -633,6 +635,7 @@ def main(argv=None):
     start = time.perf_counter()
     runs, figs = [], []
     meta = {"quick": args.quick, "machine": machine(), "python": platform.python_version(),
+            "load_average": os.getloadavg()[0],
             "command": "python benchmarks/quality.py" + (" --quick" if args.quick else ""),
             "cases": list(cases), "noise_levels": list(levels), "m": {},
             "true_components": {}}
