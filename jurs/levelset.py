@@ -20,8 +20,8 @@ Definitions (all lengths in data units):
   (default ``2 d``, twice the offset of the fit) from the data, i.e. its arc-length median
   distance exceeds the threshold. The median, not the mean: a true curve that bridges a
   gap in the sampling has the gap's large distances in its mean (a rose with 8 % of its
-  outline unsampled, clean, had a mean of several thresholds) but most of its length on
-  the data, while an extra curve away from the data has most of its length off it. The
+  outline unsampled, clean data: the mean was above 2 d and flagged the curve itself) but
+  most of its length on the data, while an extra curve away from the data has most of its length off it. The
   arc-length mean is kept too (``mean_distance``).
 * A **tiny loop** is a closed component shorter than ``tiny_cells * h`` (default 4 cells):
   a sign flip at one or two grid nodes, at the resolution limit of the grid.
