@@ -20,16 +20,16 @@ def machine() -> str:
 
 
 def time_call(fn, *args, repeats: int = 20):
-    """``(first_call_s, median_warm_s)``; the first call includes compilation."""
+    """``(first_call_s, median_warm_s, output)``; the first call includes compilation."""
     t0 = time.perf_counter()
-    jax.block_until_ready(fn(*args))
+    out = jax.block_until_ready(fn(*args))
     first = time.perf_counter() - t0
     times = []
     for _ in range(repeats):
         t0 = time.perf_counter()
-        jax.block_until_ready(fn(*args))
+        out = jax.block_until_ready(fn(*args))
         times.append(time.perf_counter() - t0)
-    return first, float(np.median(times))
+    return first, float(np.median(times)), out
 
 
 def write_results(name: str, payload: dict, markdown: str) -> None:

@@ -579,6 +579,16 @@ def _err(res):
     return f"error: {res['error'][:80]}" if "error" in res else None
 
 
+def _where(r) -> list:
+    """The m and grid cells of a sweep row."""
+    return [f"{r['m']:.0e}", f"{r['grid']}x{r['grid']}"]
+
+
+def _measured_row(cells, res, width: int, values) -> list:
+    """``cells``, then ``values()`` (``width`` cells), or ``res``'s error padded to ``width``."""
+    return cells + ([_err(res)] + [""] * (width - 1) if _err(res) else values())
+
+
 def report(data: dict) -> str:
     """The markdown report (also printed)."""
     lines = [f"# Speed{' (QUICK run: small sizes only)' if data['quick'] else ''}", "",
@@ -631,16 +641,11 @@ def _sweep_tables(sweep) -> list[str]:
         rows = []
         for r in sweep:
             res = r[key]
-            cells = [f"{r['m']:.0e}", f"{r['grid']}x{r['grid']}"]
-            if _err(res):
-                rows.append(cells + [_err(res)] + [""] * (4 + len(extra)))
-                continue
-            cells += [f"{_ms(res['step_warm_s'])} ({_ms(res['step_min_s'])})",
-                      _s(res["step_compile_s"]), _gb(res["peak_over_base_b"]),
-                      _gb(res["peak_b"]), _s(res["build_s"])]
-            if extra:
-                cells += [_ms(res["init_warm_s"]), _s(res["init_first_s"])]
-            rows.append(cells)
+            rows.append(_measured_row(_where(r), res, 5 + len(extra), lambda: [
+                f"{_ms(res['step_warm_s'])} ({_ms(res['step_min_s'])})",
+                _s(res["step_compile_s"]), _gb(res["peak_over_base_b"]), _gb(res["peak_b"]),
+                _s(res["build_s"])] + ([_ms(res["init_warm_s"]), _s(res["init_first_s"])]
+                                       if extra else [])))
         lines += [f"## {label}: one step", ""]
         lines += _table(["m", "grid", "warm step (min)", "compile", "peak over base", "peak RSS",
                          "problem build"] + extra, rows)
@@ -648,12 +653,10 @@ def _sweep_tables(sweep) -> list[str]:
     rows = []
     for r in sweep:
         res = r["lstsq"]
-        cells = [f"{r['m']:.0e}", f"{r['grid']}x{r['grid']}"]
-        rows.append(cells + ([_err(res), "", "", "", "", ""] if _err(res) else
-                             [f"{_s(res['fit_warm_s'])} ({_s(res['fit_min_s'])})",
-                              _s(res["fit_first_s"]),
-                              _gb(res["peak_over_base_b"]), _gb(res["peak_b"]),
-                              res.get("result", "—"), f"{res['E_ave']:.2e}"]))
+        rows.append(_measured_row(_where(r), res, 6, lambda: [
+            f"{_s(res['fit_warm_s'])} ({_s(res['fit_min_s'])})", _s(res["fit_first_s"]),
+            _gb(res["peak_over_base_b"]), _gb(res["peak_b"]), res.get("result", "—"),
+            f"{res['E_ave']:.2e}"]))
     lines += [f"## LeastSquares(lam={LSQ_LAM:g}) end to end through jurs.fit", ""]
     lines += _table(["m", "grid", "warm (min)", "first call", "peak over base", "peak RSS",
                      "result", "E_ave"], rows)
@@ -670,12 +673,9 @@ def _port_table(port_rows) -> list[str]:
     rows = []
     for r in port_rows:
         p = r["port"]
-        cells = [f"{r['m']:.0e}", f"{r['grid']}x{r['grid']}", _gb(r["dense_b"])]
-        rows.append(cells + ([_err(p), "", "", "", ""] if _err(p) else
-                             [_s(p["build_s"]), _ms(p["step_warm_s"]),
-                              _ms(r["jurs_iurs_step_s"]),
-                              _x(r["ratio"]),
-                              _gb(p["peak_over_base_b"])]))
+        rows.append(_measured_row(_where(r) + [_gb(r["dense_b"])], p, 5, lambda: [
+            _s(p["build_s"]), _ms(p["step_warm_s"]), _ms(r["jurs_iurs_step_s"]),
+            _x(r["ratio"]), _gb(p["peak_over_base_b"])]))
     lines += _table(["m", "grid", "one dense matrix", "build B", "NumPy step", "jurs IURS step",
                      "NumPy / jurs", "NumPy peak over base"], rows)
     return lines + [""]
@@ -695,8 +695,9 @@ def _rbf_table(rbf_rows) -> list[str]:
              "exactly on the curve measures about 1.7e-5, and contouring at this resolution "
              "adds about 1e-5 to accurate fits (the analysis Chamfer resamples at half a grid "
              "cell, which puts a floor of about 1.5e-3 under it for any fit). Components: "
-             "all / supplementary (more than half the length farther than 2 d from the data). Last column, for "
-             "context: jurs with the same settings on the coarser grid G.", ""]
+             "all / supplementary (more than half the length farther than 2 d from the "
+             "data). Last column, for context: jurs with the same settings on the coarser "
+             "grid G.", ""]
     rows = []
     for r in rbf_rows:
         if _err(r) or "skipped" in r:
@@ -732,9 +733,9 @@ def _example4_table(rows_in) -> list[str]:
     rows = []
     for r in rows_in:
         cells = [r["label"], f"{r['grid']}x{r['grid']}", f"{r['tau']:g}", f"{r['lam']:g}"]
-        rows.append(cells + ([_err(r)] + [""] * 6 if _err(r) else
-                             [r["num_steps"], r["result"], _ms(r["warm_s"]), _s(r["cold_s"]),
-                              _s(r["import_s"]), f"{r['E_ave']:.2e}"]))
+        rows.append(_measured_row(cells, r, 6, lambda: [
+            r["num_steps"], r["result"], _ms(r["warm_s"]), _s(r["cold_s"]), _s(r["import_s"]),
+            f"{r['E_ave']:.2e}"]))
     lines += _table(["fit", "grid", "tau", "lam", "steps", "result", "warm", "cold",
                      "imports", "E_ave"], rows)
     return lines + [""]
@@ -786,7 +787,7 @@ def main(argv=None):
     example4 = run_example4(log)
     rbf = run_rbf(QUICK_RBF_POINTS if args.quick else tuple(RBF_GRIDS), log)
     data = {"quick": args.quick, "machine": machine(),
-            "device": f"{jax.devices()[0].platform}:{jax.devices()[0].device_kind}",
+            "device": _device_name(jax),
             "sweep_config": {str(m): list(g) for m, g in sweep_config.items()},  # JSON keys
             "targets": evaluate_targets(sweep, rbf, example4),
             "sweep": sweep, "port": port, "rbf": rbf, "example4": example4,

@@ -46,38 +46,25 @@ def measure(points, normals, grid, solver, bucket_size):
     build = time.perf_counter() - t0
     spline = jurs.ImplicitSpline(jnp.zeros(grid), jnp.ones(grid), problem.lower, problem.upper)
     init = jax.jit(solver.init)
-    _, init_s = time_call(init, problem, spline, repeats=3)
+    _, init_s, _ = time_call(init, problem, spline, repeats=3)
     state, _ = init(problem, spline)
     state, _ = _step(solver, problem, state)  # a state with moved weights
     _step.clear_cache()  # so the first timed call compiles, as a user's first call does
-    first, warm = time_call(_step, solver, problem, state)
+    first, warm, _ = time_call(_step, solver, problem, state)
     return {"layout": f"bucket_size={problem.local.bucket_size}", "slots": int(problem.samples.shape[0]),
             "build_s": build, "init_s": init_s, "compile_s": first - warm, "warm_ms": warm * 1e3}
-
-
-def fit_times(call, repeats=5):
-    """``(cold_s, warm_s, solution)``: the first call, then the median of ``repeats``."""
-    t0 = time.perf_counter()
-    sol = jax.block_until_ready(call())
-    cold = time.perf_counter() - t0
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        sol = jax.block_until_ready(call())
-        times.append(time.perf_counter() - t0)
-    return cold, sorted(times)[len(times) // 2], sol
 
 
 def whole_fits(points, normals, grid):
     small_points, small_normals = jurs.shapes.get("lobes", 640)
     iurs = jurs.IURS(tau=1e-3, lam=0.002, tol=1e-7, max_steps=20000)
-    cold, warm, sol = fit_times(lambda: jurs.fit(small_points, small_normals, grid=(15, 15),
-                                                 solver=iurs, offset=0.1, eps=0.01))
+    cold, warm, sol = time_call(lambda: jurs.fit(small_points, small_normals, grid=(15, 15),
+                                                 solver=iurs, offset=0.1, eps=0.01), repeats=5)
     steps = int(sol.stats["num_steps"])
     small = {"fit": "IURS (tau=1e-3, lam=0.002, tol=1e-7), lobes 640 points, 15x15",
              "cold_s": cold, "warm_s": warm, "steps": steps, "per_step_us": warm / steps * 1e6}
     exact = jurs.LeastSquares(lam=1e-4)
-    cold, warm, sol = fit_times(lambda: jurs.fit(points, normals, grid=grid, solver=exact,
+    cold, warm, sol = time_call(lambda: jurs.fit(points, normals, grid=grid, solver=exact,
                                                  offset=0.1, eps=0.01), repeats=3)
     large = {"fit": f"LeastSquares(lam=1e-4), {points.shape[0]} points, {grid[0]}x{grid[1]}",
              "cold_s": cold, "warm_s": warm, "steps": int(sol.stats["num_steps"])}

@@ -217,20 +217,39 @@ def test_bucketed_normal_equations_match_flat():
     np.testing.assert_allclose(bucketed.target_norm2, flat.target_norm2, rtol=1e-13)
 
 
-def test_large_grid_default_is_direct_and_agrees_with_cg():
+def test_large_grid_default_is_direct_and_agrees_with_cg(monkeypatch):
     """Above DENSE_MAX_COEFFICIENTS the default solves lam > 0 by the block Cholesky of the
     stencil (a direct solve: no CG iterations) and lam = 0 by CG; both are the minimiser."""
     points, normals = jurs.datasets.example1(400)
     problem = jurs.make_problem(points, normals, grid=(18, 17), offset=0.1, eps=0.01)
     assert 18 * 17 > jurs.solvers._least_squares.DENSE_MAX_COEFFICIENTS
-    direct = solve(least_squares(LAM), problem)
+    # Record, at run time, whether the factorisation ran (lam is traced: both branches of
+    # the choice are compiled, only one runs).
+    factorised = []
+    direct_solve = jurs.solvers._least_squares.stencil_cholesky_solve
+
+    def recording(stencil, rhs):
+        jax.debug.callback(lambda: factorised.append(True))
+        return direct_solve(stencil, rhs)
+
+    monkeypatch.setattr(jurs.solvers._least_squares, "stencil_cholesky_solve", recording)
+    fresh_solve = eqx.filter_jit(lambda solver, problem, throw: jurs.solve(solver, problem,
+                                                                          throw=throw))
+    direct = fresh_solve(least_squares(LAM), problem, True)
+    jax.block_until_ready(direct.spline.control)
+    assert factorised, "lam > 0 took the block Cholesky"
+    factorised.clear()
+    unregularised = fresh_solve(least_squares(0.0), problem, False)
+    jax.block_until_ready(unregularised.spline.control)
+    assert not factorised, "lam = 0 took CG"
     cg = solve(least_squares(LAM, linear_solver=lx.CG(rtol=1e-13, atol=1e-16, max_steps=20000)),
                problem)
     assert direct.succeeded and cg.succeeded
     np.testing.assert_allclose(direct.spline.control, cg.spline.control, rtol=1e-7, atol=1e-9)
     np.testing.assert_allclose(direct.metrics["E"], cg.metrics["E"], rtol=1e-11)
-    unregularised = solve(least_squares(0.0), problem, throw=False)
     assert unregularised.succeeded or unregularised.result == jurs.RESULTS.max_steps_reached
+    # lam = 0 minimises E_d alone: no regularised solution fits the data better.
+    assert float(unregularised.metrics["E_d"]) <= float(direct.metrics["E_d"])
 
 
 def test_gradient_through_the_direct_solve():

@@ -57,11 +57,15 @@ class IURS(AbstractSolver[IURSState]):
         if int(self.max_steps) < 0:
             raise ValueError(f"max_steps must be >= 0, got {self.max_steps}")
 
-    def _energy_and_weight_grad(self, problem, control, weights, inv_denom=None):
-        # Per-sample values live in the kernels' layout (LocalBasis.to_layout): for small
-        # problems the table's own order, so no step permutes samples back and forth.
+    @staticmethod
+    def _data(problem):
+        """Mask and targets in the kernels' layout (LocalBasis.to_layout): for small problems
+        the table's own order, so no step permutes samples back and forth."""
+        return problem.local.to_layout(problem.mask), problem.local.to_layout(problem.targets)
+
+    def _energy_and_weight_grad(self, problem, data, control, weights, inv_denom=None):
         local = problem.local
-        mask, targets = local.to_layout(problem.mask), local.to_layout(problem.targets)
+        mask, targets = data
         if inv_denom is None:
             inv_denom = mask / bspline_values(local, weights, layout=True)
         # W = F(w) is known for these weights: g costs one B-spline evaluation.
@@ -75,13 +79,14 @@ class IURS(AbstractSolver[IURSState]):
         return energy, 2.0 * (control * t[0] - t[1])
 
     def init(self, problem: Problem, spline: ImplicitSpline):
-        energy, grad_w = self._energy_and_weight_grad(problem, spline.control, spline.weights)
+        energy, grad_w = self._energy_and_weight_grad(problem, self._data(problem),
+                                                      spline.control, spline.weights)
         mu = jnp.zeros((), energy.dtype)  # set by the first step, from the new weights
         return IURSState(spline.control, spline.weights, grad_w, mu), energy
 
     def step(self, problem: Problem, state: IURSState):
         local = problem.local
-        mask, targets = local.to_layout(problem.mask), local.to_layout(problem.targets)
+        mask, targets = data = self._data(problem)
         # 1. eq. 20, projected onto w >= min_weight.
         weights = jnp.maximum(state.weights - self.tau * state.weight_grad, self.min_weight)
         # 2. D of eq. 23 with the new weights, applied to the residual of the current C;
@@ -100,7 +105,8 @@ class IURS(AbstractSolver[IURSState]):
         # 3. eq. 33: C + mu D^T (b - DC) - lam grad R(C).
         control = state.control - mu * dtr - self.lam * regulariser_grad(state.control)
         # 4. eq. 35 at the new (C, w), with nabla_w E_d there for the next step.
-        energy, grad_w = self._energy_and_weight_grad(problem, control, weights, inv_denom)
+        energy, grad_w = self._energy_and_weight_grad(problem, data, control, weights,
+                                                      inv_denom)
         return IURSState(control, weights, grad_w, mu), energy
 
     def to_spline(self, problem: Problem, state: IURSState) -> ImplicitSpline:
