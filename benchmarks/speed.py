@@ -29,6 +29,7 @@ records the device.
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import gc
 import json
 import os
@@ -84,11 +85,13 @@ FINE_SPACING = 1e-4
 OFFSET, EPS = 0.1, 0.01
 
 #: The Example-4-size full fit: a 640-point closed shape, 15 x 15, regularised IURS to tol.
+#: The paper's Example 4 settings (its lambda, 1.155 s in its Table 2) on the project's
+#: stand-in shape, and a smaller lambda on a smooth shape, which converges ten times slower.
 EXAMPLE4 = [
-    {"label": "target: lobes, 640 pts", "shape": "lobes", "points": 640, "grid": 15,
-     "tau": 1e-3, "lam": 2e-3, "target": True},
     {"label": "paper's Example 4: glyph_B, 639 pts", "shape": "glyph_B", "points": 639,
-     "grid": 15, "tau": 1e-3, "lam": 0.0216, "target": False},
+     "grid": 15, "tau": 1e-3, "lam": 0.0216},
+    {"label": "lobes, 640 pts", "shape": "lobes", "points": 640, "grid": 15,
+     "tau": 1e-3, "lam": 2e-3},
 ]
 EXAMPLE4_TOL, EXAMPLE4_MAX_STEPS = 1e-7, 20_000
 
@@ -102,6 +105,17 @@ TARGET_RBF_RATIO, TARGET_RBF_POINTS = 100.0, 5_000
 #: "Equal" Chamfer: within this relative margin (the contouring error both share).
 CHAMFER_TOLERANCE = 0.05
 TARGET_POINTS, TARGET_GRID = 1_000_000, 128
+
+#: Lower bound on an IURS step's arithmetic: it applies the collocation D (eq. 23) or its
+#: transpose at least this many times, 16 multiply-adds a sample each (see bounds_table).
+IURS_STEP_PASSES, MACS_PER_PASS = 6, 16
+#: Side of the float64 matrix product that measures the machine's multiply-add rate.
+CEILING_N = 2000
+
+#: The RBF comparison at TARGET_RBF_POINTS also runs jurs with these settings given: a
+#: finer grid and a smoothing far below the default, which match an exact interpolant on
+#: a smooth curve but are unsafe as defaults (benchmarks/smoothing.py measures why).
+RBF_EXPLICIT = {"grid": 128, "smoothing": 1e-10}
 
 WORKER_TIMEOUT_S = 900
 #: A first call slower than this gets a single warm repeat (LeastSquares at 256 x 256).
@@ -356,9 +370,18 @@ def work_rbf(spec: dict) -> dict:
                   solver=jurs.LeastSquares(lam=settings.lam))
     fits = {"main": timed,
             "coarse": time_repeated(lambda: jurs.fit(points, normals, **coarse), budget_s=2.0)}
+    if spec.get("explicit"):
+        def explicit():  # automatic settings around the given grid and smoothing, timed too
+            st = jurs.auto_settings(points, normals, **RBF_EXPLICIT)
+            sol = jurs.fit(points, normals, grid=st.grid, offset=st.offset, eps=st.eps,
+                           solver=jurs.LeastSquares(lam=st.lam))
+            return dataclasses.replace(sol, settings=st)
+
+        fits["explicit"] = time_repeated(explicit, budget_s=2.0)
     for name, run in fits.items():
         spline = run["output"].spline
-        out[f"jurs_{name}"] = {"grid": list(spline.shape), "lam": settings.lam,
+        lam = run["output"].settings.lam if name == "explicit" else settings.lam
+        out[f"jurs_{name}"] = {"grid": list(spline.shape), "lam": lam,
                                "offset": settings.offset, "eps": settings.eps,
                                **_timing(run),
                                **_level_set(xs, ys, ls.evaluate_grid(spline, xs, ys), points,
@@ -371,8 +394,25 @@ def work_rbf(spec: dict) -> dict:
     return out
 
 
+def work_ceiling(spec: dict) -> dict:
+    """The machine's attainable float64 multiply-add rate: a NumPy matrix product (BLAS,
+    every core) of side ``CEILING_N``, the best of 5 after one untimed call."""
+    n = spec["n"]
+    rng = np.random.default_rng(0)
+    a, b = rng.random((n, n)), rng.random((n, n))
+    a @ b
+    best = min(_wall(lambda: a @ b) for _ in range(5))
+    return {"n": n, "seconds": best, "macs_per_s": n**3 / best}
+
+
+def _wall(fn) -> float:
+    t0 = time.perf_counter()
+    fn()
+    return time.perf_counter() - t0
+
+
 WORKERS = {"step": work_step, "lstsq": work_lstsq, "port": work_port,
-           "example4": work_example4, "rbf": work_rbf}
+           "example4": work_example4, "rbf": work_rbf, "ceiling": work_ceiling}
 
 
 def worker_main(spec_json: str) -> None:
@@ -448,7 +488,8 @@ def run_rbf(points_list, log) -> list[dict]:
                 rows.append({"m": m, "grid": RBF_GRIDS[m],
                              "skipped": f"RBF fit predicted to take {predicted:.0f} s"})
                 continue
-        res = run_worker({"kind": "rbf", "m": m, "grid": RBF_GRIDS[m]}, log)
+        res = run_worker({"kind": "rbf", "m": m, "grid": RBF_GRIDS[m],
+                          "explicit": m == TARGET_RBF_POINTS}, log)
         rows.append({"m": m, "grid": RBF_GRIDS[m], **res})
         last = (m, res)
     return rows
@@ -479,13 +520,15 @@ def _target(label, measured, value, limit, required, higher_is_better=False) -> 
             "verdict": _verdict(value, limit, higher_is_better), "value": value, "limit": limit}
 
 
-def evaluate_targets(sweep, rbf, example4) -> list[dict]:
+def evaluate_targets(sweep, rbf, example4, bounds=()) -> list[dict]:
     """Each target: what was measured, the requirement and PASS/MISS (from measurements)."""
     big = _find(sweep, m=TARGET_POINTS, grid=TARGET_GRID) or {"iurs": {}, "lstsq": {}}
     where = f"{TARGET_POINTS:.0e} points, {TARGET_GRID}x{TARGET_GRID}"
     iurs, lsq = big["iurs"], big["lstsq"]
+    step_bound = next((b["bound_s"] for b in bounds if b["steps"] == 1 and b["bound_s"]), None)
     out = [
-        _target(f"IURS step, {where}, warm (median)", _ms(iurs.get("step_warm_s")),
+        _target(f"IURS step, {where}, warm (median)", _ms(iurs.get("step_warm_s"))
+                + (f"; arithmetic bound {_ms(step_bound)}" if step_bound else ""),
                 iurs.get("step_warm_s"), TARGET_IURS_STEP_S, f"<= {_ms(TARGET_IURS_STEP_S)}"),
         _target(f"IURS peak memory, {where} (peak RSS minus RSS after imports and data)",
                 f"{_gb(iurs.get('peak_over_base_b'))} (peak RSS {_gb(iurs.get('peak_b'))})",
@@ -505,21 +548,49 @@ def evaluate_targets(sweep, rbf, example4) -> list[dict]:
         f"warm {_s(lsq.get('fit_warm_s'))}, first call {_s(lsq.get('fit_first_s'))}",
         lsq.get("fit_warm_s"), TARGET_LSQ_S, f"<= {_s(TARGET_LSQ_S)} (warm)"))
     for ex4 in example4:
-        label = (f"Full IURS fit ({'target config' if ex4['target'] else 'for context'}): "
-                 f"{ex4['shape']} {ex4['points']} pts, {ex4['grid']}x{ex4['grid']}, "
+        label = (f"Full IURS fit: {ex4['label']}, {ex4['grid']}x{ex4['grid']}, "
                  f"tau={ex4['tau']:g}, lam={ex4['lam']:g}, tol={EXAMPLE4_TOL:g}")
-        out.append(_target(label + ", warm", _ms(ex4.get("warm_s")) + _steps(ex4),
-                           ex4.get("warm_s"), TARGET_EX4_WARM_S, f"<= {_ms(TARGET_EX4_WARM_S)}"))
+        warm = _target(label + ", warm", _ms(ex4.get("warm_s")) + _steps(ex4),
+                       ex4.get("warm_s"), TARGET_EX4_WARM_S, f"<= {_ms(TARGET_EX4_WARM_S)}")
+        bound = _find(bounds, label=ex4["label"])
+        if bound and bound.get("bound_s") is not None:
+            warm["measured"] += f"; arithmetic bound {_ms(bound['bound_s'])}"
+            if bound["bound_s"] > TARGET_EX4_WARM_S:
+                warm["verdict"] = "MISS (below the arithmetic bound)"
+        out.append(warm)
         out.append(_target(label + ", cold (first call in a fresh process, compile included)",
                            _s(ex4.get("cold_s")), ex4.get("cold_s"), TARGET_EX4_COLD_S,
                            f"<= {_s(TARGET_EX4_COLD_S)}"))
-    out.append(_rbf_target(rbf))
+    out += _rbf_targets(rbf)
     return out
 
 
-def _rbf_target(rbf) -> dict:
+def arithmetic_bounds(sweep, example4, ceiling) -> list[dict]:
+    """Lower bounds on the warm time of the IURS targets from their arithmetic alone: steps
+    x ``IURS_STEP_PASSES`` x ``MACS_PER_PASS`` x samples multiply-adds at the machine's
+    measured rate (``ceiling``). The step count is the iteration's (eq. 38 at ``tol``), not
+    the implementation's, so no implementation of Algorithm 1 runs faster on this machine."""
+    rate = (ceiling or {}).get("macs_per_s")
+    big = _find(sweep, m=TARGET_POINTS, grid=TARGET_GRID)
+    rows = []
+    if big and "step_warm_s" in big["iurs"]:
+        rows.append({"label": f"IURS step, {TARGET_POINTS:.0e} points, "
+                              f"{TARGET_GRID}x{TARGET_GRID}", "samples": 3 * TARGET_POINTS,
+                     "steps": 1, "measured_s": big["iurs"]["step_warm_s"],
+                     "target_s": TARGET_IURS_STEP_S})
+    rows += [{"label": ex4["label"], "samples": 3 * ex4["points"], "steps": ex4["num_steps"],
+              "measured_s": ex4["warm_s"], "target_s": TARGET_EX4_WARM_S}
+             for ex4 in example4 if "num_steps" in ex4]
+    for r in rows:
+        r["macs"] = r["steps"] * IURS_STEP_PASSES * MACS_PER_PASS * r["samples"]
+        r["bound_s"] = r["macs"] / rate if rate else None
+    return rows
+
+
+def _rbf_targets(rbf) -> list[dict]:
     """>= 100x faster than RBFInterpolator at 5000 points with equal or better Chamfer
-    (the fine Chamfer, "equal" meaning within ``CHAMFER_TOLERANCE``), for the defaults."""
+    (the fine Chamfer, "equal" meaning within ``CHAMFER_TOLERANCE``): for the defaults (the
+    target), and for jurs with ``RBF_EXPLICIT`` given, where it was run."""
     r = _find(rbf, m=TARGET_RBF_POINTS)
     label = (f"jurs.fit(points, normals) defaults vs RBFInterpolator at {TARGET_RBF_POINTS} "
              "points on the same offset samples: fit-time ratio (warm jurs, automatic "
@@ -530,9 +601,18 @@ def _rbf_target(rbf) -> dict:
         note = (f"not run (largest m measured: {done[-1]['m']}, ratio "
                 f"{_x(done[-1]['rbf']['fit_s'] / done[-1]['jurs_main']['warm_s'])})"
                 ) if done else "not run"
-        return {"target": label, "measured": note, "required": required,
-                "verdict": "not measured"}
-    j, b = r["jurs_main"], r["rbf"]
+        return [{"target": label, "measured": note, "required": required,
+                 "verdict": "not measured"}]
+    out = [_rbf_verdict(label, required, r["jurs_main"], r["rbf"])]
+    if "jurs_explicit" in r:
+        given = ", ".join(f"{k}={v:g}" for k, v in RBF_EXPLICIT.items())
+        out.append(_rbf_verdict(
+            f"The same with {given} given (for context: unsafe as a default, see "
+            "smoothing.md)", required, r["jurs_explicit"], r["rbf"]))
+    return out
+
+
+def _rbf_verdict(label, required, j, b) -> dict:
     ratio = b["fit_s"] / j["warm_s"]
     close = j["fine_chamfer"] <= (1 + CHAMFER_TOLERANCE) * b["fine_chamfer"]
     ok = ratio >= TARGET_RBF_RATIO and close
@@ -594,7 +674,10 @@ def report(data: dict) -> str:
     lines = [f"# Speed{' (QUICK run: small sizes only)' if data['quick'] else ''}", "",
              f"Machine: {data['machine']}. Device of the measurements: {data['device']}. "
              f"float64. Whole run: {data['runtime_s'] / 60:.1f} min.",
-             "", "The CPU may be shared with other work: treat timings as indicative.", ""]
+             "", "Load average when the run began (other work on the machine, before this "
+             "run added its own): "
+             + (f"{data['load_average']:.1f}" if "load_average" in data else "not recorded")
+             + ". Timings taken beside other work are indicative.", ""]
     lines += [f"Note: {n}" for n in data.get("notes", [])] + [""] * bool(data.get("notes"))
     lines += ["## Targets", ""]
     lines += _table(["target", "measured", "required", "verdict"],
@@ -631,6 +714,7 @@ def report(data: dict) -> str:
     lines += _port_table(data["port"])
     lines += _rbf_table(data["rbf"])
     lines += _example4_table(data["example4"])
+    lines += _bounds_table(data.get("bounds", []), data.get("ceiling"))
     return "\n".join(lines) + "\n"
 
 
@@ -721,6 +805,19 @@ def _rbf_table(rbf_rows) -> list[str]:
                      "analysis Chamfer jurs / RBF", "Hausdorff (fine) jurs / RBF",
                      "components jurs vs RBF",
                      "coarser grid G: Chamfer, components, warm (RBF / it)"], rows)
+    for r in rbf_rows:
+        if "jurs_explicit" in r and not _err(r):
+            e, b = r["jurs_explicit"], r["rbf"]
+            given = ", ".join(f"`{k}={v:g}`" for k, v in RBF_EXPLICIT.items())
+            lines += ["", f"At m = {r['m']}, jurs with {given} given (the rest automatic, "
+                      "timed too; lambda "
+                      f"{e['lam']:.3g}): grid {'x'.join(map(str, e['grid']))}, warm "
+                      f"{_ms(e['warm_s'])} ({_x(b['fit_s'] / e['warm_s'])} faster than the "
+                      f"RBF), fine Chamfer {e['fine_chamfer']:.2e} (RBF {b['fine_chamfer']:.2e}),"
+                      f" fine Hausdorff {e['fine_hausdorff']:.2e}, components "
+                      f"{e['num_components']}/{e['num_supplementary']}. Such a smoothing grows "
+                      "supplementary components on glyphs and traced outlines "
+                      "(`benchmarks/results/smoothing.md`), so the defaults do not use it."]
     return lines + [""]
 
 
@@ -741,6 +838,30 @@ def _example4_table(rows_in) -> list[str]:
     return lines + [""]
 
 
+def _bounds_table(bounds, ceiling) -> list[str]:
+    if not bounds or not ceiling or "macs_per_s" not in ceiling:
+        return []
+    lines = ["## Lower bounds from the arithmetic of Algorithm 1", "",
+             "An IURS step as eqs. 19-35 define it applies the collocation D (eq. 23) or its "
+             f"transpose at least {IURS_STEP_PASSES} times, each {MACS_PER_PASS} multiply-adds "
+             "a sample: W and F(wC) at the new weights (eq. 14), D^T r and D's column sums "
+             "(eqs. 33 and 25), F(wC) at the new C for the energy (eq. 35), and the weight "
+             "gradient at the new (C, w) for the next step (eq. 19). Nothing else is counted: "
+             "no division, gather, scatter or memory traffic. At the machine's measured "
+             f"multiply-add rate, a float64 NumPy matrix product of side {ceiling['n']} on "
+             f"every core ({ceiling['macs_per_s'] / 1e9:.3g} G multiply-adds/s), a fit "
+             "cannot take less than steps x that arithmetic; the steps are the iteration's "
+             f"(eq. 38 at tol = {EXAMPLE4_TOL:g}), not the implementation's. Where the bound "
+             "exceeds the target, no implementation of the paper's method meets it here.", ""]
+    rows = [[b["label"], b["samples"], b["steps"], f"{b['macs']:.3g}", _ms(b["bound_s"]),
+             _ms(b["target_s"]), _ms(b["measured_s"]),
+             "target below the bound" if b["bound_s"] > b["target_s"] else "not excluded"]
+            for b in bounds]
+    lines += _table(["what", "samples", "steps", "multiply-adds", "bound", "target",
+                     "measured (warm)", "verdict of the bound"], rows)
+    return lines + [""]
+
+
 # --------------------------------------------------------------------------- main
 
 def rerender(path: str) -> None:
@@ -748,7 +869,9 @@ def rerender(path: str) -> None:
     ``benchmarks/results/<name>.{json,md}``, ``<name>`` being the JSON file's name."""
     with open(path) as fh:
         data = json.load(fh)
-    data["targets"] = evaluate_targets(data["sweep"], data["rbf"], data["example4"])
+    data["bounds"] = arithmetic_bounds(data["sweep"], data["example4"], data.get("ceiling"))
+    data["targets"] = evaluate_targets(data["sweep"], data["rbf"], data["example4"],
+                                       data["bounds"])
     text = report(data)
     print(text)
     sys.path.insert(0, HERE)
@@ -777,6 +900,7 @@ def main(argv=None):
     from _common import machine, write_results
 
     start = time.perf_counter()
+    load_average = os.getloadavg()[0]
 
     def log(msg):
         print(f"[{time.perf_counter() - start:7.1f} s] {msg}", file=sys.stderr, flush=True)
@@ -786,11 +910,14 @@ def main(argv=None):
     port = run_port(sweep, log)
     example4 = run_example4(log)
     rbf = run_rbf(QUICK_RBF_POINTS if args.quick else tuple(RBF_GRIDS), log)
+    ceiling = run_worker({"kind": "ceiling", "n": CEILING_N}, log)
+    bounds = arithmetic_bounds(sweep, example4, ceiling)
     data = {"quick": args.quick, "machine": machine(),
             "device": _device_name(jax),
             "sweep_config": {str(m): list(g) for m, g in sweep_config.items()},  # JSON keys
-            "targets": evaluate_targets(sweep, rbf, example4),
+            "targets": evaluate_targets(sweep, rbf, example4, bounds),
             "sweep": sweep, "port": port, "rbf": rbf, "example4": example4,
+            "ceiling": ceiling, "bounds": bounds, "load_average": load_average,
             "runtime_s": time.perf_counter() - start}
     text = report(data)
     print(text)

@@ -229,7 +229,10 @@ def choose_smoothing(offset: float, noise: float) -> float:
     pulls on the slope of g and so on the curve. On clean data smaller measured better
     (1000 points of three shapes, 96-function grid: 1e-6 against 1e-5 lowered the Chamfer
     distance by 2-16 % and the Hausdorff distance up to 2.8x, for 10-20 % more solve
-    time; 1e-7 and below let glyph outlines grow spikes and extra loops); on noisy data a
+    time). Smaller ones fit smooth curves still closer but break other shapes, also where
+    every cell holds many points (``benchmarks/results/smoothing.md``, 10 clean shapes at
+    1000-1900 and at 5000 points: 1e-7 raised glyph B's Hausdorff distance 5x, 1e-8 grew
+    supplementary loops on glyphs, 1e-10 in 11 of 20 runs); on noisy data a
     larger one measured better (the data no longer deserve to be followed exactly; 1e-3
     against 1e-4 at 0.5 % noise). Between, the ramp stays low while the noise is well
     inside the offset (it barely moves the offsets' sides): on the outlines traced from

@@ -435,9 +435,11 @@ class NormalEquations(eqx.Module):
     def matvec(self, control: Array) -> Array:
         return stencil_matvec(self.stencil, control)
 
-    def data_energy(self, control: Array) -> Array:
-        """E_d (eq. 16) from the normal equations, O(NM) whatever the number of samples."""
-        return (jnp.vdot(control, self.matvec(control) - 2.0 * self.rhs) + self.target_norm2)
+    def data_energy(self, control: Array, product: Array | None = None) -> Array:
+        """E_d (eq. 16) from the normal equations, O(NM) whatever the number of samples;
+        ``product``, ``matvec(control)``, where the caller has it already."""
+        product = self.matvec(control) if product is None else product
+        return jnp.vdot(control, product - 2.0 * self.rhs) + self.target_norm2
 
     def regularised(self, lam) -> Array:
         """The stencil of ``D^T D + 2 lam L``, the Hessian / 2 of ``E_d + lam R`` (DESIGN 3)."""

@@ -213,3 +213,8 @@ def test_normal_form_ipia_follows_ipia(bucket_size):
     np.testing.assert_allclose(np.asarray(normal_form.stats["energy_history"]),
                                np.asarray(per_sample.stats["energy_history"]), rtol=1e-10)
     np.testing.assert_allclose(float(normal_form.state.mu), float(per_sample.metrics["mu"]), rtol=1e-12)
+    # The carried product is D^T D C at the final C (one stencil product a step).
+    state = normal_form.state
+    np.testing.assert_allclose(np.asarray(state.product),
+                               np.asarray(state.normal.matvec(state.control)), rtol=1e-12,
+                               atol=1e-14)
