@@ -37,6 +37,7 @@ import resource
 import subprocess
 import sys
 import time
+from functools import partial
 
 import numpy as np
 
@@ -249,10 +250,13 @@ def work_step(spec: dict) -> dict:
     problem = jax.block_until_ready(jurs.make_problem(points, normals, grid=grid))
     build = time.perf_counter() - t0
     spline = jurs.ImplicitSpline(jnp.zeros(grid), jnp.ones(grid), problem.lower, problem.upper)
-    init = time_repeated(jax.jit(solver.init), problem, spline, budget_s=0.5)
+    # Opt-in: the step compiled with jurs.COMPILER_OPTIONS (see run_tuned).
+    options = jurs.COMPILER_OPTIONS if spec.get("compiler_options") else None
+    init = time_repeated(jax.jit(solver.init, compiler_options=options), problem, spline,
+                         budget_s=0.5)
     state, _ = init["output"]
 
-    @jax.jit
+    @partial(jax.jit, compiler_options=options)
     def step(solver, problem, state):
         return solver.step(problem, state)
 
@@ -500,12 +504,16 @@ def run_rbf(points_list, log) -> list[dict]:
     return rows
 
 
-def run_hugepages(log) -> dict:
-    """The IURS step and the exact solve at the target size again, in ``HUGEPAGE_ENV``."""
-    where = {"m": TARGET_POINTS, "grid": TARGET_GRID}
+def run_tuned(log) -> dict:
+    """The IURS step and the exact solve at the target size again, in ``HUGEPAGE_ENV``; and
+    the step compiled with ``jurs.COMPILER_OPTIONS`` (opt-in), without and with it."""
+    step = {"kind": "step", "m": TARGET_POINTS, "grid": TARGET_GRID, "solver": "iurs"}
+    lstsq = {"kind": "lstsq", "m": TARGET_POINTS, "grid": TARGET_GRID, "lam": LSQ_LAM}
     return {"env": HUGEPAGE_ENV,
-            "iurs": run_worker({"kind": "step", **where, "solver": "iurs"}, log, HUGEPAGE_ENV),
-            "lstsq": run_worker({"kind": "lstsq", **where, "lam": LSQ_LAM}, log, HUGEPAGE_ENV)}
+            "iurs": run_worker(step, log, HUGEPAGE_ENV),
+            "lstsq": run_worker(lstsq, log, HUGEPAGE_ENV),
+            "iurs_options": run_worker({**step, "compiler_options": True}, log),
+            "iurs_both": run_worker({**step, "compiler_options": True}, log, HUGEPAGE_ENV)}
 
 
 def run_example4(log) -> list[dict]:
@@ -548,10 +556,13 @@ def evaluate_targets(sweep, rbf, example4, bounds=(), hugepages=None) -> list[di
                 iurs.get("peak_over_base_b"), TARGET_IURS_PEAK_B,
                 f"<= {_gb(TARGET_IURS_PEAK_B)}"),
     ]
-    tuned = (hugepages or {}).get("iurs", {})
-    if "step_warm_s" in tuned:
+    for key, how in (("iurs", "with {env} in the environment"),
+                     ("iurs_both", "compiled with jurs.COMPILER_OPTIONS (opt-in), with {env}")):
+        tuned = (hugepages or {}).get(key, {})
+        if "step_warm_s" not in tuned:
+            continue
         env = " ".join(f"{k}={v}" for k, v in hugepages["env"].items())
-        row = _target(f"The same step and its peak memory with {env} in the environment",
+        row = _target(f"The same step and its peak memory, {how.format(env=env)}",
                       f"{_ms(tuned['step_warm_s'])}; {_gb(tuned['peak_over_base_b'])} over base",
                       tuned["step_warm_s"], TARGET_IURS_STEP_S,
                       f"<= {_ms(TARGET_IURS_STEP_S)}, <= {_gb(TARGET_IURS_PEAK_B)}")
@@ -893,28 +904,27 @@ def _hugepage_table(hugepages, sweep) -> list[str]:
     if not hugepages or not big:
         return []
     env = " ".join(f"{k}={v}" for k, v in hugepages["env"].items())
-    lines = ["## Large problems with transparent huge pages", "",
-             f"The same workers at {TARGET_POINTS:.0e} points, {TARGET_GRID}x{TARGET_GRID}, "
-             f"with `{env}` in the environment: glibc's malloc, from which XLA's CPU buffers "
-             "come, then asks for transparent huge pages (glibc >= 2.35; Linux THP in "
-             "`madvise` or `always` mode). With 4 KB pages every call page-faults its fresh "
-             "buffers in again (*page faults*: minor faults of one warm step). An "
-             "environment setting of the process, not of the library: glibc reads it at "
-             "start-up.", ""]
-    d, h = big["iurs"], hugepages["iurs"]
-    rows = [_measured_row(["IURS step, warm (min)"], h, 4, lambda: [
-        f"{_ms(d['step_warm_s'])} ({_ms(d['step_min_s'])})",
-        f"{_ms(h['step_warm_s'])} ({_ms(h['step_min_s'])})",
-        f"{d.get('step_page_faults', '—')} / {h.get('step_page_faults', '—')}",
-        f"{_gb(d['peak_over_base_b'])} / {_gb(h['peak_over_base_b'])}"])]
-    d, h = big["lstsq"], hugepages["lstsq"]
-    rows.append(_measured_row([f"LeastSquares(lam={LSQ_LAM:g}) fit, warm (min)"], h, 4,
-                              lambda: [f"{_s(d['fit_warm_s'])} ({_s(d['fit_min_s'])})",
-                                       f"{_s(h['fit_warm_s'])} ({_s(h['fit_min_s'])})", "—",
-                                       f"{_gb(d['peak_over_base_b'])} / "
-                                       f"{_gb(h['peak_over_base_b'])}"]))
-    lines += _table(["measurement", "default", env, "page faults (default / huge)",
-                     "peak over base (default / huge)"], rows)
+    lines = ["## Large problems: huge pages and compiler options", "",
+             f"The same workers at {TARGET_POINTS:.0e} points, {TARGET_GRID}x{TARGET_GRID}. "
+             f"*Huge pages*: `{env}` in the environment, so glibc's malloc, from which "
+             "XLA's CPU buffers come, asks for transparent huge pages (glibc >= 2.35; Linux "
+             "THP in `madvise` or `always` mode); with 4 KB pages every call page-faults its "
+             "fresh buffers in again. glibc reads it at start-up: a setting of the process, "
+             "not of the library. *Options*: the step jitted with `jurs.COMPILER_OPTIONS` "
+             "(opt-in: floating-point reassociation, so LLVM vectorises the per-bucket sums; "
+             "NaN, Inf, division and functions keep IEEE semantics). *Page faults*: minor "
+             "faults of one warm step.", ""]
+    variants = [("IURS step", big["iurs"]), ("IURS step, huge pages", hugepages["iurs"]),
+                ("IURS step, options", hugepages.get("iurs_options", {})),
+                ("IURS step, huge pages and options", hugepages.get("iurs_both", {}))]
+    rows = [_measured_row([name], r, 3, lambda r=r: [
+        f"{_ms(r['step_warm_s'])} ({_ms(r['step_min_s'])})", r.get("step_page_faults", "—"),
+        _gb(r["peak_over_base_b"])]) for name, r in variants if r]
+    for name, r in ((f"LeastSquares(lam={LSQ_LAM:g}) fit", big["lstsq"]),
+                    (f"LeastSquares(lam={LSQ_LAM:g}) fit, huge pages", hugepages["lstsq"])):
+        rows.append(_measured_row([name], r, 3, lambda r=r: [
+            f"{_s(r['fit_warm_s'])} ({_s(r['fit_min_s'])})", "—", _gb(r["peak_over_base_b"])]))
+    lines += _table(["measurement", "warm (min)", "page faults", "peak over base"], rows)
     return lines + [""]
 
 
@@ -964,7 +974,7 @@ def main(argv=None):
     sweep_config = QUICK_SWEEP if args.quick else FULL_SWEEP
     sweep = run_sweep(sweep_config, log)
     port = run_port(sweep, log)
-    hugepages = None if args.quick else run_hugepages(log)
+    hugepages = None if args.quick else run_tuned(log)
     example4 = run_example4(log)
     rbf = run_rbf(QUICK_RBF_POINTS if args.quick else tuple(RBF_GRIDS), log)
     ceiling = run_worker({"kind": "ceiling", "n": CEILING_N}, log)

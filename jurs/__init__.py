@@ -26,6 +26,7 @@ from ._energy import (
     step_size,
     transpose_apply,
 )
+from ._compile import COMPILER_OPTIONS
 from ._defaults import Settings, auto_settings
 from ._fit import fit
 from ._io import load_spline, save_spline
@@ -60,7 +61,7 @@ from .solvers import (
 __version__ = "0.1.0"
 
 __all__ = [
-    "AbstractSolver", "IPIA", "IURS", "ImplicitSpline", "JaxoptGaussNewton", "JaxoptLBFGS",
+    "COMPILER_OPTIONS", "AbstractSolver", "IPIA", "IURS", "ImplicitSpline", "JaxoptGaussNewton", "JaxoptLBFGS",
     "JaxoptLevenbergMarquardt", "JointLevenbergMarquardt", "LeastSquares", "LocalBasis",
     "NormalEquations", "NormalIPIA", "OptimistixLeastSquares", "OptimistixMinimiser",
     "Problem", "RESULTS", "Settings", "Solution", "auto_domain", "auto_settings", "bspline_transpose", "bspline_values",
