@@ -61,7 +61,8 @@ from .solvers import (
 __version__ = "0.1.0"
 
 __all__ = [
-    "COMPILER_OPTIONS", "AbstractSolver", "IPIA", "IURS", "ImplicitSpline", "JaxoptGaussNewton", "JaxoptLBFGS",
+    "AbstractSolver", "COMPILER_OPTIONS", "IPIA", "IURS", "ImplicitSpline", "JaxoptGaussNewton",
+    "JaxoptLBFGS",
     "JaxoptLevenbergMarquardt", "JointLevenbergMarquardt", "LeastSquares", "LocalBasis",
     "NormalEquations", "NormalIPIA", "OptimistixLeastSquares", "OptimistixMinimiser",
     "Problem", "RESULTS", "Settings", "Solution", "auto_domain", "auto_settings", "bspline_transpose", "bspline_values",

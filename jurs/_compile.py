@@ -9,10 +9,10 @@ from __future__ import annotations
 #: What they do: allow floating-point reassociation, so that LLVM vectorises sums that
 #: XLA's CPU backend otherwise runs as scalar accumulator chains. The per-bucket moment sums
 #: of an IURS step at 3e6 samples (32 a sample) took 6.2 ms instead of 13.5 ms, and the
-#: whole step at 1e6 points on a 128 x 128 grid 57 ms instead of 81-83 ms (2-core x86_64
-#: CPU, float64; ``benchmarks/results/speed.md`` has the current figures). NaN and Inf,
-#: division and library functions keep their IEEE semantics (the ``honor`` options), so the
-#: non-finite checks of the solver driver still work.
+#: whole step at 1e6 points on a 128 x 128 grid 58 ms instead of 75 ms (2-core x86_64 CPU,
+#: float64; ``benchmarks/results/speed.md``). NaN and Inf, division and library functions
+#: keep their IEEE semantics (the ``honor`` options), so the non-finite checks of the
+#: solver driver still work.
 #:
 #: Why opt-in: sums round differently. jurs's own solvers move at the level of the last
 #: digits (an IURS fit of 300 points: the same steps, coefficients within 1e-11), but an

@@ -73,10 +73,11 @@ class NormalIPIA(_AbstractPIA[NormalIPIAState]):
     The same iterates as :class:`IPIA` (to rounding), but ``D^T D`` (a 49-point stencil)
     and ``D^T b`` are assembled once in :meth:`init`, so each step costs O(49 N M)
     whatever the number of points, and E_d comes from ``C.(D^T D) C - 2 C.(D^T b) + b.b``.
-    One stencil product a step: ``D^T D C`` at the new C serves both that energy and the
-    next step's update, so the state carries it.
     That last form cancels: in float32 the energy (and so the ``tol`` test) is only good to
     about ``1e-7 b.b``. Use it for large clouds; :class:`IPIA` for the paper's per-sample form.
+
+    One stencil product a step: ``D^T D C`` at the new C serves both that energy and the
+    next step's update, so the state carries it.
     """
 
     def init(self, problem: Problem, spline: ImplicitSpline):
