@@ -21,8 +21,8 @@ Definitions (all lengths in data units):
   distance exceeds the threshold. The median, not the mean: a true curve that bridges a
   gap in the sampling has the gap's large distances in its mean (a rose with 8 % of its
   outline unsampled, clean data: the mean was above 2 d and flagged the curve itself) but
-  most of its length on the data, while an extra curve away from the data has most of its length off it. The
-  arc-length mean is kept too (``mean_distance``).
+  most of its length on the data, while an extra curve away from the data has most of its
+  length off it. The arc-length mean is kept too (``mean_distance``).
 * A **tiny loop** is a closed component shorter than ``tiny_cells * h`` (default 4 cells):
   a sign flip at one or two grid nodes, at the resolution limit of the grid.
 * **Chamfer and Hausdorff distances** between the zero set Z and a reference set Y: Z is
@@ -264,17 +264,14 @@ def classify(lines, points, *, threshold: float, cell_size: float,
         poly = np.asarray(poly, float)
         if len(poly) >= 2:
             seg = np.linalg.norm(np.diff(poly, axis=0), axis=1)
-            mid = 0.5 * (poly[1:] + poly[:-1])
-            dist = tree.query(mid)[0]
+            dist = tree.query(0.5 * (poly[1:] + poly[:-1]))[0]  # at segment midpoints
             length = float(seg.sum())
-            if length > 0:
-                mean = float(np.sum(seg * dist) / length)
-                far = float(np.sum(seg * (dist > threshold)) / length)
-            else:
-                mean, far = float(dist.mean()), float(np.mean(dist > threshold))
         else:
-            dist = tree.query(poly)[0]
-            length, mean, far = 0.0, float(dist.mean()), float(np.mean(dist > threshold))
+            seg, dist, length = None, tree.query(poly)[0], 0.0
+        # Arc-length weighted; a curve of zero length weighs its points alike.
+        weight = seg if length > 0 else None
+        mean = float(np.average(dist, weights=weight))
+        far = float(np.average(dist > threshold, weights=weight))
         out.append(Component(poly, closed, length, mean, far, far > 0.5,
                              closed and length < tiny_cells * cell_size))
     out.sort(key=lambda c: -c.length)

@@ -47,7 +47,7 @@ class _AbstractOptimistix(AbstractSolver[OptimistixState]):
     warm_start: bool = eqx.field(static=True)
     adjoint: optx.AbstractAdjoint
 
-    default_max_steps: ClassVar[int] = 256
+    default_max_steps: ClassVar[int]  # each subclass sets its own
 
     def __init__(self, solver, *, lam=0.0, joint=False, max_steps=None, warm_start=True,
                  adjoint=optx.ImplicitAdjoint()):
