@@ -8,6 +8,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+from ._compile import COMPILER_OPTIONS
 from ._defaults import Settings, auto_settings
 from ._problem import DEFAULT_MARGIN, make_problem, normalise_grid
 from ._solution import Solution
@@ -22,9 +23,35 @@ def _as_arrays(tree, dtype):
     )
 
 
-@eqx.filter_jit
-def _solve(problem, solver, init, throw):
+def _run(problem, solver, init, throw):
     return solve(solver, problem, init, throw=throw)
+
+
+_solve = eqx.filter_jit(_run)
+# The same compiled with COMPILER_OPTIONS, for large problems at top level (see fit).
+_solve_reassociating = eqx.filter_jit(_run, compiler_options=COMPILER_OPTIONS)
+
+
+def _at_top_level(tree) -> bool:
+    """Whether no JAX transformation is tracing, nor holds a leaf of ``tree``: XLA takes
+    compiler options only on an outermost jit."""
+    if any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(tree)):
+        return False
+    try:
+        from jax._src.core import trace_state_clean  # private: without it, never
+    except ImportError:
+        return False
+    return bool(trace_state_clean())
+
+
+def reassociates(problem, solver, init=None) -> bool:
+    """Whether :func:`jurs.fit` compiles this solve with :data:`jurs.COMPILER_OPTIONS`:
+    for solvers that declare themselves safe with them (``reassociation_safe``) on
+    problems in the bucketed power form (the large ones, where the per-bucket sums are
+    and where the options were measured to pay), when called at top level."""
+    local = problem.local
+    return (type(solver).reassociation_safe and local.terms is None
+            and local.bucket_size > 1 and _at_top_level((problem, solver, init)))
 
 
 def fit(
@@ -72,6 +99,13 @@ def fit(
         ``jax.vmap`` go through it once ``grid``, ``offset``, ``eps`` and ``solver`` are
         given (automatic choices need concrete points; input checks run only on concrete
         inputs).
+
+    Large problems (more than :data:`jurs._spline.TABLE_MAX_SLOTS` samples, or
+    ``bucket_size > 1`` given) fitted by jurs's own solvers outside any JAX transformation
+    are compiled with :data:`jurs.COMPILER_OPTIONS`, which vectorise their per-bucket sums
+    (``benchmarks/results/speed.md``: an IURS step at 1e6 points, 128 x 128, called on its
+    own, 70.5 -> 60.8 ms). The result then differs from the same fit under a caller's
+    ``jit`` at rounding level.
     """
     settings = None
     if grid is None or offset is None or eps is None or solver is None:
@@ -92,5 +126,7 @@ def fit(
     # host from concrete data (see make_problem); under a caller's jit/grad/vmap it is traced.
     problem = make_problem(points, normals, grid=shape, offset=offset, eps=eps, domain=domain,
                            margin=margin, mask=mask, bucket_size=bucket_size, dtype=dtype)
-    sol = _solve(problem, _as_arrays(solver, dtype), init, throw)
+    solver = _as_arrays(solver, dtype)
+    run = _solve_reassociating if reassociates(problem, solver, init) else _solve
+    sol = run(problem, solver, init, throw)
     return sol if settings is None else dataclasses.replace(sol, settings=settings)

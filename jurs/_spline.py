@@ -168,8 +168,9 @@ def with_table(local: LocalBasis, order: np.ndarray, valid: np.ndarray,
     offsets = (np.arange(4)[:, None] * shape[1] + np.arange(4)[None, :]).reshape(NUM_LOCAL)
     return eqx.tree_at(
         lambda x: (x.terms, x.terms_t, x.index, x.order, x.position, x.filled), local,
-        # device_put: host arrays of the right dtype, transferred without compiling anything.
-        tuple(jax.device_put(x) for x in (
+        # device_put: host arrays of the right dtype, transferred without compiling anything,
+        # all in one call.
+        jax.device_put((
             np.ascontiguousarray(terms.T.reshape(NUM_LOCAL, num_buckets, k)),
             terms.reshape(num_buckets, k, NUM_LOCAL),
             (first[:, None] + offsets[None, :]).astype(np.int32), order.astype(np.int32),

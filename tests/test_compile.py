@@ -40,3 +40,55 @@ def test_options_move_iurs_only_at_rounding_level():
     for a, b in ((tuned.spline.control, plain.spline.control),
                  (tuned.spline.weights, plain.spline.weights)):
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-11, atol=1e-14)
+
+
+def _bucketed(points, normals):
+    """Example 1 in the bucketed power form (what large clouds get automatically)."""
+    return jurs.make_problem(points, normals, grid=12, offset=0.1, eps=0.01, bucket_size=8)
+
+
+def test_fit_reassociates_only_own_solvers_on_large_layouts_at_top_level():
+    from jurs._fit import reassociates
+
+    points, normals = jurs.datasets.example1(300)
+    bucketed = _bucketed(points, normals)
+    table = jurs.make_problem(points, normals, grid=12, offset=0.1, eps=0.01)
+    assert bucketed.local.terms is None and bucketed.local.bucket_size == 8
+    for solver in (jurs.IURS(), jurs.IPIA(), jurs.NormalIPIA(), jurs.LeastSquares(lam=1e-4)):
+        assert reassociates(bucketed, solver), type(solver).__name__
+        assert not reassociates(table, solver), type(solver).__name__
+    assert not reassociates(bucketed, jurs.JointLevenbergMarquardt())
+    assert not reassociates(bucketed, jurs.JaxoptLBFGS())
+    # Under a transformation: a traced leaf, or a concrete problem inside a caller's trace.
+    seen = []
+    jax.jit(lambda p: seen.append(reassociates(p, jurs.IURS())) or 0.0)(bucketed)
+    jax.jit(lambda x: seen.append(reassociates(bucketed, jurs.IURS())) or x)(0.0)
+    jax.grad(lambda lam: seen.append(reassociates(bucketed, jurs.IURS(lam=lam))) or lam)(1e-3)
+    assert seen == [False, False, False]
+
+
+def test_fit_of_a_large_layout_with_and_without_transformations(monkeypatch):
+    """At top level jurs.fit compiles a bucketed IURS fit with the options, under grad it
+    cannot (XLA refuses options on a nested jit) and must not try; both agree at rounding
+    level with the plain compilation."""
+    import jurs._fit as fit_module
+
+    calls = []
+    tuned = fit_module._solve_reassociating
+    monkeypatch.setattr(fit_module, "_solve_reassociating",
+                        lambda *args: calls.append(1) or tuned(*args))
+    points, normals = jurs.datasets.example1(300)
+    settings = dict(grid=12, offset=0.1, eps=0.01, bucket_size=8)
+    sol = jurs.fit(points, normals, solver=jurs.IURS(lam=1e-3), **settings)
+    assert calls == [1]
+    plain = jurs.solve(jurs.IURS(lam=1e-3), _bucketed(points, normals))
+    assert int(sol.stats["num_steps"]) == int(plain.stats["num_steps"])
+    np.testing.assert_allclose(np.asarray(sol.spline.control), np.asarray(plain.spline.control),
+                               rtol=1e-11, atol=1e-14)
+
+    def energy(lam):
+        return jurs.fit(points, normals, solver=jurs.IURS(lam=lam), **settings).metrics["E_ave"]
+
+    value, slope = jax.value_and_grad(energy)(1e-3)
+    assert calls == [1] and np.isfinite(float(slope))
+    np.testing.assert_allclose(float(value), float(sol.metrics["E_ave"]), rtol=1e-10)

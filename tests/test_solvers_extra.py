@@ -114,6 +114,23 @@ def test_joint_fit_beats_the_bspline_by_3x_in_e_ave(example1_cloud):
     assert ratio >= 3.0, ratio
 
 
+def test_joint_warm_start_survives_a_singular_unregularised_system():
+    """Example 1 with 120 points at 15 x 15 and lam = 0: D^T D is numerically singular and
+    the plain Cholesky warm start broke down to NaN (every joint solver then stopped at its
+    first step). With LeastSquares' ridge the start is finite and no joint solver ends
+    above the exact B-spline fit."""
+    points, normals = jurs.datasets.example1(120)
+    settings = dict(grid=15, throw=False)  # d and eps automatic, as benchmarks/solvers.py
+    reference = float(jurs.fit(points, normals, solver=jurs.LeastSquares(), **settings)
+                      .metrics["E"])
+    for solver in (jurs.JointLevenbergMarquardt(max_steps=5),
+                   jurs.OptimistixMinimiser(optx.BFGS(rtol=1e-8, atol=1e-12), joint=True,
+                                            max_steps=20)):
+        sol = jurs.fit(points, normals, solver=solver, **settings)
+        assert sol.result != jurs.RESULTS.nonfinite, type(solver).__name__
+        assert np.isfinite(float(sol.metrics["E"])) and float(sol.metrics["E"]) <= reference
+
+
 def test_optimistix_results_are_mapped(example1_cloud):
     points, normals = example1_cloud
     solver = jurs.OptimistixLeastSquares(optx.LevenbergMarquardt(rtol=1e-8, atol=1e-12),

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import abc
-from typing import Any, Generic, TypeVar
+from typing import Any, ClassVar, Generic, TypeVar
 
 import equinox as eqx
 import jax.numpy as jnp
@@ -30,6 +30,12 @@ class AbstractSolver(eqx.Module, Generic[State]):
     max_steps: eqx.AbstractVar[int]
     tol: eqx.AbstractVar[Any]
     lam: eqx.AbstractVar[Any]
+
+    #: Whether :func:`jurs.fit` may compile this solver with :data:`jurs.COMPILER_OPTIONS`
+    #: (floating-point reassociation) on large problems. True only for solvers measured to
+    #: move at rounding level with them; an outside optimiser that wanders near its minimum
+    #: can end elsewhere (see :mod:`jurs._compile`).
+    reassociation_safe: ClassVar[bool] = False
 
     @abc.abstractmethod
     def init(self, problem: Problem, spline: ImplicitSpline) -> tuple[State, Array]:

@@ -22,6 +22,7 @@ class _AbstractPIA(AbstractSolver[State]):
     max_steps: int = eqx.field(static=True, default=200)
     tol: float = 1e-7
     lam: ClassVar[float] = 0.0  # Section II has no regulariser
+    reassociation_safe: ClassVar[bool] = True
 
     def __check_init__(self):
         check_nonnegative("tol", self.tol)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 from functools import partial
+from typing import ClassVar
 
 import equinox as eqx
 import jax.numpy as jnp
@@ -49,6 +50,8 @@ class IURS(AbstractSolver[IURSState]):
     max_steps: int = eqx.field(static=True, default=200)
     tol: float = 1e-7
     min_weight: float = 1e-6
+
+    reassociation_safe: ClassVar[bool] = True
 
     def __check_init__(self):
         for name in ("tau", "lam", "tol"):

@@ -32,6 +32,9 @@ from ._base import AbstractSolver
 #: 580 vs 48 ms at 64 x 64.
 DENSE_MAX_COEFFICIENTS = 256
 
+#: Default Tikhonov ridge, relative to the largest diagonal of D^T D (see LeastSquares).
+DEFAULT_RIDGE = 1e-14
+
 
 class LeastSquaresState(eqx.Module):
     control: Array  # C
@@ -146,10 +149,11 @@ class LeastSquares(AbstractSolver[LeastSquaresState]):
     keep_weights: bool = eqx.field(static=True, default=False)
     linear_solver: lx.AbstractLinearSolver | None = None
     chunk_size: int = eqx.field(static=True, default=DEFAULT_CHUNK)
-    ridge: float = 1e-14
+    ridge: float = DEFAULT_RIDGE
 
     max_steps: ClassVar[int] = 1  # one exact solve
     tol: ClassVar[float] = 0.0  # the driver's energy test is moot: terminate() stops it
+    reassociation_safe: ClassVar[bool] = True
 
     def __check_init__(self):
         check_nonnegative("lam", self.lam)
