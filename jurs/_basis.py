@@ -57,23 +57,23 @@ def cubic_derivatives(t: Array) -> Array:
     )
 
 
-def cell_width(lower: Array, upper: Array, shape: tuple[int, int]) -> Array:
+def cell_width(lower: Array, upper: Array, shape: tuple[int, int], xp=jnp) -> Array:
     """Knot spacing ``(hx, hy)`` of an ``(N, M)`` basis on the box ``[lower, upper]``."""
-    return (upper - lower) / (jnp.asarray(shape, dtype=jnp.result_type(lower)) - 3.0)
+    return (upper - lower) / (xp.asarray(shape, dtype=xp.result_type(lower)) - 3.0)
 
 
-def locate(xy: Array, lower: Array, upper: Array, shape: tuple[int, int]):
+def locate(xy: Array, lower: Array, upper: Array, shape: tuple[int, int], xp=jnp):
     """Cell of each point and its local coordinate in that cell.
 
     Returns ``(cell, t)``: ``cell`` is ``(n, 2)`` int32 in ``[0, N-4] x [0, M-4]`` (points
     outside the box are clamped to the border cell), ``t`` is ``(n, 2)``, in ``[0, 1]``
-    inside the box.
+    inside the box. ``xp=numpy`` computes on the host, with the same arithmetic.
     """
-    h = cell_width(lower, upper, shape)
+    h = cell_width(lower, upper, shape, xp)
     u = (xy - lower) / h
-    top = jnp.asarray([shape[0] - 4, shape[1] - 4])
-    cell = jnp.clip(jnp.floor(u), 0, top).astype(jnp.int32)
-    return cell, u - cell
+    top = xp.asarray([shape[0] - 4, shape[1] - 4])
+    cell = xp.clip(xp.floor(u), 0, top).astype(xp.int32)
+    return cell, u - cell.astype(u.dtype)
 
 
 def flat_cell(cell: Array, shape: tuple[int, int]) -> Array:

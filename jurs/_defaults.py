@@ -290,8 +290,7 @@ def auto_settings(points, normals, *, grid=None, offset=None, eps=None, domain=N
     d = choose_offset(p, n, spacing, noise, tree, at) if offset is None else float(offset)
     e = d if eps is None else float(eps)
     if domain is None:  # the box make_problem will take
-        lower, upper = (np.asarray(c, float)
-                        for c in auto_domain(offset_samples(p, n, d, e)[0], margin))
+        lower, upper = auto_domain(offset_samples(p, n, d, e, np)[0], margin, xp=np)
     else:
         lower, upper = (np.asarray(c, float) for c in domain)
     shape = choose_grid(lower, upper, spacing, noise, max_grid) if grid is None \

@@ -126,23 +126,25 @@ TABLE_MAX_SLOTS = 1 << 16
 
 
 def local_basis(xy: Array, lower: Array, upper: Array, shape: tuple[int, int],
-                bucket_size: int = 1) -> LocalBasis:
+                bucket_size: int = 1, xp=jnp) -> LocalBasis:
     """The local basis of the ``(N, M)`` grid on ``[lower, upper]`` at ``xy (S, 2)``, in the
     power form.
 
     With ``bucket_size > 1`` the caller guarantees that each run of ``bucket_size``
     consecutive points lies in one cell (see :func:`jurs._problem.bucket_layout`).
+    ``xp=numpy`` computes on the host (its fields are then NumPy arrays).
     """
     # As :func:`jurs._basis.locate` (same arithmetic, so the same cells and coordinates),
     # computed straight into the (2, S) layout, and stored centred: every evaluation works
     # in s = t - 1/2 (see the module notes), and a subtraction shared by many kernels
     # would be stored once more by XLA.
-    h = cell_width(lower, upper, shape)
+    h = cell_width(lower, upper, shape, xp)
     u = (xy.T - lower[:, None]) / h[:, None]
-    top = jnp.asarray([shape[0] - 4, shape[1] - 4])[:, None]
-    cell = jnp.clip(jnp.floor(u), 0, top).astype(jnp.int32)
-    return LocalBasis(cell=cell[0] * (shape[1] - 3) + cell[1], s=(u - cell) - 0.5,
-                      bucket_size=bucket_size)
+    top = xp.asarray([shape[0] - 4, shape[1] - 4])[:, None]
+    cell = xp.clip(xp.floor(u), 0, top).astype(xp.int32)
+    # The cast keeps NumPy's float32 - int32 in float32, as JAX's promotion does.
+    return LocalBasis(cell=cell[0] * (shape[1] - 3) + cell[1],
+                      s=(u - cell.astype(u.dtype)) - 0.5, bucket_size=bucket_size)
 
 
 def with_table(local: LocalBasis, order: np.ndarray, valid: np.ndarray,

@@ -196,3 +196,27 @@ def test_bucket_layout_pads_to_a_rounded_count():
     assert sorted(slot_sample[valid].tolist()) == list(range(7))
     assert not valid[8:].any(), "appended buckets are empty"
     assert np.all(np.diff(cells[slots[:, 0]]) >= 0), "buckets in cell order"
+
+
+@pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
+def test_host_and_traced_problems_agree(dtype):
+    """make_problem lays small concrete problems out on the host in NumPy and traced ones
+    out in XLA: the same arithmetic, so the same samples, box, cells and coordinates, in
+    the requested dtype (NumPy would promote float32 - int32 to float64)."""
+    points, normals = jurs.datasets.example1(50)
+    mask = np.arange(50) < 45  # exercises the masked bounding box too
+    kw = dict(grid=(7, 9), offset=0.1, eps=0.01, dtype=dtype, mask=mask)
+    host = jurs.make_problem(points, normals, **kw)
+    traced = jax.jit(lambda p, n: jurs.make_problem(p, n, **kw))(points, normals)
+    assert host.local.terms is not None and traced.local.terms is None  # the two paths
+    for leaf in jax.tree_util.tree_leaves(host):
+        assert leaf.dtype in (dtype, jnp.int32), leaf.dtype
+    rtol = 1e-6 if dtype == jnp.float32 else 1e-14
+    for name in ("points", "normals", "samples", "targets", "mask", "is_data", "lower",
+                 "upper", "offset", "eps"):
+        np.testing.assert_allclose(np.asarray(getattr(host, name)),
+                                   np.asarray(getattr(traced, name)), rtol=rtol, atol=rtol,
+                                   err_msg=name)
+    np.testing.assert_array_equal(np.asarray(host.local.cell), np.asarray(traced.local.cell))
+    np.testing.assert_allclose(np.asarray(host.local.s), np.asarray(traced.local.s),
+                               rtol=rtol, atol=10 * rtol)
