@@ -7,7 +7,9 @@ One command measures everything and writes ``benchmarks/results/speed.{json,md}`
    step of ``IURS(tau=1e-2, lam=1e-3)``, ``IPIA()`` and ``NormalIPIA()`` (whose one-off
    assembly of D^T D is its ``init``, timed on its own), the warm time, the compile time
    (first call minus warm) and the peak memory; and ``LeastSquares(lam=1e-4)`` end to end
-   through ``jurs.fit`` (problem building + assembly + solve), first call and warm.
+   through ``jurs.fit`` (problem building + assembly + solve), first call and warm. At
+   the target size the IURS step is also timed inside ``jurs.fit`` (fits of 1 and 21
+   steps), and the step on its own again with huge pages and ``jurs.COMPILER_OPTIONS``.
 2. **Baselines**: ``_numpy_port.py``, the paper's Algorithm 1 with a dense collocation
    matrix rebuilt every step (where that matrix fits in ``DENSE_LIMIT_BYTES``), against the
    jurs IURS step; and ``scipy.interpolate.RBFInterpolator`` (thin-plate) on the same

@@ -103,9 +103,9 @@ def fit(
     Large problems (more than :data:`jurs._spline.TABLE_MAX_SLOTS` samples, or
     ``bucket_size > 1`` given) fitted by jurs's own solvers outside any JAX transformation
     are compiled with :data:`jurs.COMPILER_OPTIONS`, which vectorise their per-bucket sums
-    (``benchmarks/results/speed.md``: an IURS step at 1e6 points, 128 x 128, called on its
-    own, 70.5 -> 60.8 ms). The result then differs from the same fit under a caller's
-    ``jit`` at rounding level.
+    (``benchmarks/results/speed.md`` times the IURS step at 1e6 points with and without
+    them). The result then differs from the same fit under a caller's ``jit`` at rounding
+    level.
     """
     settings = None
     if grid is None or offset is None or eps is None or solver is None:
