@@ -10,7 +10,7 @@ import jax.numpy as jnp
 
 from ._compile import COMPILER_OPTIONS
 from ._defaults import Settings, auto_settings
-from ._problem import DEFAULT_MARGIN, make_problem, normalise_grid
+from ._problem import DEFAULT_MARGIN, _is_concrete, make_problem, normalise_grid
 from ._solution import Solution
 from ._spline import ImplicitSpline
 from .solvers import AbstractSolver, LeastSquares, solve
@@ -35,7 +35,7 @@ _solve_reassociating = eqx.filter_jit(_run, compiler_options=COMPILER_OPTIONS)
 def _at_top_level(tree) -> bool:
     """Whether no JAX transformation is tracing, nor holds a leaf of ``tree``: XLA takes
     compiler options only on an outermost jit."""
-    if any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(tree)):
+    if not _is_concrete(tree):
         return False
     try:
         from jax._src.core import trace_state_clean  # private: without it, never

@@ -1,5 +1,5 @@
-"""``jurs.COMPILER_OPTIONS`` (opt-in): they keep IEEE NaN/Inf semantics and move jurs's own
-solvers only at rounding level."""
+"""``jurs.COMPILER_OPTIONS``: they keep IEEE NaN/Inf semantics, move jurs's own solvers only
+at rounding level, and ``jurs.fit`` uses them only where XLA accepts them."""
 
 import equinox as eqx
 import jax
