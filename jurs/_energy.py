@@ -12,6 +12,8 @@ sample are in the problem's slot order (see :class:`jurs.Problem`).
 
 from __future__ import annotations
 
+from functools import partial
+
 import jax
 import jax.numpy as jnp
 from jax import Array
@@ -22,8 +24,10 @@ from ._spline import (
     ImplicitSpline,
     bspline_transpose,
     bspline_values,
+    computed_apart,
     rational_terms,
     rational_values,
+    transpose_and_sum,
 )
 
 
@@ -139,17 +143,28 @@ def metrics(problem: Problem, spline: ImplicitSpline, lam=0.0) -> dict[str, Arra
     also returned, and ``mu`` of eq. 25 for the spline's weights. Padding (``mask`` 0) is
     left out of every sum.
     """
-    r = rational_residuals(problem, spline.control, spline.weights)[0]
-    on_data = problem.is_data * r  # targets there are 0, so r = g(P_i)
-    e_d = jnp.sum(r * r)
+    local = problem.local
+    # In the kernels' layout (padding 0), as the solvers' steps work: no per-slot reorder.
+    mask, targets, is_data = (local.to_layout(x) for x in
+                              (problem.mask, problem.targets, problem.is_data))
+    weights = spline.weights
+    both = computed_apart(partial(bspline_values, layout=True), local,
+                          jnp.stack([weights, weights * spline.control]))
+    inv_denom = mask / both[0]
+    r = mask * (both[1] * inv_denom - targets)
+    on_data = is_data * r  # targets there are 0, so r = g(P_i)
+    # The three totals in one reduction (each is a few kernels of its own otherwise).
+    e_d, on_data2, count = jnp.sum(jnp.stack([r * r, on_data * on_data, is_data]), axis=-1)
+    # eq. 25 from the W above: D's column sums w * T(1 / W).
+    col_sums, _ = transpose_and_sum(local, inv_denom[None], problem.shape, layout=True)
     reg = regulariser(spline.control)
     return {
         "E": e_d + lam * reg,
         "E_d": e_d,
         "R": reg,
-        "E_ave": jnp.sum(on_data * on_data) / jnp.sum(problem.is_data),
+        "E_ave": on_data2 / count,
         "E_max": jnp.max(jnp.abs(on_data)),
-        "mu": step_size(problem, spline.weights),
+        "mu": 2.0 / jnp.max(weights * col_sums[0]),
     }
 
 

@@ -23,10 +23,12 @@ Two ways to run F and T, chosen by what the :class:`LocalBasis` holds:
   only its two local coordinates are read.
 * *table form* (small problems, :data:`TABLE_MAX_SLOTS`): the samples keep their order (one
   a slot, no padding), and a table of their own groups them into buckets of one cell: the
-  16 basis products of every table position (0 at its padding) and the flat grid index of
-  every bucket's 16 coefficients are stored, with the permutation between slots and table
-  positions. F gathers on the grid and T scatters onto it directly; a step then runs as a
-  handful of small kernels, which is what counts with a few thousand samples. Table
+  16 basis products of every table position (0 at its padding), the grid corner of every
+  bucket's 4 x 4 coefficient patch and the flat grid index of its 16 coefficients are
+  stored, with the permutation between slots and table positions. F gathers the patches
+  from the grid (one 4 x 4 window a bucket: measured 2x faster than 16 indices) and T
+  scatters onto it directly; a step then runs as a handful of small kernels, which is what
+  counts with a few thousand samples. Table
   position ``p`` is entry ``p % K`` of bucket ``p // K``. The products are stored twice,
   term-major (for F, which broadcasts a bucket's coefficient along its entries) and
   term-minor (for T, which broadcasts an entry's value along its 16 terms): XLA vectorises
@@ -71,6 +73,7 @@ class LocalBasis(eqx.Module):
     terms: Array | None = None  # table: (16, B, K) basis products at the table positions
     terms_t: Array | None = None  # table: the same as (B, K, 16)
     index: Array | None = None  # table: (B, 16) flat grid index of each bucket's terms
+    corner: Array | None = None  # table: (B, 2) grid row and column of each bucket's patch
     order: Array | None = None  # table: (P,) sample slot at each table position
     position: Array | None = None  # table: (S,) table position of each sample slot
     filled: Array | None = None  # table: (P,) 1.0 where a table position holds a sample
@@ -166,16 +169,19 @@ def with_table(local: LocalBasis, order: np.ndarray, valid: np.ndarray,
     position = np.zeros(local.cell.shape[0], np.int32)
     position[order[valid]] = np.nonzero(valid)[0]
     cell = np.asarray(local.cell)[order[::k]]  # one sample of every bucket
-    first = (cell // (shape[1] - 3)) * shape[1] + cell % (shape[1] - 3)
+    corner = np.stack([cell // (shape[1] - 3), cell % (shape[1] - 3)], axis=1)
+    first = corner[:, 0] * shape[1] + corner[:, 1]
     offsets = (np.arange(4)[:, None] * shape[1] + np.arange(4)[None, :]).reshape(NUM_LOCAL)
     return eqx.tree_at(
-        lambda x: (x.terms, x.terms_t, x.index, x.order, x.position, x.filled), local,
+        lambda x: (x.terms, x.terms_t, x.index, x.corner, x.order, x.position, x.filled),
+        local,
         # device_put: host arrays of the right dtype, transferred without compiling anything,
         # all in one call.
         jax.device_put((
             np.ascontiguousarray(terms.T.reshape(NUM_LOCAL, num_buckets, k)),
             terms.reshape(num_buckets, k, NUM_LOCAL),
-            (first[:, None] + offsets[None, :]).astype(np.int32), order.astype(np.int32),
+            (first[:, None] + offsets[None, :]).astype(np.int32), corner.astype(np.int32),
+            order.astype(np.int32),
             position, valid.astype(dtype))),
         is_leaf=lambda x: x is None)
 
@@ -199,6 +205,19 @@ def computed_apart(fn, *args):
     shapes = jax.eval_shape(fn, *args)
     zeros = lambda *_: jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), shapes)
     return jax.lax.cond(index.ravel()[0] >= 0, fn, zeros, *args)
+
+
+def gather_patches(grids: Array, corner: Array) -> Array:
+    """``(C, N, M)`` coefficient grids -> ``(B, C, 16)``: the 4 x 4 patch whose first
+    coefficient sits at each ``corner (B, 2)`` (row, column), every grid at once.
+
+    One windowed gather: an index pair a patch, its 4 rows read as contiguous runs.
+    """
+    dims = jax.lax.GatherDimensionNumbers(offset_dims=(1, 2, 3), collapsed_slice_dims=(),
+                                          start_index_map=(1, 2))
+    patches = jax.lax.gather(grids, corner, dims, slice_sizes=(grids.shape[0], 4, 4),
+                             mode=jax.lax.GatherScatterMode.PROMISE_IN_BOUNDS)
+    return patches.reshape(corner.shape[0], grids.shape[0], NUM_LOCAL)
 
 
 def power_coefficients(grids: Array) -> Array:
@@ -227,9 +246,8 @@ def bspline_values(local: LocalBasis, grids: Array, *, layout: bool = False) -> 
     lead = grids.shape[:-2]
     flat = grids.reshape((-1,) + grids.shape[-2:])
     if local.terms is not None:
-        # One gather a grid: a channel axis in the gather comes out channel-minor.
-        patches = jnp.stack([g.reshape(-1)[local.index] for g in flat])  # (C, buckets, 16)
-        values = sum(local.terms[j] * patches[:, :, j, None] for j in range(NUM_LOCAL))
+        patches = gather_patches(flat, local.corner)  # (buckets, C, 16)
+        values = sum(local.terms[j] * patches[:, :, j].T[:, :, None] for j in range(NUM_LOCAL))
         values = values.reshape(flat.shape[0], -1)
         if layout:
             return values.reshape(lead + values.shape[-1:])

@@ -35,6 +35,17 @@ def dense_collocation(problem, weights):
     return wb / wb.sum(axis=1, keepdims=True)
 
 
+TABLE_FIELDS = ("terms", "terms_t", "index", "corner", "order", "position", "filled")
+
+
+def without_table(problem):
+    """The same problem with its basis in the power form only (as a traced build has it)."""
+    import equinox as eqx
+
+    return eqx.tree_at(lambda p: tuple(getattr(p.local, f) for f in TABLE_FIELDS), problem,
+                       (None,) * len(TABLE_FIELDS), is_leaf=lambda x: x is None)
+
+
 @pytest.fixture
 def rng():
     return np.random.default_rng(1234)

@@ -1,11 +1,10 @@
 """The uniform cubic basis, the local-term maps and the spline evaluation."""
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from conftest import dense_basis
+from conftest import dense_basis, without_table
 from jax.test_util import check_grads
 
 import jurs
@@ -135,13 +134,6 @@ def test_bucket_layout_groups_samples_by_cell():
     assert float(bucketed.is_data.sum()) == 300
 
 
-def _without_table(problem):
-    """The same problem with its basis in the power form only (as a traced build has it)."""
-    return eqx.tree_at(lambda p: (p.local.terms, p.local.terms_t, p.local.index, p.local.order,
-                                  p.local.position, p.local.filled), problem,
-                       (None,) * 6, is_leaf=lambda x: x is None)
-
-
 def test_centred_power_basis_is_the_cubic_basis(rng):
     s = jnp.asarray(rng.random(50) - 0.5)
     powers = jnp.stack([s**p for p in range(4)], axis=-1)
@@ -168,7 +160,7 @@ def test_table_and_power_forms_agree(rng):
                   == np.arange(2100)), "to_layout and position are inverse"
     cells = np.asarray(local.cell)[np.asarray(local.order)].reshape(local.index.shape[0], -1)
     assert (cells == cells[:, :1]).all(), "a table bucket spans one cell"
-    power = _without_table(table)
+    power = without_table(table)
     bucketed = jurs.make_problem(points, normals, grid=(11, 9), bucket_size=8)
     real = np.asarray(bucketed.mask) > 0
     index = np.asarray(bucketed.sample_index)[real]

@@ -1,12 +1,11 @@
 """Autodiff of E + lambda R against the hand-derived gradients (DESIGN section 2), and the
 energies, regulariser and step size against dense definitions."""
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from conftest import dense_basis, dense_collocation
+from conftest import dense_basis, dense_collocation, without_table
 
 import jurs
 
@@ -118,9 +117,7 @@ def test_iurs_steps_agree_across_layouts(rng):
     shape = (9, 8)
     table = jurs.make_problem(points, normals, grid=shape)
     assert table.local.terms is not None
-    power = eqx.tree_at(lambda p: (p.local.terms, p.local.terms_t, p.local.index, p.local.order,
-                                   p.local.position, p.local.filled), table, (None,) * 6,
-                        is_leaf=lambda x: x is None)
+    power = without_table(table)
     bucketed = jurs.make_problem(points, normals, grid=shape, bucket_size=8)
     control, weights = random_state(rng, shape)
     spline = jurs.ImplicitSpline(control, weights, table.lower, table.upper)
@@ -137,3 +134,28 @@ def test_iurs_steps_agree_across_layouts(rng):
             np.testing.assert_allclose(np.asarray(getattr(state, name)),
                                        np.asarray(getattr(ref, name)), rtol=1e-11, atol=1e-15)
         np.testing.assert_allclose(float(energy), float(e_ref), rtol=1e-12)
+
+
+@pytest.mark.parametrize("layout", ["table", "power", "bucketed"])
+def test_metrics_match_their_definitions(rng, layout):
+    """``jurs.metrics`` (eq. 35-37 and mu of eq. 25, computed in the kernels' layout in one
+    pass) against the spline evaluated at the points and the dense collocation."""
+    points, normals = jurs.datasets.example1(150)
+    shape, lam = (8, 9), 0.02
+    problem = jurs.make_problem(points, normals, grid=shape,
+                                bucket_size=8 if layout == "bucketed" else None)
+    if layout == "power":
+        problem = without_table(problem)
+    assert (problem.local.terms is not None) == (layout == "table")
+    control, weights = random_state(rng, shape)
+    spline = jurs.ImplicitSpline(control, weights, problem.lower, problem.upper)
+    got = jurs.metrics(problem, spline, lam)
+    on_points = np.asarray(spline(jnp.asarray(points)))
+    d = dense_collocation(problem, weights)[np.asarray(problem.mask) > 0]  # padding: no row
+    e_d = float(jurs.data_energy(problem, control, weights))
+    reg = float(jurs.regulariser(control))
+    expected = {"E_d": e_d, "R": reg, "E": e_d + lam * reg, "E_ave": np.mean(on_points ** 2),
+                "E_max": np.max(np.abs(on_points)),
+                "mu": 2.0 / np.abs(d.T @ d).sum(axis=1).max()}
+    for name, value in expected.items():
+        np.testing.assert_allclose(float(got[name]), value, rtol=1e-11, err_msg=name)
