@@ -381,18 +381,16 @@ def pass_times(jax, problem, repeats: int = PASS_REPEATS) -> dict:
     dispatch counts). ``F2``: W and F(wC) in one pass (jurs's kernels, as IURS calls them);
     ``F1``: F(wC) alone; ``T2``: T of two per-sample vectors (D^T r with D's column sums,
     or the two sums of the weight gradient). An IURS step makes one F2, one F1 and two T2."""
-    from functools import partial
-
     import jax.numpy as jnp
 
-    from jurs._spline import bspline_values, computed_apart, transpose_and_sum
+    from jurs._spline import transpose_and_sum, values_apart
 
     local, shape = problem.local, problem.shape
     grids = jnp.ones((2,) + tuple(shape), problem.samples.dtype)
     vectors = jnp.ones((2, local.to_layout(problem.mask).shape[0]), grids.dtype)
 
     def f_pass(local, x):  # the solver's call: in a kernel of its own, in the kernels' layout
-        return computed_apart(partial(bspline_values, layout=True), local, x)
+        return values_apart(local, x)
 
     def t_pass(local, x):
         return transpose_and_sum(local, x, shape, layout=True)[0]

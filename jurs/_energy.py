@@ -12,8 +12,6 @@ sample are in the problem's slot order (see :class:`jurs.Problem`).
 
 from __future__ import annotations
 
-from functools import partial
-
 import jax
 import jax.numpy as jnp
 from jax import Array
@@ -24,10 +22,10 @@ from ._spline import (
     ImplicitSpline,
     bspline_transpose,
     bspline_values,
-    computed_apart,
     rational_terms,
     rational_values,
     transpose_and_sum,
+    values_apart,
 )
 
 
@@ -148,8 +146,7 @@ def metrics(problem: Problem, spline: ImplicitSpline, lam=0.0) -> dict[str, Arra
     mask, targets, is_data = (local.to_layout(x) for x in
                               (problem.mask, problem.targets, problem.is_data))
     weights = spline.weights
-    both = computed_apart(partial(bspline_values, layout=True), local,
-                          jnp.stack([weights, weights * spline.control]))
+    both = values_apart(local, jnp.stack([weights, weights * spline.control]))
     inv_denom = mask / both[0]
     r = mask * (both[1] * inv_denom - targets)
     on_data = is_data * r  # targets there are 0, so r = g(P_i)

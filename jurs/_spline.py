@@ -37,6 +37,8 @@ Two ways to run F and T, chosen by what the :class:`LocalBasis` holds:
 
 from __future__ import annotations
 
+from functools import partial
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -186,7 +188,12 @@ def with_table(local: LocalBasis, order: np.ndarray, valid: np.ndarray,
         is_leaf=lambda x: x is None)
 
 
-def computed_apart(fn, *args):
+def _take(x: Array, i: int, axis: int) -> Array:
+    """``x`` at index ``i`` of ``axis``, that axis dropped (a static slice)."""
+    return jax.lax.index_in_dim(x, i, axis, keepdims=False)
+
+
+def computed_apart(fn, *args, shapes=None):
     """``fn(*args)``, evaluated in a kernel of its own and stored.
 
     XLA fuses an elementwise producer into the kernels that consume it: into a reduction,
@@ -195,14 +202,16 @@ def computed_apart(fn, *args):
     evaluating the spline again. A conditional is a fusion boundary (about 0.4 us). Its
     predicate is always true but opaque to the compiler (the first integer input, a cell
     or grid index, is never negative), so the other branch, zeros, never runs; without an
-    integer input both branches are ``fn``.
+    integer input both branches are ``fn``. ``shapes``: the output's shape-dtype structure
+    when the caller knows it (otherwise ``fn`` is traced once more to find it).
     """
     leaves = jax.tree_util.tree_leaves(args)
     index = next((x for x in leaves if jnp.issubdtype(x.dtype, jnp.integer)), None)
     if index is None:
         leaf = next(x for x in leaves if jnp.issubdtype(x.dtype, jnp.floating))
         return jax.lax.cond(jnp.isnan(leaf.ravel()[0]), fn, fn, *args)
-    shapes = jax.eval_shape(fn, *args)
+    if shapes is None:
+        shapes = jax.eval_shape(fn, *args)
     zeros = lambda *_: jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), shapes)
     return jax.lax.cond(index.ravel()[0] >= 0, fn, zeros, *args)
 
@@ -246,8 +255,10 @@ def bspline_values(local: LocalBasis, grids: Array, *, layout: bool = False) -> 
     lead = grids.shape[:-2]
     flat = grids.reshape((-1,) + grids.shape[-2:])
     if local.terms is not None:
-        patches = gather_patches(flat, local.corner)  # (buckets, C, 16)
-        values = sum(local.terms[j] * patches[:, :, j].T[:, :, None] for j in range(NUM_LOCAL))
+        # (C, buckets, 1) per term, broadcast along each bucket's entries. lax slicing:
+        # these unrolled loops are traced in every solver, and jnp indexing traces slowly.
+        patches = jnp.transpose(gather_patches(flat, local.corner), (1, 0, 2))[..., None]
+        values = sum(_take(local.terms, j, 0) * _take(patches, j, 2) for j in range(NUM_LOCAL))
         values = values.reshape(flat.shape[0], -1)
         if layout:
             return values.reshape(lead + values.shape[-1:])
@@ -257,6 +268,15 @@ def bspline_values(local: LocalBasis, grids: Array, *, layout: bool = False) -> 
         sx, sy = local.centred()
         values = power_values([coeffs[:, :, j, None] for j in range(16)], sx, sy)
     return values.reshape(lead + (local.cell.shape[0],))
+
+
+def values_apart(local: LocalBasis, grids: Array) -> Array:
+    """:func:`bspline_values` in the kernels' layout, in a kernel of its own
+    (:func:`computed_apart`), as the solver steps call it: ``(..., N, M)`` -> ``(..., P)``
+    with ``P`` the layout's length."""
+    count = local.cell.shape[0] if local.terms is None else local.terms[0].size
+    shapes = jax.ShapeDtypeStruct(grids.shape[:-2] + (count,), jnp.result_type(grids, local.s))
+    return computed_apart(partial(bspline_values, layout=True), local, grids, shapes=shapes)
 
 
 def transpose_and_sum(local: LocalBasis, values: Array, shape: tuple[int, int], extra=(), *,
@@ -273,12 +293,15 @@ def transpose_and_sum(local: LocalBasis, values: Array, shape: tuple[int, int], 
         v = values.reshape(values.shape[0], num_buckets, -1)
 
         def bucket_sums(v, terms):  # (C, table buckets, 16)
-            return sum(terms[None, :, i] * v[:, :, i, None] for i in range(terms.shape[1]))
+            v = v[..., None]
+            return sum(_take(terms, i, 1) * _take(v, i, 2) for i in range(terms.shape[1]))
 
         # In a kernel of its own: fused into the scatter, the sums are laid out as the
         # scatter's (updates, 1) operand and lose vectorisation (measured 3x slower).
-        per_bucket = computed_apart(lambda index, v, terms: bucket_sums(v, terms), local.index,
-                                    v, local.terms_t)
+        per_bucket = computed_apart(
+            lambda index, v, terms: bucket_sums(v, terms), local.index, v, local.terms_t,
+            shapes=jax.ShapeDtypeStruct(v.shape[:2] + (NUM_LOCAL,),
+                                        jnp.result_type(v, local.terms_t)))
         size = shape[0] * shape[1]
         index = local.index[None] + size * jnp.arange(v.shape[0], dtype=local.index.dtype)[:, None, None]
         grid = jnp.zeros(v.shape[0] * size, values.dtype).at[index].add(per_bucket)

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-from functools import partial
 from typing import ClassVar
 
 import equinox as eqx
@@ -11,7 +10,7 @@ from jax import Array
 
 from .._energy import regulariser, regulariser_grad
 from .._problem import Problem, check_nonnegative
-from .._spline import ImplicitSpline, bspline_values, computed_apart, transpose_and_sum
+from .._spline import ImplicitSpline, bspline_values, transpose_and_sum, values_apart
 from ._base import AbstractSolver
 
 
@@ -72,7 +71,7 @@ class IURS(AbstractSolver[IURSState]):
         if inv_denom is None:
             inv_denom = mask / bspline_values(local, weights, layout=True)
         # W = F(w) is known for these weights: g costs one B-spline evaluation.
-        g = computed_apart(partial(bspline_values, layout=True), local, weights * control)
+        g = values_apart(local, weights * control)
         g = g * inv_denom  # eq. 14
         r = mask * (g - targets)
         # nabla_w E_d (eq. 19, as weight_gradient) and E_d in one pass over the samples.
@@ -96,8 +95,7 @@ class IURS(AbstractSolver[IURSState]):
         #    D^T r and the column sums of D (for mu, eq. 25) share one pass:
         #    D^T v = w * T(v / W). W and F(w C) are computed together and kept, so that the
         #    pass over the samples only sums (1/W serves step 4 too).
-        both = computed_apart(partial(bspline_values, layout=True), local,
-                              jnp.stack([weights, weights * state.control]))
+        both = values_apart(local, jnp.stack([weights, weights * state.control]))
         inv_denom = mask / both[0]
         g = both[1] * inv_denom  # eq. 14
         r = mask * (g - targets)
