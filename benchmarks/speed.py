@@ -96,6 +96,8 @@ EXAMPLE4 = [
      "tau": 1e-3, "lam": 2e-3},
 ]
 EXAMPLE4_TOL, EXAMPLE4_MAX_STEPS = 1e-7, 20_000
+#: Fresh processes each Example-4 fit runs in (median cold and warm times over them).
+EXAMPLE4_RUNS = 3
 
 #: Targets (seconds, bytes, ratios). The values are requirements, not measurements.
 TARGET_IURS_STEP_S = 0.040  # IURS step at 1e6 points / 128 x 128
@@ -372,7 +374,8 @@ def work_example4(spec: dict) -> dict:
     return {"import_s": import_s, "cold_s": timed["first_s"], **_timing(timed),
             "num_steps": int(sol.stats["num_steps"]), "result": result_name(jurs, sol),
             "E_ave": float(sol.metrics["E_ave"]), "E_max": float(sol.metrics["E_max"]),
-            "passes": pass_times(jax, problem), "device": _device_name(jax), **memory}
+            "passes": pass_times(jax, problem) if spec.get("passes", True) else None,
+            "device": _device_name(jax), **memory}
 
 
 def pass_times(jax, problem, repeats: int = PASS_REPEATS) -> dict:
@@ -597,8 +600,25 @@ def run_fit_steps(log) -> dict:
             "hugepages": run_worker(spec, log, HUGEPAGE_ENV)}
 
 
-def run_example4(log) -> list[dict]:
-    return [{**cfg, **run_worker({"kind": "example4", **cfg}, log)} for cfg in EXAMPLE4]
+def run_example4(log, runs: int = EXAMPLE4_RUNS) -> list[dict]:
+    """Each Example-4 fit in ``runs`` fresh processes (the passes timed in the first only):
+    a cold time is one sample a process, and on a shared machine one sample is noise. The
+    row keeps the first run's numbers with the median cold and warm times over the runs
+    (and every run's in ``cold_runs_s`` / ``warm_runs_s``)."""
+    rows = []
+    for cfg in EXAMPLE4:
+        results = [run_worker({"kind": "example4", **cfg, "passes": i == 0}, log)
+                   for i in range(runs)]
+        ok = [r for r in results if "error" not in r]
+        row = {**cfg, **(ok[0] if ok else results[0])}
+        if ok:
+            row["cold_runs_s"] = [r["cold_s"] for r in ok]
+            row["warm_runs_s"] = [r["warm_s"] for r in ok]
+            row["cold_s"] = float(np.median(row["cold_runs_s"]))
+            row["warm_s"] = float(np.median(row["warm_runs_s"]))
+            row["min_s"] = min(r["min_s"] for r in ok)
+        rows.append(row)
+    return rows
 
 
 # --------------------------------------------------------------------------- targets
@@ -701,8 +721,8 @@ def evaluate_targets(sweep, rbf, example4, bounds=(), tuned=None, fit_steps=None
                 warm["verdict"] = "MISS (jurs's passes alone exceed it)"
         out.append(warm)
         out.append(_target(label + ", cold (first call in a fresh process, compile included)",
-                           _s(ex4.get("cold_s")), ex4.get("cold_s"), TARGET_EX4_COLD_S,
-                           f"<= {_s(TARGET_EX4_COLD_S)}"))
+                           _s(ex4.get("cold_s")) + _spread(ex4.get("cold_runs_s")),
+                           ex4.get("cold_s"), TARGET_EX4_COLD_S, f"<= {_s(TARGET_EX4_COLD_S)}"))
     out += _rbf_targets(rbf)
     return out
 
@@ -785,6 +805,13 @@ def _rbf_verdict(label, required, j, b) -> dict:
 def _ms(s):
     """Seconds as ms below one second (3 significant digits)."""
     return "—" if s is None else (f"{s * 1e3:.3g} ms" if s < 1 else f"{s:.3g} s")
+
+
+def _spread(runs) -> str:
+    """`` (median of n processes: low-high)`` for a list of per-process times."""
+    if not runs or len(runs) < 2:
+        return ""
+    return f" (median of {len(runs)} processes: {_s(min(runs))}-{_s(max(runs))})"
 
 
 def _us(s):
@@ -988,15 +1015,19 @@ def _example4_table(rows_in) -> list[str]:
              f"`jurs.fit(points, normals, grid=15, solver=IURS(tau, lam, tol={EXAMPLE4_TOL:g}, "
              f"max_steps={EXAMPLE4_MAX_STEPS}))` on `jurs.shapes.get(shape, points)`. Cold: "
              "the first call in a fresh process, compilation included (imports timed apart); "
-             "warm: median of later calls.", ""]
+             "warm: median of later calls. Each fit runs in several fresh processes: cold and "
+             "warm are the medians over them, with the range of the cold times and the fastest "
+             "warm call.", ""]
     rows = []
     for r in rows_in:
         cells = [r["label"], f"{r['grid']}x{r['grid']}", f"{r['tau']:g}", f"{r['lam']:g}"]
-        rows.append(_measured_row(cells, r, 6, lambda: [
-            r["num_steps"], r["result"], _ms(r["warm_s"]), _s(r["cold_s"]), _s(r["import_s"]),
-            f"{r['E_ave']:.2e}"]))
-    lines += _table(["fit", "grid", "tau", "lam", "steps", "result", "warm", "cold",
-                     "imports", "E_ave"], rows)
+        runs = r.get("cold_runs_s") or []
+        rows.append(_measured_row(cells, r, 7, lambda: [
+            r["num_steps"], r["result"], f"{_ms(r['warm_s'])} ({_ms(r['min_s'])})",
+            _s(r["cold_s"]), f"{_s(min(runs))}-{_s(max(runs))}" if runs else "—",
+            _s(r["import_s"]), f"{r['E_ave']:.2e}"]))
+    lines += _table(["fit", "grid", "tau", "lam", "steps", "result", "warm (fastest)", "cold",
+                     "cold range", "imports", "E_ave"], rows)
     timed = [r for r in rows_in if r.get("passes") and "num_steps" in r]
     if not timed:
         return lines + [""]
