@@ -1,5 +1,6 @@
 """Shared test setup: the maths runs in float64 (E_ave sits at 1e-6..1e-8)."""
 
+import equinox as eqx
 import jax
 import matplotlib
 import numpy as np
@@ -40,8 +41,6 @@ TABLE_FIELDS = ("terms", "terms_t", "index", "corner", "order", "position", "fil
 
 def without_table(problem):
     """The same problem with its basis in the power form only (as a traced build has it)."""
-    import equinox as eqx
-
     return eqx.tree_at(lambda p: tuple(getattr(p.local, f) for f in TABLE_FIELDS), problem,
                        (None,) * len(TABLE_FIELDS), is_leaf=lambda x: x is None)
 
