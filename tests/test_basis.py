@@ -57,6 +57,21 @@ def test_patch_maps_are_adjoint(rng):
     np.testing.assert_allclose(float(lhs), float(rhs), rtol=1e-13)
 
 
+def test_windowed_patch_gather_matches_the_cell_patches(rng):
+    """The table form's one-window-a-bucket gather reads the same 16 coefficients, in the
+    same order, as grid_to_patches gives each cell, for every grid of a stack."""
+    from jurs._spline import gather_patches
+
+    shape = (9, 7)
+    grids = jnp.asarray(rng.standard_normal((3,) + shape))
+    cells = rng.integers(0, (shape[0] - 3) * (shape[1] - 3), size=40)
+    corner = jnp.asarray(np.stack([cells // (shape[1] - 3), cells % (shape[1] - 3)], 1),
+                         jnp.int32)
+    got = np.asarray(gather_patches(grids, corner))  # (buckets, grids, 16)
+    want = np.stack([np.asarray(grid_to_patches(g))[cells] for g in grids], axis=1)
+    np.testing.assert_array_equal(got, want)
+
+
 @pytest.mark.parametrize("bucket_size", [1, 4])
 def test_transpose_is_adjoint_of_values(rng, bucket_size):
     points, normals = jurs.datasets.example1(400)
