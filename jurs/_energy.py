@@ -20,6 +20,7 @@ from ._basis import num_cells, patches_to_grid
 from ._problem import Problem
 from ._spline import (
     ImplicitSpline,
+    LocalBasis,
     bspline_transpose,
     bspline_values,
     rational_terms,
@@ -34,6 +35,17 @@ def rational_residuals(problem: Problem, control: Array, weights: Array):
     ``g(x_k)`` (eq. 14, 18)."""
     denom, g = rational_values(problem.local, control, weights)
     return problem.mask * (g - problem.targets), denom, g
+
+
+def layout_residuals(local: LocalBasis, mask: Array, targets: Array, control: Array,
+                     weights: Array):
+    """``(r, mask / W, g)`` in the kernels' layout (:meth:`LocalBasis.to_layout`, in which
+    ``mask`` and ``targets`` are given): W and F(w C) in one pass apart, then eq. 14 and 18.
+    What a solver step and the metrics use; 0 at padding."""
+    both = values_apart(local, jnp.stack([weights, weights * control]))
+    inv_denom = mask / both[0]
+    g = both[1] * inv_denom  # eq. 14
+    return mask * (g - targets), inv_denom, g
 
 
 def bspline_residuals(problem: Problem, control: Array) -> Array:
@@ -146,9 +158,7 @@ def metrics(problem: Problem, spline: ImplicitSpline, lam=0.0) -> dict[str, Arra
     mask, targets, is_data = (local.to_layout(x) for x in
                               (problem.mask, problem.targets, problem.is_data))
     weights = spline.weights
-    both = values_apart(local, jnp.stack([weights, weights * spline.control]))
-    inv_denom = mask / both[0]
-    r = mask * (both[1] * inv_denom - targets)
+    r, inv_denom, _ = layout_residuals(local, mask, targets, spline.control, weights)
     on_data = is_data * r  # targets there are 0, so r = g(P_i)
     # The three totals in one reduction (each is a few kernels of its own otherwise).
     e_d, on_data2, count = jnp.sum(jnp.stack([r * r, on_data * on_data, is_data]), axis=-1)

@@ -8,7 +8,7 @@ import equinox as eqx
 import jax.numpy as jnp
 from jax import Array
 
-from .._energy import regulariser, regulariser_grad
+from .._energy import layout_residuals, regulariser, regulariser_grad
 from .._problem import Problem, check_nonnegative
 from .._spline import ImplicitSpline, bspline_values, transpose_and_sum, values_apart
 from ._base import AbstractSolver
@@ -95,10 +95,7 @@ class IURS(AbstractSolver[IURSState]):
         #    D^T r and the column sums of D (for mu, eq. 25) share one pass:
         #    D^T v = w * T(v / W). W and F(w C) are computed together and kept, so that the
         #    pass over the samples only sums (1/W serves step 4 too).
-        both = values_apart(local, jnp.stack([weights, weights * state.control]))
-        inv_denom = mask / both[0]
-        g = both[1] * inv_denom  # eq. 14
-        r = mask * (g - targets)
+        r, inv_denom, _ = layout_residuals(local, mask, targets, state.control, weights)
         grids, _ = transpose_and_sum(local, jnp.stack([r * inv_denom, inv_denom]),
                                      problem.shape, layout=True)
         dtr, col_sums = weights * grids
