@@ -300,12 +300,12 @@ def work_lstsq(spec: dict) -> dict:
 
 
 def work_fit_steps(spec: dict) -> dict:
-    """The IURS step as it runs inside ``jurs.fit``: fits of ``1`` and ``1 + FIT_STEPS``
-    steps (``tol = 0``, so both run all their steps), end to end from NumPy arrays; the
-    difference of their warm medians over ``FIT_STEPS`` is the cost of a step in the fit's
-    loop. Unlike a step called on its own, it does not include what every call pays once:
-    building the problem, the init and final energy passes, and page-faulting the call's
-    fresh buffers (counted here per fit call)."""
+    """The IURS step as it runs inside ``jurs.fit``: fits of ``1`` and ``1 + k`` steps
+    (``k = spec.get("steps", FIT_STEPS)``; ``tol = 0``, so both run all their steps), end to
+    end from NumPy arrays; the difference of their warm medians over ``k`` is the cost of a
+    step in the fit's loop. Unlike a step called on its own, it does not include what every
+    call pays once: building the problem, the init and final energy passes, and page-faulting
+    the call's fresh buffers (counted here per fit call)."""
     jax, jurs = _start_jax()
     from jurs._fit import reassociates
 
@@ -315,8 +315,8 @@ def work_fit_steps(spec: dict) -> dict:
     # memory baseline).
     options = reassociates(jurs.make_problem(points, normals, **kwargs), jurs.IURS())
     base = _baseline()
-    fits = {}
-    for steps in (1, 1 + FIT_STEPS):
+    fits, k = {}, spec.get("steps", FIT_STEPS)
+    for steps in (1, 1 + k):
         solver = jurs.IURS(tau=1e-2, lam=1e-3, tol=0.0, max_steps=steps)
         timed = time_repeated(lambda: jurs.fit(points, normals, solver=solver, **kwargs),
                               budget_s=3.0, max_repeats=7)
@@ -325,10 +325,10 @@ def work_fit_steps(spec: dict) -> dict:
         faults = resource.getrusage(resource.RUSAGE_SELF).ru_minflt - faults
         assert int(sol.stats["num_steps"]) == steps
         fits[steps] = {**_timing(timed), "page_faults": faults}
-    one, many = fits[1], fits[1 + FIT_STEPS]
-    return {"fits": {str(k): v for k, v in fits.items()}, "steps": FIT_STEPS,
-            "step_s": (many["warm_s"] - one["warm_s"]) / FIT_STEPS,
-            "step_min_s": (many["min_s"] - one["min_s"]) / FIT_STEPS,
+    one, many = fits[1], fits[1 + k]
+    return {"fits": {str(n): v for n, v in fits.items()}, "steps": k,
+            "step_s": (many["warm_s"] - one["warm_s"]) / k,
+            "step_min_s": (many["min_s"] - one["min_s"]) / k,
             "compiler_options": options,
             "device": _device_name(jax), **_memory(base)}
 
