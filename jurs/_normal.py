@@ -33,6 +33,7 @@ import numpy as np
 from jax import Array
 
 from ._basis import NUM_LOCAL, grid_to_patches, num_cells, patches_to_grid
+from ._precision import full_precision
 from ._problem import Problem
 from ._spline import rational_terms
 
@@ -352,6 +353,7 @@ def _row_blocks(stencil_row: Array, row: Array) -> tuple:
 DIRECT_MAX_ENTRIES = 1 << 25
 
 
+@full_precision
 def stencil_cholesky_solve(stencil: Array, rhs: Array) -> Array:
     """Solve ``stencil * C = rhs`` for a symmetric positive definite stencil by a block
     Cholesky factorisation ``A = L L^T`` in blocks of grid lines.
@@ -450,6 +452,7 @@ class NormalEquations(eqx.Module):
         return stencil_to_dense(self.stencil)
 
 
+@full_precision
 def normal_equations(problem: Problem, weights: Array | None = None, *,
                      chunk_size: int = DEFAULT_CHUNK) -> NormalEquations:
     """Assemble ``D^T D`` (stencil) and ``D^T b`` for ``problem`` in one pass over the samples.

@@ -57,6 +57,7 @@ from ._basis import (
     power_values,
     tensor_basis,
 )
+from ._precision import full_precision
 
 
 class LocalBasis(eqx.Module):
@@ -279,6 +280,7 @@ def values_apart(local: LocalBasis, grids: Array) -> Array:
     return computed_apart(partial(bspline_values, layout=True), local, grids, shapes=shapes)
 
 
+@full_precision
 def transpose_and_sum(local: LocalBasis, values: Array, shape: tuple[int, int], extra=(), *,
                       layout: bool = False):
     """:func:`bspline_transpose` of ``values (C, S)``, and the totals of the ``extra``

@@ -75,8 +75,12 @@ def test_fit_round_trip(example1_csv, tmp_path):
     (out / "metrics.json").write_text("old")
     assert cli.main(["fit", str(example1_csv), "-o", str(out), *PAPER_ARGS, *FIT_ARGS]) == 0
     assert sorted(os.listdir(out)) == sorted(cli.OUTPUTS)
-    assert json.loads((out / "metrics.json").read_text())["metrics"] == m | {
-        "time_s": json.loads((out / "metrics.json").read_text())["metrics"]["time_s"]}
+    rerun = json.loads((out / "metrics.json").read_text())["metrics"]
+    assert rerun.keys() == m.keys()
+    for key in m.keys() - {"time_s"}:
+        # Floats equal up to rounding: a GPU's scatter-adds sum in a new order each run.
+        expected = pytest.approx(m[key], rel=1e-9, abs=0) if isinstance(m[key], float) else m[key]
+        assert rerun[key] == expected, key
 
 
 def test_npy_input(tmp_path):

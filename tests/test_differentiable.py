@@ -33,7 +33,14 @@ def validation_loss(points, normals, lam, make_solver):
 @pytest.mark.parametrize("name", list(SOLVERS))
 def test_grad_matches_central_differences(name):
     make_solver = SOLVERS[name]
-    points, normals = (jnp.asarray(a) for a in jurs.datasets.example1(60))
+    points, normals = jurs.datasets.example1(60)
+    # Jittered: on the symmetric curve two offset samples tie for the box's largest y
+    # (jurs.fit takes its domain from the samples' min and max). At a tie the box has a
+    # kink: JAX's max splits the gradient between the two, which central differences
+    # match, but where the device's rounding breaks the tie (a GPU's does) the gradient is
+    # one side's, 1.4 % off the differences here. Away from ties both are exact.
+    points = points + 1e-3 * np.random.default_rng(0).standard_normal(points.shape)
+    points, normals = jnp.asarray(points), jnp.asarray(normals)
     lam = jnp.asarray(1e-3)
     loss = jax.jit(lambda p, n, l: validation_loss(p, n, l, make_solver))
     grads = jax.jit(jax.grad(lambda p, n, l: validation_loss(p, n, l, make_solver),

@@ -8,12 +8,14 @@ import jax
 import jax.numpy as jnp
 
 from .._energy import metrics as compute_metrics
+from .._precision import full_precision
 from .._problem import Problem
 from .._solution import RESULTS, Solution
 from .._spline import ImplicitSpline
 from ._base import AbstractSolver
 
 
+@full_precision
 def solve(solver: AbstractSolver, problem: Problem, spline: ImplicitSpline | None = None,
           *, throw: bool = True) -> Solution:
     """Run ``solver`` on ``problem`` from ``spline`` (default: C = 0, w = 1, as Algorithm 1).

@@ -20,7 +20,7 @@ from .._energy import residuals
 from .._normal import normal_equations
 from .._problem import Problem
 from .._spline import ImplicitSpline
-from ._least_squares import DEFAULT_RIDGE, default_linear_solver, solve_normal_equations
+from ._least_squares import DEFAULT_RIDGE, solve_by_default
 
 
 def unpack(y, joint: bool) -> tuple[Array, Array]:
@@ -63,9 +63,8 @@ def initial_parameters(problem: Problem, spline: ImplicitSpline, lam, joint: boo
     control = spline.control
     if warm_start:
         normal = normal_equations(problem, spline.weights)
-        control, _ = solve_normal_equations(normal.regularised(lam), normal.rhs, control,
-                                            default_linear_solver(problem.shape),
-                                            DEFAULT_RIDGE)
+        control, _ = solve_by_default(normal.regularised(lam), normal.rhs, control,
+                                      DEFAULT_RIDGE)
     return control, log_weights
 
 
