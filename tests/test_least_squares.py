@@ -298,7 +298,6 @@ def test_gradient_through_the_direct_solve():
     assert abs(grad - fd) <= 1e-5 * abs(fd)
 
 
-
 def test_float32_dense_solve_falls_back_to_cg():
     """In float32 the dense Cholesky's fallback is CG, whose early stop regularises: on
     Example 1 with 60 points at 14 x 14 the float32 system does not factor on this CPU; CG
