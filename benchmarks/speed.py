@@ -1133,7 +1133,8 @@ def _fit_steps_table(fit_steps) -> list[str]:
 
 def rerender(path: str) -> None:
     """Targets and markdown again from saved measurements (no measuring): rewrites
-    ``benchmarks/results/<name>.{json,md}``, ``<name>`` being the JSON file's name."""
+    ``<name>.{json,md}`` beside ``path``, ``<name>`` being the JSON file's name (so a copy
+    re-renders where it lies, and the committed results only from their own JSON)."""
     with open(path) as fh:
         data = json.load(fh)
     data["bounds"] = arithmetic_bounds(data["sweep"], data["example4"], data.get("ceiling"))
@@ -1141,10 +1142,11 @@ def rerender(path: str) -> None:
                                        data["bounds"], data.get("tuned"), data.get("fit_steps"))
     text = report(data)
     print(text)
-    sys.path.insert(0, HERE)
-    from _common import write_results
-
-    write_results(os.path.splitext(os.path.basename(path))[0], data, text)
+    stem = os.path.splitext(os.path.abspath(path))[0]
+    with open(stem + ".json", "w") as fh:
+        json.dump(data, fh, indent=2)
+    with open(stem + ".md", "w") as fh:
+        fh.write(text)
 
 
 def main(argv=None):

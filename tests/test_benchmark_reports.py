@@ -41,3 +41,13 @@ def test_gpu_speed_refuses_a_cpu_only_jax():
     with pytest.raises(SystemExit) as excinfo:
         gpu_speed.main([])
     assert excinfo.value.code == 2
+
+
+def test_speed_rerender_writes_beside_its_json(tmp_path, capsys):
+    copy = tmp_path / "copy.json"
+    copy.write_text(_load("speed.json"))
+    committed = os.path.join(RESULTS, "speed.md")
+    before = os.stat(committed).st_mtime_ns
+    speed.rerender(str(copy))
+    assert (tmp_path / "copy.md").read_text() == _load("speed.md")
+    assert os.stat(committed).st_mtime_ns == before
