@@ -32,9 +32,10 @@ def time_call(fn, *args, repeats: int = 20):
     return first, float(np.median(times)), out
 
 
-def write_results(name: str, payload: dict, markdown: str) -> None:
-    os.makedirs(RESULTS, exist_ok=True)
-    with open(os.path.join(RESULTS, f"{name}.json"), "w") as fh:
+def write_results(name: str, payload: dict, markdown: str, folder: str = RESULTS) -> None:
+    """``<folder>/<name>.json`` and ``<folder>/<name>.md`` (default: benchmarks/results)."""
+    os.makedirs(folder, exist_ok=True)
+    with open(os.path.join(folder, f"{name}.json"), "w") as fh:
         json.dump(payload, fh, indent=2)
-    with open(os.path.join(RESULTS, f"{name}.md"), "w") as fh:
+    with open(os.path.join(folder, f"{name}.md"), "w") as fh:
         fh.write(markdown)

@@ -35,7 +35,8 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, HERE)
 
 import speed  # noqa: E402  (the workers, their orchestration and the table helpers)
-from speed import _err, _find, _gb, _measured_row, _ms, _s, _table, _x  # noqa: E402
+from _common import machine, write_results  # noqa: E402
+from speed import _err, _find, _gb, _measured_row, _ms, _s, _table, _where, _x  # noqa: E402
 
 #: Points -> grids of the step sweep (Example 1 clouds, 3m samples); sized so that the whole
 #: run stays under ten minutes on an H100 (a 1e7 worker takes about half a minute).
@@ -52,8 +53,6 @@ CPU_RESULTS = os.path.join(HERE, "results", "speed.json")
 def run(quick: bool, out_dir: str, log) -> dict:
     """Every measurement, the JSON and markdown rewritten after each."""
     import jax
-
-    from _common import machine
 
     name = "speed_gpu_quick" if quick else "speed_gpu"
     data = {"quick": quick, "machine": machine(), "device": speed._device_name(jax),
@@ -89,11 +88,7 @@ def run(quick: bool, out_dir: str, log) -> dict:
 def write(data: dict, out_dir: str, name: str) -> str:
     """``<out_dir>/<name>.{json,md}``; returns the markdown."""
     text = report(data)
-    os.makedirs(out_dir, exist_ok=True)
-    with open(os.path.join(out_dir, name + ".json"), "w") as fh:
-        json.dump(data, fh, indent=2)
-    with open(os.path.join(out_dir, name + ".md"), "w") as fh:
-        fh.write(text)
+    write_results(name, data, text, out_dir)
     return text
 
 
@@ -128,10 +123,6 @@ def report(data: dict) -> str:
     lines += _fit_steps_table(data["fit_steps"], cpu)
     lines += _example4_table(data["example4"], cpu)
     return "\n".join(lines) + "\n"
-
-
-def _where(r) -> list:
-    return [f"{r['m']:.0e}", f"{r['grid']}x{r['grid']}"]
 
 
 def _step_tables(sweep, cpu_sweep) -> list[str]:

@@ -807,11 +807,16 @@ def _ms(s):
     return "—" if s is None else (f"{s * 1e3:.3g} ms" if s < 1 else f"{s:.3g} s")
 
 
+def _range(runs) -> str:
+    """``low-high`` of a list of per-process times."""
+    return f"{_s(min(runs))}-{_s(max(runs))}"
+
+
 def _spread(runs) -> str:
     """`` (median of n processes: low-high)`` for a list of per-process times."""
     if not runs or len(runs) < 2:
         return ""
-    return f" (median of {len(runs)} processes: {_s(min(runs))}-{_s(max(runs))})"
+    return f" (median of {len(runs)} processes: {_range(runs)})"
 
 
 def _us(s):
@@ -1024,7 +1029,7 @@ def _example4_table(rows_in) -> list[str]:
         runs = r.get("cold_runs_s") or []
         rows.append(_measured_row(cells, r, 7, lambda: [
             r["num_steps"], r["result"], f"{_ms(r['warm_s'])} ({_ms(r['min_s'])})",
-            _s(r["cold_s"]), f"{_s(min(runs))}-{_s(max(runs))}" if runs else "—",
+            _s(r["cold_s"]), _range(runs) if runs else "—",
             _s(r["import_s"]), f"{r['E_ave']:.2e}"]))
     lines += _table(["fit", "grid", "tau", "lam", "steps", "result", "warm (fastest)", "cold",
                      "cold range", "imports", "E_ave"], rows)
@@ -1142,11 +1147,12 @@ def rerender(path: str) -> None:
                                        data["bounds"], data.get("tuned"), data.get("fit_steps"))
     text = report(data)
     print(text)
-    stem = os.path.splitext(os.path.abspath(path))[0]
-    with open(stem + ".json", "w") as fh:
-        json.dump(data, fh, indent=2)
-    with open(stem + ".md", "w") as fh:
-        fh.write(text)
+    sys.path.insert(0, HERE)
+    from _common import write_results
+
+    path = os.path.abspath(path)
+    write_results(os.path.splitext(os.path.basename(path))[0], data, text,
+                  os.path.dirname(path))
 
 
 def main(argv=None):

@@ -38,13 +38,17 @@ def rational_residuals(problem: Problem, control: Array, weights: Array):
 
 
 def layout_residuals(local: LocalBasis, mask: Array, targets: Array, control: Array,
-                     weights: Array):
+                     weights: Array, inv_denom: Array | None = None):
     """``(r, mask / W, g)`` in the kernels' layout (:meth:`LocalBasis.to_layout`, in which
-    ``mask`` and ``targets`` are given): W and F(w C) in one pass apart, then eq. 14 and 18.
-    What a solver step and the metrics use; 0 at padding."""
-    both = values_apart(local, jnp.stack([weights, weights * control]))
-    inv_denom = mask / both[0]
-    g = both[1] * inv_denom  # eq. 14
+    ``mask`` and ``targets`` are given): W and F(w C) in one pass apart, then eq. 14 and 18;
+    F(w C) alone where ``inv_denom`` (``mask / W`` for these weights) is known. What a
+    solver step and the metrics use; 0 at padding."""
+    if inv_denom is None:
+        both = values_apart(local, jnp.stack([weights, weights * control]))
+        inv_denom, numerator = mask / both[0], both[1]
+    else:
+        numerator = values_apart(local, weights * control)
+    g = numerator * inv_denom  # eq. 14
     return mask * (g - targets), inv_denom, g
 
 
@@ -123,7 +127,14 @@ def collocation_column_sums(problem: Problem, weights: Array) -> Array:
 
 def step_size(problem: Problem, weights: Array) -> Array:
     """mu = 2 / ||D^T D||_inf (eq. 13 and 25), without forming D^T D."""
-    return 2.0 / jnp.max(collocation_column_sums(problem, weights))
+    return step_size_from_column_sums(collocation_column_sums(problem, weights))
+
+
+def step_size_from_column_sums(column_sums: Array) -> Array:
+    """mu = 2 / ||D^T D||_inf (eq. 13 and 25) from D's column sums, whose largest is that
+    norm (see :func:`collocation_column_sums`); for callers that have them from a shared
+    pass over the samples."""
+    return 2.0 / jnp.max(column_sums)
 
 
 def residuals(problem: Problem, control: Array, weights: Array):
@@ -171,7 +182,7 @@ def metrics(problem: Problem, spline: ImplicitSpline, lam=0.0) -> dict[str, Arra
         "R": reg,
         "E_ave": on_data2 / count,
         "E_max": jnp.max(jnp.abs(on_data)),
-        "mu": 2.0 / jnp.max(weights * col_sums[0]),
+        "mu": step_size_from_column_sums(weights * col_sums[0]),
     }
 
 

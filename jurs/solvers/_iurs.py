@@ -8,9 +8,14 @@ import equinox as eqx
 import jax.numpy as jnp
 from jax import Array
 
-from .._energy import layout_residuals, regulariser, regulariser_grad
+from .._energy import (
+    layout_residuals,
+    regulariser,
+    regulariser_grad,
+    step_size_from_column_sums,
+)
 from .._problem import Problem, check_nonnegative
-from .._spline import ImplicitSpline, bspline_values, transpose_and_sum, values_apart
+from .._spline import ImplicitSpline, transpose_and_sum
 from ._base import AbstractSolver
 
 
@@ -67,13 +72,8 @@ class IURS(AbstractSolver[IURSState]):
 
     def _energy_and_weight_grad(self, problem, data, control, weights, inv_denom=None):
         local = problem.local
-        mask, targets = data
-        if inv_denom is None:
-            inv_denom = mask / bspline_values(local, weights, layout=True)
-        # W = F(w) is known for these weights: g costs one B-spline evaluation.
-        g = values_apart(local, weights * control)
-        g = g * inv_denom  # eq. 14
-        r = mask * (g - targets)
+        # Where W is known for these weights (a step's), g costs one B-spline evaluation.
+        r, inv_denom, g = layout_residuals(local, *data, control, weights, inv_denom)
         # nabla_w E_d (eq. 19, as weight_gradient) and E_d in one pass over the samples.
         t, (e_d,) = transpose_and_sum(local, jnp.stack([r * inv_denom, r * g * inv_denom]),
                                       problem.shape, [r * r], layout=True)
@@ -88,18 +88,18 @@ class IURS(AbstractSolver[IURSState]):
 
     def step(self, problem: Problem, state: IURSState):
         local = problem.local
-        mask, targets = data = self._data(problem)
+        data = self._data(problem)
         # 1. eq. 20, projected onto w >= min_weight.
         weights = jnp.maximum(state.weights - self.tau * state.weight_grad, self.min_weight)
         # 2. D of eq. 23 with the new weights, applied to the residual of the current C;
         #    D^T r and the column sums of D (for mu, eq. 25) share one pass:
         #    D^T v = w * T(v / W). W and F(w C) are computed together and kept, so that the
         #    pass over the samples only sums (1/W serves step 4 too).
-        r, inv_denom, _ = layout_residuals(local, mask, targets, state.control, weights)
+        r, inv_denom, _ = layout_residuals(local, *data, state.control, weights)
         grids, _ = transpose_and_sum(local, jnp.stack([r * inv_denom, inv_denom]),
                                      problem.shape, layout=True)
         dtr, col_sums = weights * grids
-        mu = 2.0 / jnp.max(col_sums)
+        mu = step_size_from_column_sums(col_sums)
         # 3. eq. 33: C + mu D^T (b - DC) - lam grad R(C).
         control = state.control - mu * dtr - self.lam * regulariser_grad(state.control)
         # 4. eq. 35 at the new (C, w), with nabla_w E_d there for the next step.
