@@ -38,13 +38,19 @@ def rbf_fit(points, normals, *, offset: float, eps: float, smoothing: float = 0.
     return rbf, time.perf_counter() - t0
 
 
+def evaluate_rbf(rbf, xy, chunk: int = 4096) -> np.ndarray:
+    """``rbf`` at ``xy (n, 2)`` in chunks (the kernel matrix of a chunk is chunk x 3m, so
+    memory stays bounded)."""
+    xy = np.asarray(xy, float).reshape(-1, 2)
+    if len(xy) == 0:
+        return np.empty(0)
+    return np.concatenate([rbf(xy[k:k + chunk]) for k in range(0, len(xy), chunk)])
+
+
 def evaluate_rbf_grid(rbf, xs, ys, chunk: int = 4096) -> np.ndarray:
-    """``values[j, i] = rbf(xs[i], ys[j])`` in chunks (the kernel matrix of a chunk is
-    chunk x 3m, so memory stays bounded)."""
+    """``values[j, i] = rbf(xs[i], ys[j])`` (:func:`evaluate_rbf` on the grid's nodes)."""
     gx, gy = np.meshgrid(xs, ys)
-    xy = np.stack([gx.ravel(), gy.ravel()], axis=1)
-    out = np.concatenate([rbf(xy[k:k + chunk]) for k in range(0, len(xy), chunk)])
-    return out.reshape(gx.shape)
+    return evaluate_rbf(rbf, np.stack([gx.ravel(), gy.ravel()], axis=1), chunk).reshape(gx.shape)
 
 
 def rbf_report(rbf, points, box, *, offset: float, reference=None,

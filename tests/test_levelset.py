@@ -206,3 +206,79 @@ def test_spline_save_load_roundtrip(tmp_path, circle_fit):
         jurs.load_spline(tmp_path / "bad.npz")
     with pytest.raises(FileNotFoundError):
         jurs.load_spline(tmp_path / "nope.npz")
+
+
+def _brute_polyline_distance(p, v):
+    a, b = v[:-1], v[1:]
+    ab = b - a
+    t = np.clip(np.einsum("kij,ij->ki", p[:, None] - a[None], ab) / np.sum(ab * ab, 1), 0, 1)
+    foot = a[None] + t[..., None] * ab[None]
+    return np.min(np.linalg.norm(foot - p[:, None], axis=2), axis=1)
+
+
+def test_distance_to_polyline_is_to_segments_not_vertices():
+    square = np.array([[0.0, 0.0], [1.0, 0.0], [1.0, 1.0], [0.0, 1.0]])
+    points = np.array([[0.5, -0.25], [1.5, 0.5], [0.5, 0.5], [0.5, 1e-9], [-1.0, -1.0]])
+    closed = ls.distance_to_polyline(points, square, closed=True)
+    np.testing.assert_allclose(closed, [0.25, 0.5, 0.5, 1e-9, np.sqrt(2.0)], rtol=1e-12)
+    # Open: the left side (last vertex back to the first) is not a segment.
+    assert ls.distance_to_polyline([[-0.5, 0.5]], square)[0] == pytest.approx(np.hypot(0.5, 0.5))
+    assert ls.distance_to_polyline([[-0.5, 0.5]], square, closed=True)[0] == pytest.approx(0.5)
+    # Against brute force on an irregular polyline with long and short segments.
+    rng = np.random.default_rng(0)
+    v = np.cumsum(rng.normal(size=(40, 2)) * rng.uniform(0.01, 1.0, (40, 1)), axis=0)
+    p = rng.uniform(v.min(0) - 1, v.max(0) + 1, (300, 2))
+    np.testing.assert_allclose(ls.distance_to_polyline(p, v), _brute_polyline_distance(p, v),
+                               rtol=1e-12, atol=1e-15)
+    assert np.all(np.isinf(ls.distance_to_polyline(p[:3], np.empty((0, 2)))))
+
+
+def test_project_to_zero_set_lands_on_the_curve():
+    f = lambda xy: np.linalg.norm(xy, axis=1) - 1.0  # noqa: E731
+
+    def grad(xy):
+        with np.errstate(invalid="ignore"):  # 0 / 0 at the centre: no usable gradient
+            return xy / np.linalg.norm(xy, axis=1, keepdims=True)
+
+    start = np.array([[1.3, 0.0], [0.0, 0.7], [0.6, 0.6], [0.0, 0.0]])
+    for g in (grad, None):  # exact gradient, then central differences
+        x, ok = ls.project_to_zero_set(f, start, grad=g)
+        np.testing.assert_array_equal(ok, [True, True, True, False])
+        np.testing.assert_allclose(np.linalg.norm(x[:3], axis=1), 1.0, atol=1e-12)
+        # Along each point's ray (the gradient direction), to its foot on the circle.
+        np.testing.assert_allclose(x[:3] / np.linalg.norm(x[:3], axis=1, keepdims=True),
+                                   start[:3] / np.linalg.norm(start[:3], axis=1, keepdims=True),
+                                   atol=1e-12)
+        np.testing.assert_array_equal(x[3], [0.0, 0.0])  # no usable gradient: stays put
+    with pytest.raises(ValueError, match="steps"):
+        ls.project_to_zero_set(f, start, steps=-1)
+
+
+def test_refined_chamfer_resolves_what_the_sampled_one_cannot():
+    ref = circle_samples(20000)
+    coarse = circle_samples(400)  # the zero-set samples, e.g. from a contour
+    for offset in (1e-6, 4e-6):
+        f = lambda xy, r=1.0 + offset: np.linalg.norm(np.asarray(xy), axis=1) - r  # noqa: E731
+        out = ls.refined_chamfer_hausdorff(f, coarse, ref, reference_samples=2000)
+        assert out["chamfer"] == pytest.approx(offset, rel=1e-3)
+        assert out["hausdorff"] == pytest.approx(offset, rel=1e-3)
+        assert out["unconverged_zero"] == out["unconverged_reference"] == 0
+        # The sampled distance sits on its floor (the 400 samples' spacing) for both.
+        assert ls.chamfer_hausdorff(coarse * (1 + offset), ref)[0] > 1e-3
+    # A spline's zero set, with its own gradient: what the first-order distance says.
+    points, normals = jurs.datasets.ellipse(200, a=2.0, b=2.0)
+    spline = jurs.fit(points, normals, grid=(12, 12), offset=0.1, eps=0.01).spline
+    lines = ls.zero_level_set(spline, resolution=128)
+    zero = np.concatenate([ls.resample(p, 0.01) for p, _ in lines])
+    ref = circle_samples(20000, radius=2.0)
+    out = ls.refined_chamfer_hausdorff(spline, zero, ref, grad=spline.grad,
+                                       reference_samples=500)
+    first_order = np.abs(np.asarray(spline(ref))) / np.linalg.norm(np.asarray(spline.grad(ref)), axis=1)
+    assert out["unconverged_zero"] == out["unconverged_reference"] == 0
+    assert out["chamfer"] == pytest.approx(first_order.mean(), rel=0.05)
+    assert out["hausdorff"] == pytest.approx(first_order.max(), rel=0.05)
+    assert out["chamfer"] < 0.5 * ls.chamfer_hausdorff(zero, ref)[0]  # the sampled floor
+    empty = ls.refined_chamfer_hausdorff(spline, np.empty((0, 2)), ref)
+    assert empty["chamfer"] == empty["hausdorff"] == np.inf
+    with pytest.raises(ValueError, match="reference_samples"):
+        ls.refined_chamfer_hausdorff(spline, zero, ref, reference_samples=0)
