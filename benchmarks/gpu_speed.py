@@ -34,9 +34,11 @@ import time
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, HERE)
 
-import speed  # noqa: E402  (the workers, their orchestration and the table helpers)
+import speed  # noqa: E402  (the workers and their orchestration)
 from _common import machine, write_results  # noqa: E402
-from speed import _err, _find, _gb, _measured_row, _ms, _s, _table, _where, _x  # noqa: E402
+from _speed_report import (  # noqa: E402
+    _err, _find, _gb, _measured_row, _ms, _s, _table, _where, _x, step_passes_s,
+)
 
 #: Points -> grids of the step sweep (Example 1 clouds, 3m samples); sized so that the whole
 #: run stays under ten minutes on an H100 (a 1e7 worker takes about half a minute).
@@ -203,7 +205,7 @@ def _example4_table(rows_in, cpu) -> list[str]:
             f"{_ms(r['warm_s'])} ({_ms(r['min_s'])})", _s(r["cold_s"]),
             _ms(c.get("warm_s")), _s(c.get("cold_s")),
             _x(_ratio(c.get("warm_s"), r["warm_s"])),
-            _ms(speed.step_passes_s(r) and speed.step_passes_s(r) * r["num_steps"])]))
+            _ms(step_passes_s(r) and step_passes_s(r) * r["num_steps"])]))
     lines = ["## Full regularised IURS fits of Example-4 size", "",
              "As in `speed.md` (15 x 15, tol 1e-7; cold = the first call in a fresh "
              "process, here one process a fit). In brackets: the CPU run's steps and E_ave, which the "
