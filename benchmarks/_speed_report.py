@@ -372,6 +372,15 @@ def _port_table(port_rows) -> list[str]:
     return lines + [""]
 
 
+def _unconverged(rbf_rows) -> int:
+    """Points of the refined distances whose projection onto a zero set did not converge,
+    over every fit and RBF of the comparison."""
+    fits = [r[k] for r in rbf_rows if not _err(r) and "skipped" not in r
+            for k in ("jurs_main", "jurs_coarse", "rbf")]
+    fits += [g for r in rbf_rows for g in r.get("jurs_given") or []]
+    return sum(f.get("unconverged", 0) for f in fits)
+
+
 def _rbf_table(rbf_rows) -> list[str]:
     lines = ["## Baseline: scipy RBFInterpolator (thin-plate) vs jurs defaults", "",
              "Example 1 with m points. jurs: `jurs.fit(points, normals)`, every setting "
@@ -392,8 +401,9 @@ def _rbf_table(rbf_rows) -> list[str]:
              f"{REFINED_REFERENCE_SAMPLES} of those are projected onto the zero set. Contour "
              "points measured without the projection, however densely resampled, carry "
              "marching squares' own error, about 1e-5 here, under which accurate fits tie. "
-             "Last column, for context: jurs with the same settings on the coarser grid G.",
-             ""]
+             "Last column, for context: jurs with the same settings on the coarser grid G. "
+             f"Projections that did not converge (then measured where they ended): "
+             f"{_unconverged(rbf_rows)} in this table.", ""]
     rows = []
     for r in rbf_rows:
         if _err(r) or "skipped" in r:

@@ -363,7 +363,7 @@ def _level_set(xs, ys, values, points, reference, fn, grad=None, offset=OFFSET) 
     return out
 
 
-def _spline_functions(jax, spline):
+def _spline_functions(spline):
     """``(values, gradients)`` of a fitted spline at ``(n, 2)`` NumPy points, jitted."""
     import equinox as eqx
 
@@ -399,18 +399,18 @@ def work_rbf(spec: dict) -> dict:
         return jurs.fit(points, normals, grid=st.grid, offset=st.offset, eps=st.eps,
                         solver=jurs.LeastSquares(lam=st.lam))
 
-    def report(run):
+    def measured(run):
         spline = run["output"].spline
         return {"grid": list(spline.shape), "lam": float(run["output"].metrics["lam"]),
                 "offset": settings.offset, "eps": settings.eps, **_timing(run),
                 **_level_set(xs, ys, ls.evaluate_grid(spline, xs, ys), points, reference,
-                             *_spline_functions(jax, spline), offset=settings.offset)}
+                             *_spline_functions(spline), offset=settings.offset)}
 
-    out["jurs_main"] = report(timed)
-    out["jurs_coarse"] = report(time_repeated(lambda: jurs.fit(points, normals, **coarse),
+    out["jurs_main"] = measured(timed)
+    out["jurs_coarse"] = measured(time_repeated(lambda: jurs.fit(points, normals, **coarse),
                                               budget_s=2.0))
     if spec.get("given"):
-        out["jurs_given"] = [{"given": options, **report(time_repeated(
+        out["jurs_given"] = [{"given": options, **measured(time_repeated(
             lambda: given(options), budget_s=2.0))} for options in RBF_GIVEN]
     rbf, rbf_s = rbf_fit(points, normals, offset=settings.offset, eps=settings.eps)
     t0 = time.perf_counter()
