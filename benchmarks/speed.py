@@ -328,7 +328,7 @@ def pass_times(jax, problem, repeats: int = PASS_REPEATS) -> dict:
             "T2_s": looped(t_pass, vectors), "repeats": repeats}
 
 
-def refined_distances(xs, ys, values, reference, fn, grad=None) -> dict:
+def refined_distances(xs, ys, values, reference, fn) -> dict:
     """Chamfer / Hausdorff of the zero set of ``fn`` (sampled as ``values`` on ``xs, ys``)
     to the reference curve, refined: no sampling floor (see
     :func:`jurs.levelset.refined_chamfer_hausdorff`).
@@ -338,39 +338,30 @@ def refined_distances(xs, ys, values, reference, fn, grad=None) -> dict:
     an eighth of a cell whatever the fit; contour points resampled densely still carry
     marching squares' own error (about 1e-5 here), under which accurate fits tie. Here the
     contour, resampled at ``REFINED_SAMPLES_PER_DIAGONAL`` points per box diagonal, is moved
-    onto the zero set by Newton steps (``grad``: the gradient, default central differences)
-    and measured to the segments of ``REFERENCE_POINTS`` samples of the exact curve, and
-    ``REFINED_REFERENCE_SAMPLES`` of those are projected onto the zero set."""
+    onto the zero set by Newton steps (along a spline's own gradient, central differences
+    for other functions) and measured to the segments of ``REFERENCE_POINTS`` samples of
+    the exact curve, and ``REFINED_REFERENCE_SAMPLES`` of those are projected onto the zero
+    set."""
     import jurs.levelset as ls
 
     spacing = np.hypot(xs[-1] - xs[0], ys[-1] - ys[0]) / REFINED_SAMPLES_PER_DIAGONAL
     zero = [ls.resample(poly, spacing) for poly, _ in ls.contour_lines(xs, ys, values)]
     zero = np.concatenate(zero) if zero else np.empty((0, 2))
-    return ls.refined_chamfer_hausdorff(fn, zero, reference, grad=grad, closed=True,
+    return ls.refined_chamfer_hausdorff(fn, zero, reference, closed=True,
                                         reference_samples=REFINED_REFERENCE_SAMPLES)
 
 
-def _level_set(xs, ys, values, points, reference, fn, grad=None, offset=OFFSET) -> dict:
+def _level_set(xs, ys, values, points, reference, fn, offset=OFFSET) -> dict:
     """The level-set report (components, Chamfer at the analysis grid's floor) and the
     refined distances, for one function sampled on the common grid."""
     import jurs.levelset as ls
 
     out = ls.analyze_grid(xs, ys, values, points, offset=offset, reference=reference).as_dict()
-    refined = refined_distances(xs, ys, values, reference, fn, grad)
+    refined = refined_distances(xs, ys, values, reference, fn)
     out.update({"refined_chamfer": refined["chamfer"],
                 "refined_hausdorff": refined["hausdorff"],
                 "unconverged": refined["unconverged_zero"] + refined["unconverged_reference"]})
     return out
-
-
-def _spline_functions(spline):
-    """``(values, gradients)`` of a fitted spline at ``(n, 2)`` NumPy points, jitted."""
-    import equinox as eqx
-
-    value = eqx.filter_jit(lambda s, xy: s(xy))
-    gradient = eqx.filter_jit(lambda s, xy: s.grad(xy))
-    return (lambda xy: np.asarray(value(spline, xy)),
-            lambda xy: np.asarray(gradient(spline, xy)))
 
 
 def work_rbf(spec: dict) -> dict:
@@ -404,7 +395,7 @@ def work_rbf(spec: dict) -> dict:
         return {"grid": list(spline.shape), "lam": float(run["output"].metrics["lam"]),
                 "offset": settings.offset, "eps": settings.eps, **_timing(run),
                 **_level_set(xs, ys, ls.evaluate_grid(spline, xs, ys), points, reference,
-                             *_spline_functions(spline), offset=settings.offset)}
+                             spline, offset=settings.offset)}
 
     out["jurs_main"] = measured(timed)
     out["jurs_coarse"] = measured(time_repeated(lambda: jurs.fit(points, normals, **coarse),

@@ -88,6 +88,11 @@ def _evaluate(spline, xy):
     return spline(xy)
 
 
+@eqx.filter_jit
+def _gradient(spline, xy):
+    return spline.grad(xy)
+
+
 def evaluate_grid(spline, xs, ys, *, chunk: int = 1 << 15) -> np.ndarray:
     """``values[j, i] = g(xs[i], ys[j])`` as a NumPy array.
 
@@ -215,9 +220,10 @@ def project_to_zero_set(fn, points, *, grad=None, steps: int = 3, tol: float | N
     on it near the point's foot, with the error squared every step.
 
     ``fn`` maps ``(n, 2)`` points to ``(n,)`` values (an :class:`~jurs.ImplicitSpline`, an
-    RBF interpolator, ...). ``grad`` maps them to ``(n, 2)`` gradients
-    (``ImplicitSpline.grad``); by default central differences with ``step`` (default 1e-7
-    of the points' extent), four more evaluations each. A point has converged when its
+    RBF interpolator, ...). ``grad`` maps them to ``(n, 2)`` gradients; by default a
+    spline's own (``ImplicitSpline.grad``; a spline and its gradient run jitted), for other
+    functions central differences with ``step`` (default 1e-7 of the points' extent), four
+    more evaluations each. A point has converged when its
     first-order distance ``|f| / |grad f|`` is at most ``tol`` (default 1e-11 of the
     extent) after the steps; points with a zero or non-finite gradient stay put.
 
@@ -230,10 +236,16 @@ def project_to_zero_set(fn, points, *, grad=None, steps: int = 3, tol: float | N
     extent = extent if extent > 0 else 1.0
     tol = 1e-11 * extent if tol is None else float(tol)
     step = 1e-7 * extent if step is None else float(step)
-    gradient = grad if grad is not None else (lambda xy: _central_gradient(fn, xy, step))
-    converged = np.zeros(len(x), bool)
+    spline = hasattr(fn, "control") and hasattr(fn, "grad")  # as evaluate_grid tells one
+    value_of = (lambda xy: _evaluate(fn, xy)) if spline else fn
+    if grad is not None:
+        gradient = grad
+    elif spline:
+        gradient = lambda xy: _gradient(fn, xy)  # noqa: E731
+    else:
+        gradient = lambda xy: _central_gradient(value_of, xy, step)  # noqa: E731
     for k in range(int(steps) + 1):  # the last round only checks
-        value = np.asarray(fn(x), float).reshape(-1)
+        value = np.asarray(value_of(x), float).reshape(-1)
         g = np.asarray(gradient(x), float).reshape(-1, 2)
         norm2 = np.sum(g * g, axis=1)
         usable = np.isfinite(value) & np.isfinite(norm2) & (norm2 > 0)

@@ -278,6 +278,9 @@ def test_refined_chamfer_resolves_what_the_sampled_one_cannot():
     assert out["chamfer"] == pytest.approx(first_order.mean(), rel=0.05)
     assert out["hausdorff"] == pytest.approx(first_order.max(), rel=0.05)
     assert out["chamfer"] < 0.5 * ls.chamfer_hausdorff(zero, ref)[0]  # the sampled floor
+    # Without grad, a spline's own gradient (jitted) is the default.
+    default = ls.refined_chamfer_hausdorff(spline, zero, ref, reference_samples=500)
+    assert default == pytest.approx(out, rel=1e-9)
     empty = ls.refined_chamfer_hausdorff(spline, np.empty((0, 2)), ref)
     assert empty["chamfer"] == empty["hausdorff"] == np.inf
     with pytest.raises(ValueError, match="reference_samples"):
