@@ -96,6 +96,9 @@ WORKER_TIMEOUT_S = 900
 LONG_CALL_S = 20.0
 #: Steps a fit runs beyond its first in the in-fit step measurement (work_fit_steps).
 FIT_STEPS = 20
+#: The step sweep also times steps in one jitted loop (speed.time_step_loop): as many
+#: steps as take about LOOP_S seconds by the standalone step time, within these bounds.
+LOOP_S, LOOP_STEPS_MIN, LOOP_STEPS_MAX = 0.05, 5, 200
 #: Passes a jitted loop runs when pass_times times one pass over the samples.
 PASS_REPEATS = 2000
 #: Seconds of warm repeats per timed call (at least 3 repeats, see time_repeated).
