@@ -50,7 +50,7 @@ def _step_target(label, measured, seconds, peak_b) -> dict:
 def evaluate_targets(sweep, rbf, example4, bounds=(), tuned=None, fit_steps=None) -> list[dict]:
     """Each target: what was measured, the requirement and PASS/MISS (from measurements)."""
     big = _find(sweep, m=TARGET_POINTS, grid=TARGET_GRID) or {"iurs": {}, "lstsq": {}}
-    where = f"{TARGET_POINTS:.0e} points, {TARGET_GRID}x{TARGET_GRID}"
+    where = f"{TARGET_POINTS:.0e} points, {_grid(TARGET_GRID)}"
     iurs, lsq = big["iurs"], big["lstsq"]
     step_bound = (_find(bounds, key="iurs_step") or {}).get("bound_s")
     bound_text = f"; arithmetic bound {_ms(step_bound)}" if step_bound else ""
@@ -97,7 +97,7 @@ def evaluate_targets(sweep, rbf, example4, bounds=(), tuned=None, fit_steps=None
         f"warm {_s(lsq.get('fit_warm_s'))}, first call {_s(lsq.get('fit_first_s'))}",
         lsq.get("fit_warm_s"), TARGET_LSQ_S, f"<= {_s(TARGET_LSQ_S)} (warm)"))
     for ex4 in example4:
-        label = (f"Full IURS fit: {ex4['label']}, {ex4['grid']}x{ex4['grid']}, "
+        label = (f"Full IURS fit: {ex4['label']}, {_grid(ex4['grid'])}, "
                  f"tau={ex4['tau']:g}, lam={ex4['lam']:g}, tol={EXAMPLE4_TOL:g}")
         warm = _target(label + ", warm", _ms(ex4.get("warm_s")) + _steps(ex4),
                        ex4.get("warm_s"), TARGET_EX4_WARM_S, f"<= {_ms(TARGET_EX4_WARM_S)}")
@@ -134,7 +134,7 @@ def _normal_ipia_target(sweep) -> dict:
     measured = (f"{_ms(worst)} (" + ", ".join(f"{_ms(res[key])} at m = {m:.0e}"
                                               for m, res in rows) + f"), {how}"
                 if rows else "—")
-    return _target(f"NormalIPIA step, {TARGET_GRID}x{TARGET_GRID}, warm, worst over m",
+    return _target(f"NormalIPIA step, {_grid(TARGET_GRID)}, warm, worst over m",
                    measured, worst, TARGET_NORMAL_STEP_S, f"<= {_ms(TARGET_NORMAL_STEP_S)}")
 
 
@@ -163,7 +163,7 @@ def arithmetic_bounds(sweep, example4, ceiling) -> list[dict]:
     rows = []
     if big and "step_warm_s" in big["iurs"]:
         rows.append({"key": "iurs_step", "label": f"IURS step, {TARGET_POINTS:.0e} points, "
-                              f"{TARGET_GRID}x{TARGET_GRID}", "samples": 3 * TARGET_POINTS,
+                              + _grid(TARGET_GRID), "samples": 3 * TARGET_POINTS,
                      "steps": 1, "measured_s": big["iurs"]["step_warm_s"],
                      "target_s": TARGET_IURS_STEP_S})
     rows += [{"label": ex4["label"], "samples": 3 * ex4["points"], "steps": ex4["num_steps"],
@@ -284,9 +284,14 @@ def _err(res):
     return f"error: {res['error'][:80]}" if "error" in res else None
 
 
+def _grid(grid) -> str:
+    """``128`` -> ``128x128``; ``(92, 96)`` -> ``92x96``."""
+    return "x".join(map(str, grid)) if isinstance(grid, (list, tuple)) else f"{grid}x{grid}"
+
+
 def _where(r) -> list:
     """The m and grid cells of a sweep row."""
-    return [f"{r['m']:.0e}", f"{r['grid']}x{r['grid']}"]
+    return [f"{r['m']:.0e}", _grid(r['grid'])]
 
 
 def _measured_row(cells, res, width: int, values) -> list:
@@ -444,7 +449,7 @@ def _rbf_table(rbf_rows) -> list[str]:
             continue
         j, b, c = r["jurs_main"], r["rbf"], r["jurs_coarse"]
         rows.append([
-            r["m"], "x".join(map(str, j["grid"])), f"{j['offset']:.3g}",
+            r["m"], _grid(j["grid"]), f"{j['offset']:.3g}",
             _s(b["fit_s"]), _ms(j["warm_s"]), _s(j["first_s"]),
             f"{_x(b['fit_s'] / j['warm_s'])} / {_x(b['fit_s'] / j['first_s'])}",
             f"{j['refined_chamfer']:.2e} / {b['refined_chamfer']:.2e}",
@@ -470,7 +475,7 @@ def _rbf_table(rbf_rows) -> list[str]:
                   "(`benchmarks/results/smoothing.md`), so the defaults do not use them. "
                   f"The RBF: refined Chamfer {b['refined_chamfer']:.2e}, Hausdorff "
                   f"{b['refined_hausdorff']:.2e}, fit {_s(b['fit_s'])}.", ""]
-        rows = [[_given_label(e["given"], code=True), "x".join(map(str, e["grid"])),
+        rows = [[_given_label(e["given"], code=True), _grid(e["grid"]),
                  f"{e['lam']:.3g}", _ms(e["warm_s"]), _x(b["fit_s"] / e["warm_s"]),
                  f"{e['refined_chamfer']:.2e} ({_x(e['refined_chamfer'] / b['refined_chamfer'])})",
                  f"{e['refined_hausdorff']:.2e}",
@@ -492,7 +497,7 @@ def _example4_table(rows_in) -> list[str]:
              "warm call.", ""]
     rows = []
     for r in rows_in:
-        cells = [r["label"], f"{r['grid']}x{r['grid']}", f"{r['tau']:g}", f"{r['lam']:g}"]
+        cells = [r["label"], _grid(r['grid']), f"{r['tau']:g}", f"{r['lam']:g}"]
         runs = r.get("cold_runs_s") or []
         rows.append(_measured_row(cells, r, 7, lambda: [
             r["num_steps"], r["result"], f"{_ms(r['warm_s'])} ({_ms(r['min_s'])})",
@@ -551,7 +556,7 @@ def _tuned_table(tuned, sweep, fit_steps=None) -> list[str]:
         return []
     env = _env_text(tuned["env"])
     lines = ["## Large problems: huge pages and compiler options", "",
-             f"The same workers at {TARGET_POINTS:.0e} points, {TARGET_GRID}x{TARGET_GRID}. "
+             f"The same workers at {TARGET_POINTS:.0e} points, {_grid(TARGET_GRID)}. "
              f"*Huge pages*: `{env}` in the environment, so glibc's malloc, from which "
              "XLA's CPU buffers come, asks for transparent huge pages (glibc >= 2.35; Linux "
              "THP in `madvise` or `always` mode); with 4 KB pages every call page-faults its "
