@@ -1,4 +1,5 @@
-"""Shared helpers for the benchmark scripts: timing, machine description, result files."""
+"""Shared helpers for the benchmark scripts: timing, machine description, result files.
+Imports no JAX at module level (``time_repeated`` and ``machine`` import it when called)."""
 
 from __future__ import annotations
 
@@ -7,29 +8,44 @@ import os
 import platform
 import time
 
-import jax
 import numpy as np
 
 RESULTS = os.path.join(os.path.dirname(__file__), "results")
+#: A first call slower than this gets a single warm repeat (LeastSquares at 256 x 256).
+LONG_CALL_S = 20.0
 
 
 def machine() -> str:
+    import jax  # here, not at import: the speed report re-renders without JAX
+
     device = jax.devices()[0]
     return (f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
             f"JAX {jax.__version__} on {device.platform}:{device.device_kind}")
 
 
-def time_call(fn, *args, repeats: int = 20):
-    """``(first_call_s, median_warm_s, output)``; the first call includes compilation."""
+def time_repeated(fn, *args, budget_s: float = 2.0, max_repeats: int = 20) -> dict:
+    """Time ``fn(*args)``: one first call (compiling, if ``fn`` is jitted), then warm calls
+    until ``budget_s`` is spent, at least 3 and at most ``max_repeats``, fewer when a call
+    is slow (2 after a first call above ``budget_s``, 1 after one above ``LONG_CALL_S``)
+    so that slow configurations do not take minutes each.
+
+    Returns ``{"first_s", "warm_s" (median), "min_s", "compile_s" (first - warm, >= 0),
+    "repeats", "output"}``; the minimum shows the uncontended speed on a shared machine.
+    """
+    import jax
+
     t0 = time.perf_counter()
     out = jax.block_until_ready(fn(*args))
     first = time.perf_counter() - t0
+    min_repeats = 1 if first > LONG_CALL_S else 2 if first > budget_s else 3
     times = []
-    for _ in range(repeats):
+    while len(times) < max_repeats and (len(times) < min_repeats or sum(times) < budget_s):
         t0 = time.perf_counter()
         out = jax.block_until_ready(fn(*args))
         times.append(time.perf_counter() - t0)
-    return first, float(np.median(times)), out
+    warm = float(np.median(times))
+    return {"first_s": first, "warm_s": warm, "min_s": min(times),
+            "compile_s": max(first - warm, 0.0), "repeats": len(times), "output": out}
 
 
 def write_results(name: str, payload: dict, markdown: str, folder: str = RESULTS) -> None:

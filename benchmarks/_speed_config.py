@@ -92,8 +92,6 @@ RBF_GIVEN = [{"grid": 64, "smoothing": 1e-10}, {"grid": 128, "smoothing": 1e-10}
              {"grid": 128, "smoothing": 1e-13}, {"grid": 256, "smoothing": 1e-13}]
 
 WORKER_TIMEOUT_S = 900
-#: A first call slower than this gets a single warm repeat (LeastSquares at 256 x 256).
-LONG_CALL_S = 20.0
 #: Steps a fit runs beyond its first in the in-fit step measurement (work_fit_steps).
 FIT_STEPS = 20
 #: The step sweep also times steps in one jitted loop (speed.time_step_loop): as many

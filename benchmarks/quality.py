@@ -384,7 +384,7 @@ def markdown(runs, meta):
     ok = [r for r in runs if "error" not in r]
     failed = [r for r in runs if "error" in r]
     n = len(runs)
-    lines = [f"# Quality of `jurs.fit` defaults against a thin-plate RBF"
+    lines = ["# Quality of `jurs.fit` defaults against a thin-plate RBF"
              + (" (quick subset)" if meta["quick"] else ""), "",
              f"Machine: {meta['machine']}. Float64. Command: `{meta['command']}`; "
              f"{n} runs ({len(meta['cases'])} base cases x noise levels "

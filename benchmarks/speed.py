@@ -45,16 +45,18 @@ import numpy as np
 HERE = os.path.dirname(os.path.abspath(__file__))
 
 # The sizes, settings and targets live in _speed_config, the verdicts and the markdown in
-# _speed_report (both next to this script, which is on sys.path when it runs).
+# _speed_report, the timer in _common (all next to this script, which is on sys.path when
+# it runs; none of them imports JAX, which each worker starts itself).
 from _speed_config import (  # noqa: E402
     ANALYSIS_RESOLUTION, CEILING_N, DENSE_LIMIT_BYTES, EPS, EXAMPLE4, EXAMPLE4_MAX_STEPS,
-    EXAMPLE4_RUNS, EXAMPLE4_TOL, FIT_STEPS, FULL_SWEEP, HUGEPAGE_ENV, LONG_CALL_S, LOOP_S,
+    EXAMPLE4_RUNS, EXAMPLE4_TOL, FIT_STEPS, FULL_SWEEP, HUGEPAGE_ENV, LOOP_S,
     LOOP_STEPS_MAX, LOOP_STEPS_MIN, LSQ_LAM, OFFSET, PASS_REPEATS, QUICK_RBF_POINTS, QUICK_SWEEP, RBF_GIVEN, RBF_GRIDS,
     RBF_MAX_PREDICTED_S, REFERENCE_POINTS, REFINED_REFERENCE_SAMPLES,
     REFINED_SAMPLES_PER_DIAGONAL, STEP_BUDGET_S, STEP_SOLVERS, TARGET_GRID, TARGET_POINTS,
     TARGET_RBF_POINTS, WORKER_TIMEOUT_S,
 )
 from _speed_report import arithmetic_bounds, evaluate_targets, report  # noqa: E402
+from _common import machine, time_repeated, write_results  # noqa: E402
 
 # --------------------------------------------------------------------------- measuring (workers)
 
@@ -112,31 +114,6 @@ def _memory(base: int) -> dict:
     except Exception:  # noqa: BLE001 - memory stats are optional everywhere
         pass
     return out
-
-
-def time_repeated(fn, *args, budget_s: float = 2.0, max_repeats: int = 20) -> dict:
-    """Time ``fn(*args)``: one first call (compiling, if ``fn`` is jitted), then warm calls
-    until ``budget_s`` is spent, at least 3 and at most ``max_repeats``, fewer when a call
-    is slow (2 after a first call above ``budget_s``, 1 after one above ``LONG_CALL_S``)
-    so that slow configurations do not take minutes each.
-
-    Returns ``{"first_s", "warm_s" (median), "min_s", "compile_s" (first - warm, >= 0),
-    "repeats", "output"}``; the minimum shows the uncontended speed on a shared machine.
-    """
-    import jax
-
-    t0 = time.perf_counter()
-    out = jax.block_until_ready(fn(*args))
-    first = time.perf_counter() - t0
-    min_repeats = 1 if first > LONG_CALL_S else 2 if first > budget_s else 3
-    times = []
-    while len(times) < max_repeats and (len(times) < min_repeats or sum(times) < budget_s):
-        t0 = time.perf_counter()
-        out = jax.block_until_ready(fn(*args))
-        times.append(time.perf_counter() - t0)
-    warm = float(np.median(times))
-    return {"first_s": first, "warm_s": warm, "min_s": min(times),
-            "compile_s": max(first - warm, 0.0), "repeats": len(times), "output": out}
 
 
 def _timing(t: dict, prefix: str = "") -> dict:
@@ -588,9 +565,6 @@ def rerender(path: str) -> None:
                                        data["bounds"], data.get("tuned"), data.get("fit_steps"))
     text = report(data)
     print(text)
-    sys.path.insert(0, HERE)
-    from _common import write_results
-
     path = os.path.abspath(path)
     write_results(os.path.splitext(os.path.basename(path))[0], data, text,
                   os.path.dirname(path))
@@ -612,8 +586,6 @@ def main(argv=None):
     import jax
 
     jax.config.update("jax_enable_x64", True)
-    sys.path.insert(0, HERE)
-    from _common import machine, write_results
 
     start = time.perf_counter()
     load_average = os.getloadavg()[0]

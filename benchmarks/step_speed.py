@@ -31,7 +31,11 @@ import jurs  # noqa: E402
 import jurs.shapes  # noqa: E402
 
 sys.path.insert(0, __file__.rsplit("/", 1)[0])
-from _common import machine, time_call, write_results  # noqa: E402
+from _common import machine, time_repeated, write_results  # noqa: E402
+
+
+#: No time budget: every timing takes its ``max_repeats`` warm calls (20 by default).
+INF = float("inf")
 
 
 @jax.jit
@@ -46,11 +50,12 @@ def measure(points, normals, grid, solver, bucket_size):
     build = time.perf_counter() - t0
     spline = jurs.ImplicitSpline(jnp.zeros(grid), jnp.ones(grid), problem.lower, problem.upper)
     init = jax.jit(solver.init)
-    _, init_s, _ = time_call(init, problem, spline, repeats=3)
+    init_s = time_repeated(init, problem, spline, budget_s=INF, max_repeats=3)["warm_s"]
     state, _ = init(problem, spline)
     state, _ = _step(solver, problem, state)  # a state with moved weights
     _step.clear_cache()  # so the first timed call compiles, as a user's first call does
-    first, warm, _ = time_call(_step, solver, problem, state)
+    timed = time_repeated(_step, solver, problem, state, budget_s=INF)
+    first, warm = timed["first_s"], timed["warm_s"]
     return {"layout": f"bucket_size={problem.local.bucket_size}", "slots": int(problem.samples.shape[0]),
             "build_s": build, "init_s": init_s, "compile_s": first - warm, "warm_ms": warm * 1e3}
 
@@ -58,14 +63,17 @@ def measure(points, normals, grid, solver, bucket_size):
 def whole_fits(points, normals, grid):
     small_points, small_normals = jurs.shapes.get("lobes", 640)
     iurs = jurs.IURS(tau=1e-3, lam=0.002, tol=1e-7, max_steps=20000)
-    cold, warm, sol = time_call(lambda: jurs.fit(small_points, small_normals, grid=(15, 15),
-                                                 solver=iurs, offset=0.1, eps=0.01), repeats=5)
+    timed = time_repeated(lambda: jurs.fit(small_points, small_normals, grid=(15, 15),
+                                           solver=iurs, offset=0.1, eps=0.01),
+                          budget_s=INF, max_repeats=5)
+    cold, warm, sol = timed["first_s"], timed["warm_s"], timed["output"]
     steps = int(sol.stats["num_steps"])
     small = {"fit": "IURS (tau=1e-3, lam=0.002, tol=1e-7), lobes 640 points, 15x15",
              "cold_s": cold, "warm_s": warm, "steps": steps, "per_step_us": warm / steps * 1e6}
     exact = jurs.LeastSquares(lam=1e-4)
-    cold, warm, sol = time_call(lambda: jurs.fit(points, normals, grid=grid, solver=exact,
-                                                 offset=0.1, eps=0.01), repeats=3)
+    timed = time_repeated(lambda: jurs.fit(points, normals, grid=grid, solver=exact,
+                                           offset=0.1, eps=0.01), budget_s=INF, max_repeats=3)
+    cold, warm, sol = timed["first_s"], timed["warm_s"], timed["output"]
     large = {"fit": f"LeastSquares(lam=1e-4), {points.shape[0]} points, {grid[0]}x{grid[1]}",
              "cold_s": cold, "warm_s": warm, "steps": int(sol.stats["num_steps"])}
     return [small, large]
