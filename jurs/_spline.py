@@ -47,9 +47,10 @@ from jax import Array
 
 from ._basis import (
     NUM_LOCAL,
-    cell_width,
     cubic_weights,
+    flat_cell,
     grid_to_patches,
+    locate,
     num_cells,
     patch_to_power,
     patches_to_grid,
@@ -140,17 +141,13 @@ def local_basis(xy: Array, lower: Array, upper: Array, shape: tuple[int, int],
     consecutive points lies in one cell (see :func:`jurs._problem.bucket_layout`).
     ``xp=numpy`` computes on the host (its fields are then NumPy arrays).
     """
-    # As :func:`jurs._basis.locate` (same arithmetic, so the same cells and coordinates),
-    # computed straight into the (2, S) layout, and stored centred: every evaluation works
-    # in s = t - 1/2 (see the module notes), and a subtraction shared by many kernels
-    # would be stored once more by XLA.
-    h = cell_width(lower, upper, shape, xp)
-    u = (xy.T - lower[:, None]) / h[:, None]
-    top = xp.asarray([shape[0] - 4, shape[1] - 4])[:, None]
-    cell = xp.clip(xp.floor(u), 0, top).astype(xp.int32)
-    # The cast keeps NumPy's float32 - int32 in float32, as JAX's promotion does.
-    return LocalBasis(cell=cell[0] * (shape[1] - 3) + cell[1],
-                      s=(u - cell.astype(u.dtype)) - 0.5, bucket_size=bucket_size)
+    cell, t = locate(xy, lower, upper, shape, xp)
+    # Stored centred, one row a coordinate: every evaluation works in s = t - 1/2 (see the
+    # module notes), and a subtraction shared by many kernels would be stored once more by
+    # XLA. On the host, rows made contiguous: the layouts slice them.
+    s = (t - 0.5).T
+    return LocalBasis(cell=flat_cell(cell, shape),
+                      s=np.ascontiguousarray(s) if xp is np else s, bucket_size=bucket_size)
 
 
 def with_table(local: LocalBasis, order: np.ndarray, valid: np.ndarray,
