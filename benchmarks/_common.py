@@ -6,6 +6,7 @@ from __future__ import annotations
 import json
 import os
 import platform
+import sys
 import time
 
 import numpy as np
@@ -55,3 +56,27 @@ def write_results(name: str, payload: dict, markdown: str, folder: str = RESULTS
         json.dump(payload, fh, indent=2)
     with open(os.path.join(folder, f"{name}.md"), "w") as fh:
         fh.write(markdown)
+
+
+def rerender_beside(path: str, render) -> str:
+    """Re-render a saved results JSON without measuring: ``render(data)`` returns the
+    markdown (and may recompute parts of ``data``); ``<name>.{json,md}`` are rewritten
+    beside ``path``, ``<name>`` being the JSON file's name, so a copy re-renders where it
+    lies and committed results only from their own JSON. Returns the markdown."""
+    with open(path) as fh:
+        data = json.load(fh)
+    text = render(data)
+    path = os.path.abspath(path)
+    write_results(os.path.splitext(os.path.basename(path))[0], data, text,
+                  os.path.dirname(path))
+    return text
+
+
+def elapsed_log():
+    """A ``log(msg)`` that prints to stderr with the seconds since this call."""
+    start = time.perf_counter()
+
+    def log(msg):
+        print(f"[{time.perf_counter() - start:7.1f} s] {msg}", file=sys.stderr, flush=True)
+
+    return log

@@ -35,7 +35,7 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, HERE)
 
 import speed  # noqa: E402  (the workers and their orchestration)
-from _common import machine, write_results  # noqa: E402
+from _common import elapsed_log, machine, rerender_beside, write_results  # noqa: E402
 from _speed_report import (  # noqa: E402
     _err, _find, _gb, _measured_row, _ms, _s, _table, _where, _x, step_passes_s,
 )
@@ -226,10 +226,7 @@ def main(argv=None):
                         help="re-render the markdown beside a results JSON")
     args = parser.parse_args(argv)
     if args.from_json:
-        with open(args.from_json) as fh:
-            data = json.load(fh)
-        name = os.path.splitext(os.path.basename(args.from_json))[0]
-        print(write(data, os.path.dirname(os.path.abspath(args.from_json)), name))
+        print(rerender_beside(args.from_json, report))
         return
 
     import jax
@@ -238,11 +235,7 @@ def main(argv=None):
     if jax.default_backend() == "cpu" and not args.quick:
         parser.error("JAX sees no accelerator (default backend: cpu); benchmarks/speed.py "
                      "is the CPU benchmark")
-    start = time.perf_counter()
-
-    def log(msg):
-        print(f"[{time.perf_counter() - start:7.1f} s] {msg}", file=sys.stderr, flush=True)
-
+    log = elapsed_log()
     data = run(args.quick, args.out, log)
     print(report(data))
     failed = [e for r in data["sweep"] for k, v in r.items() if isinstance(v, dict)

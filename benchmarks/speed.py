@@ -56,7 +56,9 @@ from _speed_config import (  # noqa: E402
     TARGET_RBF_POINTS, WORKER_TIMEOUT_S,
 )
 from _speed_report import arithmetic_bounds, evaluate_targets, report  # noqa: E402
-from _common import machine, time_repeated, write_results  # noqa: E402
+from _common import (  # noqa: E402
+    elapsed_log, machine, rerender_beside, time_repeated, write_results,
+)
 
 # --------------------------------------------------------------------------- measuring (workers)
 
@@ -555,19 +557,17 @@ def run_example4(log, runs: int = EXAMPLE4_RUNS) -> list[dict]:
 # --------------------------------------------------------------------------- main
 
 def rerender(path: str) -> None:
-    """Targets and markdown again from saved measurements (no measuring): rewrites
-    ``<name>.{json,md}`` beside ``path``, ``<name>`` being the JSON file's name (so a copy
-    re-renders where it lies, and the committed results only from their own JSON)."""
-    with open(path) as fh:
-        data = json.load(fh)
-    data["bounds"] = arithmetic_bounds(data["sweep"], data["example4"], data.get("ceiling"))
-    data["targets"] = evaluate_targets(data["sweep"], data["rbf"], data["example4"],
-                                       data["bounds"], data.get("tuned"), data.get("fit_steps"))
-    text = report(data)
-    print(text)
-    path = os.path.abspath(path)
-    write_results(os.path.splitext(os.path.basename(path))[0], data, text,
-                  os.path.dirname(path))
+    """Targets and markdown again from saved measurements (no measuring), rewritten beside
+    ``path`` (:func:`_common.rerender_beside`)."""
+    def render(data):
+        data["bounds"] = arithmetic_bounds(data["sweep"], data["example4"],
+                                           data.get("ceiling"))
+        data["targets"] = evaluate_targets(data["sweep"], data["rbf"], data["example4"],
+                                           data["bounds"], data.get("tuned"),
+                                           data.get("fit_steps"))
+        return report(data)
+
+    print(rerender_beside(path, render))
 
 
 def main(argv=None):
@@ -589,9 +589,7 @@ def main(argv=None):
 
     start = time.perf_counter()
     load_average = os.getloadavg()[0]
-
-    def log(msg):
-        print(f"[{time.perf_counter() - start:7.1f} s] {msg}", file=sys.stderr, flush=True)
+    log = elapsed_log()
 
     sweep_config = QUICK_SWEEP if args.quick else FULL_SWEEP
     sweep = run_sweep(sweep_config, log)
