@@ -304,7 +304,8 @@ def report(data: dict) -> str:
     """The markdown report (also printed)."""
     lines = [f"# Speed{' (QUICK run: small sizes only)' if data['quick'] else ''}", "",
              f"Machine: {data['machine']}. Device of the measurements: {data['device']}. "
-             f"float64. Whole run: {data['runtime_s'] / 60:.1f} min.",
+             f"float64. Whole run: {data['runtime_s'] / 60:.1f} min."
+             + _probe_text(data.get("ceiling")),
              "", "Load average when the run began (other work on the machine, before this "
              "run added its own): "
              + (f"{data['load_average']:.1f}" if "load_average" in data else "not recorded")
@@ -356,6 +357,15 @@ def report(data: dict) -> str:
     lines += _bounds_table(data.get("bounds", []), data.get("ceiling"))
     lines += _tuned_table(data.get("tuned"), data["sweep"], data.get("fit_steps"))
     return "\n".join(lines) + "\n"
+
+
+def _probe_text(ceiling) -> str:
+    """The machine's speed in this run, by which runs compare (it moves between runs)."""
+    if not ceiling or "macs_per_s" not in ceiling:
+        return ""
+    return (f" Machine speed in this run: a float64 matrix product of side {ceiling['n']} "
+            f"reached {ceiling['macs_per_s'] / 1e9:.3g} G multiply-adds/s (measured at the "
+            "end of the run; compare runs by it).")
 
 
 def _sweep_tables(sweep) -> list[str]:

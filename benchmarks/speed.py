@@ -46,12 +46,12 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 
 # The sizes, settings and targets live in _speed_config, the verdicts and the markdown in
 # _speed_report, the timer in _common (all next to this script, which is on sys.path when
-# it runs; none of them imports JAX, which each worker starts itself).
+# it runs; none of them imports JAX when imported: each worker starts it itself).
 from _speed_config import (  # noqa: E402
     ANALYSIS_RESOLUTION, CEILING_N, DENSE_LIMIT_BYTES, EPS, EXAMPLE4, EXAMPLE4_MAX_STEPS,
-    EXAMPLE4_RUNS, EXAMPLE4_TOL, FIT_STEPS, FULL_SWEEP, HUGEPAGE_ENV, LOOP_S,
-    LOOP_STEPS_MAX, LOOP_STEPS_MIN, LSQ_LAM, OFFSET, PASS_REPEATS, QUICK_RBF_POINTS, QUICK_SWEEP, RBF_GIVEN, RBF_GRIDS,
-    RBF_MAX_PREDICTED_S, REFERENCE_POINTS, REFINED_REFERENCE_SAMPLES,
+    EXAMPLE4_RUNS, EXAMPLE4_TOL, FIT_STEPS, FULL_SWEEP, HUGEPAGE_ENV, LOOP_S, LOOP_STEPS_MAX,
+    LOOP_STEPS_MIN, LSQ_LAM, OFFSET, PASS_REPEATS, QUICK_RBF_POINTS, QUICK_SWEEP, RBF_GIVEN,
+    RBF_GRIDS, RBF_MAX_PREDICTED_S, REFERENCE_POINTS, REFINED_REFERENCE_SAMPLES,
     REFINED_SAMPLES_PER_DIAGONAL, STEP_BUDGET_S, STEP_SOLVERS, TARGET_GRID, TARGET_POINTS,
     TARGET_RBF_POINTS, WORKER_TIMEOUT_S,
 )
