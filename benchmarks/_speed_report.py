@@ -229,7 +229,7 @@ def _rbf_verdict(label, required, j, b) -> dict:
                         f"Chamfer jurs {j['refined_chamfer']:.2e} vs RBF "
                         f"{b['refined_chamfer']:.2e}, "
                         f"{_x(j['refined_chamfer'] / b['refined_chamfer'])} the RBF's "
-                        f"(grid {'x'.join(map(str, j['grid']))})",
+                        f"(grid {_grid(j['grid'])})",
             "required": required, "verdict": "PASS" if ok else "MISS"}
 
 
@@ -312,6 +312,14 @@ def report(data: dict) -> str:
              + ". Timings taken beside other work are indicative.", ""]
     lines += [f"Note: {n}" for n in data.get("notes", [])] + [""] * bool(data.get("notes"))
     lines += ["## Targets", ""]
+    loop_note = [
+        "* **In a loop**: the same step run `k` times in one jitted `fori_loop` that "
+        "carries the state, as the driver's loop in `jurs.fit` does (median and fastest "
+        "loop, divided by `k`; `k` gives a loop of about 50 ms, 5 to 200 steps). A step "
+        "called on its own returns its whole state in fresh buffers; a loop updates its "
+        "carry in place. NormalIPIA's state holds the assembled stencil (6.4 MB at "
+        "128 x 128), which a step called on its own copies every call."
+    ] if any("loop_step_warm_s" in r["iurs"] for r in data["sweep"]) else []
     lines += _table(["target", "measured", "required", "verdict"],
                     [[t["target"], t["measured"], t["required"], t["verdict"]]
                      for t in data["targets"]])
@@ -325,14 +333,7 @@ def report(data: dict) -> str:
               f"above that, 1 after one above {LONG_CALL_S:g} s), at most 20; the minimum is "
               "shown in brackets "
               "(closest to an unshared machine).",
-              ] + [
-              "* **In a loop**: the same step run `k` times in one jitted `fori_loop` that "
-              "carries the state, as the driver's loop in `jurs.fit` does (median and fastest "
-              "loop, divided by `k`; `k` gives a loop of about 50 ms, 5 to 200 steps). A step "
-              "called on its own returns its whole state in fresh buffers; a loop updates its "
-              "carry in place. NormalIPIA's state holds the assembled stencil (6.4 MB at "
-              "128 x 128), which a step called on its own copies every call."
-              ] * any("loop_step_warm_s" in r["iurs"] for r in data["sweep"]) + [
+              *loop_note,
               "* **NormalIPIA assembly**: its `init` (D^T D as a 49-point stencil and D^T b), "
               "warm, and its first call (with compilation), apart from its step.",
               f"* **LeastSquares**: `jurs.fit(points, normals, grid, solver=LeastSquares("
@@ -468,7 +469,7 @@ def _rbf_table(rbf_rows) -> list[str]:
             f"{j['chamfer']:.2e} / {b['chamfer']:.2e}",
             f"{j['num_components']}/{j['num_supplementary']} vs "
             f"{b['num_components']}/{b['num_supplementary']}",
-            f"{'x'.join(map(str, c['grid']))}: {c['refined_chamfer']:.2e}, "
+            f"{_grid(c['grid'])}: {c['refined_chamfer']:.2e}, "
             f"{c['num_components']}/{c['num_supplementary']}, {_ms(c['warm_s'])} "
             f"({_x(b['fit_s'] / c['warm_s'])})"])
     lines += _table(["m", "jurs grid", "d", "RBF fit", "jurs warm", "jurs first call",

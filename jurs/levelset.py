@@ -236,7 +236,7 @@ def project_to_zero_set(fn, points, *, grad=None, steps: int = 3, tol: float | N
     extent = extent if extent > 0 else 1.0
     tol = 1e-11 * extent if tol is None else float(tol)
     step = 1e-7 * extent if step is None else float(step)
-    spline = hasattr(fn, "control") and hasattr(fn, "grad")  # as evaluate_grid tells one
+    spline = hasattr(fn, "control") and hasattr(fn, "grad")  # an ImplicitSpline, duck-typed
     value_of = (lambda xy: _evaluate(fn, xy)) if spline else fn
     if grad is not None:
         gradient = grad
@@ -277,9 +277,9 @@ def refined_chamfer_hausdorff(fn, zero_points, reference, *, grad=None, closed: 
     """
     reference = np.asarray(reference, float).reshape(-1, 2)
     zero_points = np.asarray(zero_points, float).reshape(-1, 2)
-    count = len(reference) if reference_samples is None else int(reference_samples)
-    if count < 1:
+    if reference_samples is not None and int(reference_samples) < 1:
         raise ValueError(f"reference_samples must be >= 1, got {reference_samples}")
+    count = len(reference) if reference_samples is None else int(reference_samples)
     if len(zero_points) == 0 or len(reference) == 0:
         return {"chamfer": float("inf"), "hausdorff": float("inf"),
                 "unconverged_zero": 0, "unconverged_reference": 0}

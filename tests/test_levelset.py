@@ -283,5 +283,7 @@ def test_refined_chamfer_resolves_what_the_sampled_one_cannot():
     assert default == pytest.approx(out, rel=1e-9)
     empty = ls.refined_chamfer_hausdorff(spline, np.empty((0, 2)), ref)
     assert empty["chamfer"] == empty["hausdorff"] == np.inf
+    no_reference = ls.refined_chamfer_hausdorff(spline, zero, np.empty((0, 2)))
+    assert no_reference["chamfer"] == no_reference["hausdorff"] == np.inf
     with pytest.raises(ValueError, match="reference_samples"):
         ls.refined_chamfer_hausdorff(spline, zero, ref, reference_samples=0)
