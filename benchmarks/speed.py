@@ -389,9 +389,7 @@ def work_rbf(spec: dict) -> dict:
                   solver=jurs.LeastSquares(lam=settings.lam))
 
     def given(options):  # automatic settings around the given ones, timed too
-        st = jurs.auto_settings(points, normals, **options)
-        return jurs.fit(points, normals, grid=st.grid, offset=st.offset, eps=st.eps,
-                        solver=jurs.LeastSquares(lam=st.lam))
+        return jurs.fit(points, normals, **options)
 
     def measured(run):
         spline = run["output"].spline

@@ -40,6 +40,7 @@ from ._problem import (
     DEFAULT_MARGIN,
     _is_concrete,
     auto_domain,
+    check_nonnegative,
     normalise_grid,
     offset_samples,
     validate_inputs,
@@ -279,6 +280,8 @@ def auto_settings(points, normals, *, grid=None, offset=None, eps=None, domain=N
             "jurs.auto_settings(points, normals) called outside")
     validate_inputs(points, normals, offset=1.0 if offset is None else offset,
                     eps=1.0 if eps is None else eps, domain=None)
+    if smoothing is not None:
+        check_nonnegative("smoothing", smoothing)
     p = np.asarray(points, float)
     n = _unit(np.asarray(normals, float))
     tree = cKDTree(p)

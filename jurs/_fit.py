@@ -67,6 +67,7 @@ def fit(
     init: ImplicitSpline | None = None,
     mask=None,
     bucket_size: int | None = None,
+    smoothing: float | None = None,
     throw: bool = True,
 ) -> Solution:
     """Fit an implicit spline whose zero set passes through ``points``.
@@ -91,6 +92,9 @@ def fit(
         mask: optional ``(m,)`` booleans, False marking padding points that take no part
             (for ``jax.vmap`` over clouds padded to one size).
         bucket_size: sample layout, see :func:`jurs.make_problem` (None chooses).
+        smoothing: the dimensionless strength of the default solver's lambda
+            (:func:`jurs.auto_settings`); None chooses. Only with ``solver=None``: a solver
+            given keeps its own lambda.
         throw: raise if the energy becomes NaN/Inf (the last finite iterate is kept either
             way; ``sol.result`` says what happened).
 
@@ -108,12 +112,15 @@ def fit(
     level.
     """
     settings = None
+    if smoothing is not None and solver is not None:
+        raise ValueError("smoothing sets the default solver's lambda; with a solver given, "
+                         "set its lam instead")
     if grid is None or offset is None or eps is None or solver is None:
         if mask is not None:
             raise ValueError("automatic settings do not take a mask; pass grid, offset, eps "
                              "and solver explicitly for padded batches")
         settings = auto_settings(points, normals, grid=grid, offset=offset, eps=eps,
-                                 domain=domain, margin=margin)
+                                 domain=domain, margin=margin, smoothing=smoothing)
         grid, offset, eps = settings.grid, settings.offset, settings.eps
         solver = LeastSquares(lam=settings.lam) if solver is None else solver
     shape = normalise_grid(grid)

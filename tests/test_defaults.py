@@ -104,6 +104,20 @@ def test_overrides_are_kept(lobes):
     assert jurs.fit(p, n, grid=12, offset=0.1, eps=0.01, solver=jurs.IPIA(max_steps=2)).settings is None
 
 
+def test_fit_takes_the_smoothing_of_its_default_solver(lobes):
+    p, n = lobes
+    chosen = jurs.auto_settings(p, n, grid=12, smoothing=1e-4)
+    sol = jurs.fit(p, n, grid=12, smoothing=1e-4)
+    assert sol.settings == chosen
+    assert float(sol.metrics["lam"]) == pytest.approx(chosen.lam, rel=1e-12)
+    assert sol.settings.lam != jurs.auto_settings(p, n, grid=12).lam
+    with pytest.raises(ValueError, match="solver given"):
+        jurs.fit(p, n, smoothing=1e-4, solver=jurs.LeastSquares(lam=0.1))
+    for bad in (-1.0, float("nan")):
+        with pytest.raises(ValueError, match="smoothing must be"):
+            jurs.fit(p, n, smoothing=bad)
+
+
 def test_traced_points_need_explicit_settings(lobes):
     p, n = lobes
     with pytest.raises(ValueError, match="concrete points"):
