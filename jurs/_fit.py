@@ -9,7 +9,7 @@ import jax
 import jax.numpy as jnp
 
 from ._compile import COMPILER_OPTIONS
-from ._defaults import Settings, auto_settings
+from ._defaults import auto_settings
 from ._problem import DEFAULT_MARGIN, _is_concrete, make_problem, normalise_grid
 from ._solution import Solution
 from ._spline import ImplicitSpline

@@ -4,7 +4,6 @@ import numpy as np
 import pytest
 from matplotlib.path import Path
 
-import jurs
 from jurs import datasets
 
 
