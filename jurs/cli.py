@@ -96,6 +96,10 @@ def build_parser() -> argparse.ArgumentParser:
                    help="regularisation weight: eq. 33's lambda for iurs (keep it well below "
                         "1/16; None is 0), the objective's lambda in E_d + lam R for lstsq "
                         "and auto (None chooses); ipia has none")
+    f.add_argument("--smoothing", type=_nonneg, default=None,
+                   help="auto only: the dimensionless strength the automatic lambda is made "
+                        "from (jurs.auto_settings; about 1e-6 on clean clouds to 1e-3 on "
+                        "noisy ones); None chooses")
     f.add_argument("--tau", type=_nonneg, default=1e-2, help="weight step size (iurs, eq. 20)")
     f.add_argument("-d", "--offset", type=_positive, default=None,
                    help="offset distance d; None chooses from the data")
@@ -239,9 +243,12 @@ def run_fit(args) -> int:
         raise InputError(f"--resolution must be >= 16, got {args.resolution}")
     if os.path.exists(args.output) and not os.path.isdir(args.output):
         raise InputError(f"{args.output}: exists and is not a folder")
+    if args.smoothing is not None and (args.solver != "auto" or args.lam is not None):
+        raise InputError("--smoothing sets the automatic lambda of --solver auto; "
+                         "give --lam instead")
     try:  # auto_settings runs make_problem's input checks (e.g. degenerate clouds) first
         chosen = jurs.auto_settings(points, normals, grid=args.grid, offset=args.offset,
-                                    eps=args.eps)
+                                    eps=args.eps, smoothing=args.smoothing)
     except ValueError as exc:
         raise InputError(f"{path}: {_one_line(exc)}") from None
     settings = dict(grid=chosen.grid, offset=chosen.offset, eps=chosen.eps)

@@ -98,6 +98,12 @@ def test_npy_input(tmp_path):
     assert record["settings"]["grid"] == list(chosen.grid)
     assert record["settings"]["lam"] == pytest.approx(chosen.lam, rel=1e-12)
     assert record["settings"]["offset"] == pytest.approx(chosen.offset, rel=1e-12)
+    # --smoothing sets the automatic lambda's strength.
+    rc = cli.main(["fit", str(path), "-o", str(tmp_path / "s"), *FIT_ARGS, "--smoothing", "1e-4"])
+    record = json.loads((tmp_path / "s" / "metrics.json").read_text())
+    smoothed = jurs.auto_settings(0.5 * p + 1.0, n, smoothing=1e-4)
+    assert rc == 0 and record["settings"]["chosen_from_data"]["smoothing"] == 1e-4
+    assert record["settings"]["lam"] == pytest.approx(smoothed.lam, rel=1e-12)
 
 
 GOOD = "x,y,nx,ny\n1,0,1,0\n0,1,0,1\n-1,0,-1,0\n0,-1,0,-1\n"
@@ -175,6 +181,9 @@ def test_bad_options_exit_2(tmp_path, capsys):
     assert cli.main(["fit", str(path), "-o", str(tmp_path / "o"), "--solver", "ipia",
                      "--lam", "0.1"]) == 2
     assert "ipia" in capsys.readouterr().err
+    for args in (["--smoothing", "1e-4", "--lam", "0.1"], ["--smoothing", "1e-4", "--solver", "iurs"]):
+        assert cli.main(["fit", str(path), "-o", str(tmp_path / "o"), *args]) == 2
+        assert "--smoothing" in capsys.readouterr().err
     assert not (tmp_path / "o").exists()
 
 
