@@ -58,6 +58,8 @@ import equinox as eqx
 import numpy as np
 from scipy.spatial import cKDTree
 
+from ._spline import ImplicitSpline
+
 #: Default number of grid nodes along the longer side of the box.
 DEFAULT_RESOLUTION = 512
 #: Default tiny-loop size, in grid cells of perimeter.
@@ -236,7 +238,7 @@ def project_to_zero_set(fn, points, *, grad=None, steps: int = 3, tol: float | N
     extent = extent if extent > 0 else 1.0
     tol = 1e-11 * extent if tol is None else float(tol)
     step = 1e-7 * extent if step is None else float(step)
-    spline = hasattr(fn, "control") and hasattr(fn, "grad")  # an ImplicitSpline, duck-typed
+    spline = isinstance(fn, ImplicitSpline)
     value_of = (lambda xy: _evaluate(fn, xy)) if spline else fn
     if grad is not None:
         gradient = grad
