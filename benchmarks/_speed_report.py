@@ -305,7 +305,7 @@ def report(data: dict) -> str:
     lines = [f"# Speed{' (QUICK run: small sizes only)' if data['quick'] else ''}", "",
              f"Machine: {data['machine']}. Device of the measurements: {data['device']}. "
              f"float64. Whole run: {data['runtime_s'] / 60:.1f} min."
-             + _probe_text(data.get("ceiling")),
+             + _probe_text(data.get("ceiling"), data.get("ceiling_start")),
              "", "Load average when the run began (other work on the machine, before this "
              "run added its own): "
              + (f"{data['load_average']:.1f}" if "load_average" in data else "not recorded")
@@ -360,13 +360,17 @@ def report(data: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _probe_text(ceiling) -> str:
-    """The machine's speed in this run, by which runs compare (it moves between runs)."""
+def _probe_text(ceiling, ceiling_start=None) -> str:
+    """The machine's speed in this run, by which runs compare (it moves between runs): the
+    probe at the end, and at the start where the run recorded one."""
     if not ceiling or "macs_per_s" not in ceiling:
         return ""
-    return (f" Machine speed in this run: a float64 matrix product of side {ceiling['n']} "
-            f"reached {ceiling['macs_per_s'] / 1e9:.3g} G multiply-adds/s (measured at the "
-            "end of the run; compare runs by it).")
+    rate = lambda probe: f"{probe['macs_per_s'] / 1e9:.3g} G multiply-adds/s"  # noqa: E731
+    text = f" Machine speed in this run: a float64 matrix product of side {ceiling['n']} reached "
+    if ceiling_start and "macs_per_s" in ceiling_start:
+        return text + (f"{rate(ceiling_start)} at the start of the run and {rate(ceiling)} at "
+                       "its end (compare runs by it).")
+    return text + f"{rate(ceiling)} (measured at the end of the run; compare runs by it)."
 
 
 def _sweep_tables(sweep) -> list[str]:

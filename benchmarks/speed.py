@@ -589,6 +589,8 @@ def main(argv=None):
     load_average = os.getloadavg()[0]
     log = elapsed_log()
 
+    # The machine's speed moves between runs, and sometimes within one: probed at both ends.
+    ceiling_start = run_worker({"kind": "ceiling", "n": CEILING_N}, log)
     sweep_config = QUICK_SWEEP if args.quick else FULL_SWEEP
     sweep = run_sweep(sweep_config, log)
     port = run_port(sweep, log)
@@ -604,7 +606,7 @@ def main(argv=None):
             "targets": evaluate_targets(sweep, rbf, example4, bounds, tuned, fit_steps),
             "sweep": sweep, "port": port, "rbf": rbf, "example4": example4,
             "tuned": tuned, "fit_steps": fit_steps,
-            "ceiling": ceiling, "bounds": bounds, "load_average": load_average,
+            "ceiling": ceiling, "ceiling_start": ceiling_start, "bounds": bounds, "load_average": load_average,
             "runtime_s": time.perf_counter() - start}
     text = report(data)
     print(text)
