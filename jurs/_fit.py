@@ -11,7 +11,7 @@ import jax.numpy as jnp
 from ._compile import COMPILER_OPTIONS
 from ._defaults import auto_settings
 from ._problem import DEFAULT_MARGIN, _is_concrete, make_problem, normalise_grid
-from ._solution import Solution
+from ._solution import RESULTS, Solution
 from ._spline import ImplicitSpline
 from .solvers import AbstractSolver, LeastSquares, solve
 
@@ -96,7 +96,9 @@ def fit(
             (:func:`jurs.auto_settings`); None chooses. Only with ``solver=None``: a solver
             given keeps its own lambda.
         throw: raise if the energy becomes NaN/Inf (the last finite iterate is kept either
-            way; ``sol.result`` says what happened).
+            way; ``sol.result`` says what happened). Called outside any JAX
+            transformation, the fit is checked once it has run, so this call then waits
+            for it.
 
     Returns:
         :class:`jurs.Solution`. Jit-compiled inside; traceable, so ``jax.grad`` and
@@ -135,5 +137,13 @@ def fit(
                            margin=margin, mask=mask, bucket_size=bucket_size, dtype=dtype)
     solver = _as_arrays(solver, dtype)
     run = _solve_reassociating if reassociates(problem, solver, init) else _solve
-    sol = run(problem, solver, init, throw)
+    if _at_top_level((problem, solver, init)):
+        # ``throw`` checked on the host after the call, not by a host callback inside it:
+        # a compiled fit with a callback is never written to JAX's persistent compilation
+        # cache, and without one a new process loads the fit instead of compiling it.
+        sol = run(problem, solver, init, False)
+        if throw and bool(sol.result == RESULTS.nonfinite):
+            raise eqx.EquinoxRuntimeError(RESULTS[RESULTS.nonfinite])
+    else:
+        sol = run(problem, solver, init, throw)
     return sol if settings is None else dataclasses.replace(sol, settings=settings)

@@ -1,6 +1,10 @@
 """``jurs.COMPILER_OPTIONS``: they keep IEEE NaN/Inf semantics, move jurs's own solvers only
 at rounding level, and ``jurs.fit`` uses them only where XLA accepts them."""
 
+import os
+import subprocess
+import sys
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -92,3 +96,25 @@ def test_fit_of_a_large_layout_with_and_without_transformations(monkeypatch):
     value, slope = jax.value_and_grad(energy)(1e-3)
     assert calls == [1] and np.isfinite(float(slope))
     np.testing.assert_allclose(float(value), float(sol.metrics["E_ave"]), rtol=1e-10)
+
+
+FIT_IN_A_FRESH_PROCESS = """
+import jax
+jax.config.update("jax_enable_x64", True)
+import jurs
+points, normals = jurs.datasets.example1(60)
+sol = jurs.fit(points, normals, grid=9, offset=0.1, eps=0.01, solver=jurs.IURS(max_steps=5))
+print(int(sol.stats["num_steps"]))
+"""
+
+
+def test_a_fit_is_kept_by_the_persistent_compilation_cache(tmp_path):
+    """jurs.fit at top level (throw=True by default) compiles no host callback into the fit,
+    so JAX's persistent compilation cache stores it and a new process loads it."""
+    env = dict(os.environ, JAX_COMPILATION_CACHE_DIR=str(tmp_path),
+               JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0", JAX_PLATFORMS="cpu")
+    proc = subprocess.run([sys.executable, "-c", FIT_IN_A_FRESH_PROCESS], env=env,
+                          capture_output=True, text=True, timeout=300)
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.split() == ["5"]
+    assert [p for p in os.listdir(tmp_path) if p.startswith("jit__run-")], os.listdir(tmp_path)
