@@ -621,7 +621,8 @@ def main(argv=None):
             "targets": evaluate_targets(sweep, rbf, example4, bounds, tuned, fit_steps),
             "sweep": sweep, "port": port, "rbf": rbf, "example4": example4,
             "tuned": tuned, "fit_steps": fit_steps,
-            "ceiling": ceiling, "ceiling_start": ceiling_start, "bounds": bounds, "load_average": load_average,
+            "ceiling": ceiling, "ceiling_start": ceiling_start, "bounds": bounds,
+            "load_average": load_average,
             "runtime_s": time.perf_counter() - start}
     text = report(data)
     print(text)
