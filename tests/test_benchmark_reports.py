@@ -20,16 +20,13 @@ def _load(name):
         return fh.read()
 
 
-@pytest.mark.parametrize("name", ["speed", "speed_slow_host"])
-def test_speed_md_is_rendered_from_speed_json(name):
-    """speed.md, and the run kept beside it from a slow phase of the machine (the first
-    with the in-loop step timings)."""
-    data = json.loads(_load(f"{name}.json"))
+def test_speed_md_is_rendered_from_speed_json():
+    data = json.loads(_load("speed.json"))
     data["bounds"] = speed.arithmetic_bounds(data["sweep"], data["example4"], data.get("ceiling"))
     data["targets"] = speed.evaluate_targets(data["sweep"], data["rbf"], data["example4"],
                                              data["bounds"], data.get("tuned"),
                                              data.get("fit_steps"))
-    assert speed.report(data) == _load(f"{name}.md")
+    assert speed.report(data) == _load("speed.md")
 
 
 def test_speed_gpu_md_is_rendered_from_its_json_and_the_cpu_run():
