@@ -126,17 +126,15 @@ def evaluate_targets(sweep, rbf, example4, bounds=(), tuned=None, fit_steps=None
 
 
 def _normal_ipia_target(sweep) -> dict:
-    """NormalIPIA's step at the target grid, worst over m: in a jitted loop, as a solve
-    runs it, where measured (a step called on its own, shown beside it, also copies the
-    assembled stencil it returns in its state); else called on its own."""
+    """NormalIPIA's step at the target grid, worst over m, in a jitted loop, as a solve
+    runs it (a step called on its own, shown beside it, also copies the assembled stencil
+    it returns in its state)."""
     rows = sorted((r["m"], r["normal_ipia"]) for r in sweep
                   if r["grid"] == TARGET_GRID and "step_warm_s" in r["normal_ipia"])
-    looped = bool(rows) and all("loop_step_warm_s" in res for _, res in rows)
-    key = "loop_step_warm_s" if looped else "step_warm_s"
+    key = "loop_step_warm_s"
     worst = max((res[key] for _, res in rows), default=None)
     how = ("in a jitted loop of steps (median / steps; called on its own: "
-           + ", ".join(f"{_ms(res['step_warm_s'])} at m = {m:.0e}" for m, res in rows) + ")"
-           if looped else "called on its own")
+           + ", ".join(f"{_ms(res['step_warm_s'])} at m = {m:.0e}" for m, res in rows) + ")")
     measured = (f"{_ms(worst)} (" + ", ".join(f"{_ms(res[key])} at m = {m:.0e}"
                                               for m, res in rows) + f"), {how}"
                 if rows else "—")
@@ -317,14 +315,13 @@ def report(data: dict) -> str:
              + ". Timings taken beside other work are indicative.", ""]
     lines += [f"Note: {n}" for n in data.get("notes", [])] + [""] * bool(data.get("notes"))
     lines += ["## Targets", ""]
-    loop_note = [
+    loop_note = (
         "* **In a loop**: the same step run `k` times in one jitted `fori_loop` that "
         "carries the state, as the driver's loop in `jurs.fit` does (median and fastest "
         "loop, divided by `k`; `k` gives a loop of about 50 ms, 5 to 200 steps). A step "
         "called on its own returns its whole state in fresh buffers; a loop updates its "
         "carry in place. NormalIPIA's state holds the assembled stencil (6.4 MB at "
-        "128 x 128), which a step called on its own copies every call."
-    ] if any("loop_step_warm_s" in r["iurs"] for r in data["sweep"]) else []
+        "128 x 128), which a step called on its own copies every call.")
     lines += _table(["target", "measured", "required", "verdict"],
                     [[t["target"], t["measured"], t["required"], t["verdict"]]
                      for t in data["targets"]])
@@ -338,7 +335,7 @@ def report(data: dict) -> str:
               f"above that, 1 after one above {LONG_CALL_S:g} s), at most 20; the minimum is "
               "shown in brackets "
               "(closest to an unshared machine).",
-              *loop_note,
+              loop_note,
               "* **NormalIPIA assembly**: its `init` (D^T D as a 49-point stencil and D^T b), "
               "warm, and its first call (with compilation), apart from its step.",
               f"* **LeastSquares**: `jurs.fit(points, normals, grid, solver=LeastSquares("
@@ -365,9 +362,9 @@ def report(data: dict) -> str:
     return "\n".join(lines) + "\n"
 
 
-def _probe_text(ceiling, ceiling_start=None) -> str:
+def _probe_text(ceiling, ceiling_start) -> str:
     """The machine's speed in this run, by which runs compare (it moves between runs): the
-    probe at the end, and at the start where the run recorded one."""
+    probe at its start and at its end (the end alone where the first probe failed)."""
     if not ceiling or "macs_per_s" not in ceiling:
         return ""
     rate = lambda probe: f"{probe['macs_per_s'] / 1e9:.3g} G multiply-adds/s"  # noqa: E731
@@ -382,22 +379,19 @@ def _sweep_tables(sweep) -> list[str]:
     lines = []
     for key, (label, _, _) in STEP_SOLVERS.items():
         extra = ["assembly (init) warm", "assembly first call"] if key == "normal_ipia" else []
-        looped = any("loop_step_warm_s" in r[key] for r in sweep)
-        loop_cells = (lambda res: [f"{_ms(res.get('loop_step_warm_s'))} "
-                                   f"({_ms(res.get('loop_step_min_s'))})",
-                                   res.get("loop_steps", "—")]) if looped else (lambda res: [])
         rows = []
         for r in sweep:
             res = r[key]
-            rows.append(_measured_row(_where(r), res, 5 + 2 * looped + len(extra), lambda: [
-                f"{_ms(res['step_warm_s'])} ({_ms(res['step_min_s'])})"] + loop_cells(res) + [
+            rows.append(_measured_row(_where(r), res, 7 + len(extra), lambda: [
+                f"{_ms(res['step_warm_s'])} ({_ms(res['step_min_s'])})",
+                f"{_ms(res['loop_step_warm_s'])} ({_ms(res['loop_step_min_s'])})",
+                res["loop_steps"],
                 _s(res["step_compile_s"]), _gb(res["peak_over_base_b"]), _gb(res["peak_b"]),
                 _s(res["build_s"])] + ([_ms(res["init_warm_s"]), _s(res["init_first_s"])]
                                        if extra else [])))
         lines += [f"## {label}: one step", ""]
-        lines += _table(["m", "grid", "warm step (min)"]
-                        + ["in a loop: step (min)", "loop steps"] * looped
-                        + ["compile", "peak over base", "peak RSS", "problem build"] + extra,
+        lines += _table(["m", "grid", "warm step (min)", "in a loop: step (min)",
+                         "loop steps", "compile", "peak over base", "peak RSS", "problem build"] + extra,
                         rows)
         lines.append("")
     rows = []
@@ -509,34 +503,30 @@ def _rbf_table(rbf_rows) -> list[str]:
 
 
 def _example4_table(rows_in) -> list[str]:
-    cached = any("cold_cached_runs_s" in r for r in rows_in)
     lines = ["## Full regularised IURS fits of Example-4 size", "",
              f"`jurs.fit(points, normals, grid=15, solver=IURS(tau, lam, tol={EXAMPLE4_TOL:g}, "
              f"max_steps={EXAMPLE4_MAX_STEPS}))` on `jurs.shapes.get(shape, points)`. Cold: "
              "the first call in a fresh process, compilation included (imports timed apart); "
              "warm: median of later calls. Each fit runs in several fresh processes: cold and "
              "warm are the medians over them, with the range of the cold times and the fastest "
-             "warm call."
-             + (" *Cold, cache filled*: the same first call where JAX's persistent "
-                "compilation cache (`JAX_COMPILATION_CACHE_DIR`, with "
-                "`JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS=0`) holds the fit, compiled by "
-                "one process before these: the process loads it instead of compiling it "
-                "(median and range over as many processes)."
-                if cached else ""), ""]
+             "warm call. *Cold, cache filled*: the same first call where JAX's persistent "
+             "compilation cache (`JAX_COMPILATION_CACHE_DIR`, with "
+             "`JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS=0`) holds the fit, compiled by one "
+             "process before these: the process loads it instead of compiling it (median and "
+             "range over as many processes).", ""]
     rows = []
     for r in rows_in:
         cells = [r["label"], _grid(r['grid']), f"{r['tau']:g}", f"{r['lam']:g}"]
         runs = r.get("cold_runs_s") or []
         cached_runs = r.get("cold_cached_runs_s") or []
-        cache_cells = ([f"{_s(r['cold_cached_s'])} ({_range(cached_runs)})" if cached_runs
-                        else "—"] if cached else [])
-        rows.append(_measured_row(cells, r, 7 + len(cache_cells), lambda: [
+        cached = (f"{_s(r['cold_cached_s'])} ({_range(cached_runs)})" if cached_runs
+                  else "—")
+        rows.append(_measured_row(cells, r, 8, lambda: [
             r["num_steps"], r["result"], f"{_ms(r['warm_s'])} ({_ms(r['min_s'])})",
-            _s(r["cold_s"]), _range(runs) if runs else "—", *cache_cells,
+            _s(r["cold_s"]), _range(runs) if runs else "—", cached,
             _s(r["import_s"]), f"{r['E_ave']:.2e}"]))
     lines += _table(["fit", "grid", "tau", "lam", "steps", "result", "warm (fastest)", "cold",
-                     "cold range"] + (["cold, cache filled (range)"] if cached else [])
-                    + ["imports", "E_ave"], rows)
+                     "cold range", "cold, cache filled (range)", "imports", "E_ave"], rows)
     timed = [r for r in rows_in if r.get("passes") and "num_steps" in r]
     if not timed:
         return lines + [""]
