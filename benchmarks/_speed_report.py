@@ -390,9 +390,8 @@ def _sweep_tables(sweep) -> list[str]:
                 _s(res["build_s"])] + ([_ms(res["init_warm_s"]), _s(res["init_first_s"])]
                                        if extra else [])))
         lines += [f"## {label}: one step", ""]
-        lines += _table(["m", "grid", "warm step (min)", "in a loop: step (min)",
-                         "loop steps", "compile", "peak over base", "peak RSS", "problem build"] + extra,
-                        rows)
+        lines += _table(["m", "grid", "warm step (min)", "in a loop: step (min)", "loop steps",
+                         "compile", "peak over base", "peak RSS", "problem build"] + extra, rows)
         lines.append("")
     rows = []
     for r in sweep:
