@@ -44,14 +44,18 @@ def _at_top_level(tree) -> bool:
     return bool(trace_state_clean())
 
 
+def _reassociation_pays(problem, solver) -> bool:
+    """For solvers that declare themselves safe with :data:`jurs.COMPILER_OPTIONS`
+    (``reassociation_safe``) on problems in the bucketed power form (the large ones, where
+    the per-bucket sums are and where the options were measured to pay)."""
+    local = problem.local
+    return type(solver).reassociation_safe and local.terms is None and local.bucket_size > 1
+
+
 def reassociates(problem, solver, init=None) -> bool:
     """Whether :func:`jurs.fit` compiles this solve with :data:`jurs.COMPILER_OPTIONS`:
-    for solvers that declare themselves safe with them (``reassociation_safe``) on
-    problems in the bucketed power form (the large ones, where the per-bucket sums are
-    and where the options were measured to pay), when called at top level."""
-    local = problem.local
-    return (type(solver).reassociation_safe and local.terms is None
-            and local.bucket_size > 1 and _at_top_level((problem, solver, init)))
+    where they pay (:func:`_reassociation_pays`), when called at top level."""
+    return _reassociation_pays(problem, solver) and _at_top_level((problem, solver, init))
 
 
 def fit(
@@ -136,8 +140,10 @@ def fit(
     problem = make_problem(points, normals, grid=shape, offset=offset, eps=eps, domain=domain,
                            margin=margin, mask=mask, bucket_size=bucket_size, dtype=dtype)
     solver = _as_arrays(solver, dtype)
-    run = _solve_reassociating if reassociates(problem, solver, init) else _solve
-    if _at_top_level((problem, solver, init)):
+    top_level = _at_top_level((problem, solver, init))
+    run = (_solve_reassociating if top_level and _reassociation_pays(problem, solver)
+           else _solve)
+    if top_level:
         # ``throw`` checked on the host after the call, not by a host callback inside it:
         # a compiled fit with a callback is never written to JAX's persistent compilation
         # cache, and without one a new process loads the fit instead of compiling it.
