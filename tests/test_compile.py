@@ -104,17 +104,22 @@ jax.config.update("jax_enable_x64", True)
 import jurs
 points, normals = jurs.datasets.example1(60)
 sol = jurs.fit(points, normals, grid=9, offset=0.1, eps=0.01, solver=jurs.IURS(max_steps=5))
-print(int(sol.stats["num_steps"]))
+problem = jurs.make_problem(points, normals, grid=9, offset=0.1, eps=0.01)
+def users_solve(problem):
+    return jurs.solve(jurs.IURS(max_steps=4), problem, throw=False)
+print(int(sol.stats["num_steps"]), int(jax.jit(users_solve)(problem).stats["num_steps"]))
 """
 
 
 def test_a_fit_is_kept_by_the_persistent_compilation_cache(tmp_path):
     """jurs.fit at top level (throw=True by default) compiles no host callback into the fit,
-    so JAX's persistent compilation cache stores it and a new process loads it."""
+    so JAX's persistent compilation cache stores it and a new process loads it; so does a
+    caller's jit of jurs.solve with throw=False, as its docstring advises."""
     env = dict(os.environ, JAX_COMPILATION_CACHE_DIR=str(tmp_path),
                JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0", JAX_PLATFORMS="cpu")
     proc = subprocess.run([sys.executable, "-c", FIT_IN_A_FRESH_PROCESS], env=env,
                           capture_output=True, text=True, timeout=300)
     assert proc.returncode == 0, proc.stderr
-    assert proc.stdout.split() == ["5"]
-    assert [p for p in os.listdir(tmp_path) if p.startswith("jit__run-")], os.listdir(tmp_path)
+    assert proc.stdout.split() == ["5", "4"]
+    for name in ("jit__run-", "jit_users_solve-"):
+        assert [p for p in os.listdir(tmp_path) if p.startswith(name)], os.listdir(tmp_path)

@@ -26,6 +26,12 @@ def solve(solver: AbstractSolver, problem: Problem, spline: ImplicitSpline | Non
     last finite iterate, and with ``throw=True`` a runtime error is raised. Reaching
     ``max_steps`` is reported in ``sol.result`` but never raised: Algorithm 1 stops there
     by design. Traceable: jit, grad and vmap go through it.
+
+    ``throw=True`` compiles a host callback into the solve (``eqx.error_if``), and JAX's
+    persistent compilation cache does not store programs that hold one. Under your own
+    ``jax.jit`` pass ``throw=False`` and check ``sol.result`` yourself if new processes
+    should load the compiled solve from that cache (:func:`jurs.fit` at top level does
+    this by itself).
     """
     if spline is None:
         dtype = problem.samples.dtype
