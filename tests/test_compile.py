@@ -113,8 +113,8 @@ print(int(sol.stats["num_steps"]), int(jax.jit(users_solve)(problem).stats["num_
 
 def test_a_fit_is_kept_by_the_persistent_compilation_cache(tmp_path):
     """jurs.fit at top level (throw=True by default) compiles no host callback into the fit,
-    so JAX's persistent compilation cache stores it and a new process loads it; so does a
-    caller's jit of jurs.solve with throw=False, as its docstring advises."""
+    so JAX's persistent compilation cache writes it, for new processes to load; it writes
+    a caller's jit of jurs.solve with throw=False too, as solve's docstring says."""
     env = dict(os.environ, JAX_COMPILATION_CACHE_DIR=str(tmp_path),
                JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0", JAX_PLATFORMS="cpu")
     proc = subprocess.run([sys.executable, "-c", FIT_IN_A_FRESH_PROCESS], env=env,
