@@ -130,12 +130,11 @@ def _normal_ipia_target(sweep) -> dict:
     runs it (a step called on its own, shown beside it, also copies the assembled stencil
     it returns in its state)."""
     rows = sorted((r["m"], r["normal_ipia"]) for r in sweep
-                  if r["grid"] == TARGET_GRID and "step_warm_s" in r["normal_ipia"])
-    key = "loop_step_warm_s"
-    worst = max((res[key] for _, res in rows), default=None)
+                  if r["grid"] == TARGET_GRID and "loop_step_warm_s" in r["normal_ipia"])
+    worst = max((res["loop_step_warm_s"] for _, res in rows), default=None)
     how = ("in a jitted loop of steps (median / steps; called on its own: "
            + ", ".join(f"{_ms(res['step_warm_s'])} at m = {m:.0e}" for m, res in rows) + ")")
-    measured = (f"{_ms(worst)} (" + ", ".join(f"{_ms(res[key])} at m = {m:.0e}"
+    measured = (f"{_ms(worst)} (" + ", ".join(f"{_ms(res['loop_step_warm_s'])} at m = {m:.0e}"
                                               for m, res in rows) + f"), {how}"
                 if rows else "—")
     return _target(f"NormalIPIA step, {_grid(TARGET_GRID)}, warm, worst over m",
@@ -367,7 +366,9 @@ def _probe_text(ceiling, ceiling_start) -> str:
     probe at its start and at its end (the end alone where the first probe failed)."""
     if not ceiling or "macs_per_s" not in ceiling:
         return ""
-    rate = lambda probe: f"{probe['macs_per_s'] / 1e9:.3g} G multiply-adds/s"  # noqa: E731
+    def rate(probe):
+        return f"{probe['macs_per_s'] / 1e9:.3g} G multiply-adds/s"
+
     text = f" Machine speed in this run: a float64 matrix product of side {ceiling['n']} reached "
     if ceiling_start and "macs_per_s" in ceiling_start:
         return text + (f"{rate(ceiling_start)} at the start of the run and {rate(ceiling)} at "
