@@ -2,7 +2,7 @@
 
 For fixed weights the data energy ``E_d = ||D C - b||^2`` is quadratic in C, and its
 minimiser (with the regulariser of eq. 31) solves ``(D^T D + 2 lam L) C = D^T b``
-(DESIGN 3). ``D^T D`` is banded: coefficient ``(i, j)`` couples only to ``(i + di, j + dj)``
+(docs/design.md section 3). ``D^T D`` is banded: coefficient ``(i, j)`` couples only to ``(i + di, j + dj)``
 with ``|di|, |dj| <= 3`` (two cubic basis functions overlap when their supports share a
 cell), so it is stored as an ``(N, M, 7, 7)`` **stencil**:
 ``stencil[i, j, 3 + di, 3 + dj] = (D^T D)[(i, j), (i + di, j + dj)]``, 49 numbers a row.
@@ -24,6 +24,7 @@ normal-equation form costs nothing per sample), :func:`stencil_to_dense` builds 
 
 from __future__ import annotations
 
+import itertools
 from math import comb
 
 import equinox as eqx
@@ -253,55 +254,80 @@ def rational_normal_equations(problem: Problem, weights: Array, chunk_size: int 
     return stencil, patches_to_grid(sums[:, NUM_LOCAL * NUM_LOCAL :], problem.shape)
 
 
-def laplacian_stencil(shape: tuple[int, int], dtype=float) -> Array:
-    """The grid Laplacian L of :func:`jurs.grid_laplacian` (free boundary) as a stencil:
-    degree at the centre, -1 towards each existing 4-neighbour."""
-    n, m = shape
-    i = jnp.arange(n)[:, None]
-    j = jnp.arange(m)[None, :]
-    left, right = (i > 0).astype(dtype), (i < n - 1).astype(dtype)
-    down, up = (j > 0).astype(dtype), (j < m - 1).astype(dtype)
-    left, right = jnp.broadcast_to(left, shape), jnp.broadcast_to(right, shape)
-    down, up = jnp.broadcast_to(down, shape), jnp.broadcast_to(up, shape)
-    stencil = jnp.zeros(shape + (SIDE, SIDE), dtype)
-    stencil = stencil.at[:, :, HALF, HALF].set(left + right + down + up)
-    stencil = stencil.at[:, :, HALF - 1, HALF].set(-left)
-    stencil = stencil.at[:, :, HALF + 1, HALF].set(-right)
-    stencil = stencil.at[:, :, HALF, HALF - 1].set(-down)
-    return stencil.at[:, :, HALF, HALF + 1].set(-up)
+def _offsets(ndim: int):
+    """All stencil offsets of a ``ndim``-dimensional grid, as index tuples into the stencil's
+    trailing ``(7,) * ndim`` axes (``HALF`` is offset 0)."""
+    return itertools.product(range(SIDE), repeat=ndim)
+
+
+def stencil_ndim(stencil: Array) -> int:
+    """The grid dimension d of a ``grid_shape + (7,) * d`` stencil."""
+    d, odd = divmod(stencil.ndim, 2)
+    if odd or stencil.shape[d:] != (SIDE,) * d:
+        raise ValueError(f"stencil must be shaped grid_shape + (7,) * d, got {stencil.shape}")
+    return d
+
+
+def laplacian_stencil(shape: tuple[int, ...], dtype=float) -> Array:
+    """The grid Laplacian L of :func:`jurs.grid_laplacian` (free boundary) as a stencil, for
+    a grid of any dimension d: degree at the centre, -1 towards each existing one of the
+    ``2 d`` axis neighbours."""
+    d = len(shape)
+    stencil = jnp.zeros(tuple(shape) + (SIDE,) * d, dtype)
+    centre = (HALF,) * d
+    degree = jnp.zeros(shape, dtype)
+    for axis, n in enumerate(shape):
+        index = jnp.arange(n).reshape((n,) + (1,) * (d - 1 - axis))
+        for step, exists in ((-1, index > 0), (1, index < n - 1)):
+            exists = jnp.broadcast_to(exists, shape).astype(dtype)
+            offset = list(centre)
+            offset[axis] += step
+            stencil = stencil.at[(Ellipsis, *offset)].set(-exists)
+            degree = degree + exists
+    return stencil.at[(Ellipsis, *centre)].set(degree)
 
 
 def stencil_matvec(stencil: Array, grid: Array) -> Array:
-    """Apply a ``(N, M, 7, 7)`` stencil to an ``(N, M)`` grid (zero outside the grid)."""
-    n, m = grid.shape
+    """Apply a ``grid_shape + (7,) * d`` stencil to a ``grid_shape`` grid (zero outside the
+    grid), for any grid dimension d (49 terms in 2D, 343 in 3D)."""
+    d = grid.ndim
     padded = jnp.pad(grid, HALF)
     out = jnp.zeros_like(grid)
-    for da in range(SIDE):
-        for db in range(SIDE):
-            out = out + stencil[:, :, da, db] * padded[da : da + n, db : db + m]
+    for offset in _offsets(d):
+        window = tuple(slice(o, o + n) for o, n in zip(offset, grid.shape))
+        out = out + stencil[(Ellipsis, *offset)] * padded[window]
     return out
 
 
 def stencil_diagonal(stencil: Array) -> Array:
-    """The diagonal of the matrix a stencil stands for, as an ``(N, M)`` grid."""
-    return stencil[:, :, HALF, HALF]
+    """The diagonal of the matrix a stencil stands for, as a grid."""
+    return stencil[(Ellipsis,) + (HALF,) * stencil_ndim(stencil)]
+
+
+def _stencil_indices(shape: tuple[int, ...]):
+    """``(row, col, valid)`` of every stencil entry (NumPy, shaped like the stencil): the
+    matrix position of entry ``[i, 3 + di]`` is ``(flat(i), flat(i + di))``, valid where
+    ``i + di`` is on the grid (row-major flattening)."""
+    d = len(shape)
+    grids = np.meshgrid(*[np.arange(n) for n in shape], *[np.arange(SIDE) - HALF] * d,
+                        indexing="ij")
+    points, steps = grids[:d], grids[d:]
+    targets = [p + s for p, s in zip(points, steps)]
+    valid = np.all([(t >= 0) & (t < n) for t, n in zip(targets, shape)], axis=0)
+    row = np.ravel_multi_index(points, shape)
+    col = np.ravel_multi_index([np.clip(t, 0, n - 1) for t, n in zip(targets, shape)], shape)
+    return row, col, valid
 
 
 def stencil_to_dense(stencil: Array) -> Array:
-    """The ``NM x NM`` matrix of a stencil (row-major flattening of the grid), for direct
-    solves on small grids: ``NM^2`` entries, 49 of them non-zero per row."""
-    n, m = stencil.shape[:2]
-    i = jnp.arange(n)[:, None, None, None]
-    j = jnp.arange(m)[None, :, None, None]
-    di = jnp.arange(SIDE)[None, None, :, None] - HALF
-    dj = jnp.arange(SIDE)[None, None, None, :] - HALF
-    i2, j2 = i + di, j + dj
-    valid = (i2 >= 0) & (i2 < n) & (j2 >= 0) & (j2 < m)
-    row = jnp.broadcast_to(i * m + j, stencil.shape)
-    # Out-of-grid entries are 0 in the stencil; send them to column 0 with value 0.
-    col = jnp.where(valid, i2 * m + j2, 0)
-    values = jnp.where(valid, stencil, 0.0)
-    return jnp.zeros((n * m, n * m), stencil.dtype).at[row.ravel(), col.ravel()].add(values.ravel())
+    """The dense ``n x n`` matrix of a stencil (``n`` grid points, row-major flattening),
+    for direct solves on small grids: 7^d of each row's ``n`` entries are non-zero."""
+    shape = stencil.shape[: stencil_ndim(stencil)]
+    row, col, valid = _stencil_indices(shape)
+    size = int(np.prod(shape))
+    # Out-of-grid entries are 0 in the stencil; they are added (as 0) to a clipped column.
+    values = jnp.where(jnp.asarray(valid), stencil, 0.0)
+    return jnp.zeros((size, size), stencil.dtype).at[row.ravel(), col.ravel()].add(values.ravel())
 
 
 #: Largest diagonal block that :func:`_cholesky_and_inverse` hands to LAPACK. Above about
@@ -415,12 +441,11 @@ def stencil_to_scipy(stencil) -> "scipy.sparse.csr_matrix":  # noqa: F821
     import scipy.sparse as sp
 
     s = np.asarray(stencil)
-    n, m = s.shape[:2]
-    i, j, di, dj = np.meshgrid(np.arange(n), np.arange(m), np.arange(SIDE) - HALF,
-                               np.arange(SIDE) - HALF, indexing="ij")
-    i2, j2 = i + di, j + dj
-    keep = (i2 >= 0) & (i2 < n) & (j2 >= 0) & (j2 < m) & (s != 0)
-    return sp.csr_matrix(((s[keep]), ((i * m + j)[keep], (i2 * m + j2)[keep])), shape=(n * m, n * m))
+    shape = s.shape[: stencil_ndim(s)]
+    row, col, valid = _stencil_indices(shape)
+    keep = valid & (s != 0)
+    size = int(np.prod(shape))
+    return sp.csr_matrix((s[keep], (row[keep], col[keep])), shape=(size, size))
 
 
 class NormalEquations(eqx.Module):
@@ -444,7 +469,7 @@ class NormalEquations(eqx.Module):
         return jnp.vdot(control, product - 2.0 * self.rhs) + self.target_norm2
 
     def regularised(self, lam) -> Array:
-        """The stencil of ``D^T D + 2 lam L``, the Hessian / 2 of ``E_d + lam R`` (DESIGN 3)."""
+        """The stencil of ``D^T D + 2 lam L``, the Hessian / 2 of ``E_d + lam R`` (docs/design.md section 3)."""
         lap = laplacian_stencil(self.rhs.shape, self.stencil.dtype)
         return self.stencil + 2.0 * lam * lap
 

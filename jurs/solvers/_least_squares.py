@@ -11,6 +11,7 @@ import lineax as lx
 from jax import Array
 
 from .._energy import objective
+from .._multigrid import Multigrid
 from .._normal import (
     DEFAULT_CHUNK,
     DIRECT_MAX_ENTRIES,
@@ -74,7 +75,7 @@ def stencil_cg(shape: tuple[int, int]) -> lx.CG:
 
 
 def _is_matrix_free(solver: lx.AbstractLinearSolver) -> bool:
-    return isinstance(solver, (lx.CG, lx.BiCGStab, lx.GMRES))
+    return isinstance(solver, (lx.CG, lx.BiCGStab, lx.GMRES, Multigrid))
 
 
 def _direct_stencil_solve(stencil: Array, rhs: Array) -> Array:
@@ -127,11 +128,14 @@ def solve_normal_equations(stencil: Array, rhs: Array, start: Array,
         operator = lx.FunctionLinearOperator(lambda c: stencil_matvec(stencil, c), rhs, tags)
         # The preconditioner and initial guess change the path, not the solution: no
         # gradient through them (lineax refuses tangents in `options`).
-        inv_diag = jax.lax.stop_gradient(1.0 / stencil[:, :, HALF, HALF])
-        jacobi = lx.FunctionLinearOperator(lambda c: inv_diag * c, rhs, tags)
-        sol = lx.linear_solve(operator, rhs, linear_solver, throw=False,
-                              options={"preconditioner": jacobi,
-                                       "y0": jax.lax.stop_gradient(start)})
+        if isinstance(linear_solver, Multigrid):  # builds its own preconditioner
+            options = {"stencil": jax.lax.stop_gradient(stencil)}
+        else:
+            inv_diag = jax.lax.stop_gradient(1.0 / stencil[:, :, HALF, HALF])
+            options = {"preconditioner": lx.FunctionLinearOperator(lambda c: inv_diag * c,
+                                                                   rhs, tags)}
+        options["y0"] = jax.lax.stop_gradient(start)
+        sol = lx.linear_solve(operator, rhs, linear_solver, throw=False, options=options)
         return sol.value, sol.result
     operator = lx.MatrixLinearOperator(stencil_to_dense(stencil), tags)
     sol = lx.linear_solve(operator, rhs.ravel(), linear_solver, throw=False)
@@ -141,7 +145,7 @@ def solve_normal_equations(stencil: Array, rhs: Array, start: Array,
 
 
 class LeastSquares(AbstractSolver[LeastSquaresState]):
-    """Exact minimiser of ``E_d(C) + lam R(C)`` for fixed weights (DESIGN 3).
+    """Exact minimiser of ``E_d(C) + lam R(C)`` for fixed weights (docs/design.md section 3).
 
     Solves the normal equations ``(D^T D + 2 lam L) C = D^T b`` once: ``D^T D`` is
     assembled as a 49-point stencil in one pass over the samples
@@ -161,7 +165,10 @@ class LeastSquares(AbstractSolver[LeastSquaresState]):
             the start spline's weights fixed and solves for C with the rational rows of
             eq. 23.
         linear_solver: a lineax solver for the symmetric positive (semi-)definite system;
-            default (None) per grid size and lam, as above.
+            default (None) per grid size and lam, as above. ``Multigrid()``
+            (:mod:`jurs._multigrid`: knot-insertion multigrid-preconditioned CG, 2D or 3D)
+            is never chosen by default: on a 2-core CPU it was slower than the direct
+            solves at 128 x 128 and 256 x 256 (docs/multigrid.md).
         chunk_size: samples accumulated at once when assembling rational rows.
         ridge: a Tikhonov term ``ridge * max(diag(D^T D)) * I`` added to the system
             (default 1e-14). It only matters when the system is numerically singular
