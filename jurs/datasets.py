@@ -85,24 +85,36 @@ def example10(seed: int = 0, sigma: float = 0.05):
 COLUMNS = ("x", "y", "nx", "ny")
 
 
-def _from_table(rows: np.ndarray, path: str, first_row: int) -> tuple[np.ndarray, np.ndarray]:
-    if rows.ndim != 2 or rows.shape[1] != 4:
-        raise ValueError(f"{path}: expected an (m, 4) table with columns x, y, nx, ny, "
-                         f"got shape {rows.shape}")
+def _from_table(rows: np.ndarray, path: str, row_numbers=None):
+    """``(points, normals)`` of a table of 4 columns, ``(points, None)`` of 2, checked;
+    errors name the row by ``row_numbers`` (the file's 1-based line of each row; default
+    1, 2, ...)."""
+    if rows.ndim != 2 or rows.shape[1] not in (2, 4):
+        raise ValueError(f"{path}: expected an (m, 4) table with columns x, y, nx, ny "
+                         f"(or (m, 2): x, y, without normals), got shape {rows.shape}")
     if rows.shape[0] == 0:
         raise ValueError(f"{path}: no data rows")
+    if row_numbers is None:
+        row_numbers = np.arange(1, rows.shape[0] + 1)
     bad = ~np.isfinite(rows).all(axis=1)
     if bad.any():
-        raise ValueError(f"{path}: row {int(np.argmax(bad)) + first_row} has NaN or Inf")
+        raise ValueError(f"{path}: row {row_numbers[int(np.argmax(bad))]} has NaN or Inf")
+    if rows.shape[1] == 2:
+        return rows.copy(), None
     zero = np.linalg.norm(rows[:, 2:], axis=1) == 0
     if zero.any():
-        raise ValueError(f"{path}: row {int(np.argmax(zero)) + first_row} has a zero-length normal")
+        raise ValueError(f"{path}: row {row_numbers[int(np.argmax(zero))]} has a "
+                         "zero-length normal")
     return rows[:, :2].copy(), rows[:, 2:].copy()
 
 
-def load_points(path) -> tuple[np.ndarray, np.ndarray]:
+def load_points(path) -> tuple[np.ndarray, np.ndarray | None]:
     """Read points and normals from ``.npy`` (an (m, 4) array) or CSV/TXT (columns x, y, nx,
     ny; comma, whitespace or semicolon separated; an optional header line of names).
+
+    A table of two columns (x, y; header ``x,y``) holds points without normals: the normals
+    come back as None (:func:`jurs.fit` then estimates them). The header, or else the first
+    data row, sets the number of columns for every row.
 
     Raises ValueError naming the file and the (1-based, as in an editor) row for missing
     columns, non-numbers, NaN/Inf, zero normals or an empty table; FileNotFoundError if
@@ -118,7 +130,7 @@ def load_points(path) -> tuple[np.ndarray, np.ndarray]:
             raise ValueError(f"{path}: not a readable .npy array ({exc})") from None
         if not np.issubdtype(rows.dtype, np.number):
             raise ValueError(f"{path}: array dtype {rows.dtype} is not numeric")
-        return _from_table(np.asarray(rows, dtype=float), path, first_row=1)
+        return _from_table(np.asarray(rows, dtype=float), path)
 
     with open(path, newline="") as fh:
         text = fh.read()
@@ -134,30 +146,28 @@ def load_points(path) -> tuple[np.ndarray, np.ndarray]:
         return [c.strip() for c in next(csv.reader([line], delimiter=delimiter))]
 
     first = split(lines[0][1])
-    if [c.lower() for c in first] == list(COLUMNS):
+    names = [c.lower() for c in first]
+    columns = COLUMNS[:len(first)] if len(first) in (2, 4) else COLUMNS
+    if names in (list(COLUMNS), list(COLUMNS[:2])):
         lines = lines[1:]
     elif any(_not_number(c) for c in first) and not all(_not_number(c) for c in first):
         pass  # a malformed data row: reported below with its row number
     elif all(_not_number(c) for c in first):
-        raise ValueError(f"{path}: row {lines[0][0]}: header must be x, y, nx, ny, got {first}")
+        raise ValueError(f"{path}: row {lines[0][0]}: header must be x, y, nx, ny (or x, y "
+                         f"without normals), got {first}")
     if not lines:
         raise ValueError(f"{path}: no data rows")
-    values = np.empty((len(lines), 4))
+    values = np.empty((len(lines), len(columns)))
     for k, (lineno, line) in enumerate(lines):
         cells = split(line)
-        if len(cells) != 4:
-            raise ValueError(f"{path}: row {lineno}: expected 4 columns x, y, nx, ny, got {len(cells)}")
+        if len(cells) != len(columns):
+            raise ValueError(f"{path}: row {lineno}: expected {len(columns)} columns "
+                             f"{', '.join(columns)}, got {len(cells)}")
         for j, c in enumerate(cells):
             if _not_number(c):
-                raise ValueError(f"{path}: row {lineno}: {COLUMNS[j]} = {c!r} is not a number")
+                raise ValueError(f"{path}: row {lineno}: {columns[j]} = {c!r} is not a number")
             values[k, j] = float(c)
-    bad = ~np.isfinite(values).all(axis=1)
-    if bad.any():
-        raise ValueError(f"{path}: row {lines[int(np.argmax(bad))][0]} has NaN or Inf")
-    zero = np.linalg.norm(values[:, 2:], axis=1) == 0
-    if zero.any():
-        raise ValueError(f"{path}: row {lines[int(np.argmax(zero))][0]} has a zero-length normal")
-    return values[:, :2].copy(), values[:, 2:].copy()
+    return _from_table(values, path, [lineno for lineno, _ in lines])
 
 
 def _not_number(cell: str) -> bool:
@@ -168,11 +178,14 @@ def _not_number(cell: str) -> bool:
     return False
 
 
-def save_points(path, points, normals) -> None:
-    """Write points and normals as ``.npy`` (m, 4) or CSV with an ``x,y,nx,ny`` header."""
+def save_points(path, points, normals=None) -> None:
+    """Write points and normals as ``.npy`` (m, 4) or CSV with an ``x,y,nx,ny`` header;
+    ``normals=None`` writes the points alone ((m, 2), header ``x,y``)."""
     path = os.fspath(path)
-    table = np.concatenate([np.asarray(points, float), np.asarray(normals, float)], axis=1)
+    parts = [np.asarray(points, float)] + ([] if normals is None else [np.asarray(normals, float)])
+    table = np.concatenate(parts, axis=1)
     if path.lower().endswith(".npy"):
         np.save(path, table)
     else:
-        np.savetxt(path, table, delimiter=",", header=",".join(COLUMNS), comments="", fmt="%.17g")
+        np.savetxt(path, table, delimiter=",", header=",".join(COLUMNS[:table.shape[1]]),
+                   comments="", fmt="%.17g")

@@ -88,3 +88,24 @@ def test_bad_npy(tmp_path):
         datasets.load_points(path)
     with pytest.raises(FileNotFoundError):
         datasets.load_points(tmp_path / "missing.csv")
+
+
+@pytest.mark.parametrize("suffix", [".csv", ".npy"])
+def test_points_without_normals_round_trip(tmp_path, suffix):
+    """Two columns (x, y) are points without normals: load_points gives None for them."""
+    points, _ = datasets.example1(20)
+    path = tmp_path / f"points{suffix}"
+    datasets.save_points(path, points)
+    loaded, normals = datasets.load_points(path)
+    assert normals is None
+    np.testing.assert_array_equal(loaded, points)
+
+
+def test_two_column_csv_checks_every_row(tmp_path):
+    path = tmp_path / "xy.csv"
+    path.write_text("x,y\n0,0\n1,1,0\n")
+    with pytest.raises(ValueError, match=r"row 3: expected 2 columns x, y, got 3"):
+        datasets.load_points(path)
+    path.write_text("0 0\n1 nan\n2 2\n")
+    with pytest.raises(ValueError, match=r"row 2 has NaN or Inf"):
+        datasets.load_points(path)

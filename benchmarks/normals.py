@@ -1,0 +1,385 @@
+"""Normals for clouds without them: ``jurs.estimate_normals`` beside the spanning-tree
+baseline (Hoppe et al. 1992) and Open3D, on 2D outlines and 3D surfaces with known normals.
+
+One command measures everything and writes ``benchmarks/results/normals.{json,md}``:
+
+* **2D cases.** Outlines traced from scikit-image images with
+  :func:`skimage.measure.find_contours` (``horse``, ``coins``, ``text``, ``binary_blobs``,
+  through :func:`jurs.shapes.mask_outline`), DejaVu glyphs, and planted hard cases (nested
+  rings, a thin band, two close discs); sampled by arc length (true normals from
+  :func:`jurs.shapes.sample_outline`), clean, with 0.5 % noise, with uneven density
+  (``nonuniform=0.6``) and with 2 % outliers (scored on the inliers).
+* **3D cases.** Area-uniform samples of the bunny and the cow from pymeshlab's sample meshes
+  (``pip install pymeshlab trimesh``; face normals as truth), a sphere, a torus and a thick
+  spherical shell (both surfaces); clean and with 0.5 % noise; 1e4 and 1e5 points.
+* **Methods.** ``jurs.estimate_normals(points)``; the baseline ``_orient_mst`` (PCA normals
+  of the same ``k``, minimum spanning tree over 15 neighbours, topmost point up); Open3D
+  (``pip install open3d-cpu``, 3D only) with PCA over 30 neighbours and
+  ``orient_normals_consistent_tangent_plane(15)``, as the issue's anchors.
+* **Scores.** Correct sign: strictly outward (``outward``) and up to one global flip
+  (``consistent``, what propagation alone can give); median angle to the truth (unsigned);
+  wall time. A fit with estimated normals against true ones on a few 2D cases
+  (``jurs.fit(points, normals)`` with defaults; Chamfer and Hausdorff to the clean outline).
+
+    python benchmarks/normals.py [--quick] [--markdown-only]
+
+Noise: Gaussian, standard deviation level x bounding-box diagonal on each coordinate.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime
+import importlib
+import os
+import platform
+import sys
+import time
+
+import numpy as np
+
+sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
+sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
+from _common import RESULTS, write_results  # noqa: E402
+
+import jurs.shapes  # noqa: E402
+from jurs._orientation import _orient_mst, estimate_normals  # noqa: E402
+
+NOISE = 0.005
+OUTLIERS = 0.02
+M_2D = 2000
+M_3D = (10_000, 100_000)
+#: 3D cases run at the larger size (the rest at the smaller only, to keep the run short).
+LARGE_3D = ("sphere", "torus", "bunny")
+FIT_CASES = ("annulus", "glyph_a", "horse", "coins")
+MESHES = os.environ.get("PYMESHLAB_SAMPLES")
+
+
+def optional(name):
+    try:
+        return importlib.import_module(name)
+    except Exception:  # noqa: BLE001 - any import failure means "not available"
+        return None
+
+
+# --------------------------------------------------------------------------- 2D cases
+
+
+def image_outline(name):
+    from skimage import data, filters
+
+    if name == "text":
+        image = data.text()
+        return jurs.shapes.mask_outline(image < filters.threshold_otsu(image), blur=1.0,
+                                        min_area=30.0)
+    if name == "binary_blobs":
+        return jurs.shapes.mask_outline(data.binary_blobs(256, blob_size_fraction=0.12,
+                                                          volume_fraction=0.4, rng=3),
+                                        blur=1.0, min_area=30.0)
+    raise ValueError(name)
+
+
+def circles(radii, centres):
+    t = np.linspace(0.0, 2 * np.pi, 4096, endpoint=False)
+    return [np.c_[c[0] + r * np.cos(t), c[1] + r * np.sin(t)] for r, c in zip(radii, centres)]
+
+
+def band():
+    return [np.array([[-2.0, -0.06], [2.0, -0.06], [2.0, 0.06], [-2.0, 0.06]])]
+
+
+OUTLINES_2D = {
+    "horse": lambda: jurs.shapes.outline("horse"),
+    "coins": lambda: jurs.shapes.outline("coins"),
+    "text": lambda: jurs.shapes.normalise(jurs.shapes.orient(image_outline("text"))),
+    "binary_blobs": lambda: jurs.shapes.normalise(
+        jurs.shapes.orient(image_outline("binary_blobs"))),
+    "glyph_a": lambda: jurs.shapes.outline("glyph_a"),
+    "glyph_B": lambda: jurs.shapes.outline("glyph_B"),
+    "annulus": lambda: jurs.shapes.outline("annulus"),
+    "nested_rings": lambda: jurs.shapes.normalise(jurs.shapes.orient(
+        circles((1.0, 0.9, 0.6, 0.5), [(0, 0)] * 4))),
+    "thin_band": lambda: jurs.shapes.normalise(jurs.shapes.orient(band())),
+    "close_discs": lambda: jurs.shapes.normalise(jurs.shapes.orient(
+        circles((1.0, 1.0), ((-1.03, 0), (1.03, 0))))),
+}
+VARIANTS_2D = ("clean", "noise", "uneven", "outliers")
+
+
+def cloud_2d(name, variant, m=M_2D, seed=0):
+    """``(points, truth, inlier mask, clean outline)`` of a 2D case."""
+    comps = OUTLINES_2D[name]()
+    points, truth = jurs.shapes.sample_outline(comps, m,
+                                               nonuniform=0.6 if variant == "uneven" else 0.0)
+    rng = np.random.default_rng(seed)
+    diag = float(np.linalg.norm(np.ptp(points, axis=0)))
+    inlier = np.ones(m, bool)
+    if variant == "noise":
+        points = points + NOISE * diag * rng.standard_normal(points.shape)
+    if variant == "outliers":
+        lo, hi = points.min(axis=0), points.max(axis=0)
+        extra = rng.uniform(lo, hi, (int(OUTLIERS * m), 2))
+        points = np.concatenate([points, extra])
+        truth = np.concatenate([truth, np.zeros_like(extra)])
+        inlier = np.concatenate([inlier, np.zeros(len(extra), bool)])
+    return points, truth, inlier, comps
+
+
+# --------------------------------------------------------------------------- 3D cases
+
+
+def sphere(m, rng):
+    v = rng.standard_normal((m, 3))
+    v /= np.linalg.norm(v, axis=1, keepdims=True)
+    return v, v.copy()
+
+
+def torus(m, rng, big=1.0, small=0.35):
+    u, v = rng.uniform(0, 2 * np.pi, (2, 4 * m))
+    keep = rng.uniform(0, 1, 4 * m) < (big + small * np.cos(v)) / (big + small)
+    u, v = u[keep][:m], v[keep][:m]
+    normal = np.stack([np.cos(v) * np.cos(u), np.cos(v) * np.sin(u), np.sin(v)], axis=1)
+    return big * np.stack([np.cos(u), np.sin(u), 0 * u], axis=1) + small * normal, normal
+
+
+def shell(m, rng, outer=1.0, inner=0.8):
+    """Thick spherical shell: both surfaces, sampled with the same density."""
+    m_in = int(round(m * inner ** 2 / (1 + inner ** 2)))
+    a, na = sphere(m - m_in, rng)
+    b, nb = sphere(m_in, rng)
+    return np.concatenate([outer * a, inner * b]), np.concatenate([na, -nb])
+
+
+def mesh_sampler(name):
+    trimesh = optional("trimesh")
+    pymeshlab = optional("pymeshlab")
+    if trimesh is None or pymeshlab is None:
+        return None
+    folder = MESHES or os.path.join(os.path.dirname(pymeshlab.__file__), "tests",
+                                    "sample_meshes")
+    path = os.path.join(folder, f"{name}.obj")
+    if not os.path.exists(path):
+        return None
+    mesh = trimesh.load(path, force="mesh", process=True)
+
+    def sample(m, rng):
+        points, faces = trimesh.sample.sample_surface(mesh, m, seed=int(rng.integers(1 << 31)))
+        return np.asarray(points, float), np.asarray(mesh.face_normals[faces], float)
+    sample.origin = f"{os.path.basename(path)} ({len(mesh.faces)} faces, watertight " \
+                    f"{mesh.is_watertight})"
+    return sample
+
+
+SURFACES = {"sphere": sphere, "torus": torus, "thick_shell": shell}
+
+
+# --------------------------------------------------------------------------- methods
+
+
+def score(normals, truth, mask, seconds):
+    dot = np.sum(normals[mask] * truth[mask], axis=1)
+    outward = float(np.mean(dot > 0))
+    return {"outward": outward, "consistent": max(outward, 1 - outward),
+            "angle_deg": float(np.degrees(np.median(np.arccos(np.clip(np.abs(dot), 0, 1))))),
+            "seconds": seconds}
+
+
+def run_methods(points, truth, mask, o3d):
+    out = {}
+    t0 = time.perf_counter()
+    normals, info = estimate_normals(points, return_info=True)
+    out["jurs"] = {**score(normals, truth, mask, time.perf_counter() - t0), "k": info.k,
+                   "components": info.components, "patches": info.patches,
+                   "flipped": info.flipped, "corrected": info.corrected,
+                   "residual": info.residual}
+    t0 = time.perf_counter()
+    unsigned = estimate_normals(points, k=info.k, orient=False)
+    baseline = _orient_mst(points, unsigned, k=15)
+    out["mst"] = score(baseline, truth, mask, time.perf_counter() - t0)
+    if o3d is not None and points.shape[1] == 3:
+        cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
+        t0 = time.perf_counter()
+        cloud.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(30))
+        cloud.orient_normals_consistent_tangent_plane(15)
+        out["open3d"] = score(np.asarray(cloud.normals), truth, mask,
+                              time.perf_counter() - t0)
+    return out
+
+
+def fit_quality(name, variant):
+    """jurs.fit with true and with estimated normals; distances in 1e-3 of the diagonal."""
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    import jurs
+    import jurs.levelset
+
+    points, truth, _, comps = cloud_2d(name, variant, m=1200)
+    reference = jurs.shapes.sample_outline(comps, 20000)[0]
+    diag = float(np.linalg.norm(np.ptp(reference, axis=0)))
+    out = {}
+    for label, normals in (("true", truth), ("estimated", estimate_normals(points))):
+        sol = jurs.fit(points, normals)
+        rep = jurs.levelset.analyze(sol.spline, points, offset=sol.settings.offset,
+                                    reference=reference)
+        out[label] = {"chamfer": 1e3 * rep.chamfer / diag, "hausdorff": 1e3 * rep.hausdorff / diag,
+                      "components": rep.num_components,
+                      "supplementary": rep.num_supplementary}
+    out["true_components"] = len(comps)
+    return out
+
+
+# --------------------------------------------------------------------------- report
+
+
+def fmt(entry):
+    return (f"{100 * entry['outward']:.2f} / {100 * entry['consistent']:.2f} | "
+            f"{entry['angle_deg']:.2f} | {entry['seconds']:.2f}")
+
+
+def markdown(payload):
+    lines = ["# Normals without normals: `jurs.estimate_normals` beside the spanning tree "
+             "and Open3D", "",
+             f"Run {payload['date']} on {payload['machine']}. Command: `{payload['command']}` "
+             f"({payload['total_s']:.0f} s). Open3D: {payload['open3d']}. Meshes: "
+             f"{payload['meshes']}.", "",
+             "Per method: correct sign in % (strictly outward / up to one global flip), "
+             "median angle to the truth in degrees (unsigned), wall seconds. 'mst' is "
+             "Hoppe's spanning tree (topmost point up) on the same PCA normals; Open3D: PCA "
+             "over 30 neighbours + `orient_normals_consistent_tangent_plane(15)`. Noise: "
+             f"Gaussian, {100 * NOISE:g} % of the bounding-box diagonal per coordinate; "
+             f"outliers: {100 * OUTLIERS:g} % extra points uniform in the box, scored on "
+             "the inliers; uneven: density 0.4x-1.6x along the outline. Times are wall "
+             "clock on a machine shared with other jobs (1-minute load average "
+             f"{payload.get('load_start', float('nan')):.1f} at the start of the run, "
+             f"{payload.get('load_end', float('nan')):.1f} at the end, on 2 cores): expect "
+             "tens of percent of noise, more on short runs.", ""]
+    lines += ["## Targets", ""] + payload["verdicts"] + [""]
+    for dim in ("2D", "3D"):
+        rows = [r for r in payload["runs"] if r["dim"] == dim]
+        has_o3d = any("open3d" in r for r in rows)
+        head = ("| case | m | jurs sign % | angle | s | k | mst sign % | angle | s |"
+                + (" Open3D sign % | angle | s |" if has_o3d else ""))
+        lines += [f"## {dim}", "", head, "|---" * (9 + 3 * has_o3d) + "|"]
+        for r in rows:
+            row = (f"| {r['case']} | {r['m']} | {fmt(r['jurs'])} | {r['jurs']['k']} | "
+                   f"{fmt(r['mst'])} |")
+            if has_o3d:
+                row += f" {fmt(r['open3d'])} |" if "open3d" in r else " - | - | - |"
+            lines.append(row)
+        lines.append("")
+    lines += ["## Fit with estimated normals", "",
+              "`jurs.fit(points, normals)` with defaults, 1200 points; Chamfer / Hausdorff "
+              "to the clean outline in 1e-3 of the diagonal; zero-set components "
+              "(supplementary).", "",
+              "| case | true normals | estimated normals |", "|---|---|---|"]
+    for key, f in payload["fits"].items():
+        cell = [f"{f[s]['chamfer']:.3f} / {f[s]['hausdorff']:.2f}, {f[s]['components']} "
+                f"({f[s]['supplementary']})" for s in ("true", "estimated")]
+        lines.append(f"| {key} ({f['true_components']} true) | {cell[0]} | {cell[1]} |")
+    lines += ["", "Cases: " + "; ".join(f"`{k}`: {v}" for k, v in payload["origins"].items()),
+              ""]
+    return "\n".join(lines)
+
+
+def verdicts(runs):
+    out = []
+    clean = [r for r in runs if r["variant"] == "clean"]
+    noisy = [r for r in runs if r["variant"] != "clean"]
+    miss = [f"{r['case']} (m {r['m']}) {100 * r['jurs']['outward']:.3f} %" for r in clean
+            if r["jurs"]["outward"] < 1.0]
+    out.append(f"- 100 % outward on every clean case: {len(clean) - len(miss)}/{len(clean)} "
+               f"{'MET' if not miss else 'MISSED'}" + (f" (misses: {', '.join(miss)})"
+                                                       if miss else ""))
+    miss = [f"{r['case']} (m {r['m']}) {100 * r['jurs']['outward']:.3f} %" for r in noisy
+            if r["jurs"]["outward"] < 0.995]
+    out.append(f"- >= 99.5 % outward on noisy / uneven / outlier cases: "
+               f"{len(noisy) - len(miss)}/{len(noisy)} {'MET' if not miss else 'MISSED'}"
+               + (f" (misses: {', '.join(miss)})" if miss else ""))
+    big = [r for r in runs if r["m"] >= 100_000 and "open3d" in r]
+    if big:
+        ratio = [r["jurs"]["seconds"] / r["open3d"]["seconds"] for r in big]
+        out.append(f"- no slower than Open3D at 1e5 points: time ratio jurs/Open3D "
+                   f"{', '.join(r['case'] + f' {x:.2f}' for r, x in zip(big, ratio))} "
+                   f"{'MET' if max(ratio) <= 1 else 'MISSED'}")
+    return out
+
+
+def main():
+    parser = argparse.ArgumentParser()
+    parser.add_argument("--quick", action="store_true")
+    parser.add_argument("--markdown-only", action="store_true",
+                        help="re-render the markdown from the last run's JSON")
+    args = parser.parse_args()
+    if args.markdown_only:
+        import json
+
+        with open(os.path.join(RESULTS, "normals.json")) as fh:
+            payload = json.load(fh)
+        payload["verdicts"] = verdicts(payload["runs"])
+        write_results("normals", payload, markdown(payload))
+        return
+    start = time.perf_counter()
+    load_start = os.getloadavg()[0]
+    o3d = optional("open3d")
+    rng = np.random.default_rng(0)
+    runs, origins = [], {}
+    names_2d = list(OUTLINES_2D)[:4] if args.quick else list(OUTLINES_2D)
+    for name in names_2d:
+        for variant in VARIANTS_2D:
+            points, truth, inlier, _ = cloud_2d(name, variant)
+            res = run_methods(points, truth, inlier, None)
+            runs.append({"dim": "2D", "case": f"{name}/{variant}", "variant": variant,
+                         "m": len(points), **res})
+            print(runs[-1]["case"], fmt(res["jurs"]), "| mst", fmt(res["mst"]), flush=True)
+    surfaces = dict(SURFACES)
+    for mesh in ("bunny", "cow"):
+        sampler = mesh_sampler(mesh)
+        if sampler is not None:
+            surfaces[mesh] = sampler
+            origins[mesh] = sampler.origin
+    sizes = M_3D[:1] if args.quick else M_3D
+    for name, sampler in surfaces.items():
+        for m in sizes:
+            if m > sizes[0] and name not in LARGE_3D:
+                continue
+            for variant in ("clean", "noise"):
+                points, truth = sampler(m, rng)
+                if variant == "noise":
+                    diag = float(np.linalg.norm(np.ptp(points, axis=0)))
+                    points = points + NOISE * diag * rng.standard_normal(points.shape)
+                res = run_methods(points, truth, np.ones(m, bool), o3d)
+                runs.append({"dim": "3D", "case": f"{name}/{variant}", "variant": variant,
+                             "m": m, **res})
+                print(runs[-1]["case"], m, fmt(res["jurs"]), "| mst", fmt(res["mst"]),
+                      "| o3d", fmt(res["open3d"]) if "open3d" in res else "-", flush=True)
+    fits = {}
+    for name in FIT_CASES[:2] if args.quick else FIT_CASES:
+        for variant in ("clean", "noise"):
+            fits[f"{name}/{variant}"] = fit_quality(name, variant)
+            print("fit", name, variant, fits[f"{name}/{variant}"], flush=True)
+    origins.update({"2D": "jurs.shapes outlines (horse, coins: scikit-image images; glyphs: "
+                          "DejaVu Sans); text, binary_blobs: skimage.data images traced "
+                          "with find_contours; nested_rings: 4 concentric circles (2 "
+                          "annuli); thin_band: 4 x 0.12 rectangle; close_discs: two unit "
+                          "discs 0.06 apart (2D sizes before scaling to a longest side of "
+                          "8)",
+                    "3D": "sphere, torus (R 1, r 0.35), thick_shell (radii 1 and 0.8): "
+                          "area-uniform random samples"})
+    payload = {"date": datetime.date.today().isoformat(), "load_start": load_start,
+               "load_end": os.getloadavg()[0],
+               "machine": f"{platform.machine()}, {os.cpu_count()} cores, "
+                          f"{platform.processor() or 'cpu'}, Python {platform.python_version()}",
+               "command": "python benchmarks/normals.py" + (" --quick" if args.quick else ""),
+               "open3d": getattr(o3d, "__version__", "not installed"),
+               "meshes": ", ".join(v for k, v in origins.items() if k in ("bunny", "cow"))
+               or "pymeshlab/trimesh not installed",
+               "runs": runs, "fits": fits, "origins": origins}
+    payload["verdicts"] = verdicts(runs)
+    payload["total_s"] = time.perf_counter() - start
+    write_results("normals", payload, markdown(payload))
+    print("\n".join(payload["verdicts"]))
+
+
+if __name__ == "__main__":
+    main()
