@@ -498,7 +498,7 @@ def report_markdown(res, quick) -> str:
             f"`{r0['shape']}`, {r0['points']} points, {r0['grid']}x{r0['grid']})", "",
             f"IURS, tau = {TABLE2_TAU}, tol = {TOL}; lambda = 0 added as the reference. "
             "\"objective lambda\" = 2 lambda / mu at the final weights: the lambda of E_d + lambda R "
-            "that eq. 33's fixed point minimises (DESIGN.md 3). The paper's Table 3 values are not "
+            "that eq. 33's fixed point minimises (docs/design.md section 3). The paper's Table 3 values are not "
             "in our copy of the paper.", ""]
     rows = [[num(r["lam"], "{:g}"), num(r["lam_objective_final"]), sci(r["E"]), sci(r["E_max"]),
              sci(r["E_ave"]), num(r["R"], "{:.4g}"), steps_cell(r), num(r["time_s"], "{:.3g}"),
@@ -627,7 +627,7 @@ def table2_discussion(t2):
              f"- R(C) drops by a factor {_fmt_range(r_ratio, '{:.2g}')} (paper: "
              f"{_fmt_range(paper_r_ratio, '{:.2g}')}). The regularised R(C) is "
              f"{_fmt_range(r_vs_paper, '{:.2g}')}x the paper's (same lambdas, different shapes): "
-             "a hint that our R (eq. 31, DESIGN.md 1) and eq. 33 are "
+             "a hint that our R (eq. 31, docs/design.md section 1) and eq. 33 are "
              "scaled as the paper's for these examples.",
              f"- Supplementary zero-level components: fewer with regularisation in {fewer_supp} of "
              f"{n} examples, none at all with regularisation in {no_supp} of {n} (the paper shows "
@@ -738,7 +738,7 @@ def table4_discussion(t4):
     if pairs:
         lines.append("- Reading A, IURS vs the exact LeastSquares minimiser of the same objective "
                      "(w stays near 1, so they should agree; this checks the lambda conversion of "
-                     "DESIGN.md 3 on real data): " + "; ".join(pairs) + ".")
+                     "docs/design.md section 3 on real data): " + "; ".join(pairs) + ".")
     return lines
 
 

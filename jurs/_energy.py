@@ -4,7 +4,7 @@ Everything is written with the two linear maps of :mod:`jurs._spline`: ``F`` (co
 grid -> values at the samples) and its transpose ``T``. With ``W = F(w)``:
 
 * ``g = F(w C) / W`` (eq. 14) and the collocation transpose ``D^T v = w * T(v / W)``;
-* ``nabla_C E_d = 2 D^T r`` and ``nabla_w E_d = 2 (C * T(r / W) - T(r g / W))`` (DESIGN 2).
+* ``nabla_C E_d = 2 D^T r`` and ``nabla_w E_d = 2 (C * T(r / W) - T(r g / W))`` (docs/design.md section 2).
 
 D (3m x NM) is never formed, nor any (samples x 16) array of its rows. Arrays indexed by
 sample are in the problem's slot order (see :class:`jurs.Problem`).
@@ -82,7 +82,7 @@ def regulariser(control: Array) -> Array:
 
 
 def objective(problem: Problem, control: Array, weights: Array, lam) -> Array:
-    """E(C, w) + lambda R(C) (eq. 32), lambda being the objective's weight (see DESIGN 3)."""
+    """E(C, w) + lambda R(C) (eq. 32), lambda being the objective's weight (see docs/design.md section 3)."""
     return data_energy(problem, control, weights) + lam * regulariser(control)
 
 
@@ -100,14 +100,14 @@ def regulariser_grad(control: Array) -> Array:
 
 
 def data_energy_grad_control(problem: Problem, control: Array, weights: Array) -> Array:
-    """nabla_C E_d = 2 D^T r, hand-derived (DESIGN 2)."""
+    """nabla_C E_d = 2 D^T r, hand-derived (docs/design.md section 2)."""
     r, denom, _ = rational_residuals(problem, control, weights)
     return 2.0 * collocation_transpose(problem, weights, denom, r)
 
 
 def weight_gradient(problem: Problem, control: Array, r: Array, denom: Array, g: Array) -> Array:
     """nabla_w E_d (eq. 19) from the residuals: ``2 sum_k r_k B_ij(x_k) (C_ij - g_k) / W_k``
-    = ``2 (C * T(r / W) - T(r g / W))``, hand-derived (DESIGN 2)."""
+    = ``2 (C * T(r / W) - T(r g / W))``, hand-derived (docs/design.md section 2)."""
     t = bspline_transpose(problem.local, jnp.stack([r / denom, r * g / denom]), problem.shape)
     return 2.0 * (control * t[0] - t[1])
 
@@ -120,7 +120,7 @@ def data_energy_grad_weights(problem: Problem, control: Array, weights: Array) -
 
 def collocation_column_sums(problem: Problem, weights: Array) -> Array:
     """Column sums of D (eq. 23) as an (N, M) grid. D >= 0 with unit row sums, so
-    ||D^T D||_inf equals the largest of these (DESIGN 2). Masked slots are not rows."""
+    ||D^T D||_inf equals the largest of these (docs/design.md section 2). Masked slots are not rows."""
     denom = rational_values(problem.local, jnp.zeros_like(weights), weights)[0]
     return collocation_transpose(problem, weights, denom, jnp.ones_like(denom))
 

@@ -7,7 +7,7 @@ with all weights 1, ``W = 1`` (partition of unity) and g is the B-spline f of eq
 So g is two plain B-spline evaluations, ``F(w C) / F(w)``, where ``F`` maps a coefficient
 grid to values at the samples (:func:`bspline_values`). Its transpose ``T``
 (:func:`bspline_transpose`) gives everything else: the collocation transpose of eq. 23 is
-``D^T v = w * T(v / W)``, and the gradients of DESIGN section 2 are ``T`` of per-sample
+``D^T v = w * T(v / W)``, and the gradients of docs/design.md section 2 are ``T`` of per-sample
 scalars times a grid. No (samples x 16) array of rows is ever needed on the fast path.
 
 Samples are stored in *buckets*: runs of ``bucket_size`` samples that share one cell, so a

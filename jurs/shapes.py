@@ -21,7 +21,7 @@ Components are oriented with the filled region on their left (outer boundaries
 anticlockwise, holes clockwise; the filled region follows the even-odd rule), so the
 normal ``(t_y, -t_x)`` of the unit tangent ``t`` points **out of the filled region**: away
 from the shape on outer boundaries, into the hole on holes (the convention of
-:mod:`jurs.datasets` and DESIGN.md).
+:mod:`jurs.datasets` and docs/design.md section 1).
 
     points, normals = jurs.shapes.get("glyph_B", 639, size=8.0)
 

@@ -100,6 +100,7 @@ def test_rational_evaluation_against_definition(rng):
     np.testing.assert_allclose(np.asarray(bspline(jnp.asarray(xy))), basis @ control.ravel(), atol=1e-12)
 
 
+@pytest.mark.slow
 def test_check_grads_spline_evaluation(rng):
     shape = (6, 6)
     xy, lower, upper = random_points(rng, 20)
@@ -163,6 +164,7 @@ def test_centred_power_basis_is_the_cubic_basis(rng):
                                np.asarray(by_basis), rtol=1e-13, atol=1e-15)
 
 
+@pytest.mark.slow
 def test_table_and_power_forms_agree(rng):
     """Small concrete problems keep the paper's order with a table of their own buckets;
     F and T match the power form (one sample a bucket, and bucketed) on the same samples."""

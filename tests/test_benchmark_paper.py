@@ -5,10 +5,13 @@ import os
 import subprocess
 import sys
 
+import pytest
+
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 SCRIPT = os.path.join(ROOT, "benchmarks", "paper.py")
 
 
+@pytest.mark.slow
 def test_paper_quick_writes_its_files(tmp_path):
     proc = subprocess.run([sys.executable, SCRIPT, "--quick", "--out", str(tmp_path)],
                           capture_output=True, text=True, timeout=300, cwd=ROOT)

@@ -95,6 +95,7 @@ def test_offset_does_not_cross_thin_parts():
         batched, [_defaults.offset_agreement(points, normals, x) for x in ladder])
 
 
+@pytest.mark.slow
 def test_overrides_are_kept(lobes):
     p, n = lobes
     s = jurs.auto_settings(p, n, grid=(12, 14), offset=0.2, smoothing=1e-3)
@@ -124,6 +125,7 @@ def test_traced_points_need_explicit_settings(lobes):
         jax.jit(lambda q: jurs.fit(q, n).metrics["E"])(jnp.asarray(p))
 
 
+@pytest.mark.slow
 def test_default_fit_is_clean_and_accurate(lobes, lobes_fit):
     p, _ = lobes
     sol = lobes_fit
@@ -135,6 +137,7 @@ def test_default_fit_is_clean_and_accurate(lobes, lobes_fit):
     assert report.chamfer < 1e-3 * diagonal(p)
 
 
+@pytest.mark.slow
 def test_default_fit_on_noisy_data():
     p, n = jurs.shapes.get("glyph_8", 600)
     diag = diagonal(p)
@@ -149,6 +152,7 @@ def test_default_fit_on_noisy_data():
 
 
 @pytest.mark.parametrize("motion", ["translate", "rotate", "scale"])
+@pytest.mark.slow
 def test_default_zero_set_moves_with_the_data(lobes, lobes_fit, motion):
     p, n = lobes
     shift, scale = np.array([13.0, -4.0]), 2.5
@@ -161,6 +165,7 @@ def test_default_zero_set_moves_with_the_data(lobes, lobes_fit, motion):
     assert chamfer < 1e-3 * diagonal(p)
 
 
+@pytest.mark.slow
 def test_doubling_the_density_changes_little(lobes, lobes_fit):
     p, _ = lobes
     dense = jurs.fit(*jurs.shapes.get("lobes", 600))

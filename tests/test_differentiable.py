@@ -10,6 +10,9 @@ import pytest
 
 import jurs
 
+# Every test here takes several seconds (compiles and long iterations): make test-fast skips them.
+pytestmark = pytest.mark.slow
+
 jax.config.update("jax_enable_x64", True)
 
 HELD_OUT = jnp.asarray(jurs.datasets.example1(37)[0]) * 1.02  # near, not on, the data

@@ -1,4 +1,4 @@
-"""Autodiff of E + lambda R against the hand-derived gradients (DESIGN section 2), and the
+"""Autodiff of E + lambda R against the hand-derived gradients (docs/design.md section 2), and the
 energies, regulariser and step size against dense definitions."""
 
 import jax
@@ -28,6 +28,7 @@ def data():
 
 @pytest.mark.parametrize("shape", GRIDS)
 @pytest.mark.parametrize("lam", [0.0, 0.3])
+@pytest.mark.slow
 def test_autodiff_matches_hand_derived(data, rng, shape, lam):
     problem = jurs.make_problem(*data, grid=shape)
     control, weights = random_state(rng, shape)
@@ -39,6 +40,7 @@ def test_autodiff_matches_hand_derived(data, rng, shape, lam):
 
 
 @pytest.mark.parametrize("shape", GRIDS[:2])
+@pytest.mark.slow
 def test_hand_derived_matches_dense_formulas(data, rng, shape):
     problem = jurs.make_problem(*data, grid=shape)
     control, weights = random_state(rng, shape)
@@ -96,6 +98,7 @@ def test_step_size_equals_dense_norm(data, rng, uniform):
     np.testing.assert_allclose(float(jurs.step_size(problem, weights)), dense_mu, rtol=1e-12)
 
 
+@pytest.mark.slow
 def test_bucketed_layout_gives_same_energy_and_gradients(rng):
     points, normals = jurs.datasets.example1(500)
     shape = (9, 9)
@@ -110,6 +113,7 @@ def test_bucketed_layout_gives_same_energy_and_gradients(rng):
                                float(jurs.step_size(flat, weights)), rtol=1e-13)
 
 
+@pytest.mark.slow
 def test_iurs_steps_agree_across_layouts(rng):
     """The table form (small problems), the power form one sample a bucket (traced builds)
     and the bucketed power form give the same IURS iterates (Algorithm 1)."""
@@ -137,6 +141,7 @@ def test_iurs_steps_agree_across_layouts(rng):
 
 
 @pytest.mark.parametrize("layout", ["table", "power", "bucketed"])
+@pytest.mark.slow
 def test_metrics_match_their_definitions(rng, layout):
     """``jurs.metrics`` (eq. 35-37 and mu of eq. 25, computed in the kernels' layout in one
     pass) against the spline evaluated at the points and the dense collocation."""

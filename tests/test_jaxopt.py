@@ -15,6 +15,7 @@ jax.config.update("jax_enable_x64", True)
 LAM = 1e-4
 
 
+@pytest.mark.slow
 def test_jurs_works_without_jaxopt():
     """Hide jaxopt from the import system: jurs imports, other solvers fit, and a jaxopt
     solver fails with an ImportError naming the extra."""
@@ -50,6 +51,7 @@ def example1():
     jurs.JaxoptGaussNewton(lam=LAM, max_steps=20, tol=1e-10),
     jurs.JaxoptLevenbergMarquardt(lam=LAM, max_steps=50, tol=1e-10),
 ], ids=["LBFGS", "GaussNewton", "LevenbergMarquardt"])
+@pytest.mark.slow
 def test_fixed_weight_jaxopt_solvers_agree_with_least_squares(example1, solver):
     points, normals, reference = example1
     sol = jurs.fit(points, normals, grid=9, offset=0.1, eps=0.01, solver=solver)
@@ -59,6 +61,7 @@ def test_fixed_weight_jaxopt_solvers_agree_with_least_squares(example1, solver):
     assert history[1] < history[0]
 
 
+@pytest.mark.slow
 def test_joint_jaxopt_levenberg_marquardt_improves_on_the_bspline(example1):
     points, normals, reference = example1
     solver = jurs.JaxoptLevenbergMarquardt(lam=LAM, joint=True, max_steps=30,

@@ -12,6 +12,9 @@ import jurs
 from jurs import _normal
 from jurs.solvers._least_squares import DEFAULT_RIDGE, solve_normal_equations
 
+# Every test here takes several seconds (compiles and long iterations): make test-fast skips them.
+pytestmark = pytest.mark.slow
+
 jax.config.update("jax_enable_x64", True)
 
 LAM = 1e-4  # objective lambda used where the unregularised problem is too ill-posed

@@ -194,6 +194,7 @@ def test_polylines_table_and_zero_level_set(circle_fit):
     np.testing.assert_allclose(table[:, 3:], lines[0][0])
 
 
+@pytest.mark.slow
 def test_spline_save_load_roundtrip(tmp_path, circle_fit):
     _, sol = circle_fit
     path = tmp_path / "s.npz"
@@ -254,6 +255,7 @@ def test_project_to_zero_set_lands_on_the_curve():
         ls.project_to_zero_set(f, start, steps=-1)
 
 
+@pytest.mark.slow
 def test_refined_chamfer_resolves_what_the_sampled_one_cannot():
     ref = circle_samples(20000)
     coarse = circle_samples(400)  # the zero-set samples, e.g. from a contour

@@ -9,6 +9,9 @@ from conftest import PAPER, dense_collocation
 
 import jurs
 
+# Every test here takes several seconds (compiles and long iterations): make test-fast skips them.
+pytestmark = pytest.mark.slow
+
 
 def dense_laplacian(shape):
     n = shape[0] * shape[1]
@@ -62,7 +65,7 @@ def test_ipia_converges_to_least_squares_minimiser(box_problem):
 @pytest.mark.parametrize("lam", [0.002, 0.02])
 def test_regularised_fixed_point(lam):
     """With weights fixed (tau = 0) the fixed point of eq. 33 minimises E_d + (2 lam / mu) R,
-    i.e. solves (D^T D + 2 (2 lam / mu) L) C = D^T b (DESIGN section 3)."""
+    i.e. solves (D^T D + 2 (2 lam / mu) L) C = D^T b (docs/design.md section 3)."""
     problem = jurs.make_problem(*jurs.datasets.example1(40), grid=(6, 6))
     d = dense_collocation(problem, np.ones(problem.shape))
     b = np.asarray(problem.targets)

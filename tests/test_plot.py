@@ -18,6 +18,9 @@ import jurs.plot as jplot  # noqa: E402
 from conftest import PAPER  # noqa: E402
 from jurs import levelset as ls  # noqa: E402
 
+# Every test here takes several seconds (fits and figures): make test-fast skips them.
+pytestmark = pytest.mark.slow
+
 
 @pytest.fixture(scope="module")
 def run(example1_cloud):

@@ -113,6 +113,7 @@ def test_bad_arguments():
         shapes.get("rose", 10, size=0.0)
 
 
+@pytest.mark.slow
 def test_fits_as_input_to_jurs():
     """The outlines feed straight into jurs.fit (normals outward, so g < 0 inside)."""
     import jurs

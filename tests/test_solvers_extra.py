@@ -62,6 +62,7 @@ def _energy(sol):
     return float(sol.metrics["E"])
 
 
+@pytest.mark.slow
 def test_every_solver_reports_the_same_metrics(fits):
     for name, sol in fits.items():
         assert set(sol.metrics) >= {"E", "E_d", "R", "E_ave", "E_max", "lam"}, name
@@ -71,6 +72,7 @@ def test_every_solver_reports_the_same_metrics(fits):
         assert np.isfinite(_energy(sol)), name
 
 
+@pytest.mark.slow
 def test_energy_does_not_increase(fits):
     """Each driver run records the energy before and after: all these methods descend
     (line search, trust region, or accept-only-if-lower damping)."""
@@ -81,6 +83,7 @@ def test_energy_does_not_increase(fits):
         assert np.all(np.diff(history[: steps + 1]) <= 1e-15 * history[0]), name
 
 
+@pytest.mark.slow
 def test_fixed_weight_solvers_agree_with_least_squares(fits):
     reference = _energy(fits["LeastSquares"])
     for name, (_, kind) in SOLVERS.items():
@@ -92,6 +95,7 @@ def test_fixed_weight_solvers_agree_with_least_squares(fits):
             assert _energy(sol) >= reference * (1 - 1e-9), name
 
 
+@pytest.mark.slow
 def test_joint_solvers_do_not_end_above_least_squares(fits):
     reference = _energy(fits["LeastSquares"])
     for name, (_, kind) in SOLVERS.items():
@@ -103,6 +107,7 @@ def test_joint_solvers_do_not_end_above_least_squares(fits):
             assert abs(float(jnp.mean(jnp.log(sol.spline.weights)))) < 1e-6, name
 
 
+@pytest.mark.slow
 def test_joint_fit_beats_the_bspline_by_3x_in_e_ave(example1_cloud):
     """Done-when of issue 3 (lam = 0, Example 1, 9 x 9): a rational fit reaches an E_ave at
     least 3x below the exact B-spline fit's. (Timing: benchmarks/solvers.py.)"""
@@ -114,6 +119,7 @@ def test_joint_fit_beats_the_bspline_by_3x_in_e_ave(example1_cloud):
     assert ratio >= 3.0, ratio
 
 
+@pytest.mark.slow
 def test_joint_warm_start_survives_a_singular_unregularised_system():
     """Example 1 with 120 points at 15 x 15 and lam = 0: D^T D is numerically singular and
     the plain Cholesky warm start broke down to NaN (every joint solver then stopped at its
@@ -131,6 +137,7 @@ def test_joint_warm_start_survives_a_singular_unregularised_system():
         assert np.isfinite(float(sol.metrics["E"])) and float(sol.metrics["E"]) <= reference
 
 
+@pytest.mark.slow
 def test_optimistix_results_are_mapped(example1_cloud):
     points, normals = example1_cloud
     solver = jurs.OptimistixLeastSquares(optx.LevenbergMarquardt(rtol=1e-8, atol=1e-12),

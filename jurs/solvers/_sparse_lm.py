@@ -1,7 +1,7 @@
 """A Levenberg-Marquardt solver for the joint (C, w) fit that uses the Jacobian's sparsity.
 
 Each residual ``g(x_k) - b_k`` depends on the 16 coefficients and 16 weights of its cell,
-through the hand-derived derivatives of DESIGN 2 (with ``w = exp(v)``):
+through the hand-derived derivatives of docs/design.md section 2 (with ``w = exp(v)``):
 
     dg/dC_ij = w_ij B_ij / W = R_ij,      dg/dv_ij = w_ij B_ij (C_ij - g) / W.
 
