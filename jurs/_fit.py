@@ -7,13 +7,23 @@ import dataclasses
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import numpy as np
 
-from ._compile import COMPILER_OPTIONS
+from ._compile import COMPILER_OPTIONS, call_stored, padded_count
 from ._defaults import auto_settings
-from ._problem import DEFAULT_MARGIN, _is_concrete, make_problem, normalise_grid
+from ._io import SPLINE_KEYS, check_spline_arrays
+from ._problem import (
+    DEFAULT_MARGIN,
+    _is_concrete,
+    check_memory,
+    flipped_normal_fraction,
+    make_problem,
+    normalise_grid,
+    tangential_normal_fraction,
+)
 from ._solution import RESULTS, Solution
 from ._spline import ImplicitSpline
-from .solvers import AbstractSolver, LeastSquares, solve
+from .solvers import IPIA, IURS, AbstractSolver, LeastSquares, solve
 
 
 def _as_arrays(tree, dtype):
@@ -21,6 +31,104 @@ def _as_arrays(tree, dtype):
     return jax.tree_util.tree_map(
         lambda x: jnp.asarray(x, dtype) if isinstance(x, float) else x, tree
     )
+
+
+def padded_cloud(points, normals):
+    """``(points, normals, mask)`` padded to :func:`jurs._compile.padded_count` points with
+    masked-out copies of the first point (inside any box the cloud fits in), or None where
+    the inputs are traced or malformed (make_problem then reports them as given).
+
+    Why: a compiled fit is specialised to its array shapes; clouds padded to one of a few
+    sizes, with a layout sized from that (``make_problem(stable_shapes=True)``), reuse one
+    compilation. Masked points take no part in the fit, so the result is the unpadded one
+    up to rounding (the per-bucket sums group the samples differently).
+    """
+    if not _is_concrete(points, normals):
+        return None
+    try:  # ragged lists: make_problem names them
+        p, n = np.asarray(points), np.asarray(normals)
+    except (TypeError, ValueError):
+        return None
+    if p.ndim != 2 or p.shape[1] != 2 or n.shape != p.shape or p.shape[0] < 3:
+        return None
+    m = p.shape[0]
+    extra = padded_count(m) - m
+    mask = np.arange(m + extra) < m
+    return (np.concatenate([p, np.repeat(p[:1], extra, axis=0)]),
+            np.concatenate([n, np.repeat(n[:1], extra, axis=0)]), mask)
+
+
+#: More than this fraction of the points with normals flipped against their neighbours
+#: (:func:`jurs._problem.flipped_normal_fraction`), or with normals along the curve
+#: (:func:`jurs._problem.tangential_normal_fraction`), makes a fit
+#: ``inconsistent_normals``: consistent clouds measured 0 and at most 0.03 (0.12 flipped
+#: on a horse sampled coarser than its legs); half or every other normal flipped 0.5,
+#: random normals about 0.5 along the curve.
+MAX_FLIPPED_FRACTION = 0.2
+MAX_TANGENTIAL_FRACTION = 0.2
+
+
+#: Peak bytes a fit holds per coefficient: the exact solve and the normal-equation form
+#: assemble the 49-point stencil of D^T D and solve with it (LeastSquares measured 0.8 GB,
+#: 3.1 KB a coefficient, at 512 x 512, peak resident memory above the process' baseline
+#: on this 2-core CPU; XLA asked for 2.5 KB a coefficient at 10000 x 10000); the
+#: per-sample iterations hold a few grids (IURS: 0.19 GB at 64 x 64 and at 256 x 256,
+#: compilation included). At 2000 x 2000 it held 10 GB (2.5 KB a coefficient) after 8
+#: minutes and was still growing: the limit is twice the largest rate measured, so that a
+#: fit it lets through does not run the machine out of memory.
+BYTES_PER_COEFFICIENT = 8192
+BYTES_PER_COEFFICIENT_ITERATIVE = 1024
+#: Peak bytes per sample (positions, basis values, residuals).
+BYTES_PER_SAMPLE = 256
+
+
+def fit_memory(shape, num_samples: int, solver) -> float:
+    """Estimated peak bytes of a fit on an ``(N, M)`` grid with ``num_samples`` samples
+    (:data:`BYTES_PER_COEFFICIENT`, :data:`BYTES_PER_SAMPLE`)."""
+    per_coefficient = (BYTES_PER_COEFFICIENT_ITERATIVE if isinstance(solver, (IPIA, IURS))
+                       else BYTES_PER_COEFFICIENT)
+    return float(per_coefficient * shape[0] * shape[1] + BYTES_PER_SAMPLE * num_samples)
+
+
+def _check_orientation(sol, points, normals, mask):
+    """``sol`` with ``metrics["flipped_normal_fraction"]`` and
+    ``metrics["tangential_normal_fraction"]`` and, where more than
+    :data:`MAX_FLIPPED_FRACTION` of the normals are flipped against their neighbours or
+    more than :data:`MAX_TANGENTIAL_FRACTION` lie along the curve, the verdict
+    ``RESULTS.inconsistent_normals`` in place of success or max_steps (half-flipped or
+    random normals fitted "successfully" into 2 or 20 loops). Host side. Unlike an input
+    error this is a verdict, as optimistix reports a failed solve in ``sol.result``: the
+    fit ran and is returned, for the caller to look at."""
+    p, n = np.asarray(points, float), np.asarray(normals, float)
+    if mask is not None:
+        keep = np.asarray(mask).astype(bool)
+        p, n = p[keep], n[keep]
+    flipped = flipped_normal_fraction(p, n)
+    along = tangential_normal_fraction(p, n)
+    metrics = dict(sol.metrics, flipped_normal_fraction=jnp.asarray(flipped),
+                   tangential_normal_fraction=jnp.asarray(along))
+    result = sol.result
+    bad = flipped > MAX_FLIPPED_FRACTION or along > MAX_TANGENTIAL_FRACTION
+    if bad and bool(
+            (result == RESULTS.successful) | (result == RESULTS.max_steps_reached)):
+        result = RESULTS.inconsistent_normals
+    return dataclasses.replace(sol, metrics=metrics, result=result)
+
+
+def _estimated_normals(points, mask):
+    """``(normals, info)`` for :func:`fit` called without normals: outward normals from
+    :func:`jurs.estimate_normals` and its findings (a dict, without the per-point
+    confidence)."""
+    if mask is not None:
+        raise ValueError("normals=None estimates normals from the whole cloud: it takes no "
+                         "mask (estimate them with jurs.estimate_normals, then pad)")
+    if not _is_concrete(points):
+        raise ValueError("normals=None estimates normals on the host from concrete points; "
+                         "under jit, grad or vmap pass normals (jurs.estimate_normals)")
+    from ._orientation import estimate_normals  # SciPy's graphs: loaded when first needed
+
+    normals, info = estimate_normals(points, return_info=True)
+    return normals, {k: v for k, v in info._asdict().items() if k != "confidence"}
 
 
 def _run(problem, solver, init, throw):
@@ -60,7 +168,7 @@ def reassociates(problem, solver, init=None) -> bool:
 
 def fit(
     points,
-    normals,
+    normals=None,
     *,
     grid=None,
     solver: AbstractSolver | None = None,
@@ -84,7 +192,10 @@ def fit(
 
     Args:
         points: ``(m, 2)`` data points.
-        normals: ``(m, 2)`` outward normals (normalised here).
+        normals: ``(m, 2)`` outward normals (normalised here); None (omitted) estimates
+            and orients them first (:func:`jurs.estimate_normals`, on the host: concrete
+            points only, no ``mask``), and ``sol.stats["estimated_normals"]`` then holds
+            what the estimation found (``k``, ``components``, ``patches``, ...).
         grid: ``N`` or ``(N, M)`` basis functions along x and y (>= 4); None chooses.
         solver: any jurs solver; None: ``LeastSquares(lam=settings.lam)``, the regularised
             exact solve. A solver given keeps its own lambda.
@@ -116,8 +227,19 @@ def fit(
     (``benchmarks/results/speed.md`` times the IURS step at 1e6 points with and without
     them). The result then differs from the same fit under a caller's ``jit`` at rounding
     level.
+
+    Shape-stable: a concrete cloud without a ``mask`` is padded to one of four sizes an
+    octave (:func:`jurs._compile.padded_count`: ..., 896, 1024, 1280, 1536, ...) with
+    masked-out points, and its sample layout sized from that, so that a new cloud of a
+    similar size reuses the compiled fit instead of compiling again; automatic grids are
+    rounded up likewise (:func:`jurs._defaults.choose_grid`). The padding changes the result
+    only at rounding level. With :func:`jurs.enable_compilation_cache`, new processes load
+    compiled (and traced) fits from the cache folder.
     """
     settings = None
+    estimated = None
+    if normals is None:
+        normals, estimated = _estimated_normals(points, mask)
     if smoothing is not None and solver is not None:
         raise ValueError("smoothing sets the default solver's lambda; with a solver given, "
                          "set its lam instead")
@@ -132,13 +254,25 @@ def fit(
     shape = normalise_grid(grid)
     if not isinstance(solver, AbstractSolver):
         raise TypeError(f"solver must be a jurs solver, got {type(solver).__name__}")
+    check_memory(f"grid={shape[0]}x{shape[1]}",  # points are checked by make_problem
+                 fit_memory(shape, 3 * (len(points) if hasattr(points, "__len__") else 0),
+                            solver))
     dtype = jnp.result_type(float)
+    if init is not None and not isinstance(init, ImplicitSpline):
+        raise TypeError(f"init must be a jurs.ImplicitSpline, got {type(init).__name__}")
     if init is not None and tuple(init.shape) != shape:
         raise ValueError(f"init spline has grid {init.shape}, expected {shape}")
+    if init is not None and _is_concrete(init):  # a NaN start ran into RESULTS.nonfinite
+        check_spline_arrays({k: np.asarray(getattr(init, k)) for k in SPLINE_KEYS}, "init: ")
     # The problem is built outside the solver's jit: its sample layout is chosen on the
     # host from concrete data (see make_problem); under a caller's jit/grad/vmap it is traced.
+    given = (points, normals, mask)  # before padding, for the orientation check
+    padded = padded_cloud(points, normals) if mask is None else None
+    if padded is not None:  # shape-stable: clouds of similar size share one compiled fit
+        points, normals, mask = padded
     problem = make_problem(points, normals, grid=shape, offset=offset, eps=eps, domain=domain,
-                           margin=margin, mask=mask, bucket_size=bucket_size, dtype=dtype)
+                           margin=margin, mask=mask, bucket_size=bucket_size, dtype=dtype,
+                           stable_shapes=padded is not None)
     solver = _as_arrays(solver, dtype)
     top_level = _at_top_level((problem, solver, init))
     run = (_solve_reassociating if top_level and _reassociation_pays(problem, solver)
@@ -147,9 +281,15 @@ def fit(
         # ``throw`` checked on the host after the call, not by a host callback inside it:
         # a compiled fit with a callback is never written to JAX's persistent compilation
         # cache, and without one a new process loads the fit instead of compiling it.
-        sol = run(problem, solver, init, False)
+        # With jurs.enable_compilation_cache, the plain compilation also goes through the
+        # store of exported fits: a new process skips its tracing too (call_stored).
+        sol = (run(problem, solver, init, False) if run is _solve_reassociating
+               else call_stored(_run, run, problem, solver, init, False))
         if throw and bool(sol.result == RESULTS.nonfinite):
             raise eqx.EquinoxRuntimeError(RESULTS[RESULTS.nonfinite])
+        sol = _check_orientation(sol, *given)
     else:
         sol = run(problem, solver, init, throw)
+    if estimated is not None:
+        sol = dataclasses.replace(sol, stats=dict(sol.stats, estimated_normals=estimated))
     return sol if settings is None else dataclasses.replace(sol, settings=settings)

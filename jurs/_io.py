@@ -9,35 +9,67 @@ import numpy as np
 
 from ._spline import ImplicitSpline
 
-_KEYS = ("control", "weights", "lower", "upper")
+SPLINE_KEYS = ("control", "weights", "lower", "upper")
+
+
+def check_spline_arrays(arrays: dict, where: str) -> None:
+    """ValueError (prefixed by ``where``) unless the arrays make a spline that can be
+    evaluated: matching 2D grids of at least 4 x 4, finite numbers, positive weights (a
+    zero or negative weight puts a pole, W = 0, where g is NaN: the fits keep every weight
+    at or above ``min_weight > 0``) and a box with lower < upper."""
+    for k in SPLINE_KEYS:
+        if arrays[k].dtype.kind not in "iuf":
+            raise ValueError(f"{where}{k} must hold numbers, got dtype {arrays[k].dtype}")
+    if arrays["lower"].shape != (2,) or arrays["upper"].shape != (2,):
+        raise ValueError(f"{where}lower and upper must have shape (2,)")
+    control, weights = arrays["control"], arrays["weights"]
+    if control.ndim != 2 or control.shape != weights.shape:
+        raise ValueError(f"{where}control and weights must be matching 2D grids")
+    if min(control.shape) < 4:
+        raise ValueError(f"{where}the grid must be at least 4 x 4, got {control.shape}")
+    for k in SPLINE_KEYS:
+        if not np.isfinite(arrays[k]).all():
+            raise ValueError(f"{where}{k} contain NaN or Inf")
+    if not (weights > 0).all():
+        raise ValueError(f"{where}weights must all be positive (a zero weight makes g "
+                         f"undefined), got min {float(weights.min()):.3g}")
+    if not (arrays["lower"] < arrays["upper"]).all():
+        raise ValueError(f"{where}lower must be below upper on both axes, got "
+                         f"{arrays['lower'].tolist()} and {arrays['upper'].tolist()}")
 
 
 def save_spline(path, spline: ImplicitSpline) -> None:
-    """Write ``spline`` to ``path`` (``.npz``): arrays ``control``, ``weights``, ``lower``,
-    ``upper``. :func:`load_spline` reads it back."""
-    np.savez(os.fspath(path), **{k: np.asarray(getattr(spline, k)) for k in _KEYS})
+    """Write ``spline`` to exactly ``path`` (``.npz`` format, whatever the name: NumPy's
+    ``savez`` would append ``.npz`` to a name without it, and :func:`load_spline` of the
+    same name would then not find it): arrays ``control``, ``weights``, ``lower``,
+    ``upper``. Raises ValueError for a spline that cannot be evaluated (see
+    :func:`load_spline`), before anything is written."""
+    if not isinstance(spline, ImplicitSpline):
+        raise TypeError(f"spline must be a jurs.ImplicitSpline, got {type(spline).__name__}")
+    arrays = {k: np.asarray(getattr(spline, k)) for k in SPLINE_KEYS}
+    check_spline_arrays(arrays, "spline: ")
+    with open(os.fspath(path), "wb") as fh:
+        np.savez(fh, **arrays)
 
 
 def load_spline(path, dtype=None) -> ImplicitSpline:
     """Read an :class:`ImplicitSpline` written by :func:`save_spline`.
 
     ``dtype`` defaults to JAX's default float (float64 with ``jax_enable_x64``).
-    Raises FileNotFoundError, or ValueError naming the file for missing or ill-shaped arrays.
+    Raises FileNotFoundError, or ValueError naming the file for missing, ill-shaped or
+    non-finite arrays, weights that are not all positive, or lower >= upper.
     """
     path = os.fspath(path)
     if not os.path.exists(path):
         raise FileNotFoundError(f"{path}: no such file")
     try:
         with np.load(path, allow_pickle=False) as data:
-            arrays = {k: np.asarray(data[k]) for k in _KEYS if k in data.files}
+            arrays = {k: np.asarray(data[k]) for k in SPLINE_KEYS if k in data.files}
     except Exception as exc:
         raise ValueError(f"{path}: not a readable .npz file ({exc})") from None
-    missing = [k for k in _KEYS if k not in arrays]
+    missing = [k for k in SPLINE_KEYS if k not in arrays]
     if missing:
-        raise ValueError(f"{path}: missing arrays {missing} (expected {list(_KEYS)})")
-    if arrays["lower"].shape != (2,) or arrays["upper"].shape != (2,):
-        raise ValueError(f"{path}: lower and upper must have shape (2,)")
-    if arrays["control"].ndim != 2 or arrays["control"].shape != arrays["weights"].shape:
-        raise ValueError(f"{path}: control and weights must be matching 2D grids")
+        raise ValueError(f"{path}: missing arrays {missing} (expected {list(SPLINE_KEYS)})")
+    check_spline_arrays(arrays, f"{path}: ")
     dtype = dtype or jnp.result_type(float)
-    return ImplicitSpline(*(jnp.asarray(arrays[k], dtype) for k in _KEYS))
+    return ImplicitSpline(*(jnp.asarray(arrays[k], dtype) for k in SPLINE_KEYS))

@@ -8,6 +8,7 @@ negative inside and positive outside.
 
 from __future__ import annotations
 
+import os
 from functools import partial
 
 import equinox as eqx
@@ -17,6 +18,7 @@ import numpy as np
 from jax import Array
 
 from ._basis import flat_cell, locate, num_cells
+from ._compile import round_size
 from ._spline import TABLE_MAX_SLOTS, LocalBasis, local_basis, with_table
 
 #: Default margin added around the samples' bounding box, as a fraction of its longest side.
@@ -121,6 +123,32 @@ def bucket_layout(cells: np.ndarray, bucket_size: int, count: int,
     return slot_sample.reshape(-1), valid.reshape(-1)
 
 
+def stable_layout(cells: np.ndarray, sample_mask: np.ndarray, count: int,
+                  bucket_size: int | None = None, small: bool = False):
+    """:func:`bucket_layout` of the real samples (``sample_mask`` > 0), sized from the
+    number of slots (padding included) and the occupied cells rounded up by
+    :func:`jurs._compile.round_size`, not from the exact counts: clouds padded to one size
+    (:func:`jurs.fit`) whose samples occupy about as many cells get the same shapes, so one
+    compiled fit. Padding samples take no bucket.
+
+    The bucket size (None chooses) is the power of two :func:`choose_bucket_size` would take
+    with the mean count per rounded occupied cell in place of the median. The number of
+    buckets, ``ceil(S / K) + occupied``, bounds ``sum_cells ceil(count / K)`` for any
+    placement of the real samples. Returns ``(slot_sample, valid, bucket_size)``.
+    """
+    real = np.flatnonzero(np.asarray(sample_mask) > 0)
+    cells = np.asarray(cells)
+    num_slots = cells.shape[0]
+    occupied = min(count, round_size(np.count_nonzero(np.bincount(cells[real], minlength=count))))
+    if bucket_size is None:
+        cap, per_cell = ((SMALL_MAX_BUCKET_SIZE, num_slots / occupied / 2.0) if small
+                         else (MAX_BUCKET_SIZE, num_slots / occupied))
+        bucket_size = int(min(cap, 2 ** int(np.floor(np.log2(max(per_cell, 1.0))))))
+    num_buckets = -(-num_slots // bucket_size) + occupied
+    slot, valid = bucket_layout(cells[real], bucket_size, count, num_buckets)
+    return real[slot].astype(np.int32), valid, bucket_size
+
+
 def offset_samples(points: Array, normals: Array, offset, eps, xp=jnp):
     """Samples and targets of eq. 4-5 and 9: ``[P, P + d n, P - d n]`` and ``[0, +eps, -eps]``.
 
@@ -177,13 +205,19 @@ def _as_array(x, dtype=None):
 
 
 def check_nonnegative(name: str, value, *, strict: bool = False) -> None:
-    """Raise ValueError unless ``value`` is a finite number >= 0 (> 0 when ``strict``).
+    """Raise ValueError unless ``value`` is a finite number >= 0 (> 0 when ``strict``);
+    TypeError for something that is not a number (a string, None, ...).
 
     Traced values are not checked (their value is unknown at trace time).
     """
     if not _is_concrete(value):
         return
-    v = np.asarray(value, dtype=float)
+    if isinstance(value, (str, bytes)):  # NumPy would parse "1" as a number
+        raise TypeError(f"{name} must be a number, got {value!r}")
+    try:
+        v = np.asarray(value, dtype=float)
+    except (TypeError, ValueError):
+        raise TypeError(f"{name} must be a number, got {value!r}") from None
     if v.shape != ():
         raise ValueError(f"{name} must be a scalar, got shape {v.shape}")
     if not np.isfinite(v):
@@ -192,9 +226,45 @@ def check_nonnegative(name: str, value, *, strict: bool = False) -> None:
         raise ValueError(f"{name} must be {'positive' if strict else 'non-negative'}, got {float(v)}")
 
 
-def _validate_points(points, normals) -> None:
-    p = np.asarray(points)
-    n = np.asarray(normals)
+def check_count(name: str, value, minimum: int = 0) -> None:
+    """TypeError unless ``value`` is an int (not a bool, not a float: a step count of 2.5
+    or NaN has no meaning), ValueError if it is below ``minimum``."""
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
+        raise TypeError(f"{name} must be an int, got {value!r}")
+    if value < minimum:
+        raise ValueError(f"{name} must be >= {minimum}, got {value}")
+
+
+def _shape(x) -> tuple:
+    """The shape of an array, or of a nested list on the host (``jnp.shape`` of a list is
+    deprecated by JAX)."""
+    return tuple(x.shape) if hasattr(x, "shape") else np.shape(x)
+
+
+def numeric_array(name: str, x) -> np.ndarray:
+    """``x`` as a NumPy array of numbers: TypeError naming ``name`` for strings, objects or
+    booleans, ValueError for ragged nested lists (NumPy's own errors name nothing)."""
+    try:
+        a = np.asarray(x)
+    except (TypeError, ValueError) as exc:
+        raise ValueError(f"{name} must be an array of numbers ({exc})") from None
+    if a.dtype.kind not in "iuf":
+        raise TypeError(f"{name} must be an array of numbers, got dtype {a.dtype}")
+    return a
+
+
+def unit_normals(normals, xp=np):
+    """``normals`` scaled to unit length, robustly: divided by their largest component
+    first, so that lengths beyond the float range (1e200: the squares overflow) or below it
+    (1e-200: they underflow) normalise as well as unit ones."""
+    scale = xp.max(xp.abs(normals), axis=1, keepdims=True)
+    n = normals / scale
+    return n / xp.linalg.norm(n, axis=1, keepdims=True)
+
+
+def _validate_points(points, normals, mask=None) -> None:
+    p = numeric_array("points", points)
+    n = numeric_array("normals", normals)
     if p.ndim != 2 or p.shape[1] != 2:
         raise ValueError(f"points must have shape (m, 2), got {p.shape}")
     if n.shape != p.shape:
@@ -205,17 +275,41 @@ def _validate_points(points, normals) -> None:
         if not np.isfinite(a).all():  # one pass; rows only to name the first bad one
             bad = ~np.isfinite(a).all(axis=1)
             raise ValueError(f"{name} contain NaN or Inf (first at row {int(np.argmax(bad))})")
-    short = np.einsum("ij,ij->i", n, n) < 1e-24  # |n| < 1e-12
+    # Any non-zero length normalises (unit_normals divides by the largest component first).
+    short = np.abs(n).max(axis=1) == 0
     if short.any():
         raise ValueError(f"normals must be non-zero (zero-length normal at row {int(np.argmax(short))})")
+    if mask is not None:
+        keep = np.asarray(mask)
+        if keep.shape != (p.shape[0],):
+            raise ValueError(f"mask must have shape ({p.shape[0]},), got {keep.shape}")
+        keep = keep.astype(bool)
+        if keep.sum() < 3:
+            raise ValueError(f"mask must select at least 3 points, got {int(keep.sum())}")
+        p = p[keep]
+    # The automatic path refused these in point_spacing; the explicit one fitted them
+    # "successfully" (a degenerate box). Both paths check here.
+    if not np.ptp(p, axis=0).max() > 0:
+        raise ValueError("points: all points coincide; the cloud has no extent")
 
 
-def _validate_domain(domain, samples, m: int):
-    d = np.asarray(domain, dtype=float)
+def check_domain(domain) -> np.ndarray:
+    """``domain`` as a ``(2, 2)`` float array; ValueError naming it unless it is
+    ``((x_min, y_min), (x_max, y_max))``, finite, with min < max on both axes."""
+    try:
+        d = np.asarray(domain, dtype=float)
+    except (TypeError, ValueError):
+        raise ValueError("domain must be ((x_min, y_min), (x_max, y_max)) numbers, "
+                         f"got {domain!r}") from None
     if d.shape != (2, 2):
         raise ValueError(f"domain must be ((x_min, y_min), (x_max, y_max)), got shape {d.shape}")
     if not np.isfinite(d).all() or not (d[0] < d[1]).all():
         raise ValueError(f"domain must be finite with min < max on both axes, got {d.tolist()}")
+    return d
+
+
+def _validate_domain(domain, samples, m: int):
+    d = check_domain(domain)
     s = np.asarray(samples)
     outside = ((s < d[0]) | (s > d[1])).any(axis=1)
     if outside[:m].any():
@@ -228,20 +322,85 @@ def _validate_domain(domain, samples, m: int):
         )
 
 
-def validate_inputs(points, normals, *, offset, eps, domain=None) -> None:
+def check_offset_scale(points, offset, mask=None) -> None:
+    """ValueError when the offset d exceeds the cloud's extent (its bounding-box diagonal):
+    the offset samples P +/- d n then lie beyond the whole shape, on every side of every
+    other point, and no fit can read inside from outside (offset=1e6 on a unit cloud ran
+    for a minute into 203 loops). Concrete values only."""
+    if not _is_concrete(points, offset, mask):
+        return
+    p = np.asarray(points, float)
+    if mask is not None:
+        p = p[np.asarray(mask).astype(bool)]
+    extent = float(np.linalg.norm(np.ptp(p, axis=0)))
+    if float(offset) > extent:
+        raise ValueError(f"offset d = {float(offset):.4g} exceeds the cloud's extent (its "
+                         f"bounding-box diagonal, {extent:.4g}): the offset samples would lie "
+                         "beyond the whole shape; choose d below the point spacing or leave "
+                         "it to the automatic choice")
+
+
+#: Largest ratio of the floating-point resolution at the cloud's coordinates to the offset
+#: d: a circle of radius 1 (d = 0.016) fitted in float32 kept its Chamfer distance within
+#: 2 % up to a translation of 3e4 (ratio 0.12), lost 13 % at 1e5 (0.5), grew 11 loops at
+#: 1e6 (4) and had no zero set at 1e7 (64).
+MAX_RESOLUTION_TO_OFFSET = 0.125
+
+
+def check_precision(points, offset, dtype, domain=None, eps=None) -> None:
+    """ValueError when ``dtype`` cannot resolve the offset d at the cloud's coordinates:
+    float32 at |x| = 1e7 steps by 1, so offsets of 0.01 collapse onto the points and the
+    fit silently loses its zero set; or when the energy, a sum of 3m squares of about
+    ``eps``, would overflow it (eps = 1e153 in float64). Concrete values only."""
+    if not _is_concrete(points, offset, domain, eps):
+        return
+    info = np.finfo(np.dtype(dtype))
+    if eps is not None:
+        terms = 3.0 * len(points)
+        if float(eps) > np.sqrt(float(info.max) / (1e4 * terms)):
+            raise ValueError(f"eps = {float(eps):.3g} is too large for {np.dtype(dtype).name}: "
+                             "the energy (a sum of squares of about eps) would overflow; "
+                             "eps only scales g, so take eps about the offset d")
+    big = float(np.max(np.abs(np.asarray(points, float))))
+    if domain is not None:
+        big = max(big, float(np.max(np.abs(np.asarray(domain, float)))))
+    if big > float(info.max) / 4:
+        raise ValueError(f"points reach |x| = {big:.3g}, beyond the range of "
+                         f"{np.dtype(dtype).name}")
+    resolution = float(np.spacing(np.asarray(big, dtype)))
+    if resolution > MAX_RESOLUTION_TO_OFFSET * float(offset):
+        raise ValueError(
+            f"points reach |x| = {big:.3g}, where {np.dtype(dtype).name} resolves only steps "
+            f"of {resolution:.3g}, more than {MAX_RESOLUTION_TO_OFFSET} x the offset d = "
+            f"{float(offset):.3g}: translate the cloud near the origin or enable float64 "
+            "(jax.config.update('jax_enable_x64', True))")
+
+
+def validate_inputs(points, normals, *, offset, eps, domain=None, margin=DEFAULT_MARGIN,
+                    mask=None) -> None:
     """All input checks of :func:`make_problem`, on concrete values (traced ones are skipped).
 
-    Raises ValueError naming the problem; see :func:`make_problem`.
+    Raises ValueError (TypeError for non-numbers) naming the problem; see
+    :func:`make_problem`. ``offset`` or ``eps`` None (to be chosen from the data) skips
+    their checks.
     """
-    check_nonnegative("offset", offset, strict=True)
-    check_nonnegative("eps", eps, strict=True)
-    if not _is_concrete(points, normals):
+    for name, value in (("offset", offset), ("eps", eps)):
+        if value is not None:
+            check_nonnegative(name, value, strict=True)
+    # A negative margin shrinks the box until it leaves out the data (below -1/2 the box
+    # turns inside out); the fit then "succeeded" on samples the basis does not cover.
+    check_nonnegative("margin", margin)
+    if domain is not None and _is_concrete(domain):
+        check_domain(domain)
+    if not _is_concrete(points, normals, mask):
         return
-    _validate_points(points, normals)
+    _validate_points(points, normals, mask)
+    if offset is None:
+        return
+    check_offset_scale(points, offset, mask)
     if domain is not None and _is_concrete(domain, offset):
         p = np.asarray(points, dtype=float)
-        n = np.asarray(normals, dtype=float)
-        n = n / np.linalg.norm(n, axis=1, keepdims=True)
+        n = unit_normals(np.asarray(normals, dtype=float))
         d = float(offset)
         _validate_domain(domain, np.concatenate([p, p + d * n, p - d * n]), p.shape[0])
 
@@ -267,7 +426,7 @@ def _geometry_arrays(points, normals, offset, eps, domain, margin, mask, shape, 
     ``with_slots`` the arrays of the one-sample-a-slot layout. ``xp=numpy``: on the host,
     for concrete inputs (compiles nothing); jitted as :func:`_geometry` otherwise."""
     dtype = points.dtype
-    normals = normals / xp.linalg.norm(normals, axis=1, keepdims=True)
+    normals = unit_normals(normals, xp)
     samples, targets = offset_samples(points, normals, offset, eps, xp)
     if mask is None:
         sample_mask = xp.ones(samples.shape[0], dtype=dtype)
@@ -302,6 +461,7 @@ def make_problem(
     mask=None,
     bucket_size: int | None = None,
     dtype=None,
+    stable_shapes: bool = False,
 ) -> Problem:
     """Build the fitting :class:`Problem` of eq. 4-5 and 9.
 
@@ -323,19 +483,32 @@ def make_problem(
             (with the table form when small and concrete). Sizes above 1 need concrete
             (untraced) inputs: the layout is computed on the host.
         dtype: floating dtype; default float64 when ``jax_enable_x64`` is on, else float32.
+        stable_shapes: size a concrete problem's sample layout from the number of points
+            and the rounded number of occupied cells (:func:`stable_layout`), so that
+            clouds padded to one size share one compiled fit; masked samples then take no
+            bucket. :func:`jurs.fit` sets it for the clouds it pads.
 
     Raises:
-        ValueError: for NaN/Inf, wrong shapes, zero normals, fewer than 3 points, a grid
-            below 4 x 4, non-positive offset/eps, or samples outside a given domain. Values
-            that are traced (inside jit/grad/vmap) cannot be inspected and are not checked.
+        ValueError: for NaN/Inf, wrong shapes, zero normals, fewer than 3 points (or a mask
+            selecting fewer), points that all coincide, a grid below 4 x 4, non-positive
+            offset/eps, an offset beyond the cloud's extent, a negative margin, samples
+            outside a given domain, or coordinates that ``dtype`` cannot resolve at the
+            scale of the offset (float32 far from the origin). Values that are traced
+            (inside jit/grad/vmap) cannot be inspected and are not checked.
+        TypeError: for points or normals that are not numbers.
     """
     shape = normalise_grid(grid)
-    validate_inputs(points, normals, offset=offset, eps=eps, domain=domain)
+    validate_inputs(points, normals, offset=offset, eps=eps, domain=domain, margin=margin,
+                    mask=mask)
     if bucket_size is not None and (int(bucket_size) != bucket_size or bucket_size < 1):
         raise ValueError(f"bucket_size must be a positive int, got {bucket_size!r}")
     dtype = dtype or jnp.result_type(float)
     concrete = _is_concrete(points, normals, offset, eps, domain, mask)
-    small = 3 * jnp.shape(points)[0] <= TABLE_MAX_SLOTS
+    check_precision(points, offset, dtype, domain, eps)
+    if concrete:
+        # Unit length in float64 before any cast: 1e200-long normals overflow float32.
+        normals = unit_normals(np.asarray(normals, float))
+    small = 3 * _shape(points)[0] <= TABLE_MAX_SLOTS
     # Small concrete problems are laid out on the host in NumPy and transferred once at the
     # end: nothing to compile (a first call would otherwise spend about 0.3 s compiling
     # the geometry). Larger and traced ones take the same arithmetic jitted (at 1e6 points
@@ -347,8 +520,8 @@ def make_problem(
     else:
         convert, geometry = (lambda x: _as_array(x, dtype)), _geometry
     points = convert(points)
-    if mask is not None and tuple(jnp.shape(mask)) != (points.shape[0],):
-        raise ValueError(f"mask must have shape ({points.shape[0]},), got {jnp.shape(mask)}")
+    if mask is not None and _shape(mask) != (points.shape[0],):
+        raise ValueError(f"mask must have shape ({points.shape[0]},), got {_shape(mask)}")
     # One sample a slot unless a concrete problem gets the bucketed layout (built on the
     # host between two compiled calls); otherwise the geometry builds the slots too.
     identity = bucket_size == 1 or not concrete or (bucket_size is None and small)
@@ -366,25 +539,30 @@ def make_problem(
     if bucket_size is not None and bucket_size > 1 and not concrete:
         raise ValueError("bucket_size > 1 needs concrete inputs (the layout is built on the host)")
     count = num_cells(shape)
-    table = None
+    table = layout = None
     if concrete and bucket_size in (None, 1) and small:
         # Small problems keep the paper's order, one sample a slot; the table form groups
         # them into buckets of its own (see jurs._spline).
-        k = choose_bucket_size(cells, count, small=True)
-        needed = int((-(-np.bincount(cells, minlength=count) // k)).sum())
-        order, real = bucket_layout(cells, k, count, round_buckets(needed))
+        if stable_shapes:
+            order, real, k = stable_layout(cells, sample_mask, count, small=True)
+        else:
+            k = choose_bucket_size(cells, count, small=True)
+            needed = int((-(-np.bincount(cells, minlength=count) // k)).sum())
+            order, real = bucket_layout(cells, k, count, round_buckets(needed))
         table = (order.reshape(-1, k), real.reshape(-1, k))
         bucket_size = 1
     elif concrete and bucket_size != 1:
         cells = np.asarray(cells)
+        if stable_shapes:
+            *layout, bucket_size = stable_layout(cells, sample_mask, count, bucket_size)
         bucket_size = bucket_size or choose_bucket_size(cells, count)
     else:
         bucket_size = 1
-    if bucket_size == 1:  # the geometry built the one-sample-a-slot arrays (identity above)
+    if bucket_size == 1 and layout is None:  # the geometry built one sample a slot
         slot_sample = (np if concrete else jnp).arange(samples.shape[0], dtype=np.int32)
         slot_xy, local, slot_targets, slot_mask, slot_data = slots
     else:
-        slot_sample, valid = bucket_layout(cells, bucket_size, count)
+        slot_sample, valid = layout or bucket_layout(cells, bucket_size, count)
         slot_xy, local, slot_targets, slot_mask, slot_data = _slots(
             samples, targets, sample_mask, lower, upper, slot_sample, valid, shape, bucket_size)
     if table is not None:
@@ -406,3 +584,142 @@ def make_problem(
     )
     # Host arrays to the device in one transfer.
     return jax.device_put(problem) if concrete else problem
+
+
+def sparse_hstack(tree, roots, m):
+    """The ``(m + 1, m + 1)`` graph of ``tree`` with node ``m`` joined to ``roots``."""
+    from scipy.sparse import bmat, coo_matrix
+
+    link = coo_matrix((np.ones(len(roots)), (np.zeros(len(roots), int), roots)), shape=(1, m))
+    return bmat([[tree, link.T], [link, None]]).tocsr()
+
+
+#: Neighbours per point in :func:`flipped_normal_fraction`'s graph.
+ORIENTATION_NEIGHBOURS = 8
+#: Clouds above this many points are checked at this many, evenly strided.
+ORIENTATION_MAX_POINTS = 20_000
+
+
+def flipped_normal_fraction(points, normals) -> float:
+    """Fraction of the points whose normal is flipped against its neighbours along the
+    curve, after Hoppe et al. (1992): the sign is carried along a minimum spanning tree of
+    the neighbour graph (weights ``1 - |n_i . n_j|``) and, in each connected part, the
+    smaller of the two sign classes counts. 0 for consistently oriented normals; about 1/2
+    when half the cloud is flipped, however large the cloud.
+
+    Only *tangential* neighbours are edges (the displacement within 72.5 degrees of both
+    tangents, within two median spacings): the two sides of a thin part, or a ring and its
+    hole, face opposite ways legitimately, and lie across, not along, each other. Where
+    noise scrambles the displacement's direction the graph falls apart into small parts
+    and the check turns blind, not wrong. Measured: 0 on Examples 1, 9, 10, the rose,
+    lobes, annulus, horse, coins and glyphs B, a, g, W at 300-20000 points, also with
+    0.1 rad normal noise and with 10 % positional outliers; 0.12 on the horse at 100 points
+    (legs thinner than the spacing); 0.5 with half or every other normal flipped.
+    Runs on the host (SciPy), on concrete inputs.
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import (
+        breadth_first_order,
+        connected_components,
+        minimum_spanning_tree,
+    )
+    from scipy.spatial import cKDTree
+
+    p = np.asarray(points, float)
+    n = unit_normals(np.asarray(normals, float))
+    if len(p) > ORIENTATION_MAX_POINTS:
+        keep = np.linspace(0, len(p) - 1, ORIENTATION_MAX_POINTS).round().astype(int)
+        p, n = p[keep], n[keep]
+    m = len(p)
+    k = min(ORIENTATION_NEIGHBOURS, m - 1)
+    dist, idx = cKDTree(p).query(p, k=k + 1)
+    dist, idx = dist[:, 1:], idx[:, 1:]
+    nearest = dist[:, 0][dist[:, 0] > 0]
+    if nearest.size == 0:
+        return 0.0
+    spacing = float(np.median(nearest))
+    i, j, d = np.repeat(np.arange(m), k), idx.ravel(), dist.ravel()
+    u = (p[j] - p[i]) / np.where(d > 0, d, 1.0)[:, None]
+    dot = np.sum(n[i] * n[j], axis=1)
+    edge = ((d > 0) & (d <= 2.0 * spacing) & (np.abs(np.sum(u * n[i], axis=1)) < 0.3)
+            & (np.abs(np.sum(u * n[j], axis=1)) < 0.3))
+    graph = coo_matrix((1.0 - np.abs(dot[edge]) + 1e-3, (i[edge], j[edge])), shape=(m, m))
+    tree = minimum_spanning_tree(graph.tocsr().maximum(graph.T.tocsr()))
+    tree = tree + tree.T
+    count, labels = connected_components(tree, directed=False)
+    # Parent of every point in one breadth-first forest: a virtual node m joined to each
+    # part's first point is searched from (roots are their own parent). Whether a normal
+    # opposes its parent's, then the parity of flips up to the root by pointer jumping.
+    roots = np.unique(labels, return_index=True)[1]
+    joined = sparse_hstack(tree, roots, m)
+    pred = breadth_first_order(joined, m, directed=False)[1][:m]
+    parent = np.where(pred == m, np.arange(m), pred)
+    flip = np.sum(n * n[parent], axis=1) < 0
+    while np.any(parent != parent[parent]):
+        flip = flip ^ flip[parent]
+        parent = parent[parent]
+    flipped = np.bincount(labels, weights=flip, minlength=count)
+    size = np.bincount(labels, minlength=count)
+    return float(np.minimum(flipped, size - flipped).sum() / m)
+
+
+def available_memory(device: bool = True) -> int | None:
+    """Bytes a new allocation can take: with ``device`` on an accelerator its free memory,
+    else the host's available memory (``MemAvailable`` of /proc/meminfo, else the physical
+    memory); None where neither is known."""
+    stats = {}
+    if device:
+        try:
+            stats = jax.devices()[0].memory_stats() or {}
+        except Exception:  # backends without memory statistics
+            stats = {}
+    if "bytes_limit" in stats:
+        return int(stats["bytes_limit"]) - int(stats.get("bytes_in_use", 0))
+    try:
+        with open("/proc/meminfo") as fh:
+            for line in fh:
+                if line.startswith("MemAvailable:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    try:
+        return int(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
+    except (AttributeError, ValueError, OSError):
+        return None
+
+
+def check_memory(setting: str, estimate: float, available: int | None = None,
+                 device: bool = True) -> None:
+    """MemoryError-free refusal: ValueError naming ``setting`` when ``estimate`` bytes
+    exceed the memory available (:func:`available_memory`, on the device or with
+    ``device=False`` on the host), before anything is allocated
+    (grid=10000 otherwise asked XLA for 248 GB after 20 s, and a level-set resolution of
+    30000 ended in a MemoryError traceback)."""
+    available = available_memory(device) if available is None else available
+    if available is not None and estimate > available:
+        raise ValueError(f"{setting} needs about {estimate / 2**30:.3g} GiB of memory, more "
+                         f"than the {available / 2**30:.3g} GiB available; choose a smaller "
+                         f"{setting.split(' ')[0].split('=')[0]}")
+
+
+def tangential_normal_fraction(points, normals) -> float:
+    """Fraction of the points whose normal lies within 45 degrees of the curve's tangent,
+    the principal direction of the point and its :data:`ORIENTATION_NEIGHBOURS` nearest
+    neighbours (counted only where that direction is clear, its variance at least 4 times
+    the other's: not at corners, not in clouds sampled coarser than their features).
+    About 1/2 for random normals, which :func:`flipped_normal_fraction` cannot see (its
+    graph falls apart) and a fine grid fits "successfully"; measured at most 0.03 on the
+    consistent clouds listed there, also with 10 % of the normals random. Host side."""
+    from scipy.spatial import cKDTree
+
+    p = np.asarray(points, float)
+    n = unit_normals(np.asarray(normals, float))
+    if len(p) > ORIENTATION_MAX_POINTS:
+        keep = np.linspace(0, len(p) - 1, ORIENTATION_MAX_POINTS).round().astype(int)
+        p, n = p[keep], n[keep]
+    idx = cKDTree(p).query(p, k=min(ORIENTATION_NEIGHBOURS + 1, len(p)))[1]
+    near = p[idx] - p[idx].mean(axis=1, keepdims=True)
+    variance, axes = np.linalg.eigh(np.einsum("mki,mkj->mij", near, near))
+    clear = variance[:, 1] > 4.0 * variance[:, 0]
+    along = np.abs(np.sum(axes[:, :, 1] * n, axis=1)) > np.sqrt(0.5)
+    return float(np.mean(clear & along))

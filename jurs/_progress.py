@@ -107,7 +107,11 @@ def fit_in_chunks(points, normals, *, solver: AbstractSolver, chunk: int | None 
             snapshots[done] = sol.spline
         if callback:
             callback(done, total)
-        if k < n or sol.result != RESULTS.max_steps_reached:
+        # A chunk that ran all its steps goes on, also where the host-side checks gave a
+        # verdict on the iterate so far (normals, weights): a single fit would have gone on.
+        ran_on = (RESULTS.max_steps_reached, RESULTS.inconsistent_normals,
+                  RESULTS.weights_at_floor)
+        if k < n or not any(bool(sol.result == r) for r in ran_on):
             break  # converged, diverged or stopped by the solver
     if sol is None:  # max_steps = 0
         sol = fit(points, normals, solver=solver, init=init, **fit_kwargs)

@@ -29,6 +29,19 @@ class RESULTS(eqx.Enumeration):
         "or lambda (eq. 33 is stable only for small lambda); for other solvers see their "
         "docstrings"
     )
+    inconsistent_normals = (
+        "the normals are not consistently oriented: neighbouring normals point to opposite "
+        "sides of the curve (part of the cloud flipped), they lie along it (random "
+        "normals), or the fit's own sign disagrees with the inside/outside targets at many "
+        "offset samples (random normals, or a lambda so large that the fit cannot follow "
+        "the data); the zero set is not a reconstruction. Orient the normals (all outward) "
+        "and fit again; see sol.metrics for the measured fractions"
+    )
+    weights_at_floor = (
+        "the rational weights were driven to their floor (min_weight) on a large part of "
+        "the grid: the weight step tau is far too large for this problem, and the zero set "
+        "is degraded. Lower tau (the default 1e-2 suits unit-scale data)"
+    )
 
 
 class Solution(eqx.Module):

@@ -1,16 +1,25 @@
 """The ``jurs`` command line.
 
     jurs demo [--output DIR]      the paper's Example 1 by I-PIA and IURS (table + figure)
-    jurs fit FILE [options]       fit a point cloud with normals (CSV, TXT or NPY; columns
-                                  x, y, nx, ny) and write, into --output:
+    jurs fit FILE [options]       fit a point cloud (CSV, TXT or NPY; columns x, y, nx, ny,
+                                  or x, y alone: outward normals are then estimated)
+                                  and write, into --output:
                                     metrics.json     fit and level-set metrics, settings
                                     spline.npz       the spline (jurs.load_spline reads it)
                                     fit.png          heatmap of g, zero set, data, offsets
                                     zero_level.csv   zero-level polylines: component, closed,
                                                      supplementary, x, y
 
-Bad input files give one line on stderr naming the file and the row, exit code 2, and
-write nothing. A fit that diverges (NaN energy) exits with code 1 and writes nothing.
+Compiled fits are kept in JAX's persistent compilation cache in $XDG_CACHE_HOME/jurs (or
+~/.cache/jurs), so later runs load them instead of compiling; --no-compilation-cache or
+JURS_NO_COMPILATION_CACHE=1 turns that off.
+
+Bad input files, and output folders that cannot be written or lack the space, give one
+line on stderr naming the file (and the row), exit code 2, and write nothing; these are
+checked before the fit. A fit that diverges (NaN energy), or outputs that fail to write
+after all, exit with code 1; the output folder then keeps its whole previous set of
+outputs. A fit that ends with another verdict than success or max_steps (inconsistent
+normals, weights at their floor) is written, with a warning on stderr.
 """
 
 from __future__ import annotations
@@ -23,6 +32,8 @@ import shutil
 import sys
 import tempfile
 import time
+
+from ._compile import cache_disabled_by_environment, enable_compilation_cache
 
 EXIT_BAD_INPUT = 2
 EXIT_FIT_FAILED = 1
@@ -80,8 +91,9 @@ def build_parser() -> argparse.ArgumentParser:
     demo.add_argument("--output", default="demo-output", help="folder for the figure")
 
     f = sub.add_parser(
-        "fit", help="fit a point cloud with normals from a CSV, TXT or NPY file",
-        description="Fit an implicit spline to points with outward normals and write "
+        "fit", help="fit a point cloud from a CSV, TXT or NPY file",
+        description="Fit an implicit spline to points with outward normals (columns x, y, "
+                    "nx, ny; or x, y alone, whose normals are then estimated) and write "
                     "metrics.json, spline.npz, fit.png and zero_level.csv to --output.",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter)
     f.add_argument("file", help="CSV/TXT (columns x, y, nx, ny; optional header) or NPY (m, 4)")
@@ -116,34 +128,73 @@ def build_parser() -> argparse.ArgumentParser:
                    help="distance to the data above which a zero-level component is "
                         "supplementary; None means 2 d")
     f.add_argument("-q", "--quiet", action="store_true", help="no progress bar or summary")
+    for command in (demo, f):
+        command.add_argument(
+            "--no-compilation-cache", action="store_true",
+            help="do not keep compiled fits in JAX's persistent compilation cache "
+                 "($XDG_CACHE_HOME/jurs or ~/.cache/jurs; JURS_NO_COMPILATION_CACHE=1 "
+                 "does the same)")
     return parser
+
+
+def printable(text) -> str:
+    """``text`` safe to print and to draw: a file name that is not UTF-8 reaches Python with
+    its bytes as lone surrogates, which stdout, JSON and the figure's title cannot encode;
+    each such byte becomes U+FFFD."""
+    return os.fsencode(text).decode("utf-8", "replace") if isinstance(text, str) else str(text)
+
+
+#: The UTF-8 byte-order mark that spreadsheet programs put before a CSV's header.
+_BOM = b"\xef\xbb\xbf"
 
 
 def read_input(path: str):
     """Points and normals from ``path``; every problem raises :class:`InputError` with a
-    one-line message naming the file (and the row where there is one)."""
+    one-line message naming the file (and the row where there is one). A UTF-8 byte-order
+    mark before a text file's header is skipped."""
     import numpy as np
 
     from . import datasets
 
+    shown = printable(path)
     if os.path.isdir(path):
-        raise InputError(f"{path}: is a folder, not a file")
+        raise InputError(f"{shown}: is a folder, not a file")
     if path.lower().endswith(".npy") and os.path.exists(path):
         try:
             arr = np.load(path, allow_pickle=False, mmap_mode="r")
         except Exception as exc:
-            raise InputError(f"{path}: not a readable .npy array ({_one_line(exc)})") from None
-        if arr.ndim != 2 or arr.shape[1] != 4:
-            raise InputError(f"{path}: expected an (m, 4) array of rows x, y, nx, ny, "
-                             f"got shape {arr.shape}")
+            raise InputError(f"{shown}: not a readable .npy array ({_one_line(exc)})") from None
+        if arr.ndim != 2 or arr.shape[1] not in (2, 4):
+            raise InputError(f"{shown}: expected an (m, 4) array of rows x, y, nx, ny "
+                             f"(or (m, 2): x, y), got shape {arr.shape}")
     try:
-        points, normals = datasets.load_points(path)
+        points, normals = _load_without_bom(path, datasets.load_points)
     except (ValueError, OSError) as exc:
-        msg = _one_line(exc)
-        raise InputError(msg if msg.startswith(path) else f"{path}: {msg}") from None
+        msg = printable(_one_line(exc))
+        raise InputError(msg if msg.startswith(shown) else f"{shown}: {msg}") from None
     if len(points) < 3:
-        raise InputError(f"{path}: need at least 3 data rows, got {len(points)}")
+        raise InputError(f"{shown}: need at least 3 data rows, got {len(points)}")
     return points, normals
+
+
+def _load_without_bom(path: str, load):
+    """``load(path)``, or for a text file that starts with a byte-order mark, ``load`` of a
+    copy without it (errors name ``path``, not the copy)."""
+    if path.lower().endswith(".npy") or not os.path.isfile(path):
+        return load(path)
+    with open(path, "rb") as fh:
+        head = fh.read(len(_BOM))
+        if head != _BOM:
+            return load(path)
+        body = fh.read()
+    with tempfile.TemporaryDirectory(prefix="jurs-input-") as folder:
+        copy = os.path.join(folder, os.path.basename(path))
+        with open(copy, "wb") as out:
+            out.write(body)
+        try:
+            return load(copy)
+        except (ValueError, OSError) as exc:
+            raise ValueError(str(exc).replace(copy, path)) from None
 
 
 def _one_line(exc) -> str:
@@ -221,52 +272,174 @@ def _json_safe(value):
     return [_json_safe(v) for v in arr.tolist()]
 
 
-def run_fit(args) -> int:
-    """``jurs fit``: read, fit, analyse, then write all outputs at once (or none)."""
-    import jax
+#: Bytes the outputs take beyond the spline and the polylines (the figure, the metrics).
+OUTPUT_OVERHEAD = 8 << 20
 
-    jax.config.update("jax_enable_x64", True)
-    import matplotlib
 
-    matplotlib.use("Agg")
+def check_output_folder(out: str, need: int = OUTPUT_OVERHEAD) -> None:
+    """Before the fit: InputError unless ``out`` is (or can be made) a folder we can write
+    ``need`` bytes into, whose output names are free or plain files. A fit of minutes
+    should not end in a traceback about permissions or a full disk."""
+    shown = printable(out)
+    if os.path.exists(out) and not os.path.isdir(out):
+        raise InputError(f"{shown}: exists and is not a folder")
+    for name in OUTPUTS:
+        target = os.path.join(out, name)
+        if os.path.lexists(target) and not os.path.isfile(target):
+            raise InputError(f"{printable(target)}: exists and is not a file; move it away")
+    existing = out
+    while not os.path.isdir(existing):  # the folder that the output folder will be made in
+        parent = os.path.dirname(existing)
+        if parent == existing:
+            break
+        existing = parent
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise InputError(f"{printable(existing)}: folder is not writable")
+    free = shutil.disk_usage(existing).free
+    if free < need:
+        raise InputError(f"{printable(existing)}: only {free / 2**20:.1f} MiB free, the "
+                         f"outputs need about {need / 2**20:.1f} MiB")
+
+
+def write_outputs(out: str, write) -> None:
+    """Write the whole set of :data:`OUTPUTS` into ``out``, or none: ``write(folder)``
+    writes them all into a temporary folder made inside ``out`` (the same file system, so
+    no parent folder need be writable, ``-o .`` included), then each is renamed into
+    place, the old file set aside first. Any failure renames back what was already
+    replaced, so ``out`` keeps its whole old set. A folder ``out`` made here is removed
+    again on failure. Files and the folder take the user's umask."""
+    made = not os.path.isdir(out)
+    os.makedirs(out, exist_ok=True)
+    tmp = tempfile.mkdtemp(prefix=".jurs-", dir=out)
+    moved = []  # (name, had an old file), in the order replaced
+    done = False
+    try:
+        write(tmp)
+        for name in OUTPUTS:
+            target, old = os.path.join(out, name), os.path.join(tmp, name + ".old")
+            had_old = os.path.lexists(target)
+            if had_old:
+                os.replace(target, old)
+            moved.append((name, had_old))
+            os.replace(os.path.join(tmp, name), target)
+        done = True
+    except BaseException:
+        for name, had_old in reversed(moved):
+            target, old = os.path.join(out, name), os.path.join(tmp, name + ".old")
+            if not os.path.exists(os.path.join(tmp, name)) and os.path.lexists(target):
+                os.remove(target)  # the new file had been moved in
+            if had_old:
+                os.replace(old, target)
+        raise
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+        if made and not done and not os.listdir(out):
+            os.rmdir(out)
+
+
+def _output_writer(record, spline, report, points, normals, offset, title):
+    """A function writing every one of :data:`OUTPUTS` into a given folder."""
     import matplotlib.pyplot as plt
     import numpy as np
 
     import jurs
     from . import levelset as ls
     from . import plot
+
+    def write(folder):
+        with open(os.path.join(folder, "metrics.json"), "w", encoding="utf-8") as fh:
+            json.dump(_json_safe(record), fh, indent=2, allow_nan=False)
+            fh.write("\n")
+        jurs.save_spline(os.path.join(folder, "spline.npz"), spline)
+        np.savetxt(os.path.join(folder, "zero_level.csv"), ls.polylines_table(report.components),
+                   delimiter=",", header="component,closed,supplementary,x,y", comments="",
+                   fmt=["%d", "%d", "%d", "%.10g", "%.10g"])
+        fig = plot.plot_fit(spline, points, normals, offset, levelset=report, title=title)
+        try:
+            fig.savefig(os.path.join(folder, "fit.png"), dpi=130)
+        finally:
+            plt.close(fig)
+
+    return write
+
+
+def _check_options(args, out: str) -> None:
+    """The options checked before anything is computed: the level-set resolution (also
+    against memory: the grid is square at most) and the output folder."""
+    from . import levelset as ls
+    from ._problem import check_memory
+
+    if args.resolution < 16:
+        raise InputError(f"--resolution must be >= 16, got {args.resolution}")
+    try:
+        check_memory(f"--resolution {args.resolution}",
+                     ls.BYTES_PER_NODE * float(args.resolution) ** 2, device=False)
+    except ValueError as exc:
+        raise InputError(_one_line(exc)) from None
+    check_output_folder(out)
+
+
+def run_fit(args) -> int:
+    """``jurs fit``: read, check the output folder, fit, analyse, then write all outputs at
+    once (or none)."""
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    import matplotlib
+
+    matplotlib.use("Agg")
+
+    import jurs
+    from . import levelset as ls
     from ._progress import fit_in_chunks
 
     path = args.file
+    shown = printable(path)
     points, normals = read_input(path)
-    if args.resolution < 16:
-        raise InputError(f"--resolution must be >= 16, got {args.resolution}")
-    if os.path.exists(args.output) and not os.path.isdir(args.output):
-        raise InputError(f"{args.output}: exists and is not a folder")
+    estimated = normals is None
+    if estimated:  # an x, y file: outward normals estimated first, as jurs.fit(points) does
+        try:
+            normals = jurs.estimate_normals(points)
+        except (ValueError, TypeError) as exc:
+            raise InputError(f"{shown}: {_one_line(exc)}") from None
+    out = os.path.abspath(args.output)
+    _check_options(args, out)
     if args.smoothing is not None and (args.solver != "auto" or args.lam is not None):
         raise InputError("--smoothing sets the automatic lambda of --solver auto; "
                          "give --lam instead")
     try:  # auto_settings runs make_problem's input checks (e.g. degenerate clouds) first
         chosen = jurs.auto_settings(points, normals, grid=args.grid, offset=args.offset,
                                     eps=args.eps, smoothing=args.smoothing)
-    except ValueError as exc:
-        raise InputError(f"{path}: {_one_line(exc)}") from None
+    except (ValueError, TypeError) as exc:
+        raise InputError(f"{shown}: {_one_line(exc)}") from None
     settings = dict(grid=chosen.grid, offset=chosen.offset, eps=chosen.eps)
     solver = make_solver(args.solver, lam=args.lam, tau=args.tau, steps=args.steps,
                          tol=args.tol, auto_lam=chosen.lam)
     grid, offset = chosen.grid, chosen.offset
     lam = float(getattr(solver, "lam", 0.0))
+    # The spline (two grids of float64 in the .npz) and the polylines (at most about
+    # resolution^2 / 2 vertices of ~40 bytes as text) besides the figure and the metrics.
+    check_output_folder(out, OUTPUT_OVERHEAD + 16 * grid[0] * grid[1]
+                        + 20 * min(args.resolution ** 2, 10 * args.resolution * len(points)))
 
     bar = ProgressBar(f"{args.solver} {grid[0]}x{grid[1]}", enabled=not args.quiet)
     t0 = time.perf_counter()
-    sol, _ = fit_in_chunks(points, normals, solver=solver, callback=bar, throw=False, **settings)
+    try:
+        sol, _ = fit_in_chunks(points, normals, solver=solver, callback=bar, throw=False,
+                               **settings)
+    except (ValueError, TypeError) as exc:  # settings the fit refuses (memory, precision)
+        bar.close()
+        raise InputError(f"{shown}: {_one_line(exc)}") from None
     jax.block_until_ready(sol.spline)
     seconds = time.perf_counter() - t0
     bar.close()
     if sol.result == jurs.RESULTS.nonfinite:
-        print(f"jurs: error: {path}: the fit diverged ({sol.message}); nothing written",
+        print(f"jurs: error: {shown}: the fit diverged ({sol.message}); nothing written",
               file=sys.stderr)
         return EXIT_FIT_FAILED
+    if not sol.succeeded and sol.result != jurs.RESULTS.max_steps_reached:
+        # Written all the same (the figure shows what went wrong), but said on stderr too.
+        print(f"jurs: warning: {shown}: {sol.message}", file=sys.stderr)
 
     report = ls.analyze(sol.spline, points, offset=offset, threshold=args.threshold,
                         resolution=args.resolution)
@@ -275,8 +448,9 @@ def run_fit(args) -> int:
                    converged=bool(sol.succeeded), time_s=seconds)
     metrics.update(report.as_dict())
     record = {
-        "input": os.path.abspath(path),
+        "input": printable(os.path.abspath(path)),
         "num_points": int(len(points)),
+        "normals": "estimated" if estimated else "given",
         "settings": {"solver": args.solver, "grid": list(grid), "lam": lam,
                      "tau": args.tau if args.solver == "iurs" else None, "offset": offset,
                      "eps": chosen.eps, "steps": args.steps, "tol": args.tol,
@@ -284,44 +458,28 @@ def run_fit(args) -> int:
         "metrics": metrics,
     }
 
-    out = os.path.abspath(args.output)
-    parent = os.path.dirname(out)
-    os.makedirs(parent, exist_ok=True)
-    tmp = tempfile.mkdtemp(prefix=".jurs-", dir=parent)
+    write = _output_writer(record, sol.spline, report, points, normals, offset,
+                           title=(f"{printable(os.path.basename(path))}: {args.solver}, grid "
+                                  f"{grid[0]}x{grid[1]}, lam = {lam:.3g}\nE_ave = "
+                                  f"{float(sol.metrics['E_ave']):.3e}, "
+                                  f"{report.num_components} component(s), "
+                                  f"{report.num_supplementary} supplementary"))
     try:
-        with open(os.path.join(tmp, "metrics.json"), "w") as fh:
-            json.dump(_json_safe(record), fh, indent=2, allow_nan=False)
-            fh.write("\n")
-        jurs.save_spline(os.path.join(tmp, "spline.npz"), sol.spline)
-        table = ls.polylines_table(report.components)
-        np.savetxt(os.path.join(tmp, "zero_level.csv"), table, delimiter=",",
-                   header="component,closed,supplementary,x,y", comments="",
-                   fmt=["%d", "%d", "%d", "%.10g", "%.10g"])
-        name = os.path.basename(path)
-        fig = plot.plot_fit(
-            sol.spline, points, normals, offset, levelset=report,
-            title=(f"{name}: {args.solver}, grid {grid[0]}x{grid[1]}, "
-                   f"lam = {lam:.3g}\nE_ave = {float(sol.metrics['E_ave']):.3e}, "
-                   f"{report.num_components} component(s), "
-                   f"{report.num_supplementary} supplementary"))
-        fig.savefig(os.path.join(tmp, "fit.png"), dpi=130)
-        plt.close(fig)
-        if not os.path.exists(out):
-            os.replace(tmp, out)
-        else:
-            for f in OUTPUTS:
-                os.replace(os.path.join(tmp, f), os.path.join(out, f))
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
+        write_outputs(out, write)
+    except OSError as exc:
+        print(f"jurs: error: {printable(args.output)}: could not write the outputs "
+              f"({printable(_one_line(exc))}); the folder keeps its previous outputs",
+              file=sys.stderr)
+        return EXIT_FIT_FAILED
 
     if not args.quiet:
-        print(f"{path}: {len(points)} points, {args.solver}, grid {grid[0]}x{grid[1]}: "
+        print(f"{shown}: {len(points)} points, {args.solver}, grid {grid[0]}x{grid[1]}: "
               f"{metrics['num_steps']} steps in {seconds:.2f} s ({sol.message.split(':')[0]})")
         print(f"  E_ave = {float(sol.metrics['E_ave']):.4e}, E_max = "
               f"{float(sol.metrics['E_max']):.4e}, zero set: {report.num_components} "
               f"component(s), {report.num_supplementary} supplementary, chamfer = "
               f"{report.chamfer:.3g}")
-        print(f"  wrote {', '.join(OUTPUTS)} to {args.output}")
+        print(f"  wrote {', '.join(OUTPUTS)} to {printable(args.output)}")
     return 0
 
 
@@ -329,6 +487,11 @@ def main(argv=None) -> int:
     """Entry point of the ``jurs`` console script; returns the exit code."""
     parser = build_parser()
     args = parser.parse_args(argv)
+    if not (args.no_compilation_cache or cache_disabled_by_environment()):
+        try:  # later runs load the compiled fit instead of compiling it (seconds)
+            enable_compilation_cache()
+        except OSError as exc:
+            print(f"jurs: warning: no compilation cache ({_one_line(exc)})", file=sys.stderr)
     if args.command == "demo":
         from .demo import run
 
@@ -337,8 +500,12 @@ def main(argv=None) -> int:
     try:
         return run_fit(args)
     except InputError as exc:
-        print(f"jurs: error: {exc}", file=sys.stderr)
+        print(f"jurs: error: {printable(str(exc))}", file=sys.stderr)
         return EXIT_BAD_INPUT
+    except MemoryError:
+        print("jurs: error: out of memory; use a smaller --grid or --resolution",
+              file=sys.stderr)
+        return EXIT_FIT_FAILED
 
 
 if __name__ == "__main__":

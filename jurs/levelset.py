@@ -58,10 +58,14 @@ import equinox as eqx
 import numpy as np
 from scipy.spatial import cKDTree
 
+from ._problem import check_memory
 from ._spline import ImplicitSpline
 
 #: Default number of grid nodes along the longer side of the box.
 DEFAULT_RESOLUTION = 512
+#: Peak bytes per grid node of :func:`analyze` (node coordinates, their stacked and padded
+#: copies, the values and contourpy's working arrays).
+BYTES_PER_NODE = 128
 #: Default tiny-loop size, in grid cells of perimeter.
 DEFAULT_TINY_CELLS = 4.0
 #: Default supplementary threshold, as a multiple of the offset d.
@@ -74,12 +78,16 @@ def sampling_grid(lower, upper, resolution: int = DEFAULT_RESOLUTION):
     ``h`` the spacing along the longer side."""
     lower = np.asarray(lower, dtype=float).reshape(2)
     upper = np.asarray(upper, dtype=float).reshape(2)
+    if isinstance(resolution, bool) or not isinstance(resolution, (int, np.integer)):
+        raise TypeError(f"resolution must be an int, got {resolution!r}")
     if int(resolution) < 2:
         raise ValueError(f"resolution must be >= 2, got {resolution}")
     if not (np.isfinite(lower).all() and np.isfinite(upper).all() and (upper > lower).all()):
         raise ValueError(f"box must be finite with lower < upper, got {lower}, {upper}")
     extent = upper - lower
     counts = np.maximum(2, np.round((int(resolution) - 1) * extent / extent.max()).astype(int) + 1)
+    check_memory(f"resolution={int(resolution)}", BYTES_PER_NODE * float(np.prod(counts)),
+                 device=False)
     xs = np.linspace(lower[0], upper[0], counts[0])
     ys = np.linspace(lower[1], upper[1], counts[1])
     return xs, ys, float(extent.max() / (int(resolution) - 1))

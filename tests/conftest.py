@@ -1,5 +1,7 @@
 """Shared test setup: the maths runs in float64 (E_ave sits at 1e-6..1e-8)."""
 
+import os
+
 import equinox as eqx
 import jax
 import matplotlib
@@ -8,6 +10,11 @@ import pytest
 from scipy.interpolate import BSpline
 
 jax.config.update("jax_enable_x64", True)
+# jurs.cli.main turns JAX's persistent compilation cache on (in the user's cache folder) for
+# the rest of its process: in-process CLI calls in tests would then write there and change
+# what later tests in the same worker compile. Tests of the cache itself run subprocesses
+# with their own environment (tests/test_startup.py).
+os.environ["JURS_NO_COMPILATION_CACHE"] = "1"
 matplotlib.use("Agg")
 
 

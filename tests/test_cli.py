@@ -10,6 +10,7 @@ import os  # noqa: E402
 import subprocess  # noqa: E402
 import sys  # noqa: E402
 from pathlib import Path  # noqa: E402
+from types import SimpleNamespace  # noqa: E402
 
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
@@ -22,6 +23,13 @@ from conftest import PAPER  # noqa: E402
 # one a direct jurs.fit with the same start and throw=False uses: the tests stay fast.
 FIT_ARGS = ["--steps", "20", "--tol", "0", "-q", "--resolution", "200"]
 PAPER_ARGS = ["--solver", "iurs", "--grid", "9x9", "-d", "0.1", "--eps", "0.01"]
+
+
+@pytest.fixture(autouse=True)
+def no_compilation_cache(monkeypatch):
+    """cli.main would turn JAX's persistent compilation cache on for the rest of the test
+    process, where other tests count compilations."""
+    monkeypatch.setenv("JURS_NO_COMPILATION_CACHE", "1")
 
 
 @pytest.fixture(scope="module")
@@ -83,6 +91,7 @@ def test_fit_round_trip(example1_csv, tmp_path):
         assert rerun[key] == expected, key
 
 
+@pytest.mark.slow
 def test_npy_input(tmp_path):
     p, n = jurs.datasets.example1(120)
     path = tmp_path / "example1.npy"
@@ -241,3 +250,119 @@ def test_progress_bar_only_after_delay():
     bar.close()
     text = loud.getvalue()
     assert "5/10 steps" in text and "[##########]" in text and text.endswith("\n")
+
+
+def _old_outputs(out):
+    out.mkdir()
+    for name in cli.OUTPUTS:
+        if name != "fit.png":
+            (out / name).write_text("old")
+
+
+def test_output_folder_checked_before_the_fit(example1_csv, tmp_path, capsys, monkeypatch):
+    """Issue 20, defects 1 and 10: a folder in place of an output, an unwritable folder
+    and a full disk are one-line errors (exit 2) found before the fit; nothing changes."""
+    def no_fit(*args, **kwargs):
+        raise AssertionError("the fit ran before the output folder was checked")
+
+    monkeypatch.setattr("jurs._progress.fit_in_chunks", no_fit)
+    out = tmp_path / "out"
+    _old_outputs(out)
+    (out / "fit.png").mkdir()
+    args = ["fit", str(example1_csv), "-o", str(out), *FIT_ARGS]
+
+    def fails(needle):
+        before = sorted(os.listdir(out))
+        assert cli.main(args) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and needle in err[0], err
+        assert sorted(os.listdir(out)) == before
+        assert (out / "zero_level.csv").read_text() == "old"
+
+    fails("fit.png: exists and is not a file")
+    (out / "fit.png").rmdir()
+    monkeypatch.setattr(cli.os, "access", lambda path, mode: False)
+    fails("folder is not writable")
+    monkeypatch.undo()
+    monkeypatch.setattr("jurs._progress.fit_in_chunks", no_fit)
+    monkeypatch.setattr(cli.shutil, "disk_usage",
+                        lambda path: SimpleNamespace(total=1, used=1, free=1000))
+    args[3] = str(tmp_path / "new" / "deeper")  # a folder to be made: its parent is checked
+    assert cli.main(args) == 2
+    assert "MiB free" in capsys.readouterr().err
+    assert not (tmp_path / "new").exists()
+
+
+def test_resolution_refused_up_front(example1_csv, tmp_path, capsys, monkeypatch):
+    """Issue 20, defect 8: --resolution 30000 ended in a MemoryError traceback."""
+    monkeypatch.setattr("jurs._problem.available_memory", lambda device=True: 4 << 30)
+    out = tmp_path / "o"
+    _check_failure(capsys, ["fit", str(example1_csv), "-o", str(out), "--resolution", "30000"],
+                   out, "--resolution 30000", "GiB")
+
+
+def test_failed_write_keeps_the_whole_old_set(example1_csv, tmp_path, capsys, monkeypatch):
+    """Issue 20, defect 1: a failure part way through the renames rolls back the files
+    already replaced; a folder made for the run is removed again."""
+    out = tmp_path / "out"
+    _old_outputs(out)
+    real_replace = os.replace
+
+    def replace(src, dst):
+        if str(dst).endswith("fit.png") and ".jurs-" not in str(dst):
+            raise OSError(28, "No space left on device")
+        return real_replace(src, dst)
+
+    monkeypatch.setattr(cli.os, "replace", replace)
+    args = ["fit", str(example1_csv), *PAPER_ARGS, *FIT_ARGS]
+    assert cli.main([*args, "-o", str(out)]) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "No space left" in err[0] and "previous outputs" in err[0]
+    assert sorted(os.listdir(out)) == sorted(set(cli.OUTPUTS) - {"fit.png"})
+    assert all((out / n).read_text() == "old" for n in os.listdir(out))
+    fresh = tmp_path / "fresh"
+    assert cli.main([*args, "-o", str(fresh)]) == 1
+    assert not fresh.exists()
+
+
+def test_awkward_names_and_files(tmp_path, capsys, monkeypatch):
+    """Issue 20, defect 10: a file name that is not UTF-8 crashed in the figure's title; a
+    byte-order mark before the header was refused; output folders were made 0700; ``-o .``
+    needed the parent folder writable."""
+    p, n = jurs.datasets.example1(120)
+    plain = tmp_path / "plain.csv"
+    jurs.datasets.save_points(plain, p, n)
+    name = os.path.join(os.fsencode(tmp_path), b"caf\xe9.csv")  # Latin-1, not UTF-8
+    with open(name, "wb") as fh:
+        fh.write(b"\xef\xbb\xbf" + plain.read_bytes())
+    out = tmp_path / "out"
+    old = os.umask(0o002)
+    try:
+        assert cli.main(["fit", os.fsdecode(name), "-o", str(out), *PAPER_ARGS, *FIT_ARGS]) == 0
+    finally:
+        os.umask(old)
+    assert sorted(os.listdir(out)) == sorted(cli.OUTPUTS)
+    assert (out.stat().st_mode & 0o777) == 0o775
+    assert ((out / "spline.npz").stat().st_mode & 0o777) == 0o664
+    record = json.loads((out / "metrics.json").read_text())
+    assert record["input"].endswith("caf\ufffd.csv") and record["num_points"] == 120
+    monkeypatch.chdir(out)  # -o . : the temporary folder is made inside it
+    assert cli.main(["fit", str(plain), "-o", ".", *PAPER_ARGS, *FIT_ARGS]) == 0
+    assert sorted(os.listdir(out)) == sorted(cli.OUTPUTS)
+    assert json.loads((out / "metrics.json").read_text())["input"] == str(plain)
+
+
+def test_points_without_normals(tmp_path):
+    """An x, y file: the CLI estimates outward normals, fits, and says so in metrics.json."""
+    path = tmp_path / "xy.csv"
+    points, _ = jurs.datasets.example1(120)
+    jurs.datasets.save_points(path, points)
+    out = tmp_path / "result"
+    rc = cli.main(["fit", str(path), "-o", str(out), *PAPER_ARGS, *FIT_ARGS])
+    assert rc == 0
+    record = json.loads((out / "metrics.json").read_text())
+    assert record["normals"] == "estimated"
+    assert record["metrics"]["num_components"] == 1
+    assert record["metrics"]["num_supplementary"] == 0
+    spline = jurs.load_spline(out / "spline.npz")
+    assert float(spline(np.array([[0.0, -4.0]]))[0]) < 0  # inside: the normals point out

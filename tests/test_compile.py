@@ -9,6 +9,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 from conftest import PAPER
 
 import jurs
@@ -71,6 +72,7 @@ def test_fit_reassociates_only_own_solvers_on_large_layouts_at_top_level():
     assert seen == [False, False, False]
 
 
+@pytest.mark.slow
 def test_fit_of_a_large_layout_with_and_without_transformations(monkeypatch):
     """At top level jurs.fit compiles a bucketed IURS fit with the options, under grad it
     cannot (XLA refuses options on a nested jit) and must not try; both agree at rounding
@@ -123,3 +125,129 @@ def test_a_fit_is_kept_by_the_persistent_compilation_cache(tmp_path):
     assert proc.stdout.split() == ["5", "4"]
     for name in ("jit__run-", "jit_users_solve-"):
         assert [p for p in os.listdir(tmp_path) if p.startswith(name)], os.listdir(tmp_path)
+
+
+# --- Shape-stable fits: padding, rounded layouts and grids ------------------------------
+
+def test_size_ladder_rounds_up_by_at_most_a_quarter_with_four_sizes_an_octave():
+    from jurs._compile import padded_count, round_size
+
+    sizes = np.arange(1, 5000)
+    rounded = np.array([round_size(n) for n in sizes])
+    assert (rounded >= sizes).all() and (np.diff(rounded) >= 0).all()
+    assert (rounded[sizes > 8] < 1.25 * sizes[sizes > 8]).all()
+    assert (rounded[sizes <= 8] == sizes[sizes <= 8]).all()
+    assert all(round_size(r) == r for r in rounded)  # a rung rounds to itself
+    octave = [r for r in set(rounded) if 1024 < r <= 2048]
+    assert sorted(octave) == [1280, 1536, 1792, 2048]
+    assert padded_count(3) == 32 and padded_count(1000) == 1024 and padded_count(1100) == 1280
+
+
+def _fit_problem(points, normals, **settings):
+    """The problem jurs.fit builds: padded cloud, layout sized for the band."""
+    from jurs._fit import padded_cloud
+
+    p, n, mask = padded_cloud(points, normals)
+    return jurs.make_problem(p, n, mask=mask, stable_shapes=True, **settings)
+
+
+def test_clouds_in_one_band_get_problems_of_one_shape():
+    """Every array of the problem (table included) has the same shape for 200 and 215
+    points (both padded to 224), in the table form and in the bucketed power form; the
+    layout holds every real sample once and no padding sample."""
+    shapes = []
+    for m in (200, 215):
+        points, normals = jurs.datasets.example1(m)
+        for bucket_size in (None, 4):
+            problem = _fit_problem(points, normals, grid=(11, 13), offset=0.1, eps=0.01,
+                                   bucket_size=bucket_size)
+            real = np.asarray(problem.mask) > 0
+            assert np.array_equal(np.sort(np.asarray(problem.sample_index)[real]),
+                                  np.arange(3 * m) // m * 224 + np.arange(3 * m) % m)
+            if bucket_size is None:  # table: the real slots, each at one filled position
+                filled = np.asarray(problem.local.filled) > 0
+                assert np.sort(np.asarray(problem.local.order)[filled]).tolist() == \
+                    np.flatnonzero(real).tolist()
+            shapes.append(jax.tree.map(jnp.shape, problem))
+    assert shapes[0] == shapes[2] and shapes[1] == shapes[3]
+
+
+def _assert_padded_fit_agrees_with_the_unpadded_fit(solver):
+    """jurs.fit pads 150 points to 160 and lays out the samples for the band; the result is
+    the unpadded solve's to rounding (float64)."""
+    points, normals = jurs.datasets.example1(150)
+    settings = dict(grid=(10, 12), offset=0.1, eps=0.01)
+    padded = jurs.fit(points, normals, solver=solver, **settings)
+    plain = jurs.solve(solver, jurs.make_problem(points, normals, **settings))
+    assert int(padded.stats["num_steps"]) == int(plain.stats["num_steps"])
+    for a, b in ((padded.spline.control, plain.spline.control),
+                 (padded.spline.weights, plain.spline.weights)):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-10, atol=1e-13)
+    for key in ("E", "E_ave", "E_max", "mu"):
+        np.testing.assert_allclose(float(padded.metrics[key]), float(plain.metrics[key]),
+                                   rtol=1e-9)
+    np.testing.assert_array_equal(np.asarray(padded.spline.lower),
+                                  np.asarray(plain.spline.lower))
+
+
+def test_padded_exact_fit_agrees_with_the_unpadded_one():
+    _assert_padded_fit_agrees_with_the_unpadded_fit(jurs.LeastSquares(lam=1e-4))
+
+
+@pytest.mark.slow
+def test_padded_iurs_fit_agrees_with_the_unpadded_one():
+    _assert_padded_fit_agrees_with_the_unpadded_fit(jurs.IURS(lam=1e-3, max_steps=20))
+
+
+class _CompileCounter:
+    """Counts XLA compilations of jurs.fit's jitted solve, through JAX's public
+    monitoring events."""
+
+    EVENT = "/jax/core/compile/backend_compile_duration"
+
+    def __init__(self):
+        self.count = 0
+
+    def __call__(self, event, duration, **kwargs):
+        if event == self.EVENT and "_run" in str(kwargs.get("fun_name", "")):
+            self.count += 1
+
+    def __enter__(self):
+        jax.monitoring.register_event_duration_secs_listener(self)
+        return self
+
+    def __exit__(self, *exc):
+        jax.monitoring.unregister_event_duration_listener(self)
+
+
+def test_two_clouds_in_one_band_compile_once():
+    """A new cloud of another size in the same band (and another shape of the same extent)
+    reuses the compiled fit; one in the next band compiles anew (the counter works)."""
+    settings = dict(grid=(10, 11), offset=0.1, eps=0.01, solver=jurs.LeastSquares(lam=1e-4))
+    counts = []
+    for points, normals in (jurs.datasets.example1(330), jurs.datasets.example1(370),
+                            jurs.datasets.add_noise(*jurs.datasets.example1(350), sigma=0.01),
+                            jurs.datasets.example1(400)):
+        with _CompileCounter() as counter:
+            jax.block_until_ready(jurs.fit(points, normals, **settings).spline)
+        counts.append(counter.count)
+    assert counts == [1, 0, 0, 1]
+
+
+def test_automatic_grids_are_rounded_up_to_the_ladder():
+    from jurs._compile import round_size
+    from jurs._defaults import DEFAULT_MAX_GRID, choose_grid
+
+    lower = np.zeros(2)
+    for extent, spacing in (((10.0, 7.0), 0.3), ((10.0, 7.0), 0.27), ((4.0, 1.0), 0.01),
+                            ((3.0, 2.0), 1.0)):
+        upper = np.asarray(extent)
+        grid = choose_grid(lower, upper, spacing, 0.0)
+        exact = np.ceil(upper / max(1.5 * spacing, upper.max() / (DEFAULT_MAX_GRID - 3)) - 1e-9)
+        for n, cells in zip(grid, exact):
+            assert n - 3 >= min(cells, DEFAULT_MAX_GRID - 3)  # never coarser
+            assert n - 3 in (round_size(n - 3), DEFAULT_MAX_GRID - 3) or n == 8
+            assert n <= DEFAULT_MAX_GRID
+    # Spacings 8 % apart (25-27 and 18-19 cells): one grid, 28 x 20 cells.
+    assert choose_grid(lower, np.array([10.0, 7.0]), 0.27, 0.0) == \
+        choose_grid(lower, np.array([10.0, 7.0]), 0.25, 0.0) == (31, 23)

@@ -10,7 +10,7 @@ from jax import Array
 
 from .._energy import bspline_residuals, step_size
 from .._normal import NormalEquations, normal_equations
-from .._problem import Problem, check_nonnegative
+from .._problem import Problem, check_count, check_nonnegative
 from .._spline import ImplicitSpline, bspline_transpose
 from ._base import AbstractSolver, State
 
@@ -26,8 +26,7 @@ class _AbstractPIA(AbstractSolver[State]):
 
     def __check_init__(self):
         check_nonnegative("tol", self.tol)
-        if int(self.max_steps) < 0:
-            raise ValueError(f"max_steps must be >= 0, got {self.max_steps}")
+        check_count("max_steps", self.max_steps)
 
     def to_spline(self, problem: Problem, state) -> ImplicitSpline:
         return ImplicitSpline(state.control, jnp.ones_like(state.control), problem.lower,
