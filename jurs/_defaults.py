@@ -96,10 +96,6 @@ def kd_tree(points: np.ndarray) -> cKDTree:
     return cKDTree(points)
 
 
-def _unit(normals: np.ndarray) -> np.ndarray:
-    return normals / np.linalg.norm(normals, axis=1, keepdims=True)
-
-
 def _probe(points: np.ndarray, at) -> np.ndarray:
     return np.arange(len(points)) if at is None else np.asarray(at)
 

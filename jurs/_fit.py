@@ -19,6 +19,7 @@ from ._problem import (
     flipped_normal_fraction,
     make_problem,
     normalise_grid,
+    orientation_sample,
     tangential_normal_fraction,
 )
 from ._solution import RESULTS, Solution
@@ -103,8 +104,9 @@ def _check_orientation(sol, points, normals, mask):
     if mask is not None:
         keep = np.asarray(mask).astype(bool)
         p, n = p[keep], n[keep]
-    flipped = flipped_normal_fraction(p, n)
-    along = tangential_normal_fraction(p, n)
+    sample = orientation_sample(p, n)  # one KD-tree for both checks
+    flipped = flipped_normal_fraction(p, n, sample)
+    along = tangential_normal_fraction(p, n, sample)
     metrics = dict(sol.metrics, flipped_normal_fraction=jnp.asarray(flipped),
                    tangential_normal_fraction=jnp.asarray(along))
     result = sol.result

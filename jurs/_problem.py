@@ -586,7 +586,7 @@ def make_problem(
     return jax.device_put(problem) if concrete else problem
 
 
-def sparse_hstack(tree, roots, m):
+def _join_roots(tree, roots, m):
     """The ``(m + 1, m + 1)`` graph of ``tree`` with node ``m`` joined to ``roots``."""
     from scipy.sparse import bmat, coo_matrix
 
@@ -600,7 +600,24 @@ ORIENTATION_NEIGHBOURS = 8
 ORIENTATION_MAX_POINTS = 20_000
 
 
-def flipped_normal_fraction(points, normals) -> float:
+def orientation_sample(points, normals):
+    """``(p, n, dist, idx)`` that :func:`flipped_normal_fraction` and
+    :func:`tangential_normal_fraction` read: the points (at most
+    :data:`ORIENTATION_MAX_POINTS`, evenly strided), their unit normals, and each point's
+    :data:`ORIENTATION_NEIGHBOURS` + 1 nearest (itself first) from one KD-tree query, so a
+    caller of both builds the tree once."""
+    from scipy.spatial import cKDTree
+
+    p = np.asarray(points, float)
+    n = unit_normals(np.asarray(normals, float))
+    if len(p) > ORIENTATION_MAX_POINTS:
+        keep = np.linspace(0, len(p) - 1, ORIENTATION_MAX_POINTS).round().astype(int)
+        p, n = p[keep], n[keep]
+    dist, idx = cKDTree(p).query(p, k=min(ORIENTATION_NEIGHBOURS + 1, len(p)))
+    return p, n, dist, idx
+
+
+def flipped_normal_fraction(points, normals, sample=None) -> float:
     """Fraction of the points whose normal is flipped against its neighbours along the
     curve, after Hoppe et al. (1992): the sign is carried along a minimum spanning tree of
     the neighbour graph (weights ``1 - |n_i . n_j|``) and, in each connected part, the
@@ -623,16 +640,10 @@ def flipped_normal_fraction(points, normals) -> float:
         connected_components,
         minimum_spanning_tree,
     )
-    from scipy.spatial import cKDTree
 
-    p = np.asarray(points, float)
-    n = unit_normals(np.asarray(normals, float))
-    if len(p) > ORIENTATION_MAX_POINTS:
-        keep = np.linspace(0, len(p) - 1, ORIENTATION_MAX_POINTS).round().astype(int)
-        p, n = p[keep], n[keep]
+    p, n, dist, idx = orientation_sample(points, normals) if sample is None else sample
     m = len(p)
-    k = min(ORIENTATION_NEIGHBOURS, m - 1)
-    dist, idx = cKDTree(p).query(p, k=k + 1)
+    k = dist.shape[1] - 1
     dist, idx = dist[:, 1:], idx[:, 1:]
     nearest = dist[:, 0][dist[:, 0] > 0]
     if nearest.size == 0:
@@ -651,7 +662,7 @@ def flipped_normal_fraction(points, normals) -> float:
     # part's first point is searched from (roots are their own parent). Whether a normal
     # opposes its parent's, then the parity of flips up to the root by pointer jumping.
     roots = np.unique(labels, return_index=True)[1]
-    joined = sparse_hstack(tree, roots, m)
+    joined = _join_roots(tree, roots, m)
     pred = breadth_first_order(joined, m, directed=False)[1][:m]
     parent = np.where(pred == m, np.arange(m), pred)
     flip = np.sum(n * n[parent], axis=1) < 0
@@ -702,7 +713,7 @@ def check_memory(setting: str, estimate: float, available: int | None = None,
                          f"{setting.split(' ')[0].split('=')[0]}")
 
 
-def tangential_normal_fraction(points, normals) -> float:
+def tangential_normal_fraction(points, normals, sample=None) -> float:
     """Fraction of the points whose normal lies within 45 degrees of the curve's tangent,
     the principal direction of the point and its :data:`ORIENTATION_NEIGHBOURS` nearest
     neighbours (counted only where that direction is clear, its variance at least 4 times
@@ -710,14 +721,7 @@ def tangential_normal_fraction(points, normals) -> float:
     About 1/2 for random normals, which :func:`flipped_normal_fraction` cannot see (its
     graph falls apart) and a fine grid fits "successfully"; measured at most 0.03 on the
     consistent clouds listed there, also with 10 % of the normals random. Host side."""
-    from scipy.spatial import cKDTree
-
-    p = np.asarray(points, float)
-    n = unit_normals(np.asarray(normals, float))
-    if len(p) > ORIENTATION_MAX_POINTS:
-        keep = np.linspace(0, len(p) - 1, ORIENTATION_MAX_POINTS).round().astype(int)
-        p, n = p[keep], n[keep]
-    idx = cKDTree(p).query(p, k=min(ORIENTATION_NEIGHBOURS + 1, len(p)))[1]
+    p, n, _, idx = orientation_sample(points, normals) if sample is None else sample
     near = p[idx] - p[idx].mean(axis=1, keepdims=True)
     variance, axes = np.linalg.eigh(np.einsum("mki,mkj->mij", near, near))
     clear = variance[:, 1] > 4.0 * variance[:, 0]

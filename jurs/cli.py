@@ -144,10 +144,6 @@ def printable(text) -> str:
     return os.fsencode(text).decode("utf-8", "replace") if isinstance(text, str) else str(text)
 
 
-#: The UTF-8 byte-order mark that spreadsheet programs put before a CSV's header.
-_BOM = b"\xef\xbb\xbf"
-
-
 def read_input(path: str):
     """Points and normals from ``path``; every problem raises :class:`InputError` with a
     one-line message naming the file (and the row where there is one). A UTF-8 byte-order
@@ -168,33 +164,13 @@ def read_input(path: str):
             raise InputError(f"{shown}: expected an (m, 4) array of rows x, y, nx, ny "
                              f"(or (m, 2): x, y), got shape {arr.shape}")
     try:
-        points, normals = _load_without_bom(path, datasets.load_points)
+        points, normals = datasets.load_points(path)
     except (ValueError, OSError) as exc:
         msg = printable(_one_line(exc))
         raise InputError(msg if msg.startswith(shown) else f"{shown}: {msg}") from None
     if len(points) < 3:
         raise InputError(f"{shown}: need at least 3 data rows, got {len(points)}")
     return points, normals
-
-
-def _load_without_bom(path: str, load):
-    """``load(path)``, or for a text file that starts with a byte-order mark, ``load`` of a
-    copy without it (errors name ``path``, not the copy)."""
-    if path.lower().endswith(".npy") or not os.path.isfile(path):
-        return load(path)
-    with open(path, "rb") as fh:
-        head = fh.read(len(_BOM))
-        if head != _BOM:
-            return load(path)
-        body = fh.read()
-    with tempfile.TemporaryDirectory(prefix="jurs-input-") as folder:
-        copy = os.path.join(folder, os.path.basename(path))
-        with open(copy, "wb") as out:
-            out.write(body)
-        try:
-            return load(copy)
-        except (ValueError, OSError) as exc:
-            raise ValueError(str(exc).replace(copy, path)) from None
 
 
 def _one_line(exc) -> str:

@@ -132,7 +132,9 @@ def load_points(path) -> tuple[np.ndarray, np.ndarray | None]:
             raise ValueError(f"{path}: array dtype {rows.dtype} is not numeric")
         return _from_table(np.asarray(rows, dtype=float), path)
 
-    with open(path, newline="") as fh:
+    # utf-8-sig: a byte-order mark before the header (spreadsheet programs write one) is
+    # skipped, not read as part of the first column's name.
+    with open(path, newline="", encoding="utf-8-sig") as fh:
         text = fh.read()
     lines = [(i + 1, line) for i, line in enumerate(text.splitlines()) if line.strip()
              and not line.lstrip().startswith("#")]
