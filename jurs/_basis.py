@@ -7,12 +7,15 @@ Basis function ``i`` (0-based) covers cells ``i - 3 .. i``, so a point in cell `
 functions ``c .. c + 3``.
 
 In 2D a sample sees the 4 x 4 tensor products of the two axes' functions: 16 local terms
-(partition of unity). Everything downstream works on these local terms, never on a dense
+(partition of unity); in 3D the 64 products of three axes. The helpers here take the
+dimension from the grid's shape. Everything downstream works on these local terms, never on a dense
 collocation matrix, through two adjoint maps between the ``(N, M)`` coefficient grid and
 per-cell ``(cells, 16)`` patches.
 """
 
 from __future__ import annotations
+
+import itertools
 
 import jax.numpy as jnp
 import numpy as np
@@ -57,65 +60,109 @@ def cubic_derivatives(t: Array) -> Array:
     )
 
 
-def cell_width(lower: Array, upper: Array, shape: tuple[int, int], xp=jnp) -> Array:
-    """Knot spacing ``(hx, hy)`` of an ``(N, M)`` basis on the box ``[lower, upper]``."""
+def cell_width(lower: Array, upper: Array, shape: tuple[int, ...], xp=jnp) -> Array:
+    """Knot spacing along each axis (``(hx, hy)`` or ``(hx, hy, hz)``) of a basis of
+    ``shape`` functions on the box ``[lower, upper]``."""
     return (upper - lower) / (xp.asarray(shape, dtype=xp.result_type(lower)) - 3.0)
 
 
-def locate(xy: Array, lower: Array, upper: Array, shape: tuple[int, int], xp=jnp):
-    """Cell of each point and its local coordinate in that cell.
+def locate(xy: Array, lower: Array, upper: Array, shape: tuple[int, ...], xp=jnp):
+    """Cell of each point and its local coordinate in that cell, for a grid of any
+    dimension d (``xy (n, d)``, ``shape`` d basis counts).
 
-    Returns ``(cell, t)``: ``cell`` is ``(n, 2)`` int32 in ``[0, N-4] x [0, M-4]`` (points
-    outside the box are clamped to the border cell), ``t`` is ``(n, 2)``, in ``[0, 1]``
-    inside the box. ``xp=numpy`` computes on the host, with the same arithmetic.
+    Returns ``(cell, t)``: ``cell`` is ``(n, d)`` int32 with entry ``a`` in ``[0, shape[a]
+    - 4]`` (points outside the box are clamped to the border cell), ``t`` is ``(n, d)``, in
+    ``[0, 1]`` inside the box. ``xp=numpy`` computes on the host, with the same arithmetic.
     """
     h = cell_width(lower, upper, shape, xp)
     u = (xy - lower) / h
-    top = xp.asarray([shape[0] - 4, shape[1] - 4])
+    top = xp.asarray([n - 4 for n in shape])
     cell = xp.clip(xp.floor(u), 0, top).astype(xp.int32)
     return cell, u - cell.astype(u.dtype)
 
 
-def flat_cell(cell: Array, shape: tuple[int, int]) -> Array:
-    """Row-major index of a 2D cell in the ``(N - 3) x (M - 3)`` cell grid."""
-    return cell[..., 0] * (shape[1] - 3) + cell[..., 1]
+def cell_shape(shape: tuple[int, ...]) -> tuple[int, ...]:
+    """The cells along each axis of a basis of ``shape`` functions: ``n - 3`` each."""
+    return tuple(int(n) - 3 for n in shape)
 
 
-def num_cells(shape: tuple[int, int]) -> int:
-    return (shape[0] - 3) * (shape[1] - 3)
+def flat_cell(cell: Array, shape: tuple[int, ...]) -> Array:
+    """Row-major index of a cell (``(..., d)``) in the cell grid :func:`cell_shape`."""
+    cells = cell_shape(shape)
+    index = cell[..., 0]
+    for axis in range(1, len(cells)):
+        index = index * cells[axis] + cell[..., axis]
+    return index
 
 
-def tensor_basis(bx: Array, by: Array) -> Array:
-    """The 16 products ``B_a(x) B_b(y)`` in row-major ``a * 4 + b`` order; ``(n, 16)``."""
-    return (bx[:, :, None] * by[:, None, :]).reshape(bx.shape[0], NUM_LOCAL)
+def num_cells(shape: tuple[int, ...]) -> int:
+    return int(np.prod(cell_shape(shape)))
 
 
-def grid_to_patches(grid: Array) -> Array:
-    """``(..., N, M)`` coefficients -> ``(..., cells, 16)``: the 4 x 4 block each cell sees.
+def num_local(ndim: int) -> int:
+    """Local terms per sample in ``ndim`` dimensions: ``4 ** ndim`` tensor products."""
+    return 4**ndim
+
+
+def patch_offsets(shape: tuple[int, ...]) -> np.ndarray:
+    """``(4 ** d,)`` offsets, in the row-major flattened coefficient grid of ``shape``, of
+    the ``4 x ... x 4`` patch a cell sees from its first coefficient, in the order of
+    :func:`tensor_basis`."""
+    strides = np.cumprod((1,) + tuple(shape[:0:-1]))[::-1]
+    steps = np.stack(np.meshgrid(*[np.arange(4)] * len(shape), indexing="ij"), -1)
+    return (steps.reshape(-1, len(shape)) @ strides).astype(np.int32)
+
+
+def patch_corner(cell: Array, shape: tuple[int, ...]) -> Array:
+    """The flat grid index of the first coefficient of the patch of each flat ``cell``
+    index (:func:`flat_cell`): the same multi-index, raveled in the coefficient grid."""
+    cells = cell_shape(shape)
+    corner = 0
+    rest = cell
+    stride = 1
+    for axis in reversed(range(len(cells))):
+        corner = corner + (rest % cells[axis]) * stride
+        rest = rest // cells[axis]
+        stride *= int(shape[axis])
+    return corner
+
+
+def tensor_basis(*axes: Array) -> Array:
+    """The ``4 ** d`` products of the per-axis values ``(n, 4)`` each (``B_a(x) B_b(y)`` in
+    2D), row-major (first axis slowest, ``a * 4 + b`` in 2D); ``(n, 4 ** d)``."""
+    out = axes[0]
+    for values in axes[1:]:
+        out = (out[:, :, None] * values[:, None, :]).reshape(out.shape[0], -1)
+    return out
+
+
+def grid_to_patches(grid: Array, ndim: int = 2) -> Array:
+    """``(..., *grid)`` coefficients over ``ndim`` trailing axes -> ``(..., cells, 4 **
+    ndim)``: the ``4 x ... x 4`` block each cell sees.
 
     Gathering one patch row per cell (or bucket of samples) is one contiguous read, much
     cheaper than 16 scattered element reads.
     """
-    n, m = grid.shape[-2] - 3, grid.shape[-1] - 3
-    blocks = [grid[..., a : a + n, b : b + m] for a in range(4) for b in range(4)]
-    return jnp.stack(blocks, axis=-1).reshape(grid.shape[:-2] + (n * m, NUM_LOCAL))
+    lead = grid.shape[: grid.ndim - ndim]
+    cells = cell_shape(grid.shape[grid.ndim - ndim:])
+    blocks = [grid[(Ellipsis, *(slice(a, a + c) for a, c in zip(start, cells)))]
+              for start in itertools.product(range(4), repeat=ndim)]
+    return jnp.stack(blocks, axis=-1).reshape(lead + (int(np.prod(cells)), 4**ndim))
 
 
-def patches_to_grid(patches: Array, shape: tuple[int, int]) -> Array:
-    """Adjoint of :func:`grid_to_patches`: add each cell's 16 values back onto the grid.
-
-    ``(..., cells, 16)`` -> ``(..., N, M)``.
+def patches_to_grid(patches: Array, shape: tuple[int, ...]) -> Array:
+    """Adjoint of :func:`grid_to_patches`: add each cell's ``4 ** d`` values back onto the
+    grid of ``shape``; ``(..., cells, 4 ** d)`` -> ``(..., *shape)``.
     """
-    n, m = shape[0] - 3, shape[1] - 3
+    ndim = len(shape)
     lead = patches.shape[:-2]
-    blocks = patches.reshape(lead + (n, m, NUM_LOCAL))
+    blocks = patches.reshape(lead + cell_shape(shape) + (4**ndim,))
     keep = [(0, 0)] * len(lead)
     # A sum of shifted (zero-padded) blocks: one fused loop, where 16 in-place slice
     # updates were 16 kernels (their per-kernel cost dominates small fits).
     grid = jnp.zeros(lead + tuple(shape), dtype=patches.dtype)
-    for a in range(4):
-        for b in range(4):
-            grid = grid + jnp.pad(blocks[..., a * 4 + b], keep + [(a, 3 - a), (b, 3 - b)])
+    for j, start in enumerate(itertools.product(range(4), repeat=ndim)):
+        grid = grid + jnp.pad(blocks[..., j], keep + [(a, 3 - a) for a in start])
     return grid
 
 

@@ -56,6 +56,17 @@ from ._problem import (
 NOISE_NEIGHBOURS = 16
 #: Default largest grid (basis functions along the longer side).
 DEFAULT_MAX_GRID = 96
+#: Default largest grid of a surface (3D). The 343-point stencil of D^T D holds 2.7 KB a
+#: coefficient in float64, and the assembly's per-cell moments as much again: a 64^3 fit
+#: of a 2e4-point sphere peaked at 4.8 GB resident and took 25 s warm on a 2-core CPU
+#: (shared with other jobs), most of it the final CG's 400 steps of a 343-point stencil;
+#: 48^3 has 2.4x fewer coefficients.
+DEFAULT_MAX_GRID_3D = 48
+#: Cell side in point spacings, by dimension (see :func:`choose_grid`). On a surface a
+#: cell of side ``c s`` is crossed by about ``c^2`` points against ``c`` on a curve: at 1.5
+#: spacings a 3000-point sphere got a 59^3 grid, 23 coefficients a sample, whose fit cost
+#: 2 s where 3 spacings (a 30^3 grid) fitted the same sphere in a fraction of it.
+CELL_SPACINGS = {2: 1.5, 3: 3.0}
 #: Smallest automatic grid along either side.
 MIN_GRID = 8
 #: Clouds above this many points are measured at this many (evenly strided) of them.
@@ -112,46 +123,60 @@ def point_spacing(points: np.ndarray, tree: cKDTree | None = None, at=None) -> f
     return float(np.median(finite))
 
 
+def _tangent_frame(rel: np.ndarray, keep: np.ndarray) -> np.ndarray:
+    """``(probes, d, d)`` principal frames of the kept neighbours ``rel (probes, k, d)``
+    (centred): the rows are the covariance's eigenvectors, largest first, so the last row
+    is the direction across the curve or surface."""
+    cov = np.matmul((keep[:, :, None] * rel).transpose(0, 2, 1), rel)
+    return np.linalg.eigh(cov)[1][:, :, ::-1].transpose(0, 2, 1)
+
+
+def _quadratic_terms(u: np.ndarray) -> np.ndarray:
+    """``1``, the tangent coordinates ``u (probes, k, d - 1)`` and their products of degree
+    two: the terms of a quadratic height function; ``(probes, k, terms)``."""
+    dims = u.shape[-1]
+    products = [u[..., i] * u[..., j] for i in range(dims) for j in range(i, dims)]
+    return np.concatenate([np.ones(u.shape[:-1] + (1,)), u, np.stack(products, -1)], axis=-1)
+
+
 def estimate_noise(points: np.ndarray, normals: np.ndarray, tree: cKDTree | None = None,
                    neighbours: int = NOISE_NEIGHBOURS, at=None) -> float:
     """Positional noise sigma: the median over points of the RMS residual of a quadratic
-    ``v = a + b u + c u^2`` fitted, in the principal frame ``(u, v)`` of the point's
-    ``neighbours`` nearest same-facing neighbours (normals within 60 degrees), to those
-    neighbours. The quadratic absorbs the curvature, so clean samples of a smooth curve give
-    about 0; the residual divides by ``n - 3`` degrees of freedom, so it is unbiased for
-    independent noise. The median ignores corners and the ends of a gap. Measured at the
-    points indexed by ``at`` (default all), with neighbours from the whole cloud."""
+    height ``v = q(u)`` fitted, in the principal frame of the point's ``neighbours``
+    nearest same-facing neighbours (normals within 60 degrees), to those neighbours: ``u``
+    the coordinate along the curve (the two tangent coordinates on a surface), ``v`` the
+    one across. The quadratic absorbs the curvature, so clean samples of a smooth curve or
+    surface give about 0; the residual divides by the neighbours less the quadratic's
+    terms (3 in 2D, 6 in 3D), so it is unbiased for independent noise. The median ignores
+    corners and the ends of a gap. Measured at the points indexed by ``at`` (default all),
+    with neighbours from the whole cloud."""
     at = _probe(points, at)
     k = min(len(points), neighbours)
     tree = kd_tree(points) if tree is None else tree
     idx = tree.query(points[at], k=k)[1]
-    nb = points[idx]  # (probes, k, 2)
+    nb = points[idx]  # (probes, k, d)
     # Plain broadcasts and sums below: NumPy's einsum runs these small contractions
     # several times slower (it was half of auto_settings' time at 1000 points).
     keep = ((normals[idx] * normals[at][:, None, :]).sum(axis=2) > 0.5).astype(float)
     count = keep.sum(axis=1)
-    centre = (keep[:, :, None] * nb).sum(axis=1) / count[:, None]
+    centre = (keep[:, :, None] * nb).sum(axis=1) / np.maximum(count, 1)[:, None]
     rel = nb - centre[:, None, :]
-    x, y = rel[..., 0], rel[..., 1]
-    cxx, cyy, cxy = ((keep * x * x).sum(1), (keep * y * y).sum(1), (keep * x * y).sum(1))
-    # Principal direction of a 2 x 2 covariance in closed form.
-    angle = 0.5 * np.arctan2(2 * cxy, cxx - cyy)
-    cos, sin = np.cos(angle)[:, None], np.sin(angle)[:, None]
-    u = x * cos + y * sin
-    v = y * cos - x * sin
+    frame = _tangent_frame(rel, keep)
+    local = np.matmul(rel, frame.transpose(0, 2, 1))  # (probes, k, d): tangent..., across
+    u, v = local[..., :-1], local[..., -1]
     # Scale u to unit RMS so the powers stay conditioned (and finite where all coincide).
-    scale = np.sqrt((keep * u * u).sum(axis=1) / count)
+    scale = np.sqrt((keep[:, :, None] * u * u).sum(axis=(1, 2)) / np.maximum(count, 1))
     scale = np.where(scale > 0, scale, 1.0)
-    un = u / scale[:, None]
-    basis = np.stack([np.ones_like(un), un, un * un], axis=2)  # (m, k, 3)
+    basis = _quadratic_terms(u / scale[:, None, None])  # (probes, k, terms)
+    terms = basis.shape[-1]
     weighted = keep[:, :, None] * basis
-    gram = np.matmul(weighted.transpose(0, 2, 1), basis)  # (m, 3, 3)
+    gram = np.matmul(weighted.transpose(0, 2, 1), basis)  # (probes, terms, terms)
     rhs = (weighted * v[:, :, None]).sum(axis=1)
-    ok = count >= 6
-    gram[~ok] = np.eye(3)
-    coef = np.linalg.solve(gram + 1e-12 * np.eye(3), rhs[..., None])[..., 0]
+    ok = count >= 2 * terms
+    gram[~ok] = np.eye(terms)
+    coef = np.linalg.solve(gram + 1e-12 * np.eye(terms), rhs[..., None])[..., 0]
     resid = v - (basis * coef[:, None, :]).sum(axis=2)
-    rms = np.sqrt((keep * resid * resid).sum(axis=1) / np.maximum(count - 3, 1))
+    rms = np.sqrt((keep * resid * resid).sum(axis=1) / np.maximum(count - terms, 1))
     return float(np.median(rms[ok])) if ok.any() else 0.0
 
 
@@ -173,7 +198,7 @@ def offset_agreement(points: np.ndarray, normals: np.ndarray, offset,
     # (offsets, sign, probes): +d then -d for every offset.
     signed = offsets.reshape(-1, 1, 1) * np.array([1.0, -1.0]).reshape(1, 2, 1)
     q = points[own] + signed[..., None] * normals[own]
-    idx = tree.query(q.reshape(-1, 2), k=2)[1].reshape(q.shape[:3] + (2,))
+    idx = tree.query(q.reshape(-1, points.shape[1]), k=2)[1].reshape(q.shape[:3] + (2,))
     j = np.where(idx[..., 0] == own, idx[..., 1], idx[..., 0])
     side = ((q - points[j]) * normals[j]).sum(axis=-1)
     agreement = (signed * side > 0).mean(axis=(1, 2))
@@ -211,10 +236,11 @@ def choose_offset(points: np.ndarray, normals: np.ndarray, spacing: float, noise
 
 
 def choose_grid(lower: np.ndarray, upper: np.ndarray, spacing: float, noise: float,
-                max_grid: int = DEFAULT_MAX_GRID) -> tuple[int, int]:
-    """Basis functions along x and y: cells of side ``h = max(1.5 s, 4 sigma)``, the same
-    along both axes, with at most ``max_grid`` functions along the longer side and at least
-    :data:`MIN_GRID` along each.
+                max_grid: int = DEFAULT_MAX_GRID) -> tuple[int, ...]:
+    """Basis functions along each axis (x and y, and z for a surface): cells of side ``h =
+    max(1.5 s, 4 sigma)`` (``3 s`` on a surface, :data:`CELL_SPACINGS`), the same along
+    every axis, with at most ``max_grid`` functions
+    along the longest side and at least :data:`MIN_GRID` along each.
 
     Why: a cell must hold a few points along the curve for the least-squares fit to pin
     its coefficients (1.5 spacings, on clean data the measured accuracy no longer improved
@@ -228,7 +254,7 @@ def choose_grid(lower: np.ndarray, upper: np.ndarray, spacing: float, noise: flo
     and share one compiled fit: cells up to 25 % narrower than chosen, never wider.
     """
     extent = np.asarray(upper, float) - np.asarray(lower, float)
-    h = max(1.5 * spacing, 4.0 * noise, float(extent.max()) / (max_grid - 3))
+    h = max(CELL_SPACINGS[extent.size] * spacing, 4.0 * noise, float(extent.max()) / (max_grid - 3))
     cells = np.maximum(1, np.ceil(extent / h - 1e-9).astype(int))
     cap = max(max_grid - 3, 1)
     return tuple(int(max(MIN_GRID, min(round_size(c), max(cap, c)) + 3)) for c in cells)
@@ -258,10 +284,12 @@ def choose_smoothing(offset: float, noise: float) -> float:
     return float(CLEAN_SMOOTHING + (NOISY_SMOOTHING - CLEAN_SMOOTHING) * ratio ** 4)
 
 
-def scale_free_lam(smoothing: float, num_samples: int, diagonal: float, lower, upper) -> float:
+def scale_free_lam(smoothing: float, num_samples: int, diagonal: float, lower, upper,
+                   cell: float | None = None) -> float:
     """The objective's lambda of ``E_d + lam R`` for a dimensionless ``smoothing``:
     ``lam = smoothing * S * l^2 / A``, S samples, l the data's bounding-box diagonal, A the
-    area of the box.
+    area of the box; for a surface ``lam = smoothing * S * l^2 * h / V`` with V the volume
+    of the box and ``h`` its ``cell`` width.
 
     Why this scaling: E_d sums S squared residuals, so it grows with S; R is about
     ``2 int_box |grad g|^2`` whatever the grid (each neighbour difference of C is about
@@ -269,20 +297,31 @@ def scale_free_lam(smoothing: float, num_samples: int, diagonal: float, lower, u
     N, M. Dividing both out compares a mean squared residual with a mean squared slope
     times ``l^2``, a length squared that scales with the data. With eps proportional to d,
     g scales with the units like a length, and lam is then the same for the same shape
-    whatever m, the grid, the units, a translation or a rotation."""
-    area = float(np.prod(np.asarray(upper, float) - np.asarray(lower, float)))
-    return float(smoothing * num_samples * diagonal ** 2 / area)
+    whatever m, the grid, the units, a translation or a rotation.
+
+    In 3D there are about ``V / h^3`` differences of about ``h |grad g|`` each, so R is
+    about ``2 int_box |grad g|^2 / h``: it grows as the grid is refined, and the factor
+    ``h`` keeps lam R the same for the same g on any grid (and ``l^2 h / V`` is again
+    scale-free)."""
+    extent = np.asarray(upper, float) - np.asarray(lower, float)
+    volume = float(np.prod(extent))
+    per_length = 1.0 if extent.size == 2 else float(cell) ** (extent.size - 2)
+    return float(smoothing * num_samples * diagonal ** 2 * per_length / volume)
 
 
 def auto_settings(points, normals, *, grid=None, offset=None, eps=None, domain=None,
                   margin: float = DEFAULT_MARGIN, smoothing: float | None = None,
-                  max_grid: int = DEFAULT_MAX_GRID) -> Settings:
-    """Choose the grid, offset d, eps and lambda for ``points`` and ``normals``.
+                  max_grid: int | None = None) -> Settings:
+    """Choose the grid, offset d, eps and lambda for ``points`` and ``normals``, ``(m, 2)``
+    for a curve or ``(m, 3)`` for a surface.
 
     Any of ``grid``, ``offset``, ``eps``, ``domain`` and ``smoothing`` given is kept and the
     others are chosen around it (see the module docstring and each ``choose_*`` function).
     Needs concrete (untraced) points: the choices are made on the host. Inside ``jax.jit``,
     ``jax.grad`` or ``jax.vmap`` call this once outside and pass the settings in.
+
+    ``max_grid``: the largest automatic grid along the longest side; None takes
+    :data:`DEFAULT_MAX_GRID` in 2D, :data:`DEFAULT_MAX_GRID_3D` in 3D.
 
     Returns:
         :class:`Settings`.
@@ -297,6 +336,9 @@ def auto_settings(points, normals, *, grid=None, offset=None, eps=None, domain=N
     validate_inputs(points, normals, offset=offset, eps=eps, domain=domain, margin=margin)
     if smoothing is not None:
         check_nonnegative("smoothing", smoothing)
+    ndim = np.shape(points)[1]
+    if max_grid is None:
+        max_grid = DEFAULT_MAX_GRID if ndim == 2 else DEFAULT_MAX_GRID_3D
     if isinstance(max_grid, bool) or not isinstance(max_grid, (int, np.integer)) \
             or max_grid < MIN_GRID:
         raise ValueError(f"max_grid must be an int >= {MIN_GRID}, got {max_grid!r}")
@@ -315,10 +357,11 @@ def auto_settings(points, normals, *, grid=None, offset=None, eps=None, domain=N
     else:
         lower, upper = (np.asarray(c, float) for c in domain)
     shape = choose_grid(lower, upper, spacing, noise, max_grid) if grid is None \
-        else normalise_grid(grid)
+        else normalise_grid(grid, ndim)
     beta = choose_smoothing(d, noise) if smoothing is None else float(smoothing)
     diagonal = float(np.linalg.norm(p.max(axis=0) - p.min(axis=0)))
-    lam = scale_free_lam(beta, 3 * len(p), diagonal, lower, upper)
+    cell = float(np.max((upper - lower) / (np.asarray(shape) - 3)))
+    lam = scale_free_lam(beta, 3 * len(p), diagonal, lower, upper, cell)
     return Settings(grid=shape, offset=d, eps=e, lam=lam, smoothing=beta,
                     domain=(tuple(map(float, lower)), tuple(map(float, upper))),
                     spacing=spacing, noise=noise)

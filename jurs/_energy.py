@@ -75,10 +75,13 @@ def data_energy(problem: Problem, control: Array, weights: Array) -> Array:
 
 def regulariser(control: Array) -> Array:
     """R(C) = sum_ij ||RC_ij||^2 (eq. 31): the four neighbour differences of every
-    coefficient, missing neighbours counting 0. Each grid edge appears twice."""
-    dx = jnp.diff(control, axis=0)
-    dy = jnp.diff(control, axis=1)
-    return 2.0 * (jnp.sum(dx * dx) + jnp.sum(dy * dy))
+    coefficient (six in 3D: the same sum over the 6-neighbour grid), missing neighbours
+    counting 0. Each grid edge appears twice."""
+    diffs = [jnp.diff(control, axis=a) for a in range(control.ndim)]
+    total = jnp.sum(diffs[0] * diffs[0])
+    for d in diffs[1:]:
+        total = total + jnp.sum(d * d)
+    return 2.0 * total
 
 
 def objective(problem: Problem, control: Array, weights: Array, lam) -> Array:
@@ -87,11 +90,15 @@ def objective(problem: Problem, control: Array, weights: Array, lam) -> Array:
 
 
 def grid_laplacian(control: Array) -> Array:
-    """(L C)_ij = deg_ij C_ij - sum of 4-neighbours, free boundary (edge-replicated pad
-    makes a missing neighbour contribute 0)."""
+    """(L C)_ij = deg_ij C_ij - sum of 4-neighbours (6-neighbours in 3D), free boundary
+    (edge-replicated pad makes a missing neighbour contribute 0)."""
     p = jnp.pad(control, 1, mode="edge")
-    c = p[1:-1, 1:-1]
-    return 4.0 * c - p[2:, 1:-1] - p[:-2, 1:-1] - p[1:-1, 2:] - p[1:-1, :-2]
+    inner = tuple(slice(1, -1) for _ in range(control.ndim))
+    out = 2.0 * control.ndim * p[inner]
+    for axis in range(control.ndim):
+        for window in (slice(2, None), slice(None, -2)):
+            out = out - p[inner[:axis] + (window,) + inner[axis + 1:]]
+    return out
 
 
 def regulariser_grad(control: Array) -> Array:

@@ -15,6 +15,7 @@ from ._io import SPLINE_KEYS, check_spline_arrays
 from ._problem import (
     DEFAULT_MARGIN,
     _is_concrete,
+    _shape,
     check_memory,
     flipped_normal_fraction,
     make_problem,
@@ -50,7 +51,7 @@ def padded_cloud(points, normals):
         p, n = np.asarray(points), np.asarray(normals)
     except (TypeError, ValueError):
         return None
-    if p.ndim != 2 or p.shape[1] != 2 or n.shape != p.shape or p.shape[0] < 3:
+    if p.ndim != 2 or p.shape[1] not in (2, 3) or n.shape != p.shape or p.shape[0] < 3:
         return None
     m = p.shape[0]
     extra = padded_count(m) - m
@@ -79,16 +80,21 @@ MAX_TANGENTIAL_FRACTION = 0.2
 #: fit it lets through does not run the machine out of memory.
 BYTES_PER_COEFFICIENT = 8192
 BYTES_PER_COEFFICIENT_ITERATIVE = 1024
+#: The same for a 3D grid: the 343-point stencil (2.7 KB a coefficient in float64), the
+#: per-cell moments it is folded from and the multigrid levels.
+BYTES_PER_COEFFICIENT_3D = 16384
 #: Peak bytes per sample (positions, basis values, residuals).
 BYTES_PER_SAMPLE = 256
 
 
 def fit_memory(shape, num_samples: int, solver) -> float:
-    """Estimated peak bytes of a fit on an ``(N, M)`` grid with ``num_samples`` samples
-    (:data:`BYTES_PER_COEFFICIENT`, :data:`BYTES_PER_SAMPLE`)."""
-    per_coefficient = (BYTES_PER_COEFFICIENT_ITERATIVE if isinstance(solver, (IPIA, IURS))
-                       else BYTES_PER_COEFFICIENT)
-    return float(per_coefficient * shape[0] * shape[1] + BYTES_PER_SAMPLE * num_samples)
+    """Estimated peak bytes of a fit on an ``(N, M)`` (or ``(N, M, K)``) grid with
+    ``num_samples`` samples (:data:`BYTES_PER_COEFFICIENT`, :data:`BYTES_PER_SAMPLE`)."""
+    if isinstance(solver, (IPIA, IURS)):
+        per_coefficient = BYTES_PER_COEFFICIENT_ITERATIVE
+    else:
+        per_coefficient = BYTES_PER_COEFFICIENT if len(shape) == 2 else BYTES_PER_COEFFICIENT_3D
+    return float(per_coefficient * np.prod(shape) + BYTES_PER_SAMPLE * num_samples)
 
 
 def _check_orientation(sol, points, normals, mask):
@@ -115,6 +121,15 @@ def _check_orientation(sol, points, normals, mask):
             (result == RESULTS.successful) | (result == RESULTS.max_steps_reached)):
         result = RESULTS.inconsistent_normals
     return dataclasses.replace(sol, metrics=metrics, result=result)
+
+
+def _point_dimension(points) -> int:
+    """The d of ``(m, d)`` points; 2 for anything else (make_problem names the error)."""
+    try:
+        shape = _shape(points)
+    except (TypeError, ValueError):
+        return 2
+    return shape[1] if len(shape) == 2 and shape[1] in (2, 3) else 2
 
 
 def _estimated_normals(points, mask):
@@ -193,12 +208,14 @@ def fit(
     override; the paper's Example 1 settings are ``grid=(9, 9), offset=0.1, eps=0.01``.
 
     Args:
-        points: ``(m, 2)`` data points.
-        normals: ``(m, 2)`` outward normals (normalised here); None (omitted) estimates
+        points: ``(m, 2)`` data points of a curve, or ``(m, 3)`` of a surface (then
+            ``sol.spline`` is a trivariate g(x, y, z); see :func:`jurs.levelset.mesh`).
+        normals: outward normals shaped like ``points`` (normalised here); None estimates
             and orients them first (:func:`jurs.estimate_normals`, on the host: concrete
             points only, no ``mask``), and ``sol.stats["estimated_normals"]`` then holds
             what the estimation found (``k``, ``components``, ``patches``, ...).
-        grid: ``N`` or ``(N, M)`` basis functions along x and y (>= 4); None chooses.
+        grid: ``N`` or ``(N, M)`` basis functions along x and y (>= 4; ``(N, M, K)`` in
+            3D); None chooses.
         solver: any jurs solver; None: ``LeastSquares(lam=settings.lam)``, the regularised
             exact solve. A solver given keeps its own lambda.
         offset: d, distance of the offset samples (eq. 4); None chooses.
@@ -253,10 +270,10 @@ def fit(
                                  domain=domain, margin=margin, smoothing=smoothing)
         grid, offset, eps = settings.grid, settings.offset, settings.eps
         solver = LeastSquares(lam=settings.lam) if solver is None else solver
-    shape = normalise_grid(grid)
+    shape = normalise_grid(grid, _point_dimension(points))
     if not isinstance(solver, AbstractSolver):
         raise TypeError(f"solver must be a jurs solver, got {type(solver).__name__}")
-    check_memory(f"grid={shape[0]}x{shape[1]}",  # points are checked by make_problem
+    check_memory("grid=" + "x".join(map(str, shape)),  # points are checked by make_problem
                  fit_memory(shape, 3 * (len(points) if hasattr(points, "__len__") else 0),
                             solver))
     dtype = jnp.result_type(float)

@@ -33,7 +33,8 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
-from ._basis import NUM_LOCAL, grid_to_patches, num_cells, patches_to_grid
+from ._basis import (NUM_LOCAL, cell_shape, grid_to_patches, num_cells, patches_to_grid,
+                     tensor_basis)
 from ._precision import full_precision
 from ._problem import Problem
 from ._spline import rational_terms
@@ -159,8 +160,9 @@ def _local_coordinates(problem: Problem) -> Array:
 
 
 def _bernstein_moments(problem: Problem, chunk_size: int) -> Array:
-    """Per-cell sums ``(cells, 49 + 16)``: ``sum_k mask Bern6_p(tx) Bern6_q(ty)`` and
-    ``sum_k b_k Bern3_p(tx) Bern3_q(ty)`` over the samples of each cell."""
+    """Per-cell sums ``(cells, 7 ** d + 4 ** d)``: ``sum_k mask Bern6_p(tx) Bern6_q(ty)`` and
+    ``sum_k b_k Bern3_p(tx) Bern3_q(ty)`` over the samples of each cell (with a third
+    factor per term in 3D)."""
     local = problem.local
     count = num_cells(problem.shape)
     if local.bucket_size > 1:
@@ -182,10 +184,9 @@ def _bernstein_moments(problem: Problem, chunk_size: int) -> Array:
     t = _local_coordinates(problem)
 
     def moments(t, mask, target):
-        b6x, b6y = _bernstein(t[:, 0], 6), _bernstein(t[:, 1], 6)
-        b3x, b3y = _bernstein(t[:, 0], 3), _bernstein(t[:, 1], 3)
-        gram = (b6x[:, :, None] * b6y[:, None, :]).reshape(-1, 49)
-        rhs = (b3x[:, :, None] * b3y[:, None, :]).reshape(-1, 16) * target[:, None]
+        axes = range(t.shape[1])
+        gram = tensor_basis(*[_bernstein(t[:, a], 6) for a in axes])
+        rhs = tensor_basis(*[_bernstein(t[:, a], 3) for a in axes]) * target[:, None]
         return jnp.concatenate([gram, rhs], axis=1) * mask[:, None]
 
     return chunked_segment_sum(moments, [t, problem.mask, problem.targets], local.cell, count,
@@ -207,28 +208,38 @@ def _fold_axis(cells: Array, kernel: Array, axis: int) -> Array:
     return out
 
 
+def _fold_axes(cells: Array, kernel: Array) -> Array:
+    """The moment-to-stencil fold over every axis: ``cells`` is ``cell_grid + (channels,) *
+    d`` (channel axis ``d + a`` the moment degree along axis ``a``), the result
+    ``grid + (7,) * d`` (or ``(1,) * d`` for the right-hand side's kernel). One axis at a
+    time: its degree channel moved last, folded, its offset channel put back."""
+    d = (cells.ndim) // 2
+    for axis in range(d):
+        folded = _fold_axis(jnp.moveaxis(cells, d + axis, -1), kernel, axis)
+        cells = jnp.moveaxis(folded, -1, d + axis)
+    return cells
+
+
 def bspline_normal_equations(problem: Problem, chunk_size: int = DEFAULT_CHUNK):
     """``(stencil, D^T b)`` for the B-spline collocation (w = 1) from per-cell Bernstein
-    moments: 49 + 16 channels a sample, never the 256 products.
+    moments: 7 ** d + 4 ** d channels a sample (49 + 16 in 2D), never the ``16 ** d``
+    products. Any grid dimension d.
 
     Coefficient ``(i, j)`` couples to ``(i + da - 3, j + db - 3)`` through every cell
     ``(i - a, j - b)`` both touch, with ``sum_pq P[a, da, p] P[b, db, q] moment[p, q]``;
-    that sum factorises by axis, so the fold runs as two passes over the grid (x, then y)
+    that sum factorises by axis, so the fold runs as one pass over the grid an axis
     with 7 channels each, never a ``(cells, 16, 7, 7)`` array (which dominated the
     assembly: 45 of 47 ms at 3000 samples on a 92 x 96 grid)."""
     dtype = problem.local.s.dtype
+    ndim = problem.ndim
     sums = _bernstein_moments(problem, chunk_size)
-    cx, cy = problem.shape[0] - 3, problem.shape[1] - 3
-    gram_moments = sums[:, :49].reshape(cx, cy, 7, 7)  # [cx, cy, p, q]
-    rhs_moments = sums[:, 49:].reshape(cx, cy, 4, 4)
-    products = jnp.asarray(_product_bernstein(), dtype)  # [a, da, p]
-    # x: [cx, cy, q, p] -> [i, cy, q, da]; y: [i, cy, da, q] -> [i, j, da, db]
-    along_x = _fold_axis(jnp.swapaxes(gram_moments, 2, 3), products, 0)
-    stencil = _fold_axis(jnp.swapaxes(along_x, 2, 3), products, 1)
+    cells = cell_shape(problem.shape)
+    gram_moments = sums[:, : 7**ndim].reshape(cells + (7,) * ndim)  # [cells..., p, q(, r)]
+    rhs_moments = sums[:, 7**ndim :].reshape(cells + (4,) * ndim)
+    stencil = _fold_axes(gram_moments, jnp.asarray(_product_bernstein(), dtype))  # [a, da, p]
     cubic = jnp.asarray(_cubic_bernstein(), dtype)[:, None, :]  # [a, 1, p]: B_a in Bern3
-    rhs = _fold_axis(jnp.swapaxes(rhs_moments, 2, 3), cubic, 0)  # [i, cy, q, 1]
-    rhs = _fold_axis(rhs[..., 0], cubic, 1)  # [i, j, 1]
-    return stencil, rhs[..., 0]
+    rhs = _fold_axes(rhs_moments, cubic)
+    return stencil, rhs.reshape(problem.shape)
 
 
 def rational_normal_equations(problem: Problem, weights: Array, chunk_size: int = DEFAULT_CHUNK):

@@ -37,19 +37,24 @@ class Problem(eqx.Module):
     Problem can be traced, differentiated and batched.
     """
 
-    points: Array  # (m, 2) data points P
-    normals: Array  # (m, 2) unit outward normals
-    samples: Array  # (S, 2) sample positions, P or P +/- d n (eq. 4)
+    points: Array  # (m, d) data points P (d = 2: a curve, 3: a surface)
+    normals: Array  # (m, d) unit outward normals
+    samples: Array  # (S, d) sample positions, P or P +/- d n (eq. 4)
     targets: Array  # (S,) b: 0, +eps or -eps (eq. 5, 9)
     mask: Array  # (S,) 1.0 for real samples, 0.0 for padding (layout or batched fits)
     is_data: Array  # (S,) 1.0 where the slot holds a real data point P_i (target 0)
     sample_index: Array  # (S,) int32 position in the paper's order [P, P + d n, P - d n]
-    lower: Array  # (2,) box corner
-    upper: Array  # (2,) box corner
+    lower: Array  # (d,) box corner
+    upper: Array  # (d,) box corner
     offset: Array  # d
     eps: Array  # epsilon
     local: LocalBasis  # basis at the samples
-    shape: tuple[int, int] = eqx.field(static=True)
+    shape: tuple[int, ...] = eqx.field(static=True)
+
+    @property
+    def ndim(self) -> int:
+        """2 for curves, 3 for surfaces."""
+        return len(self.shape)
 
     @property
     def num_points(self) -> int:
@@ -175,20 +180,23 @@ def auto_domain(samples: Array, margin: float = DEFAULT_MARGIN, mask: Array | No
     return lo - pad, hi + pad
 
 
-def normalise_grid(grid) -> tuple[int, int]:
-    """``9`` or ``(9, 9)`` -> ``(9, 9)``; raises ValueError for anything below 4 x 4."""
+def normalise_grid(grid, ndim: int = 2) -> tuple[int, ...]:
+    """``9`` or ``(9, 9)`` -> ``(9, 9)`` (``ndim`` 3: ``9`` or ``(9, 9, 9)`` -> ``(9, 9,
+    9)``); raises ValueError for anything below 4 functions an axis."""
+    kind = "a pair" if ndim == 2 else "a triple"
     if isinstance(grid, (int, np.integer)):
-        grid = (grid, grid)
+        grid = (grid,) * ndim
     try:
         shape = tuple(int(g) for g in grid)
         if any(int(g) != g for g in grid):
             raise TypeError
     except (TypeError, ValueError):
-        raise ValueError(f"grid must be an int or a pair of ints, got {grid!r}") from None
-    if len(shape) != 2:
-        raise ValueError(f"grid must be a pair (N, M), got {grid!r}")
+        raise ValueError(f"grid must be an int or {kind} of ints, got {grid!r}") from None
+    if len(shape) != ndim:
+        raise ValueError(f"grid must be {kind} of ints for {ndim}D points, got {grid!r}")
     if min(shape) < 4:
-        raise ValueError(f"grid must be at least 4 x 4 for cubic B-splines, got {shape}")
+        raise ValueError(f"grid must be at least {' x '.join('4' * ndim)} for cubic "
+                         f"B-splines, got {shape}")
     return shape
 
 
@@ -265,8 +273,8 @@ def unit_normals(normals, xp=np):
 def _validate_points(points, normals, mask=None) -> None:
     p = numeric_array("points", points)
     n = numeric_array("normals", normals)
-    if p.ndim != 2 or p.shape[1] != 2:
-        raise ValueError(f"points must have shape (m, 2), got {p.shape}")
+    if p.ndim != 2 or p.shape[1] not in (2, 3):
+        raise ValueError(f"points must have shape (m, 2) or (m, 3), got {p.shape}")
     if n.shape != p.shape:
         raise ValueError(f"normals must have the same shape as points {p.shape}, got {n.shape}")
     if p.shape[0] < 3:
@@ -293,23 +301,25 @@ def _validate_points(points, normals, mask=None) -> None:
         raise ValueError("points: all points coincide; the cloud has no extent")
 
 
-def check_domain(domain) -> np.ndarray:
-    """``domain`` as a ``(2, 2)`` float array; ValueError naming it unless it is
-    ``((x_min, y_min), (x_max, y_max))``, finite, with min < max on both axes."""
+def check_domain(domain, ndim: int | None = None) -> np.ndarray:
+    """``domain`` as a ``(2, d)`` float array; ValueError naming it unless it is
+    ``((x_min, y_min), (x_max, y_max))`` (or with z in 3D; ``ndim`` None takes either),
+    finite, with min < max on every axis."""
     try:
         d = np.asarray(domain, dtype=float)
     except (TypeError, ValueError):
         raise ValueError("domain must be ((x_min, y_min), (x_max, y_max)) numbers, "
                          f"got {domain!r}") from None
-    if d.shape != (2, 2):
-        raise ValueError(f"domain must be ((x_min, y_min), (x_max, y_max)), got shape {d.shape}")
+    if d.ndim != 2 or d.shape[0] != 2 or d.shape[1] not in ((2, 3) if ndim is None else (ndim,)):
+        raise ValueError(f"domain must be ((x_min, y_min), (x_max, y_max)) (with z_min, z_max "
+                         f"for 3D points), got shape {d.shape}")
     if not np.isfinite(d).all() or not (d[0] < d[1]).all():
         raise ValueError(f"domain must be finite with min < max on both axes, got {d.tolist()}")
     return d
 
 
 def _validate_domain(domain, samples, m: int):
-    d = check_domain(domain)
+    d = check_domain(domain, np.shape(samples)[1])
     s = np.asarray(samples)
     outside = ((s < d[0]) | (s > d[1])).any(axis=1)
     if outside[:m].any():
@@ -466,12 +476,15 @@ def make_problem(
     """Build the fitting :class:`Problem` of eq. 4-5 and 9.
 
     Args:
-        points: ``(m, 2)`` data points, m >= 3.
-        normals: ``(m, 2)`` outward normals; normalised here (zero length is an error).
-        grid: ``N`` or ``(N, M)``, basis functions along x and y, each >= 4.
+        points: ``(m, 2)`` data points of a curve, or ``(m, 3)`` of a surface; m >= 3.
+        normals: outward normals, the shape of ``points``; normalised here (zero length
+            is an error).
+        grid: ``N`` or ``(N, M)``, basis functions along x and y, each >= 4 (``N`` or
+            ``(N, M, K)`` in 3D).
         offset: d > 0, distance of the offset samples along the normals.
         eps: epsilon > 0, target value at the outer offsets (-eps at the inner ones).
-        domain: ``((x_min, y_min), (x_max, y_max))``; ``None`` takes the samples' bounding
+        domain: ``((x_min, y_min), (x_max, y_max))`` (with z in 3D); ``None`` takes the
+            samples' bounding
             box plus ``margin`` times its longest side on every side.
         mask: optional ``(m,)`` booleans; points with False are padding and take no part in
             the fit, the box or the metrics. Lets clouds of different sizes share one shape
@@ -481,7 +494,8 @@ def make_problem(
             slot, with the table form of :mod:`jurs._spline` (its own buckets, built on the
             host); above, buckets of :func:`choose_bucket_size`. 1 keeps the paper's order
             (with the table form when small and concrete). Sizes above 1 need concrete
-            (untraced) inputs: the layout is computed on the host.
+            (untraced) inputs: the layout is computed on the host. 3D problems always
+            take one sample a slot (the generic form of :mod:`jurs._spline`).
         dtype: floating dtype; default float64 when ``jax_enable_x64`` is on, else float32.
         stable_shapes: size a concrete problem's sample layout from the number of points
             and the rounded number of occupied cells (:func:`stable_layout`), so that
@@ -497,9 +511,10 @@ def make_problem(
             (inside jit/grad/vmap) cannot be inspected and are not checked.
         TypeError: for points or normals that are not numbers.
     """
-    shape = normalise_grid(grid)
     validate_inputs(points, normals, offset=offset, eps=eps, domain=domain, margin=margin,
                     mask=mask)
+    ndim = _shape(points)[1]
+    shape = normalise_grid(grid, ndim)
     if bucket_size is not None and (int(bucket_size) != bucket_size or bucket_size < 1):
         raise ValueError(f"bucket_size must be a positive int, got {bucket_size!r}")
     dtype = dtype or jnp.result_type(float)
@@ -509,6 +524,13 @@ def make_problem(
         # Unit length in float64 before any cast: 1e200-long normals overflow float32.
         normals = unit_normals(np.asarray(normals, float))
     small = 3 * _shape(points)[0] <= TABLE_MAX_SLOTS
+    if ndim != 2:
+        # The buckets, the table and the power form are 2D kernels; a surface's samples
+        # take the generic form, one sample a slot.
+        if bucket_size not in (None, 1):
+            raise ValueError(f"bucket_size must be 1 for 3D points, got {bucket_size!r}")
+        bucket_size = 1
+        small = False
     # Small concrete problems are laid out on the host in NumPy and transferred once at the
     # end: nothing to compile (a first call would otherwise spend about 0.3 s compiling
     # the geometry). Larger and traced ones take the same arithmetic jitted (at 1e6 points
@@ -714,10 +736,11 @@ def check_memory(setting: str, estimate: float, available: int | None = None,
 
 
 def tangential_normal_fraction(points, normals, sample=None) -> float:
-    """Fraction of the points whose normal lies within 45 degrees of the curve's tangent,
-    the principal direction of the point and its :data:`ORIENTATION_NEIGHBOURS` nearest
-    neighbours (counted only where that direction is clear, its variance at least 4 times
-    the other's: not at corners, not in clouds sampled coarser than their features).
+    """Fraction of the points whose normal lies within 45 degrees of the curve's tangent
+    (of a surface's tangent plane), spanned by the principal directions of the point and
+    its :data:`ORIENTATION_NEIGHBOURS` nearest neighbours (counted only where the direction
+    across is clear, the variance along each tangent direction at least 4 times its: not
+    at corners, not in clouds sampled coarser than their features).
     About 1/2 for random normals, which :func:`flipped_normal_fraction` cannot see (its
     graph falls apart) and a fine grid fits "successfully"; measured at most 0.03 on the
     consistent clouds listed there, also with 10 % of the normals random. Host side."""
@@ -725,5 +748,7 @@ def tangential_normal_fraction(points, normals, sample=None) -> float:
     near = p[idx] - p[idx].mean(axis=1, keepdims=True)
     variance, axes = np.linalg.eigh(np.einsum("mki,mkj->mij", near, near))
     clear = variance[:, 1] > 4.0 * variance[:, 0]
-    along = np.abs(np.sum(axes[:, :, 1] * n, axis=1)) > np.sqrt(0.5)
+    # Within 45 degrees of the tangent: at most cos 45 degrees along the direction across
+    # (the smallest variance's).
+    along = np.abs(np.sum(axes[:, :, 0] * n, axis=1)) < np.sqrt(0.5)
     return float(np.mean(clear & along))

@@ -52,6 +52,8 @@ from ._basis import (
     grid_to_patches,
     locate,
     num_cells,
+    patch_corner,
+    patch_offsets,
     patch_to_power,
     patches_to_grid,
     power_moments,
@@ -73,7 +75,7 @@ class LocalBasis(eqx.Module):
     """
 
     cell: Array  # (S,) int32 flat cell index
-    s: Array  # (2, S) centred local coordinates t - 1/2 in the cell, x row then y row
+    s: Array  # (d, S) centred local coordinates t - 1/2 in the cell, one row an axis
     terms: Array | None = None  # table: (16, B, K) basis products at the table positions
     terms_t: Array | None = None  # table: the same as (B, K, 16)
     index: Array | None = None  # table: (B, 16) flat grid index of each bucket's terms
@@ -93,8 +95,13 @@ class LocalBasis(eqx.Module):
         return self.cell[:: self.bucket_size]
 
     @property
+    def ndim(self) -> int:
+        """The dimension d of the grid: 2 for curves, 3 for surfaces."""
+        return self.s.shape[0]
+
+    @property
     def t(self) -> Array:
-        """Local coordinates in the cell, ``(2, S)``; ``[0, 1]`` inside the box."""
+        """Local coordinates in the cell, ``(d, S)``; ``[0, 1]`` inside the box."""
         return self.s + 0.5
 
     @property
@@ -109,8 +116,13 @@ class LocalBasis(eqx.Module):
 
     @property
     def products(self) -> Array:
-        """``B_a(x) B_b(y)`` for the 16 local terms; ``(S, 16)``."""
-        return tensor_basis(self.bx, self.by)
+        """The ``4 ** d`` local terms ``B_a(x) B_b(y) [B_c(z)]``; ``(S, 4 ** d)``."""
+        return tensor_basis(*(cubic_weights(t) for t in self.t))
+
+    def patch_index(self, shape: tuple[int, ...]) -> Array:
+        """``(S, 4 ** d)``: the flat index, in the coefficient grid of ``shape``, of every
+        coefficient each sample sees, in the order of :attr:`products`."""
+        return patch_corner(self.cell, shape)[:, None] + jnp.asarray(patch_offsets(shape))
 
     def to_layout(self, values: Array) -> Array:
         """Per-slot ``(..., S)`` values in the layout the kernels work in (``layout=True``
@@ -132,10 +144,10 @@ class LocalBasis(eqx.Module):
 TABLE_MAX_SLOTS = 1 << 16
 
 
-def local_basis(xy: Array, lower: Array, upper: Array, shape: tuple[int, int],
+def local_basis(xy: Array, lower: Array, upper: Array, shape: tuple[int, ...],
                 bucket_size: int = 1, xp=jnp) -> LocalBasis:
-    """The local basis of the ``(N, M)`` grid on ``[lower, upper]`` at ``xy (S, 2)``, in the
-    power form.
+    """The local basis of the ``shape`` grid (``(N, M)``, or ``(N, M, K)`` in 3D) on
+    ``[lower, upper]`` at ``xy (S, d)``, in the power form (2D) or the generic form.
 
     With ``bucket_size > 1`` the caller guarantees that each run of ``bucket_size``
     consecutive points lies in one cell (see :func:`jurs._problem.bucket_layout`).
@@ -250,6 +262,9 @@ def bspline_values(local: LocalBasis, grids: Array, *, layout: bool = False) -> 
     a sample against the gathered patch. ``layout=True`` returns the values in the
     kernels' layout (:meth:`LocalBasis.to_layout`) instead of per slot.
     """
+    ndim = local.ndim
+    if ndim != 2:
+        return _gathered_values(local, grids)
     lead = grids.shape[:-2]
     flat = grids.reshape((-1,) + grids.shape[-2:])
     if local.terms is not None:
@@ -268,12 +283,24 @@ def bspline_values(local: LocalBasis, grids: Array, *, layout: bool = False) -> 
     return values.reshape(lead + (local.cell.shape[0],))
 
 
+def _gathered_values(local: LocalBasis, grids: Array) -> Array:
+    """F in the generic form (any d, one sample a slot): each sample's ``4 ** d``
+    coefficients gathered from the flat grid against its basis products. This is the path
+    of 3D grids, whose samples are not bucketed (see :func:`jurs.make_problem`)."""
+    shape = grids.shape[grids.ndim - local.ndim:]
+    lead = grids.shape[: grids.ndim - local.ndim]
+    flat = grids.reshape(lead + (-1,))
+    coeffs = jnp.take(flat, local.patch_index(shape), axis=-1)  # (..., S, 4 ** d)
+    return jnp.sum(coeffs * local.products, axis=-1)
+
+
 def values_apart(local: LocalBasis, grids: Array) -> Array:
     """:func:`bspline_values` in the kernels' layout, in a kernel of its own
     (:func:`computed_apart`), as the solver steps call it: ``(..., N, M)`` -> ``(..., P)``
     with ``P`` the layout's length."""
     count = local.cell.shape[0] if local.terms is None else local.terms[0].size
-    shapes = jax.ShapeDtypeStruct(grids.shape[:-2] + (count,), jnp.result_type(grids, local.s))
+    shapes = jax.ShapeDtypeStruct(grids.shape[: grids.ndim - local.ndim] + (count,),
+                                  jnp.result_type(grids, local.s))
     return computed_apart(partial(bspline_values, layout=True), local, grids, shapes=shapes)
 
 
@@ -305,6 +332,13 @@ def transpose_and_sum(local: LocalBasis, values: Array, shape: tuple[int, int], 
         index = local.index[None] + size * jnp.arange(v.shape[0], dtype=local.index.dtype)[:, None, None]
         grid = jnp.zeros(v.shape[0] * size, values.dtype).at[index].add(per_bucket)
         return grid.reshape((v.shape[0],) + tuple(shape)), tuple(jnp.sum(x) for x in extra)
+    if local.ndim != 2:
+        # The generic form (3D): each sample's 4 ** d products scattered onto the grid.
+        size = int(np.prod(shape))
+        updates = values[:, :, None] * local.products  # (C, S, 4 ** d)
+        grid = jnp.zeros((values.shape[0], size), values.dtype)
+        grid = grid.at[:, local.patch_index(shape)].add(updates)
+        return grid.reshape((values.shape[0],) + tuple(shape)), tuple(jnp.sum(x) for x in extra)
     if k == 1:
         # One sample a bucket (the generic layout): nothing to sum per bucket, so each
         # sample's 16 B-spline products go to its cell directly (the power detour would
@@ -347,12 +381,17 @@ def rational_terms(local: LocalBasis, control: Array, weights: Array):
     """Rational evaluation with explicit rows (eq. 14 and 23), for checks and row-based
     algorithms; the solvers use the cheaper :func:`rational_values`.
 
-    Returns ``(wb, denom, g)``: ``wb = w_ij B_i B_j`` for the 16 local terms ``(S, 16)``,
+    Returns ``(wb, denom, g)``: ``wb = w_ij B_i B_j`` for the 16 local terms ``(S, 16)``
+    (64 in 3D),
     ``denom = W(x)`` ``(S,)`` and ``g(x)`` ``(S,)``. The collocation row of eq. 23 is
     ``wb / denom``.
     """
-    w_rows = grid_to_patches(weights)[local.cell]
-    c_rows = grid_to_patches(control)[local.cell]
+    if local.ndim == 2:
+        w_rows = grid_to_patches(weights)[local.cell]
+        c_rows = grid_to_patches(control)[local.cell]
+    else:  # one gather of each sample's coefficients, never a (cells, 64) patch array
+        index = local.patch_index(weights.shape)
+        w_rows, c_rows = weights.ravel()[index], control.ravel()[index]
     wb = local.products * w_rows
     denom = jnp.sum(wb, axis=-1)
     g = jnp.sum(wb * c_rows, axis=-1) / denom
@@ -363,9 +402,11 @@ class ImplicitSpline(eqx.Module):
     """A uniform rational cubic spline function on the box ``[lower, upper]``.
 
     Fields: ``control`` (N, M) coefficients C, ``weights`` (N, M) positive weights w, and the
-    box corners ``lower``/``upper`` (2,), which fix the uniform knots. Calling it on an
-    ``(n, 2)`` array (or one ``(2,)`` point) returns g there (eq. 14). It is a pytree: jit,
-    grad and vmap go through it. Outside the box the border polynomial pieces extend.
+    box corners ``lower``/``upper`` (2,), which fix the uniform knots; for a surface the
+    grids are (N, M, K) and the corners (3,), g(x, y, z) the trivariate form of eq. 14.
+    Calling it on an ``(n, d)`` array (or one ``(d,)`` point) returns g there (eq. 14). It
+    is a pytree: jit, grad and vmap go through it. Outside the box the border polynomial
+    pieces extend.
     """
 
     control: Array
@@ -374,17 +415,27 @@ class ImplicitSpline(eqx.Module):
     upper: Array
 
     def __check_init__(self):
-        if self.control.ndim != 2 or self.control.shape != self.weights.shape:
+        if self.control.ndim not in (2, 3) or self.control.shape != self.weights.shape:
             raise ValueError(
-                f"control and weights must be matching 2D grids, got {self.control.shape} "
-                f"and {self.weights.shape}"
+                f"control and weights must be matching 2D or 3D grids, got "
+                f"{self.control.shape} and {self.weights.shape}"
             )
         if min(self.control.shape) < 4:
-            raise ValueError(f"grid must be at least 4 x 4 for cubic splines, got {self.control.shape}")
+            raise ValueError(f"grid must be at least {' x '.join('4' * self.ndim)} for cubic "
+                             f"splines, got {self.control.shape}")
+        if jnp.shape(self.lower) != (self.ndim,) or jnp.shape(self.upper) != (self.ndim,):
+            raise ValueError(f"lower and upper must have shape ({self.ndim},) for a "
+                             f"{self.ndim}D grid, got {jnp.shape(self.lower)} and "
+                             f"{jnp.shape(self.upper)}")
 
     @property
-    def shape(self) -> tuple[int, int]:
+    def shape(self) -> tuple[int, ...]:
         return self.control.shape
+
+    @property
+    def ndim(self) -> int:
+        """2 for a curve's spline g(x, y), 3 for a surface's g(x, y, z)."""
+        return self.control.ndim
 
     @classmethod
     def bspline(cls, control: Array, lower, upper) -> "ImplicitSpline":
@@ -403,7 +454,7 @@ class ImplicitSpline(eqx.Module):
         return g[0] if single else g
 
     def grad(self, xy: Array) -> Array:
-        """Spatial gradient of g at ``xy (n, 2)``; ``(n, 2)`` (or ``(2,)`` for one point)."""
+        """Spatial gradient of g at ``xy (n, d)``; ``(n, d)`` (or ``(d,)`` for one point)."""
         xy = jnp.asarray(xy)
         point_grad = jax.grad(lambda p: self(p))
         return point_grad(xy) if xy.ndim == 1 else jax.vmap(point_grad)(xy)

@@ -31,7 +31,7 @@ def test_non_finite(cloud, where, bad):
 def test_shapes(cloud):
     points, normals = cloud
     with pytest.raises(ValueError, match=r"points must have shape \(m, 2\)"):
-        fit_small(np.ones((30, 3)), np.ones((30, 3)))
+        fit_small(np.ones((30, 4)), np.ones((30, 4)))
     with pytest.raises(ValueError, match="normals must have the same shape"):
         fit_small(points, normals[:-1])
     with pytest.raises(ValueError, match="at least 3 points"):

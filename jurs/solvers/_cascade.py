@@ -1,0 +1,114 @@
+"""A cascadic start for the exact solve of surfaces: the same fit on coarser grids first.
+
+Jacobi-preconditioned CG on a 3D normal-equation stencil converges near the data, where
+``D^T D`` dominates, but leaves the far field (coefficients that only the regulariser
+reaches: inside and around the surface) close to where it started, since the membrane term
+``2 lam L`` spreads a correction by a few cells a step and its residual is too small for
+CG's stop test to notice. Started from 0, a sphere's centre kept g = 0 exactly and grew a
+second surface there. The cure is a start that already has the far field: the same
+least-squares problem (same samples, box and lambda) solved on a grid coarse enough for a
+dense Cholesky, then on finer grids in turn, each started from the previous one's spline
+and corrected by a few CG steps, and the finest level's CG started from there. On a
+3000-point sphere at 32^3, from the 12^3 solution, CG reached the exact minimiser's far
+field (g at the centre -0.084 against the multigrid solve's -0.0837) and a relative
+residual of 4e-11 in 400 steps; from 0 it stopped with the centre at 0.
+
+Transfer between levels is by the coarse spline's values at the fine grid's Greville
+points (``lo + (i - 1) h``): a quasi-interpolant, accurate to O(h^2), which is all a start
+needs (the finest level's CG decides the answer).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import lineax as lx
+import numpy as np
+from jax import Array
+
+from .._basis import cubic_weights
+from .._normal import normal_equations
+from .._problem import Problem
+from .._spline import local_basis
+
+#: Largest number of coefficients of the coarsest level (solved by dense Cholesky: at
+#: 12^3 = 1728 about 0.1 s on a 2-core CPU, at 16^3 = 4096 3 s).
+COARSEST_COEFFICIENTS = 1728
+#: CG on the intermediate levels: a loose tolerance and a step cap (a start, not a
+#: solution).
+LEVEL_RTOL = 1e-3
+LEVEL_MAX_STEPS = 100
+
+
+def cascade_shapes(shape: tuple[int, ...]) -> list[tuple[int, ...]]:
+    """The grids of the cascade, coarsest first, ending one level below ``shape``: each
+    about half the previous one's cells (``n // 2 + 2`` functions, at least 4), until one
+    has at most :data:`COARSEST_COEFFICIENTS` coefficients."""
+    shapes = []
+    current = tuple(shape)
+    while np.prod(current) > COARSEST_COEFFICIENTS:
+        current = tuple(max(4, n // 2 + 2) for n in current)
+        shapes.append(current)
+    return shapes[::-1]
+
+
+def transfer_matrix(coarse: int, fine: int) -> np.ndarray:
+    """``(fine, coarse)``: the coarse cubic B-splines of one axis at the fine grid's Greville
+    points, on a shared box (in units of the coarse cell, the box is ``[0, coarse - 3]``)."""
+    u = (np.arange(fine) - 1.0) * (coarse - 3) / (fine - 3)
+    cell = np.clip(np.floor(u), 0, coarse - 4).astype(int)
+    values = cubic_weights(u - cell, xp=np)  # (fine, 4)
+    out = np.zeros((fine, coarse))
+    for a in range(4):
+        out[np.arange(fine), cell + a] += values[:, a]
+    return out
+
+
+def transfer(grid: Array, shape: tuple[int, ...]) -> Array:
+    """A coarse coefficient grid's spline, quasi-interpolated on the grid of ``shape`` (one
+    matrix product an axis)."""
+    for axis, n in enumerate(shape):
+        matrix = jnp.asarray(transfer_matrix(grid.shape[axis], n), grid.dtype)
+        grid = jnp.moveaxis(jnp.tensordot(matrix, grid, axes=[[1], [axis]]), 0, axis)
+    return grid
+
+
+def on_grid(problem: Problem, shape: tuple[int, ...]) -> Problem:
+    """``problem`` with the same samples and box on another grid."""
+    local = local_basis(problem.samples, problem.lower, problem.upper, shape)
+    return dataclasses.replace(problem, local=local, shape=tuple(shape))
+
+
+def level_lam(lam, fine: tuple[int, ...], coarse: tuple[int, ...]):
+    """The lambda that weighs the regulariser on the ``coarse`` grid as ``lam`` does on the
+    ``fine`` one: R of a fixed g grows as ``h^(2 - d)`` (:func:`jurs._defaults.scale_free_lam`)."""
+    ratio = (fine[0] - 3) / (coarse[0] - 3)  # h_coarse / h_fine
+    return lam * ratio ** (len(fine) - 2)
+
+
+def cascadic_start(problem: Problem, lam, solve, start: Array) -> Array:
+    """A start for the exact solve of ``problem`` on its grid: the solves of
+    :func:`cascade_shapes`' grids in turn, each transferred to the next; ``start`` itself
+    where the grid is already coarse enough to have no cascade. ``solve(stencil,
+    rhs, start, linear_solver)`` solves one level's regularised normal equations (as
+    :func:`jurs.solvers._least_squares.solve_normal_equations`). No gradient flows through
+    the start (it changes the path of the final solve, not its solution)."""
+    shapes = cascade_shapes(problem.shape)
+    if not shapes:
+        return start
+    problem, lam = jax.lax.stop_gradient((problem, lam))
+    start = None
+    for shape in shapes:
+        normal = normal_equations(on_grid(problem, shape))
+        stencil = normal.regularised(level_lam(lam, problem.shape, shape))
+        if start is None:
+            start, solver = jnp.zeros(shape, normal.rhs.dtype), lx.Cholesky()
+        else:
+            start = transfer(start, shape)
+            # Absolute per-entry tolerance: see surface_linear_solver.
+            solver = lx.CG(rtol=0.0, atol=LEVEL_RTOL * jnp.max(jnp.abs(normal.rhs)),
+                           max_steps=LEVEL_MAX_STEPS)
+        start = solve(stencil, normal.rhs, start, solver)
+    return transfer(start, problem.shape)
