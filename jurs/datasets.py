@@ -1,7 +1,10 @@
 """Built-in point clouds (the paper's analytic examples), noise, and file loading.
 
-Every generator returns ``(points, normals)`` as float64 NumPy arrays of shape ``(m, 2)``,
-normals unit length and pointing out of the enclosed region.
+Every generator returns ``(points, normals)`` as float64 NumPy arrays of shape ``(m, 2)``
+(the 3D ones :func:`sphere3d`, :func:`torus`, :func:`genus2` and :func:`sample_mesh`:
+``(m, 3)``), normals unit length and pointing out of the enclosed region. Point clouds are
+read and written by :func:`load_points` / :func:`save_points`, triangle meshes by
+:func:`load_mesh` / :func:`save_mesh` (3D files through trimesh, an optional dependency).
 """
 
 from __future__ import annotations
@@ -112,6 +115,11 @@ def load_points(path) -> tuple[np.ndarray, np.ndarray | None]:
     """Read points and normals from ``.npy`` (an (m, 4) array) or CSV/TXT (columns x, y, nx,
     ny; comma, whitespace or semicolon separated; an optional header line of names).
 
+    3D clouds (:data:`CLOUD_SUFFIXES`): ``.ply`` and ``.obj`` give their vertices, and
+    their vertex normals where the file has them (through trimesh, ``pip install
+    "jurs[surfaces]"``); ``.xyz`` and ``.pts`` are text rows of 3 (x y z) or 6 (x y z nx
+    ny nz) numbers. Points come back ``(m, 3)``, normals ``(m, 3)`` or None.
+
     A table of two columns (x, y; header ``x,y``) holds points without normals: the normals
     come back as None (:func:`jurs.fit` then estimates them). The header, or else the first
     data row, sets the number of columns for every row.
@@ -123,6 +131,8 @@ def load_points(path) -> tuple[np.ndarray, np.ndarray | None]:
     path = os.fspath(path)
     if not os.path.exists(path):
         raise FileNotFoundError(f"{path}: no such file")
+    if _suffix(path) in CLOUD_SUFFIXES:
+        return _load_cloud(path)
     if path.lower().endswith(".npy"):
         try:
             rows = np.load(path, allow_pickle=False)
@@ -182,8 +192,18 @@ def _not_number(cell: str) -> bool:
 
 def save_points(path, points, normals=None) -> None:
     """Write points and normals as ``.npy`` (m, 4) or CSV with an ``x,y,nx,ny`` header;
-    ``normals=None`` writes the points alone ((m, 2), header ``x,y``)."""
+    ``normals=None`` writes the points alone ((m, 2), header ``x,y``).
+
+    3D points ``(m, 3)`` go to the suffixes of :data:`CLOUD_SUFFIXES`: ``.xyz``/``.pts``
+    as text rows (all digits), ``.ply`` (binary, float32, through trimesh) and ``.obj``
+    (``v`` and ``vn`` lines) with vertex normals when given.
+    """
     path = os.fspath(path)
+    if _suffix(path) in CLOUD_SUFFIXES:
+        _save_cloud(path, points, normals)
+        return
+    if np.ndim(points) == 2 and np.shape(points)[1] == 3:
+        raise ValueError(f"{path}: 3D points go to {', '.join(CLOUD_SUFFIXES)} files")
     parts = [np.asarray(points, float)] + ([] if normals is None else [np.asarray(normals, float)])
     table = np.concatenate(parts, axis=1)
     if path.lower().endswith(".npy"):
@@ -191,3 +211,301 @@ def save_points(path, points, normals=None) -> None:
     else:
         np.savetxt(path, table, delimiter=",", header=",".join(COLUMNS[:table.shape[1]]),
                    comments="", fmt="%.17g")
+
+
+# --- 3D: surfaces, meshes and point-cloud files -------------------------------------------
+
+#: Suffixes :func:`load_points` and :func:`save_points` read and write as 3D clouds.
+CLOUD_SUFFIXES = (".ply", ".obj", ".xyz", ".pts")
+#: Suffixes :func:`load_mesh` and :func:`save_mesh` handle (through trimesh).
+MESH_SUFFIXES = (".ply", ".obj", ".stl", ".off")
+
+
+def _trimesh():
+    """trimesh, imported on first use (an optional dependency)."""
+    try:
+        import trimesh
+    except ImportError:
+        raise ImportError('3D point-cloud and mesh files need trimesh: '
+                          'pip install "jurs[surfaces]"') from None
+    return trimesh
+
+
+def _suffix(path: str) -> str:
+    return os.path.splitext(path)[1].lower()
+
+
+def _count(m) -> int:
+    if isinstance(m, bool) or not isinstance(m, (int, np.integer)) or m < 1:
+        raise ValueError(f"the number of points must be a positive int, got {m!r}")
+    return int(m)
+
+
+def sphere3d(m: int, radius: float = 1.0, seed: int = 0):
+    """``m`` points drawn uniformly (by area) on the sphere of ``radius`` about the origin,
+    with their outward unit normals; ``(points (m, 3), normals (m, 3))``."""
+    if not radius > 0:
+        raise ValueError(f"radius must be positive, got {radius}")
+    # Normalised Gaussian vectors are uniform on the sphere (rotation invariance).
+    normals = np.random.default_rng(seed).standard_normal((_count(m), 3))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    return radius * normals, normals
+
+
+def torus(m: int, major: float = 1.0, minor: float = 0.35, seed: int = 0):
+    """``m`` points drawn uniformly (by area) on the torus about the z axis with tube
+    centre radius ``major`` and tube radius ``minor`` (``0 < minor < major``), with outward
+    unit normals.
+
+    The torus ``((R + r cos v) cos u, (R + r cos v) sin u, r sin v)`` has area element
+    ``r (R + r cos v) du dv``: ``u`` is uniform, ``v`` is drawn by rejection against that
+    density.
+    """
+    if not 0 < minor < major:
+        raise ValueError(f"need 0 < minor < major, got minor={minor}, major={major}")
+    m = _count(m)
+    rng = np.random.default_rng(seed)
+    v = np.empty(0)
+    while len(v) < m:
+        candidate = rng.uniform(0.0, 2.0 * np.pi, 2 * m)
+        keep = rng.uniform(0.0, major + minor, 2 * m) < major + minor * np.cos(candidate)
+        v = np.concatenate([v, candidate[keep]])
+    v = v[:m]
+    u = rng.uniform(0.0, 2.0 * np.pi, m)
+    normals = np.stack([np.cos(v) * np.cos(u), np.cos(v) * np.sin(u), np.sin(v)], axis=1)
+    centres = major * np.stack([np.cos(u), np.sin(u), np.zeros(m)], axis=1)
+    return centres + minor * normals, normals
+
+
+#: The double torus of :func:`genus2`: two tori about parallel axes through (+-GENUS2_SHIFT,
+#: 0), of radii GENUS2_MAJOR, GENUS2_MINOR, joined by a smooth minimum of blend width
+#: GENUS2_BLEND.
+GENUS2_SHIFT, GENUS2_MAJOR, GENUS2_MINOR, GENUS2_BLEND = 1.0, 1.0, 0.35, 0.1
+
+
+def genus2_function(points):
+    """The implicit double torus sampled by :func:`genus2` and its gradient at ``points
+    (n, 3)``: ``(values (n,), gradients (n, 3))``, negative inside.
+
+    The smooth minimum ``-k log(exp(-a / k) + exp(-b / k))`` of the signed distances ``a``,
+    ``b`` to two tori whose tube centre circles touch at the origin: the tubes merge there,
+    so the union is one closed surface with two holes, and the smooth minimum rounds the
+    crease where the tubes meet (width ``k``). Near the surface the value is close to the
+    signed distance.
+    """
+    p = np.asarray(points, dtype=np.float64)
+    if p.ndim != 2 or p.shape[1] != 3:
+        raise ValueError(f"points must have shape (n, 3), got {p.shape}")
+    values, gradients = [], []
+    for shift in (-GENUS2_SHIFT, GENUS2_SHIFT):
+        q = p - [shift, 0.0, 0.0]
+        ring = np.hypot(q[:, 0], q[:, 1])
+        tube = np.stack([ring - GENUS2_MAJOR, q[:, 2]], axis=1)  # (radial, z) in the tube
+        length = np.linalg.norm(tube, axis=1)
+        values.append(length - GENUS2_MINOR)
+        # On a torus's axis and its tube's centre circle the distance has no gradient
+        # (far inside or outside the surface): 0 there instead of NaN.
+        radial = q[:, :2] / np.where(ring > 0, ring, 1.0)[:, None]
+        gradients.append(np.column_stack([tube[:, :1] * radial, tube[:, 1:]])
+                         / np.where(length > 0, length, 1.0)[:, None])
+    a, b = values
+    k = GENUS2_BLEND
+    value = -k * np.logaddexp(-a / k, -b / k)
+    share = 1.0 / (1.0 + np.exp((a - b) / k))  # weight of a's gradient: softmax of -a/k, -b/k
+    return value, share[:, None] * gradients[0] + (1.0 - share[:, None]) * gradients[1]
+
+
+def genus2(m: int, seed: int = 0):
+    """``m`` points on a smooth double torus (genus 2; :func:`genus2_function`), uniform by
+    area, with outward unit normals (the normalised gradient).
+
+    Points are drawn uniformly in a shell of half-width 0.01 about the surface (first-order
+    distance ``|f| / |grad f|``) and moved onto it by Newton steps. A thin shell's volume
+    is area times width, so the landing points are uniform by area, up to a relative
+    error of the order of (width x curvature)^2, 1e-3 here.
+    """
+    m = _count(m)
+    rng = np.random.default_rng(seed)
+    half = np.array([GENUS2_SHIFT + GENUS2_MAJOR + GENUS2_MINOR,
+                     GENUS2_MAJOR + GENUS2_MINOR, GENUS2_MINOR]) + 0.1
+    width = 0.01
+    accepted = []
+    total = 0
+    while total < m:
+        candidate = rng.uniform(-half, half, (1 << 16, 3))
+        value, gradient = genus2_function(candidate)
+        keep = np.abs(value) < width * np.linalg.norm(gradient, axis=1)
+        accepted.append(candidate[keep])
+        total += int(keep.sum())
+    points = np.concatenate(accepted)[:m]
+    for _ in range(8):  # from 0.01 off, quadratic convergence: far below 1e-12 after 4
+        value, gradient = genus2_function(points)
+        points = points - (value / np.sum(gradient * gradient, axis=1))[:, None] * gradient
+    gradient = genus2_function(points)[1]
+    return points, gradient / np.linalg.norm(gradient, axis=1, keepdims=True)
+
+
+def sample_mesh(vertices, faces, m: int, seed: int = 0):
+    """``m`` points drawn uniformly by area on a triangle mesh, with the unit normal of the
+    face each lies on (right-hand rule); ``(points (m, 3), normals (m, 3))``. Faces without
+    area are never drawn; ValueError for a mesh without area."""
+    vertices = np.asarray(vertices, dtype=np.float64)
+    faces = np.asarray(faces)
+    if vertices.ndim != 2 or vertices.shape[1] != 3 or faces.ndim != 2 or faces.shape[1] != 3:
+        raise ValueError(f"vertices and faces must have shapes (V, 3) and (F, 3), got "
+                         f"{vertices.shape} and {faces.shape}")
+    m = _count(m)
+    a, b, c = (vertices[faces[:, k]] for k in range(3))
+    cross = np.cross(b - a, c - a)
+    area = np.linalg.norm(cross, axis=1)
+    if not area.sum() > 0:
+        raise ValueError("the mesh has no area to sample")
+    rng = np.random.default_rng(seed)
+    face = rng.choice(len(faces), size=m, p=area / area.sum())
+    # Uniform in a triangle: reflect the unit square's upper half onto the lower.
+    s, t = rng.uniform(size=(2, m))
+    flip = s + t > 1.0
+    s[flip], t[flip] = 1.0 - s[flip], 1.0 - t[flip]
+    points = a[face] + s[:, None] * (b - a)[face] + t[:, None] * (c - a)[face]
+    return points, cross[face] / area[face, None]
+
+
+def load_mesh(path):
+    """A triangle mesh from a PLY, OBJ, STL or OFF file (by suffix), through trimesh;
+    ``(vertices (V, 3) float64, faces (F, 3) int64)``.
+
+    The vertices keep the file's order; STL, which stores every triangle's corners apart,
+    has its coincident corners merged. Raises FileNotFoundError for a missing file and
+    ValueError naming the file for another suffix, an unreadable file or one without faces.
+    """
+    path = os.fspath(path)
+    if _suffix(path) not in MESH_SUFFIXES:
+        raise ValueError(f"{path}: mesh files are {', '.join(MESH_SUFFIXES)}")
+    if not os.path.exists(path):
+        raise FileNotFoundError(f"{path}: no such file")
+    trimesh = _trimesh()
+    try:
+        loaded = trimesh.load(path, process=False, force="mesh")
+    except Exception as exc:  # trimesh raises many kinds for malformed files
+        raise ValueError(f"{path}: not a readable mesh ({exc})") from None
+    faces = np.asarray(getattr(loaded, "faces", np.empty((0, 3))))
+    if faces.ndim != 2 or faces.shape[1] != 3 or len(faces) == 0:
+        raise ValueError(f"{path}: no triangle faces")
+    if _suffix(path) == ".stl":
+        loaded.merge_vertices()
+    return np.asarray(loaded.vertices, dtype=np.float64), np.asarray(loaded.faces, np.int64)
+
+
+def save_mesh(path, vertices, faces) -> None:
+    """Write a triangle mesh as PLY (binary, float32 coordinates), OBJ, STL (float32) or
+    OFF, by the suffix of ``path``, through trimesh."""
+    path = os.fspath(path)
+    suffix = _suffix(path)
+    if suffix not in MESH_SUFFIXES:
+        raise ValueError(f"{path}: mesh files are {', '.join(MESH_SUFFIXES)}")
+    vertices = np.asarray(vertices, dtype=np.float64)
+    faces = np.asarray(faces)
+    if vertices.ndim != 2 or vertices.shape[1] != 3 or faces.ndim != 2 or faces.shape[1] != 3:
+        raise ValueError(f"vertices and faces must have shapes (V, 3) and (F, 3), got "
+                         f"{vertices.shape} and {faces.shape}")
+    trimesh = _trimesh()
+    # OBJ is text: all digits (trimesh's default keeps 8 decimals).
+    options = {"digits": 17} if suffix == ".obj" else {}
+    trimesh.Trimesh(vertices, faces, process=False).export(path, file_type=suffix[1:],
+                                                           **options)
+
+
+def _load_cloud(path: str):
+    """``(points (m, 3), normals (m, 3) or None)`` of a ``.ply``/``.obj`` (through trimesh:
+    vertices, and vertex normals where the file has them) or ``.xyz``/``.pts`` file."""
+    if _suffix(path) in (".xyz", ".pts"):
+        return _load_xyz(path)
+    trimesh = _trimesh()
+    try:
+        with open(path, "rb") as fh:
+            if _suffix(path) == ".ply":
+                data = trimesh.exchange.ply.load_ply(fh)
+            else:
+                data = trimesh.exchange.obj.load_obj(fh, maintain_order=True)
+    except Exception as exc:  # trimesh raises many kinds for malformed files
+        raise ValueError(f"{path}: not a readable {_suffix(path)[1:].upper()} file "
+                         f"({exc})") from None
+    # An OBJ with faces comes back as named geometries; a cloud of "v" lines as one.
+    parts = list(data["geometry"].values()) if "geometry" in data else [data]
+    points = [np.asarray(p.get("vertices", np.empty((0, 3))), dtype=np.float64) for p in parts]
+    normals = [p.get("vertex_normals") for p in parts]
+    points = np.concatenate(points) if points else np.empty((0, 3))
+    if any(n is None for n in normals) or not normals:
+        return _checked_cloud(points, None, path)
+    return _checked_cloud(points, np.concatenate(normals).astype(np.float64), path)
+
+
+def _load_xyz(path: str):
+    """Whitespace (or comma) separated rows ``x y z`` or ``x y z nx ny nz``; ``#`` starts
+    a comment line. Errors name the file's 1-based row."""
+    with open(path, encoding="utf-8-sig") as fh:
+        lines = [(i + 1, line.replace(",", " ").split()) for i, line in enumerate(fh)
+                 if line.strip() and not line.lstrip().startswith("#")]
+    if not lines:
+        raise ValueError(f"{path}: no data rows")
+    width = len(lines[0][1])
+    if width not in (3, 6):
+        raise ValueError(f"{path}: row {lines[0][0]}: expected 3 columns x y z or 6 "
+                         f"x y z nx ny nz, got {width}")
+    values = np.empty((len(lines), width))
+    for k, (lineno, cells) in enumerate(lines):
+        if len(cells) != width:
+            raise ValueError(f"{path}: row {lineno}: expected {width} columns, got {len(cells)}")
+        try:
+            values[k] = [float(c) for c in cells]
+        except ValueError:
+            raise ValueError(f"{path}: row {lineno}: not all numbers: {' '.join(cells)}") from None
+    rows = [lineno for lineno, _ in lines]
+    return _checked_cloud(values[:, :3], values[:, 3:] if width == 6 else None, path, rows)
+
+
+def _checked_cloud(points, normals, path, row_numbers=None):
+    """``(points, normals)`` with the checks of :func:`load_points`, 3D."""
+    if len(points) == 0:
+        raise ValueError(f"{path}: no points")
+    if normals is not None and normals.shape != points.shape:
+        raise ValueError(f"{path}: {len(normals)} normals for {len(points)} points")
+    rows = np.arange(1, len(points) + 1) if row_numbers is None else np.asarray(row_numbers)
+    label = "row" if row_numbers is not None else "point"
+    table = points if normals is None else np.concatenate([points, normals], axis=1)
+    bad = ~np.isfinite(table).all(axis=1)
+    if bad.any():
+        raise ValueError(f"{path}: {label} {rows[int(np.argmax(bad))]} has NaN or Inf")
+    if normals is not None:
+        zero = np.linalg.norm(normals, axis=1) == 0
+        if zero.any():
+            raise ValueError(f"{path}: {label} {rows[int(np.argmax(zero))]} has a "
+                             "zero-length normal")
+    return points.copy(), None if normals is None else normals.copy()
+
+
+def _save_cloud(path: str, points, normals) -> None:
+    """:func:`save_points` for the 3D suffixes."""
+    points = np.asarray(points, dtype=np.float64)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise ValueError(f"{path}: {_suffix(path)} files hold 3D points, got shape "
+                         f"{points.shape}")
+    if normals is not None:
+        normals = np.asarray(normals, dtype=np.float64)
+        if normals.shape != points.shape:
+            raise ValueError(f"normals must have the shape of points {points.shape}, got "
+                             f"{normals.shape}")
+    if _suffix(path) in (".xyz", ".pts"):
+        table = points if normals is None else np.concatenate([points, normals], axis=1)
+        np.savetxt(path, table, fmt="%.17g")
+        return
+    trimesh = _trimesh()
+    cloud = trimesh.Trimesh(points, np.empty((0, 3), dtype=np.int64), vertex_normals=normals,
+                            process=False)
+    if _suffix(path) == ".ply":
+        data = trimesh.exchange.ply.export_ply(cloud, vertex_normal=normals is not None)
+    else:
+        data = trimesh.exchange.obj.export_obj(cloud, include_normals=normals is not None,
+                                               digits=17).encode()
+    with open(path, "wb") as fh:
+        fh.write(data)

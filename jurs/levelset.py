@@ -46,6 +46,10 @@ Definitions (all lengths in data units):
 * Caveat: the distance of a curve that passes through every data point is about a
   quarter of the data spacing on average; the default threshold ``2 d`` suits clouds whose
   spacing is below ``8 d``. Pass ``threshold`` for sparser data.
+
+For 3D splines the same questions are asked of a triangle mesh of the zero set:
+:func:`mesh`, :func:`analyze_mesh`, :func:`mesh_distances` and friends (from
+:mod:`jurs._mesh`; see docs/surfaces.md).
 """
 
 from __future__ import annotations
@@ -515,3 +519,17 @@ def polylines_table(components: Sequence[Component]) -> np.ndarray:
                              np.full(len(c.polyline), c.supplementary), c.polyline])
             for k, c in enumerate(components)]
     return np.concatenate(rows) if rows else np.empty((0, 5))
+
+
+# 3D surfaces: triangle meshes of a 3D spline's zero set and what to measure on them
+# (defined in jurs._mesh, re-exported here beside their 2D counterparts).
+from ._mesh import (  # noqa: E402, F401 (re-exported)
+    MeshComponent,
+    MeshReport,
+    analyze_mesh,
+    face_areas,
+    genus,
+    mesh,
+    mesh_components,
+    mesh_distances,
+)

@@ -1,0 +1,350 @@
+"""Surfaces of 3D splines: lattice evaluation, meshing, mesh metrics, 3D clouds and files.
+
+The splines here are plain records of the four fields the meshing code reads (control,
+weights, lower, upper), built from implicit functions sampled at the Greville points
+``lo + (i - 1) h`` of the uniform cubic basis. For a quadratic such as ``|x|^2 - r^2``
+Marsden's identity gives exact coefficients (``x^2`` has coefficients ``tau_i^2 - h^2 / 3``),
+so that spline's zero set *is* the sphere and vertices can be checked to rounding.
+"""
+
+from collections import namedtuple
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy.spatial import cKDTree
+
+import jurs
+from jurs import _lattice, _mesh, datasets
+
+pytest.importorskip("skimage")
+pytest.importorskip("trimesh")
+
+Spline = namedtuple("Spline", "control weights lower upper")
+
+
+def greville_nodes(lower, upper, shape):
+    """The coefficient sites of each axis, ``(axes, h)``."""
+    h = [(hi - lo) / (n - 3) for lo, hi, n in zip(lower, upper, shape)]
+    return [lo + (np.arange(n) - 1.0) * hh for lo, hh, n in zip(lower, h, shape)], h
+
+
+def sampled_spline(fn, lower, upper, shape, weights=None):
+    """Spline whose coefficients are ``fn`` (on ``(n, 3)`` points) at the Greville points."""
+    axes, _ = greville_nodes(lower, upper, shape)
+    sites = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1)
+    control = fn(sites.reshape(-1, 3)).reshape(shape)
+    weights = np.ones(shape) if weights is None else weights
+    return Spline(control, weights, np.asarray(lower, float), np.asarray(upper, float))
+
+
+def exact_sphere(radius=1.0, n=12, half=1.5):
+    """The spline that equals ``|x|^2 - radius^2`` everywhere (Marsden's identity)."""
+    lower, upper = np.full(3, -half), np.full(3, half)
+    _, h = greville_nodes(lower, upper, (n, n, n))
+    shift = sum(hh * hh for hh in h) / 3.0
+    return sampled_spline(lambda p: np.sum(p * p, axis=1) - radius ** 2 - shift,
+                          lower, upper, (n, n, n))
+
+
+def torus_distance(p, major=1.0, minor=0.35):
+    return np.hypot(np.hypot(p[:, 0], p[:, 1]) - major, p[:, 2]) - minor
+
+
+def face_normals(vertices, faces):
+    a, b, c = (vertices[faces[:, k]] for k in range(3))
+    return np.cross(b - a, c - a)
+
+
+# --- lattice evaluation ---------------------------------------------------------------------
+
+
+def test_axis_basis_is_a_partition_of_unity_with_the_right_slopes():
+    x = np.linspace(-0.5, 2.5, 41)  # beyond the box [0, 2] too
+    values = _lattice.axis_basis(x, 0.0, 2.0, 7)
+    assert values.shape == (41, 7)
+    np.testing.assert_allclose(values.sum(axis=1), 1.0, atol=1e-14)
+    inside = (x >= 0) & (x <= 2)
+    assert (values[inside] >= 0).all() and ((values[inside] > 0).sum(axis=1) <= 4).all()
+    step = 1e-6
+    slopes = _lattice.axis_basis(x, 0.0, 2.0, 7, derivative=True)
+    numeric = (_lattice.axis_basis(x + step, 0.0, 2.0, 7)
+               - _lattice.axis_basis(x - step, 0.0, 2.0, 7)) / (2 * step)
+    interior = np.abs((x / (2 / 4)) - np.round(x / (2 / 4))) > 1e-3  # not on a knot
+    np.testing.assert_allclose(slopes[interior], numeric[interior], atol=1e-8)
+
+
+def test_lattice_values_match_the_2d_spline_and_its_gradient():
+    rng = np.random.default_rng(0)
+    control, weights = rng.normal(size=(7, 9)), rng.uniform(0.5, 2.0, (7, 9))
+    spline = jurs.ImplicitSpline(jnp.asarray(control), jnp.asarray(weights),
+                                 jnp.array([-1.0, 0.0]), jnp.array([2.0, 1.5]))
+    xs, ys = np.linspace(-1.2, 2.1, 13), np.linspace(-0.1, 1.6, 11)
+    grid = _lattice.lattice_values(spline, (xs, ys))
+    xy = np.stack(np.meshgrid(xs, ys, indexing="ij"), axis=-1).reshape(-1, 2)
+    # One jitted call: op by op, JAX took 4 s here.
+    direct, direct_grad = eqx.filter_jit(lambda s, p: (s(p), s.grad(p)))(spline, jnp.asarray(xy))
+    np.testing.assert_allclose(grid.ravel(), direct, atol=1e-13)
+    value, gradient = _lattice.values_and_gradients(spline, xy, chunk=17)
+    np.testing.assert_allclose(value, direct, atol=1e-13)
+    np.testing.assert_allclose(gradient, direct_grad, atol=1e-12)
+    np.testing.assert_allclose(_lattice.lattice_values(spline, (xs, ys), xp=jnp), grid,
+                               atol=1e-13)
+
+
+def test_lattice_values_match_pointwise_evaluation_in_3d():
+    rng = np.random.default_rng(1)
+    shape = (5, 6, 7)
+    spline = Spline(rng.normal(size=shape), rng.uniform(0.5, 2.0, shape),
+                    np.array([0.0, -1.0, 2.0]), np.array([1.0, 1.0, 5.0]))
+    axes = (np.linspace(-0.1, 1.1, 6), np.linspace(-1, 1, 5), np.linspace(2, 5, 4))
+    grid = _lattice.lattice_values(spline, axes)
+    assert grid.shape == (6, 5, 4)
+    points = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
+    # Independent reference: the dense basis of each axis at each point, summed in full.
+    b = [_lattice.axis_basis(points[:, k], spline.lower[k], spline.upper[k], shape[k])
+         for k in range(3)]
+    num = np.einsum("ni,nj,nk,ijk->n", *b, spline.weights * spline.control)
+    den = np.einsum("ni,nj,nk,ijk->n", *b, spline.weights)
+    np.testing.assert_allclose(grid.ravel(), num / den, atol=1e-13)
+    value, gradient = _lattice.values_and_gradients(spline, points)
+    np.testing.assert_allclose(value, num / den, atol=1e-13)
+    step = 1e-6
+    for k in range(3):
+        e = np.zeros(3)
+        e[k] = step
+        numeric = (_lattice.values_and_gradients(spline, points + e)[0]
+                   - _lattice.values_and_gradients(spline, points - e)[0]) / (2 * step)
+        np.testing.assert_allclose(gradient[:, k], numeric, atol=1e-6)
+
+
+def test_lattice_checks_its_input():
+    spline = exact_sphere()
+    with pytest.raises(ValueError, match="needs 3 lattice axes"):
+        _lattice.lattice_values(spline, (np.zeros(2), np.zeros(2)))
+    with pytest.raises(ValueError, match="same shape"):
+        _lattice.lattice_values(spline._replace(weights=np.ones((3, 3, 3))), [np.zeros(2)] * 3)
+    with pytest.raises(ValueError, match=r"points must have shape \(n, 3\)"):
+        _lattice.values_and_gradients(spline, np.zeros((4, 2)))
+
+
+# --- meshing --------------------------------------------------------------------------------
+
+
+def test_sphere_mesh_is_one_closed_outward_genus_0_surface_on_the_zero_set():
+    spline = exact_sphere(radius=1.0)
+    vertices, faces = _mesh.mesh(spline)
+    assert vertices.dtype == np.float64 and faces.dtype == np.int64
+    np.testing.assert_allclose(np.linalg.norm(vertices, axis=1), 1.0, atol=1e-8)
+    rough = _mesh.mesh(spline, newton_steps=0)[0]
+    assert np.abs(np.linalg.norm(rough, axis=1) - 1.0).max() > 1e-4  # Newton did the work
+    report = _mesh.analyze_mesh(vertices, faces)
+    assert report.num_components == 1
+    (component,) = report.components
+    assert component.closed and component.genus == 0
+    assert _mesh.genus(faces) == 0
+    assert abs(component.area - 4 * np.pi) < 0.02 * 4 * np.pi
+    centroids = vertices[faces].mean(axis=1)
+    assert (np.sum(face_normals(vertices, faces) * centroids, axis=1) > 0).all()  # outward
+
+
+def test_torus_has_genus_1_and_double_torus_genus_2():
+    torus = sampled_spline(torus_distance, [-1.6, -1.6, -0.6], [1.6, 1.6, 0.6], (19, 19, 9))
+    vertices, faces = _mesh.mesh(torus)
+    assert _mesh.genus(faces) == 1
+    # The Greville-sampled distance is a close approximation, not the torus itself.
+    assert np.abs(torus_distance(vertices)).max() < 0.05
+    double = sampled_spline(lambda p: datasets.genus2_function(p)[0], [-2.6, -1.6, -0.7],
+                            [2.6, 1.6, 0.7], (40, 26, 14))
+    report = _mesh.analyze_mesh(*_mesh.mesh(double))
+    assert [(c.closed, c.genus) for c in report.components] == [(True, 2)]
+
+
+def test_slabs_give_the_same_mesh_as_one_slab():
+    spline = sampled_spline(torus_distance, [-1.6, -1.6, -0.6], [1.6, 1.6, 0.6], (19, 19, 9))
+    whole = _mesh.mesh(spline, 40, chunk=1 << 30)
+    slabs = _mesh.mesh(spline, 40, chunk=1)  # two planes a slab: every plane is a seam
+    assert whole[0].shape == slabs[0].shape and whole[1].shape == slabs[1].shape
+    # Marching cubes works in float32, so a vertex may move by ~1e-8 between the two (the
+    # lattice values differ in their last bits); match vertices by position, then compare
+    # the faces as index triples from their smallest index (orientation kept).
+    distance, match = cKDTree(whole[0]).query(slabs[0])
+    assert distance.max() < 1e-6 and len(np.unique(match)) == len(match)
+
+    def canonical(faces):
+        turn = (np.argmin(faces, axis=1)[:, None] + np.arange(3)) % 3
+        rows = np.take_along_axis(faces, turn, axis=1)
+        return rows[np.lexsort(rows.T[::-1])]
+
+    np.testing.assert_array_equal(canonical(match[slabs[1]]), canonical(whole[1]))
+    assert _mesh.analyze_mesh(*slabs).components[0].closed
+
+
+def test_empty_level_set_and_bad_input():
+    spline = exact_sphere(radius=1.0)
+    vertices, faces = _mesh.mesh(spline, 16, level=50.0)
+    assert vertices.shape == (0, 3) and faces.shape == (0, 3)
+    assert _mesh.analyze_mesh(vertices, faces).num_components == 0
+    assert _mesh.mesh_distances(vertices, faces, np.ones((3, 3)))["chamfer"] == np.inf
+    flat = Spline(np.zeros((5, 5)), np.ones((5, 5)), np.zeros(2), np.ones(2))
+    with pytest.raises(ValueError, match="dimension 3"):
+        _mesh.mesh(flat)
+    with pytest.raises(ValueError, match="box"):
+        _mesh.mesh(spline, box=(np.zeros(2), np.ones(2)))
+    with pytest.raises(ValueError, match="resolution"):
+        _mesh.mesh(spline, 1)
+    with pytest.raises(ValueError, match="faces"):
+        _mesh.analyze_mesh(np.zeros((3, 3)), np.array([[0, 1, 5]]))
+
+
+def test_box_cuts_the_surface_open():
+    spline = exact_sphere(radius=1.0)
+    vertices, faces = _mesh.mesh(spline, 24, box=(np.array([-1.5, -1.5, 0.0]), np.full(3, 1.5)))
+    (component,) = _mesh.analyze_mesh(vertices, faces).components
+    assert not component.closed and component.genus is None
+    with pytest.raises(ValueError, match="boundary edges"):
+        _mesh.genus(faces)
+
+
+# --- mesh analysis and distances ------------------------------------------------------------
+
+
+def test_far_small_bubble_is_supplementary():
+    def shapes(p):  # a sphere of radius 0.8 and a small one in the corner
+        return np.minimum(np.linalg.norm(p, axis=1) - 0.8,
+                          np.linalg.norm(p - [1.0, 1.0, 1.0], axis=1) - 0.15)
+
+    spline = sampled_spline(shapes, np.full(3, -1.3), np.full(3, 1.35), (30, 30, 30))
+    vertices, faces = _mesh.mesh(spline)
+    points, _ = datasets.sphere3d(2000, radius=0.8)
+    report = _mesh.analyze_mesh(vertices, faces, points)
+    assert report.num_components == 2
+    sphere, bubble = report.components  # largest area first
+    assert not sphere.supplementary and sphere.median_distance < 0.05
+    assert bubble.supplementary and bubble.median_distance > report.threshold
+    assert bubble.closed and bubble.genus == 0 and bubble.area < 0.1 * sphere.area
+    assert report.as_dict()["num_supplementary"] == 1
+    assert report.as_dict()["genera"] == [0, 0]
+    count, labels = _mesh.mesh_components(vertices, faces)
+    assert count == 2 and np.bincount(labels)[0] == sphere.num_faces
+    # A threshold above the bubble's distance keeps it.
+    assert not _mesh.analyze_mesh(vertices, faces, points, threshold=2.0).supplementary
+
+
+def test_distances_of_a_mesh_to_its_own_samples_are_tiny():
+    vertices, faces = _mesh.mesh(exact_sphere(radius=1.0), 48)
+    points, normals = datasets.sample_mesh(vertices, faces, 20000, seed=1)
+    own = _mesh.mesh_distances(vertices, faces, points, normals)
+    assert own["chamfer"] < 0.01 and own["hausdorff"] < 0.05
+    assert own["normal_consistency"] > 0.999
+    moved = _mesh.mesh_distances(vertices + [0.1, 0.0, 0.0], faces, points, normals)
+    assert moved["chamfer"] > 3 * own["chamfer"] and moved["hausdorff"] > 0.09
+    exact = _mesh.mesh_distances(vertices, faces, *datasets.sphere3d(20000, seed=2))
+    assert exact["chamfer"] < 0.01 and exact["normal_consistency"] > 0.999
+    assert np.isnan(_mesh.mesh_distances(vertices, faces, points)["normal_consistency"])
+
+
+# --- 3D clouds ------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("name", ["sphere3d", "torus", "genus2"])
+def test_3d_clouds_lie_on_their_surface_with_unit_outward_normals(name):
+    implicit = {
+        "sphere3d": lambda p: np.linalg.norm(p, axis=1) - 1.0,
+        "torus": torus_distance,
+        "genus2": lambda p: datasets.genus2_function(p)[0],
+    }[name]
+    points, normals = getattr(datasets, name)(3000, seed=3)
+    assert points.shape == normals.shape == (3000, 3) and points.dtype == np.float64
+    np.testing.assert_allclose(np.linalg.norm(normals, axis=1), 1.0, atol=1e-12)
+    assert np.abs(implicit(points)).max() < 1e-10
+    assert (implicit(points + 0.02 * normals) > 0).all()
+    assert (implicit(points - 0.02 * normals) < 0).all()
+    again = getattr(datasets, name)(3000, seed=3)[0]
+    np.testing.assert_array_equal(points, again)
+
+
+def test_torus_is_uniform_by_area():
+    points, normals = datasets.torus(40000, major=1.0, minor=0.35, seed=0)
+    # Area on the outer half (cos v > 0) is (pi R + 2 r) / (2 pi R) of the whole.
+    outer = np.mean(np.hypot(points[:, 0], points[:, 1]) > 1.0)
+    assert abs(outer - (np.pi + 0.7) / (2 * np.pi)) < 0.01
+
+
+def test_sample_mesh_is_uniform_by_area_with_face_normals():
+    vertices = np.array([[0.0, 0, 0], [1, 0, 0], [0, 1, 0], [3, 0, 0], [3, 2, 0], [5, 0, 0]])
+    faces = np.array([[0, 1, 2], [3, 4, 5]])  # areas 0.5 and 2, normals +z and -z
+    points, normals = datasets.sample_mesh(vertices, faces, 20000, seed=0)
+    on_big = points[:, 0] >= 3
+    assert abs(on_big.mean() - 0.8) < 0.01
+    np.testing.assert_array_equal(normals[on_big], [[0, 0, -1]] * on_big.sum())
+    np.testing.assert_array_equal(normals[~on_big], [[0, 0, 1]] * (~on_big).sum())
+    with pytest.raises(ValueError, match="no area"):
+        datasets.sample_mesh(vertices, np.array([[0, 0, 0]]), 5)
+
+
+# --- files ----------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("suffix, tol", [(".ply", 1e-6), (".obj", 1e-15), (".xyz", 0.0),
+                                         (".pts", 0.0)])
+def test_cloud_round_trip(tmp_path, suffix, tol):
+    points, normals = datasets.torus(50)
+    path = tmp_path / f"cloud{suffix}"
+    datasets.save_points(path, points, normals)
+    p2, n2 = datasets.load_points(path)
+    np.testing.assert_allclose(p2, points, atol=tol)
+    np.testing.assert_allclose(n2, normals, atol=tol)
+    datasets.save_points(path, points)
+    p3, n3 = datasets.load_points(path)
+    assert n3 is None and p3.shape == (50, 3)
+
+
+@pytest.mark.parametrize("suffix", [".ply", ".obj", ".stl", ".off"])
+def test_mesh_round_trip(tmp_path, suffix):
+    vertices, faces = _mesh.mesh(exact_sphere(), 16)
+    path = tmp_path / f"surface{suffix}"
+    datasets.save_mesh(path, vertices, faces)
+    v2, f2 = datasets.load_mesh(path)
+    assert v2.shape == vertices.shape and f2.shape == faces.shape
+    # STL stores triangles apart and is re-indexed on loading: compare the triangles.
+    np.testing.assert_allclose(v2[f2], vertices[faces], atol=1e-6)
+
+
+def test_points_of_a_mesh_file(tmp_path):
+    vertices, faces = _mesh.mesh(exact_sphere(), 16)
+    path = tmp_path / "surface.ply"
+    datasets.save_mesh(path, vertices, faces)
+    points, normals = datasets.load_points(path)
+    assert normals is None
+    np.testing.assert_allclose(points, vertices, atol=1e-6)
+
+
+@pytest.mark.parametrize("name, text, message", [
+    ("bad.ply", "not a ply\n", r"not a readable PLY file"),
+    ("bad.xyz", "0 0 0\n1 1\n", r"row 2: expected 3 columns"),
+    ("bad.xyz", "0 0 0 1\n", r"row 1: expected 3 columns x y z or 6"),
+    ("bad.pts", "0 0 0\n1 x 1\n", r"row 2: not all numbers"),
+    ("bad.xyz", "0 0 0 0 0 0\n", r"row 1 has a zero-length normal"),
+    ("bad.xyz", "# only a comment\n", r"no data rows"),
+])
+def test_bad_cloud_files(tmp_path, name, text, message):
+    path = tmp_path / name
+    path.write_text(text)
+    with pytest.raises(ValueError, match=message) as info:
+        datasets.load_points(path)
+    assert str(path) in str(info.value)
+
+
+def test_bad_mesh_files(tmp_path):
+    cloud = tmp_path / "cloud.ply"
+    datasets.save_points(cloud, *datasets.sphere3d(10))
+    with pytest.raises(ValueError, match="no triangle faces"):
+        datasets.load_mesh(cloud)
+    with pytest.raises(ValueError, match="mesh files are"):
+        datasets.load_mesh(tmp_path / "surface.xyz")
+    with pytest.raises(FileNotFoundError):
+        datasets.load_mesh(tmp_path / "missing.obj")
+    with pytest.raises(ValueError, match=r"3D points go to"):
+        datasets.save_points(tmp_path / "cloud.csv", np.zeros((4, 3)))
