@@ -1,4 +1,5 @@
-"""Saving and loading fitted splines as ``.npz`` files."""
+"""Saving and loading fitted splines, curves' (2D grids) and surfaces' (3D grids), as
+``.npz`` files."""
 
 from __future__ import annotations
 
@@ -14,19 +15,25 @@ SPLINE_KEYS = ("control", "weights", "lower", "upper")
 
 def check_spline_arrays(arrays: dict, where: str) -> None:
     """ValueError (prefixed by ``where``) unless the arrays make a spline that can be
-    evaluated: matching 2D grids of at least 4 x 4, finite numbers, positive weights (a
-    zero or negative weight puts a pole, W = 0, where g is NaN: the fits keep every weight
-    at or above ``min_weight > 0``) and a box with lower < upper."""
+    evaluated: matching 2D grids of at least 4 x 4 with a box ``lower``, ``upper`` of shape
+    (2,), or matching 3D grids of at least 4 x 4 x 4 with a box of shape (3,); finite
+    numbers, positive weights (a zero or negative weight puts a pole, W = 0, where g is NaN:
+    the fits keep every weight at or above ``min_weight > 0``) and lower < upper on every
+    axis."""
     for k in SPLINE_KEYS:
         if arrays[k].dtype.kind not in "iuf":
             raise ValueError(f"{where}{k} must hold numbers, got dtype {arrays[k].dtype}")
-    if arrays["lower"].shape != (2,) or arrays["upper"].shape != (2,):
-        raise ValueError(f"{where}lower and upper must have shape (2,)")
     control, weights = arrays["control"], arrays["weights"]
-    if control.ndim != 2 or control.shape != weights.shape:
-        raise ValueError(f"{where}control and weights must be matching 2D grids")
+    if control.ndim not in (2, 3) or control.shape != weights.shape:
+        raise ValueError(f"{where}control and weights must be matching 2D or 3D grids, got "
+                         f"shapes {control.shape} and {weights.shape}")
+    d = control.ndim
+    if arrays["lower"].shape != (d,) or arrays["upper"].shape != (d,):
+        raise ValueError(f"{where}lower and upper must have shape ({d},) for a {d}D grid, got "
+                         f"{arrays['lower'].shape} and {arrays['upper'].shape}")
     if min(control.shape) < 4:
-        raise ValueError(f"{where}the grid must be at least 4 x 4, got {control.shape}")
+        raise ValueError(f"{where}the grid must be at least {' x '.join('4' * d)}, got "
+                         f"{control.shape}")
     for k in SPLINE_KEYS:
         if not np.isfinite(arrays[k]).all():
             raise ValueError(f"{where}{k} contain NaN or Inf")
@@ -34,7 +41,8 @@ def check_spline_arrays(arrays: dict, where: str) -> None:
         raise ValueError(f"{where}weights must all be positive (a zero weight makes g "
                          f"undefined), got min {float(weights.min()):.3g}")
     if not (arrays["lower"] < arrays["upper"]).all():
-        raise ValueError(f"{where}lower must be below upper on both axes, got "
+        axes = "both axes" if d == 2 else "every axis"
+        raise ValueError(f"{where}lower must be below upper on {axes}, got "
                          f"{arrays['lower'].tolist()} and {arrays['upper'].tolist()}")
 
 
@@ -53,7 +61,8 @@ def save_spline(path, spline: ImplicitSpline) -> None:
 
 
 def load_spline(path, dtype=None) -> ImplicitSpline:
-    """Read an :class:`ImplicitSpline` written by :func:`save_spline`.
+    """Read an :class:`ImplicitSpline` written by :func:`save_spline`: a curve's (2D
+    grids, box of shape (2,)) or a surface's (3D grids, box of shape (3,)).
 
     ``dtype`` defaults to JAX's default float (float64 with ``jax_enable_x64``).
     Raises FileNotFoundError, or ValueError naming the file for missing, ill-shaped or

@@ -9,22 +9,31 @@
                                     fit.png          heatmap of g, zero set, data, offsets
                                     zero_level.csv   zero-level polylines: component, closed,
                                                      supplementary, x, y
+    jurs fit SCAN [options]       fit a surface to a 3D cloud (PLY, OBJ, XYZ or PTS; vertex
+                                  normals where the file has them, else estimated) and
+                                  write, into --output:
+                                    metrics.json     fit and mesh metrics, settings, timings
+                                    spline.npz       the 3D spline (jurs.load_spline)
+                                    mesh.ply         the zero set, meshed (marching cubes)
+                                    preview.png      the mesh from three directions
 
 Compiled fits are kept in JAX's persistent compilation cache in $XDG_CACHE_HOME/jurs (or
 ~/.cache/jurs), so later runs load them instead of compiling; --no-compilation-cache or
 JURS_NO_COMPILATION_CACHE=1 turns that off.
 
-Bad input files, and output folders that cannot be written or lack the space, give one
-line on stderr naming the file (and the row), exit code 2, and write nothing; these are
-checked before the fit. A fit that diverges (NaN energy), or outputs that fail to write
-after all, exit with code 1; the output folder then keeps its whole previous set of
-outputs. A fit that ends with another verdict than success or max_steps (inconsistent
-normals, weights at their floor) is written, with a warning on stderr.
+Bad input files, options that do not fit the cloud's dimension, and output folders that
+cannot be written or lack the space, give one line on stderr naming the file (and the row),
+exit code 2, and write nothing; these are checked before the fit. A fit that diverges (NaN
+energy), or outputs that fail to write after all, exit with code 1; the output folder then
+keeps its whole previous set of outputs. A fit that ends with another verdict than success
+or max_steps (inconsistent normals, weights at their floor) is written, with a warning on
+stderr.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import math
 import os
@@ -37,23 +46,42 @@ from ._compile import cache_disabled_by_environment, enable_compilation_cache
 
 EXIT_BAD_INPUT = 2
 EXIT_FIT_FAILED = 1
+#: The outputs of a curve fit (a 2D cloud) ...
 OUTPUTS = ("metrics.json", "spline.npz", "fit.png", "zero_level.csv")
+#: ... and of a surface fit (a 3D cloud).
+OUTPUTS_3D = ("metrics.json", "spline.npz", "mesh.ply", "preview.png")
 
 
 class InputError(Exception):
     """A problem with the user's input file or options: one line, exit code 2."""
 
 
-def _grid(text: str):
+def _grid(text: str) -> tuple:
+    """``--grid``: one, two or three numbers >= 4 (``N``, ``NxM``, ``NxMxK``), as given;
+    :func:`grid_for` matches them to the cloud's dimension once the file is read."""
     try:
-        parts = [int(p) for p in text.lower().replace("*", "x").split("x")]
+        parts = tuple(int(p) for p in text.lower().replace("*", "x").split("x"))
     except ValueError:
-        raise argparse.ArgumentTypeError(f"grid must be N or NxM, got {text!r}") from None
+        raise argparse.ArgumentTypeError(
+            f"grid must be N, NxM (2D) or NxMxK (3D), got {text!r}") from None
+    if len(parts) > 3 or min(parts) < 4:
+        raise argparse.ArgumentTypeError(
+            f"grid must be N, NxM (2D) or NxMxK (3D) with every number >= 4, got {text!r}")
+    return parts
+
+
+def grid_for(parts, dim: int, shown: str):
+    """``--grid``'s numbers for the ``dim``-D cloud of the file ``shown``: None (chosen from
+    the data), one number for every axis, or one per axis; InputError for a 2D grid on a
+    3D cloud and the reverse."""
+    if parts is None or len(parts) == dim:
+        return parts
     if len(parts) == 1:
-        parts *= 2
-    if len(parts) != 2 or min(parts) < 4:
-        raise argparse.ArgumentTypeError(f"grid must be N or NxM with N, M >= 4, got {text!r}")
-    return tuple(parts)
+        return parts * dim
+    given = "x".join(map(str, parts))
+    wanted = "N or NxM" if dim == 2 else "N or NxMxK"
+    raise InputError(f"{shown}: --grid {given} is for a {len(parts)}D cloud; this cloud is "
+                     f"{dim}D: give {wanted}")
 
 
 def _nonneg(text: str) -> float:
@@ -83,23 +111,41 @@ def _solver_names():
 
 
 def build_parser() -> argparse.ArgumentParser:
+    """The ``jurs`` command line's parser: subcommands ``demo`` and ``fit``."""
     parser = argparse.ArgumentParser(
-        prog="jurs", description="Implicit curve reconstruction with uniform rational splines.",
+        prog="jurs", description="Implicit curve and surface reconstruction with uniform "
+                                "rational splines.",
         epilog="Run 'jurs fit --help' for the fit options.")
     sub = parser.add_subparsers(dest="command", required=True)
     demo = sub.add_parser("demo", help="fit the paper's Example 1 with IPIA and IURS")
     demo.add_argument("--output", default="demo-output", help="folder for the figure")
+    f = _fit_parser(sub)
+    for command in (demo, f):
+        command.add_argument(
+            "--no-compilation-cache", action="store_true",
+            help="do not keep compiled fits in JAX's persistent compilation cache "
+                 "($XDG_CACHE_HOME/jurs or ~/.cache/jurs; JURS_NO_COMPILATION_CACHE=1 "
+                 "does the same)")
+    return parser
 
+
+def _fit_parser(sub) -> argparse.ArgumentParser:
+    """The ``jurs fit`` subcommand and its options."""
     f = sub.add_parser(
-        "fit", help="fit a point cloud from a CSV, TXT or NPY file",
+        "fit", help="fit a point cloud from a CSV, TXT or NPY file (2D) or a PLY, OBJ, XYZ "
+                    "or PTS file (3D)",
         description="Fit an implicit spline to points with outward normals (columns x, y, "
                     "nx, ny; or x, y alone, whose normals are then estimated) and write "
-                    "metrics.json, spline.npz, fit.png and zero_level.csv to --output.",
+                    "metrics.json, spline.npz, fit.png and zero_level.csv to --output. A 3D "
+                    "cloud (PLY, OBJ, XYZ or PTS; normals estimated where the file has none) "
+                    "gets a surface: metrics.json, spline.npz, mesh.ply and preview.png.",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    f.add_argument("file", help="CSV/TXT (columns x, y, nx, ny; optional header) or NPY (m, 4)")
-    f.add_argument("--grid", type=_grid, default=None, metavar="N[xM]",
-                   help="basis functions along x and y; None chooses from the data "
-                        "(jurs.auto_settings)")
+    f.add_argument("file", help="CSV/TXT (columns x, y, nx, ny; optional header) or NPY (m, 4); "
+                                "3D: PLY or OBJ (vertices, vertex normals) or XYZ/PTS (rows "
+                                "x y z [nx ny nz])")
+    f.add_argument("--grid", type=_grid, default=None, metavar="N[xM[xK]]",
+                   help="basis functions along x and y (and z: N or NxMxK for a 3D cloud); "
+                        "None chooses from the data (jurs.auto_settings)")
     f.add_argument("--solver", default="auto", choices=_solver_names(),
                    help="auto: exact least squares with the automatic lambda; iurs: "
                         "Algorithm 1 (rational); ipia: I-PIA (B-spline); lstsq: exact least "
@@ -122,19 +168,16 @@ def build_parser() -> argparse.ArgumentParser:
     f.add_argument("--tol", type=_nonneg, default=1e-7,
                    help="stop when |E_new - E_old| < tol (eq. 38); 0 runs all steps")
     f.add_argument("-o", "--output", default="jurs-output", help="output folder")
-    f.add_argument("--resolution", type=int, default=512,
-                   help="level-set grid nodes along the longer side of the box")
+    f.add_argument("--resolution", type=int, default=None,
+                   help="2D: level-set grid nodes along the longer side of the box (None: "
+                        "512); 3D: marching-cubes lattice nodes along the longest side "
+                        "(None: 3 per spline cell, 32 to 256)")
     f.add_argument("--threshold", type=_positive, default=None,
                    help="distance to the data above which a zero-level component is "
-                        "supplementary; None means 2 d")
+                        "supplementary; None means 2 d (2D), or 3 point spacings and at "
+                        "least 1%% of the cloud's diagonal (3D)")
     f.add_argument("-q", "--quiet", action="store_true", help="no progress bar or summary")
-    for command in (demo, f):
-        command.add_argument(
-            "--no-compilation-cache", action="store_true",
-            help="do not keep compiled fits in JAX's persistent compilation cache "
-                 "($XDG_CACHE_HOME/jurs or ~/.cache/jurs; JURS_NO_COMPILATION_CACHE=1 "
-                 "does the same)")
-    return parser
+    return f
 
 
 def printable(text) -> str:
@@ -252,14 +295,14 @@ def _json_safe(value):
 OUTPUT_OVERHEAD = 8 << 20
 
 
-def check_output_folder(out: str, need: int = OUTPUT_OVERHEAD) -> None:
+def check_output_folder(out: str, need: int = OUTPUT_OVERHEAD, names=OUTPUTS) -> None:
     """Before the fit: InputError unless ``out`` is (or can be made) a folder we can write
-    ``need`` bytes into, whose output names are free or plain files. A fit of minutes
+    ``need`` bytes into, whose output ``names`` are free or plain files. A fit of minutes
     should not end in a traceback about permissions or a full disk."""
     shown = printable(out)
     if os.path.exists(out) and not os.path.isdir(out):
         raise InputError(f"{shown}: exists and is not a folder")
-    for name in OUTPUTS:
+    for name in names:
         target = os.path.join(out, name)
         if os.path.lexists(target) and not os.path.isfile(target):
             raise InputError(f"{printable(target)}: exists and is not a file; move it away")
@@ -277,8 +320,8 @@ def check_output_folder(out: str, need: int = OUTPUT_OVERHEAD) -> None:
                          f"outputs need about {need / 2**20:.1f} MiB")
 
 
-def write_outputs(out: str, write) -> None:
-    """Write the whole set of :data:`OUTPUTS` into ``out``, or none: ``write(folder)``
+def write_outputs(out: str, write, names=OUTPUTS) -> None:
+    """Write the whole set of output ``names`` into ``out``, or none: ``write(folder)``
     writes them all into a temporary folder made inside ``out`` (the same file system, so
     no parent folder need be writable, ``-o .`` included), then each is renamed into
     place, the old file set aside first. Any failure renames back what was already
@@ -291,7 +334,7 @@ def write_outputs(out: str, write) -> None:
     done = False
     try:
         write(tmp)
-        for name in OUTPUTS:
+        for name in names:
             target, old = os.path.join(out, name), os.path.join(tmp, name + ".old")
             had_old = os.path.lexists(target)
             if had_old:
@@ -313,51 +356,319 @@ def write_outputs(out: str, write) -> None:
             os.rmdir(out)
 
 
-def _output_writer(record, spline, report, points, normals, offset, title):
-    """A function writing every one of :data:`OUTPUTS` into a given folder."""
-    import matplotlib.pyplot as plt
-    import numpy as np
-
-    import jurs
-    from . import levelset as ls
-    from . import plot
-
-    def write(folder):
-        with open(os.path.join(folder, "metrics.json"), "w", encoding="utf-8") as fh:
-            json.dump(_json_safe(record), fh, indent=2, allow_nan=False)
-            fh.write("\n")
-        jurs.save_spline(os.path.join(folder, "spline.npz"), spline)
-        np.savetxt(os.path.join(folder, "zero_level.csv"), ls.polylines_table(report.components),
-                   delimiter=",", header="component,closed,supplementary,x,y", comments="",
-                   fmt=["%d", "%d", "%d", "%.10g", "%.10g"])
-        fig = plot.plot_fit(spline, points, normals, offset, levelset=report, title=title)
-        try:
-            fig.savefig(os.path.join(folder, "fit.png"), dpi=130)
-        finally:
-            plt.close(fig)
-
-    return write
+#: Vertices of a surface mesh per node of a lattice plane (resolution^2), assumed by the
+#: checks before a 3D fit: a sphere filling its box measured 2 (333 000 vertices at
+#: resolution 400); four times that leaves room for folded surfaces.
+MESH_VERTICES_PER_PLANE_NODE = 8
+#: Peak bytes per vertex of jurs.levelset.mesh (measured about 450, docs/surfaces.md), and
+#: bytes per vertex of mesh.ply (12 for the vertex, two faces of 13).
+MESH_BYTES_PER_VERTEX, PLY_BYTES_PER_VERTEX = 450, 38
 
 
-def _check_options(args, out: str) -> None:
-    """The options checked before anything is computed: the level-set resolution (also
-    against memory: the grid is square at most) and the output folder."""
+@dataclasses.dataclass(frozen=True)
+class FitJob:
+    """What ``jurs fit`` has read and checked before the fit: the cloud (``(m, 2)`` or
+    ``(m, 3)``, normals given or estimated), the absolute output folder, the settings
+    (``jurs.Settings``, with the options given), the solver and the level-set or
+    marching-cubes resolution (None: the 3D default)."""
+
+    path: str
+    points: object
+    normals: object
+    estimated: bool
+    out: str
+    chosen: object
+    solver: object
+    resolution: int | None
+
+    @property
+    def dim(self) -> int:
+        return int(self.points.shape[1])
+
+    @property
+    def shown(self) -> str:
+        return printable(self.path)
+
+    @property
+    def grid(self) -> tuple:
+        return tuple(self.chosen.grid)
+
+    @property
+    def lam(self) -> float:
+        return float(getattr(self.solver, "lam", 0.0))
+
+    @property
+    def outputs(self) -> tuple:
+        return outputs_for(self.dim)
+
+
+def outputs_for(dim: int) -> tuple:
+    """The output names of a fit to a ``dim``-D cloud."""
+    return OUTPUTS if dim == 2 else OUTPUTS_3D
+
+
+def _check_options(resolution, dim: int, out: str, names) -> None:
+    """The options checked before anything is computed: the level-set (2D) or
+    marching-cubes (3D) resolution, also against memory, and the output folder."""
     from . import levelset as ls
     from ._problem import check_memory
 
-    if args.resolution < 16:
-        raise InputError(f"--resolution must be >= 16, got {args.resolution}")
+    if resolution is not None:
+        if resolution < 16:
+            raise InputError(f"--resolution must be >= 16, got {resolution}")
+        # 2D: the level-set grid is square at most. 3D: a mesh has about
+        # MESH_VERTICES_PER_PLANE_NODE vertices per node of a lattice plane.
+        per_node = (ls.BYTES_PER_NODE if dim == 2
+                    else MESH_BYTES_PER_VERTEX * MESH_VERTICES_PER_PLANE_NODE)
+        try:
+            check_memory(f"--resolution {resolution}", per_node * float(resolution) ** 2,
+                         device=False)
+        except ValueError as exc:
+            raise InputError(_one_line(exc)) from None
+    check_output_folder(out, names=names)
+
+
+def _surface_libraries() -> None:
+    """InputError unless the libraries a surface's outputs need are installed
+    (scikit-image meshes, trimesh writes mesh.ply): found out before the fit, not after."""
+    from ._mesh import _marching_cubes
+    from .datasets import _trimesh
+
     try:
-        check_memory(f"--resolution {args.resolution}",
-                     ls.BYTES_PER_NODE * float(args.resolution) ** 2, device=False)
-    except ValueError as exc:
-        raise InputError(_one_line(exc)) from None
-    check_output_folder(out)
+        _marching_cubes()
+        _trimesh()
+    except ImportError as exc:
+        raise InputError(f"a 3D cloud needs the surface extras: {_one_line(exc)}") from None
+
+
+def _output_bytes(job: FitJob) -> int:
+    """Bytes the outputs take: the spline (two grids of float64 in the .npz), the figure
+    and the metrics, and in 2D the polylines (at most about resolution^2 / 2 vertices of
+    ~40 bytes as text), in 3D the mesh (:data:`MESH_VERTICES_PER_PLANE_NODE`)."""
+    from ._mesh import MAX_RESOLUTION
+
+    spline = 16 * math.prod(job.grid)
+    if job.dim == 2:
+        r = job.resolution
+        return OUTPUT_OVERHEAD + spline + 20 * min(r ** 2, 10 * r * len(job.points))
+    r = job.resolution or MAX_RESOLUTION
+    return OUTPUT_OVERHEAD + spline + PLY_BYTES_PER_VERTEX * MESH_VERTICES_PER_PLANE_NODE * r ** 2
+
+
+def prepare_fit(args) -> FitJob:
+    """Read the cloud and check everything that can be checked before the fit (options
+    against the cloud's dimension, normals, settings, solver, output folder and its free
+    space); every problem raises :class:`InputError`."""
+    import jurs
+
+    from . import levelset as ls
+
+    path = args.file
+    shown = printable(path)
+    points, normals = read_input(path)
+    dim = int(points.shape[1])
+    grid = grid_for(args.grid, dim, shown)
+    if dim == 3:
+        _surface_libraries()
+    estimated = normals is None
+    if estimated:  # no normals in the file: outward ones estimated first, as jurs.fit does
+        try:
+            normals = jurs.estimate_normals(points)
+        except (ValueError, TypeError) as exc:
+            raise InputError(f"{shown}: {_one_line(exc)}") from None
+    out = os.path.abspath(args.output)
+    resolution = args.resolution
+    if dim == 2 and resolution is None:
+        resolution = ls.DEFAULT_RESOLUTION
+    _check_options(resolution, dim, out, outputs_for(dim))
+    if args.smoothing is not None and (args.solver != "auto" or args.lam is not None):
+        raise InputError("--smoothing sets the automatic lambda of --solver auto; "
+                         "give --lam instead")
+    try:  # auto_settings runs make_problem's input checks (e.g. degenerate clouds) first
+        chosen = jurs.auto_settings(points, normals, grid=grid, offset=args.offset,
+                                    eps=args.eps, smoothing=args.smoothing)
+    except (ValueError, TypeError) as exc:
+        raise InputError(f"{shown}: {_one_line(exc)}") from None
+    solver = make_solver(args.solver, lam=args.lam, tau=args.tau, steps=args.steps,
+                         tol=args.tol, auto_lam=chosen.lam)
+    job = FitJob(path, points, normals, estimated, out, chosen, solver, resolution)
+    check_output_folder(out, _output_bytes(job), job.outputs)
+    return job
+
+
+def _solve(job: FitJob, args):
+    """``(solution, seconds)`` of the fit, with a progress bar; None (said on stderr) when
+    it diverged. Settings the fit refuses (memory, precision) raise InputError."""
+    import jax
+
+    import jurs
+
+    from ._progress import fit_in_chunks
+
+    bar = ProgressBar(f"{args.solver} {'x'.join(map(str, job.grid))}", enabled=not args.quiet)
+    t0 = time.perf_counter()
+    try:
+        sol, _ = fit_in_chunks(job.points, job.normals, solver=job.solver, callback=bar,
+                               throw=False, grid=job.grid, offset=job.chosen.offset,
+                               eps=job.chosen.eps)
+    except (ValueError, TypeError) as exc:
+        bar.close()
+        raise InputError(f"{job.shown}: {_one_line(exc)}") from None
+    jax.block_until_ready(sol.spline)
+    seconds = time.perf_counter() - t0
+    bar.close()
+    if sol.result == jurs.RESULTS.nonfinite:
+        print(f"jurs: error: {job.shown}: the fit diverged ({sol.message}); nothing written",
+              file=sys.stderr)
+        return None
+    if not sol.succeeded and sol.result != jurs.RESULTS.max_steps_reached:
+        # Written all the same (the figure shows what went wrong), but said on stderr too.
+        print(f"jurs: warning: {job.shown}: {sol.message}", file=sys.stderr)
+    return sol, seconds
+
+
+def fit_record(job: FitJob, args, sol, seconds: float) -> dict:
+    """The part of metrics.json that curves and surfaces share: input, settings and the
+    fit's own metrics (the level-set or mesh measures are added to ``metrics``)."""
+    metrics = {k: v for k, v in sol.metrics.items()}
+    metrics.update(num_steps=int(sol.stats["num_steps"]), result=sol.message,
+                   converged=bool(sol.succeeded), time_s=seconds)
+    return {
+        "input": printable(os.path.abspath(job.path)),
+        "num_points": int(len(job.points)),
+        "normals": "estimated" if job.estimated else "given",
+        "settings": {"solver": args.solver, "grid": list(job.grid), "lam": job.lam,
+                     "tau": args.tau if args.solver == "iurs" else None,
+                     "offset": job.chosen.offset, "eps": job.chosen.eps, "steps": args.steps,
+                     "tol": args.tol, "chosen_from_data": job.chosen.as_dict()},
+        "metrics": metrics,
+    }
+
+
+def _fit_title(job: FitJob, args, sol) -> str:
+    """First lines of the figures' titles: file, solver, grid, lambda, E_ave."""
+    return (f"{printable(os.path.basename(job.path))}: {args.solver}, grid "
+            f"{'x'.join(map(str, job.grid))}, lam = {job.lam:.3g}\nE_ave = "
+            f"{float(sol.metrics['E_ave']):.3e}, ")
+
+
+def _write_record_and_spline(folder: str, record: dict, spline) -> None:
+    """metrics.json and spline.npz into ``folder``: the outputs every fit writes."""
+    import jurs
+
+    with open(os.path.join(folder, "metrics.json"), "w", encoding="utf-8") as fh:
+        json.dump(_json_safe(record), fh, indent=2, allow_nan=False)
+        fh.write("\n")
+    jurs.save_spline(os.path.join(folder, "spline.npz"), spline)
+
+
+def _save_figure(fig, path: str, dpi: int) -> None:
+    """Save ``fig`` to ``path`` and close it, also when saving fails."""
+    import matplotlib.pyplot as plt
+
+    try:
+        fig.savefig(path, dpi=dpi)
+    finally:
+        plt.close(fig)
+
+
+def curve_outputs(job: FitJob, args, sol, seconds: float):
+    """A curve's outputs (:data:`OUTPUTS`): ``(write, summary line)``, ``write(folder)``
+    writing them all. The level set is analysed here, before anything is written."""
+    import numpy as np
+
+    from . import levelset as ls
+    from . import plot
+
+    report = ls.analyze(sol.spline, job.points, offset=job.chosen.offset,
+                        threshold=args.threshold, resolution=job.resolution)
+    record = fit_record(job, args, sol, seconds)
+    record["metrics"].update(report.as_dict())
+    title = (_fit_title(job, args, sol) + f"{report.num_components} component(s), "
+             f"{report.num_supplementary} supplementary")
+
+    def write(folder):
+        _write_record_and_spline(folder, record, sol.spline)
+        np.savetxt(os.path.join(folder, "zero_level.csv"), ls.polylines_table(report.components),
+                   delimiter=",", header="component,closed,supplementary,x,y", comments="",
+                   fmt=["%d", "%d", "%d", "%.10g", "%.10g"])
+        fig = plot.plot_fit(sol.spline, job.points, job.normals, job.chosen.offset,
+                            levelset=report, title=title)
+        _save_figure(fig, os.path.join(folder, "fit.png"), dpi=130)
+
+    summary = (f"  E_ave = {float(sol.metrics['E_ave']):.4e}, E_max = "
+               f"{float(sol.metrics['E_max']):.4e}, zero set: {report.num_components} "
+               f"component(s), {report.num_supplementary} supplementary, chamfer = "
+               f"{report.chamfer:.3g}")
+    return write, summary
+
+
+def mesh_record(vertices, faces, report, distances, resolution: int) -> dict:
+    """metrics.json's ``mesh`` entry: size, lattice resolution and every component."""
+    components = [{"num_faces": c.num_faces, "area": c.area, "closed": c.closed,
+                   "genus": c.genus, "median_distance": c.median_distance,
+                   "supplementary": c.supplementary} for c in report.components]
+    return {"num_vertices": int(len(vertices)), "num_faces": int(len(faces)),
+            "resolution": int(resolution), "samples": distances["samples"],
+            "components": components}
+
+
+def _mesh_counts(report) -> str:
+    """The mesh's components in words, e.g. "1 component(s), 1 closed, genus 0, 0
+    supplementary" (an open component's genus reads "open")."""
+    closed = sum(c.closed for c in report.components)
+    genera = ", ".join("open" if c.genus is None else str(c.genus) for c in report.components)
+    return (f"{report.num_components} component(s), {closed} closed, genus {genera or '-'}, "
+            f"{len(report.supplementary)} supplementary")
+
+
+def surface_outputs(job: FitJob, args, sol, seconds: float):
+    """A surface's outputs (:data:`OUTPUTS_3D`): ``(write, summary line)``. The zero set is
+    meshed and measured here (components, genus, supplementary ones; Chamfer and Hausdorff
+    distances against the data points, normal consistency against their normals), before
+    anything is written."""
+    import numpy as np
+
+    from . import datasets, plot
+    from . import levelset as ls
+    from ._mesh import default_resolution
+
+    spline = sol.spline
+    resolution = job.resolution or default_resolution(
+        spline, np.asarray(spline.lower, np.float64), np.asarray(spline.upper, np.float64))
+    t0 = time.perf_counter()
+    vertices, faces = ls.mesh(spline, resolution)
+    t1 = time.perf_counter()
+    report = ls.analyze_mesh(vertices, faces, job.points, threshold=args.threshold)
+    distances = ls.mesh_distances(vertices, faces, job.points, job.normals)
+    t2 = time.perf_counter()
+    record = fit_record(job, args, sol, seconds)
+    record["metrics"].update(report.as_dict(), chamfer=distances["chamfer"],
+                             hausdorff=distances["hausdorff"],
+                             normal_consistency=distances["normal_consistency"])
+    record["mesh"] = mesh_record(vertices, faces, report, distances, resolution)
+    record["timings"] = {"fit_s": seconds, "mesh_s": t1 - t0, "analysis_s": t2 - t1}
+    counts = _mesh_counts(report)
+    highlight = (np.concatenate([c.faces for c in report.supplementary])
+                 if report.supplementary else None)
+
+    def write(folder):
+        _write_record_and_spline(folder, record, spline)
+        datasets.save_mesh(os.path.join(folder, "mesh.ply"), vertices, faces)
+        fig = plot.plot_mesh(vertices, faces, highlight=highlight,
+                             highlight_label="supplementary", title=_fit_title(job, args, sol)
+                             + counts)
+        _save_figure(fig, os.path.join(folder, "preview.png"), dpi=110)
+
+    summary = (f"  E_ave = {float(sol.metrics['E_ave']):.4e}, E_max = "
+               f"{float(sol.metrics['E_max']):.4e}, surface: {len(faces)} faces, {counts}, "
+               f"chamfer = {distances['chamfer']:.3g}")
+    return write, summary
 
 
 def run_fit(args) -> int:
-    """``jurs fit``: read, check the output folder, fit, analyse, then write all outputs at
-    once (or none)."""
+    """``jurs fit``: read and check, fit, analyse (a 2D cloud's zero-level curves or a 3D
+    cloud's meshed surface), then write all outputs at once (or none)."""
     import jax
 
     jax.config.update("jax_enable_x64", True)
@@ -365,83 +676,15 @@ def run_fit(args) -> int:
 
     matplotlib.use("Agg")
 
-    import jurs
-    from . import levelset as ls
-    from ._progress import fit_in_chunks
-
-    path = args.file
-    shown = printable(path)
-    points, normals = read_input(path)
-    estimated = normals is None
-    if estimated:  # an x, y file: outward normals estimated first, as jurs.fit(points) does
-        try:
-            normals = jurs.estimate_normals(points)
-        except (ValueError, TypeError) as exc:
-            raise InputError(f"{shown}: {_one_line(exc)}") from None
-    out = os.path.abspath(args.output)
-    _check_options(args, out)
-    if args.smoothing is not None and (args.solver != "auto" or args.lam is not None):
-        raise InputError("--smoothing sets the automatic lambda of --solver auto; "
-                         "give --lam instead")
-    try:  # auto_settings runs make_problem's input checks (e.g. degenerate clouds) first
-        chosen = jurs.auto_settings(points, normals, grid=args.grid, offset=args.offset,
-                                    eps=args.eps, smoothing=args.smoothing)
-    except (ValueError, TypeError) as exc:
-        raise InputError(f"{shown}: {_one_line(exc)}") from None
-    settings = dict(grid=chosen.grid, offset=chosen.offset, eps=chosen.eps)
-    solver = make_solver(args.solver, lam=args.lam, tau=args.tau, steps=args.steps,
-                         tol=args.tol, auto_lam=chosen.lam)
-    grid, offset = chosen.grid, chosen.offset
-    lam = float(getattr(solver, "lam", 0.0))
-    # The spline (two grids of float64 in the .npz) and the polylines (at most about
-    # resolution^2 / 2 vertices of ~40 bytes as text) besides the figure and the metrics.
-    check_output_folder(out, OUTPUT_OVERHEAD + 16 * grid[0] * grid[1]
-                        + 20 * min(args.resolution ** 2, 10 * args.resolution * len(points)))
-
-    bar = ProgressBar(f"{args.solver} {grid[0]}x{grid[1]}", enabled=not args.quiet)
-    t0 = time.perf_counter()
-    try:
-        sol, _ = fit_in_chunks(points, normals, solver=solver, callback=bar, throw=False,
-                               **settings)
-    except (ValueError, TypeError) as exc:  # settings the fit refuses (memory, precision)
-        bar.close()
-        raise InputError(f"{shown}: {_one_line(exc)}") from None
-    jax.block_until_ready(sol.spline)
-    seconds = time.perf_counter() - t0
-    bar.close()
-    if sol.result == jurs.RESULTS.nonfinite:
-        print(f"jurs: error: {shown}: the fit diverged ({sol.message}); nothing written",
-              file=sys.stderr)
+    job = prepare_fit(args)
+    solved = _solve(job, args)
+    if solved is None:
         return EXIT_FIT_FAILED
-    if not sol.succeeded and sol.result != jurs.RESULTS.max_steps_reached:
-        # Written all the same (the figure shows what went wrong), but said on stderr too.
-        print(f"jurs: warning: {shown}: {sol.message}", file=sys.stderr)
-
-    report = ls.analyze(sol.spline, points, offset=offset, threshold=args.threshold,
-                        resolution=args.resolution)
-    metrics = {k: v for k, v in sol.metrics.items()}
-    metrics.update(num_steps=int(sol.stats["num_steps"]), result=sol.message,
-                   converged=bool(sol.succeeded), time_s=seconds)
-    metrics.update(report.as_dict())
-    record = {
-        "input": printable(os.path.abspath(path)),
-        "num_points": int(len(points)),
-        "normals": "estimated" if estimated else "given",
-        "settings": {"solver": args.solver, "grid": list(grid), "lam": lam,
-                     "tau": args.tau if args.solver == "iurs" else None, "offset": offset,
-                     "eps": chosen.eps, "steps": args.steps, "tol": args.tol,
-                     "chosen_from_data": chosen.as_dict()},
-        "metrics": metrics,
-    }
-
-    write = _output_writer(record, sol.spline, report, points, normals, offset,
-                           title=(f"{printable(os.path.basename(path))}: {args.solver}, grid "
-                                  f"{grid[0]}x{grid[1]}, lam = {lam:.3g}\nE_ave = "
-                                  f"{float(sol.metrics['E_ave']):.3e}, "
-                                  f"{report.num_components} component(s), "
-                                  f"{report.num_supplementary} supplementary"))
+    sol, seconds = solved
+    analyse = curve_outputs if job.dim == 2 else surface_outputs
+    write, summary = analyse(job, args, sol, seconds)
     try:
-        write_outputs(out, write)
+        write_outputs(job.out, write, job.outputs)
     except OSError as exc:
         print(f"jurs: error: {printable(args.output)}: could not write the outputs "
               f"({printable(_one_line(exc))}); the folder keeps its previous outputs",
@@ -449,13 +692,11 @@ def run_fit(args) -> int:
         return EXIT_FIT_FAILED
 
     if not args.quiet:
-        print(f"{shown}: {len(points)} points, {args.solver}, grid {grid[0]}x{grid[1]}: "
-              f"{metrics['num_steps']} steps in {seconds:.2f} s ({sol.message.split(':')[0]})")
-        print(f"  E_ave = {float(sol.metrics['E_ave']):.4e}, E_max = "
-              f"{float(sol.metrics['E_max']):.4e}, zero set: {report.num_components} "
-              f"component(s), {report.num_supplementary} supplementary, chamfer = "
-              f"{report.chamfer:.3g}")
-        print(f"  wrote {', '.join(OUTPUTS)} to {printable(args.output)}")
+        print(f"{job.shown}: {len(job.points)} points, {args.solver}, grid "
+              f"{'x'.join(map(str, job.grid))}: {int(sol.stats['num_steps'])} steps in "
+              f"{seconds:.2f} s ({sol.message.split(':')[0]})")
+        print(summary)
+        print(f"  wrote {', '.join(job.outputs)} to {printable(args.output)}")
     return 0
 
 
