@@ -245,7 +245,12 @@ def bspline_normal_equations(problem: Problem, chunk_size: int = DEFAULT_CHUNK):
 def rational_normal_equations(problem: Problem, weights: Array, chunk_size: int = DEFAULT_CHUNK):
     """``(stencil, D^T b)`` for the rational collocation rows ``w_ij B_ij / W`` (eq. 23) of
     fixed ``weights``: the 16 x 16 products of each row, accumulated ``chunk_size`` samples
-    at a time."""
+    at a time. 2D only (NotImplementedError for a surface: its 64 x 64 row products are not
+    written yet)."""
+    if problem.ndim != 2:
+        raise NotImplementedError("the rational normal equations (fixed weights other than "
+                                  "1) are 2D only; fit surfaces with the B-spline "
+                                  "(LeastSquares(keep_weights=False), the default)")
     w_patches = jnp.take(grid_to_patches(weights), problem.local.cell, axis=0)
 
     def products(bx, by, w_rows, mask, target):

@@ -173,3 +173,10 @@ def test_cascade_transfer_reproduces_quadratics():
     fine = transfer(coarse, (fine_n, 5, 5))
     expected = greville(fine_n) ** 2
     np.testing.assert_allclose(np.asarray(fine[:, 2, 2]), expected, atol=1e-12)
+
+
+def test_rational_normal_equations_refuse_surfaces(sphere):
+    """Fixed rational weights in 3D are not written yet: a clear error, not a wrong shape."""
+    problem = jurs.make_problem(*sphere, grid=6, offset=0.05, eps=0.05)
+    with pytest.raises(NotImplementedError, match="2D only"):
+        jurs.normal_equations(problem, jnp.ones(problem.shape))
