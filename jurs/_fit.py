@@ -80,21 +80,28 @@ MAX_TANGENTIAL_FRACTION = 0.2
 #: fit it lets through does not run the machine out of memory.
 BYTES_PER_COEFFICIENT = 8192
 BYTES_PER_COEFFICIENT_ITERATIVE = 1024
-#: The same for a 3D grid: the 343-point stencil (2.7 KB a coefficient in float64), the
-#: per-cell moments it is folded from and the multigrid levels.
-BYTES_PER_COEFFICIENT_3D = 16384
 #: Peak bytes per sample (positions, basis values, residuals).
 BYTES_PER_SAMPLE = 256
+#: The same for surfaces (3D), from peak resident sets on this 2-core CPU: the 343-point
+#: stencil, the per-cell moments it is folded from and the fold's intermediates (a 64^3 fit
+#: of 2e4 points peaked at 4.8 GB, 18 KB a coefficient), and each sample's 64 gathered
+#: coefficients and basis products (1e6 points at 48^3 peaked at 10 GB: 2.9 KB a sample
+#: after the grid's share).
+BYTES_PER_COEFFICIENT_3D = 20480
+BYTES_PER_SAMPLE_3D = 3072
 
 
 def fit_memory(shape, num_samples: int, solver) -> float:
     """Estimated peak bytes of a fit on an ``(N, M)`` (or ``(N, M, K)``) grid with
-    ``num_samples`` samples (:data:`BYTES_PER_COEFFICIENT`, :data:`BYTES_PER_SAMPLE`)."""
+    ``num_samples`` samples (:data:`BYTES_PER_COEFFICIENT`, :data:`BYTES_PER_SAMPLE` and
+    their 3D counterparts)."""
+    surface = len(shape) == 3
     if isinstance(solver, (IPIA, IURS)):
         per_coefficient = BYTES_PER_COEFFICIENT_ITERATIVE
     else:
-        per_coefficient = BYTES_PER_COEFFICIENT if len(shape) == 2 else BYTES_PER_COEFFICIENT_3D
-    return float(per_coefficient * np.prod(shape) + BYTES_PER_SAMPLE * num_samples)
+        per_coefficient = BYTES_PER_COEFFICIENT_3D if surface else BYTES_PER_COEFFICIENT
+    per_sample = BYTES_PER_SAMPLE_3D if surface else BYTES_PER_SAMPLE
+    return float(per_coefficient * np.prod(shape) + per_sample * num_samples)
 
 
 def _check_orientation(sol, points, normals, mask):

@@ -75,7 +75,8 @@ def surface_linear_solver(rhs: Array) -> lx.AbstractLinearSolver:
     residual: lineax's CG tests each entry against ``atol + rtol |rhs_i|``, and the far
     field's right-hand side is 0, where a purely relative test never passes (it ran to its
     step cap, then drifted away from the solution)."""
-    return lx.CG(rtol=0.0, atol=SURFACE_RTOL * jnp.max(jnp.abs(rhs)), max_steps=SURFACE_MAX_STEPS)
+    scale = jax.lax.stop_gradient(jnp.max(jnp.abs(rhs)))  # a stop rule, not a variable
+    return lx.CG(rtol=0.0, atol=SURFACE_RTOL * scale, max_steps=SURFACE_MAX_STEPS)
 
 
 def solve_by_default(stencil: Array, rhs: Array, start: Array, ridge=0.0):
