@@ -180,3 +180,22 @@ def test_rational_normal_equations_refuse_surfaces(sphere):
     problem = jurs.make_problem(*sphere, grid=6, offset=0.05, eps=0.05)
     with pytest.raises(NotImplementedError, match="2D only"):
         jurs.normal_equations(problem, jnp.ones(problem.shape))
+
+
+def test_surface_fit_is_differentiable(sphere, rng):
+    """jax.grad goes through a surface fit (implicit differentiation of the exact solve);
+    checked against a central difference along one direction. A dense grid: the default
+    CG's tolerance (1e-4 of max |rhs|) would be the difference's noise."""
+    points, normals = (jnp.asarray(a) for a in sphere)
+    solver = jurs.LeastSquares(lam=1e-3)
+    probe = jnp.array([[0.0, 0.0, 0.5]])
+
+    def value(p):
+        sol = jurs.fit(p, normals, grid=6, offset=0.05, eps=0.05, solver=solver)
+        return sol.spline(probe)[0]
+
+    direction = jnp.asarray(rng.standard_normal(points.shape))
+    slope = jnp.vdot(jax.grad(value)(points), direction)
+    step = 1e-5
+    central = (value(points + step * direction) - value(points - step * direction)) / (2 * step)
+    assert float(slope) == pytest.approx(float(central), rel=1e-4)
