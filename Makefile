@@ -5,7 +5,7 @@
 # and for development:
 #   make test-fast - the suite without the tests marked slow (pytest -m "not slow")
 #   make docs      - the documentation site, into site/
-#   make lint      - ruff over the code
+#   make lint      - ruff's linter and formatter check (make test runs them first)
 PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
@@ -30,6 +30,8 @@ demo: $(STAMP)
 # The docs build first (seconds): a broken link or a docstring reference that no longer
 # resolves fails the run before the long suite starts.
 test: $(STAMP)
+	$(VENV)/bin/ruff check .
+	$(VENV)/bin/ruff format --check --quiet .
 	$(MKDOCS) build --strict --quiet
 	XLA_PYTHON_CLIENT_PREALLOCATE=false $(PY) -m pytest -q -n 2 --nbmake tests notebooks
 
@@ -41,6 +43,7 @@ docs: $(STAMP)
 
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .
+	$(VENV)/bin/ruff format --check .
 
 bench: $(STAMP)
 	$(PY) benchmarks/step_speed.py

@@ -44,7 +44,7 @@ def evaluate_rbf(rbf, xy, chunk: int = 4096) -> np.ndarray:
     xy = np.asarray(xy, float).reshape(-1, 2)
     if len(xy) == 0:
         return np.empty(0)
-    return np.concatenate([rbf(xy[k:k + chunk]) for k in range(0, len(xy), chunk)])
+    return np.concatenate([rbf(xy[k : k + chunk]) for k in range(0, len(xy), chunk)])
 
 
 def evaluate_rbf_grid(rbf, xs, ys, chunk: int = 4096) -> np.ndarray:
@@ -53,8 +53,15 @@ def evaluate_rbf_grid(rbf, xs, ys, chunk: int = 4096) -> np.ndarray:
     return evaluate_rbf(rbf, np.stack([gx.ravel(), gy.ravel()], axis=1), chunk).reshape(gx.shape)
 
 
-def rbf_report(rbf, points, box, *, offset: float, reference=None,
-               resolution: int = jurs.levelset.DEFAULT_RESOLUTION):
+def rbf_report(
+    rbf,
+    points,
+    box,
+    *,
+    offset: float,
+    reference=None,
+    resolution: int = jurs.levelset.DEFAULT_RESOLUTION,
+):
     """:func:`jurs.levelset.analyze_grid` of the RBF on ``box`` (use the jurs fit's box)."""
     xs, ys, _ = jurs.levelset.sampling_grid(*box, resolution)
     values = evaluate_rbf_grid(rbf, xs, ys)

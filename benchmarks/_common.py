@@ -20,8 +20,10 @@ def machine() -> str:
     import jax  # here, not at import: the speed report re-renders without JAX
 
     device = jax.devices()[0]
-    return (f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
-            f"JAX {jax.__version__} on {device.platform}:{device.device_kind}")
+    return (
+        f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
+        f"JAX {jax.__version__} on {device.platform}:{device.device_kind}"
+    )
 
 
 def time_repeated(fn, *args, budget_s: float = 2.0, max_repeats: int = 20) -> dict:
@@ -45,8 +47,14 @@ def time_repeated(fn, *args, budget_s: float = 2.0, max_repeats: int = 20) -> di
         out = jax.block_until_ready(fn(*args))
         times.append(time.perf_counter() - t0)
     warm = float(np.median(times))
-    return {"first_s": first, "warm_s": warm, "min_s": min(times),
-            "compile_s": max(first - warm, 0.0), "repeats": len(times), "output": out}
+    return {
+        "first_s": first,
+        "warm_s": warm,
+        "min_s": min(times),
+        "compile_s": max(first - warm, 0.0),
+        "repeats": len(times),
+        "output": out,
+    }
 
 
 def write_results(name: str, payload: dict, markdown: str, folder: str = RESULTS) -> None:
@@ -67,8 +75,7 @@ def rerender_beside(path: str, render) -> str:
         data = json.load(fh)
     text = render(data)
     path = os.path.abspath(path)
-    write_results(os.path.splitext(os.path.basename(path))[0], data, text,
-                  os.path.dirname(path))
+    write_results(os.path.splitext(os.path.basename(path))[0], data, text, os.path.dirname(path))
     return text
 
 

@@ -49,10 +49,22 @@ OFFSET, EPS = 0.1, 0.01
 #: The paper's Example 4 settings (its lambda, 1.155 s in its Table 2) on the project's
 #: stand-in shape, and a smaller lambda on a smooth shape, which converges ten times slower.
 EXAMPLE4 = [
-    {"label": "paper's Example 4: glyph_B, 639 pts", "shape": "glyph_B", "points": 639,
-     "grid": 15, "tau": 1e-3, "lam": 0.0216},
-    {"label": "lobes, 640 pts", "shape": "lobes", "points": 640, "grid": 15,
-     "tau": 1e-3, "lam": 2e-3},
+    {
+        "label": "paper's Example 4: glyph_B, 639 pts",
+        "shape": "glyph_B",
+        "points": 639,
+        "grid": 15,
+        "tau": 1e-3,
+        "lam": 0.0216,
+    },
+    {
+        "label": "lobes, 640 pts",
+        "shape": "lobes",
+        "points": 640,
+        "grid": 15,
+        "tau": 1e-3,
+        "lam": 2e-3,
+    },
 ]
 EXAMPLE4_TOL, EXAMPLE4_MAX_STEPS = 1e-7, 20_000
 #: Fresh processes each Example-4 fit runs in (median cold and warm times over them).
@@ -88,8 +100,12 @@ HUGEPAGE_ENV = {"GLIBC_TUNABLES": "glibc.malloc.hugetlb=1"}
 #: exact interpolant's accuracy on a smooth curve, but unsafe as defaults
 #: (benchmarks/smoothing.py measures why). The target's verdict takes the fastest of them
 #: that is as accurate as the RBF.
-RBF_GIVEN = [{"grid": 64, "smoothing": 1e-10}, {"grid": 128, "smoothing": 1e-10},
-             {"grid": 128, "smoothing": 1e-13}, {"grid": 256, "smoothing": 1e-13}]
+RBF_GIVEN = [
+    {"grid": 64, "smoothing": 1e-10},
+    {"grid": 128, "smoothing": 1e-10},
+    {"grid": 128, "smoothing": 1e-13},
+    {"grid": 256, "smoothing": 1e-13},
+]
 
 WORKER_TIMEOUT_S = 900
 #: Steps a fit runs beyond its first in the in-fit step measurement (work_fit_steps).

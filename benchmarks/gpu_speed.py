@@ -37,7 +37,16 @@ sys.path.insert(0, HERE)
 import speed  # noqa: E402  (the workers and their orchestration)
 from _common import elapsed_log, machine, rerender_beside, write_results  # noqa: E402
 from _speed_report import (  # noqa: E402
-    _err, _find, _gb, _measured_row, _ms, _s, _table, _where, _x, step_passes_s,
+    _err,
+    _find,
+    _gb,
+    _measured_row,
+    _ms,
+    _s,
+    _table,
+    _where,
+    _x,
+    step_passes_s,
 )
 
 #: Points -> grids of the step sweep (Example 1 clouds, 3m samples); sized so that the whole
@@ -57,9 +66,16 @@ def run(quick: bool, out_dir: str, log) -> dict:
     import jax
 
     name = "speed_gpu_quick" if quick else "speed_gpu"
-    data = {"quick": quick, "machine": machine(), "device": speed._device_name(jax),
-            "devices": [str(d) for d in jax.devices()], "sweep": [], "fit_steps": [],
-            "example4": [], "started": time.strftime("%Y-%m-%d %H:%M:%S %Z")}
+    data = {
+        "quick": quick,
+        "machine": machine(),
+        "device": speed._device_name(jax),
+        "devices": [str(d) for d in jax.devices()],
+        "sweep": [],
+        "fit_steps": [],
+        "example4": [],
+        "started": time.strftime("%Y-%m-%d %H:%M:%S %Z"),
+    }
     start = time.perf_counter()
 
     def save():
@@ -71,15 +87,22 @@ def run(quick: bool, out_dir: str, log) -> dict:
             row = {"m": m, "samples": 3 * m, "grid": g}
             data["sweep"].append(row)
             for key in speed.STEP_SOLVERS:
-                row[key] = speed.run_worker({"kind": "step", "m": m, "grid": g, "solver": key},
-                                            log)
+                row[key] = speed.run_worker({"kind": "step", "m": m, "grid": g, "solver": key}, log)
                 save()
-            row["lstsq"] = speed.run_worker({"kind": "lstsq", "m": m, "grid": g,
-                                             "lam": speed.LSQ_LAM}, log)
+            row["lstsq"] = speed.run_worker(
+                {"kind": "lstsq", "m": m, "grid": g, "lam": speed.LSQ_LAM}, log
+            )
             save()
     for m, k in (QUICK_FIT_STEPS if quick else FIT_STEPS).items():
-        data["fit_steps"].append({"m": m, "grid": speed.TARGET_GRID, **speed.run_worker(
-            {"kind": "fit_steps", "m": m, "grid": speed.TARGET_GRID, "steps": k}, log)})
+        data["fit_steps"].append(
+            {
+                "m": m,
+                "grid": speed.TARGET_GRID,
+                **speed.run_worker(
+                    {"kind": "fit_steps", "m": m, "grid": speed.TARGET_GRID, "steps": k}, log
+                ),
+            }
+        )
         save()
     # One process a fit: here they show what a GPU does with small problems, no target.
     data["example4"] = speed.run_example4(log, runs=1)
@@ -110,16 +133,22 @@ def _ratio(cpu_s, gpu_s):
 def report(data: dict) -> str:
     cpu = _cpu_run()
     cpu_sweep = cpu["sweep"] if cpu else []
-    lines = [f"# Speed on an accelerator{' (QUICK run)' if data['quick'] else ''}", "",
-             f"Device of the measurements: **{data['device']}** ({', '.join(data['devices'])}). "
-             f"Host: {data['machine']}. float64. Run began {data.get('started', '—')}; "
-             f"whole run {data.get('runtime_s', 0) / 60:.1f} min.", "",
-             "CPU columns: the committed `speed.json` of `benchmarks/speed.py` ("
-             + (f"{cpu['machine']}" if cpu else "missing") + "), the same workers and "
-             "configurations; *CPU / GPU* is the CPU time over the GPU time. Workers and "
-             "what they time: `benchmarks/speed.py` (a fresh process each; warm = median, "
-             "fastest in brackets; compile = first call minus warm). *Device peak*: the "
-             "accelerator's `peak_bytes_in_use`; host RSS is in the JSON.", ""]
+    lines = [
+        f"# Speed on an accelerator{' (QUICK run)' if data['quick'] else ''}",
+        "",
+        f"Device of the measurements: **{data['device']}** ({', '.join(data['devices'])}). "
+        f"Host: {data['machine']}. float64. Run began {data.get('started', '—')}; "
+        f"whole run {data.get('runtime_s', 0) / 60:.1f} min.",
+        "",
+        "CPU columns: the committed `speed.json` of `benchmarks/speed.py` ("
+        + (f"{cpu['machine']}" if cpu else "missing")
+        + "), the same workers and "
+        "configurations; *CPU / GPU* is the CPU time over the GPU time. Workers and "
+        "what they time: `benchmarks/speed.py` (a fresh process each; warm = median, "
+        "fastest in brackets; compile = first call minus warm). *Device peak*: the "
+        "accelerator's `peak_bytes_in_use`; host RSS is in the JSON.",
+        "",
+    ]
     lines += _step_tables(data["sweep"], cpu_sweep)
     lines += _lstsq_table(data["sweep"], cpu_sweep)
     lines += _fit_steps_table(data["fit_steps"], cpu)
@@ -137,17 +166,33 @@ def _step_tables(sweep, cpu_sweep) -> list[str]:
                 continue
             c = (_find(cpu_sweep, m=r["m"], grid=r["grid"]) or {}).get(key, {})
             extra = key == "normal_ipia"
-            rows.append(_measured_row(_where(r), res, 6 + extra, lambda res=res, c=c: [
-                f"{_ms(res['step_warm_s'])} ({_ms(res['step_min_s'])})",
-                _s(res["step_compile_s"]), _gb(res.get("device_peak_b")),
-                _s(res["build_s"])] + ([_ms(res["init_warm_s"])] if extra else [])
-                + [_ms(c.get("step_warm_s")), _x(_ratio(c.get("step_warm_s"),
-                                                        res["step_warm_s"]))]))
+            rows.append(
+                _measured_row(
+                    _where(r),
+                    res,
+                    6 + extra,
+                    lambda res=res, c=c: (
+                        [
+                            f"{_ms(res['step_warm_s'])} ({_ms(res['step_min_s'])})",
+                            _s(res["step_compile_s"]),
+                            _gb(res.get("device_peak_b")),
+                            _s(res["build_s"]),
+                        ]
+                        + ([_ms(res["init_warm_s"])] if extra else [])
+                        + [
+                            _ms(c.get("step_warm_s")),
+                            _x(_ratio(c.get("step_warm_s"), res["step_warm_s"])),
+                        ]
+                    ),
+                )
+            )
         lines += [f"## {label}: one step", ""]
-        lines += _table(["m", "grid", "warm step (min)", "compile", "device peak",
-                         "problem build (host)"] + (["assembly (init) warm"] if key ==
-                                                    "normal_ipia" else [])
-                        + ["CPU warm step", "CPU / GPU"], rows)
+        lines += _table(
+            ["m", "grid", "warm step (min)", "compile", "device peak", "problem build (host)"]
+            + (["assembly (init) warm"] if key == "normal_ipia" else [])
+            + ["CPU warm step", "CPU / GPU"],
+            rows,
+        )
         lines.append("")
     return lines
 
@@ -159,17 +204,44 @@ def _lstsq_table(sweep, cpu_sweep) -> list[str]:
         if res is None:
             continue
         c = (_find(cpu_sweep, m=r["m"], grid=r["grid"]) or {}).get("lstsq", {})
-        rows.append(_measured_row(_where(r), res, 7, lambda res=res, c=c: [
-            f"{_s(res['fit_warm_s'])} ({_s(res['fit_min_s'])})", _s(res["fit_first_s"]),
-            _gb(res.get("device_peak_b")), f"{res['E_ave']:.3e}",
-            _s(c.get("fit_warm_s")), f"{c['E_ave']:.3e}" if "E_ave" in c else "—",
-            _x(_ratio(c.get("fit_warm_s"), res["fit_warm_s"]))]))
-    lines = [f"## LeastSquares(lam={speed.LSQ_LAM:g}) end to end through jurs.fit", "",
-             "From NumPy arrays to the solved spline: the host builds the sample layout, the "
-             "device assembles D^T D and D^T b and solves. E_ave on both devices shows the "
-             "same fit.", ""]
-    lines += _table(["m", "grid", "warm (min)", "first call", "device peak", "E_ave",
-                     "CPU warm", "CPU E_ave", "CPU / GPU"], rows)
+        rows.append(
+            _measured_row(
+                _where(r),
+                res,
+                7,
+                lambda res=res, c=c: [
+                    f"{_s(res['fit_warm_s'])} ({_s(res['fit_min_s'])})",
+                    _s(res["fit_first_s"]),
+                    _gb(res.get("device_peak_b")),
+                    f"{res['E_ave']:.3e}",
+                    _s(c.get("fit_warm_s")),
+                    f"{c['E_ave']:.3e}" if "E_ave" in c else "—",
+                    _x(_ratio(c.get("fit_warm_s"), res["fit_warm_s"])),
+                ],
+            )
+        )
+    lines = [
+        f"## LeastSquares(lam={speed.LSQ_LAM:g}) end to end through jurs.fit",
+        "",
+        "From NumPy arrays to the solved spline: the host builds the sample layout, the "
+        "device assembles D^T D and D^T b and solves. E_ave on both devices shows the "
+        "same fit.",
+        "",
+    ]
+    lines += _table(
+        [
+            "m",
+            "grid",
+            "warm (min)",
+            "first call",
+            "device peak",
+            "E_ave",
+            "CPU warm",
+            "CPU E_ave",
+            "CPU / GPU",
+        ],
+        rows,
+    )
     return lines + [""]
 
 
@@ -180,15 +252,42 @@ def _fit_steps_table(fit_steps, cpu) -> list[str]:
     rows = []
     for r in fit_steps:
         on_cpu = cpu_step.get("step_s") if r["m"] == speed.TARGET_POINTS else None
-        rows.append(_measured_row(_where(r), r, 6, lambda r=r, on_cpu=on_cpu: [
-            r["steps"], f"{_ms(r['step_s'])} ({_ms(r['step_min_s'])})", _ms(r["fits"]["1"]["warm_s"]),
-            _gb(r.get("device_peak_b")), _ms(on_cpu), _x(_ratio(on_cpu, r["step_s"]))]))
-    lines = ["## The IURS step inside jurs.fit", "",
-             "`jurs.fit(..., solver=IURS(tau=1e-2, lam=1e-3, tol=0, max_steps=n))` for n = 1 "
-             "and n = 1 + k: a step is the difference of the warm medians over k (the CPU "
-             "run's k is 20).", ""]
-    lines += _table(["m", "grid", "k", "step (from fastest fits)", "fit of 1 step",
-                     "device peak", "CPU step", "CPU / GPU"], rows)
+        rows.append(
+            _measured_row(
+                _where(r),
+                r,
+                6,
+                lambda r=r, on_cpu=on_cpu: [
+                    r["steps"],
+                    f"{_ms(r['step_s'])} ({_ms(r['step_min_s'])})",
+                    _ms(r["fits"]["1"]["warm_s"]),
+                    _gb(r.get("device_peak_b")),
+                    _ms(on_cpu),
+                    _x(_ratio(on_cpu, r["step_s"])),
+                ],
+            )
+        )
+    lines = [
+        "## The IURS step inside jurs.fit",
+        "",
+        "`jurs.fit(..., solver=IURS(tau=1e-2, lam=1e-3, tol=0, max_steps=n))` for n = 1 "
+        "and n = 1 + k: a step is the difference of the warm medians over k (the CPU "
+        "run's k is 20).",
+        "",
+    ]
+    lines += _table(
+        [
+            "m",
+            "grid",
+            "k",
+            "step (from fastest fits)",
+            "fit of 1 step",
+            "device peak",
+            "CPU step",
+            "CPU / GPU",
+        ],
+        rows,
+    )
     return lines + [""]
 
 
@@ -199,31 +298,64 @@ def _example4_table(rows_in, cpu) -> list[str]:
     rows = []
     for r in rows_in:
         c = _find(cpu_rows, label=r["label"]) or {}
-        rows.append(_measured_row([r["label"]], r, 8, lambda r=r, c=c: [
-            f"{r['num_steps']} ({c.get('num_steps', '—')})",
-            f"{r['E_ave']:.3e} ({c['E_ave']:.3e})" if "E_ave" in c else f"{r['E_ave']:.3e}",
-            f"{_ms(r['warm_s'])} ({_ms(r['min_s'])})", _s(r["cold_s"]),
-            _ms(c.get("warm_s")), _s(c.get("cold_s")),
-            _x(_ratio(c.get("warm_s"), r["warm_s"])),
-            _ms(step_passes_s(r) and step_passes_s(r) * r["num_steps"])]))
-    lines = ["## Full regularised IURS fits of Example-4 size", "",
-             "As in `speed.md` (15 x 15, tol 1e-7; cold = the first call in a fresh "
-             "process, here one process a fit). In brackets: the CPU run's steps and E_ave, which the "
-             "GPU should repeat up to rounding. *Passes x steps*: the passes of a step, each "
-             "timed alone in a jitted loop, times the steps (see `speed.md`).", ""]
-    lines += _table(["fit", "steps (CPU)", "E_ave (CPU)", "warm (fastest)", "cold",
-                     "CPU warm", "CPU cold", "CPU / GPU warm", "passes x steps"], rows)
+        rows.append(
+            _measured_row(
+                [r["label"]],
+                r,
+                8,
+                lambda r=r, c=c: [
+                    f"{r['num_steps']} ({c.get('num_steps', '—')})",
+                    f"{r['E_ave']:.3e} ({c['E_ave']:.3e})" if "E_ave" in c else f"{r['E_ave']:.3e}",
+                    f"{_ms(r['warm_s'])} ({_ms(r['min_s'])})",
+                    _s(r["cold_s"]),
+                    _ms(c.get("warm_s")),
+                    _s(c.get("cold_s")),
+                    _x(_ratio(c.get("warm_s"), r["warm_s"])),
+                    _ms(step_passes_s(r) and step_passes_s(r) * r["num_steps"]),
+                ],
+            )
+        )
+    lines = [
+        "## Full regularised IURS fits of Example-4 size",
+        "",
+        "As in `speed.md` (15 x 15, tol 1e-7; cold = the first call in a fresh "
+        "process, here one process a fit). In brackets: the CPU run's steps and E_ave, which the "
+        "GPU should repeat up to rounding. *Passes x steps*: the passes of a step, each "
+        "timed alone in a jitted loop, times the steps (see `speed.md`).",
+        "",
+    ]
+    lines += _table(
+        [
+            "fit",
+            "steps (CPU)",
+            "E_ave (CPU)",
+            "warm (fastest)",
+            "cold",
+            "CPU warm",
+            "CPU cold",
+            "CPU / GPU warm",
+            "passes x steps",
+        ],
+        rows,
+    )
     return lines + [""]
 
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true",
-                        help="one small configuration of each measurement (about a minute)")
-    parser.add_argument("--out", default=os.path.join(HERE, "results"),
-                        help="folder of the results files (default: benchmarks/results)")
-    parser.add_argument("--from-json", metavar="PATH",
-                        help="re-render the markdown beside a results JSON")
+    parser.add_argument(
+        "--quick",
+        action="store_true",
+        help="one small configuration of each measurement (about a minute)",
+    )
+    parser.add_argument(
+        "--out",
+        default=os.path.join(HERE, "results"),
+        help="folder of the results files (default: benchmarks/results)",
+    )
+    parser.add_argument(
+        "--from-json", metavar="PATH", help="re-render the markdown beside a results JSON"
+    )
     args = parser.parse_args(argv)
     if args.from_json:
         print(rerender_beside(args.from_json, report))
@@ -233,13 +365,21 @@ def main(argv=None):
 
     jax.config.update("jax_enable_x64", True)
     if jax.default_backend() == "cpu" and not args.quick:
-        parser.error("JAX sees no accelerator (default backend: cpu); benchmarks/speed.py "
-                     "is the CPU benchmark")
+        parser.error(
+            "JAX sees no accelerator (default backend: cpu); benchmarks/speed.py "
+            "is the CPU benchmark"
+        )
     log = elapsed_log()
     data = run(args.quick, args.out, log)
     print(report(data))
-    failed = [e for r in data["sweep"] for k, v in r.items() if isinstance(v, dict)
-              for e in [_err(v)] if e]
+    failed = [
+        e
+        for r in data["sweep"]
+        for k, v in r.items()
+        if isinstance(v, dict)
+        for e in [_err(v)]
+        if e
+    ]
     if failed:
         log(f"{len(failed)} measurements failed: " + "; ".join(failed[:3]))
 

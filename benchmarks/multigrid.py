@@ -72,9 +72,11 @@ def multigrid_solver():
     solver = _multigrid.Multigrid(rtol=RTOL, max_steps=MAX_STEPS)
 
     def operator(stencil, rhs):
-        return lx.FunctionLinearOperator(lambda c: _normal.stencil_matvec(stencil, c),
-                                         jax.ShapeDtypeStruct(rhs.shape, rhs.dtype),
-                                         lx.positive_semidefinite_tag)
+        return lx.FunctionLinearOperator(
+            lambda c: _normal.stencil_matvec(stencil, c),
+            jax.ShapeDtypeStruct(rhs.shape, rhs.dtype),
+            lx.positive_semidefinite_tag,
+        )
 
     def options(stencil, b2):
         return {"stencil": stencil, "target_norm2": b2}
@@ -85,13 +87,20 @@ def multigrid_solver():
 
     @jax.jit
     def solve(stencil, rhs, state, b2):
-        sol = lx.linear_solve(operator(stencil, rhs), rhs, solver, state=state,
-                              options=options(stencil, b2), throw=False)
+        sol = lx.linear_solve(
+            operator(stencil, rhs),
+            rhs,
+            solver,
+            state=state,
+            options=options(stencil, b2),
+            throw=False,
+        )
         return sol.value, sol.stats["num_steps"], sol.result == lx.RESULTS.successful
 
     def whole(stencil, rhs, b2):
-        return lx.linear_solve(operator(stencil, rhs), rhs, solver,
-                               options=options(stencil, b2), throw=False).value
+        return lx.linear_solve(
+            operator(stencil, rhs), rhs, solver, options=options(stencil, b2), throw=False
+        ).value
 
     plans = {}
 
@@ -100,8 +109,9 @@ def multigrid_solver():
         grid shape."""
         if rhs.shape not in plans:
             plan = jax.jit(whole).lower(stencil, rhs, b2).compile().memory_analysis()
-            plans[rhs.shape] = float(plan.argument_size_in_bytes + plan.output_size_in_bytes
-                                     + plan.temp_size_in_bytes)
+            plans[rhs.shape] = float(
+                plan.argument_size_in_bytes + plan.output_size_in_bytes + plan.temp_size_in_bytes
+            )
         return plans[rhs.shape]
 
     return setup, solve, memory
@@ -130,14 +140,22 @@ def run_case(n, m, lam, ndim, mg):
 
     setup, solve, memory = mg
     stencil, rhs, b2 = system(n, m, lam, ndim)
-    repeats = 2 if n ** ndim <= 2**17 else 1
+    repeats = 2 if n**ndim <= 2**17 else 1
     state, setup_s, setup_first = timed(setup, stencil, rhs, repeats=repeats)
-    (x, steps, ok), solve_s, solve_first = timed(solve, stencil, rhs, state, b2,
-                                                 repeats=repeats)
-    row = dict(n=n, ndim=ndim, m=m, lam=lam, steps=int(steps), converged=bool(ok),
-               setup_s=setup_s, solve_s=solve_s, mg_s=setup_s + solve_s,
-               compile_s=setup_first + solve_first - setup_s - solve_s,
-               mg_bytes=memory(stencil, rhs, b2))
+    (x, steps, ok), solve_s, solve_first = timed(solve, stencil, rhs, state, b2, repeats=repeats)
+    row = dict(
+        n=n,
+        ndim=ndim,
+        m=m,
+        lam=lam,
+        steps=int(steps),
+        converged=bool(ok),
+        setup_s=setup_s,
+        solve_s=solve_s,
+        mg_s=setup_s + solve_s,
+        compile_s=setup_first + solve_first - setup_s - solve_s,
+        mg_bytes=memory(stencil, rhs, b2),
+    )
     if ndim == 2 or n <= SUPERLU_MAX_3D:
         a = _normal.stencil_to_scipy(stencil).tocsc()
         b = np.asarray(rhs).ravel()
@@ -150,8 +168,9 @@ def run_case(n, m, lam, ndim, mg):
         row["gap"] = float(d @ (a @ d) - 2 * d @ (b - a @ exact)) / optimum
         row["superlu_over_mg"] = row["superlu_s"] / row["mg_s"]
     if ndim == 2 and n**3 <= _normal.DIRECT_MAX_ENTRIES:
-        _, row["block_cholesky_s"], _ = timed(jax.jit(_normal.stencil_cholesky_solve),
-                                              stencil, rhs, repeats=repeats)
+        _, row["block_cholesky_s"], _ = timed(
+            jax.jit(_normal.stencil_cholesky_solve), stencil, rhs, repeats=repeats
+        )
     return row
 
 
@@ -160,8 +179,10 @@ def markdown(rows, note) -> str:
         return fmt.format(row[key]) if key in row else "-"
 
     lines = [
-        "# Multigrid vs direct solves of the normal equations", "",
-        f"{note}", "",
+        "# Multigrid vs direct solves of the normal equations",
+        "",
+        f"{note}",
+        "",
         "2D: Example 1 (`m` points, offsets at 0.1) on `n x n`; 3D: the torus on `n^3`. "
         "System `(D^T D + 2 lam L) C = D^T b`, unseen coefficients pinned. `setup` is "
         "`Multigrid.init` (Galerkin levels, patch inverses), `solve` the CG iteration "
@@ -170,10 +191,12 @@ def markdown(rows, note) -> str:
         "`spsolve`; `block Chol.` jurs' block Cholesky of grid lines (where LeastSquares uses "
         "it). `gap` is the objective's gap to SuperLU's optimum relative to that optimum "
         "`E*` (`converged = no`: the step cap was reached first); `memory` XLA's plan for "
-        "setup and solve in one call.", "",
+        "setup and solve in one call.",
+        "",
         "| grid | m | lam | steps | setup | solve | MG | SuperLU | SuperLU/MG | block Chol. "
         "| gap | E* | memory | compile |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
     for r in rows:
         grid = f"{r['n']}^{r['ndim']}" if r["ndim"] == 3 else f"{r['n']} x {r['n']}"
         steps = f"{r['steps']}" + ("" if r["converged"] else " (cap)")
@@ -183,38 +206,47 @@ def markdown(rows, note) -> str:
             f"{cell(r, 'superlu_over_mg', '{:.2f}')} | "
             f"{cell(r, 'block_cholesky_s', '{:.2f} s')} | {cell(r, 'gap', '{:.1e}')} | "
             f"{cell(r, 'optimum', '{:.1e}')} | {r['mg_bytes'] / 2**20:.0f} MiB | "
-            f"{r['compile_s']:.0f} s |")
+            f"{r['compile_s']:.0f} s |"
+        )
     return "\n".join(lines) + "\n"
 
 
 def main():
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true",
-                        help="2D 128 and 256 at three lam, 3D 32^3 at lam 1e-4")
+    parser.add_argument(
+        "--quick", action="store_true", help="2D 128 and 256 at three lam, 3D 32^3 at lam 1e-4"
+    )
     args = parser.parse_args()
     import jax
 
     jax.config.update("jax_enable_x64", True)
     lams = (1e-4, 1e-8, 1e-14)
     if args.quick:
-        cases = ([(n, 10**5, lam, 2) for n in (128, 256) for lam in lams]
-                 + [(32, 10**5, 1e-4, 3)])
+        cases = [(n, 10**5, lam, 2) for n in (128, 256) for lam in lams] + [(32, 10**5, 1e-4, 3)]
     else:
-        cases = ([(n, 10**5, lam, 2) for n in (128, 256, 512, 1024) for lam in lams]
-                 + [(n, 10**5, lam, 3) for n in (32, 48, 64) for lam in (1e-4, 1e-8)])
+        cases = [(n, 10**5, lam, 2) for n in (128, 256, 512, 1024) for lam in lams] + [
+            (n, 10**5, lam, 3) for n in (32, 48, 64) for lam in (1e-4, 1e-8)
+        ]
     mg = multigrid_solver()
     rows = []
     today = datetime.date.today().isoformat()
     for n, m, lam, ndim in cases:
         rows.append(run_case(n, m, lam, ndim, mg))
-        print({k: (f"{v:.3g}" if isinstance(v, float) else v) for k, v in rows[-1].items()},
-              flush=True)
+        print(
+            {k: (f"{v:.3g}" if isinstance(v, float) else v) for k, v in rows[-1].items()},
+            flush=True,
+        )
         # Written after every case, so that an interrupted run keeps what it measured.
-        note = (f"Measured {today} on {machine()} (a 2-core machine shared with other jobs: "
-                "absolute times are noisy, ratios are from the same run). "
-                f"{len(rows)} of {len(cases)} cases of this run.")
-        write_results("multigrid", {"date": today, "machine": machine(), "rtol": RTOL,
-                                    "rows": rows}, markdown(rows, note))
+        note = (
+            f"Measured {today} on {machine()} (a 2-core machine shared with other jobs: "
+            "absolute times are noisy, ratios are from the same run). "
+            f"{len(rows)} of {len(cases)} cases of this run."
+        )
+        write_results(
+            "multigrid",
+            {"date": today, "machine": machine(), "rtol": RTOL, "rows": rows},
+            markdown(rows, note),
+        )
 
 
 if __name__ == "__main__":

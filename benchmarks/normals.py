@@ -70,12 +70,15 @@ def image_outline(name):
 
     if name == "text":
         image = data.text()
-        return jurs.shapes.mask_outline(image < filters.threshold_otsu(image), blur=1.0,
-                                        min_area=30.0)
+        return jurs.shapes.mask_outline(
+            image < filters.threshold_otsu(image), blur=1.0, min_area=30.0
+        )
     if name == "binary_blobs":
-        return jurs.shapes.mask_outline(data.binary_blobs(256, blob_size_fraction=0.12,
-                                                          volume_fraction=0.4, rng=3),
-                                        blur=1.0, min_area=30.0)
+        return jurs.shapes.mask_outline(
+            data.binary_blobs(256, blob_size_fraction=0.12, volume_fraction=0.4, rng=3),
+            blur=1.0,
+            min_area=30.0,
+        )
     raise ValueError(name)
 
 
@@ -93,15 +96,18 @@ OUTLINES_2D = {
     "coins": lambda: jurs.shapes.outline("coins"),
     "text": lambda: jurs.shapes.normalise(jurs.shapes.orient(image_outline("text"))),
     "binary_blobs": lambda: jurs.shapes.normalise(
-        jurs.shapes.orient(image_outline("binary_blobs"))),
+        jurs.shapes.orient(image_outline("binary_blobs"))
+    ),
     "glyph_a": lambda: jurs.shapes.outline("glyph_a"),
     "glyph_B": lambda: jurs.shapes.outline("glyph_B"),
     "annulus": lambda: jurs.shapes.outline("annulus"),
-    "nested_rings": lambda: jurs.shapes.normalise(jurs.shapes.orient(
-        circles((1.0, 0.9, 0.6, 0.5), [(0, 0)] * 4))),
+    "nested_rings": lambda: jurs.shapes.normalise(
+        jurs.shapes.orient(circles((1.0, 0.9, 0.6, 0.5), [(0, 0)] * 4))
+    ),
     "thin_band": lambda: jurs.shapes.normalise(jurs.shapes.orient(band())),
-    "close_discs": lambda: jurs.shapes.normalise(jurs.shapes.orient(
-        circles((1.0, 1.0), ((-1.03, 0), (1.03, 0))))),
+    "close_discs": lambda: jurs.shapes.normalise(
+        jurs.shapes.orient(circles((1.0, 1.0), ((-1.03, 0), (1.03, 0))))
+    ),
 }
 VARIANTS_2D = ("clean", "noise", "uneven", "outliers")
 
@@ -109,8 +115,9 @@ VARIANTS_2D = ("clean", "noise", "uneven", "outliers")
 def cloud_2d(name, variant, m=M_2D, seed=0):
     """``(points, truth, inlier mask, clean outline)`` of a 2D case."""
     comps = OUTLINES_2D[name]()
-    points, truth = jurs.shapes.sample_outline(comps, m,
-                                               nonuniform=0.6 if variant == "uneven" else 0.0)
+    points, truth = jurs.shapes.sample_outline(
+        comps, m, nonuniform=0.6 if variant == "uneven" else 0.0
+    )
     rng = np.random.default_rng(seed)
     diag = float(np.linalg.norm(np.ptp(points, axis=0)))
     inlier = np.ones(m, bool)
@@ -144,7 +151,7 @@ def torus(m, rng, big=1.0, small=0.35):
 
 def shell(m, rng, outer=1.0, inner=0.8):
     """Thick spherical shell: both surfaces, sampled with the same density."""
-    m_in = int(round(m * inner ** 2 / (1 + inner ** 2)))
+    m_in = int(round(m * inner**2 / (1 + inner**2)))
     a, na = sphere(m - m_in, rng)
     b, nb = sphere(m_in, rng)
     return np.concatenate([outer * a, inner * b]), np.concatenate([na, -nb])
@@ -155,8 +162,7 @@ def mesh_sampler(name):
     pymeshlab = optional("pymeshlab")
     if trimesh is None or pymeshlab is None:
         return None
-    folder = MESHES or os.path.join(os.path.dirname(pymeshlab.__file__), "tests",
-                                    "sample_meshes")
+    folder = MESHES or os.path.join(os.path.dirname(pymeshlab.__file__), "tests", "sample_meshes")
     path = os.path.join(folder, f"{name}.obj")
     if not os.path.exists(path):
         return None
@@ -165,8 +171,10 @@ def mesh_sampler(name):
     def sample(m, rng):
         points, faces = trimesh.sample.sample_surface(mesh, m, seed=int(rng.integers(1 << 31)))
         return np.asarray(points, float), np.asarray(mesh.face_normals[faces], float)
-    sample.origin = f"{os.path.basename(path)} ({len(mesh.faces)} faces, watertight " \
-                    f"{mesh.is_watertight})"
+
+    sample.origin = (
+        f"{os.path.basename(path)} ({len(mesh.faces)} faces, watertight {mesh.is_watertight})"
+    )
     return sample
 
 
@@ -179,19 +187,27 @@ SURFACES = {"sphere": sphere, "torus": torus, "thick_shell": shell}
 def score(normals, truth, mask, seconds):
     dot = np.sum(normals[mask] * truth[mask], axis=1)
     outward = float(np.mean(dot > 0))
-    return {"outward": outward, "consistent": max(outward, 1 - outward),
-            "angle_deg": float(np.degrees(np.median(np.arccos(np.clip(np.abs(dot), 0, 1))))),
-            "seconds": seconds}
+    return {
+        "outward": outward,
+        "consistent": max(outward, 1 - outward),
+        "angle_deg": float(np.degrees(np.median(np.arccos(np.clip(np.abs(dot), 0, 1))))),
+        "seconds": seconds,
+    }
 
 
 def run_methods(points, truth, mask, o3d):
     out = {}
     t0 = time.perf_counter()
     normals, info = estimate_normals(points, return_info=True)
-    out["jurs"] = {**score(normals, truth, mask, time.perf_counter() - t0), "k": info.k,
-                   "components": info.components, "patches": info.patches,
-                   "flipped": info.flipped, "corrected": info.corrected,
-                   "residual": info.residual}
+    out["jurs"] = {
+        **score(normals, truth, mask, time.perf_counter() - t0),
+        "k": info.k,
+        "components": info.components,
+        "patches": info.patches,
+        "flipped": info.flipped,
+        "corrected": info.corrected,
+        "residual": info.residual,
+    }
     t0 = time.perf_counter()
     unsigned = estimate_normals(points, k=info.k, orient=False)
     baseline = _orient_mst(points, unsigned, k=15)
@@ -201,8 +217,7 @@ def run_methods(points, truth, mask, o3d):
         t0 = time.perf_counter()
         cloud.estimate_normals(o3d.geometry.KDTreeSearchParamKNN(30))
         cloud.orient_normals_consistent_tangent_plane(15)
-        out["open3d"] = score(np.asarray(cloud.normals), truth, mask,
-                              time.perf_counter() - t0)
+        out["open3d"] = score(np.asarray(cloud.normals), truth, mask, time.perf_counter() - t0)
     return out
 
 
@@ -220,11 +235,15 @@ def fit_quality(name, variant):
     out = {}
     for label, normals in (("true", truth), ("estimated", estimate_normals(points))):
         sol = jurs.fit(points, normals)
-        rep = jurs.levelset.analyze(sol.spline, points, offset=sol.settings.offset,
-                                    reference=reference)
-        out[label] = {"chamfer": 1e3 * rep.chamfer / diag, "hausdorff": 1e3 * rep.hausdorff / diag,
-                      "components": rep.num_components,
-                      "supplementary": rep.num_supplementary}
+        rep = jurs.levelset.analyze(
+            sol.spline, points, offset=sol.settings.offset, reference=reference
+        )
+        out[label] = {
+            "chamfer": 1e3 * rep.chamfer / diag,
+            "hausdorff": 1e3 * rep.hausdorff / diag,
+            "components": rep.num_components,
+            "supplementary": rep.num_supplementary,
+        }
     out["true_components"] = len(comps)
     return out
 
@@ -233,52 +252,68 @@ def fit_quality(name, variant):
 
 
 def fmt(entry):
-    return (f"{100 * entry['outward']:.2f} / {100 * entry['consistent']:.2f} | "
-            f"{entry['angle_deg']:.2f} | {entry['seconds']:.2f}")
+    return (
+        f"{100 * entry['outward']:.2f} / {100 * entry['consistent']:.2f} | "
+        f"{entry['angle_deg']:.2f} | {entry['seconds']:.2f}"
+    )
 
 
 def markdown(payload):
-    lines = ["# Normals without normals: `jurs.estimate_normals` beside the spanning tree "
-             "and Open3D", "",
-             f"Run {payload['date']} on {payload['machine']}. Command: `{payload['command']}` "
-             f"({payload['total_s']:.0f} s). Open3D: {payload['open3d']}. Meshes: "
-             f"{payload['meshes']}.", "",
-             "Per method: correct sign in % (strictly outward / up to one global flip), "
-             "median angle to the truth in degrees (unsigned), wall seconds. 'mst' is "
-             "Hoppe's spanning tree (topmost point up) on the same PCA normals; Open3D: PCA "
-             "over 30 neighbours + `orient_normals_consistent_tangent_plane(15)`. Noise: "
-             f"Gaussian, {100 * NOISE:g} % of the bounding-box diagonal per coordinate; "
-             f"outliers: {100 * OUTLIERS:g} % extra points uniform in the box, scored on "
-             "the inliers; uneven: density 0.4x-1.6x along the outline. Times are wall "
-             "clock on a machine shared with other jobs (1-minute load average "
-             f"{payload.get('load_start', float('nan')):.1f} at the start of the run, "
-             f"{payload.get('load_end', float('nan')):.1f} at the end, on 2 cores): expect "
-             "tens of percent of noise, more on short runs.", ""]
+    lines = [
+        "# Normals without normals: `jurs.estimate_normals` beside the spanning tree and Open3D",
+        "",
+        f"Run {payload['date']} on {payload['machine']}. Command: `{payload['command']}` "
+        f"({payload['total_s']:.0f} s). Open3D: {payload['open3d']}. Meshes: "
+        f"{payload['meshes']}.",
+        "",
+        "Per method: correct sign in % (strictly outward / up to one global flip), "
+        "median angle to the truth in degrees (unsigned), wall seconds. 'mst' is "
+        "Hoppe's spanning tree (topmost point up) on the same PCA normals; Open3D: PCA "
+        "over 30 neighbours + `orient_normals_consistent_tangent_plane(15)`. Noise: "
+        f"Gaussian, {100 * NOISE:g} % of the bounding-box diagonal per coordinate; "
+        f"outliers: {100 * OUTLIERS:g} % extra points uniform in the box, scored on "
+        "the inliers; uneven: density 0.4x-1.6x along the outline. Times are wall "
+        "clock on a machine shared with other jobs (1-minute load average "
+        f"{payload.get('load_start', float('nan')):.1f} at the start of the run, "
+        f"{payload.get('load_end', float('nan')):.1f} at the end, on 2 cores): expect "
+        "tens of percent of noise, more on short runs.",
+        "",
+    ]
     lines += ["## Targets", ""] + payload["verdicts"] + [""]
     for dim in ("2D", "3D"):
         rows = [r for r in payload["runs"] if r["dim"] == dim]
         has_o3d = any("open3d" in r for r in rows)
-        head = ("| case | m | jurs sign % | angle | s | k | mst sign % | angle | s |"
-                + (" Open3D sign % | angle | s |" if has_o3d else ""))
+        head = "| case | m | jurs sign % | angle | s | k | mst sign % | angle | s |" + (
+            " Open3D sign % | angle | s |" if has_o3d else ""
+        )
         lines += [f"## {dim}", "", head, "|---" * (9 + 3 * has_o3d) + "|"]
         for r in rows:
-            row = (f"| {r['case']} | {r['m']} | {fmt(r['jurs'])} | {r['jurs']['k']} | "
-                   f"{fmt(r['mst'])} |")
+            row = (
+                f"| {r['case']} | {r['m']} | {fmt(r['jurs'])} | {r['jurs']['k']} | "
+                f"{fmt(r['mst'])} |"
+            )
             if has_o3d:
                 row += f" {fmt(r['open3d'])} |" if "open3d" in r else " - | - | - |"
             lines.append(row)
         lines.append("")
-    lines += ["## Fit with estimated normals", "",
-              "`jurs.fit(points, normals)` with defaults, 1200 points; Chamfer / Hausdorff "
-              "to the clean outline in 1e-3 of the diagonal; zero-set components "
-              "(supplementary).", "",
-              "| case | true normals | estimated normals |", "|---|---|---|"]
+    lines += [
+        "## Fit with estimated normals",
+        "",
+        "`jurs.fit(points, normals)` with defaults, 1200 points; Chamfer / Hausdorff "
+        "to the clean outline in 1e-3 of the diagonal; zero-set components "
+        "(supplementary).",
+        "",
+        "| case | true normals | estimated normals |",
+        "|---|---|---|",
+    ]
     for key, f in payload["fits"].items():
-        cell = [f"{f[s]['chamfer']:.3f} / {f[s]['hausdorff']:.2f}, {f[s]['components']} "
-                f"({f[s]['supplementary']})" for s in ("true", "estimated")]
+        cell = [
+            f"{f[s]['chamfer']:.3f} / {f[s]['hausdorff']:.2f}, {f[s]['components']} "
+            f"({f[s]['supplementary']})"
+            for s in ("true", "estimated")
+        ]
         lines.append(f"| {key} ({f['true_components']} true) | {cell[0]} | {cell[1]} |")
-    lines += ["", "Cases: " + "; ".join(f"`{k}`: {v}" for k, v in payload["origins"].items()),
-              ""]
+    lines += ["", "Cases: " + "; ".join(f"`{k}`: {v}" for k, v in payload["origins"].items()), ""]
     return "\n".join(lines)
 
 
@@ -286,30 +321,44 @@ def verdicts(runs):
     out = []
     clean = [r for r in runs if r["variant"] == "clean"]
     noisy = [r for r in runs if r["variant"] != "clean"]
-    miss = [f"{r['case']} (m {r['m']}) {100 * r['jurs']['outward']:.3f} %" for r in clean
-            if r["jurs"]["outward"] < 1.0]
-    out.append(f"- 100 % outward on every clean case: {len(clean) - len(miss)}/{len(clean)} "
-               f"{'MET' if not miss else 'MISSED'}" + (f" (misses: {', '.join(miss)})"
-                                                       if miss else ""))
-    miss = [f"{r['case']} (m {r['m']}) {100 * r['jurs']['outward']:.3f} %" for r in noisy
-            if r["jurs"]["outward"] < 0.995]
-    out.append(f"- >= 99.5 % outward on noisy / uneven / outlier cases: "
-               f"{len(noisy) - len(miss)}/{len(noisy)} {'MET' if not miss else 'MISSED'}"
-               + (f" (misses: {', '.join(miss)})" if miss else ""))
+    miss = [
+        f"{r['case']} (m {r['m']}) {100 * r['jurs']['outward']:.3f} %"
+        for r in clean
+        if r["jurs"]["outward"] < 1.0
+    ]
+    out.append(
+        f"- 100 % outward on every clean case: {len(clean) - len(miss)}/{len(clean)} "
+        f"{'MET' if not miss else 'MISSED'}" + (f" (misses: {', '.join(miss)})" if miss else "")
+    )
+    miss = [
+        f"{r['case']} (m {r['m']}) {100 * r['jurs']['outward']:.3f} %"
+        for r in noisy
+        if r["jurs"]["outward"] < 0.995
+    ]
+    out.append(
+        f"- >= 99.5 % outward on noisy / uneven / outlier cases: "
+        f"{len(noisy) - len(miss)}/{len(noisy)} {'MET' if not miss else 'MISSED'}"
+        + (f" (misses: {', '.join(miss)})" if miss else "")
+    )
     big = [r for r in runs if r["m"] >= 100_000 and "open3d" in r]
     if big:
         ratio = [r["jurs"]["seconds"] / r["open3d"]["seconds"] for r in big]
-        out.append(f"- no slower than Open3D at 1e5 points: time ratio jurs/Open3D "
-                   f"{', '.join(r['case'] + f' {x:.2f}' for r, x in zip(big, ratio))} "
-                   f"{'MET' if max(ratio) <= 1 else 'MISSED'}")
+        out.append(
+            f"- no slower than Open3D at 1e5 points: time ratio jurs/Open3D "
+            f"{', '.join(r['case'] + f' {x:.2f}' for r, x in zip(big, ratio))} "
+            f"{'MET' if max(ratio) <= 1 else 'MISSED'}"
+        )
     return out
 
 
 def main():
     parser = argparse.ArgumentParser()
     parser.add_argument("--quick", action="store_true")
-    parser.add_argument("--markdown-only", action="store_true",
-                        help="re-render the markdown from the last run's JSON")
+    parser.add_argument(
+        "--markdown-only",
+        action="store_true",
+        help="re-render the markdown from the last run's JSON",
+    )
     args = parser.parse_args()
     if args.markdown_only:
         import json
@@ -329,8 +378,15 @@ def main():
         for variant in VARIANTS_2D:
             points, truth, inlier, _ = cloud_2d(name, variant)
             res = run_methods(points, truth, inlier, None)
-            runs.append({"dim": "2D", "case": f"{name}/{variant}", "variant": variant,
-                         "m": len(points), **res})
+            runs.append(
+                {
+                    "dim": "2D",
+                    "case": f"{name}/{variant}",
+                    "variant": variant,
+                    "m": len(points),
+                    **res,
+                }
+            )
             print(runs[-1]["case"], fmt(res["jurs"]), "| mst", fmt(res["mst"]), flush=True)
     surfaces = dict(SURFACES)
     for mesh in ("bunny", "cow"):
@@ -349,32 +405,50 @@ def main():
                     diag = float(np.linalg.norm(np.ptp(points, axis=0)))
                     points = points + NOISE * diag * rng.standard_normal(points.shape)
                 res = run_methods(points, truth, np.ones(m, bool), o3d)
-                runs.append({"dim": "3D", "case": f"{name}/{variant}", "variant": variant,
-                             "m": m, **res})
-                print(runs[-1]["case"], m, fmt(res["jurs"]), "| mst", fmt(res["mst"]),
-                      "| o3d", fmt(res["open3d"]) if "open3d" in res else "-", flush=True)
+                runs.append(
+                    {"dim": "3D", "case": f"{name}/{variant}", "variant": variant, "m": m, **res}
+                )
+                print(
+                    runs[-1]["case"],
+                    m,
+                    fmt(res["jurs"]),
+                    "| mst",
+                    fmt(res["mst"]),
+                    "| o3d",
+                    fmt(res["open3d"]) if "open3d" in res else "-",
+                    flush=True,
+                )
     fits = {}
     for name in FIT_CASES[:2] if args.quick else FIT_CASES:
         for variant in ("clean", "noise"):
             fits[f"{name}/{variant}"] = fit_quality(name, variant)
             print("fit", name, variant, fits[f"{name}/{variant}"], flush=True)
-    origins.update({"2D": "jurs.shapes outlines (horse, coins: scikit-image images; glyphs: "
-                          "DejaVu Sans); text, binary_blobs: skimage.data images traced "
-                          "with find_contours; nested_rings: 4 concentric circles (2 "
-                          "annuli); thin_band: 4 x 0.12 rectangle; close_discs: two unit "
-                          "discs 0.06 apart (2D sizes before scaling to a longest side of "
-                          "8)",
-                    "3D": "sphere, torus (R 1, r 0.35), thick_shell (radii 1 and 0.8): "
-                          "area-uniform random samples"})
-    payload = {"date": datetime.date.today().isoformat(), "load_start": load_start,
-               "load_end": os.getloadavg()[0],
-               "machine": f"{platform.machine()}, {os.cpu_count()} cores, "
-                          f"{platform.processor() or 'cpu'}, Python {platform.python_version()}",
-               "command": "python benchmarks/normals.py" + (" --quick" if args.quick else ""),
-               "open3d": getattr(o3d, "__version__", "not installed"),
-               "meshes": ", ".join(v for k, v in origins.items() if k in ("bunny", "cow"))
-               or "pymeshlab/trimesh not installed",
-               "runs": runs, "fits": fits, "origins": origins}
+    origins.update(
+        {
+            "2D": "jurs.shapes outlines (horse, coins: scikit-image images; glyphs: "
+            "DejaVu Sans); text, binary_blobs: skimage.data images traced "
+            "with find_contours; nested_rings: 4 concentric circles (2 "
+            "annuli); thin_band: 4 x 0.12 rectangle; close_discs: two unit "
+            "discs 0.06 apart (2D sizes before scaling to a longest side of "
+            "8)",
+            "3D": "sphere, torus (R 1, r 0.35), thick_shell (radii 1 and 0.8): "
+            "area-uniform random samples",
+        }
+    )
+    payload = {
+        "date": datetime.date.today().isoformat(),
+        "load_start": load_start,
+        "load_end": os.getloadavg()[0],
+        "machine": f"{platform.machine()}, {os.cpu_count()} cores, "
+        f"{platform.processor() or 'cpu'}, Python {platform.python_version()}",
+        "command": "python benchmarks/normals.py" + (" --quick" if args.quick else ""),
+        "open3d": getattr(o3d, "__version__", "not installed"),
+        "meshes": ", ".join(v for k, v in origins.items() if k in ("bunny", "cow"))
+        or "pymeshlab/trimesh not installed",
+        "runs": runs,
+        "fits": fits,
+        "origins": origins,
+    }
     payload["verdicts"] = verdicts(runs)
     payload["total_s"] = time.perf_counter() - start
     write_results("normals", payload, markdown(payload))

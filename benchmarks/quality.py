@@ -60,8 +60,11 @@ CASES = {
     "glyph_g": ("glyph_g", {}, "DejaVu Sans 'g': hole, descender"),
     "horse": ("horse", {}, "scikit-image horse: legs, tail, ears (thin parts)"),
     "coins": ("coins", {}, "scikit-image coins: 24 separate components"),
-    "lobes_nonuniform": ("lobes", {"nonuniform": 0.6},
-                         "lobes, sampling density varying 0.4x-1.6x along the curve"),
+    "lobes_nonuniform": (
+        "lobes",
+        {"nonuniform": 0.6},
+        "lobes, sampling density varying 0.4x-1.6x along the curve",
+    ),
     "rose_gap": ("rose", {"gap": 0.08}, "rose with 8 % of its length unsampled"),
 }
 #: Noise levels, as fractions of the clean outline's bounding-box diagonal.
@@ -101,8 +104,9 @@ def clean_outline(shape: str):
     allp = np.concatenate(comps)
     diag = float(np.linalg.norm(allp.max(axis=0) - allp.min(axis=0)))
     length = float(sum(np.linalg.norm(np.roll(c, -1, 0) - c, axis=1).sum() for c in comps))
-    ref = np.concatenate([jurs.levelset.resample(np.vstack([c, c[:1]]), diag / REFERENCE_DIVISOR)
-                          for c in comps])
+    ref = np.concatenate(
+        [jurs.levelset.resample(np.vstack([c, c[:1]]), diag / REFERENCE_DIVISOR) for c in comps]
+    )
     return comps, ref, diag, length
 
 
@@ -153,8 +157,12 @@ def rbf_grid_values(fn, xs, ys, coarse: int = 8, safety: float = 1.0, chunk: int
         jj, ii = jj[keep], ii[keep]
         if len(jj):
             pts = np.stack([gx[ii], gy[jj]], axis=1)
-            vals[jj, ii] = np.concatenate([np.asarray(fn(pts[k:k + chunk]), float).reshape(-1)
-                                           for k in range(0, len(pts), chunk)])
+            vals[jj, ii] = np.concatenate(
+                [
+                    np.asarray(fn(pts[k : k + chunk]), float).reshape(-1)
+                    for k in range(0, len(pts), chunk)
+                ]
+            )
             known[jj, ii] = True
             count += len(jj)
 
@@ -165,14 +173,16 @@ def rbf_grid_values(fn, xs, ys, coarse: int = 8, safety: float = 1.0, chunk: int
     while step >= 2:
         cj, ci = np.nonzero(active)
         j0, i0 = cj * step, ci * step
-        corners = np.stack([vals[j0, i0], vals[j0, i0 + step], vals[j0 + step, i0],
-                            vals[j0 + step, i0 + step]])
+        corners = np.stack(
+            [vals[j0, i0], vals[j0, i0 + step], vals[j0 + step, i0], vals[j0 + step, i0 + step]]
+        )
         var = np.zeros(active.shape)
         var[cj, ci] = corners.max(0) - corners.min(0)
         var = maximum_filter(var, size=3, mode="nearest")[cj, ci]
         split = np.zeros(active.shape, bool)
         split[cj, ci] = ((corners.min(0) <= 0) & (corners.max(0) >= 0)) | (
-            np.abs(corners).min(0) <= safety * var)
+            np.abs(corners).min(0) <= safety * var
+        )
         split = binary_dilation(split, np.ones((3, 3), bool)) & active
         # cells kept whole: bilinear fill of the nodes not evaluated exactly
         fj, fi = np.nonzero(active & ~split)
@@ -182,8 +192,9 @@ def rbf_grid_values(fn, xs, ys, coarse: int = 8, safety: float = 1.0, chunk: int
         for a in range(step + 1):
             for b in range(step + 1):
                 jj, ii = fj * step + a, fi * step + b
-                w = ((1 - u[a]) * ((1 - u[b]) * c00 + u[b] * c01)
-                     + u[a] * ((1 - u[b]) * c10 + u[b] * c11))
+                w = (1 - u[a]) * ((1 - u[b]) * c00 + u[b] * c01) + u[a] * (
+                    (1 - u[b]) * c10 + u[b] * c11
+                )
                 free = ~known[jj, ii]
                 vals[jj[free], ii[free]] = w[free]
         # split cells: exact values on the half-step lattice inside them
@@ -207,11 +218,19 @@ def rbf_measure(points, normals, *, offset, eps, smoothing, box, reference):
     t0 = time.perf_counter()
     xs, ys, _ = jurs.levelset.sampling_grid(*box, RESOLUTION)
     values, count = rbf_grid_values(rbf, xs, ys)
-    report = jurs.levelset.analyze_grid(xs, ys, values, points, offset=offset,
-                                        reference=reference)
-    return rbf, report, {"smoothing": smoothing, "fit_s": fit_s,
-                         "measure_s": time.perf_counter() - t0, "evaluations": count,
-                         "grid_nodes": len(xs) * len(ys)}, values
+    report = jurs.levelset.analyze_grid(xs, ys, values, points, offset=offset, reference=reference)
+    return (
+        rbf,
+        report,
+        {
+            "smoothing": smoothing,
+            "fit_s": fit_s,
+            "measure_s": time.perf_counter() - t0,
+            "evaluations": count,
+            "grid_nodes": len(xs) * len(ys),
+        },
+        values,
+    )
 
 
 # --------------------------------------------------------------------------- one run
@@ -261,11 +280,20 @@ def run_case(case, level, m, ref, diag, true_components, check):
     shape, kwargs, _ = CASES[case]
     points, normals = jurs.shapes.get(shape, m, **kwargs)
     if level > 0:
-        points, normals = jurs.datasets.add_noise(points, normals, sigma=level * diag,
-                                                  seed=noise_seed(case, level))
-    out = {"case": case, "shape": shape, "sampling": kwargs, "m": m, "noise": level,
-           "sigma": level * diag, "normal_sigma": level * diag,
-           "seed": noise_seed(case, level) if level > 0 else None, "diag": diag}
+        points, normals = jurs.datasets.add_noise(
+            points, normals, sigma=level * diag, seed=noise_seed(case, level)
+        )
+    out = {
+        "case": case,
+        "shape": shape,
+        "sampling": kwargs,
+        "m": m,
+        "noise": level,
+        "sigma": level * diag,
+        "normal_sigma": level * diag,
+        "seed": noise_seed(case, level) if level > 0 else None,
+        "diag": diag,
+    }
 
     # jurs, defaults only: first call (compiles: caches cleared) and warm median
     jax.clear_caches()
@@ -280,14 +308,22 @@ def run_case(case, level, m, ref, diag, true_components, check):
         jax.block_until_ready(sol.spline.control)
         warm.append(time.perf_counter() - t0)
     st = sol.settings
-    rep = jurs.levelset.analyze(sol.spline, points, offset=st.offset, reference=ref,
-                                resolution=RESOLUTION)
-    box = st.domain if st.domain is not None else (np.asarray(sol.spline.lower),
-                                                   np.asarray(sol.spline.upper))
+    rep = jurs.levelset.analyze(
+        sol.spline, points, offset=st.offset, reference=ref, resolution=RESOLUTION
+    )
+    box = (
+        st.domain
+        if st.domain is not None
+        else (np.asarray(sol.spline.lower), np.asarray(sol.spline.upper))
+    )
     out["settings"] = st.as_dict()
-    out["jurs"] = {**summarise(rep, diag, true_components), "first_s": first,
-                   "warm_s": float(np.median(warm)), "warm_all_s": warm,
-                   "result": str(sol.message)}
+    out["jurs"] = {
+        **summarise(rep, diag, true_components),
+        "first_s": first,
+        "warm_s": float(np.median(warm)),
+        "warm_all_s": warm,
+        "result": str(sol.message),
+    }
     figure = {"points": points, "jurs": lines_of(rep)}
 
     # RBF without smoothing (the time target's reference, the clean cases' Chamfer reference)
@@ -298,17 +334,21 @@ def run_case(case, level, m, ref, diag, true_components, check):
         t0 = time.perf_counter()
         xs, ys, _ = jurs.levelset.sampling_grid(*box, RESOLUTION)
         full_values = evaluate_rbf_grid(rbf, xs, ys)
-        full = jurs.levelset.analyze_grid(xs, ys, full_values, points, offset=st.offset,
-                                          reference=ref)
+        full = jurs.levelset.analyze_grid(
+            xs, ys, full_values, points, offset=st.offset, reference=ref
+        )
         a, b = summarise(full, diag, true_components), out["rbf"]
         out["grid_check"] = {
-            "rbf_report_s": time.perf_counter() - t0, "adaptive_s": info["measure_s"],
+            "rbf_report_s": time.perf_counter() - t0,
+            "adaptive_s": info["measure_s"],
             "same_signs": bool(np.array_equal(np.sign(values), np.sign(full_values))),
-            "same_counts": all(a[k] == b[k] for k in ("num_components", "num_supplementary",
-                                                       "num_tiny_loops")),
+            "same_counts": all(
+                a[k] == b[k] for k in ("num_components", "num_supplementary", "num_tiny_loops")
+            ),
             "chamfer_rel_diff": abs(a["chamfer"] - b["chamfer"]) / a["chamfer"],
             "hausdorff_rel_diff": abs(a["hausdorff"] - b["hausdorff"]) / a["hausdorff"],
-            "full": a}
+            "full": a,
+        }
     del rbf
     best = {"smoothing": 0.0, "chamfer": out["rbf"]["chamfer"]}
     figure["rbf_best"] = lines_of(rrep)
@@ -351,8 +391,11 @@ def run_case(case, level, m, ref, diag, true_components, check):
 
 TARGETS = (
     ("clean_zero_set", "0 supplementary components and 0 tiny loops (jurs defaults)"),
-    ("chamfer", "Chamfer <= unsmoothed RBF's (clean) / best RBF's over the smoothing "
-                "values tried (noisy, oracle choice)"),
+    (
+        "chamfer",
+        "Chamfer <= unsmoothed RBF's (clean) / best RBF's over the smoothing "
+        "values tried (noisy, oracle choice)",
+    ),
     ("time", "jurs warm fit time <= 1/50 of the unsmoothed RBF's fit time"),
 )
 
@@ -369,8 +412,10 @@ def miss_detail(key, r):
     j = r["jurs"]
     if key == "clean_zero_set":
         frac = j["supplementary_length"] / j["total_length"] if j["total_length"] else 0.0
-        return (f"{j['num_supplementary']} supp. ({100 * frac:.0f} % of the zero set's length), "
-                f"{j['num_tiny_loops']} tiny")
+        return (
+            f"{j['num_supplementary']} supp. ({100 * frac:.0f} % of the zero set's length), "
+            f"{j['num_tiny_loops']} tiny"
+        )
     if key == "chamfer":
         return f"{j['chamfer'] * 1e3:.4g} vs {r['chamfer_reference'] * 1e3:.4g}"
     return f"{r['time_ratio']:.1f}x"
@@ -384,26 +429,40 @@ def markdown(runs, meta):
     ok = [r for r in runs if "error" not in r]
     failed = [r for r in runs if "error" in r]
     n = len(runs)
-    lines = ["# Quality of `jurs.fit` defaults against a thin-plate RBF"
-             + (" (quick subset)" if meta["quick"] else ""), "",
-             f"Machine: {meta['machine']}. Float64. Command: `{meta['command']}`; "
-             f"{n} runs ({len(meta['cases'])} base cases x noise levels "
-             f"{', '.join(pct(x) for x in meta['noise_levels'])}) in "
-             f"{meta['total_s'] / 60:.1f} min.", "",
-             "## Targets", "",
-             "| target | cases passing | verdict | misses (case @ noise: measured) |",
-             "|---|---|---|---|"]
+    lines = [
+        "# Quality of `jurs.fit` defaults against a thin-plate RBF"
+        + (" (quick subset)" if meta["quick"] else ""),
+        "",
+        f"Machine: {meta['machine']}. Float64. Command: `{meta['command']}`; "
+        f"{n} runs ({len(meta['cases'])} base cases x noise levels "
+        f"{', '.join(pct(x) for x in meta['noise_levels'])}) in "
+        f"{meta['total_s'] / 60:.1f} min.",
+        "",
+        "## Targets",
+        "",
+        "| target | cases passing | verdict | misses (case @ noise: measured) |",
+        "|---|---|---|---|",
+    ]
     for key, text in TARGETS:
         passing = [r for r in ok if r["targets"][key]]
         misses = [r for r in ok if not r["targets"][key]] + failed
-        shown = "; ".join(f"{label(r)}: " + (r["error"] if "error" in r else miss_detail(key, r))
-                          for r in misses) or "none"
-        lines.append(f"| {text} | {len(passing)}/{n} | "
-                     f"{'PASS' if not misses else 'MISS'} | {shown} |")
-    lines += ["", "Measured: zero set: jurs's supplementary components (their share of the "
-              "zero set's length) and tiny loops; Chamfer: jurs vs the reference RBF's, in 1e-3 "
-              "of diag; time: RBF (s = 0) fit time / jurs warm fit time (at least 50x "
-              "needed)."]
+        shown = (
+            "; ".join(
+                f"{label(r)}: " + (r["error"] if "error" in r else miss_detail(key, r))
+                for r in misses
+            )
+            or "none"
+        )
+        lines.append(
+            f"| {text} | {len(passing)}/{n} | {'PASS' if not misses else 'MISS'} | {shown} |"
+        )
+    lines += [
+        "",
+        "Measured: zero set: jurs's supplementary components (their share of the "
+        "zero set's length) and tiny loops; Chamfer: jurs vs the reference RBF's, in 1e-3 "
+        "of diag; time: RBF (s = 0) fit time / jurs warm fit time (at least 50x "
+        "needed).",
+    ]
     ratios = np.array([r["chamfer_ratio"] for r in ok])
     times = np.array([r["time_ratio"] for r in ok])
     first = np.array([r["jurs"]["first_s"] for r in ok])
@@ -423,7 +482,8 @@ def markdown(runs, meta):
             "the data; a *tiny loop* is a closed component shorter than 4 grid cells. The "
             "RBF solves the same offset samples and targets (jurs's own d and eps) exactly "
             "(s = 0) or with SciPy's `smoothing` s; on noisy cases the best s is picked by "
-            "Chamfer distance to the clean outline, which no user could do (an oracle), so the Chamfer target on "
+            "Chamfer distance to the clean outline, which no user could do (an oracle), so the "
+            "Chamfer target on "
             "noisy cases is a comparison with the RBF at its best. "
             f"Over all runs the jurs/RBF Chamfer ratio (below 1: jurs closer to the true "
             f"curve) has median {np.median(ratios):.2f} (range {ratios.min():.2f} to "
@@ -434,17 +494,25 @@ def markdown(runs, meta):
             f"{times.min():.1f}x to {times.max():.1f}x) the jurs warm time. The RBF's dense "
             "solve grows as m^3, jurs's time with the grid, so that ratio depends on m. "
             "Timings are medians of a few calls on a 2-core machine"
-            + (f" (load average {meta['load_average']:.1f} when the run began)"
-               if "load_average" in meta else "")
+            + (
+                f" (load average {meta['load_average']:.1f} when the run began)"
+                if "load_average" in meta
+                else ""
+            )
             + ": expect tens of percent of noise. "
             f"The zero set has the true number of components in "
             f"{sum(r['jurs']['num_components'] == r['jurs']['true_components'] for r in ok)} "
             f"of {len(ok)} jurs runs and in "
             f"{sum(r['rbf']['num_components'] == r['rbf']['true_components'] for r in ok)} of "
-            f"{len(ok)} unsmoothed-RBF runs.")
-        whole = [r for r in ok if r["jurs"]["num_supplementary"]
-                 and r["jurs"]["supplementary_length"] >= 0.5 * r["jurs"]["total_length"]
-                 and r["jurs"]["num_components"] == r["jurs"]["true_components"]]
+            f"{len(ok)} unsmoothed-RBF runs."
+        )
+        whole = [
+            r
+            for r in ok
+            if r["jurs"]["num_supplementary"]
+            and r["jurs"]["supplementary_length"] >= 0.5 * r["jurs"]["total_length"]
+            and r["jurs"]["num_components"] == r["jurs"]["true_components"]
+        ]
         if whole:
             lines[-1] += (
                 " Supplementary is a distance to the *data* (more than half of a component's "
@@ -453,10 +521,13 @@ def markdown(runs, meta):
                 + ", ".join(label(r) for r in whole)
                 + " the zero set has the true number of components and the supplementary "
                 "one(s) make up "
-                + ", ".join(f"{100 * r['jurs']['supplementary_length'] / r['jurs']['total_length']:.0f} %"
-                            for r in whole)
+                + ", ".join(
+                    f"{100 * r['jurs']['supplementary_length'] / r['jurs']['total_length']:.0f} %"
+                    for r in whole
+                )
                 + " of its length, i.e. the curve itself, bridging the gap, is flagged (see "
-                "the figure).")
+                "the figure)."
+            )
     lines += ["", "## What ran", ""]
     lines.append(
         "Noise: `jurs.datasets.add_noise(points, normals, sigma=level * diag, seed=crc32("
@@ -466,8 +537,14 @@ def markdown(runs, meta):
         "then re-normalised. With diag about "
         f"{min(r['diag'] for r in runs):.1f} to {max(r['diag'] for r in runs):.1f} (longest "
         f"side 8), the normals' per-component sigma is "
-        + ", ".join(f"{min(r['diag'] for r in runs) * x:.3g}-{max(r['diag'] for r in runs) * x:.3g}"
-                    f" at {pct(x)}" for x in meta["noise_levels"] if x > 0) + ".")
+        + ", ".join(
+            f"{min(r['diag'] for r in runs) * x:.3g}-{max(r['diag'] for r in runs) * x:.3g}"
+            f" at {pct(x)}"
+            for x in meta["noise_levels"]
+            if x > 0
+        )
+        + "."
+    )
     lines.append("")
     lines.append(
         f"jurs: `jurs.fit(points, normals)`; first call after `jax.clear_caches()`, then the "
@@ -478,7 +555,8 @@ def markdown(runs, meta):
         "the Chamfer distance improves (stopping at the first value worse than the best so far; "
         f"while the top is the best, {', '.join(fmt_s(s) for s in SMOOTHING_EXTENSION)} above it); "
         "the values tried are in the JSON. 'best RBF' is the lowest Chamfer among s = 0 and the "
-        "values tried.")
+        "values tried."
+    )
     lines.append("")
     checks = [r for r in ok if "grid_check" in r]
     evals = [x["evaluations"] / x["grid_nodes"] for r in ok for x in [r["rbf"]] + r["rbf_smoothed"]]
@@ -490,43 +568,63 @@ def markdown(runs, meta):
         "pass, bilinear far from it), because the full grid costs half a minute or more per "
         "RBF. Checked against the full grid, evaluated and analysed as `rbf_report` does "
         "(`evaluate_rbf_grid`, then `analyze_grid`), on "
-        + ("; ".join(f"{label(r)}: same sign at every grid node {r['grid_check']['same_signs']}, "
-                     f"same component counts {r['grid_check']['same_counts']}, "
-                     f"Chamfer rel. diff {r['grid_check']['chamfer_rel_diff']:.1e}, Hausdorff "
-                     f"rel. diff {r['grid_check']['hausdorff_rel_diff']:.1e} "
-                     f"({r['grid_check']['rbf_report_s']:.0f} s full vs "
-                     f"{r['grid_check']['adaptive_s']:.0f} s adaptive)" for r in checks)
-           or "no run") + ". Over all RBF fits the adaptive evaluation computed the "
-        + (f"RBF at {100 * evals[0]:.0f} % (median) as many points as the full grid has nodes." if evals else ""))
+        + (
+            "; ".join(
+                f"{label(r)}: same sign at every grid node {r['grid_check']['same_signs']}, "
+                f"same component counts {r['grid_check']['same_counts']}, "
+                f"Chamfer rel. diff {r['grid_check']['chamfer_rel_diff']:.1e}, Hausdorff "
+                f"rel. diff {r['grid_check']['hausdorff_rel_diff']:.1e} "
+                f"({r['grid_check']['rbf_report_s']:.0f} s full vs "
+                f"{r['grid_check']['adaptive_s']:.0f} s adaptive)"
+                for r in checks
+            )
+            or "no run"
+        )
+        + ". Over all RBF fits the adaptive evaluation computed the "
+        + (
+            f"RBF at {100 * evals[0]:.0f} % (median) as many points as the full grid has nodes."
+            if evals
+            else ""
+        )
+    )
     lines += ["", "Cases:", ""]
     for key in meta["cases"]:
         shape, kwargs, text = CASES[key]
         extra = ", ".join(f"{k}={v}" for k, v in kwargs.items())
-        lines.append(f"* `{key}`: {text}; `jurs.shapes.get({shape!r}, m"
-                     + (f", {extra}" if extra else "") + ")`, "
-                     f"{meta['true_components'][key]} true component(s), "
-                     f"m = {meta['m'][key]}.")
-    lines += ["", "![overview](quality/" + meta["figure"] + ")", "",
-              meta["caption"], ""]
-    lines += ["## Per case", "",
-              "Distances in 1e-3 of diag. d: jurs's offset, in 1e-3 of diag. comps: zero-set "
-              "components / true ones. jurs time: warm median (first call). C ratio: jurs "
-              "Chamfer / the target's RBF Chamfer (s = 0 clean, best noisy). T ratio: RBF (s = 0) "
-              "fit time / jurs warm time. Targets: Z = clean zero set, C = Chamfer, T = time "
-              "(lower case: missed).", "",
-              "| case | m | noise | grid | d | smoothing | jurs Chamfer | jurs Hausdorff | "
-              "supp | tiny | comps | jurs time | RBF Chamfer | RBF supp | RBF tiny | RBF time | "
-              "best RBF Chamfer (s) | C ratio | T ratio | targets |",
-              "|" + "---|" * 20]
+        lines.append(
+            f"* `{key}`: {text}; `jurs.shapes.get({shape!r}, m"
+            + (f", {extra}" if extra else "")
+            + ")`, "
+            f"{meta['true_components'][key]} true component(s), "
+            f"m = {meta['m'][key]}."
+        )
+    lines += ["", "![overview](quality/" + meta["figure"] + ")", "", meta["caption"], ""]
+    lines += [
+        "## Per case",
+        "",
+        "Distances in 1e-3 of diag. d: jurs's offset, in 1e-3 of diag. comps: zero-set "
+        "components / true ones. jurs time: warm median (first call). C ratio: jurs "
+        "Chamfer / the target's RBF Chamfer (s = 0 clean, best noisy). T ratio: RBF (s = 0) "
+        "fit time / jurs warm time. Targets: Z = clean zero set, C = Chamfer, T = time "
+        "(lower case: missed).",
+        "",
+        "| case | m | noise | grid | d | smoothing | jurs Chamfer | jurs Hausdorff | "
+        "supp | tiny | comps | jurs time | RBF Chamfer | RBF supp | RBF tiny | RBF time | "
+        "best RBF Chamfer (s) | C ratio | T ratio | targets |",
+        "|" + "---|" * 20,
+    ]
     for r in runs:
         if "error" in r:
-            lines.append(f"| {r['case']} | {r['m']} | {pct(r['noise'])} | error: {r['error']} |"
-                         + " |" * 16)
+            lines.append(
+                f"| {r['case']} | {r['m']} | {pct(r['noise'])} | error: {r['error']} |" + " |" * 16
+            )
             continue
         st, j, b = r["settings"], r["jurs"], r["rbf"]
         t = r["targets"]
-        flags = "".join(c if t[k] else c.lower() for k, c in
-                        (("clean_zero_set", "Z"), ("chamfer", "C"), ("time", "T")))
+        flags = "".join(
+            c if t[k] else c.lower()
+            for k, c in (("clean_zero_set", "Z"), ("chamfer", "C"), ("time", "T"))
+        )
         lines.append(
             f"| {r['case']} | {r['m']} | {pct(r['noise'])} | {st['grid'][0]}x{st['grid'][1]} | "
             f"{st['offset'] / r['diag'] * 1e3:.2f} | {st['smoothing']:.2g} | "
@@ -534,18 +632,35 @@ def markdown(runs, meta):
             f"{j['num_tiny_loops']} | {j['num_components']}/{j['true_components']} | "
             f"{j['warm_s'] * 1e3:.0f} ms ({j['first_s']:.1f} s) | {b['chamfer'] * 1e3:.3f} | "
             f"{b['num_supplementary']} | {b['num_tiny_loops']} | {b['fit_s'] * 1e3:.0f} ms | "
-            + (f"{r['rbf_best']['chamfer'] * 1e3:.3f} ({fmt_s(r['rbf_best']['smoothing'])})"
-               if r["noise"] > 0 else "-")
-            + f" | {r['chamfer_ratio']:.2f} | {r['time_ratio']:.1f} | {flags} |")
+            + (
+                f"{r['rbf_best']['chamfer'] * 1e3:.3f} ({fmt_s(r['rbf_best']['smoothing'])})"
+                if r["noise"] > 0
+                else "-"
+            )
+            + f" | {r['chamfer_ratio']:.2f} | {r['time_ratio']:.1f} | {flags} |"
+        )
     smoothed = [r for r in ok if r["rbf_smoothed"]]
     if smoothed:
-        lines += ["", "## Smoothed RBFs (noisy cases)", "",
-                  "Chamfer (1e-3 of diag) / supplementary / tiny loops for each smoothing s "
-                  "tried.", "", "| case | noise | s: Chamfer / supp / tiny |", "|---|---|---|"]
+        lines += [
+            "",
+            "## Smoothed RBFs (noisy cases)",
+            "",
+            "Chamfer (1e-3 of diag) / supplementary / tiny loops for each smoothing s tried.",
+            "",
+            "| case | noise | s: Chamfer / supp / tiny |",
+            "|---|---|---|",
+        ]
         for r in smoothed:
-            lines.append(f"| {r['case']} | {pct(r['noise'])} | " + "; ".join(
-                f"{fmt_s(x['smoothing'])}: {x['chamfer'] * 1e3:.3f} / {x['num_supplementary']} / "
-                f"{x['num_tiny_loops']}" for x in r["rbf_smoothed"]) + " |")
+            lines.append(
+                f"| {r['case']} | {pct(r['noise'])} | "
+                + "; ".join(
+                    f"{fmt_s(x['smoothing'])}: {x['chamfer'] * 1e3:.3f} / "
+                    f"{x['num_supplementary']} / "
+                    f"{x['num_tiny_loops']}"
+                    for x in r["rbf_smoothed"]
+                )
+                + " |"
+            )
     return "\n".join(lines) + "\n"
 
 
@@ -565,8 +680,7 @@ def figure(figs, runs, path):
         return shown
     ncols = 3 * len(shown) if len(panels) > 6 else 2 * len(shown)
     nrows = -(-len(panels) // ncols)
-    fig, axes = plt.subplots(nrows, ncols, figsize=(2.4 * ncols, 2.5 * nrows + 0.6),
-                             squeeze=False)
+    fig, axes = plt.subplots(nrows, ncols, figsize=(2.4 * ncols, 2.5 * nrows + 0.6), squeeze=False)
     for ax in axes.ravel():
         ax.set_axis_off()
     for ax, key in zip(axes.ravel(), panels):
@@ -582,13 +696,19 @@ def figure(figs, runs, path):
         ax.set_ylim(p[:, 1].min() - pad, p[:, 1].max() + pad)
         ax.set_aspect("equal")
         b = r["rbf_best"]
-        ax.set_title(f"{r['case']} @ {pct(r['noise'])}\njurs {r['jurs']['chamfer'] * 1e3:.2f}, "
-                     f"RBF(s={fmt_s(b['smoothing'])}) {b['chamfer'] * 1e3:.2f}", fontsize=7.5)
-    handles = [plt.Line2D([], [], color="0.55", marker=".", ls="", label="data points"),
-               plt.Line2D([], [], color="tab:blue", label="jurs defaults: zero set"),
-               plt.Line2D([], [], color="tab:red", label="jurs: supplementary component"),
-               plt.Line2D([], [], color="tab:orange", ls="--",
-                          label="best RBF (Chamfer oracle): zero set")]
+        ax.set_title(
+            f"{r['case']} @ {pct(r['noise'])}\njurs {r['jurs']['chamfer'] * 1e3:.2f}, "
+            f"RBF(s={fmt_s(b['smoothing'])}) {b['chamfer'] * 1e3:.2f}",
+            fontsize=7.5,
+        )
+    handles = [
+        plt.Line2D([], [], color="0.55", marker=".", ls="", label="data points"),
+        plt.Line2D([], [], color="tab:blue", label="jurs defaults: zero set"),
+        plt.Line2D([], [], color="tab:red", label="jurs: supplementary component"),
+        plt.Line2D(
+            [], [], color="tab:orange", ls="--", label="best RBF (Chamfer oracle): zero set"
+        ),
+    ]
     fig.legend(handles=handles, loc="lower center", ncol=4, fontsize=8, frameon=False)
     fig.tight_layout(rect=(0, 0.03, 1, 1))
     os.makedirs(os.path.dirname(path), exist_ok=True)
@@ -614,11 +734,17 @@ def jsonable(x):
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true",
-                        help=f"cases {', '.join(QUICK_CASES)} at noise "
-                             f"{', '.join(map(str, QUICK_NOISE_LEVELS))} only")
-    parser.add_argument("--markdown-only", action="store_true",
-                        help="rewrite quality.md from the existing quality.json (no measurement)")
+    parser.add_argument(
+        "--quick",
+        action="store_true",
+        help=f"cases {', '.join(QUICK_CASES)} at noise "
+        f"{', '.join(map(str, QUICK_NOISE_LEVELS))} only",
+    )
+    parser.add_argument(
+        "--markdown-only",
+        action="store_true",
+        help="rewrite quality.md from the existing quality.json (no measurement)",
+    )
     args = parser.parse_args(argv)
     if args.markdown_only:
         import json
@@ -634,11 +760,17 @@ def main(argv=None):
     checks = CHECKS_QUICK if args.quick else CHECKS_FULL
     start = time.perf_counter()
     runs, figs = [], []
-    meta = {"quick": args.quick, "machine": machine(), "python": platform.python_version(),
-            "load_average": os.getloadavg()[0],
-            "command": "python benchmarks/quality.py" + (" --quick" if args.quick else ""),
-            "cases": list(cases), "noise_levels": list(levels), "m": {},
-            "true_components": {}}
+    meta = {
+        "quick": args.quick,
+        "machine": machine(),
+        "python": platform.python_version(),
+        "load_average": os.getloadavg()[0],
+        "command": "python benchmarks/quality.py" + (" --quick" if args.quick else ""),
+        "cases": list(cases),
+        "noise_levels": list(levels),
+        "m": {},
+        "true_components": {},
+    }
     for case in cases:
         shape = CASES[case][0]
         comps, ref, diag, length = clean_outline(shape)
@@ -647,11 +779,17 @@ def main(argv=None):
         for level in levels:
             t0 = time.perf_counter()
             try:
-                out, fig = run_case(case, level, m, ref, diag, len(comps),
-                                    check=(case, level) in checks)
+                out, fig = run_case(
+                    case, level, m, ref, diag, len(comps), check=(case, level) in checks
+                )
             except Exception as exc:  # keep the other runs of a long benchmark
-                out = {"case": case, "m": m, "noise": level, "diag": diag,
-                       "error": f"{type(exc).__name__}: {exc}"}
+                out = {
+                    "case": case,
+                    "m": m,
+                    "noise": level,
+                    "diag": diag,
+                    "error": f"{type(exc).__name__}: {exc}",
+                }
                 fig = None
             out["run_s"] = time.perf_counter() - t0
             runs.append(out)
@@ -660,31 +798,44 @@ def main(argv=None):
                 print(f"{case:18s} {pct(level):>7s}  ERROR {out['error']}", flush=True)
             else:
                 j = out["jurs"]
-                print(f"{case:18s} {pct(level):>7s} m={m} grid={out['settings']['grid']} "
-                      f"jurs C={j['chamfer'] * 1e3:.3f} supp={j['num_supplementary']} "
-                      f"tiny={j['num_tiny_loops']} comps={j['num_components']}/{len(comps)} "
-                      f"warm={j['warm_s'] * 1e3:.0f}ms first={j['first_s']:.1f}s | RBF C="
-                      f"{out['rbf']['chamfer'] * 1e3:.3f} t={out['rbf']['fit_s']:.2f}s best="
-                      f"{out['rbf_best']['chamfer'] * 1e3:.3f}(s={out['rbf_best']['smoothing']:g})"
-                      f" | {out['run_s']:.0f}s", flush=True)
+                print(
+                    f"{case:18s} {pct(level):>7s} m={m} grid={out['settings']['grid']} "
+                    f"jurs C={j['chamfer'] * 1e3:.3f} supp={j['num_supplementary']} "
+                    f"tiny={j['num_tiny_loops']} comps={j['num_components']}/{len(comps)} "
+                    f"warm={j['warm_s'] * 1e3:.0f}ms first={j['first_s']:.1f}s | RBF C="
+                    f"{out['rbf']['chamfer'] * 1e3:.3f} t={out['rbf']['fit_s']:.2f}s best="
+                    f"{out['rbf_best']['chamfer'] * 1e3:.3f}(s={out['rbf_best']['smoothing']:g})"
+                    f" | {out['run_s']:.0f}s",
+                    flush=True,
+                )
     name, fig_name = "quality", "overview.png"
     shown = figure(figs, runs, os.path.join(FIGURE_DIR, fig_name))
     meta["figure"] = fig_name
     meta["caption"] = (
-        "Figure: every base case at noise " + " and ".join(pct(x) for x in shown)
+        "Figure: every base case at noise "
+        + " and ".join(pct(x) for x in shown)
         + " (panel title: case @ noise, then the Chamfer distances in 1e-3 of diag of jurs "
         "and of the best RBF with its smoothing s). Grey dots: the data points; blue: the "
         "zero set of `jurs.fit` with defaults (red where a component is supplementary); "
         "dashed orange: the zero set of the best RBF (s = 0 on clean data, the "
         "Chamfer-best s on noisy data). At this scale the two zero sets mostly lie on top of "
-        "each other; the distances in the titles and the tables say how far apart they are.")
+        "each other; the distances in the titles and the tables say how far apart they are."
+    )
     meta["total_s"] = time.perf_counter() - start
-    payload = {"meta": meta, "config": {
-        "noise_levels": list(levels), "smoothing_ladder": list(SMOOTHING_LADDER),
-        "smoothing_extension": list(SMOOTHING_EXTENSION), "warm_repeats": WARM_REPEATS,
-        "resolution": RESOLUTION, "reference_divisor": REFERENCE_DIVISOR,
-        "time_fraction": TIME_FRACTION, "m_rule": [M_PER_LENGTH, M_MIN, M_MAX]},
-        "runs": runs}
+    payload = {
+        "meta": meta,
+        "config": {
+            "noise_levels": list(levels),
+            "smoothing_ladder": list(SMOOTHING_LADDER),
+            "smoothing_extension": list(SMOOTHING_EXTENSION),
+            "warm_repeats": WARM_REPEATS,
+            "resolution": RESOLUTION,
+            "reference_divisor": REFERENCE_DIVISOR,
+            "time_fraction": TIME_FRACTION,
+            "m_rule": [M_PER_LENGTH, M_MIN, M_MAX],
+        },
+        "runs": runs,
+    }
     text = markdown(runs, meta)
     write_results(name, jsonable(payload), text)
     print(text)

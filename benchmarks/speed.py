@@ -48,20 +48,50 @@ HERE = os.path.dirname(os.path.abspath(__file__))
 # The sizes, settings and targets live in _speed_config, the verdicts and the markdown in
 # _speed_report, the timer in _common (all next to this script, which is on sys.path when
 # it runs; none of them imports JAX when imported: each worker starts it itself).
+from _common import (  # noqa: E402
+    elapsed_log,
+    machine,
+    rerender_beside,
+    time_repeated,
+    write_results,
+)
 from _speed_config import (  # noqa: E402
-    ANALYSIS_RESOLUTION, CEILING_N, DENSE_LIMIT_BYTES, EPS, EXAMPLE4, EXAMPLE4_MAX_STEPS,
-    EXAMPLE4_RUNS, EXAMPLE4_TOL, FIT_STEPS, FULL_SWEEP, HUGEPAGE_ENV, LOOP_S, LOOP_STEPS_MAX,
-    LOOP_STEPS_MIN, LSQ_LAM, OFFSET, PASS_REPEATS, QUICK_RBF_POINTS, QUICK_SWEEP, RBF_GIVEN,
-    RBF_GRIDS, RBF_MAX_PREDICTED_S, REFERENCE_POINTS, REFINED_REFERENCE_SAMPLES,
-    REFINED_SAMPLES_PER_DIAGONAL, STEP_BUDGET_S, STEP_SOLVERS, TARGET_GRID, TARGET_POINTS,
-    TARGET_RBF_POINTS, WORKER_TIMEOUT_S,
+    ANALYSIS_RESOLUTION,
+    CEILING_N,
+    DENSE_LIMIT_BYTES,
+    EPS,
+    EXAMPLE4,
+    EXAMPLE4_MAX_STEPS,
+    EXAMPLE4_RUNS,
+    EXAMPLE4_TOL,
+    FIT_STEPS,
+    FULL_SWEEP,
+    HUGEPAGE_ENV,
+    LOOP_S,
+    LOOP_STEPS_MAX,
+    LOOP_STEPS_MIN,
+    LSQ_LAM,
+    OFFSET,
+    PASS_REPEATS,
+    QUICK_RBF_POINTS,
+    QUICK_SWEEP,
+    RBF_GIVEN,
+    RBF_GRIDS,
+    RBF_MAX_PREDICTED_S,
+    REFERENCE_POINTS,
+    REFINED_REFERENCE_SAMPLES,
+    REFINED_SAMPLES_PER_DIAGONAL,
+    STEP_BUDGET_S,
+    STEP_SOLVERS,
+    TARGET_GRID,
+    TARGET_POINTS,
+    TARGET_RBF_POINTS,
+    WORKER_TIMEOUT_S,
 )
 from _speed_report import arithmetic_bounds, evaluate_targets, report  # noqa: E402
-from _common import (  # noqa: E402
-    elapsed_log, machine, rerender_beside, time_repeated, write_results,
-)
 
 # --------------------------------------------------------------------------- measuring (workers)
+
 
 def _status_bytes(field: str) -> int | None:
     """A ``kB`` field of /proc/self/status (VmRSS, VmHWM) in bytes; None off Linux."""
@@ -92,6 +122,7 @@ def _start_jax():
 
     jax.config.update("jax_enable_x64", True)
     import jax.numpy as jnp
+
     import jurs
 
     jax.block_until_ready(jnp.zeros(8) + 1.0)
@@ -156,8 +187,9 @@ def work_step(spec: dict) -> dict:
     spline = jurs.ImplicitSpline(jnp.zeros(grid), jnp.ones(grid), problem.lower, problem.upper)
     # The step compiled with jurs.COMPILER_OPTIONS when asked (see run_tuned).
     options = jurs.COMPILER_OPTIONS if spec.get("compiler_options") else None
-    init = time_repeated(jax.jit(solver.init, compiler_options=options), problem, spline,
-                         budget_s=0.5)
+    init = time_repeated(
+        jax.jit(solver.init, compiler_options=options), problem, spline, budget_s=0.5
+    )
     state, _ = init["output"]
 
     @partial(jax.jit, compiler_options=options)
@@ -171,11 +203,17 @@ def work_step(spec: dict) -> dict:
     jax.block_until_ready(step(solver, problem, state))
     faults = resource.getrusage(resource.RUSAGE_SELF).ru_minflt - faults
     looped = time_step_loop(jax, solver, problem, state, timed["warm_s"], options)
-    return {"build_s": build, **_timing(init, "init_"), **_timing(timed, "step_"),
-            "step_page_faults": faults, **looped,
-            "bucket_size": int(problem.local.bucket_size),
-            "slots": int(problem.samples.shape[0]), "device": _device_name(jax),
-            **_memory(base)}
+    return {
+        "build_s": build,
+        **_timing(init, "init_"),
+        **_timing(timed, "step_"),
+        "step_page_faults": faults,
+        **looped,
+        "bucket_size": int(problem.local.bucket_size),
+        "slots": int(problem.samples.shape[0]),
+        "device": _device_name(jax),
+        **_memory(base),
+    }
 
 
 def time_step_loop(jax, solver, problem, state, step_s: float, options=None) -> dict:
@@ -192,13 +230,17 @@ def time_step_loop(jax, solver, problem, state, step_s: float, options=None) -> 
     @partial(jax.jit, static_argnums=3, compiler_options=options)
     def steps(solver, problem, state, k):
         energy = jnp.zeros((), problem.samples.dtype)
-        return jax.lax.fori_loop(0, k, lambda _, carry: solver.step(problem, carry[0]),
-                                 (state, energy))
+        return jax.lax.fori_loop(
+            0, k, lambda _, carry: solver.step(problem, carry[0]), (state, energy)
+        )
 
     timed = time_repeated(steps, solver, problem, state, k, budget_s=STEP_BUDGET_S)
-    return {"loop_steps": k, "loop_step_warm_s": timed["warm_s"] / k,
-            "loop_step_min_s": timed["min_s"] / k,
-            "loop_compile_s": timed["compile_s"]}
+    return {
+        "loop_steps": k,
+        "loop_step_warm_s": timed["warm_s"] / k,
+        "loop_step_min_s": timed["min_s"] / k,
+        "loop_compile_s": timed["compile_s"],
+    }
 
 
 def work_lstsq(spec: dict) -> dict:
@@ -210,14 +252,17 @@ def work_lstsq(spec: dict) -> dict:
     solver = jurs.LeastSquares(lam=spec["lam"])
 
     def fit():  # every setting given: no automatic choices (jurs.auto_settings) in the timing
-        return jurs.fit(points, normals, grid=spec["grid"], solver=solver, offset=OFFSET,
-                        eps=EPS)
+        return jurs.fit(points, normals, grid=spec["grid"], solver=solver, offset=OFFSET, eps=EPS)
 
     timed = time_repeated(fit, budget_s=STEP_BUDGET_S, max_repeats=10)
     sol = timed["output"]
-    return {**_timing(timed, "fit_"), "result": result_name(jurs, sol),
-            "E_ave": float(sol.metrics["E_ave"]), "device": _device_name(jax),
-            **_memory(base)}
+    return {
+        **_timing(timed, "fit_"),
+        "result": result_name(jurs, sol),
+        "E_ave": float(sol.metrics["E_ave"]),
+        "device": _device_name(jax),
+        **_memory(base),
+    }
 
 
 def work_fit_steps(spec: dict) -> dict:
@@ -239,24 +284,30 @@ def work_fit_steps(spec: dict) -> dict:
     fits, k = {}, spec.get("steps", FIT_STEPS)
     for steps in (1, 1 + k):
         solver = jurs.IURS(tau=1e-2, lam=1e-3, tol=0.0, max_steps=steps)
-        timed = time_repeated(lambda: jurs.fit(points, normals, solver=solver, **kwargs),
-                              budget_s=3.0, max_repeats=7)
+        timed = time_repeated(
+            lambda: jurs.fit(points, normals, solver=solver, **kwargs), budget_s=3.0, max_repeats=7
+        )
         faults = resource.getrusage(resource.RUSAGE_SELF).ru_minflt
         sol = jax.block_until_ready(jurs.fit(points, normals, solver=solver, **kwargs))
         faults = resource.getrusage(resource.RUSAGE_SELF).ru_minflt - faults
         assert int(sol.stats["num_steps"]) == steps
         fits[steps] = {**_timing(timed), "page_faults": faults}
     one, many = fits[1], fits[1 + k]
-    return {"fits": {str(n): v for n, v in fits.items()}, "steps": k,
-            "step_s": (many["warm_s"] - one["warm_s"]) / k,
-            "step_min_s": (many["min_s"] - one["min_s"]) / k,
-            "compiler_options": options,
-            "device": _device_name(jax), **_memory(base)}
+    return {
+        "fits": {str(n): v for n, v in fits.items()},
+        "steps": k,
+        "step_s": (many["warm_s"] - one["warm_s"]) / k,
+        "step_min_s": (many["min_s"] - one["min_s"]) / k,
+        "compiler_options": options,
+        "device": _device_name(jax),
+        **_memory(base),
+    }
 
 
 def work_port(spec: dict) -> dict:
     """One step of the dense NumPy port of Algorithm 1 (after one untimed step, as for jurs)."""
     import _numpy_port as port
+
     import jurs.datasets
 
     points, normals = jurs.datasets.example1(spec["m"])
@@ -266,8 +317,7 @@ def work_port(spec: dict) -> dict:
     build = time.perf_counter() - t0
     kwargs = {"tau": 1e-2, "lam": 1e-3}
     state = port.step(problem, port.init(problem, kwargs["lam"]), **kwargs)
-    timed = time_repeated(lambda: port.step(problem, state, **kwargs), budget_s=3.0,
-                          max_repeats=10)
+    timed = time_repeated(lambda: port.step(problem, state, **kwargs), budget_s=3.0, max_repeats=10)
     return {"build_s": build, **_timing(timed, "step_"), **_memory(base)}
 
 
@@ -276,29 +326,38 @@ def work_example4(spec: dict) -> dict:
     compilation included; imports timed apart) and warm calls."""
     t0 = time.perf_counter()
     jax, jurs = _start_jax()
-    import jurs.shapes
+    import jurs.shapes  # noqa: F811 (the submodule, after the timed import)
 
     import_s = time.perf_counter() - t0
     points, normals = jurs.shapes.get(spec["shape"], spec["points"])
     base = _baseline()
-    solver = jurs.IURS(tau=spec["tau"], lam=spec["lam"], tol=EXAMPLE4_TOL,
-                       max_steps=EXAMPLE4_MAX_STEPS)
+    solver = jurs.IURS(
+        tau=spec["tau"], lam=spec["lam"], tol=EXAMPLE4_TOL, max_steps=EXAMPLE4_MAX_STEPS
+    )
 
     def fit():  # the paper's offsets (d = 0.1, eps = 0.01), every setting given
-        return jurs.fit(points, normals, grid=spec["grid"], solver=solver, offset=OFFSET,
-                        eps=EPS)
+        return jurs.fit(points, normals, grid=spec["grid"], solver=solver, offset=OFFSET, eps=EPS)
 
     timed = time_repeated(fit, budget_s=2.0)
     sol = timed["output"]
     memory = _memory(base)  # before the pass timings below add their own compilations
     passes = None
     if spec.get("passes", True):  # the fit's problem, as jurs.fit builds it
-        passes = pass_times(jax, jurs.make_problem(points, normals, grid=spec["grid"],
-                                                   offset=OFFSET, eps=EPS))
-    return {"import_s": import_s, "cold_s": timed["first_s"], **_timing(timed),
-            "num_steps": int(sol.stats["num_steps"]), "result": result_name(jurs, sol),
-            "E_ave": float(sol.metrics["E_ave"]), "E_max": float(sol.metrics["E_max"]),
-            "passes": passes, "device": _device_name(jax), **memory}
+        passes = pass_times(
+            jax, jurs.make_problem(points, normals, grid=spec["grid"], offset=OFFSET, eps=EPS)
+        )
+    return {
+        "import_s": import_s,
+        "cold_s": timed["first_s"],
+        **_timing(timed),
+        "num_steps": int(sol.stats["num_steps"]),
+        "result": result_name(jurs, sol),
+        "E_ave": float(sol.metrics["E_ave"]),
+        "E_max": float(sol.metrics["E_max"]),
+        "passes": passes,
+        "device": _device_name(jax),
+        **memory,
+    }
 
 
 def pass_times(jax, problem, repeats: int = PASS_REPEATS) -> dict:
@@ -328,8 +387,12 @@ def pass_times(jax, problem, repeats: int = PASS_REPEATS) -> dict:
         return time_repeated(jax.jit(run), local, x, budget_s=0.5)["min_s"] / repeats
 
     # F as the solver calls it: in a kernel of its own, in the kernels' layout.
-    return {"F2_s": looped(values_apart, grids), "F1_s": looped(values_apart, grids[0]),
-            "T2_s": looped(t_pass, vectors), "repeats": repeats}
+    return {
+        "F2_s": looped(values_apart, grids),
+        "F1_s": looped(values_apart, grids[0]),
+        "T2_s": looped(t_pass, vectors),
+        "repeats": repeats,
+    }
 
 
 def refined_distances(xs, ys, values, reference, fn) -> dict:
@@ -351,8 +414,9 @@ def refined_distances(xs, ys, values, reference, fn) -> dict:
     spacing = np.hypot(xs[-1] - xs[0], ys[-1] - ys[0]) / REFINED_SAMPLES_PER_DIAGONAL
     zero = [ls.resample(poly, spacing) for poly, _ in ls.contour_lines(xs, ys, values)]
     zero = np.concatenate(zero) if zero else np.empty((0, 2))
-    return ls.refined_chamfer_hausdorff(fn, zero, reference, closed=True,
-                                        reference_samples=REFINED_REFERENCE_SAMPLES)
+    return ls.refined_chamfer_hausdorff(
+        fn, zero, reference, closed=True, reference_samples=REFINED_REFERENCE_SAMPLES
+    )
 
 
 def _level_set(xs, ys, values, points, reference, fn, offset=OFFSET) -> dict:
@@ -362,9 +426,13 @@ def _level_set(xs, ys, values, points, reference, fn, offset=OFFSET) -> dict:
 
     out = ls.analyze_grid(xs, ys, values, points, offset=offset, reference=reference).as_dict()
     refined = refined_distances(xs, ys, values, reference, fn)
-    out.update({"refined_chamfer": refined["chamfer"],
-                "refined_hausdorff": refined["hausdorff"],
-                "unconverged": refined["unconverged_zero"] + refined["unconverged_reference"]})
+    out.update(
+        {
+            "refined_chamfer": refined["chamfer"],
+            "refined_hausdorff": refined["hausdorff"],
+            "unconverged": refined["unconverged_zero"] + refined["unconverged_reference"],
+        }
+    )
     return out
 
 
@@ -376,8 +444,9 @@ def work_rbf(spec: dict) -> dict:
     also on the coarser grid of RBF_GRIDS with the same settings otherwise, and with
     ``RBF_GIVEN`` where ``spec["given"]``."""
     jax, jurs = _start_jax()
-    import jurs.levelset as ls
     from _baselines import evaluate_rbf, evaluate_rbf_grid, rbf_fit
+
+    import jurs.levelset as ls
 
     points, normals = jurs.datasets.example1(spec["m"])
     reference = jurs.datasets.example1(REFERENCE_POINTS)[0]
@@ -386,34 +455,63 @@ def work_rbf(spec: dict) -> dict:
     settings = timed["output"].settings
     # The box does not depend on the grid, so every fit and the RBF share xs, ys.
     xs, ys, _ = ls.sampling_grid(*settings.domain, ANALYSIS_RESOLUTION)
-    coarse = dict(grid=spec["grid"], offset=settings.offset, eps=settings.eps,
-                  solver=jurs.LeastSquares(lam=settings.lam))
+    coarse = dict(
+        grid=spec["grid"],
+        offset=settings.offset,
+        eps=settings.eps,
+        solver=jurs.LeastSquares(lam=settings.lam),
+    )
 
     def given(options):  # automatic settings around the given ones, timed too
         return jurs.fit(points, normals, **options)
 
     def measured(run):
         spline = run["output"].spline
-        return {"grid": list(spline.shape), "lam": float(run["output"].metrics["lam"]),
-                "offset": settings.offset, "eps": settings.eps, **_timing(run),
-                **_level_set(xs, ys, ls.evaluate_grid(spline, xs, ys), points, reference,
-                             spline, offset=settings.offset)}
+        return {
+            "grid": list(spline.shape),
+            "lam": float(run["output"].metrics["lam"]),
+            "offset": settings.offset,
+            "eps": settings.eps,
+            **_timing(run),
+            **_level_set(
+                xs,
+                ys,
+                ls.evaluate_grid(spline, xs, ys),
+                points,
+                reference,
+                spline,
+                offset=settings.offset,
+            ),
+        }
 
     out["jurs_main"] = measured(timed)
-    out["jurs_coarse"] = measured(time_repeated(lambda: jurs.fit(points, normals, **coarse),
-                                              budget_s=2.0))
+    out["jurs_coarse"] = measured(
+        time_repeated(lambda: jurs.fit(points, normals, **coarse), budget_s=2.0)
+    )
     if spec.get("given"):
-        out["jurs_given"] = [{"given": options, **measured(time_repeated(
-            lambda: given(options), budget_s=2.0))} for options in RBF_GIVEN]
+        out["jurs_given"] = [
+            {"given": options, **measured(time_repeated(lambda: given(options), budget_s=2.0))}
+            for options in RBF_GIVEN
+        ]
     rbf, rbf_s = rbf_fit(points, normals, offset=settings.offset, eps=settings.eps)
     t0 = time.perf_counter()
     values = evaluate_rbf_grid(rbf, xs, ys)  # the same box and grid as the jurs fits
     grid_eval_s = time.perf_counter() - t0
     t0 = time.perf_counter()
-    out["rbf"] = {"fit_s": rbf_s, "grid_eval_s": grid_eval_s,
-                  **_level_set(xs, ys, values, points, reference,
-                               lambda xy: evaluate_rbf(rbf, xy), offset=settings.offset),
-                  "analysis_s": time.perf_counter() - t0}
+    out["rbf"] = {
+        "fit_s": rbf_s,
+        "grid_eval_s": grid_eval_s,
+        **_level_set(
+            xs,
+            ys,
+            values,
+            points,
+            reference,
+            lambda xy: evaluate_rbf(rbf, xy),
+            offset=settings.offset,
+        ),
+        "analysis_s": time.perf_counter() - t0,
+    }
     return out
 
 
@@ -427,8 +525,15 @@ def work_ceiling(spec: dict) -> dict:
     return {"n": n, "seconds": best, "macs_per_s": n**3 / best}
 
 
-WORKERS = {"step": work_step, "fit_steps": work_fit_steps, "lstsq": work_lstsq, "port": work_port,
-           "example4": work_example4, "rbf": work_rbf, "ceiling": work_ceiling}
+WORKERS = {
+    "step": work_step,
+    "fit_steps": work_fit_steps,
+    "lstsq": work_lstsq,
+    "port": work_port,
+    "example4": work_example4,
+    "rbf": work_rbf,
+    "ceiling": work_ceiling,
+}
 
 
 def worker_main(spec_json: str) -> None:
@@ -441,25 +546,34 @@ def worker_main(spec_json: str) -> None:
 
 # --------------------------------------------------------------------------- orchestration
 
+
 def run_worker(spec: dict, log, env: dict | None = None) -> dict:
     """Run one measurement in a fresh Python process (with ``env`` added to this one's
     environment); ``{"error": ...}`` if it fails."""
     t0 = time.perf_counter()
     try:
-        proc = subprocess.run([sys.executable, os.path.abspath(__file__), "--worker",
-                               json.dumps(spec)], capture_output=True, text=True,
-                              timeout=WORKER_TIMEOUT_S, cwd=HERE, env={**os.environ, **(env or {})})
+        proc = subprocess.run(
+            [sys.executable, os.path.abspath(__file__), "--worker", json.dumps(spec)],
+            capture_output=True,
+            text=True,
+            timeout=WORKER_TIMEOUT_S,
+            cwd=HERE,
+            env={**os.environ, **(env or {})},
+        )
     except subprocess.TimeoutExpired:
         result = {"error": f"timed out after {WORKER_TIMEOUT_S} s"}
     else:
         lines = [ln for ln in proc.stdout.splitlines() if ln.startswith("RESULT ")]
         if proc.returncode == 0 and lines:
-            result = json.loads(lines[-1][len("RESULT "):])
+            result = json.loads(lines[-1][len("RESULT ") :])
         else:
             tail = (proc.stderr or proc.stdout).strip().splitlines()[-3:]
             result = {"error": f"exit {proc.returncode}: " + " | ".join(tail)}
-    log(f"{time.perf_counter() - t0:6.1f} s  {json.dumps(spec)}" + (f" {env}" if env else "")
-        + (f"  ERROR {result['error']}" if "error" in result else ""))
+    log(
+        f"{time.perf_counter() - t0:6.1f} s  {json.dumps(spec)}"
+        + (f" {env}" if env else "")
+        + (f"  ERROR {result['error']}" if "error" in result else "")
+    )
     return result
 
 
@@ -489,8 +603,16 @@ def run_port(sweep_rows: list[dict], log) -> list[dict]:
         res = run_worker({"kind": "port", "m": r["m"], "grid": r["grid"]}, log)
         ours = r["iurs"].get("step_warm_s")
         ratio = res["step_warm_s"] / ours if ours and "step_warm_s" in res else None
-        rows.append({"m": r["m"], "grid": r["grid"], "dense_b": size, "port": res,
-                     "jurs_iurs_step_s": ours, "ratio": ratio})
+        rows.append(
+            {
+                "m": r["m"],
+                "grid": r["grid"],
+                "dense_b": size,
+                "port": res,
+                "jurs_iurs_step_s": ours,
+                "ratio": ratio,
+            }
+        )
     return rows
 
 
@@ -502,11 +624,17 @@ def run_rbf(points_list, log) -> list[dict]:
             predicted = last[1]["rbf"]["fit_s"] * (m / last[0]) ** 3
             if predicted > RBF_MAX_PREDICTED_S:
                 log(f"skip RBF at m={m}: predicted {predicted:.0f} s")
-                rows.append({"m": m, "grid": RBF_GRIDS[m],
-                             "skipped": f"RBF fit predicted to take {predicted:.0f} s"})
+                rows.append(
+                    {
+                        "m": m,
+                        "grid": RBF_GRIDS[m],
+                        "skipped": f"RBF fit predicted to take {predicted:.0f} s",
+                    }
+                )
                 continue
-        res = run_worker({"kind": "rbf", "m": m, "grid": RBF_GRIDS[m],
-                          "given": m == TARGET_RBF_POINTS}, log)
+        res = run_worker(
+            {"kind": "rbf", "m": m, "grid": RBF_GRIDS[m], "given": m == TARGET_RBF_POINTS}, log
+        )
         rows.append({"m": m, "grid": RBF_GRIDS[m], **res})
         last = (m, res)
     return rows
@@ -518,18 +646,23 @@ def run_tuned(log) -> dict:
     problems), without and with it."""
     step = {"kind": "step", "m": TARGET_POINTS, "grid": TARGET_GRID, "solver": "iurs"}
     lstsq = {"kind": "lstsq", "m": TARGET_POINTS, "grid": TARGET_GRID, "lam": LSQ_LAM}
-    return {"env": HUGEPAGE_ENV,
-            "iurs": run_worker(step, log, HUGEPAGE_ENV),
-            "lstsq": run_worker(lstsq, log, HUGEPAGE_ENV),
-            "iurs_options": run_worker({**step, "compiler_options": True}, log),
-            "iurs_both": run_worker({**step, "compiler_options": True}, log, HUGEPAGE_ENV)}
+    return {
+        "env": HUGEPAGE_ENV,
+        "iurs": run_worker(step, log, HUGEPAGE_ENV),
+        "lstsq": run_worker(lstsq, log, HUGEPAGE_ENV),
+        "iurs_options": run_worker({**step, "compiler_options": True}, log),
+        "iurs_both": run_worker({**step, "compiler_options": True}, log, HUGEPAGE_ENV),
+    }
 
 
 def run_fit_steps(log) -> dict:
     """The IURS step inside ``jurs.fit`` at the target size, as it is and in ``HUGEPAGE_ENV``."""
     spec = {"kind": "fit_steps", "m": TARGET_POINTS, "grid": TARGET_GRID}
-    return {"env": HUGEPAGE_ENV, "default": run_worker(spec, log),
-            "hugepages": run_worker(spec, log, HUGEPAGE_ENV)}
+    return {
+        "env": HUGEPAGE_ENV,
+        "default": run_worker(spec, log),
+        "hugepages": run_worker(spec, log, HUGEPAGE_ENV),
+    }
 
 
 def run_example4(log, runs: int = EXAMPLE4_RUNS) -> list[dict]:
@@ -542,8 +675,9 @@ def run_example4(log, runs: int = EXAMPLE4_RUNS) -> list[dict]:
     compiled fit instead of compiling it."""
     rows = []
     for cfg in EXAMPLE4:
-        results = [run_worker({"kind": "example4", **cfg, "passes": i == 0}, log)
-                   for i in range(runs)]
+        results = [
+            run_worker({"kind": "example4", **cfg, "passes": i == 0}, log) for i in range(runs)
+        ]
         ok = [r for r in results if "error" not in r]
         row = {**cfg, **(ok[0] if ok else results[0])}
         if ok:
@@ -554,13 +688,22 @@ def run_example4(log, runs: int = EXAMPLE4_RUNS) -> list[dict]:
             row["min_s"] = min(r["min_s"] for r in ok)
         with tempfile.TemporaryDirectory(prefix="jurs-compilation-cache-") as cache:
             # Every compilation kept, however short (JAX's default keeps those above 1 s).
-            env = {"JAX_COMPILATION_CACHE_DIR": cache,
-                   "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "0"}
+            env = {
+                "JAX_COMPILATION_CACHE_DIR": cache,
+                "JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS": "0",
+            }
             spec = {"kind": "example4", **cfg, "passes": False}
             filled = "error" not in run_worker(spec, log, env)
             # Without a filled cache the next process would compile: no cached time then.
-            cached = [r["cold_s"] for r in (run_worker(spec, log, env) for _ in range(runs))
-                      if "error" not in r] if filled else []
+            cached = (
+                [
+                    r["cold_s"]
+                    for r in (run_worker(spec, log, env) for _ in range(runs))
+                    if "error" not in r
+                ]
+                if filled
+                else []
+            )
         if cached:
             row["cold_cached_runs_s"] = cached
             row["cold_cached_s"] = float(np.median(cached))
@@ -570,15 +713,21 @@ def run_example4(log, runs: int = EXAMPLE4_RUNS) -> list[dict]:
 
 # --------------------------------------------------------------------------- main
 
+
 def rerender(path: str) -> None:
     """Targets and markdown again from saved measurements (no measuring), rewritten beside
     ``path`` (:func:`_common.rerender_beside`)."""
+
     def render(data):
-        data["bounds"] = arithmetic_bounds(data["sweep"], data["example4"],
-                                           data.get("ceiling"))
-        data["targets"] = evaluate_targets(data["sweep"], data["rbf"], data["example4"],
-                                           data["bounds"], data.get("tuned"),
-                                           data.get("fit_steps"))
+        data["bounds"] = arithmetic_bounds(data["sweep"], data["example4"], data.get("ceiling"))
+        data["targets"] = evaluate_targets(
+            data["sweep"],
+            data["rbf"],
+            data["example4"],
+            data["bounds"],
+            data.get("tuned"),
+            data.get("fit_steps"),
+        )
         return report(data)
 
     print(rerender_beside(path, render))
@@ -586,10 +735,16 @@ def rerender(path: str) -> None:
 
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--quick", action="store_true",
-                        help="small sizes only (a few minutes); writes speed_quick.*")
-    parser.add_argument("--from-json", metavar="PATH",
-                        help="re-render the report (and the targets) from a results JSON")
+    parser.add_argument(
+        "--quick",
+        action="store_true",
+        help="small sizes only (a few minutes); writes speed_quick.*",
+    )
+    parser.add_argument(
+        "--from-json",
+        metavar="PATH",
+        help="re-render the report (and the targets) from a results JSON",
+    )
     parser.add_argument("--worker", help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if args.worker:
@@ -616,15 +771,24 @@ def main(argv=None):
     rbf = run_rbf(QUICK_RBF_POINTS if args.quick else tuple(RBF_GRIDS), log)
     ceiling = run_worker({"kind": "ceiling", "n": CEILING_N}, log)
     bounds = arithmetic_bounds(sweep, example4, ceiling)
-    data = {"quick": args.quick, "machine": machine(),
-            "device": _device_name(jax),
-            "sweep_config": {str(m): list(g) for m, g in sweep_config.items()},  # JSON keys
-            "targets": evaluate_targets(sweep, rbf, example4, bounds, tuned, fit_steps),
-            "sweep": sweep, "port": port, "rbf": rbf, "example4": example4,
-            "tuned": tuned, "fit_steps": fit_steps,
-            "ceiling": ceiling, "ceiling_start": ceiling_start, "bounds": bounds,
-            "load_average": load_average,
-            "runtime_s": time.perf_counter() - start}
+    data = {
+        "quick": args.quick,
+        "machine": machine(),
+        "device": _device_name(jax),
+        "sweep_config": {str(m): list(g) for m, g in sweep_config.items()},  # JSON keys
+        "targets": evaluate_targets(sweep, rbf, example4, bounds, tuned, fit_steps),
+        "sweep": sweep,
+        "port": port,
+        "rbf": rbf,
+        "example4": example4,
+        "tuned": tuned,
+        "fit_steps": fit_steps,
+        "ceiling": ceiling,
+        "ceiling_start": ceiling_start,
+        "bounds": bounds,
+        "load_average": load_average,
+        "runtime_s": time.perf_counter() - start,
+    }
     text = report(data)
     print(text)
     write_results("speed_quick" if args.quick else "speed", data, text)

@@ -45,7 +45,7 @@ CLI_POINTS = 1000
 REPEATS = 3
 IMPORT_REPEATS = 5
 
-SCIPY_SCRIPT = '''
+SCIPY_SCRIPT = """
 import sys
 import contourpy
 import numpy as np
@@ -65,9 +65,9 @@ grid = np.stack(np.meshgrid(xs, ys), axis=-1).reshape(-1, 2)
 values = rbf(grid).reshape(200, 200)
 lines = contourpy.contour_generator(xs, ys, values).lines(0.0)
 print(len(lines), sum(len(line) for line in lines))
-'''
+"""
 
-FITS = '''
+FITS = """
 import json, sys, time
 t0 = time.perf_counter()
 import jax
@@ -105,20 +105,25 @@ print(json.dumps(dict(
     warm_min_s=min(warm), compiles_a=compiles_a, compiles_b=compiles_b, compile_a_s=compile_a_s,
     new_cloud_compiled=sorted(set(map(str, compiles[compiles_a:]))),
     jurs_file=jurs.__file__)))
-'''
+"""
 
 
 def clean_environment(home: str, cache: str, pythonpath: str) -> dict:
-    return {"PATH": os.environ.get("PATH", "/usr/bin:/bin"), "HOME": home,
-            "XDG_CACHE_HOME": cache, "JAX_PLATFORMS": "cpu", "PYTHONPATH": pythonpath,
-            "LANG": "C.UTF-8", "MPLBACKEND": "Agg"}
+    return {
+        "PATH": os.environ.get("PATH", "/usr/bin:/bin"),
+        "HOME": home,
+        "XDG_CACHE_HOME": cache,
+        "JAX_PLATFORMS": "cpu",
+        "PYTHONPATH": pythonpath,
+        "LANG": "C.UTF-8",
+        "MPLBACKEND": "Agg",
+    }
 
 
 def wall(cmd, env, cwd, timeout=600) -> tuple[float, str]:
     """Seconds of one whole process; its stdout. Fails loudly if the process fails."""
     t0 = time.perf_counter()
-    proc = subprocess.run(cmd, env=env, cwd=cwd, capture_output=True, text=True,
-                          timeout=timeout)
+    proc = subprocess.run(cmd, env=env, cwd=cwd, capture_output=True, text=True, timeout=timeout)
     seconds = time.perf_counter() - t0
     if proc.returncode != 0:
         raise RuntimeError(f"{cmd} failed ({proc.returncode}):\n{proc.stderr[-3000:]}")
@@ -141,8 +146,9 @@ def measure_imports(py, env, cwd, log) -> dict:
         for name in times:
             code = "pass" if name == "none" else f"import {name}"
             times[name].append(wall([py, "-c", code], env, cwd)[0])
-    result = {k: {"median_s": statistics.median(v), "min_s": min(v), "all_s": v}
-              for k, v in times.items()}
+    result = {
+        k: {"median_s": statistics.median(v), "min_s": min(v), "all_s": v} for k, v in times.items()
+    }
     log(f"imports: {json.dumps({k: round(v['median_s'], 3) for k, v in result.items()})}")
     return result
 
@@ -154,16 +160,26 @@ def measure_fits(py, env, cwd, log) -> list:
         row = json.loads(out.splitlines()[-1])
         row["ratio"] = row["new_cloud_s"] / row["warm_s"]
         rows.append(row)
-        log(f"fits at {n}: first A {row['first_a_s']:.2f} s, new cloud {row['new_cloud_s']:.3f} "
-            f"s, warm {row['warm_s']:.3f} s, ratio {row['ratio']:.2f}")
+        log(
+            f"fits at {n}: first A {row['first_a_s']:.2f} s, new cloud {row['new_cloud_s']:.3f} "
+            f"s, warm {row['warm_s']:.3f} s, ratio {row['ratio']:.2f}"
+        )
     return rows
 
 
 def measure_cli(py, env, cwd, log) -> dict:
     snapshot_jurs = [py, "-c", "import jurs, sys; print(jurs.__file__)"]
     log(f"jurs from {wall(snapshot_jurs, env, cwd)[1].strip()}")
-    wall([py, "-c", "import jurs; jurs.datasets.save_points('cloud.csv', "
-          f"*jurs.datasets.example1({CLI_POINTS}))"], env, cwd)
+    wall(
+        [
+            py,
+            "-c",
+            "import jurs; jurs.datasets.save_points('cloud.csv', "
+            f"*jurs.datasets.example1({CLI_POINTS}))",
+        ],
+        env,
+        cwd,
+    )
     with open(os.path.join(cwd, "scipy_rbf.py"), "w") as fh:
         fh.write(SCIPY_SCRIPT)
     cli = [py, "-m", "jurs.cli", "fit", "cloud.csv", "-o", "out", "-q"]
@@ -176,14 +192,21 @@ def measure_cli(py, env, cwd, log) -> dict:
         baseline.append(wall(scipy, env, cwd)[0])
     no_cache_env = dict(env, XDG_CACHE_HOME=os.path.join(cwd, "unused-cache"))
     no_cache = wall(cli + ["--no-compilation-cache"], no_cache_env, cwd)[0]
-    result = {"first_s": first, "later_s": later, "later_median_s": statistics.median(later),
-              "scipy_s": baseline, "scipy_median_s": statistics.median(baseline),
-              "no_cache_s": no_cache}
+    result = {
+        "first_s": first,
+        "later_s": later,
+        "later_median_s": statistics.median(later),
+        "scipy_s": baseline,
+        "scipy_median_s": statistics.median(baseline),
+        "no_cache_s": no_cache,
+    }
     result["first_ratio"] = first / result["scipy_median_s"]
     result["later_ratio"] = result["later_median_s"] / result["scipy_median_s"]
     result["no_cache_ratio"] = no_cache / result["scipy_median_s"]
-    log(f"cli later {result['later_median_s']:.2f} s, no cache {no_cache:.2f} s, scipy "
-        f"{result['scipy_median_s']:.2f} s")
+    log(
+        f"cli later {result['later_median_s']:.2f} s, no cache {no_cache:.2f} s, scipy "
+        f"{result['scipy_median_s']:.2f} s"
+    )
     return result
 
 
@@ -202,8 +225,11 @@ def render(data: dict) -> str:
         "| process | median s | min s |",
         "|---|---|---|",
     ]
-    for name, label in (("none", "`python -c pass`"), ("jax", "`import jax`"),
-                        ("jurs", "`import jurs`")):
+    for name, label in (
+        ("none", "`python -c pass`"),
+        ("jax", "`import jax`"),
+        ("jurs", "`import jurs`"),
+    ):
         lines.append(f"| {label} | {imp[name]['median_s']:.2f} | {imp[name]['min_s']:.2f} |")
     lines += [
         "",
@@ -227,7 +253,8 @@ def render(data: dict) -> str:
             f"| {r['n']} | {r['band']} | {r['size_a']} | {tuple(r['grid_a'])} | "
             f"{tuple(r['grid_b'])} | {r['first_a_s']:.2f} ({r['compile_a_s']:.2f}) | "
             f"{r['new_cloud_s']:.3f} | "
-            f"{r['warm_s']:.3f} | {r['ratio']:.2f} | {r['compiles_a']} / {r['compiles_b']} |")
+            f"{r['warm_s']:.3f} | {r['ratio']:.2f} | {r['compiles_a']} / {r['compiles_b']} |"
+        )
     worst = max(r["ratio"] for r in data["fits"])
     lines += [
         "",
@@ -272,16 +299,22 @@ def main() -> None:
     load_before = " ".join(f"{x:.1f}" for x in os.getloadavg())
     with tempfile.TemporaryDirectory(prefix="jurs-startup-") as tmp:
         snapshot = os.path.join(tmp, "src")
-        shutil.copytree(os.path.join(ROOT, "jurs"), os.path.join(snapshot, "jurs"),
-                        ignore=shutil.ignore_patterns("__pycache__"))
+        shutil.copytree(
+            os.path.join(ROOT, "jurs"),
+            os.path.join(snapshot, "jurs"),
+            ignore=shutil.ignore_patterns("__pycache__"),
+        )
         home, work = os.path.join(tmp, "home"), os.path.join(tmp, "work")
         os.makedirs(home)
         os.makedirs(work)
         env = clean_environment(home, os.path.join(tmp, "cache"), snapshot)
         # Byte-compile the snapshot once, as an installed package is.
         wall([py, "-m", "compileall", "-q", snapshot], env, work)
-        data = {"date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
-                "machine": machine(), "load_before": load_before}
+        data = {
+            "date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
+            "machine": machine(),
+            "load_before": load_before,
+        }
         data["imports"] = measure_imports(py, env, work, log)
         data["fits"] = measure_fits(py, env, work, log)
         data["cli"] = measure_cli(py, env, work, log)

@@ -64,8 +64,7 @@ VARIANTS = ("clean", "noise")
 #: Dense samples of each reconstruction and of the truth for the distances: the Chamfer
 #: mean is a Monte-Carlo estimate whose relative error is about 1 / sqrt(samples).
 EVAL_SAMPLES = 400_000
-QUICK = {"cases": ("torus", "bunny"), "sizes": (20_000,), "max_grid": 32,
-         "eval_samples": 100_000}
+QUICK = {"cases": ("torus", "bunny"), "sizes": (20_000,), "max_grid": 32, "eval_samples": 100_000}
 #: Cases drawn side by side in the figure (those present at the smallest size run).
 FIGURE_CASES = ("torus/clean", "bunny/clean", "bunny/noise")
 #: Targets of the issue (fit + mesh at 1e6 points; noisy Chamfer against Poisson's).
@@ -125,8 +124,10 @@ class MeshDistance:
 
         self.o3d = o3d
         self.scene = o3d.t.geometry.RaycastingScene()
-        self.scene.add_triangles(o3d.core.Tensor(np.asarray(vertices, np.float32)),
-                                 o3d.core.Tensor(np.asarray(faces, np.uint32)))
+        self.scene.add_triangles(
+            o3d.core.Tensor(np.asarray(vertices, np.float32)),
+            o3d.core.Tensor(np.asarray(faces, np.uint32)),
+        )
         a, b, c = (np.asarray(vertices)[np.asarray(faces)[:, k]] for k in range(3))
         cross = np.cross(b - a, c - a)
         self.normals = cross / np.maximum(np.linalg.norm(cross, axis=1, keepdims=True), 1e-300)
@@ -146,8 +147,8 @@ class Truth:
     """A case: exact samples, distance to the true surface, and its topology."""
 
     name: str
-    sample: object          # (m, seed) -> (points, normals), exact
-    closest: object         # (x) -> (distance, true unit normal at the closest point)
+    sample: object  # (m, seed) -> (points, normals), exact
+    closest: object  # (x) -> (distance, true unit normal at the closest point)
     components: int
     genus: int
     origin: str
@@ -161,8 +162,7 @@ def mesh_path(name: str):
     pymeshlab = optional("pymeshlab")
     if MESHES is None and pymeshlab is None:
         return None
-    folder = MESHES or os.path.join(os.path.dirname(pymeshlab.__file__), "tests",
-                                    "sample_meshes")
+    folder = MESHES or os.path.join(os.path.dirname(pymeshlab.__file__), "tests", "sample_meshes")
     path = os.path.join(folder, f"{name}.obj")
     return path if os.path.exists(path) else None
 
@@ -173,12 +173,19 @@ def make_truth(name: str) -> Truth | None:
     from jurs.levelset import analyze_mesh
 
     analytic = {
-        "sphere": (lambda m, seed: data.sphere3d(m, seed=seed), sphere_function, 0,
-                   "unit sphere"),
-        "torus": (lambda m, seed: data.torus(m, 1.0, 0.35, seed=seed), torus_function, 1,
-                  "torus R 1, r 0.35"),
-        "genus2": (lambda m, seed: data.genus2(m, seed=seed), data.genus2_function, 2,
-                   "jurs.datasets.genus2 (two tori R 1, r 0.35 blended)"),
+        "sphere": (lambda m, seed: data.sphere3d(m, seed=seed), sphere_function, 0, "unit sphere"),
+        "torus": (
+            lambda m, seed: data.torus(m, 1.0, 0.35, seed=seed),
+            torus_function,
+            1,
+            "torus R 1, r 0.35",
+        ),
+        "genus2": (
+            lambda m, seed: data.genus2(m, seed=seed),
+            data.genus2_function,
+            2,
+            "jurs.datasets.genus2 (two tori R 1, r 0.35 blended)",
+        ),
     }
     if name in analytic:
         sample, fn, genus, origin = analytic[name]
@@ -189,11 +196,15 @@ def make_truth(name: str) -> Truth | None:
     vertices, faces = data.load_mesh(path)
     report = analyze_mesh(vertices, faces)
     genera = [c.genus for c in report.components]
-    return Truth(name, lambda m, seed: data.sample_mesh(vertices, faces, m, seed=seed),
-                 MeshDistance(vertices, faces).closest, report.num_components,
-                 genera[0] if len(genera) == 1 else genera,
-                 f"{os.path.basename(path)} ({len(faces)} faces, "
-                 f"{report.as_dict()['num_closed']}/{report.num_components} components closed)")
+    return Truth(
+        name,
+        lambda m, seed: data.sample_mesh(vertices, faces, m, seed=seed),
+        MeshDistance(vertices, faces).closest,
+        report.num_components,
+        genera[0] if len(genera) == 1 else genera,
+        f"{os.path.basename(path)} ({len(faces)} faces, "
+        f"{report.as_dict()['num_closed']}/{report.num_components} components closed)",
+    )
 
 
 def diagonal(points) -> float:
@@ -246,8 +257,7 @@ def run_jurs(points, normals, max_grid):
 
     base = current_rss_bytes()
     # A cap only changes the grid; fit then chooses everything else as by default.
-    grid = (None if max_grid is None
-            else jurs.auto_settings(points, normals, max_grid=max_grid).grid)
+    grid = None if max_grid is None else jurs.auto_settings(points, normals, max_grid=max_grid).grid
 
     def fit():
         sol = jurs.fit(points, normals, grid=grid)
@@ -257,14 +267,24 @@ def run_jurs(points, normals, max_grid):
     _, first_s, first_cpu = timed(fit)
     sol, fit_s, fit_cpu = timed(fit)
     (vertices, faces), mesh_s, mesh_cpu = timed(jurs.levelset.mesh, sol.spline)
-    return {"vertices": vertices, "faces": faces, "first_s": first_s, "fit_s": fit_s,
-            "mesh_s": mesh_s, "total_s": fit_s + mesh_s, "first_cpu_s": first_cpu,
-            "cpu_s": fit_cpu + mesh_cpu, "base_rss": base, "peak_rss": peak_rss_bytes(),
-            "settings": {k: np.asarray(v).tolist() for k, v in
-                         dataclasses.asdict(sol.settings).items()},
-            "message": sol.message,
-            "converged": bool(sol.result == jurs.RESULTS.successful),
-            "method": f"grid {'x'.join(map(str, sol.settings.grid))}"}
+    return {
+        "vertices": vertices,
+        "faces": faces,
+        "first_s": first_s,
+        "fit_s": fit_s,
+        "mesh_s": mesh_s,
+        "total_s": fit_s + mesh_s,
+        "first_cpu_s": first_cpu,
+        "cpu_s": fit_cpu + mesh_cpu,
+        "base_rss": base,
+        "peak_rss": peak_rss_bytes(),
+        "settings": {
+            k: np.asarray(v).tolist() for k, v in dataclasses.asdict(sol.settings).items()
+        },
+        "message": sol.message,
+        "converged": bool(sol.result == jurs.RESULTS.successful),
+        "method": f"grid {'x'.join(map(str, sol.settings.grid))}",
+    }
 
 
 def run_poisson(points, normals, depth):
@@ -276,12 +296,23 @@ def run_poisson(points, normals, depth):
     cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
     cloud.normals = o3d.utility.Vector3dVector(normals)
     (mesh, _densities), wall, cpu = timed(
-        o3d.geometry.TriangleMesh.create_from_point_cloud_poisson, cloud, depth=depth)
-    return {"vertices": np.asarray(mesh.vertices), "faces": np.asarray(mesh.triangles),
-            # One call fits and meshes: no separate mesh time.
-            "first_s": wall, "fit_s": wall, "mesh_s": None, "total_s": wall,
-            "first_cpu_s": cpu, "cpu_s": cpu, "base_rss": base, "peak_rss": peak_rss_bytes(),
-            "method": f"depth {depth}", "open3d": o3d.__version__}
+        o3d.geometry.TriangleMesh.create_from_point_cloud_poisson, cloud, depth=depth
+    )
+    return {
+        "vertices": np.asarray(mesh.vertices),
+        "faces": np.asarray(mesh.triangles),
+        # One call fits and meshes: no separate mesh time.
+        "first_s": wall,
+        "fit_s": wall,
+        "mesh_s": None,
+        "total_s": wall,
+        "first_cpu_s": cpu,
+        "cpu_s": cpu,
+        "base_rss": base,
+        "peak_rss": peak_rss_bytes(),
+        "method": f"depth {depth}",
+        "open3d": o3d.__version__,
+    }
 
 
 def in_child(fn, *args):
@@ -304,27 +335,34 @@ def poisson_depth(m: int) -> int:
 # --------------------------------------------------------------------------- measuring
 
 
-def surface_distances(vertices, faces, truth: Truth, reference, diag: float,
-                      samples: int) -> dict:
+def surface_distances(vertices, faces, truth: Truth, reference, diag: float, samples: int) -> dict:
     """Point-to-surface Chamfer and Hausdorff (absolute and / ``diag``) and normal
     consistency between a mesh and the true surface; ``reference`` are exact samples."""
     from jurs.datasets import sample_mesh
     from jurs.levelset import face_areas
 
     if len(faces) == 0 or not face_areas(vertices, faces).sum() > 0:
-        return {"chamfer": float("inf"), "hausdorff": float("inf"),
-                "chamfer_rel": float("inf"), "hausdorff_rel": float("inf"),
-                "normal_consistency": float("nan")}
+        return {
+            "chamfer": float("inf"),
+            "hausdorff": float("inf"),
+            "chamfer_rel": float("inf"),
+            "hausdorff_rel": float("inf"),
+            "normal_consistency": float("nan"),
+        }
     z, z_normals = sample_mesh(vertices, faces, samples, seed=SEEDS["mesh"])
     to_truth, true_normals = truth.closest(z)
     to_mesh = MeshDistance(vertices, faces).distance(reference)
     chamfer = 0.5 * (to_truth.mean() + to_mesh.mean())
     hausdorff = max(to_truth.max(), to_mesh.max())
-    return {"chamfer": float(chamfer), "hausdorff": float(hausdorff),
-            "chamfer_rel": float(chamfer / diag), "hausdorff_rel": float(hausdorff / diag),
-            "normal_consistency": float(np.mean(np.abs(np.sum(z_normals * true_normals,
-                                                               axis=1)))),
-            "to_truth_mean": float(to_truth.mean()), "to_mesh_mean": float(to_mesh.mean())}
+    return {
+        "chamfer": float(chamfer),
+        "hausdorff": float(hausdorff),
+        "chamfer_rel": float(chamfer / diag),
+        "hausdorff_rel": float(hausdorff / diag),
+        "normal_consistency": float(np.mean(np.abs(np.sum(z_normals * true_normals, axis=1)))),
+        "to_truth_mean": float(to_truth.mean()),
+        "to_mesh_mean": float(to_mesh.mean()),
+    }
 
 
 def topology(vertices, faces, points) -> tuple[dict, np.ndarray]:
@@ -355,14 +393,20 @@ def run_case(truth, m, variant, args, reference, diag, log):
         rng = np.random.default_rng(SEEDS["noise"])
         points = points + NOISE * diag * rng.standard_normal(points.shape)
     depth = args.depth or poisson_depth(m)
-    record = {"case": truth.name, "m": m, "variant": variant, "diag": diag,
-              "true_components": truth.components, "true_genus": truth.genus}
+    record = {
+        "case": truth.name,
+        "m": m,
+        "variant": variant,
+        "diag": diag,
+        "true_components": truth.components,
+        "true_genus": truth.genus,
+    }
     meshes = {}
-    for name, fn, extra in (("jurs", run_jurs, args.max_grid),
-                            ("poisson", run_poisson, depth)):
+    for name, fn, extra in (("jurs", run_jurs, args.max_grid), ("poisson", run_poisson, depth)):
         log(f"{truth.name}/{variant} m {m}: {name}")
-        record[name], meshes[name] = measure(in_child(fn, points, normals, extra), truth,
-                                             points, reference, diag, args.eval_samples)
+        record[name], meshes[name] = measure(
+            in_child(fn, points, normals, extra), truth, points, reference, diag, args.eval_samples
+        )
     return record, meshes
 
 
@@ -386,13 +430,16 @@ def verdict_line(text, rows, passed, detail):
     if not rows:
         return f"- {text}: not measured in this run"
     misses = [detail(r) for r in rows if not passed(r)]
-    return (f"- {text}: {len(rows) - len(misses)}/{len(rows)} "
-            f"{'MET' if not misses else 'MISSED'}"
-            + (f" (misses: {'; '.join(misses)})" if misses else ""))
+    return (
+        f"- {text}: {len(rows) - len(misses)}/{len(rows)} "
+        f"{'MET' if not misses else 'MISSED'}"
+        + (f" (misses: {'; '.join(misses)})" if misses else "")
+    )
 
 
 def verdicts(runs):
     """The issue's targets, each MET or MISSED, with the cases that miss."""
+
     def name(r):
         return f"{r['case']}/{r['variant']} m {r['m']}"
 
@@ -403,46 +450,78 @@ def verdicts(runs):
     note = "" if base == SIZES[0] else " [indicative only: the targets are set at 1e5]"
     failed = [name(r) for r in runs if not (ok(r, "jurs") and ok(r, "poisson"))]
     out = [f"- runs that failed: {'; '.join(failed)}"] if failed else []
-    unconverged = [f"{name(r)}: {r['jurs']['message'].split(':')[0]}" for r in runs
-                   if ok(r, "jurs") and not r["jurs"]["converged"]]
+    unconverged = [
+        f"{name(r)}: {r['jurs']['message'].split(':')[0]}"
+        for r in runs
+        if ok(r, "jurs") and not r["jurs"]["converged"]
+    ]
     if unconverged:
         out.append(f"- jurs fits whose result is not 'successful': {'; '.join(unconverged)}")
-    out.append(verdict_line(
-        f"Chamfer <= Poisson's on every clean case at {size} points{note}", clean,
-        lambda r: ratio(r, "chamfer") <= 1,
-        lambda r: f"{name(r)} {ratio(r, 'chamfer'):.2f}x"))
-    out.append(verdict_line(
-        f"Hausdorff <= Poisson's on every clean case at {size} points{note}", clean,
-        lambda r: ratio(r, "hausdorff") <= 1,
-        lambda r: f"{name(r)} {ratio(r, 'hausdorff'):.2f}x"))
-    out.append(verdict_line(
-        f"exactly the true number of components on every clean case at {size} "
-        f"points{note}", clean,
-        lambda r: r["jurs"]["num_components"] == r["true_components"],
-        lambda r: f"{name(r)} {r['jurs']['num_components']} for "
-                  f"{r['true_components']}"))
-    out.append(verdict_line(
-        f"warm fit <= Poisson's time (wall; same CPU) on every clean case at {size} "
-        f"points{note}", clean, lambda r: ratio(r, "fit_s") <= 1,
-        lambda r: f"{name(r)} {ratio(r, 'fit_s'):.2f}x"))
+    out.append(
+        verdict_line(
+            f"Chamfer <= Poisson's on every clean case at {size} points{note}",
+            clean,
+            lambda r: ratio(r, "chamfer") <= 1,
+            lambda r: f"{name(r)} {ratio(r, 'chamfer'):.2f}x",
+        )
+    )
+    out.append(
+        verdict_line(
+            f"Hausdorff <= Poisson's on every clean case at {size} points{note}",
+            clean,
+            lambda r: ratio(r, "hausdorff") <= 1,
+            lambda r: f"{name(r)} {ratio(r, 'hausdorff'):.2f}x",
+        )
+    )
+    out.append(
+        verdict_line(
+            f"exactly the true number of components on every clean case at {size} points{note}",
+            clean,
+            lambda r: r["jurs"]["num_components"] == r["true_components"],
+            lambda r: f"{name(r)} {r['jurs']['num_components']} for {r['true_components']}",
+        )
+    )
+    out.append(
+        verdict_line(
+            f"warm fit <= Poisson's time (wall; same CPU) on every clean case at {size} "
+            f"points{note}",
+            clean,
+            lambda r: ratio(r, "fit_s") <= 1,
+            lambda r: f"{name(r)} {ratio(r, 'fit_s'):.2f}x",
+        )
+    )
     big = [r for r in runs if r["m"] >= MILLION and ok(r, "jurs")]
-    out.append(verdict_line(
-        f"1e6 points: warm fit + mesh <= {TIME_1E6_S:g} s and peak resident set <= "
-        f"{MEMORY_1E6_GB:g} GB", big,
-        lambda r: (r["jurs"]["total_s"] <= TIME_1E6_S
-                   and r["jurs"]["peak_rss"] <= MEMORY_1E6_GB * GB),
-        lambda r: f"{name(r)} {r['jurs']['total_s']:.0f} s, "
-                  f"{r['jurs']['peak_rss'] / GB:.1f} GB") + ("" if big else
-                                                              " (run with --million)"))
+    out.append(
+        verdict_line(
+            f"1e6 points: warm fit + mesh <= {TIME_1E6_S:g} s and peak resident set <= "
+            f"{MEMORY_1E6_GB:g} GB",
+            big,
+            lambda r: (
+                r["jurs"]["total_s"] <= TIME_1E6_S and r["jurs"]["peak_rss"] <= MEMORY_1E6_GB * GB
+            ),
+            lambda r: (
+                f"{name(r)} {r['jurs']['total_s']:.0f} s, {r['jurs']['peak_rss'] / GB:.1f} GB"
+            ),
+        )
+        + ("" if big else " (run with --million)")
+    )
     noisy = [r for r in both if r["variant"] == "noise"]
-    out.append(verdict_line(
-        f"{100 * NOISE:g} % noise: Chamfer within {NOISY_CHAMFER_RATIO:g}x Poisson's",
-        noisy, lambda r: ratio(r, "chamfer") <= NOISY_CHAMFER_RATIO,
-        lambda r: f"{name(r)} {ratio(r, 'chamfer'):.2f}x"))
-    out.append(verdict_line(
-        f"{100 * NOISE:g} % noise: no bubbles (supplementary components)", noisy,
-        lambda r: r["jurs"]["num_supplementary"] == 0,
-        lambda r: f"{name(r)} {r['jurs']['num_supplementary']}"))
+    out.append(
+        verdict_line(
+            f"{100 * NOISE:g} % noise: Chamfer within {NOISY_CHAMFER_RATIO:g}x Poisson's",
+            noisy,
+            lambda r: ratio(r, "chamfer") <= NOISY_CHAMFER_RATIO,
+            lambda r: f"{name(r)} {ratio(r, 'chamfer'):.2f}x",
+        )
+    )
+    out.append(
+        verdict_line(
+            f"{100 * NOISE:g} % noise: no bubbles (supplementary components)",
+            noisy,
+            lambda r: r["jurs"]["num_supplementary"] == 0,
+            lambda r: f"{name(r)} {r['jurs']['num_supplementary']}",
+        )
+    )
     return out
 
 
@@ -461,73 +540,129 @@ def genera(entry):
 def tables(runs):
     """Markdown: accuracy and cost per case and method, and the jurs / Poisson ratios."""
     methods = (("jurs", "jurs"), ("poisson", "Poisson"))
-    acc = ["| case | m | method | Chamfer | / diag (1e-4) | Hausdorff | / diag (1e-3) | "
-           "normal cons. | components (bubbles) | genus |", "|---" * 10 + "|"]
-    cost = ["| case | m | method | setting | first call s | warm fit s | mesh s | total s | "
-            "CPU s | peak RSS GB (base) |", "|---" * 10 + "|"]
-    ratios = ["| case | m | Chamfer | Hausdorff | warm fit time | total time | peak RSS |",
-              "|---" * 7 + "|"]
+    acc = [
+        "| case | m | method | Chamfer | / diag (1e-4) | Hausdorff | / diag (1e-3) | "
+        "normal cons. | components (bubbles) | genus |",
+        "|---" * 10 + "|",
+    ]
+    cost = [
+        "| case | m | method | setting | first call s | warm fit s | mesh s | total s | "
+        "CPU s | peak RSS GB (base) |",
+        "|---" * 10 + "|",
+    ]
+    ratios = [
+        "| case | m | Chamfer | Hausdorff | warm fit time | total time | peak RSS |",
+        "|---" * 7 + "|",
+    ]
     for r in runs:
         key = f"{r['case']}/{r['variant']}"
         truth = f"{r['true_components']} (0)"
         for method, label in methods:
-            acc.append(f"| {key} | {r['m']} | {label} | " + cell(r, method, lambda e: (
-                f"{e['chamfer']:.2e} | {1e4 * e['chamfer_rel']:.2f} | {e['hausdorff']:.2e} | "
-                f"{1e3 * e['hausdorff_rel']:.2f} | {e['normal_consistency']:.4f} | "
-                f"{e['num_components']} ({e['num_supplementary']}) | {genera(e)} |")))
-            cost.append(f"| {key} | {r['m']} | {label} | " + cell(r, method, lambda e: (
-                f"{e['method']} | {e['first_s']:.2f} | {e['fit_s']:.2f} | "
-                f"{'-' if e['mesh_s'] is None else format(e['mesh_s'], '.2f')} | "
-                f"{e['total_s']:.2f} | {e['cpu_s']:.1f} | {e['peak_rss'] / GB:.2f} "
-                f"({e['base_rss'] / GB:.2f}) |")))
-        acc.append(f"| {key} | {r['m']} | truth | - | - | - | - | - | {truth} | "
-                   f"{r['true_genus']} |")
-        ratios.append(f"| {key} | {r['m']} | " + " | ".join(
-            f"{ratio(r, k):.2f}" for k in ("chamfer", "hausdorff", "fit_s", "total_s",
-                                           "peak_rss")) + " |")
+            acc.append(
+                f"| {key} | {r['m']} | {label} | "
+                + cell(
+                    r,
+                    method,
+                    lambda e: (
+                        f"{e['chamfer']:.2e} | {1e4 * e['chamfer_rel']:.2f} | "
+                        f"{e['hausdorff']:.2e} | "
+                        f"{1e3 * e['hausdorff_rel']:.2f} | {e['normal_consistency']:.4f} | "
+                        f"{e['num_components']} ({e['num_supplementary']}) | {genera(e)} |"
+                    ),
+                )
+            )
+            cost.append(
+                f"| {key} | {r['m']} | {label} | "
+                + cell(
+                    r,
+                    method,
+                    lambda e: (
+                        f"{e['method']} | {e['first_s']:.2f} | {e['fit_s']:.2f} | "
+                        f"{'-' if e['mesh_s'] is None else format(e['mesh_s'], '.2f')} | "
+                        f"{e['total_s']:.2f} | {e['cpu_s']:.1f} | {e['peak_rss'] / GB:.2f} "
+                        f"({e['base_rss'] / GB:.2f}) |"
+                    ),
+                )
+            )
+        acc.append(
+            f"| {key} | {r['m']} | truth | - | - | - | - | - | {truth} | {r['true_genus']} |"
+        )
+        ratios.append(
+            f"| {key} | {r['m']} | "
+            + " | ".join(
+                f"{ratio(r, k):.2f}"
+                for k in ("chamfer", "hausdorff", "fit_s", "total_s", "peak_rss")
+            )
+            + " |"
+        )
     return acc, cost, ratios
 
 
 def markdown(payload):
     acc, cost, ratios = tables(payload["runs"])
     quick = " A `--quick` development run: not the issue's sizes." if payload["quick"] else ""
-    lines = [
-        "# Surfaces: `jurs.fit` + `jurs.levelset.mesh` beside screened Poisson (Open3D)", "",
-        f"Run {payload['date']} on {payload['machine']}, {payload['memory']}. Command: "
-        f"`{payload['command']}` ({payload['total_s']:.0f} s). Open3D {payload['open3d']}. "
-        f"1-minute load average {payload['load_start']:.1f} at the start, "
-        f"{payload['load_end']:.1f} at the end (a shared machine: times carry tens of "
-        f"percent of noise).{quick}", "",
-        "**Setup.** jurs: `jurs.fit(points, normals)` with defaults (float64; "
-        + (f"grid capped at {payload['max_grid']}" if payload["max_grid"] else
-           "the default grid cap") + ") and `jurs.levelset.mesh(sol.spline)` at its "
-        "default resolution. Poisson: Open3D's `create_from_point_cloud_poisson(cloud, "
-        "depth)` on the same points and (exact) normals, `depth = round(log4 m)` (8 at 1e5 "
-        "points), its mesh as Open3D returns it. Users often trim Poisson's vertices of low "
-        "density (its second output) to cut the surface it extrapolates where data are "
-        "sparse; not done here. Noise: Gaussian, "
-        f"{100 * NOISE:g} % of the bounding-box diagonal per coordinate, on the positions "
-        "only; accuracy is measured against the clean surface.", "",
-        "**Accuracy.** Point-to-surface distances between "
-        f"{payload['eval_samples']} area-uniform samples of each mesh and as many exact "
-        "samples of the true surface (analytic shapes: Newton projection onto their "
-        "implicit function; meshes: Open3D's RaycastingScene): Chamfer = mean of the two "
-        "one-sided means, Hausdorff = the larger maximum, both absolute and over the "
-        "bounding-box diagonal `diag` of the true surface; normal consistency = mean |cos| "
-        "between a sample's face normal and the true normal at its closest point. These "
-        "are `jurs.levelset.mesh_distances`'s definitions without its point-set floor. "
-        "Components (bubbles = supplementary components, `jurs.levelset.analyze_mesh` "
-        "against the input cloud) and genus per closed component.", "",
-        "**Cost.** Each method and case in a fresh child process: peak resident set "
-        "(VmHWM, with the runtime's own at the start in brackets: Python + JAX for jurs); "
-        "jurs fits twice (first call: compilation included; warm fit: the second); "
-        "Poisson's one call is its fit and total; CPU s: all threads, warm fit + mesh.", "",
-        "## Targets", ""] + payload["verdicts"] + [
-        "", "## jurs / Poisson", "", "Ratios (below 1: jurs smaller, i.e. better).", ""
-    ] + ratios + ["", "## Accuracy", ""] + acc + ["", "## Cost", ""] + cost + [""]
+    lines = (
+        [
+            "# Surfaces: `jurs.fit` + `jurs.levelset.mesh` beside screened Poisson (Open3D)",
+            "",
+            f"Run {payload['date']} on {payload['machine']}, {payload['memory']}. Command: "
+            f"`{payload['command']}` ({payload['total_s']:.0f} s). Open3D {payload['open3d']}. "
+            f"1-minute load average {payload['load_start']:.1f} at the start, "
+            f"{payload['load_end']:.1f} at the end (a shared machine: times carry tens of "
+            f"percent of noise).{quick}",
+            "",
+            "**Setup.** jurs: `jurs.fit(points, normals)` with defaults (float64; "
+            + (
+                f"grid capped at {payload['max_grid']}"
+                if payload["max_grid"]
+                else "the default grid cap"
+            )
+            + ") and `jurs.levelset.mesh(sol.spline)` at its "
+            "default resolution. Poisson: Open3D's `create_from_point_cloud_poisson(cloud, "
+            "depth)` on the same points and (exact) normals, `depth = round(log4 m)` (8 at 1e5 "
+            "points), its mesh as Open3D returns it. Users often trim Poisson's vertices of low "
+            "density (its second output) to cut the surface it extrapolates where data are "
+            "sparse; not done here. Noise: Gaussian, "
+            f"{100 * NOISE:g} % of the bounding-box diagonal per coordinate, on the positions "
+            "only; accuracy is measured against the clean surface.",
+            "",
+            "**Accuracy.** Point-to-surface distances between "
+            f"{payload['eval_samples']} area-uniform samples of each mesh and as many exact "
+            "samples of the true surface (analytic shapes: Newton projection onto their "
+            "implicit function; meshes: Open3D's RaycastingScene): Chamfer = mean of the two "
+            "one-sided means, Hausdorff = the larger maximum, both absolute and over the "
+            "bounding-box diagonal `diag` of the true surface; normal consistency = mean |cos| "
+            "between a sample's face normal and the true normal at its closest point. These "
+            "are `jurs.levelset.mesh_distances`'s definitions without its point-set floor. "
+            "Components (bubbles = supplementary components, `jurs.levelset.analyze_mesh` "
+            "against the input cloud) and genus per closed component.",
+            "",
+            "**Cost.** Each method and case in a fresh child process: peak resident set "
+            "(VmHWM, with the runtime's own at the start in brackets: Python + JAX for jurs); "
+            "jurs fits twice (first call: compilation included; warm fit: the second); "
+            "Poisson's one call is its fit and total; CPU s: all threads, warm fit + mesh.",
+            "",
+            "## Targets",
+            "",
+        ]
+        + payload["verdicts"]
+        + ["", "## jurs / Poisson", "", "Ratios (below 1: jurs smaller, i.e. better).", ""]
+        + ratios
+        + ["", "## Accuracy", ""]
+        + acc
+        + ["", "## Cost", ""]
+        + cost
+        + [""]
+    )
     if payload.get("figure"):
-        lines += ["## Figure", "", f"![jurs and Poisson meshes side by side]"
-                  f"({payload['figure']['file']})", "", payload["figure"]["caption"], ""]
+        lines += [
+            "## Figure",
+            "",
+            f"![jurs and Poisson meshes side by side]({payload['figure']['file']})",
+            "",
+            payload["figure"]["caption"],
+            "",
+        ]
     lines += ["Cases: " + "; ".join(f"`{k}`: {v}" for k, v in payload["origins"].items()), ""]
     return "\n".join(lines)
 
@@ -535,9 +670,13 @@ def markdown(payload):
 # --------------------------------------------------------------------------- figure
 
 #: Per case: view (elevation, azimuth) and the axis that is "up" in the model's file.
-VIEWS = {"torus": ((35.0, -60.0), 2), "bunny": ((15.0, 20.0), 1),
-         "sphere": ((20.0, -60.0), 2), "genus2": ((40.0, -60.0), 2),
-         "airplane": ((25.0, -30.0), 1)}
+VIEWS = {
+    "torus": ((35.0, -60.0), 2),
+    "bunny": ((15.0, 20.0), 1),
+    "sphere": ((20.0, -60.0), 2),
+    "genus2": ((40.0, -60.0), 2),
+    "airplane": ((25.0, -30.0), 1),
+}
 
 
 def figure(meshes, records, path):
@@ -567,16 +706,28 @@ def figure(meshes, records, path):
                 ax.set_title(f"{heading}\n{r.get('error', 'no mesh')[:60]}", fontsize=8)
                 continue
             vertices, faces, bubbles = meshes[key][method]
-            plot_mesh(vertices[:, order], faces, ax=ax, views=[view], highlight=bubbles,
-                      highlight_label="supplementary components")
-            ax.set_title(f"{heading} ({r['method']})\nChamfer {1e4 * r['chamfer_rel']:.2f}e-4, "
-                         f"Hausdorff {1e3 * r['hausdorff_rel']:.2f}e-3 of the diagonal\n"
-                         f"components {r['num_components']} (supplementary "
-                         f"{r['num_supplementary']})", fontsize=8)
-    caption = ("jurs (left) and Open3D's screened Poisson (right) on the same clouds ("
-               + ", ".join(rows) + "). Supplementary components (bubbles) are drawn in "
-               "magenta, and the rest of that mesh translucent so that bubbles inside it "
-               "show.")
+            plot_mesh(
+                vertices[:, order],
+                faces,
+                ax=ax,
+                views=[view],
+                highlight=bubbles,
+                highlight_label="supplementary components",
+            )
+            ax.set_title(
+                f"{heading} ({r['method']})\nChamfer {1e4 * r['chamfer_rel']:.2f}e-4, "
+                f"Hausdorff {1e3 * r['hausdorff_rel']:.2f}e-3 of the diagonal\n"
+                f"components {r['num_components']} (supplementary "
+                f"{r['num_supplementary']})",
+                fontsize=8,
+            )
+    caption = (
+        "jurs (left) and Open3D's screened Poisson (right) on the same clouds ("
+        + ", ".join(rows)
+        + "). Supplementary components (bubbles) are drawn in "
+        "magenta, and the rest of that mesh translucent so that bubbles inside it "
+        "show."
+    )
     fig.suptitle("\n".join(textwrap.wrap(caption, 110)), fontsize=9)
     fig.savefig(path, dpi=110)
     plt.close(fig)
@@ -588,21 +739,31 @@ def figure(meshes, records, path):
 
 def parse():
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    parser.add_argument("--quick", action="store_true",
-                        help="2e4 points, torus and bunny, grid cap 32 (development)")
+    parser.add_argument(
+        "--quick",
+        action="store_true",
+        help="2e4 points, torus and bunny, grid cap 32 (development)",
+    )
     parser.add_argument("--million", action="store_true", help="also 1e6 points")
     parser.add_argument("--cases", help=f"comma-separated subset of {','.join(CASES)}")
     parser.add_argument("--points", type=int, nargs="+", help="point counts (replace the sizes)")
-    parser.add_argument("--max-grid", type=int, help="cap on jurs's automatic grid "
-                        "(jurs.auto_settings max_grid); default: the library's")
+    parser.add_argument(
+        "--max-grid",
+        type=int,
+        help="cap on jurs's automatic grid (jurs.auto_settings max_grid); default: the library's",
+    )
     parser.add_argument("--depth", type=int, help="Poisson depth (default round(log4 m))")
     parser.add_argument("--eval-samples", type=int, help="samples per side for distances")
     parser.add_argument("--out", default=RESULTS, help="folder for surfaces.{json,md,png}")
-    parser.add_argument("--markdown-only", action="store_true",
-                        help="re-render the markdown from the JSON in --out")
+    parser.add_argument(
+        "--markdown-only", action="store_true", help="re-render the markdown from the JSON in --out"
+    )
     args = parser.parse_args()
-    preset = QUICK if args.quick else {"cases": CASES, "sizes": SIZES, "max_grid": None,
-                                       "eval_samples": EVAL_SAMPLES}
+    preset = (
+        QUICK
+        if args.quick
+        else {"cases": CASES, "sizes": SIZES, "max_grid": None, "eval_samples": EVAL_SAMPLES}
+    )
     args.cases = tuple(args.cases.split(",")) if args.cases else preset["cases"]
     unknown = set(args.cases) - set(CASES)
     if unknown:
@@ -652,22 +813,33 @@ def main():
                 key = f"{name}/{variant}"
                 if key in FIGURE_CASES and m == min(args.sizes):
                     shown[key], records[key] = meshes, record
-                print(f"{key} m {m}: jurs/Poisson Chamfer {ratio(record, 'chamfer'):.2f}, "
-                      f"Hausdorff {ratio(record, 'hausdorff'):.2f}, warm fit "
-                      f"{ratio(record, 'fit_s'):.2f}, total {ratio(record, 'total_s'):.2f}, "
-                      f"peak RSS {ratio(record, 'peak_rss'):.2f}", flush=True)
+                print(
+                    f"{key} m {m}: jurs/Poisson Chamfer {ratio(record, 'chamfer'):.2f}, "
+                    f"Hausdorff {ratio(record, 'hausdorff'):.2f}, warm fit "
+                    f"{ratio(record, 'fit_s'):.2f}, total {ratio(record, 'total_s'):.2f}, "
+                    f"peak RSS {ratio(record, 'peak_rss'):.2f}",
+                    flush=True,
+                )
     os.makedirs(args.out, exist_ok=True)
     caption = figure(shown, records, os.path.join(args.out, "surfaces.png")) if shown else None
     command = "python benchmarks/surfaces.py " + " ".join(sys.argv[1:])
     total_bytes = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
-    payload = {"date": datetime.date.today().isoformat(), "quick": args.quick,
-               "machine": f"{machine()}, Python {platform.python_version()}",
-               "memory": f"{total_bytes / GB:.0f} GB RAM", "command": command.strip(),
-               "open3d": open3d.__version__, "max_grid": args.max_grid,
-               "eval_samples": args.eval_samples, "load_start": load_start,
-               "load_end": os.getloadavg()[0], "runs": runs, "origins": origins,
-               "total_s": time.perf_counter() - start,
-               "figure": caption and {"file": "surfaces.png", "caption": caption}}
+    payload = {
+        "date": datetime.date.today().isoformat(),
+        "quick": args.quick,
+        "machine": f"{machine()}, Python {platform.python_version()}",
+        "memory": f"{total_bytes / GB:.0f} GB RAM",
+        "command": command.strip(),
+        "open3d": open3d.__version__,
+        "max_grid": args.max_grid,
+        "eval_samples": args.eval_samples,
+        "load_start": load_start,
+        "load_end": os.getloadavg()[0],
+        "runs": runs,
+        "origins": origins,
+        "total_s": time.perf_counter() - start,
+        "figure": caption and {"file": "surfaces.png", "caption": caption},
+    }
     payload["verdicts"] = verdicts(runs)
     write_results("surfaces", payload, markdown(payload), args.out)
     print(summary(payload))

@@ -19,8 +19,7 @@ import itertools
 
 import jax.numpy as jnp
 import numpy as np
-from jax import lax
-from jax import Array
+from jax import Array, lax
 
 #: Local terms per 2D sample: 4 x 4 tensor products.
 NUM_LOCAL = 16
@@ -30,9 +29,10 @@ NUM_LOCAL = 16
 #: ``sum_p |CENTRED_POWER[a, p]| |s|^p <= 1``, so sums in this basis lose no more to rounding
 #: than sums in the B-spline basis, while a value costs a Horner scheme instead of the four
 #: pieces (the speed of every solver step rests on this).
-CENTRED_POWER = np.array(
-    [[1, -6, 12, -8], [23, -30, -12, 24], [23, 30, -12, -24], [1, 6, 12, 8]], dtype=float
-) / 48.0
+CENTRED_POWER = (
+    np.array([[1, -6, 12, -8], [23, -30, -12, 24], [23, 30, -12, -24], [1, 6, 12, 8]], dtype=float)
+    / 48.0
+)
 
 
 def cubic_weights(t: Array, xp=jnp) -> Array:
@@ -45,19 +45,20 @@ def cubic_weights(t: Array, xp=jnp) -> Array:
     s = 1.0 - t
     t2 = t * t
     t3 = t2 * t
-    return xp.stack(
-        [s * s * s, 3.0 * t3 - 6.0 * t2 + 4.0, -3.0 * t3 + 3.0 * t2 + 3.0 * t + 1.0, t3],
-        axis=-1,
-    ) / 6.0
+    return (
+        xp.stack(
+            [s * s * s, 3.0 * t3 - 6.0 * t2 + 4.0, -3.0 * t3 + 3.0 * t2 + 3.0 * t + 1.0, t3],
+            axis=-1,
+        )
+        / 6.0
+    )
 
 
 def cubic_derivatives(t: Array) -> Array:
     """d/dt of :func:`cubic_weights`; ``(..., 4)``. Divide by the cell width for d/dx."""
     s = 1.0 - t
     t2 = t * t
-    return jnp.stack(
-        [-0.5 * s * s, 1.5 * t2 - 2.0 * t, -1.5 * t2 + t + 0.5, 0.5 * t2], axis=-1
-    )
+    return jnp.stack([-0.5 * s * s, 1.5 * t2 - 2.0 * t, -1.5 * t2 + t + 0.5, 0.5 * t2], axis=-1)
 
 
 def cell_width(lower: Array, upper: Array, shape: tuple[int, ...], xp=jnp) -> Array:
@@ -144,9 +145,11 @@ def grid_to_patches(grid: Array, ndim: int = 2) -> Array:
     cheaper than 16 scattered element reads.
     """
     lead = grid.shape[: grid.ndim - ndim]
-    cells = cell_shape(grid.shape[grid.ndim - ndim:])
-    blocks = [grid[(Ellipsis, *(slice(a, a + c) for a, c in zip(start, cells)))]
-              for start in itertools.product(range(4), repeat=ndim)]
+    cells = cell_shape(grid.shape[grid.ndim - ndim :])
+    blocks = [
+        grid[(Ellipsis, *(slice(a, a + c) for a, c in zip(start, cells)))]
+        for start in itertools.product(range(4), repeat=ndim)
+    ]
     return jnp.stack(blocks, axis=-1).reshape(lead + (int(np.prod(cells)), 4**ndim))
 
 
@@ -215,8 +218,9 @@ def power_moments(sx: Array, sy: Array, values: Array, extra=()):
     terms = [terms[16 * c + j] for c in range(len(values)) for j in order]
     terms += list(extra)
     zeros = tuple(jnp.zeros((), t.dtype) for t in terms)
-    sums = lax.reduce(tuple(terms), zeros, lambda a, b: tuple(x + y for x, y in zip(a, b)),
-                      (sx.ndim - 1,))
+    sums = lax.reduce(
+        tuple(terms), zeros, lambda a, b: tuple(x + y for x, y in zip(a, b)), (sx.ndim - 1,)
+    )
     count = 16 * len(values)
     out = jnp.stack(sums[:count], axis=-1)
     return out.reshape(out.shape[:-1] + (len(values), NUM_LOCAL)), tuple(sums[count:])

@@ -174,12 +174,22 @@ def _export_key(fn, args) -> str:
     leaves, treedef = jax.tree.flatten(args)
     described = [
         (tuple(x.shape), str(x.dtype), bool(getattr(x, "weak_type", False)))
-        if eqx.is_array(x) else (type(x).__qualname__, repr(x))
+        if eqx.is_array(x)
+        else (type(x).__qualname__, repr(x))
         for x in leaves
     ]
-    text = repr((_jurs_source_digest(), jax.__version__, jax.default_backend(),
-                 bool(jax.config.jax_enable_x64), fn.__module__, fn.__qualname__,
-                 str(treedef), described))
+    text = repr(
+        (
+            _jurs_source_digest(),
+            jax.__version__,
+            jax.default_backend(),
+            bool(jax.config.jax_enable_x64),
+            fn.__module__,
+            fn.__qualname__,
+            str(treedef),
+            described,
+        )
+    )
     return hashlib.sha256(text.encode()).hexdigest()
 
 
@@ -194,8 +204,9 @@ def _export(fn, args, dynamic_tree, static):
 
     def flat(*arrays):
         out = fn(*eqx.combine(jax.tree.unflatten(dynamic_tree, arrays), static))
-        skeleton.append(jax.tree.map(
-            lambda x: np.zeros((), np.int8) if eqx.is_array(x) else x, out))
+        skeleton.append(
+            jax.tree.map(lambda x: np.zeros((), np.int8) if eqx.is_array(x) else x, out)
+        )
         return [x for x in jax.tree.leaves(out) if eqx.is_array(x)]
 
     exported = jax.export.export(jax.jit(flat))(*jax.tree.leaves(eqx.filter(args, eqx.is_array)))

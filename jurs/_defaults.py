@@ -32,7 +32,6 @@ linear solve reaches the minimum that the paper's iterations approach step by st
 from __future__ import annotations
 
 import dataclasses
-
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -140,8 +139,13 @@ def _quadratic_terms(u: np.ndarray) -> np.ndarray:
     return np.concatenate([np.ones(u.shape[:-1] + (1,)), u, np.stack(products, -1)], axis=-1)
 
 
-def estimate_noise(points: np.ndarray, normals: np.ndarray, tree: cKDTree | None = None,
-                   neighbours: int = NOISE_NEIGHBOURS, at=None) -> float:
+def estimate_noise(
+    points: np.ndarray,
+    normals: np.ndarray,
+    tree: cKDTree | None = None,
+    neighbours: int = NOISE_NEIGHBOURS,
+    at=None,
+) -> float:
     """Positional noise sigma: the median over points of the RMS residual of a quadratic
     height ``v = q(u)`` fitted, in the principal frame of the point's ``neighbours``
     nearest same-facing neighbours (normals within 60 degrees), to those neighbours: ``u``
@@ -181,8 +185,9 @@ def estimate_noise(points: np.ndarray, normals: np.ndarray, tree: cKDTree | None
     return float(np.median(rms[ok])) if ok.any() else 0.0
 
 
-def offset_agreement(points: np.ndarray, normals: np.ndarray, offset,
-                     tree: cKDTree | None = None, at=None):
+def offset_agreement(
+    points: np.ndarray, normals: np.ndarray, offset, tree: cKDTree | None = None, at=None
+):
     """Fraction of the 2m offset samples ``P_i +/- d n_i`` that lie on their intended side
     (outside for ``+``, inside for ``-``) of the tangent line of their nearest data point
     other than ``P_i``.
@@ -212,8 +217,14 @@ CLEAN_SMOOTHING = 1e-6
 NOISY_SMOOTHING = 1e-3
 
 
-def choose_offset(points: np.ndarray, normals: np.ndarray, spacing: float, noise: float,
-                  tree: cKDTree | None = None, at=None) -> float:
+def choose_offset(
+    points: np.ndarray,
+    normals: np.ndarray,
+    spacing: float,
+    noise: float,
+    tree: cKDTree | None = None,
+    at=None,
+) -> float:
     """Offset d: ``max(s / 2, 2 sigma)``, shrunk where it would cross thin parts.
 
     Why: d is a finite-difference step for the normal. Half a spacing keeps the offsets
@@ -236,8 +247,13 @@ def choose_offset(points: np.ndarray, normals: np.ndarray, spacing: float, noise
     return float(ladder[np.argmax(agreement >= agreement.max() - 0.01)])
 
 
-def choose_grid(lower: np.ndarray, upper: np.ndarray, spacing: float, noise: float,
-                max_grid: int = DEFAULT_MAX_GRID) -> tuple[int, ...]:
+def choose_grid(
+    lower: np.ndarray,
+    upper: np.ndarray,
+    spacing: float,
+    noise: float,
+    max_grid: int = DEFAULT_MAX_GRID,
+) -> tuple[int, ...]:
     """Basis functions along each axis (x and y, and z for a surface): cells of side ``h =
     max(1.5 s, 4 sigma)`` (``3 s`` on a surface, :data:`CELL_SPACINGS`), the same along
     every axis, with at most ``max_grid`` functions
@@ -282,11 +298,12 @@ def choose_smoothing(offset: float, noise: float) -> float:
     of the square lowered the Chamfer distance to the outline by 28 % (horse) and 16 %
     (coins); data whose noise sets d get 1e-3 either way."""
     ratio = min(1.0, 2.0 * noise / offset) if offset > 0 else 1.0
-    return float(CLEAN_SMOOTHING + (NOISY_SMOOTHING - CLEAN_SMOOTHING) * ratio ** 4)
+    return float(CLEAN_SMOOTHING + (NOISY_SMOOTHING - CLEAN_SMOOTHING) * ratio**4)
 
 
-def scale_free_lam(smoothing: float, num_samples: int, diagonal: float, lower, upper,
-                   cell: float | None = None) -> float:
+def scale_free_lam(
+    smoothing: float, num_samples: int, diagonal: float, lower, upper, cell: float | None = None
+) -> float:
     """The objective's lambda of ``E_d + lam R`` for a dimensionless ``smoothing``:
     ``lam = smoothing * S * l^2 / A``, S samples, l the data's bounding-box diagonal, A the
     area of the box; for a surface ``lam = smoothing * S * l^2 * h / V`` with V the volume
@@ -307,12 +324,21 @@ def scale_free_lam(smoothing: float, num_samples: int, diagonal: float, lower, u
     extent = np.asarray(upper, float) - np.asarray(lower, float)
     volume = float(np.prod(extent))
     per_length = 1.0 if extent.size == 2 else float(cell) ** (extent.size - 2)
-    return float(smoothing * num_samples * diagonal ** 2 * per_length / volume)
+    return float(smoothing * num_samples * diagonal**2 * per_length / volume)
 
 
-def auto_settings(points, normals, *, grid=None, offset=None, eps=None, domain=None,
-                  margin: float = DEFAULT_MARGIN, smoothing: float | None = None,
-                  max_grid: int | None = None) -> Settings:
+def auto_settings(
+    points,
+    normals,
+    *,
+    grid=None,
+    offset=None,
+    eps=None,
+    domain=None,
+    margin: float = DEFAULT_MARGIN,
+    smoothing: float | None = None,
+    max_grid: int | None = None,
+) -> Settings:
     """Choose the grid, offset d, eps and lambda for ``points`` and ``normals``, ``(m, 2)``
     for a curve or ``(m, 3)`` for a surface.
 
@@ -331,7 +357,8 @@ def auto_settings(points, normals, *, grid=None, offset=None, eps=None, domain=N
         raise ValueError(
             "automatic settings need concrete points (they are chosen on the host); inside "
             "jit/grad/vmap pass grid, offset and eps explicitly, e.g. from "
-            "jurs.auto_settings(points, normals) called outside")
+            "jurs.auto_settings(points, normals) called outside"
+        )
     # The same checks as make_problem's, before anything is computed from the inputs (a
     # NaN domain was reported as "lam must be finite").
     validate_inputs(points, normals, offset=offset, eps=eps, domain=domain, margin=margin)
@@ -340,15 +367,20 @@ def auto_settings(points, normals, *, grid=None, offset=None, eps=None, domain=N
     ndim = np.shape(points)[1]
     if max_grid is None:
         max_grid = DEFAULT_MAX_GRID if ndim == 2 else DEFAULT_MAX_GRID_3D
-    if isinstance(max_grid, bool) or not isinstance(max_grid, (int, np.integer)) \
-            or max_grid < MIN_GRID:
+    if (
+        isinstance(max_grid, bool)
+        or not isinstance(max_grid, (int, np.integer))
+        or max_grid < MIN_GRID
+    ):
         raise ValueError(f"max_grid must be an int >= {MIN_GRID}, got {max_grid!r}")
     p = np.asarray(points, float)
     n = unit_normals(np.asarray(normals, float))
     tree = kd_tree(p)
     # Large clouds are measured at an evenly strided subset (the same points wherever the
     # cloud is placed), against the whole cloud.
-    at = None if len(p) <= MAX_PROBES else np.linspace(0, len(p) - 1, MAX_PROBES).round().astype(int)
+    at = (
+        None if len(p) <= MAX_PROBES else np.linspace(0, len(p) - 1, MAX_PROBES).round().astype(int)
+    )
     spacing = point_spacing(p, tree, at)
     noise = estimate_noise(p, n, tree, at=at)
     d = choose_offset(p, n, spacing, noise, tree, at) if offset is None else float(offset)
@@ -357,12 +389,22 @@ def auto_settings(points, normals, *, grid=None, offset=None, eps=None, domain=N
         lower, upper = auto_domain(offset_samples(p, n, d, e, np)[0], margin, xp=np)
     else:
         lower, upper = (np.asarray(c, float) for c in domain)
-    shape = choose_grid(lower, upper, spacing, noise, max_grid) if grid is None \
+    shape = (
+        choose_grid(lower, upper, spacing, noise, max_grid)
+        if grid is None
         else normalise_grid(grid, ndim)
+    )
     beta = choose_smoothing(d, noise) if smoothing is None else float(smoothing)
     diagonal = float(np.linalg.norm(p.max(axis=0) - p.min(axis=0)))
     cell = float(np.max((upper - lower) / (np.asarray(shape) - 3)))
     lam = scale_free_lam(beta, 3 * len(p), diagonal, lower, upper, cell)
-    return Settings(grid=shape, offset=d, eps=e, lam=lam, smoothing=beta,
-                    domain=(tuple(map(float, lower)), tuple(map(float, upper))),
-                    spacing=spacing, noise=noise)
+    return Settings(
+        grid=shape,
+        offset=d,
+        eps=e,
+        lam=lam,
+        smoothing=beta,
+        domain=(tuple(map(float, lower)), tuple(map(float, upper))),
+        spacing=spacing,
+        noise=noise,
+    )

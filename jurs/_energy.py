@@ -4,7 +4,8 @@ Everything is written with the two linear maps of :mod:`jurs._spline`: ``F`` (co
 grid -> values at the samples) and its transpose ``T``. With ``W = F(w)``:
 
 * ``g = F(w C) / W`` (eq. 14) and the collocation transpose ``D^T v = w * T(v / W)``;
-* ``nabla_C E_d = 2 D^T r`` and ``nabla_w E_d = 2 (C * T(r / W) - T(r g / W))`` (docs/design.md section 2).
+* ``nabla_C E_d = 2 D^T r`` and ``nabla_w E_d = 2 (C * T(r / W) - T(r g / W))``
+  (docs/design.md section 2).
 
 D (3m x NM) is never formed, nor any (samples x 16) array of its rows. Arrays indexed by
 sample are in the problem's slot order (see :class:`jurs.Problem`).
@@ -37,8 +38,14 @@ def rational_residuals(problem: Problem, control: Array, weights: Array):
     return problem.mask * (g - problem.targets), denom, g
 
 
-def layout_residuals(local: LocalBasis, mask: Array, targets: Array, control: Array,
-                     weights: Array, inv_denom: Array | None = None):
+def layout_residuals(
+    local: LocalBasis,
+    mask: Array,
+    targets: Array,
+    control: Array,
+    weights: Array,
+    inv_denom: Array | None = None,
+):
     """``(r, mask / W, g)`` in the kernels' layout (:meth:`LocalBasis.to_layout`, in which
     ``mask`` and ``targets`` are given): W and F(w C) in one pass apart, then eq. 14 and 18;
     F(w C) alone where ``inv_denom`` (``mask / W`` for these weights) is known. What a
@@ -63,8 +70,7 @@ def collocation_transpose(problem: Problem, weights: Array, denom: Array, values
 
     ``values`` may carry leading axes (several vectors in one pass); masked slots count 0.
     """
-    return weights * bspline_transpose(problem.local, problem.mask * values / denom,
-                                       problem.shape)
+    return weights * bspline_transpose(problem.local, problem.mask * values / denom, problem.shape)
 
 
 def data_energy(problem: Problem, control: Array, weights: Array) -> Array:
@@ -85,7 +91,8 @@ def regulariser(control: Array) -> Array:
 
 
 def objective(problem: Problem, control: Array, weights: Array, lam) -> Array:
-    """E(C, w) + lambda R(C) (eq. 32), lambda being the objective's weight (see docs/design.md section 3)."""
+    """E(C, w) + lambda R(C) (eq. 32), lambda being the objective's weight (see
+    docs/design.md section 3)."""
     return data_energy(problem, control, weights) + lam * regulariser(control)
 
 
@@ -97,7 +104,7 @@ def grid_laplacian(control: Array) -> Array:
     out = 2.0 * control.ndim * p[inner]
     for axis in range(control.ndim):
         for window in (slice(2, None), slice(None, -2)):
-            out = out - p[inner[:axis] + (window,) + inner[axis + 1:]]
+            out = out - p[inner[:axis] + (window,) + inner[axis + 1 :]]
     return out
 
 
@@ -127,7 +134,8 @@ def data_energy_grad_weights(problem: Problem, control: Array, weights: Array) -
 
 def collocation_column_sums(problem: Problem, weights: Array) -> Array:
     """Column sums of D (eq. 23) as an (N, M) grid. D >= 0 with unit row sums, so
-    ||D^T D||_inf equals the largest of these (docs/design.md section 2). Masked slots are not rows."""
+    ||D^T D||_inf equals the largest of these (docs/design.md section 2). Masked slots are
+    not rows."""
     denom = rational_values(problem.local, jnp.zeros_like(weights), weights)[0]
     return collocation_transpose(problem, weights, denom, jnp.ones_like(denom))
 
@@ -173,8 +181,9 @@ def metrics(problem: Problem, spline: ImplicitSpline, lam=0.0) -> dict[str, Arra
     """
     local = problem.local
     # In the kernels' layout (padding 0), as the solvers' steps work: no per-slot reorder.
-    mask, targets, is_data = (local.to_layout(x) for x in
-                              (problem.mask, problem.targets, problem.is_data))
+    mask, targets, is_data = (
+        local.to_layout(x) for x in (problem.mask, problem.targets, problem.is_data)
+    )
     weights = spline.weights
     r, inv_denom, _ = layout_residuals(local, mask, targets, spline.control, weights)
     on_data = is_data * r  # targets there are 0, so r = g(P_i)

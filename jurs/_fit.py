@@ -56,8 +56,11 @@ def padded_cloud(points, normals):
     m = p.shape[0]
     extra = padded_count(m) - m
     mask = np.arange(m + extra) < m
-    return (np.concatenate([p, np.repeat(p[:1], extra, axis=0)]),
-            np.concatenate([n, np.repeat(n[:1], extra, axis=0)]), mask)
+    return (
+        np.concatenate([p, np.repeat(p[:1], extra, axis=0)]),
+        np.concatenate([n, np.repeat(n[:1], extra, axis=0)]),
+        mask,
+    )
 
 
 #: More than this fraction of the points with normals flipped against their neighbours
@@ -120,12 +123,14 @@ def _check_orientation(sol, points, normals, mask):
     sample = orientation_sample(p, n)  # one KD-tree for both checks
     flipped = flipped_normal_fraction(p, n, sample)
     along = tangential_normal_fraction(p, n, sample)
-    metrics = dict(sol.metrics, flipped_normal_fraction=jnp.asarray(flipped),
-                   tangential_normal_fraction=jnp.asarray(along))
+    metrics = dict(
+        sol.metrics,
+        flipped_normal_fraction=jnp.asarray(flipped),
+        tangential_normal_fraction=jnp.asarray(along),
+    )
     result = sol.result
     bad = flipped > MAX_FLIPPED_FRACTION or along > MAX_TANGENTIAL_FRACTION
-    if bad and bool(
-            (result == RESULTS.successful) | (result == RESULTS.max_steps_reached)):
+    if bad and bool((result == RESULTS.successful) | (result == RESULTS.max_steps_reached)):
         result = RESULTS.inconsistent_normals
     return dataclasses.replace(sol, metrics=metrics, result=result)
 
@@ -144,11 +149,15 @@ def _estimated_normals(points, mask):
     :func:`jurs.estimate_normals` and its findings (a dict, without the per-point
     confidence)."""
     if mask is not None:
-        raise ValueError("normals=None estimates normals from the whole cloud: it takes no "
-                         "mask (estimate them with jurs.estimate_normals, then pad)")
+        raise ValueError(
+            "normals=None estimates normals from the whole cloud: it takes no "
+            "mask (estimate them with jurs.estimate_normals, then pad)"
+        )
     if not _is_concrete(points):
-        raise ValueError("normals=None estimates normals on the host from concrete points; "
-                         "under jit, grad or vmap pass normals (jurs.estimate_normals)")
+        raise ValueError(
+            "normals=None estimates normals on the host from concrete points; "
+            "under jit, grad or vmap pass normals (jurs.estimate_normals)"
+        )
     from ._orientation import estimate_normals  # SciPy's graphs: loaded when first needed
 
     normals, info = estimate_normals(points, return_info=True)
@@ -267,22 +276,34 @@ def fit(
     if normals is None:
         normals, estimated = _estimated_normals(points, mask)
     if smoothing is not None and solver is not None:
-        raise ValueError("smoothing sets the default solver's lambda; with a solver given, "
-                         "set its lam instead")
+        raise ValueError(
+            "smoothing sets the default solver's lambda; with a solver given, set its lam instead"
+        )
     if grid is None or offset is None or eps is None or solver is None:
         if mask is not None:
-            raise ValueError("automatic settings do not take a mask; pass grid, offset, eps "
-                             "and solver explicitly for padded batches")
-        settings = auto_settings(points, normals, grid=grid, offset=offset, eps=eps,
-                                 domain=domain, margin=margin, smoothing=smoothing)
+            raise ValueError(
+                "automatic settings do not take a mask; pass grid, offset, eps "
+                "and solver explicitly for padded batches"
+            )
+        settings = auto_settings(
+            points,
+            normals,
+            grid=grid,
+            offset=offset,
+            eps=eps,
+            domain=domain,
+            margin=margin,
+            smoothing=smoothing,
+        )
         grid, offset, eps = settings.grid, settings.offset, settings.eps
         solver = LeastSquares(lam=settings.lam) if solver is None else solver
     shape = normalise_grid(grid, _point_dimension(points))
     if not isinstance(solver, AbstractSolver):
         raise TypeError(f"solver must be a jurs solver, got {type(solver).__name__}")
-    check_memory("grid=" + "x".join(map(str, shape)),  # points are checked by make_problem
-                 fit_memory(shape, 3 * (len(points) if hasattr(points, "__len__") else 0),
-                            solver))
+    check_memory(
+        "grid=" + "x".join(map(str, shape)),  # points are checked by make_problem
+        fit_memory(shape, 3 * (len(points) if hasattr(points, "__len__") else 0), solver),
+    )
     dtype = jnp.result_type(float)
     if init is not None and not isinstance(init, ImplicitSpline):
         raise TypeError(f"init must be a jurs.ImplicitSpline, got {type(init).__name__}")
@@ -296,21 +317,33 @@ def fit(
     padded = padded_cloud(points, normals) if mask is None else None
     if padded is not None:  # shape-stable: clouds of similar size share one compiled fit
         points, normals, mask = padded
-    problem = make_problem(points, normals, grid=shape, offset=offset, eps=eps, domain=domain,
-                           margin=margin, mask=mask, bucket_size=bucket_size, dtype=dtype,
-                           stable_shapes=padded is not None)
+    problem = make_problem(
+        points,
+        normals,
+        grid=shape,
+        offset=offset,
+        eps=eps,
+        domain=domain,
+        margin=margin,
+        mask=mask,
+        bucket_size=bucket_size,
+        dtype=dtype,
+        stable_shapes=padded is not None,
+    )
     solver = _as_arrays(solver, dtype)
     top_level = _at_top_level((problem, solver, init))
-    run = (_solve_reassociating if top_level and _reassociation_pays(problem, solver)
-           else _solve)
+    run = _solve_reassociating if top_level and _reassociation_pays(problem, solver) else _solve
     if top_level:
         # ``throw`` checked on the host after the call, not by a host callback inside it:
         # a compiled fit with a callback is never written to JAX's persistent compilation
         # cache, and without one a new process loads the fit instead of compiling it.
         # With jurs.enable_compilation_cache, the plain compilation also goes through the
         # store of exported fits: a new process skips its tracing too (call_stored).
-        sol = (run(problem, solver, init, False) if run is _solve_reassociating
-               else call_stored(_run, run, problem, solver, init, False))
+        sol = (
+            run(problem, solver, init, False)
+            if run is _solve_reassociating
+            else call_stored(_run, run, problem, solver, init, False)
+        )
         if throw and bool(sol.result == RESULTS.nonfinite):
             raise eqx.EquinoxRuntimeError(RESULTS[RESULTS.nonfinite])
         sol = _check_orientation(sol, *given)

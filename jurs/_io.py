@@ -25,25 +25,34 @@ def check_spline_arrays(arrays: dict, where: str) -> None:
             raise ValueError(f"{where}{k} must hold numbers, got dtype {arrays[k].dtype}")
     control, weights = arrays["control"], arrays["weights"]
     if control.ndim not in (2, 3) or control.shape != weights.shape:
-        raise ValueError(f"{where}control and weights must be matching 2D or 3D grids, got "
-                         f"shapes {control.shape} and {weights.shape}")
+        raise ValueError(
+            f"{where}control and weights must be matching 2D or 3D grids, got "
+            f"shapes {control.shape} and {weights.shape}"
+        )
     d = control.ndim
     if arrays["lower"].shape != (d,) or arrays["upper"].shape != (d,):
-        raise ValueError(f"{where}lower and upper must have shape ({d},) for a {d}D grid, got "
-                         f"{arrays['lower'].shape} and {arrays['upper'].shape}")
+        raise ValueError(
+            f"{where}lower and upper must have shape ({d},) for a {d}D grid, got "
+            f"{arrays['lower'].shape} and {arrays['upper'].shape}"
+        )
     if min(control.shape) < 4:
-        raise ValueError(f"{where}the grid must be at least {' x '.join('4' * d)}, got "
-                         f"{control.shape}")
+        raise ValueError(
+            f"{where}the grid must be at least {' x '.join('4' * d)}, got {control.shape}"
+        )
     for k in SPLINE_KEYS:
         if not np.isfinite(arrays[k]).all():
             raise ValueError(f"{where}{k} contain NaN or Inf")
     if not (weights > 0).all():
-        raise ValueError(f"{where}weights must all be positive (a zero weight makes g "
-                         f"undefined), got min {float(weights.min()):.3g}")
+        raise ValueError(
+            f"{where}weights must all be positive (a zero weight makes g "
+            f"undefined), got min {float(weights.min()):.3g}"
+        )
     if not (arrays["lower"] < arrays["upper"]).all():
         axes = "both axes" if d == 2 else "every axis"
-        raise ValueError(f"{where}lower must be below upper on {axes}, got "
-                         f"{arrays['lower'].tolist()} and {arrays['upper'].tolist()}")
+        raise ValueError(
+            f"{where}lower must be below upper on {axes}, got "
+            f"{arrays['lower'].tolist()} and {arrays['upper'].tolist()}"
+        )
 
 
 def save_spline(path, spline: ImplicitSpline) -> None:

@@ -29,17 +29,22 @@ def spline_fields(spline, dims=(2, 3)):
     upper = np.asarray(spline.upper, dtype=np.float64)
     d = control.ndim
     if d not in dims:
-        raise ValueError(f"expected a spline on a grid of dimension {' or '.join(map(str, dims))}"
-                         f", got a control grid of shape {control.shape}")
+        raise ValueError(
+            f"expected a spline on a grid of dimension {' or '.join(map(str, dims))}"
+            f", got a control grid of shape {control.shape}"
+        )
     if weights.shape != control.shape:
-        raise ValueError(f"control and weights must have the same shape, got {control.shape} "
-                         f"and {weights.shape}")
+        raise ValueError(
+            f"control and weights must have the same shape, got {control.shape} and {weights.shape}"
+        )
     if min(control.shape) < 4:
-        raise ValueError(f"a cubic spline needs at least 4 coefficients along every axis, got "
-                         f"{control.shape}")
+        raise ValueError(
+            f"a cubic spline needs at least 4 coefficients along every axis, got {control.shape}"
+        )
     if lower.shape != (d,) or upper.shape != (d,):
-        raise ValueError(f"lower and upper must have shape ({d},), got {lower.shape} and "
-                         f"{upper.shape}")
+        raise ValueError(
+            f"lower and upper must have shape ({d},), got {lower.shape} and {upper.shape}"
+        )
     if not (np.isfinite(lower).all() and np.isfinite(upper).all() and (upper > lower).all()):
         raise ValueError(f"box must be finite with lower < upper, got {lower}, {upper}")
     return control, weights, lower, upper
@@ -129,8 +134,7 @@ def values_and_gradients(spline, points, *, chunk: int = 1 << 14):
     d = control.ndim
     points = np.asarray(points, dtype=np.float64)
     if points.ndim != 2 or points.shape[1] != d:
-        raise ValueError(f"points must have shape (n, {d}) for a {d}D spline, got "
-                         f"{points.shape}")
+        raise ValueError(f"points must have shape (n, {d}) for a {d}D spline, got {points.shape}")
     if int(chunk) < 1:
         raise ValueError(f"chunk must be >= 1, got {chunk}")
     weighted = weights * control
@@ -140,7 +144,7 @@ def values_and_gradients(spline, points, *, chunk: int = 1 << 14):
     # "nabc,na,nb,nc->n": a cell's coefficient patch against the per-axis factors.
     contract = f"n{letters}," + ",".join(f"n{c}" for c in letters) + "->n"
     for start in range(0, len(points), int(chunk)):
-        p = points[start:start + int(chunk)]
+        p = points[start : start + int(chunk)]
         index, factors, slopes = [], [], []
         for k in range(d):
             cell, t, h = locate_axis(p[:, k], lower[k], upper[k], control.shape[k])
@@ -153,10 +157,10 @@ def values_and_gradients(spline, points, *, chunk: int = 1 << 14):
         num = np.einsum(contract, num_patch, *factors, optimize=True)
         den = np.einsum(contract, den_patch, *factors, optimize=True)
         g = num / den
-        value[start:start + len(p)] = g
+        value[start : start + len(p)] = g
         for k in range(d):
-            along = factors[:k] + [slopes[k]] + factors[k + 1:]
+            along = factors[:k] + [slopes[k]] + factors[k + 1 :]
             d_num = np.einsum(contract, num_patch, *along, optimize=True)
             d_den = np.einsum(contract, den_patch, *along, optimize=True)
-            gradient[start:start + len(p), k] = (d_num - g * d_den) / den
+            gradient[start : start + len(p), k] = (d_num - g * d_den) / den
     return value, gradient

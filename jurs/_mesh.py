@@ -83,8 +83,15 @@ def default_resolution(spline, lower, upper) -> int:
     return int(np.clip(nodes, MIN_RESOLUTION, MAX_RESOLUTION))
 
 
-def mesh(spline, resolution: int | None = None, *, box=None, level: float = 0.0,
-         newton_steps: int = 2, chunk: int = SLAB_NODES):
+def mesh(
+    spline,
+    resolution: int | None = None,
+    *,
+    box=None,
+    level: float = 0.0,
+    newton_steps: int = 2,
+    chunk: int = SLAB_NODES,
+):
     """Triangle mesh of ``{g = level}`` of a 3D spline over ``box``.
 
     Args:
@@ -139,8 +146,10 @@ def _box(spline, box):
         return s_lower, s_upper
     lower, upper = (np.asarray(b, dtype=np.float64) for b in box)
     if lower.shape != (3,) or upper.shape != (3,):
-        raise ValueError(f"box must be (lower, upper) with 3 coordinates each, got shapes "
-                         f"{lower.shape} and {upper.shape}")
+        raise ValueError(
+            f"box must be (lower, upper) with 3 coordinates each, got shapes "
+            f"{lower.shape} and {upper.shape}"
+        )
     if not (np.isfinite(lower).all() and np.isfinite(upper).all() and (upper > lower).all()):
         raise ValueError(f"box must be finite with lower < upper, got {lower}, {upper}")
     return lower, upper
@@ -172,7 +181,7 @@ def _march_in_slabs(spline, axes, level: float, nudge: float, chunk: int):
     carried = None  # previous slab's last plane of values
     for start in range(0, len(xs) - 1, planes - 1):
         stop = min(start + planes, len(xs))  # nodes start .. stop - 1
-        fresh = lattice_values(spline, (xs[start + (carried is not None):stop], ys, zs))
+        fresh = lattice_values(spline, (xs[start + (carried is not None) : stop], ys, zs))
         near = np.abs(fresh - level) < nudge
         fresh[near] = level + nudge
         values = fresh if carried is None else np.concatenate([carried, fresh])
@@ -218,7 +227,7 @@ def _newton(spline, vertices, level: float, steps: int, longest: float):
         norm2 = np.sum(gradient * gradient, axis=1)
         with np.errstate(divide="ignore", invalid="ignore"):
             move = -((value - level) / norm2)[:, None] * gradient
-        ok = np.isfinite(move).all(axis=1) & (np.sum(move * move, axis=1) <= longest ** 2)
+        ok = np.isfinite(move).all(axis=1) & (np.sum(move * move, axis=1) <= longest**2)
         x[ok] += move[ok]
     return x
 
@@ -228,13 +237,18 @@ def _check_mesh(vertices, faces):
     faces = np.asarray(faces)
     if vertices.ndim != 2 or vertices.shape[1] != 3:
         raise ValueError(f"vertices must have shape (V, 3), got {vertices.shape}")
-    if faces.ndim != 2 or faces.shape[1] != 3 or (faces.size and not
-                                                    np.issubdtype(faces.dtype, np.integer)):
-        raise ValueError(f"faces must be an integer array of shape (F, 3), got {faces.shape} "
-                         f"{faces.dtype}")
+    if (
+        faces.ndim != 2
+        or faces.shape[1] != 3
+        or (faces.size and not np.issubdtype(faces.dtype, np.integer))
+    ):
+        raise ValueError(
+            f"faces must be an integer array of shape (F, 3), got {faces.shape} {faces.dtype}"
+        )
     if faces.size and (faces.min() < 0 or faces.max() >= len(vertices)):
-        raise ValueError(f"faces index vertices 0..{len(vertices) - 1}, got indices "
-                         f"{faces.min()}..{faces.max()}")
+        raise ValueError(
+            f"faces index vertices 0..{len(vertices) - 1}, got indices {faces.min()}..{faces.max()}"
+        )
     return vertices, faces.astype(np.int64)
 
 
@@ -262,12 +276,14 @@ def _face_components(faces, num_vertices: int):
     # Each face links its first vertex to the other two: enough to connect all three.
     rows = np.repeat(faces[:, 0], 2)
     cols = faces[:, 1:].reshape(-1)
-    graph = sparse.coo_matrix((np.ones(len(rows), dtype=np.int8), (rows, cols)),
-                              shape=(num_vertices, num_vertices))
+    graph = sparse.coo_matrix(
+        (np.ones(len(rows), dtype=np.int8), (rows, cols)), shape=(num_vertices, num_vertices)
+    )
     _, vertex_label = csgraph.connected_components(graph, directed=False)
     raw = vertex_label[faces[:, 0]]
-    used, first, inverse, sizes = np.unique(raw, return_index=True, return_inverse=True,
-                                            return_counts=True)
+    used, first, inverse, sizes = np.unique(
+        raw, return_index=True, return_inverse=True, return_counts=True
+    )
     order = np.lexsort((first, -sizes))  # largest first, then by first face
     rank = np.empty(len(used), dtype=np.int64)
     rank[order] = np.arange(len(used))
@@ -285,10 +301,12 @@ def _topology(faces, labels, count):
     vertex_owner[faces.reshape(-1)] = np.repeat(labels, 3)
     used = np.zeros(faces.max() + 1, dtype=bool)
     used[faces.reshape(-1)] = True
-    return (np.bincount(vertex_owner[used], minlength=count),
-            np.bincount(owner, minlength=count),
-            np.bincount(labels, minlength=count),
-            np.bincount(owner[uses == 1], minlength=count))
+    return (
+        np.bincount(vertex_owner[used], minlength=count),
+        np.bincount(owner, minlength=count),
+        np.bincount(labels, minlength=count),
+        np.bincount(owner[uses == 1], minlength=count),
+    )
 
 
 def genus(faces) -> int:
@@ -299,10 +317,17 @@ def genus(faces) -> int:
     an odd Euler characteristic (not an orientable closed surface).
     """
     faces = np.asarray(faces)
-    if faces.ndim != 2 or faces.shape[1] != 3 or len(faces) == 0 or faces.min() < 0 or not \
-            np.issubdtype(faces.dtype, np.integer):
-        raise ValueError(f"faces must be a non-empty (F, 3) array of vertex indices, got "
-                         f"shape {faces.shape} {faces.dtype}")
+    if (
+        faces.ndim != 2
+        or faces.shape[1] != 3
+        or len(faces) == 0
+        or faces.min() < 0
+        or not np.issubdtype(faces.dtype, np.integer)
+    ):
+        raise ValueError(
+            f"faces must be a non-empty (F, 3) array of vertex indices, got "
+            f"shape {faces.shape} {faces.dtype}"
+        )
     faces = faces.astype(np.int64)
     count, labels = _face_components(faces, int(faces.max()) + 1)
     if count != 1:
@@ -468,8 +493,15 @@ def _weighted_medians(values, weights, labels, totals):
     return out
 
 
-def mesh_distances(vertices, faces, reference_points, reference_normals=None, *,
-                   samples: int | None = None, seed: int = 0) -> dict:
+def mesh_distances(
+    vertices,
+    faces,
+    reference_points,
+    reference_normals=None,
+    *,
+    samples: int | None = None,
+    seed: int = 0,
+) -> dict:
     """Chamfer and Hausdorff distances and normal consistency between a mesh and a
     reference cloud.
 
@@ -495,20 +527,27 @@ def mesh_distances(vertices, faces, reference_points, reference_normals=None, *,
     vertices, faces = _check_mesh(vertices, faces)
     reference = np.asarray(reference_points, dtype=np.float64)
     if reference.ndim != 2 or reference.shape[1] != 3 or len(reference) == 0:
-        raise ValueError(f"reference_points must have shape (m, 3) with m >= 1, got "
-                         f"{reference.shape}")
+        raise ValueError(
+            f"reference_points must have shape (m, 3) with m >= 1, got {reference.shape}"
+        )
     if reference_normals is not None:
         reference_normals = np.asarray(reference_normals, dtype=np.float64)
         if reference_normals.shape != reference.shape:
-            raise ValueError(f"reference_normals must have the shape of reference_points "
-                             f"{reference.shape}, got {reference_normals.shape}")
+            raise ValueError(
+                f"reference_normals must have the shape of reference_points "
+                f"{reference.shape}, got {reference_normals.shape}"
+            )
     if samples is None:
         samples = int(np.clip(SAMPLES_PER_REFERENCE * len(reference), MIN_SAMPLES, MAX_SAMPLES))
     if int(samples) < 1:
         raise ValueError(f"samples must be >= 1, got {samples}")
     if len(faces) == 0 or not face_areas(vertices, faces).sum() > 0:
-        return {"chamfer": float("inf"), "hausdorff": float("inf"),
-                "normal_consistency": float("nan"), "samples": 0}
+        return {
+            "chamfer": float("inf"),
+            "hausdorff": float("inf"),
+            "normal_consistency": float("nan"),
+            "samples": 0,
+        }
     z, z_normals = sample_mesh(vertices, faces, int(samples), seed=seed)
     d_zy, nearest = cKDTree(reference).query(z)
     d_yz = cKDTree(z).query(reference)[0]
@@ -519,6 +558,9 @@ def mesh_distances(vertices, faces, reference_points, reference_normals=None, *,
         if not (length > 0).all():
             raise ValueError("reference_normals has zero-length normals")
         consistency = float(np.mean(np.abs(np.sum(z_normals * n, axis=1)) / length))
-    return {"chamfer": float(0.5 * (d_zy.mean() + d_yz.mean())),
-            "hausdorff": float(max(d_zy.max(), d_yz.max())),
-            "normal_consistency": consistency, "samples": int(samples)}
+    return {
+        "chamfer": float(0.5 * (d_zy.mean() + d_yz.mean())),
+        "hausdorff": float(max(d_zy.max(), d_yz.max())),
+        "normal_consistency": consistency,
+        "samples": int(samples),
+    }

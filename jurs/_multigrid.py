@@ -100,8 +100,10 @@ def _fine_windows(x: Array, axis: int, n_coarse: int) -> list:
     pad = [(0, 0)] * x.ndim
     pad[axis] = (3, 4)
     padded = jnp.pad(x, pad)
-    return [jax.lax.slice_in_dim(padded, a, a + 2 * n_coarse - 1, stride=2, axis=axis)
-            for a in range(MASK.size)]
+    return [
+        jax.lax.slice_in_dim(padded, a, a + 2 * n_coarse - 1, stride=2, axis=axis)
+        for a in range(MASK.size)
+    ]
 
 
 def restrict(grid: Array, coarse_shape: tuple[int, ...]) -> Array:
@@ -147,11 +149,15 @@ def galerkin(stencil: Array, coarse_shape: tuple[int, ...]) -> Array:
         windows = _fine_windows(stencil, axis, n_coarse)
         offsets = []
         for coarse_offset in range(SIDE):
-            offsets.append(sum(
-                float(weights[a, e, coarse_offset])
-                * jax.lax.index_in_dim(windows[a], e, axis=d + axis, keepdims=False)
-                for a in range(MASK.size) for e in range(SIDE)
-                if weights[a, e, coarse_offset] != 0.0))
+            offsets.append(
+                sum(
+                    float(weights[a, e, coarse_offset])
+                    * jax.lax.index_in_dim(windows[a], e, axis=d + axis, keepdims=False)
+                    for a in range(MASK.size)
+                    for e in range(SIDE)
+                    if weights[a, e, coarse_offset] != 0.0
+                )
+            )
         out = jnp.stack(offsets, axis=d + axis)
         # Entries towards coarse functions off the grid: zero (they are, up to rounding).
         index = np.arange(n_coarse)[:, None] + np.arange(SIDE)[None, :] - HALF
@@ -169,8 +175,9 @@ def probe_stencil(matvec, shape: tuple[int, ...], dtype) -> Array:
     d = len(shape)
     index = np.indices(shape)
     classes = list(itertools.product(range(SIDE), repeat=d))
-    probes = np.stack([np.all([index[k] % SIDE == c[k] for k in range(d)], axis=0)
-                       for c in classes]).astype(dtype)
+    probes = np.stack(
+        [np.all([index[k] % SIDE == c[k] for k in range(d)], axis=0) for c in classes]
+    ).astype(dtype)
     products = jax.lax.map(matvec, jnp.asarray(probes))  # (7^d,) + shape
     entries = []
     for offset in itertools.product(range(SIDE), repeat=d):
@@ -198,8 +205,9 @@ class PatchLayout(eqx.Module):
     def colours(self) -> int:
         """Colours such that patches of one colour are decoupled: patches ``c`` apart along
         an axis are once ``c * stride >= side + HALF`` (a gap of more than HALF points)."""
-        return math.prod(min(n, -(-(k + HALF) // s))
-                         for n, k, s in zip(self.counts, self.sides, self.strides))
+        return math.prod(
+            min(n, -(-(k + HALF) // s)) for n, k, s in zip(self.counts, self.sides, self.strides)
+        )
 
 
 def patch_layout(shape: tuple[int, ...], side: int, stride: int) -> PatchLayout:
@@ -224,9 +232,11 @@ def _axis_windows(x: Array, axis: int, count: int, side: int, stride: int) -> Ar
     pad = [(0, 0)] * x.ndim
     pad[axis] = (0, (count + shifts - 1) * stride - x.shape[axis])
     x = jnp.pad(x, pad)
-    split = x.shape[:axis] + (count, stride) + x.shape[axis + 1:]
-    parts = [jax.lax.slice_in_dim(x, j * stride, (j + count) * stride, axis=axis).reshape(split)
-             for j in range(shifts)]
+    split = x.shape[:axis] + (count, stride) + x.shape[axis + 1 :]
+    parts = [
+        jax.lax.slice_in_dim(x, j * stride, (j + count) * stride, axis=axis).reshape(split)
+        for j in range(shifts)
+    ]
     return jax.lax.slice_in_dim(jnp.concatenate(parts, axis=axis + 1), 0, side, axis=axis + 1)
 
 
@@ -236,8 +246,9 @@ def extract_patches(layout: PatchLayout, grid: Array) -> Array:
     d = len(layout.shape)
     x = grid
     for axis in range(d):
-        x = _axis_windows(x, 2 * axis, layout.counts[axis], layout.sides[axis],
-                          layout.strides[axis])
+        x = _axis_windows(
+            x, 2 * axis, layout.counts[axis], layout.sides[axis], layout.strides[axis]
+        )
     order = [2 * k for k in range(d)] + [2 * k + 1 for k in range(d)]
     x = jnp.transpose(x, order + list(range(2 * d, x.ndim)))
     return x.reshape((-1, layout.size) + grid.shape[d:])
@@ -258,7 +269,7 @@ def _shear(x: Array, side: int) -> Array:
     lead = x.shape[:-2]
     x = jnp.pad(x, [(0, 0)] * (x.ndim - 1) + [(0, side)])
     x = x.reshape(lead + (side * (side + SIDE),))[..., : side * (side + SIDE - 1)]
-    return x.reshape(lead + (side, side + SIDE - 1))[..., HALF: HALF + side]
+    return x.reshape(lead + (side, side + SIDE - 1))[..., HALF : HALF + side]
 
 
 def patch_blocks(layout: PatchLayout, stencil: Array) -> Array:
@@ -363,17 +374,21 @@ def _slab_map(layout: PatchLayout, stencil: Array, fn) -> Array:
     the first axis) at a time, several slabs a batch, about :data:`SETUP_CHUNK_BYTES` of
     patch rows each; ``(patches, ...)``."""
     side, stride, count = layout.sides[0], layout.strides[0], layout.counts[0]
-    slab = PatchLayout((side,) + layout.shape[1:], layout.sides, layout.strides,
-                       (1,) + layout.counts[1:])
-    padded = jnp.pad(stencil, [(0, (count - 1) * stride + side - stencil.shape[0])]
-                     + [(0, 0)] * (stencil.ndim - 1))
+    slab = PatchLayout(
+        (side,) + layout.shape[1:], layout.sides, layout.strides, (1,) + layout.counts[1:]
+    )
+    padded = jnp.pad(
+        stencil,
+        [(0, (count - 1) * stride + side - stencil.shape[0])] + [(0, 0)] * (stencil.ndim - 1),
+    )
 
     def one(index):
         rows = jax.lax.dynamic_slice_in_dim(padded, index * stride, side, axis=0)
         return fn(patch_blocks(slab, rows))
 
-    slab_bytes = (math.prod(slab.counts) * layout.size * SIDE ** len(layout.shape)
-                  * stencil.dtype.itemsize)
+    slab_bytes = (
+        math.prod(slab.counts) * layout.size * SIDE ** len(layout.shape) * stencil.dtype.itemsize
+    )
     batch = max(1, min(count, SETUP_CHUNK_BYTES // max(slab_bytes, 1)))
     out = jax.lax.map(one, jnp.arange(count), batch_size=batch)
     return out.reshape((-1,) + out.shape[2:])
@@ -386,15 +401,19 @@ def patch_inverses(layouts: list, stencils: list, dtype=None) -> list:
     computed ``B_p^-1`` stays below ``A_p^-1`` and :meth:`PatchLayout.colours` bounds
     ``M^-1 A``'s spectrum. Levels whose patches have the same size are inverted as one
     batch while that is small (:data:`SHARED_INVERSION_BYTES`), else level by level."""
+
     def ridge(size, dtype_):
         return PATCH_RIDGE * size * float(jnp.finfo(dtype_).eps)
 
     def invert(blocks):
         return spd_inverse(blocks, ridge(blocks.shape[-1], blocks.dtype)).astype(
-            dtype or blocks.dtype)
+            dtype or blocks.dtype
+        )
 
-    total = sum(math.prod(lay.counts) * lay.size**2 * st.dtype.itemsize
-                for lay, st in zip(layouts, stencils))
+    total = sum(
+        math.prod(lay.counts) * lay.size**2 * st.dtype.itemsize
+        for lay, st in zip(layouts, stencils)
+    )
     if total > SHARED_INVERSION_BYTES:
         return [_slab_map(lay, st, invert) for lay, st in zip(layouts, stencils)]
     blocks = [_slab_map(lay, st, lambda b: b) for lay, st in zip(layouts, stencils)]
@@ -445,9 +464,15 @@ class Hierarchy(eqx.Module):
         return self.coarsest.dtype
 
 
-def build_hierarchy(stencil: Array, *, coarsest_size: int = DEFAULT_COARSEST_SIZE,
-                    degree: int = 2, patch: tuple[int, int] | None = None,
-                    patch_dtype=None, cycle_dtype=None) -> Hierarchy:
+def build_hierarchy(
+    stencil: Array,
+    *,
+    coarsest_size: int = DEFAULT_COARSEST_SIZE,
+    degree: int = 2,
+    patch: tuple[int, int] | None = None,
+    patch_dtype=None,
+    cycle_dtype=None,
+) -> Hierarchy:
     """The multigrid hierarchy of a symmetric positive definite stencil: Galerkin levels,
     their Schwarz patches' inverses, and the coarsest level's inverse (dense, at most
     ``coarsest_size`` unknowns). All factorisations are computed in the stencil's dtype.
@@ -472,8 +497,10 @@ def build_hierarchy(stencil: Array, *, coarsest_size: int = DEFAULT_COARSEST_SIZ
     for coarse in shapes[1:]:
         stencils.append(galerkin(stencils[-1], coarse))
     inverses = patch_inverses(layouts, stencils[:-1], patch_dtype)
-    levels = tuple(Level(st.astype(cycle_dtype), inv, lay, float(lay.colours()))
-                   for st, inv, lay in zip(stencils, inverses, layouts))
+    levels = tuple(
+        Level(st.astype(cycle_dtype), inv, lay, float(lay.colours()))
+        for st, inv, lay in zip(stencils, inverses, layouts)
+    )
     stencil = stencils[-1]
     dense = stencil_to_dense(stencil)
     ridge = PATCH_RIDGE * dense.shape[0] * float(jnp.finfo(dense.dtype).eps)
@@ -553,8 +580,9 @@ def full_multigrid(hierarchy: Hierarchy, rhs: Array) -> Array:
 ESTIMATE_WINDOW = 2
 
 
-def preconditioned_cg(matvec, precondition, rhs: Array, start: Array, rtol, atol,
-                      max_steps: int, target_norm2=None):
+def preconditioned_cg(
+    matvec, precondition, rhs: Array, start: Array, rtol, atol, max_steps: int, target_norm2=None
+):
     """Conjugate gradients for ``A x = rhs`` preconditioned by ``precondition`` (~A^-1),
     from ``start``, stopped on the gap of the quadratic objective to its minimum (the
     energy norm of the error ``e . A e``).
@@ -575,8 +603,7 @@ def preconditioned_cg(matvec, precondition, rhs: Array, start: Array, rtol, atol
 
     def estimate_and_reference(x, residual, gamma, window):
         energy = jnp.vdot(x, rhs) - jnp.vdot(x, residual)  # x . A x, as A x = rhs - r
-        reference = energy if target_norm2 is None else target_norm2 - 2 * jnp.vdot(
-            x, rhs) + energy
+        reference = energy if target_norm2 is None else target_norm2 - 2 * jnp.vdot(x, rhs) + energy
         return jnp.maximum(gamma, jnp.sum(window)), jnp.maximum(reference, 0.0)
 
     def keep_going(carry):
@@ -600,7 +627,8 @@ def preconditioned_cg(matvec, precondition, rhs: Array, start: Array, rtol, atol
 
     broken = ~(jnp.isfinite(gamma) & (gamma >= 0))
     x, residual, _, gamma, window, steps, broken = jax.lax.while_loop(
-        keep_going, step, (start, residual, z, gamma, window, jnp.array(0), broken))
+        keep_going, step, (start, residual, z, gamma, window, jnp.array(0), broken)
+    )
     estimate, reference = estimate_and_reference(x, residual, gamma, window)
     return x, steps, estimate / jnp.where(reference > 0, reference, 1.0), broken
 
@@ -608,8 +636,10 @@ def preconditioned_cg(matvec, precondition, rhs: Array, start: Array, rtol, atol
 def _grid_structure(operator: lx.AbstractLinearOperator) -> jax.ShapeDtypeStruct:
     structure = operator.in_structure()
     if not isinstance(structure, jax.ShapeDtypeStruct) or structure.ndim not in (2, 3):
-        raise ValueError("Multigrid solves operators on a single 2D or 3D grid array, got "
-                         f"in_structure {structure}")
+        raise ValueError(
+            "Multigrid solves operators on a single 2D or 3D grid array, got "
+            f"in_structure {structure}"
+        )
     if operator.out_structure() != structure:
         raise ValueError("Multigrid needs a square operator (same in and out structure)")
     return structure
@@ -670,25 +700,36 @@ class Multigrid(lx.AbstractLinearSolver):
             if isinstance(value, (int, float)) and value < 0:
                 raise ValueError(f"{name} must be >= 0, got {value}")
         if int(self.max_steps) < 1 or int(self.degree) < 1 or int(self.coarsest_size) < 1:
-            raise ValueError("max_steps, degree and coarsest_size must be >= 1, got "
-                             f"{self.max_steps}, {self.degree}, {self.coarsest_size}")
+            raise ValueError(
+                "max_steps, degree and coarsest_size must be >= 1, got "
+                f"{self.max_steps}, {self.degree}, {self.coarsest_size}"
+            )
         if self.patch is not None:
             patch_layout((), *self.patch)  # checks side and stride
 
     def init(self, operator: lx.AbstractLinearOperator, options: dict[str, Any]) -> Hierarchy:
         structure = _grid_structure(operator)
         if not lx.is_positive_semidefinite(operator):
-            raise ValueError("Multigrid needs an operator tagged "
-                             "lineax.positive_semidefinite_tag (symmetric positive definite)")
+            raise ValueError(
+                "Multigrid needs an operator tagged "
+                "lineax.positive_semidefinite_tag (symmetric positive definite)"
+            )
         stencil = options.get("stencil")
         if stencil is None:
             stencil = probe_stencil(operator.mv, structure.shape, structure.dtype)
         elif stencil.shape != structure.shape + (SIDE,) * structure.ndim:
-            raise ValueError(f"options['stencil'] must be shaped {structure.shape} + "
-                             f"(7,) * {structure.ndim}, got {stencil.shape}")
-        return build_hierarchy(jax.lax.stop_gradient(stencil), coarsest_size=self.coarsest_size,
-                               degree=self.degree, patch=self.patch,
-                               patch_dtype=self.patch_dtype, cycle_dtype=self.cycle_dtype)
+            raise ValueError(
+                f"options['stencil'] must be shaped {structure.shape} + "
+                f"(7,) * {structure.ndim}, got {stencil.shape}"
+            )
+        return build_hierarchy(
+            jax.lax.stop_gradient(stencil),
+            coarsest_size=self.coarsest_size,
+            degree=self.degree,
+            patch=self.patch,
+            patch_dtype=self.patch_dtype,
+            cycle_dtype=self.cycle_dtype,
+        )
 
     def compute(self, state: Hierarchy, vector: Array, options: dict[str, Any]):
         matvec = lambda x: stencil_matvec(state.stencil, x)  # noqa: E731
@@ -697,10 +738,18 @@ class Multigrid(lx.AbstractLinearSolver):
         else:
             start = options.get("y0", jnp.zeros_like(vector))
         x, steps, error2, broken = preconditioned_cg(
-            matvec, lambda r: v_cycle(state, r), vector, start, self.rtol, self.atol,
-            self.max_steps, options.get("target_norm2"))
-        result = lx.RESULTS.where(steps >= self.max_steps, lx.RESULTS.max_steps_reached,
-                                  lx.RESULTS.successful)
+            matvec,
+            lambda r: v_cycle(state, r),
+            vector,
+            start,
+            self.rtol,
+            self.atol,
+            self.max_steps,
+            options.get("target_norm2"),
+        )
+        result = lx.RESULTS.where(
+            steps >= self.max_steps, lx.RESULTS.max_steps_reached, lx.RESULTS.successful
+        )
         result = lx.RESULTS.where(broken, lx.RESULTS.breakdown, result)
         return x, result, {"num_steps": steps, "relative_error2": error2}
 

@@ -2,9 +2,9 @@
 
 For fixed weights the data energy ``E_d = ||D C - b||^2`` is quadratic in C, and its
 minimiser (with the regulariser of eq. 31) solves ``(D^T D + 2 lam L) C = D^T b``
-(docs/design.md section 3). ``D^T D`` is banded: coefficient ``(i, j)`` couples only to ``(i + di, j + dj)``
-with ``|di|, |dj| <= 3`` (two cubic basis functions overlap when their supports share a
-cell), so it is stored as an ``(N, M, 7, 7)`` **stencil**:
+(docs/design.md section 3). ``D^T D`` is banded: coefficient ``(i, j)`` couples only to
+``(i + di, j + dj)`` with ``|di|, |dj| <= 3`` (two cubic basis functions overlap when
+their supports share a cell), so it is stored as an ``(N, M, 7, 7)`` **stencil**:
 ``stencil[i, j, 3 + di, 3 + dj] = (D^T D)[(i, j), (i + di, j + dj)]``, 49 numbers a row.
 
 Assembly is one pass over the samples, accumulated per cell and then folded onto the
@@ -33,8 +33,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
-from ._basis import (NUM_LOCAL, cell_shape, grid_to_patches, num_cells, patches_to_grid,
-                     tensor_basis)
+from ._basis import NUM_LOCAL, cell_shape, grid_to_patches, num_cells, patches_to_grid, tensor_basis
 from ._precision import full_precision
 from ._problem import Problem
 from ._spline import rational_terms
@@ -67,7 +66,9 @@ def _product_bernstein() -> np.ndarray:
                 continue
             for i in range(4):
                 for j in range(4):
-                    out[a, d, i + j] += cubic[a, i] * cubic[b, j] * comb(3, i) * comb(3, j) / comb(6, i + j)
+                    out[a, d, i + j] += (
+                        cubic[a, i] * cubic[b, j] * comb(3, i) * comb(3, j) / comb(6, i + j)
+                    )
     return out
 
 
@@ -90,8 +91,9 @@ def _bernstein_terms(t: Array, degree: int) -> list:
     return [comb(degree, p) * tp[p] * sp[degree - p] for p in range(degree + 1)]
 
 
-def chunked_segment_sum(rows_fn, inputs, segments: Array, num_segments: int,
-                        chunk_size: int = DEFAULT_CHUNK) -> Array:
+def chunked_segment_sum(
+    rows_fn, inputs, segments: Array, num_segments: int, chunk_size: int = DEFAULT_CHUNK
+) -> Array:
     """``segment_sum(rows_fn(*inputs), segments)`` computed ``chunk_size`` rows at a time.
 
     ``rows_fn`` maps a block of the ``inputs`` (arrays sharing a leading axis) to
@@ -177,10 +179,12 @@ def _bernstein_moments(problem: Problem, chunk_size: int) -> Array:
         terms = [mask * b6x[p] * b6y[q] for p in range(7) for q in range(7)]
         terms += [target * b3x[p] * b3y[q] for p in range(4) for q in range(4)]
         zeros = tuple(jnp.zeros((), t.dtype) for _ in terms)
-        sums = jax.lax.reduce(tuple(terms), zeros,
-                              lambda a, b: tuple(x + y for x, y in zip(a, b)), (1,))
-        return jax.ops.segment_sum(jnp.stack(sums, axis=-1), local.bucket_cell,
-                                   num_segments=count, indices_are_sorted=True)
+        sums = jax.lax.reduce(
+            tuple(terms), zeros, lambda a, b: tuple(x + y for x, y in zip(a, b)), (1,)
+        )
+        return jax.ops.segment_sum(
+            jnp.stack(sums, axis=-1), local.bucket_cell, num_segments=count, indices_are_sorted=True
+        )
     t = _local_coordinates(problem)
 
     def moments(t, mask, target):
@@ -189,8 +193,9 @@ def _bernstein_moments(problem: Problem, chunk_size: int) -> Array:
         rhs = tensor_basis(*[_bernstein(t[:, a], 3) for a in axes]) * target[:, None]
         return jnp.concatenate([gram, rhs], axis=1) * mask[:, None]
 
-    return chunked_segment_sum(moments, [t, problem.mask, problem.targets], local.cell, count,
-                               chunk_size)
+    return chunked_segment_sum(
+        moments, [t, problem.mask, problem.targets], local.cell, count, chunk_size
+    )
 
 
 def _fold_axis(cells: Array, kernel: Array, axis: int) -> Array:
@@ -248,9 +253,11 @@ def rational_normal_equations(problem: Problem, weights: Array, chunk_size: int 
     at a time. 2D only (NotImplementedError for a surface: its 64 x 64 row products are not
     written yet)."""
     if problem.ndim != 2:
-        raise NotImplementedError("the rational normal equations (fixed weights other than "
-                                  "1) are 2D only; fit surfaces with the B-spline "
-                                  "(LeastSquares(keep_weights=False), the default)")
+        raise NotImplementedError(
+            "the rational normal equations (fixed weights other than "
+            "1) are 2D only; fit surfaces with the B-spline "
+            "(LeastSquares(keep_weights=False), the default)"
+        )
     w_patches = jnp.take(grid_to_patches(weights), problem.local.cell, axis=0)
 
     def products(bx, by, w_rows, mask, target):
@@ -263,8 +270,9 @@ def rational_normal_equations(problem: Problem, weights: Array, chunk_size: int 
         return jnp.concatenate([gram, rows * target[:, None]], axis=1)
 
     inputs = [problem.local.bx, problem.local.by, w_patches, problem.mask, problem.targets]
-    sums = chunked_segment_sum(products, inputs, problem.local.cell, num_cells(problem.shape),
-                               chunk_size)
+    sums = chunked_segment_sum(
+        products, inputs, problem.local.cell, num_cells(problem.shape), chunk_size
+    )
     gram = sums[:, : NUM_LOCAL * NUM_LOCAL].reshape(-1, NUM_LOCAL, NUM_LOCAL)
     stencil = _cells_to_stencil(_gram_to_blocks(gram), problem.shape)
     return stencil, patches_to_grid(sums[:, NUM_LOCAL * NUM_LOCAL :], problem.shape)
@@ -325,8 +333,9 @@ def _stencil_indices(shape: tuple[int, ...]):
     matrix position of entry ``[i, 3 + di]`` is ``(flat(i), flat(i + di))``, valid where
     ``i + di`` is on the grid (row-major flattening)."""
     d = len(shape)
-    grids = np.meshgrid(*[np.arange(n) for n in shape], *[np.arange(SIDE) - HALF] * d,
-                        indexing="ij")
+    grids = np.meshgrid(
+        *[np.arange(n) for n in shape], *[np.arange(SIDE) - HALF] * d, indexing="ij"
+    )
     points, steps = grids[:d], grids[d:]
     targets = [p + s for p, s in zip(points, steps)]
     valid = np.all([(t >= 0) & (t < n) for t, n in zip(targets, shape)], axis=0)
@@ -360,8 +369,9 @@ def _cholesky_and_inverse(a: Array):
     n = a.shape[0]
     if n <= _LAPACK_MAX_BLOCK:
         low = jax.lax.linalg.cholesky(a, symmetrize_input=False)
-        inv = jax.lax.linalg.triangular_solve(low, jnp.eye(n, dtype=a.dtype), left_side=True,
-                                              lower=True)
+        inv = jax.lax.linalg.triangular_solve(
+            low, jnp.eye(n, dtype=a.dtype), left_side=True, lower=True
+        )
         return low, inv
     h = n // 2
     l1, i1 = _cholesky_and_inverse(a[:h, :h])
@@ -421,12 +431,16 @@ def stencil_cholesky_solve(stencil: Array, rhs: Array) -> Array:
         a0, a1, a2, a3 = _row_blocks(*x)  # A[i, i - d]
         l3 = a3 @ inv[2].T
         l2 = (a2 - l3 @ prev[1, 2].T) @ inv[1].T
-        l1 = (a1 - jnp.concatenate([l3, l2], 1) @ jnp.concatenate([prev[0, 1], prev[0, 2]], 1).T
-              ) @ inv[0].T
+        l1 = (
+            a1 - jnp.concatenate([l3, l2], 1) @ jnp.concatenate([prev[0, 1], prev[0, 2]], 1).T
+        ) @ inv[0].T
         row = jnp.stack([l3, l2, l1])
         wide = jnp.concatenate([l3, l2, l1], 1)
         _, inv_d = _cholesky_and_inverse(a0 - wide @ wide.T)
-        return (jnp.stack([row, prev[0], prev[1]]), jnp.stack([inv_d, inv[0], inv[1]])), (row, inv_d)
+        return (jnp.stack([row, prev[0], prev[1]]), jnp.stack([inv_d, inv[0], inv[1]])), (
+            row,
+            inv_d,
+        )
 
     eye = jnp.broadcast_to(jnp.eye(m, dtype=dtype), (3, m, m))
     carry = (jnp.zeros((3, 3, m, m), dtype), eye)
@@ -445,8 +459,9 @@ def stencil_cholesky_solve(stencil: Array, rhs: Array) -> Array:
         # from the lines already solved, and x_i adds its share to the three lines above.
         row, inv, yi = x
         xi = inv.T @ (yi - pending[0])
-        return jnp.stack([pending[1] + row[2].T @ xi, pending[2] + row[1].T @ xi,
-                          row[0].T @ xi]), xi
+        return jnp.stack(
+            [pending[1] + row[2].T @ xi, pending[2] + row[1].T @ xi, row[0].T @ xi]
+        ), xi
 
     _, x = jax.lax.scan(backward, zeros, (rows, invs, y), reverse=True)
     return x
@@ -485,7 +500,8 @@ class NormalEquations(eqx.Module):
         return jnp.vdot(control, product - 2.0 * self.rhs) + self.target_norm2
 
     def regularised(self, lam) -> Array:
-        """The stencil of ``D^T D + 2 lam L``, the Hessian / 2 of ``E_d + lam R`` (docs/design.md section 3)."""
+        """The stencil of ``D^T D + 2 lam L``, the Hessian / 2 of ``E_d + lam R``
+        (docs/design.md section 3)."""
         lap = laplacian_stencil(self.rhs.shape, self.stencil.dtype)
         return self.stencil + 2.0 * lam * lap
 
@@ -494,8 +510,9 @@ class NormalEquations(eqx.Module):
 
 
 @full_precision
-def normal_equations(problem: Problem, weights: Array | None = None, *,
-                     chunk_size: int = DEFAULT_CHUNK) -> NormalEquations:
+def normal_equations(
+    problem: Problem, weights: Array | None = None, *, chunk_size: int = DEFAULT_CHUNK
+) -> NormalEquations:
     """Assemble ``D^T D`` (stencil) and ``D^T b`` for ``problem`` in one pass over the samples.
 
     ``weights=None`` is the B-spline (w = 1, eq. 6), assembled from per-cell Bernstein

@@ -128,10 +128,10 @@ def _pca(points: np.ndarray, neighbours: np.ndarray, chunk: int = 20000):
     m, d = len(neighbours), points.shape[1]
     values, vectors = np.empty((m, d)), np.empty((m, d, d))
     for start in range(0, m, chunk):
-        nb = points[neighbours[start:start + chunk]]
+        nb = points[neighbours[start : start + chunk]]
         centred = nb - nb.mean(axis=1, keepdims=True)
         cov = np.einsum("nki,nkj->nij", centred, centred) / nb.shape[1]
-        values[start:start + chunk], vectors[start:start + chunk] = np.linalg.eigh(cov)
+        values[start : start + chunk], vectors[start : start + chunk] = np.linalg.eigh(cov)
     return np.maximum(values, 0.0), vectors
 
 
@@ -153,7 +153,7 @@ def _choose_k(points: np.ndarray, tree: cKDTree, rng: np.random.Generator) -> in
     _, neighbours = tree.query(points[sample], k=ladder[-1] + 1, workers=-1)
     noise2 = _local_noise(points, neighbours) ** 2
     for k in ladder:
-        values, _ = _pca(points, neighbours[:, :k + 1])
+        values, _ = _pca(points, neighbours[:, : k + 1])
         if np.median(_expected_angle_error(noise2, values, k + 1)) <= ANGLE_TARGET:
             return k
     return ladder[-1]
@@ -164,7 +164,7 @@ def _local_noise(points: np.ndarray, neighbours: np.ndarray) -> np.ndarray:
     ``K_LADDER[d][0]`` neighbours: the noise (plus curvature) on the smallest scale, where
     the other side of a thin part or a nearby component is rarely inside."""
     small = K_LADDER[points.shape[1]][0]
-    values, _ = _pca(points, neighbours[:, :min(small, neighbours.shape[1] - 1) + 1])
+    values, _ = _pca(points, neighbours[:, : min(small, neighbours.shape[1] - 1) + 1])
     return np.sqrt(values[:, 0])
 
 
@@ -246,15 +246,17 @@ def _spanning_patches(graph: sparse.csr_matrix, m: int, d: int):
         keep[np.argpartition(forest.data, -cuts)[-cuts:]] = False
     rounds = REJOIN_ROUNDS[d]
     for _ in range(rounds + 1):
-        pieces = sparse.coo_matrix((forest.data[keep], (forest.row[keep], forest.col[keep])),
-                                   shape=(m, m))
+        pieces = sparse.coo_matrix(
+            (forest.data[keep], (forest.row[keep], forest.col[keep])), shape=(m, m)
+        )
         n_patch, patch = csgraph.connected_components(pieces, directed=False)
         if _ == rounds or not _rejoin_tiny(forest, keep, patch):
             break
     cut = ~keep
-    patch_tree = sparse.coo_matrix((np.ones(int(cut.sum())), (patch[forest.row[cut]],
-                                                              patch[forest.col[cut]])),
-                                   shape=(n_patch, n_patch)).tocsr()
+    patch_tree = sparse.coo_matrix(
+        (np.ones(int(cut.sum())), (patch[forest.row[cut]], patch[forest.col[cut]])),
+        shape=(n_patch, n_patch),
+    ).tocsr()
     return forest.tocsr(), component, patch, patch_tree
 
 
@@ -278,8 +280,11 @@ def _dipole_matrix(queries, sources, dipoles, eps):
     products (``D . (p - x) = D . p - D . x``, ``|p - x|^2 = |p|^2 + |x|^2 - 2 p . x``)
     so that no ``(Q, S, d)`` temporary is built."""
     d = queries.shape[1]
-    r2 = (np.sum(queries ** 2, 1)[:, None] - 2.0 * queries @ sources.T
-          + (np.sum(sources ** 2, 1) + eps * eps)[None, :])
+    r2 = (
+        np.sum(queries**2, 1)[:, None]
+        - 2.0 * queries @ sources.T
+        + (np.sum(sources**2, 1) + eps * eps)[None, :]
+    )
     np.maximum(r2, (eps * eps)[None, :], out=r2)
     flux = np.sum(dipoles * sources, 1)[None, :] - queries @ dipoles.T
     if d == 2:
@@ -291,13 +296,14 @@ def _dipole_matrix(queries, sources, dipoles, eps):
 
 def _patch_fields_dense(queries, points, dipoles, eps, patch, n_patches):
     """Field of every patch at every query, exactly: ``(Q, P)``."""
-    owner = sparse.csr_matrix((np.ones(len(points)), (np.arange(len(points)), patch)),
-                              shape=(len(points), n_patches))
+    owner = sparse.csr_matrix(
+        (np.ones(len(points)), (np.arange(len(points)), patch)), shape=(len(points), n_patches)
+    )
     out = np.empty((len(queries), n_patches))
     step = max(1, int(DENSE_PAIRS // (4 * len(points))))
     for s in range(0, len(queries), step):
-        kernel = _dipole_matrix(queries[s:s + step], points, dipoles, eps)
-        out[s:s + step] = (owner.T @ kernel.T).T
+        kernel = _dipole_matrix(queries[s : s + step], points, dipoles, eps)
+        out[s : s + step] = (owner.T @ kernel.T).T
     return out
 
 
@@ -320,13 +326,12 @@ def _patch_fields_clustered(queries, points, dipoles, eps, patch, n_patches, tre
     c_eps = np.bincount(cluster, eps, n_cl) / size
     c_patch = np.zeros(n_cl, np.int64)
     c_patch[cluster] = patch
-    owner = sparse.csr_matrix((np.ones(n_cl), (np.arange(n_cl), c_patch)),
-                              shape=(n_cl, n_patches))
+    owner = sparse.csr_matrix((np.ones(n_cl), (np.arange(n_cl), c_patch)), shape=(n_cl, n_patches))
     out = np.empty((len(queries), n_patches))
     step = max(1, int(DENSE_PAIRS // (4 * n_cl)))
     for s in range(0, len(queries), step):
-        kernel = _dipole_matrix(queries[s:s + step], centre, c_dip, c_eps)
-        out[s:s + step] = (owner.T @ kernel.T).T
+        kernel = _dipole_matrix(queries[s : s + step], centre, c_dip, c_eps)
+        out[s : s + step] = (owner.T @ kernel.T).T
     # Near points: exact minus their share of their cluster's centroid approximation.
     q = queries[:, None, :]
     exact = _dipole_kernel(q, points[near], dipoles[near], eps[near])
@@ -356,8 +361,7 @@ def _subtree_moves(patch_tree: sparse.csr_matrix) -> tuple[np.ndarray, np.ndarra
             below[parent[p]] |= below[p]
     single = np.eye(n, dtype=bool)
     coarse = np.concatenate([below[roots], single])  # whole components, single patches
-    return (np.unique(np.concatenate([below, single]), axis=0).astype(float),
-            coarse.astype(float))
+    return (np.unique(np.concatenate([below, single]), axis=0).astype(float), coarse.astype(float))
 
 
 def _greedy_flips(gram, target, moves, s):
@@ -409,26 +413,26 @@ def _solve_signs(fields, weight, patch_tree, centre):
     target = wf.T @ (0.5 * np.sqrt(weight))
     n = len(target)
     if n <= EXHAUSTIVE_PATCHES:  # every sign vector: the exact optimum
-        every = 1.0 - 2.0 * ((np.arange(2 ** n)[:, None] >> np.arange(n)) & 1)
+        every = 1.0 - 2.0 * ((np.arange(2**n)[:, None] >> np.arange(n)) & 1)
         value = np.sum((every @ gram) * every, axis=1) - 2.0 * every @ target
         return every[int(np.argmin(value))]
     homogeneous = np.block([[gram, -target[:, None]], [-target[None, :], np.zeros((1, 1))]])
     if n < 64:
         vector = np.linalg.eigh(homogeneous)[1][:, 0]
     else:  # Lanczos: a dense LAPACK solve is slow when BLAS threads contend for cores
-        vector = eigsh(homogeneous, k=1, which="SA",
-                       v0=np.ones(n + 1))[1][:, 0]
+        vector = eigsh(homogeneous, k=1, which="SA", v0=np.ones(n + 1))[1][:, 0]
     spectral = np.where(vector[:n] * vector[n] >= 0, 1.0, -1.0)
     fine, coarse = _subtree_moves(patch_tree)
     fine = np.concatenate([fine, _pair_moves(centre)])
     starts = (np.ones(n), spectral)
-    results = [_greedy_flips(gram, target, moves, start)
-               for moves in (fine, coarse) for start in starts]
+    results = [
+        _greedy_flips(gram, target, moves, start) for moves in (fine, coarse) for start in starts
+    ]
     for s in starts:  # phased: whole components until none helps, then single patches
         for _ in range(8):
             before = s
-            s = _greedy_flips(gram, target, coarse[:len(coarse) - n], s)
-            s = _greedy_flips(gram, target, coarse[len(coarse) - n:], s)
+            s = _greedy_flips(gram, target, coarse[: len(coarse) - n], s)
+            s = _greedy_flips(gram, target, coarse[len(coarse) - n :], s)
             if np.array_equal(s, before):
                 break
         results.append(s)
@@ -438,8 +442,9 @@ def _solve_signs(fields, weight, patch_tree, centre):
 # --------------------------------------------------------------------------- API
 
 
-def estimate_normals(points, *, k: int | None = None, orient: bool = True,
-                     return_info: bool = False, seed: int = 0):
+def estimate_normals(
+    points, *, k: int | None = None, orient: bool = True, return_info: bool = False, seed: int = 0
+):
     """Outward unit normals of a point cloud sampling closed curves (2D) or surfaces (3D).
 
     Local PCA over ``k`` nearest neighbours, a sign propagated along a minimum spanning tree
@@ -472,8 +477,10 @@ def estimate_normals(points, *, k: int | None = None, orient: bool = True,
     inverse = inverse.ravel()
     m = len(unique)
     if m < _minimum_points(d):
-        raise ValueError(f"points must hold at least {_minimum_points(d)} distinct points "
-                         f"in {d}D, got {m} (of {len(array)})")
+        raise ValueError(
+            f"points must hold at least {_minimum_points(d)} distinct points "
+            f"in {d}D, got {m} (of {len(array)})"
+        )
     if k is not None and (int(k) != k or not d <= int(k) < m):
         raise ValueError(f"k must be an integer in [{d}, {m - 1}] here, got {k}")
     rng = np.random.default_rng(seed)
@@ -489,8 +496,7 @@ def estimate_normals(points, *, k: int | None = None, orient: bool = True,
     confidence = 1.0 - values[:, 0] / np.maximum(values[:, 1], 1e-300)
     info = NormalsInfo(k, 0, 0, 0, 0, float("nan"), confidence[inverse])
     if orient:
-        normals, stats = _orient(unique, normals, values, noise, neighbours, tree, rng,
-                                 confidence)
+        normals, stats = _orient(unique, normals, values, noise, neighbours, tree, rng, confidence)
         info = info._replace(**stats)
     return (normals[inverse], info) if return_info else normals[inverse]
 
@@ -500,7 +506,7 @@ def _orient(points, normals, values, noise, neighbours, tree, rng, weight):
     ``weight`` (m,) is each point's confidence, its weight as a source and a query."""
     m, d = points.shape
     graph_k = min(GRAPH_NEIGHBOURS[d], neighbours.shape[1] - 1)
-    graph = _tangential_graph(points, normals, noise, neighbours[:, :graph_k + 1])
+    graph = _tangential_graph(points, normals, noise, neighbours[:, : graph_k + 1])
     forest, component, patch, patch_tree = _spanning_patches(graph, m, d)
     normals = normals * _tree_signs(forest, normals)[:, None]
     # Start each component pointing away from its centroid (a guess the field corrects).
@@ -517,26 +523,34 @@ def _orient(points, normals, values, noise, neighbours, tree, rng, weight):
         area = 2.0 * np.sqrt(3.0 * values[:, 1]) / k
     else:  # pi r_k^2 / k: unbiased for uniform random samples (the PCA spread is not)
         r_k = np.linalg.norm(points[neighbours[:, -1]] - points, axis=1)
-        area = np.pi * r_k ** 2 / (k - 1)
+        area = np.pi * r_k**2 / (k - 1)
     spacing = tree.query(points, k=min(d + 1, m), workers=-1)[0][:, -1]  # ~ sample spacing
     eps = np.maximum(FIELD_WIDTH * spacing, 2.0 * noise)
     dipoles = normals * (area * weight)[:, None]
-    queries = np.arange(m) if m <= MAX_QUERIES else np.sort(
-        rng.choice(m, MAX_QUERIES, replace=False))
+    queries = (
+        np.arange(m) if m <= MAX_QUERIES else np.sort(rng.choice(m, MAX_QUERIES, replace=False))
+    )
     if len(queries) * m <= DENSE_PAIRS:
         fields = _patch_fields_dense(points[queries], points, dipoles, eps, patch, n_patch)
     else:
-        fields = _patch_fields_clustered(points[queries], points, dipoles, eps, patch,
-                                         n_patch, tree)
+        fields = _patch_fields_clustered(
+            points[queries], points, dipoles, eps, patch, n_patch, tree
+        )
     centre = np.stack([np.bincount(patch, points[:, a], n_patch) for a in range(d)], 1)
     centre /= np.bincount(patch, minlength=n_patch)[:, None]
     signs = _solve_signs(fields, weight[queries], patch_tree, centre)
-    residual = float(np.sqrt(np.average((fields @ signs - 0.5) ** 2,
-                                        weights=weight[queries] + 1e-300)))
+    residual = float(
+        np.sqrt(np.average((fields @ signs - 0.5) ** 2, weights=weight[queries] + 1e-300))
+    )
     normals = normals * signs[patch][:, None]
     normals, corrected = _point_corrections(points, normals, area * weight, eps, tree)
-    return normals, dict(corrected=corrected, components=n_comp, patches=n_patch,
-                         flipped=int(np.sum(signs < 0)), residual=residual)
+    return normals, dict(
+        corrected=corrected,
+        components=n_comp,
+        patches=n_patch,
+        flipped=int(np.sum(signs < 0)),
+        residual=residual,
+    )
 
 
 def _point_corrections(points, normals, area, eps, tree, rounds: int = 6):
@@ -556,7 +570,7 @@ def _point_corrections(points, normals, area, eps, tree, rounds: int = 6):
         dipoles = normals * area[:, None]
         rising = np.zeros(m, bool)
         for s in range(0, len(check), MAX_QUERIES):
-            idx = check[s:s + MAX_QUERIES]
+            idx = check[s : s + MAX_QUERIES]
             near = near_all[idx]
             delta = (0.5 * eps[idx, None] * normals[idx])[:, None, :]
             src, dip, e = points[near], dipoles[near], eps[near]

@@ -94,8 +94,7 @@ def round_buckets(count: int) -> int:
     return -(-count // step) * step
 
 
-def bucket_layout(cells: np.ndarray, bucket_size: int, count: int,
-                  num_buckets: int | None = None):
+def bucket_layout(cells: np.ndarray, bucket_size: int, count: int, num_buckets: int | None = None):
     """Group sample indices into buckets of ``bucket_size`` samples sharing a cell.
 
     ``cells`` (S,) is each sample's flat cell, ``count`` the number of cells. Returns
@@ -120,7 +119,7 @@ def bucket_layout(cells: np.ndarray, bucket_size: int, count: int,
     needed = int(buckets_per_cell.sum())
     slot_sample = np.full(max(needed, num_buckets or 0) * k, -1, dtype=np.int32)
     slot_sample[slot] = order
-    slot_sample[needed * k:] = order[-1]
+    slot_sample[needed * k :] = order[-1]
     slot_sample = slot_sample.reshape(-1, k)
     valid = slot_sample >= 0
     valid[needed:] = False
@@ -128,8 +127,13 @@ def bucket_layout(cells: np.ndarray, bucket_size: int, count: int,
     return slot_sample.reshape(-1), valid.reshape(-1)
 
 
-def stable_layout(cells: np.ndarray, sample_mask: np.ndarray, count: int,
-                  bucket_size: int | None = None, small: bool = False):
+def stable_layout(
+    cells: np.ndarray,
+    sample_mask: np.ndarray,
+    count: int,
+    bucket_size: int | None = None,
+    small: bool = False,
+):
     """:func:`bucket_layout` of the real samples (``sample_mask`` > 0), sized from the
     number of slots (padding included) and the occupied cells rounded up by
     :func:`jurs._compile.round_size`, not from the exact counts: clouds padded to one size
@@ -146,8 +150,11 @@ def stable_layout(cells: np.ndarray, sample_mask: np.ndarray, count: int,
     num_slots = cells.shape[0]
     occupied = min(count, round_size(np.count_nonzero(np.bincount(cells[real], minlength=count))))
     if bucket_size is None:
-        cap, per_cell = ((SMALL_MAX_BUCKET_SIZE, num_slots / occupied / 2.0) if small
-                         else (MAX_BUCKET_SIZE, num_slots / occupied))
+        cap, per_cell = (
+            (SMALL_MAX_BUCKET_SIZE, num_slots / occupied / 2.0)
+            if small
+            else (MAX_BUCKET_SIZE, num_slots / occupied)
+        )
         bucket_size = int(min(cap, 2 ** int(np.floor(np.log2(max(per_cell, 1.0))))))
     num_buckets = -(-num_slots // bucket_size) + occupied
     slot, valid = bucket_layout(cells[real], bucket_size, count, num_buckets)
@@ -165,8 +172,7 @@ def offset_samples(points: Array, normals: Array, offset, eps, xp=jnp):
     return samples, targets
 
 
-def auto_domain(samples: Array, margin: float = DEFAULT_MARGIN, mask: Array | None = None,
-                xp=jnp):
+def auto_domain(samples: Array, margin: float = DEFAULT_MARGIN, mask: Array | None = None, xp=jnp):
     """Bounding box of ``samples`` (those with ``mask`` 1, if given) grown on every side by
     ``margin`` x its longest side. ``xp=numpy`` computes on the host."""
     if mask is None:
@@ -195,8 +201,9 @@ def normalise_grid(grid, ndim: int = 2) -> tuple[int, ...]:
     if len(shape) != ndim:
         raise ValueError(f"grid must be {kind} of ints for {ndim}D points, got {grid!r}")
     if min(shape) < 4:
-        raise ValueError(f"grid must be at least {' x '.join('4' * ndim)} for cubic "
-                         f"B-splines, got {shape}")
+        raise ValueError(
+            f"grid must be at least {' x '.join('4' * ndim)} for cubic B-splines, got {shape}"
+        )
     return shape
 
 
@@ -231,7 +238,9 @@ def check_nonnegative(name: str, value, *, strict: bool = False) -> None:
     if not np.isfinite(v):
         raise ValueError(f"{name} must be finite, got {float(v)}")
     if v < 0 or (strict and v == 0):
-        raise ValueError(f"{name} must be {'positive' if strict else 'non-negative'}, got {float(v)}")
+        raise ValueError(
+            f"{name} must be {'positive' if strict else 'non-negative'}, got {float(v)}"
+        )
 
 
 def check_count(name: str, value, minimum: int = 0) -> None:
@@ -286,7 +295,9 @@ def _validate_points(points, normals, mask=None) -> None:
     # Any non-zero length normalises (unit_normals divides by the largest component first).
     short = np.abs(n).max(axis=1) == 0
     if short.any():
-        raise ValueError(f"normals must be non-zero (zero-length normal at row {int(np.argmax(short))})")
+        raise ValueError(
+            f"normals must be non-zero (zero-length normal at row {int(np.argmax(short))})"
+        )
     if mask is not None:
         keep = np.asarray(mask)
         if keep.shape != (p.shape[0],):
@@ -308,11 +319,14 @@ def check_domain(domain, ndim: int | None = None) -> np.ndarray:
     try:
         d = np.asarray(domain, dtype=float)
     except (TypeError, ValueError):
-        raise ValueError("domain must be ((x_min, y_min), (x_max, y_max)) numbers, "
-                         f"got {domain!r}") from None
+        raise ValueError(
+            f"domain must be ((x_min, y_min), (x_max, y_max)) numbers, got {domain!r}"
+        ) from None
     if d.ndim != 2 or d.shape[0] != 2 or d.shape[1] not in ((2, 3) if ndim is None else (ndim,)):
-        raise ValueError(f"domain must be ((x_min, y_min), (x_max, y_max)) (with z_min, z_max "
-                         f"for 3D points), got shape {d.shape}")
+        raise ValueError(
+            f"domain must be ((x_min, y_min), (x_max, y_max)) (with z_min, z_max "
+            f"for 3D points), got shape {d.shape}"
+        )
     if not np.isfinite(d).all() or not (d[0] < d[1]).all():
         raise ValueError(f"domain must be finite with min < max on both axes, got {d.tolist()}")
     return d
@@ -323,7 +337,9 @@ def _validate_domain(domain, samples, m: int):
     s = np.asarray(samples)
     outside = ((s < d[0]) | (s > d[1])).any(axis=1)
     if outside[:m].any():
-        raise ValueError(f"points outside the given domain (first at row {int(np.argmax(outside[:m]))})")
+        raise ValueError(
+            f"points outside the given domain (first at row {int(np.argmax(outside[:m]))})"
+        )
     if outside.any():
         row = int(np.argmax(outside)) % m
         raise ValueError(
@@ -344,10 +360,12 @@ def check_offset_scale(points, offset, mask=None) -> None:
         p = p[np.asarray(mask).astype(bool)]
     extent = float(np.linalg.norm(np.ptp(p, axis=0)))
     if float(offset) > extent:
-        raise ValueError(f"offset d = {float(offset):.4g} exceeds the cloud's extent (its "
-                         f"bounding-box diagonal, {extent:.4g}): the offset samples would lie "
-                         "beyond the whole shape; choose d below the point spacing or leave "
-                         "it to the automatic choice")
+        raise ValueError(
+            f"offset d = {float(offset):.4g} exceeds the cloud's extent (its "
+            f"bounding-box diagonal, {extent:.4g}): the offset samples would lie "
+            "beyond the whole shape; choose d below the point spacing or leave "
+            "it to the automatic choice"
+        )
 
 
 #: Largest ratio of the floating-point resolution at the cloud's coordinates to the offset
@@ -368,26 +386,31 @@ def check_precision(points, offset, dtype, domain=None, eps=None) -> None:
     if eps is not None:
         terms = 3.0 * len(points)
         if float(eps) > np.sqrt(float(info.max) / (1e4 * terms)):
-            raise ValueError(f"eps = {float(eps):.3g} is too large for {np.dtype(dtype).name}: "
-                             "the energy (a sum of squares of about eps) would overflow; "
-                             "eps only scales g, so take eps about the offset d")
+            raise ValueError(
+                f"eps = {float(eps):.3g} is too large for {np.dtype(dtype).name}: "
+                "the energy (a sum of squares of about eps) would overflow; "
+                "eps only scales g, so take eps about the offset d"
+            )
     big = float(np.max(np.abs(np.asarray(points, float))))
     if domain is not None:
         big = max(big, float(np.max(np.abs(np.asarray(domain, float)))))
     if big > float(info.max) / 4:
-        raise ValueError(f"points reach |x| = {big:.3g}, beyond the range of "
-                         f"{np.dtype(dtype).name}")
+        raise ValueError(
+            f"points reach |x| = {big:.3g}, beyond the range of {np.dtype(dtype).name}"
+        )
     resolution = float(np.spacing(np.asarray(big, dtype)))
     if resolution > MAX_RESOLUTION_TO_OFFSET * float(offset):
         raise ValueError(
             f"points reach |x| = {big:.3g}, where {np.dtype(dtype).name} resolves only steps "
             f"of {resolution:.3g}, more than {MAX_RESOLUTION_TO_OFFSET} x the offset d = "
             f"{float(offset):.3g}: translate the cloud near the origin or enable float64 "
-            "(jax.config.update('jax_enable_x64', True))")
+            "(jax.config.update('jax_enable_x64', True))"
+        )
 
 
-def validate_inputs(points, normals, *, offset, eps, domain=None, margin=DEFAULT_MARGIN,
-                    mask=None) -> None:
+def validate_inputs(
+    points, normals, *, offset, eps, domain=None, margin=DEFAULT_MARGIN, mask=None
+) -> None:
     """All input checks of :func:`make_problem`, on concrete values (traced ones are skipped).
 
     Raises ValueError (TypeError for non-numbers) naming the problem; see
@@ -415,8 +438,9 @@ def validate_inputs(points, normals, *, offset, eps, domain=None, margin=DEFAULT
         _validate_domain(domain, np.concatenate([p, p + d * n, p - d * n]), p.shape[0])
 
 
-def _slot_arrays(samples, targets, sample_mask, lower, upper, slot_sample, valid, shape,
-                 bucket_size, xp=jnp):
+def _slot_arrays(
+    samples, targets, sample_mask, lower, upper, slot_sample, valid, shape, bucket_size, xp=jnp
+):
     """Per-slot positions, basis, targets and masks."""
     m = samples.shape[0] // 3
     xy = samples[slot_sample]
@@ -430,8 +454,7 @@ def _slot_arrays(samples, targets, sample_mask, lower, upper, slot_sample, valid
     )
 
 
-def _geometry_arrays(points, normals, offset, eps, domain, margin, mask, shape, with_slots,
-                     xp=jnp):
+def _geometry_arrays(points, normals, offset, eps, domain, margin, mask, shape, with_slots, xp=jnp):
     """Samples, targets, mask, box and the flat cell of every sample, and with
     ``with_slots`` the arrays of the one-sample-a-slot layout. ``xp=numpy``: on the host,
     for concrete inputs (compiles nothing); jitted as :func:`_geometry` otherwise."""
@@ -450,8 +473,18 @@ def _geometry_arrays(points, normals, offset, eps, domain, margin, mask, shape, 
     slots = None
     if with_slots:
         index = xp.arange(samples.shape[0], dtype=xp.int32)
-        slots = _slot_arrays(samples, targets, sample_mask, lower, upper, index,
-                             xp.ones(samples.shape[0], dtype=bool), shape, 1, xp)
+        slots = _slot_arrays(
+            samples,
+            targets,
+            sample_mask,
+            lower,
+            upper,
+            index,
+            xp.ones(samples.shape[0], dtype=bool),
+            shape,
+            1,
+            xp,
+        )
     return normals, samples, targets, sample_mask, lower, upper, cells, slots
 
 
@@ -511,8 +544,9 @@ def make_problem(
             (inside jit/grad/vmap) cannot be inspected and are not checked.
         TypeError: for points or normals that are not numbers.
     """
-    validate_inputs(points, normals, offset=offset, eps=eps, domain=domain, margin=margin,
-                    mask=mask)
+    validate_inputs(
+        points, normals, offset=offset, eps=eps, domain=domain, margin=margin, mask=mask
+    )
     ndim = _shape(points)[1]
     shape = normalise_grid(grid, ndim)
     if bucket_size is not None and (int(bucket_size) != bucket_size or bucket_size < 1):
@@ -586,7 +620,8 @@ def make_problem(
     else:
         slot_sample, valid = layout or bucket_layout(cells, bucket_size, count)
         slot_xy, local, slot_targets, slot_mask, slot_data = _slots(
-            samples, targets, sample_mask, lower, upper, slot_sample, valid, shape, bucket_size)
+            samples, targets, sample_mask, lower, upper, slot_sample, valid, shape, bucket_size
+        )
     if table is not None:
         local = with_table(local, *table, shape)
     problem = Problem(
@@ -674,8 +709,12 @@ def flipped_normal_fraction(points, normals, sample=None) -> float:
     i, j, d = np.repeat(np.arange(m), k), idx.ravel(), dist.ravel()
     u = (p[j] - p[i]) / np.where(d > 0, d, 1.0)[:, None]
     dot = np.sum(n[i] * n[j], axis=1)
-    edge = ((d > 0) & (d <= 2.0 * spacing) & (np.abs(np.sum(u * n[i], axis=1)) < 0.3)
-            & (np.abs(np.sum(u * n[j], axis=1)) < 0.3))
+    edge = (
+        (d > 0)
+        & (d <= 2.0 * spacing)
+        & (np.abs(np.sum(u * n[i], axis=1)) < 0.3)
+        & (np.abs(np.sum(u * n[j], axis=1)) < 0.3)
+    )
     graph = coo_matrix((1.0 - np.abs(dot[edge]) + 1e-3, (i[edge], j[edge])), shape=(m, m))
     tree = minimum_spanning_tree(graph.tocsr().maximum(graph.T.tocsr()))
     tree = tree + tree.T
@@ -721,8 +760,9 @@ def available_memory(device: bool = True) -> int | None:
         return None
 
 
-def check_memory(setting: str, estimate: float, available: int | None = None,
-                 device: bool = True) -> None:
+def check_memory(
+    setting: str, estimate: float, available: int | None = None, device: bool = True
+) -> None:
     """MemoryError-free refusal: ValueError naming ``setting`` when ``estimate`` bytes
     exceed the memory available (:func:`available_memory`, on the device or with
     ``device=False`` on the host), before anything is allocated
@@ -730,9 +770,11 @@ def check_memory(setting: str, estimate: float, available: int | None = None,
     30000 ended in a MemoryError traceback)."""
     available = available_memory(device) if available is None else available
     if available is not None and estimate > available:
-        raise ValueError(f"{setting} needs about {estimate / 2**30:.3g} GiB of memory, more "
-                         f"than the {available / 2**30:.3g} GiB available; choose a smaller "
-                         f"{setting.split(' ')[0].split('=')[0]}")
+        raise ValueError(
+            f"{setting} needs about {estimate / 2**30:.3g} GiB of memory, more "
+            f"than the {available / 2**30:.3g} GiB available; choose a smaller "
+            f"{setting.split(' ')[0].split('=')[0]}"
+        )
 
 
 def tangential_normal_fraction(points, normals, sample=None) -> float:

@@ -37,9 +37,16 @@ def chunk_size(steps: int, target_chunks: int = 25) -> int:
     return min(divisors, key=lambda c: abs(np.log(c / ideal))) if divisors else steps
 
 
-def fit_in_chunks(points, normals, *, solver: AbstractSolver, chunk: int | None = None,
-                  checkpoints=(), callback: Callable[[int, int], None] | None = None,
-                  **fit_kwargs):
+def fit_in_chunks(
+    points,
+    normals,
+    *,
+    solver: AbstractSolver,
+    chunk: int | None = None,
+    checkpoints=(),
+    callback: Callable[[int, int], None] | None = None,
+    **fit_kwargs,
+):
     """Run ``jurs.fit`` with ``solver`` in chunks of ``chunk`` steps.
 
     Args:
@@ -60,8 +67,10 @@ def fit_in_chunks(points, normals, *, solver: AbstractSolver, chunk: int | None 
         raise ValueError(f"checkpoints must lie in [0, max_steps = {total}], got {checkpoints}")
     if not isinstance(solver, CHUNKABLE):
         if any(c != total for c in checkpoints):
-            raise ValueError(f"{type(solver).__name__} runs in one call: the only checkpoint "
-                             f"it can give is max_steps = {total}")
+            raise ValueError(
+                f"{type(solver).__name__} runs in one call: the only checkpoint "
+                f"it can give is max_steps = {total}"
+            )
         sol = fit(points, normals, solver=solver, **fit_kwargs)
         if callback:
             callback(total, total)
@@ -76,29 +85,42 @@ def fit_in_chunks(points, normals, *, solver: AbstractSolver, chunk: int | None 
     if any(fit_kwargs.get(k) is None for k in ("grid", "offset", "eps")):
         # Choose once, so every chunk fits the same problem.
         keys = ("grid", "offset", "eps", "domain", "margin")
-        settings = auto_settings(points, normals, **{k: fit_kwargs[k] for k in keys
-                                                     if fit_kwargs.get(k) is not None})
+        settings = auto_settings(
+            points, normals, **{k: fit_kwargs[k] for k in keys if fit_kwargs.get(k) is not None}
+        )
         fit_kwargs.update(grid=settings.grid, offset=settings.offset, eps=settings.eps)
     init = fit_kwargs.pop("init", None)
     if init is None:
         # An explicit start (C = 0, w = 1, as the solvers' default) so every chunk has the
         # same argument structure and the fit compiles once.
         keys = ("offset", "eps", "domain", "margin", "mask")
-        problem = make_problem(points, normals, grid=fit_kwargs["grid"],
-                               **{k: fit_kwargs[k] for k in keys if k in fit_kwargs})
-        init = ImplicitSpline(jnp.zeros(problem.shape, problem.lower.dtype),
-                              jnp.ones(problem.shape, problem.lower.dtype),
-                              problem.lower, problem.upper)
+        problem = make_problem(
+            points,
+            normals,
+            grid=fit_kwargs["grid"],
+            **{k: fit_kwargs[k] for k in keys if k in fit_kwargs},
+        )
+        init = ImplicitSpline(
+            jnp.zeros(problem.shape, problem.lower.dtype),
+            jnp.ones(problem.shape, problem.lower.dtype),
+            problem.lower,
+            problem.upper,
+        )
     history = []
     done, sol = 0, None
     start = init
     while done < total:
         n = min(chunk, total - done)
-        sol = fit(points, normals, solver=dataclasses.replace(solver, max_steps=n), init=init,
-                  **fit_kwargs)
+        sol = fit(
+            points,
+            normals,
+            solver=dataclasses.replace(solver, max_steps=n),
+            init=init,
+            **fit_kwargs,
+        )
         k = int(sol.stats["num_steps"])
         h = np.asarray(sol.stats["energy_history"])
-        history.append(h[: k + 1] if not history else h[1: k + 1])
+        history.append(h[: k + 1] if not history else h[1 : k + 1])
         done += k
         if 0 in checkpoints and 0 not in snapshots:
             snapshots[0] = start
@@ -109,8 +131,7 @@ def fit_in_chunks(points, normals, *, solver: AbstractSolver, chunk: int | None 
             callback(done, total)
         # A chunk that ran all its steps goes on, also where the host-side checks gave a
         # verdict on the iterate so far (normals, weights): a single fit would have gone on.
-        ran_on = (RESULTS.max_steps_reached, RESULTS.inconsistent_normals,
-                  RESULTS.weights_at_floor)
+        ran_on = (RESULTS.max_steps_reached, RESULTS.inconsistent_normals, RESULTS.weights_at_floor)
         if k < n or not any(bool(sol.result == r) for r in ran_on):
             break  # converged, diverged or stopped by the solver
     if sol is None:  # max_steps = 0

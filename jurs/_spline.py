@@ -144,8 +144,9 @@ class LocalBasis(eqx.Module):
 TABLE_MAX_SLOTS = 1 << 16
 
 
-def local_basis(xy: Array, lower: Array, upper: Array, shape: tuple[int, ...],
-                bucket_size: int = 1, xp=jnp) -> LocalBasis:
+def local_basis(
+    xy: Array, lower: Array, upper: Array, shape: tuple[int, ...], bucket_size: int = 1, xp=jnp
+) -> LocalBasis:
     """The local basis of the ``shape`` grid (``(N, M)``, or ``(N, M, K)`` in 3D) on
     ``[lower, upper]`` at ``xy (S, d)``, in the power form (2D) or the generic form.
 
@@ -158,12 +159,16 @@ def local_basis(xy: Array, lower: Array, upper: Array, shape: tuple[int, ...],
     # module notes), and a subtraction shared by many kernels would be stored once more by
     # XLA. On the host, rows made contiguous: the layouts slice them.
     s = (t - 0.5).T
-    return LocalBasis(cell=flat_cell(cell, shape),
-                      s=np.ascontiguousarray(s) if xp is np else s, bucket_size=bucket_size)
+    return LocalBasis(
+        cell=flat_cell(cell, shape),
+        s=np.ascontiguousarray(s) if xp is np else s,
+        bucket_size=bucket_size,
+    )
 
 
-def with_table(local: LocalBasis, order: np.ndarray, valid: np.ndarray,
-               shape: tuple[int, int]) -> LocalBasis:
+def with_table(
+    local: LocalBasis, order: np.ndarray, valid: np.ndarray, shape: tuple[int, int]
+) -> LocalBasis:
     """``local`` (one sample a slot, concrete) with the table form added, built on the host.
 
     ``order`` and ``valid``, both ``(B, K)``: the sample at entry ``i`` of table bucket
@@ -189,13 +194,19 @@ def with_table(local: LocalBasis, order: np.ndarray, valid: np.ndarray,
         local,
         # device_put: host arrays of the right dtype, transferred without compiling anything,
         # all in one call.
-        jax.device_put((
-            np.ascontiguousarray(terms.T.reshape(NUM_LOCAL, num_buckets, k)),
-            terms.reshape(num_buckets, k, NUM_LOCAL),
-            (first[:, None] + offsets[None, :]).astype(np.int32), corner.astype(np.int32),
-            order.astype(np.int32),
-            position, valid.astype(dtype))),
-        is_leaf=lambda x: x is None)
+        jax.device_put(
+            (
+                np.ascontiguousarray(terms.T.reshape(NUM_LOCAL, num_buckets, k)),
+                terms.reshape(num_buckets, k, NUM_LOCAL),
+                (first[:, None] + offsets[None, :]).astype(np.int32),
+                corner.astype(np.int32),
+                order.astype(np.int32),
+                position,
+                valid.astype(dtype),
+            )
+        ),
+        is_leaf=lambda x: x is None,
+    )
 
 
 def _take(x: Array, i: int, axis: int) -> Array:
@@ -232,10 +243,16 @@ def gather_patches(grids: Array, corner: Array) -> Array:
 
     One windowed gather: an index pair a patch, its 4 rows read as contiguous runs.
     """
-    dims = jax.lax.GatherDimensionNumbers(offset_dims=(1, 2, 3), collapsed_slice_dims=(),
-                                          start_index_map=(1, 2))
-    patches = jax.lax.gather(grids, corner, dims, slice_sizes=(grids.shape[0], 4, 4),
-                             mode=jax.lax.GatherScatterMode.PROMISE_IN_BOUNDS)
+    dims = jax.lax.GatherDimensionNumbers(
+        offset_dims=(1, 2, 3), collapsed_slice_dims=(), start_index_map=(1, 2)
+    )
+    patches = jax.lax.gather(
+        grids,
+        corner,
+        dims,
+        slice_sizes=(grids.shape[0], 4, 4),
+        mode=jax.lax.GatherScatterMode.PROMISE_IN_BOUNDS,
+    )
     return patches.reshape(corner.shape[0], grids.shape[0], NUM_LOCAL)
 
 
@@ -248,8 +265,13 @@ def power_coefficients(grids: Array) -> Array:
     """
     kernel = jnp.asarray(patch_to_power().reshape(4, 4, 1, NUM_LOCAL), grids.dtype)  # HWIO
     out = jax.lax.conv_general_dilated(
-        grids[..., None], kernel, (1, 1), "VALID", dimension_numbers=("NHWC", "HWIO", "NHWC"),
-        precision=jax.lax.Precision.HIGHEST)
+        grids[..., None],
+        kernel,
+        (1, 1),
+        "VALID",
+        dimension_numbers=("NHWC", "HWIO", "NHWC"),
+        precision=jax.lax.Precision.HIGHEST,
+    )
     return out.reshape(grids.shape[0], -1, NUM_LOCAL)
 
 
@@ -287,7 +309,7 @@ def _gathered_values(local: LocalBasis, grids: Array) -> Array:
     """F in the generic form (any d, one sample a slot): each sample's ``4 ** d``
     coefficients gathered from the flat grid against its basis products. This is the path
     of 3D grids, whose samples are not bucketed (see :func:`jurs.make_problem`)."""
-    shape = grids.shape[grids.ndim - local.ndim:]
+    shape = grids.shape[grids.ndim - local.ndim :]
     lead = grids.shape[: grids.ndim - local.ndim]
     flat = grids.reshape(lead + (-1,))
     coeffs = jnp.take(flat, local.patch_index(shape), axis=-1)  # (..., S, 4 ** d)
@@ -299,14 +321,16 @@ def values_apart(local: LocalBasis, grids: Array) -> Array:
     (:func:`computed_apart`), as the solver steps call it: ``(..., N, M)`` -> ``(..., P)``
     with ``P`` the layout's length."""
     count = local.cell.shape[0] if local.terms is None else local.terms[0].size
-    shapes = jax.ShapeDtypeStruct(grids.shape[: grids.ndim - local.ndim] + (count,),
-                                  jnp.result_type(grids, local.s))
+    shapes = jax.ShapeDtypeStruct(
+        grids.shape[: grids.ndim - local.ndim] + (count,), jnp.result_type(grids, local.s)
+    )
     return computed_apart(partial(bspline_values, layout=True), local, grids, shapes=shapes)
 
 
 @full_precision
-def transpose_and_sum(local: LocalBasis, values: Array, shape: tuple[int, int], extra=(), *,
-                      layout: bool = False):
+def transpose_and_sum(
+    local: LocalBasis, values: Array, shape: tuple[int, int], extra=(), *, layout: bool = False
+):
     """:func:`bspline_transpose` of ``values (C, S)``, and the totals of the ``extra``
     per-sample arrays ``(S,)`` computed in the same pass over the samples. ``layout=True``:
     ``values`` and ``extra`` are in the kernels' layout (:meth:`LocalBasis.to_layout`)."""
@@ -325,11 +349,19 @@ def transpose_and_sum(local: LocalBasis, values: Array, shape: tuple[int, int], 
         # In a kernel of its own: fused into the scatter, the sums are laid out as the
         # scatter's (updates, 1) operand and lose vectorisation (measured 3x slower).
         per_bucket = computed_apart(
-            lambda index, v, terms: bucket_sums(v, terms), local.index, v, local.terms_t,
-            shapes=jax.ShapeDtypeStruct(v.shape[:2] + (NUM_LOCAL,),
-                                        jnp.result_type(v, local.terms_t)))
+            lambda index, v, terms: bucket_sums(v, terms),
+            local.index,
+            v,
+            local.terms_t,
+            shapes=jax.ShapeDtypeStruct(
+                v.shape[:2] + (NUM_LOCAL,), jnp.result_type(v, local.terms_t)
+            ),
+        )
         size = shape[0] * shape[1]
-        index = local.index[None] + size * jnp.arange(v.shape[0], dtype=local.index.dtype)[:, None, None]
+        index = (
+            local.index[None]
+            + size * jnp.arange(v.shape[0], dtype=local.index.dtype)[:, None, None]
+        )
         grid = jnp.zeros(v.shape[0] * size, values.dtype).at[index].add(per_bucket)
         return grid.reshape((v.shape[0],) + tuple(shape)), tuple(jnp.sum(x) for x in extra)
     if local.ndim != 2:
@@ -350,8 +382,9 @@ def transpose_and_sum(local: LocalBasis, values: Array, shape: tuple[int, int], 
     v = values.reshape((-1, local.num_buckets, k))
     sx, sy = local.centred()
     moments, sums = power_moments(sx, sy, v, [e.reshape(-1, k) for e in extra])
-    per_cell = jax.ops.segment_sum(moments, local.bucket_cell, num_segments=num_cells(shape),
-                                   indices_are_sorted=k > 1)  # (cells, C, 16)
+    per_cell = jax.ops.segment_sum(
+        moments, local.bucket_cell, num_segments=num_cells(shape), indices_are_sorted=k > 1
+    )  # (cells, C, 16)
     patches = per_cell @ jnp.asarray(patch_to_power().T, values.dtype)
     grid = patches_to_grid(jnp.moveaxis(patches, 0, -2), shape)
     return grid, tuple(jnp.sum(x) for x in sums)
@@ -421,12 +454,16 @@ class ImplicitSpline(eqx.Module):
                 f"{self.control.shape} and {self.weights.shape}"
             )
         if min(self.control.shape) < 4:
-            raise ValueError(f"grid must be at least {' x '.join('4' * self.ndim)} for cubic "
-                             f"splines, got {self.control.shape}")
+            raise ValueError(
+                f"grid must be at least {' x '.join('4' * self.ndim)} for cubic "
+                f"splines, got {self.control.shape}"
+            )
         if jnp.shape(self.lower) != (self.ndim,) or jnp.shape(self.upper) != (self.ndim,):
-            raise ValueError(f"lower and upper must have shape ({self.ndim},) for a "
-                             f"{self.ndim}D grid, got {jnp.shape(self.lower)} and "
-                             f"{jnp.shape(self.upper)}")
+            raise ValueError(
+                f"lower and upper must have shape ({self.ndim},) for a "
+                f"{self.ndim}D grid, got {jnp.shape(self.lower)} and "
+                f"{jnp.shape(self.upper)}"
+            )
 
     @property
     def shape(self) -> tuple[int, ...]:
@@ -441,8 +478,12 @@ class ImplicitSpline(eqx.Module):
     def bspline(cls, control: Array, lower, upper) -> "ImplicitSpline":
         """A polynomial B-spline (all weights 1)."""
         control = jnp.asarray(control)
-        return cls(control, jnp.ones_like(control), jnp.asarray(lower, control.dtype),
-                   jnp.asarray(upper, control.dtype))
+        return cls(
+            control,
+            jnp.ones_like(control),
+            jnp.asarray(lower, control.dtype),
+            jnp.asarray(upper, control.dtype),
+        )
 
     def local_basis(self, xy: Array) -> LocalBasis:
         return local_basis(xy, self.lower, self.upper, self.shape)

@@ -63,10 +63,12 @@ def _grid(text: str) -> tuple:
         parts = tuple(int(p) for p in text.lower().replace("*", "x").split("x"))
     except ValueError:
         raise argparse.ArgumentTypeError(
-            f"grid must be N, NxM (2D) or NxMxK (3D), got {text!r}") from None
+            f"grid must be N, NxM (2D) or NxMxK (3D), got {text!r}"
+        ) from None
     if len(parts) > 3 or min(parts) < 4:
         raise argparse.ArgumentTypeError(
-            f"grid must be N, NxM (2D) or NxMxK (3D) with every number >= 4, got {text!r}")
+            f"grid must be N, NxM (2D) or NxMxK (3D) with every number >= 4, got {text!r}"
+        )
     return parts
 
 
@@ -80,8 +82,9 @@ def grid_for(parts, dim: int, shown: str):
         return parts * dim
     given = "x".join(map(str, parts))
     wanted = "N or NxM" if dim == 2 else "N or NxMxK"
-    raise InputError(f"{shown}: --grid {given} is for a {len(parts)}D cloud; this cloud is "
-                     f"{dim}D: give {wanted}")
+    raise InputError(
+        f"{shown}: --grid {given} is for a {len(parts)}D cloud; this cloud is {dim}D: give {wanted}"
+    )
 
 
 def _nonneg(text: str) -> float:
@@ -113,69 +116,116 @@ def _solver_names():
 def build_parser() -> argparse.ArgumentParser:
     """The ``jurs`` command line's parser: subcommands ``demo`` and ``fit``."""
     parser = argparse.ArgumentParser(
-        prog="jurs", description="Implicit curve and surface reconstruction with uniform "
-                                "rational splines.",
-        epilog="Run 'jurs fit --help' for the fit options.")
+        prog="jurs",
+        description="Implicit curve and surface reconstruction with uniform rational splines.",
+        epilog="Run 'jurs fit --help' for the fit options.",
+    )
     sub = parser.add_subparsers(dest="command", required=True)
     demo = sub.add_parser("demo", help="fit the paper's Example 1 with IPIA and IURS")
     demo.add_argument("--output", default="demo-output", help="folder for the figure")
     f = _fit_parser(sub)
     for command in (demo, f):
         command.add_argument(
-            "--no-compilation-cache", action="store_true",
+            "--no-compilation-cache",
+            action="store_true",
             help="do not keep compiled fits in JAX's persistent compilation cache "
-                 "($XDG_CACHE_HOME/jurs or ~/.cache/jurs; JURS_NO_COMPILATION_CACHE=1 "
-                 "does the same)")
+            "($XDG_CACHE_HOME/jurs or ~/.cache/jurs; JURS_NO_COMPILATION_CACHE=1 "
+            "does the same)",
+        )
     return parser
 
 
 def _fit_parser(sub) -> argparse.ArgumentParser:
     """The ``jurs fit`` subcommand and its options."""
     f = sub.add_parser(
-        "fit", help="fit a point cloud from a CSV, TXT or NPY file (2D) or a PLY, OBJ, XYZ "
-                    "or PTS file (3D)",
+        "fit",
+        help="fit a point cloud from a CSV, TXT or NPY file (2D) or a PLY, OBJ, XYZ "
+        "or PTS file (3D)",
         description="Fit an implicit spline to points with outward normals (columns x, y, "
-                    "nx, ny; or x, y alone, whose normals are then estimated) and write "
-                    "metrics.json, spline.npz, fit.png and zero_level.csv to --output. A 3D "
-                    "cloud (PLY, OBJ, XYZ or PTS; normals estimated where the file has none) "
-                    "gets a surface: metrics.json, spline.npz, mesh.ply and preview.png.",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter)
-    f.add_argument("file", help="CSV/TXT (columns x, y, nx, ny; optional header) or NPY (m, 4); "
-                                "3D: PLY or OBJ (vertices, vertex normals) or XYZ/PTS (rows "
-                                "x y z [nx ny nz])")
-    f.add_argument("--grid", type=_grid, default=None, metavar="N[xM[xK]]",
-                   help="basis functions along x and y (and z: N or NxMxK for a 3D cloud); "
-                        "None chooses from the data (jurs.auto_settings)")
-    f.add_argument("--solver", default="auto", choices=_solver_names(),
-                   help="auto: exact least squares with the automatic lambda; iurs: "
-                        "Algorithm 1 (rational); ipia: I-PIA (B-spline); lstsq: exact least "
-                        "squares (B-spline) with --lam")
-    f.add_argument("--lam", type=_nonneg, default=None,
-                   help="regularisation weight: eq. 33's lambda for iurs (keep it well below "
-                        "1/16; None is 0), the objective's lambda in E_d + lam R for lstsq "
-                        "and auto (None chooses); ipia has none")
-    f.add_argument("--smoothing", type=_nonneg, default=None,
-                   help="auto only: the dimensionless strength the automatic lambda is made "
-                        "from (jurs.auto_settings; about 1e-6 on clean clouds to 1e-3 on "
-                        "noisy ones); None chooses")
+        "nx, ny; or x, y alone, whose normals are then estimated) and write "
+        "metrics.json, spline.npz, fit.png and zero_level.csv to --output. A 3D "
+        "cloud (PLY, OBJ, XYZ or PTS; normals estimated where the file has none) "
+        "gets a surface: metrics.json, spline.npz, mesh.ply and preview.png.",
+        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+    )
+    f.add_argument(
+        "file",
+        help="CSV/TXT (columns x, y, nx, ny; optional header) or NPY (m, 4); "
+        "3D: PLY or OBJ (vertices, vertex normals) or XYZ/PTS (rows "
+        "x y z [nx ny nz])",
+    )
+    f.add_argument(
+        "--grid",
+        type=_grid,
+        default=None,
+        metavar="N[xM[xK]]",
+        help="basis functions along x and y (and z: N or NxMxK for a 3D cloud); "
+        "None chooses from the data (jurs.auto_settings)",
+    )
+    f.add_argument(
+        "--solver",
+        default="auto",
+        choices=_solver_names(),
+        help="auto: exact least squares with the automatic lambda; iurs: "
+        "Algorithm 1 (rational); ipia: I-PIA (B-spline); lstsq: exact least "
+        "squares (B-spline) with --lam",
+    )
+    f.add_argument(
+        "--lam",
+        type=_nonneg,
+        default=None,
+        help="regularisation weight: eq. 33's lambda for iurs (keep it well below "
+        "1/16; None is 0), the objective's lambda in E_d + lam R for lstsq "
+        "and auto (None chooses); ipia has none",
+    )
+    f.add_argument(
+        "--smoothing",
+        type=_nonneg,
+        default=None,
+        help="auto only: the dimensionless strength the automatic lambda is made "
+        "from (jurs.auto_settings; about 1e-6 on clean clouds to 1e-3 on "
+        "noisy ones); None chooses",
+    )
     f.add_argument("--tau", type=_nonneg, default=1e-2, help="weight step size (iurs, eq. 20)")
-    f.add_argument("-d", "--offset", type=_positive, default=None,
-                   help="offset distance d; None chooses from the data")
-    f.add_argument("--eps", type=_positive, default=None,
-                   help="target value at the offsets; None takes d")
-    f.add_argument("--steps", type=int, default=200,
-                   help="maximum number of steps (iurs, ipia; lstsq solves once)")
-    f.add_argument("--tol", type=_nonneg, default=1e-7,
-                   help="stop when |E_new - E_old| < tol (eq. 38); 0 runs all steps")
+    f.add_argument(
+        "-d",
+        "--offset",
+        type=_positive,
+        default=None,
+        help="offset distance d; None chooses from the data",
+    )
+    f.add_argument(
+        "--eps", type=_positive, default=None, help="target value at the offsets; None takes d"
+    )
+    f.add_argument(
+        "--steps",
+        type=int,
+        default=200,
+        help="maximum number of steps (iurs, ipia; lstsq solves once)",
+    )
+    f.add_argument(
+        "--tol",
+        type=_nonneg,
+        default=1e-7,
+        help="stop when |E_new - E_old| < tol (eq. 38); 0 runs all steps",
+    )
     f.add_argument("-o", "--output", default="jurs-output", help="output folder")
-    f.add_argument("--resolution", type=int, default=None,
-                   help="2D: level-set grid nodes along the longer side of the box (None: "
-                        "512); 3D: marching-cubes lattice nodes along the longest side "
-                        "(None: 3 per spline cell, 32 to 256)")
-    f.add_argument("--threshold", type=_positive, default=None,
-                   help="distance to the data above which a zero-level component is "
-                        "supplementary; None means 2 d (2D), or 3 point spacings and at "
-                        "least 1%% of the cloud's diagonal (3D)")
+    f.add_argument(
+        "--resolution",
+        type=int,
+        default=None,
+        help="2D: level-set grid nodes along the longer side of the box (None: "
+        "512); 3D: marching-cubes lattice nodes along the longest side "
+        "(None: 3 per spline cell, 32 to 256)",
+    )
+    f.add_argument(
+        "--threshold",
+        type=_positive,
+        default=None,
+        help="distance to the data above which a zero-level component is "
+        "supplementary; None means 2 d (2D), or 3 point spacings and at "
+        "least 1%% of the cloud's diagonal (3D)",
+    )
     f.add_argument("-q", "--quiet", action="store_true", help="no progress bar or summary")
     return f
 
@@ -204,8 +254,10 @@ def read_input(path: str):
         except Exception as exc:
             raise InputError(f"{shown}: not a readable .npy array ({_one_line(exc)})") from None
         if arr.ndim != 2 or arr.shape[1] not in (2, 4):
-            raise InputError(f"{shown}: expected an (m, 4) array of rows x, y, nx, ny "
-                             f"(or (m, 2): x, y), got shape {arr.shape}")
+            raise InputError(
+                f"{shown}: expected an (m, 4) array of rows x, y, nx, ny "
+                f"(or (m, 2): x, y), got shape {arr.shape}"
+            )
     try:
         points, normals = datasets.load_points(path)
     except (ValueError, OSError) as exc:
@@ -220,8 +272,9 @@ def _one_line(exc) -> str:
     return " ".join(str(exc).split())
 
 
-def make_solver(name: str, *, lam: float | None, tau: float, steps: int, tol: float,
-                auto_lam: float = 0.0):
+def make_solver(
+    name: str, *, lam: float | None, tau: float, steps: int, tol: float, auto_lam: float = 0.0
+):
     """The solver named on the command line (``auto_lam``: the automatic lambda, used by
     ``auto`` when ``--lam`` is not given)."""
     import jurs
@@ -233,8 +286,9 @@ def make_solver(name: str, *, lam: float | None, tau: float, steps: int, tol: fl
     lam = 0.0 if lam is None else lam
     if name == "ipia":
         if lam:
-            raise InputError("--lam is not supported by ipia (I-PIA has no regulariser); "
-                             "use --solver iurs")
+            raise InputError(
+                "--lam is not supported by ipia (I-PIA has no regulariser); use --solver iurs"
+            )
         return jurs.IPIA(max_steps=steps, tol=tol)
     if name == "iurs":
         return jurs.IURS(tau=tau, lam=lam, max_steps=steps, tol=tol)
@@ -247,8 +301,9 @@ class ProgressBar:
     """A one-line progress bar on stderr, drawn only once a run has taken over ``delay``
     seconds (short fits print nothing)."""
 
-    def __init__(self, label: str, delay: float = 1.0, width: int = 30, stream=None,
-                 enabled: bool = True):
+    def __init__(
+        self, label: str, delay: float = 1.0, width: int = 30, stream=None, enabled: bool = True
+    ):
         self.label, self.delay, self.width = label, delay, width
         self.stream = sys.stderr if stream is None else stream
         self.enabled = enabled
@@ -261,8 +316,9 @@ class ProgressBar:
             return
         frac = done / total if total else 1.0
         bar = "#" * int(round(frac * self.width))
-        self.stream.write(f"\r{self.label} [{bar:<{self.width}}] {done}/{total} steps "
-                          f"{elapsed:5.1f} s")
+        self.stream.write(
+            f"\r{self.label} [{bar:<{self.width}}] {done}/{total} steps {elapsed:5.1f} s"
+        )
         self.stream.flush()
         self.drawn = True
 
@@ -316,8 +372,10 @@ def check_output_folder(out: str, need: int = OUTPUT_OVERHEAD, names=OUTPUTS) ->
         raise InputError(f"{printable(existing)}: folder is not writable")
     free = shutil.disk_usage(existing).free
     if free < need:
-        raise InputError(f"{printable(existing)}: only {free / 2**20:.1f} MiB free, the "
-                         f"outputs need about {need / 2**20:.1f} MiB")
+        raise InputError(
+            f"{printable(existing)}: only {free / 2**20:.1f} MiB free, the "
+            f"outputs need about {need / 2**20:.1f} MiB"
+        )
 
 
 def write_outputs(out: str, write, names=OUTPUTS) -> None:
@@ -418,11 +476,13 @@ def _check_options(resolution, dim: int, out: str, names) -> None:
             raise InputError(f"--resolution must be >= 16, got {resolution}")
         # 2D: the level-set grid is square at most. 3D: a mesh has about
         # MESH_VERTICES_PER_PLANE_NODE vertices per node of a lattice plane.
-        per_node = (ls.BYTES_PER_NODE if dim == 2
-                    else MESH_BYTES_PER_VERTEX * MESH_VERTICES_PER_PLANE_NODE)
+        per_node = (
+            ls.BYTES_PER_NODE if dim == 2 else MESH_BYTES_PER_VERTEX * MESH_VERTICES_PER_PLANE_NODE
+        )
         try:
-            check_memory(f"--resolution {resolution}", per_node * float(resolution) ** 2,
-                         device=False)
+            check_memory(
+                f"--resolution {resolution}", per_node * float(resolution) ** 2, device=False
+            )
         except ValueError as exc:
             raise InputError(_one_line(exc)) from None
     check_output_folder(out, names=names)
@@ -450,9 +510,9 @@ def _output_bytes(job: FitJob) -> int:
     spline = 16 * math.prod(job.grid)
     if job.dim == 2:
         r = job.resolution
-        return OUTPUT_OVERHEAD + spline + 20 * min(r ** 2, 10 * r * len(job.points))
+        return OUTPUT_OVERHEAD + spline + 20 * min(r**2, 10 * r * len(job.points))
     r = job.resolution or MAX_RESOLUTION
-    return OUTPUT_OVERHEAD + spline + PLY_BYTES_PER_VERTEX * MESH_VERTICES_PER_PLANE_NODE * r ** 2
+    return OUTPUT_OVERHEAD + spline + PLY_BYTES_PER_VERTEX * MESH_VERTICES_PER_PLANE_NODE * r**2
 
 
 def prepare_fit(args) -> FitJob:
@@ -482,15 +542,18 @@ def prepare_fit(args) -> FitJob:
         resolution = ls.DEFAULT_RESOLUTION
     _check_options(resolution, dim, out, outputs_for(dim))
     if args.smoothing is not None and (args.solver != "auto" or args.lam is not None):
-        raise InputError("--smoothing sets the automatic lambda of --solver auto; "
-                         "give --lam instead")
+        raise InputError(
+            "--smoothing sets the automatic lambda of --solver auto; give --lam instead"
+        )
     try:  # auto_settings runs make_problem's input checks (e.g. degenerate clouds) first
-        chosen = jurs.auto_settings(points, normals, grid=grid, offset=args.offset,
-                                    eps=args.eps, smoothing=args.smoothing)
+        chosen = jurs.auto_settings(
+            points, normals, grid=grid, offset=args.offset, eps=args.eps, smoothing=args.smoothing
+        )
     except (ValueError, TypeError) as exc:
         raise InputError(f"{shown}: {_one_line(exc)}") from None
-    solver = make_solver(args.solver, lam=args.lam, tau=args.tau, steps=args.steps,
-                         tol=args.tol, auto_lam=chosen.lam)
+    solver = make_solver(
+        args.solver, lam=args.lam, tau=args.tau, steps=args.steps, tol=args.tol, auto_lam=chosen.lam
+    )
     job = FitJob(path, points, normals, estimated, out, chosen, solver, resolution)
     check_output_folder(out, _output_bytes(job), job.outputs)
     return job
@@ -508,9 +571,16 @@ def _solve(job: FitJob, args):
     bar = ProgressBar(f"{args.solver} {'x'.join(map(str, job.grid))}", enabled=not args.quiet)
     t0 = time.perf_counter()
     try:
-        sol, _ = fit_in_chunks(job.points, job.normals, solver=job.solver, callback=bar,
-                               throw=False, grid=job.grid, offset=job.chosen.offset,
-                               eps=job.chosen.eps)
+        sol, _ = fit_in_chunks(
+            job.points,
+            job.normals,
+            solver=job.solver,
+            callback=bar,
+            throw=False,
+            grid=job.grid,
+            offset=job.chosen.offset,
+            eps=job.chosen.eps,
+        )
     except (ValueError, TypeError) as exc:
         bar.close()
         raise InputError(f"{job.shown}: {_one_line(exc)}") from None
@@ -518,8 +588,10 @@ def _solve(job: FitJob, args):
     seconds = time.perf_counter() - t0
     bar.close()
     if sol.result == jurs.RESULTS.nonfinite:
-        print(f"jurs: error: {job.shown}: the fit diverged ({sol.message}); nothing written",
-              file=sys.stderr)
+        print(
+            f"jurs: error: {job.shown}: the fit diverged ({sol.message}); nothing written",
+            file=sys.stderr,
+        )
         return None
     if not sol.succeeded and sol.result != jurs.RESULTS.max_steps_reached:
         # Written all the same (the figure shows what went wrong), but said on stderr too.
@@ -531,25 +603,38 @@ def fit_record(job: FitJob, args, sol, seconds: float) -> dict:
     """The part of metrics.json that curves and surfaces share: input, settings and the
     fit's own metrics (the level-set or mesh measures are added to ``metrics``)."""
     metrics = {k: v for k, v in sol.metrics.items()}
-    metrics.update(num_steps=int(sol.stats["num_steps"]), result=sol.message,
-                   converged=bool(sol.succeeded), time_s=seconds)
+    metrics.update(
+        num_steps=int(sol.stats["num_steps"]),
+        result=sol.message,
+        converged=bool(sol.succeeded),
+        time_s=seconds,
+    )
     return {
         "input": printable(os.path.abspath(job.path)),
         "num_points": int(len(job.points)),
         "normals": "estimated" if job.estimated else "given",
-        "settings": {"solver": args.solver, "grid": list(job.grid), "lam": job.lam,
-                     "tau": args.tau if args.solver == "iurs" else None,
-                     "offset": job.chosen.offset, "eps": job.chosen.eps, "steps": args.steps,
-                     "tol": args.tol, "chosen_from_data": job.chosen.as_dict()},
+        "settings": {
+            "solver": args.solver,
+            "grid": list(job.grid),
+            "lam": job.lam,
+            "tau": args.tau if args.solver == "iurs" else None,
+            "offset": job.chosen.offset,
+            "eps": job.chosen.eps,
+            "steps": args.steps,
+            "tol": args.tol,
+            "chosen_from_data": job.chosen.as_dict(),
+        },
         "metrics": metrics,
     }
 
 
 def _fit_title(job: FitJob, args, sol) -> str:
     """First lines of the figures' titles: file, solver, grid, lambda, E_ave."""
-    return (f"{printable(os.path.basename(job.path))}: {args.solver}, grid "
-            f"{'x'.join(map(str, job.grid))}, lam = {job.lam:.3g}\nE_ave = "
-            f"{float(sol.metrics['E_ave']):.3e}, ")
+    return (
+        f"{printable(os.path.basename(job.path))}: {args.solver}, grid "
+        f"{'x'.join(map(str, job.grid))}, lam = {job.lam:.3g}\nE_ave = "
+        f"{float(sol.metrics['E_ave']):.3e}, "
+    )
 
 
 def _write_record_and_spline(folder: str, record: dict, spline) -> None:
@@ -580,37 +665,64 @@ def curve_outputs(job: FitJob, args, sol, seconds: float):
     from . import levelset as ls
     from . import plot
 
-    report = ls.analyze(sol.spline, job.points, offset=job.chosen.offset,
-                        threshold=args.threshold, resolution=job.resolution)
+    report = ls.analyze(
+        sol.spline,
+        job.points,
+        offset=job.chosen.offset,
+        threshold=args.threshold,
+        resolution=job.resolution,
+    )
     record = fit_record(job, args, sol, seconds)
     record["metrics"].update(report.as_dict())
-    title = (_fit_title(job, args, sol) + f"{report.num_components} component(s), "
-             f"{report.num_supplementary} supplementary")
+    title = (
+        _fit_title(job, args, sol) + f"{report.num_components} component(s), "
+        f"{report.num_supplementary} supplementary"
+    )
 
     def write(folder):
         _write_record_and_spline(folder, record, sol.spline)
-        np.savetxt(os.path.join(folder, "zero_level.csv"), ls.polylines_table(report.components),
-                   delimiter=",", header="component,closed,supplementary,x,y", comments="",
-                   fmt=["%d", "%d", "%d", "%.10g", "%.10g"])
-        fig = plot.plot_fit(sol.spline, job.points, job.normals, job.chosen.offset,
-                            levelset=report, title=title)
+        np.savetxt(
+            os.path.join(folder, "zero_level.csv"),
+            ls.polylines_table(report.components),
+            delimiter=",",
+            header="component,closed,supplementary,x,y",
+            comments="",
+            fmt=["%d", "%d", "%d", "%.10g", "%.10g"],
+        )
+        fig = plot.plot_fit(
+            sol.spline, job.points, job.normals, job.chosen.offset, levelset=report, title=title
+        )
         _save_figure(fig, os.path.join(folder, "fit.png"), dpi=130)
 
-    summary = (f"  E_ave = {float(sol.metrics['E_ave']):.4e}, E_max = "
-               f"{float(sol.metrics['E_max']):.4e}, zero set: {report.num_components} "
-               f"component(s), {report.num_supplementary} supplementary, chamfer = "
-               f"{report.chamfer:.3g}")
+    summary = (
+        f"  E_ave = {float(sol.metrics['E_ave']):.4e}, E_max = "
+        f"{float(sol.metrics['E_max']):.4e}, zero set: {report.num_components} "
+        f"component(s), {report.num_supplementary} supplementary, chamfer = "
+        f"{report.chamfer:.3g}"
+    )
     return write, summary
 
 
 def mesh_record(vertices, faces, report, distances, resolution: int) -> dict:
     """metrics.json's ``mesh`` entry: size, lattice resolution and every component."""
-    components = [{"num_faces": c.num_faces, "area": c.area, "closed": c.closed,
-                   "genus": c.genus, "median_distance": c.median_distance,
-                   "supplementary": c.supplementary} for c in report.components]
-    return {"num_vertices": int(len(vertices)), "num_faces": int(len(faces)),
-            "resolution": int(resolution), "samples": distances["samples"],
-            "components": components}
+    components = [
+        {
+            "num_faces": c.num_faces,
+            "area": c.area,
+            "closed": c.closed,
+            "genus": c.genus,
+            "median_distance": c.median_distance,
+            "supplementary": c.supplementary,
+        }
+        for c in report.components
+    ]
+    return {
+        "num_vertices": int(len(vertices)),
+        "num_faces": int(len(faces)),
+        "resolution": int(resolution),
+        "samples": distances["samples"],
+        "components": components,
+    }
 
 
 def _mesh_counts(report) -> str:
@@ -618,8 +730,10 @@ def _mesh_counts(report) -> str:
     supplementary" (an open component's genus reads "open")."""
     closed = sum(c.closed for c in report.components)
     genera = ", ".join("open" if c.genus is None else str(c.genus) for c in report.components)
-    return (f"{report.num_components} component(s), {closed} closed, genus {genera or '-'}, "
-            f"{len(report.supplementary)} supplementary")
+    return (
+        f"{report.num_components} component(s), {closed} closed, genus {genera or '-'}, "
+        f"{len(report.supplementary)} supplementary"
+    )
 
 
 def surface_outputs(job: FitJob, args, sol, seconds: float):
@@ -635,7 +749,8 @@ def surface_outputs(job: FitJob, args, sol, seconds: float):
 
     spline = sol.spline
     resolution = job.resolution or default_resolution(
-        spline, np.asarray(spline.lower, np.float64), np.asarray(spline.upper, np.float64))
+        spline, np.asarray(spline.lower, np.float64), np.asarray(spline.upper, np.float64)
+    )
     t0 = time.perf_counter()
     vertices, faces = ls.mesh(spline, resolution)
     t1 = time.perf_counter()
@@ -643,26 +758,36 @@ def surface_outputs(job: FitJob, args, sol, seconds: float):
     distances = ls.mesh_distances(vertices, faces, job.points, job.normals)
     t2 = time.perf_counter()
     record = fit_record(job, args, sol, seconds)
-    record["metrics"].update(report.as_dict(), chamfer=distances["chamfer"],
-                             hausdorff=distances["hausdorff"],
-                             normal_consistency=distances["normal_consistency"])
+    record["metrics"].update(
+        report.as_dict(),
+        chamfer=distances["chamfer"],
+        hausdorff=distances["hausdorff"],
+        normal_consistency=distances["normal_consistency"],
+    )
     record["mesh"] = mesh_record(vertices, faces, report, distances, resolution)
     record["timings"] = {"fit_s": seconds, "mesh_s": t1 - t0, "analysis_s": t2 - t1}
     counts = _mesh_counts(report)
-    highlight = (np.concatenate([c.faces for c in report.supplementary])
-                 if report.supplementary else None)
+    highlight = (
+        np.concatenate([c.faces for c in report.supplementary]) if report.supplementary else None
+    )
 
     def write(folder):
         _write_record_and_spline(folder, record, spline)
         datasets.save_mesh(os.path.join(folder, "mesh.ply"), vertices, faces)
-        fig = plot.plot_mesh(vertices, faces, highlight=highlight,
-                             highlight_label="supplementary", title=_fit_title(job, args, sol)
-                             + counts)
+        fig = plot.plot_mesh(
+            vertices,
+            faces,
+            highlight=highlight,
+            highlight_label="supplementary",
+            title=_fit_title(job, args, sol) + counts,
+        )
         _save_figure(fig, os.path.join(folder, "preview.png"), dpi=110)
 
-    summary = (f"  E_ave = {float(sol.metrics['E_ave']):.4e}, E_max = "
-               f"{float(sol.metrics['E_max']):.4e}, surface: {len(faces)} faces, {counts}, "
-               f"chamfer = {distances['chamfer']:.3g}")
+    summary = (
+        f"  E_ave = {float(sol.metrics['E_ave']):.4e}, E_max = "
+        f"{float(sol.metrics['E_max']):.4e}, surface: {len(faces)} faces, {counts}, "
+        f"chamfer = {distances['chamfer']:.3g}"
+    )
     return write, summary
 
 
@@ -686,15 +811,19 @@ def run_fit(args) -> int:
     try:
         write_outputs(job.out, write, job.outputs)
     except OSError as exc:
-        print(f"jurs: error: {printable(args.output)}: could not write the outputs "
-              f"({printable(_one_line(exc))}); the folder keeps its previous outputs",
-              file=sys.stderr)
+        print(
+            f"jurs: error: {printable(args.output)}: could not write the outputs "
+            f"({printable(_one_line(exc))}); the folder keeps its previous outputs",
+            file=sys.stderr,
+        )
         return EXIT_FIT_FAILED
 
     if not args.quiet:
-        print(f"{job.shown}: {len(job.points)} points, {args.solver}, grid "
-              f"{'x'.join(map(str, job.grid))}: {int(sol.stats['num_steps'])} steps in "
-              f"{seconds:.2f} s ({sol.message.split(':')[0]})")
+        print(
+            f"{job.shown}: {len(job.points)} points, {args.solver}, grid "
+            f"{'x'.join(map(str, job.grid))}: {int(sol.stats['num_steps'])} steps in "
+            f"{seconds:.2f} s ({sol.message.split(':')[0]})"
+        )
         print(summary)
         print(f"  wrote {', '.join(job.outputs)} to {printable(args.output)}")
     return 0
@@ -720,8 +849,7 @@ def main(argv=None) -> int:
         print(f"jurs: error: {printable(str(exc))}", file=sys.stderr)
         return EXIT_BAD_INPUT
     except MemoryError:
-        print("jurs: error: out of memory; use a smaller --grid or --resolution",
-              file=sys.stderr)
+        print("jurs: error: out of memory; use a smaller --grid or --resolution", file=sys.stderr)
         return EXIT_FIT_FAILED
 
 

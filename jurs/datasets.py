@@ -93,8 +93,10 @@ def _from_table(rows: np.ndarray, path: str, row_numbers=None):
     errors name the row by ``row_numbers`` (the file's 1-based line of each row; default
     1, 2, ...)."""
     if rows.ndim != 2 or rows.shape[1] not in (2, 4):
-        raise ValueError(f"{path}: expected an (m, 4) table with columns x, y, nx, ny "
-                         f"(or (m, 2): x, y, without normals), got shape {rows.shape}")
+        raise ValueError(
+            f"{path}: expected an (m, 4) table with columns x, y, nx, ny "
+            f"(or (m, 2): x, y, without normals), got shape {rows.shape}"
+        )
     if rows.shape[0] == 0:
         raise ValueError(f"{path}: no data rows")
     if row_numbers is None:
@@ -106,8 +108,9 @@ def _from_table(rows: np.ndarray, path: str, row_numbers=None):
         return rows.copy(), None
     zero = np.linalg.norm(rows[:, 2:], axis=1) == 0
     if zero.any():
-        raise ValueError(f"{path}: row {row_numbers[int(np.argmax(zero))]} has a "
-                         "zero-length normal")
+        raise ValueError(
+            f"{path}: row {row_numbers[int(np.argmax(zero))]} has a zero-length normal"
+        )
     return rows[:, :2].copy(), rows[:, 2:].copy()
 
 
@@ -146,8 +149,11 @@ def load_points(path) -> tuple[np.ndarray, np.ndarray | None]:
     # skipped, not read as part of the first column's name.
     with open(path, newline="", encoding="utf-8-sig") as fh:
         text = fh.read()
-    lines = [(i + 1, line) for i, line in enumerate(text.splitlines()) if line.strip()
-             and not line.lstrip().startswith("#")]
+    lines = [
+        (i + 1, line)
+        for i, line in enumerate(text.splitlines())
+        if line.strip() and not line.lstrip().startswith("#")
+    ]
     if not lines:
         raise ValueError(f"{path}: no data rows")
     delimiter = "," if "," in lines[0][1] else (";" if ";" in lines[0][1] else None)
@@ -159,22 +165,26 @@ def load_points(path) -> tuple[np.ndarray, np.ndarray | None]:
 
     first = split(lines[0][1])
     names = [c.lower() for c in first]
-    columns = COLUMNS[:len(first)] if len(first) in (2, 4) else COLUMNS
+    columns = COLUMNS[: len(first)] if len(first) in (2, 4) else COLUMNS
     if names in (list(COLUMNS), list(COLUMNS[:2])):
         lines = lines[1:]
     elif any(_not_number(c) for c in first) and not all(_not_number(c) for c in first):
         pass  # a malformed data row: reported below with its row number
     elif all(_not_number(c) for c in first):
-        raise ValueError(f"{path}: row {lines[0][0]}: header must be x, y, nx, ny (or x, y "
-                         f"without normals), got {first}")
+        raise ValueError(
+            f"{path}: row {lines[0][0]}: header must be x, y, nx, ny (or x, y "
+            f"without normals), got {first}"
+        )
     if not lines:
         raise ValueError(f"{path}: no data rows")
     values = np.empty((len(lines), len(columns)))
     for k, (lineno, line) in enumerate(lines):
         cells = split(line)
         if len(cells) != len(columns):
-            raise ValueError(f"{path}: row {lineno}: expected {len(columns)} columns "
-                             f"{', '.join(columns)}, got {len(cells)}")
+            raise ValueError(
+                f"{path}: row {lineno}: expected {len(columns)} columns "
+                f"{', '.join(columns)}, got {len(cells)}"
+            )
         for j, c in enumerate(cells):
             if _not_number(c):
                 raise ValueError(f"{path}: row {lineno}: {columns[j]} = {c!r} is not a number")
@@ -209,8 +219,14 @@ def save_points(path, points, normals=None) -> None:
     if path.lower().endswith(".npy"):
         np.save(path, table)
     else:
-        np.savetxt(path, table, delimiter=",", header=",".join(COLUMNS[:table.shape[1]]),
-                   comments="", fmt="%.17g")
+        np.savetxt(
+            path,
+            table,
+            delimiter=",",
+            header=",".join(COLUMNS[: table.shape[1]]),
+            comments="",
+            fmt="%.17g",
+        )
 
 
 # --- 3D: surfaces, meshes and point-cloud files -------------------------------------------
@@ -226,8 +242,9 @@ def _trimesh():
     try:
         import trimesh
     except ImportError:
-        raise ImportError('3D point-cloud and mesh files need trimesh: '
-                          'pip install "jurs[surfaces]"') from None
+        raise ImportError(
+            '3D point-cloud and mesh files need trimesh: pip install "jurs[surfaces]"'
+        ) from None
     return trimesh
 
 
@@ -306,8 +323,10 @@ def genus2_function(points):
         # On a torus's axis and its tube's centre circle the distance has no gradient
         # (far inside or outside the surface): 0 there instead of NaN.
         radial = q[:, :2] / np.where(ring > 0, ring, 1.0)[:, None]
-        gradients.append(np.column_stack([tube[:, :1] * radial, tube[:, 1:]])
-                         / np.where(length > 0, length, 1.0)[:, None])
+        gradients.append(
+            np.column_stack([tube[:, :1] * radial, tube[:, 1:]])
+            / np.where(length > 0, length, 1.0)[:, None]
+        )
     a, b = values
     k = GENUS2_BLEND
     value = -k * np.logaddexp(-a / k, -b / k)
@@ -326,8 +345,12 @@ def genus2(m: int, seed: int = 0):
     """
     m = _count(m)
     rng = np.random.default_rng(seed)
-    half = np.array([GENUS2_SHIFT + GENUS2_MAJOR + GENUS2_MINOR,
-                     GENUS2_MAJOR + GENUS2_MINOR, GENUS2_MINOR]) + 0.1
+    half = (
+        np.array(
+            [GENUS2_SHIFT + GENUS2_MAJOR + GENUS2_MINOR, GENUS2_MAJOR + GENUS2_MINOR, GENUS2_MINOR]
+        )
+        + 0.1
+    )
     width = 0.01
     accepted = []
     total = 0
@@ -352,8 +375,10 @@ def sample_mesh(vertices, faces, m: int, seed: int = 0):
     vertices = np.asarray(vertices, dtype=np.float64)
     faces = np.asarray(faces)
     if vertices.ndim != 2 or vertices.shape[1] != 3 or faces.ndim != 2 or faces.shape[1] != 3:
-        raise ValueError(f"vertices and faces must have shapes (V, 3) and (F, 3), got "
-                         f"{vertices.shape} and {faces.shape}")
+        raise ValueError(
+            f"vertices and faces must have shapes (V, 3) and (F, 3), got "
+            f"{vertices.shape} and {faces.shape}"
+        )
     m = _count(m)
     a, b, c = (vertices[faces[:, k]] for k in range(3))
     cross = np.cross(b - a, c - a)
@@ -406,13 +431,14 @@ def save_mesh(path, vertices, faces) -> None:
     vertices = np.asarray(vertices, dtype=np.float64)
     faces = np.asarray(faces)
     if vertices.ndim != 2 or vertices.shape[1] != 3 or faces.ndim != 2 or faces.shape[1] != 3:
-        raise ValueError(f"vertices and faces must have shapes (V, 3) and (F, 3), got "
-                         f"{vertices.shape} and {faces.shape}")
+        raise ValueError(
+            f"vertices and faces must have shapes (V, 3) and (F, 3), got "
+            f"{vertices.shape} and {faces.shape}"
+        )
     trimesh = _trimesh()
     # OBJ is text: all digits (trimesh's default keeps 8 decimals).
     options = {"digits": 17} if suffix == ".obj" else {}
-    trimesh.Trimesh(vertices, faces, process=False).export(path, file_type=suffix[1:],
-                                                           **options)
+    trimesh.Trimesh(vertices, faces, process=False).export(path, file_type=suffix[1:], **options)
 
 
 def _load_cloud(path: str):
@@ -428,8 +454,9 @@ def _load_cloud(path: str):
             else:
                 data = trimesh.exchange.obj.load_obj(fh, maintain_order=True)
     except Exception as exc:  # trimesh raises many kinds for malformed files
-        raise ValueError(f"{path}: not a readable {_suffix(path)[1:].upper()} file "
-                         f"({exc})") from None
+        raise ValueError(
+            f"{path}: not a readable {_suffix(path)[1:].upper()} file ({exc})"
+        ) from None
     # An OBJ with faces comes back as named geometries; a cloud of "v" lines as one.
     parts = list(data["geometry"].values()) if "geometry" in data else [data]
     points = [np.asarray(p.get("vertices", np.empty((0, 3))), dtype=np.float64) for p in parts]
@@ -444,14 +471,18 @@ def _load_xyz(path: str):
     """Whitespace (or comma) separated rows ``x y z`` or ``x y z nx ny nz``; ``#`` starts
     a comment line. Errors name the file's 1-based row."""
     with open(path, encoding="utf-8-sig") as fh:
-        lines = [(i + 1, line.replace(",", " ").split()) for i, line in enumerate(fh)
-                 if line.strip() and not line.lstrip().startswith("#")]
+        lines = [
+            (i + 1, line.replace(",", " ").split())
+            for i, line in enumerate(fh)
+            if line.strip() and not line.lstrip().startswith("#")
+        ]
     if not lines:
         raise ValueError(f"{path}: no data rows")
     width = len(lines[0][1])
     if width not in (3, 6):
-        raise ValueError(f"{path}: row {lines[0][0]}: expected 3 columns x y z or 6 "
-                         f"x y z nx ny nz, got {width}")
+        raise ValueError(
+            f"{path}: row {lines[0][0]}: expected 3 columns x y z or 6 x y z nx ny nz, got {width}"
+        )
     values = np.empty((len(lines), width))
     for k, (lineno, cells) in enumerate(lines):
         if len(cells) != width:
@@ -479,8 +510,9 @@ def _checked_cloud(points, normals, path, row_numbers=None):
     if normals is not None:
         zero = np.linalg.norm(normals, axis=1) == 0
         if zero.any():
-            raise ValueError(f"{path}: {label} {rows[int(np.argmax(zero))]} has a "
-                             "zero-length normal")
+            raise ValueError(
+                f"{path}: {label} {rows[int(np.argmax(zero))]} has a zero-length normal"
+            )
     return points.copy(), None if normals is None else normals.copy()
 
 
@@ -488,24 +520,26 @@ def _save_cloud(path: str, points, normals) -> None:
     """:func:`save_points` for the 3D suffixes."""
     points = np.asarray(points, dtype=np.float64)
     if points.ndim != 2 or points.shape[1] != 3:
-        raise ValueError(f"{path}: {_suffix(path)} files hold 3D points, got shape "
-                         f"{points.shape}")
+        raise ValueError(f"{path}: {_suffix(path)} files hold 3D points, got shape {points.shape}")
     if normals is not None:
         normals = np.asarray(normals, dtype=np.float64)
         if normals.shape != points.shape:
-            raise ValueError(f"normals must have the shape of points {points.shape}, got "
-                             f"{normals.shape}")
+            raise ValueError(
+                f"normals must have the shape of points {points.shape}, got {normals.shape}"
+            )
     if _suffix(path) in (".xyz", ".pts"):
         table = points if normals is None else np.concatenate([points, normals], axis=1)
         np.savetxt(path, table, fmt="%.17g")
         return
     trimesh = _trimesh()
-    cloud = trimesh.Trimesh(points, np.empty((0, 3), dtype=np.int64), vertex_normals=normals,
-                            process=False)
+    cloud = trimesh.Trimesh(
+        points, np.empty((0, 3), dtype=np.int64), vertex_normals=normals, process=False
+    )
     if _suffix(path) == ".ply":
         data = trimesh.exchange.ply.export_ply(cloud, vertex_normal=normals is not None)
     else:
-        data = trimesh.exchange.obj.export_obj(cloud, include_normals=normals is not None,
-                                               digits=17).encode()
+        data = trimesh.exchange.obj.export_obj(
+            cloud, include_normals=normals is not None, digits=17
+        ).encode()
     with open(path, "wb") as fh:
         fh.write(data)

@@ -47,16 +47,24 @@ def run(output_dir: str = "demo-output", steps: int = 200) -> dict:
     print(f"| {'spline':<24} | {'E':>10} | {'E_max':>10} | {'E_ave':>10} | steps | warm time |")
     print(f"|{'-' * 26}|{'-' * 12}|{'-' * 12}|{'-' * 12}|-------|-----------|")
     for name, r in rows.items():
-        print(f"| {name:<24} | {r['E']:10.4e} | {r['E_max']:10.4e} | {r['E_ave']:10.4e} | "
-              f"{r['steps']:5d} | {r['time_s'] * 1e3:6.1f} ms |")
+        print(
+            f"| {name:<24} | {r['E']:10.4e} | {r['E_max']:10.4e} | {r['E_ave']:10.4e} | "
+            f"{r['steps']:5d} | {r['time_s'] * 1e3:6.1f} ms |"
+        )
     print("| paper, B-spline          | 9.4303e-04 | 2.1919e-03 | 1.2682e-06 |   200 |           |")
     print("| paper, uniform rational  | 1.63e-03   | 2.3667e-03 | 8.4608e-07 |   200 |           |")
 
     os.makedirs(output_dir, exist_ok=True)
     fig, axes = plt.subplots(1, 2, figsize=(12, 6), constrained_layout=True)
     for ax, (name, sol) in zip(axes, fits.items()):
-        jurs.plot.plot_fit(sol.spline, points, normals, 0.1, ax=ax,
-                           title=f"{name}: E_ave = {rows[name]['E_ave']:.3e}")
+        jurs.plot.plot_fit(
+            sol.spline,
+            points,
+            normals,
+            0.1,
+            ax=ax,
+            title=f"{name}: E_ave = {rows[name]['E_ave']:.3e}",
+        )
     path = os.path.join(output_dir, "example1.png")
     fig.savefig(path, dpi=120)
     plt.close(fig)

@@ -90,8 +90,9 @@ def sampling_grid(lower, upper, resolution: int = DEFAULT_RESOLUTION):
         raise ValueError(f"box must be finite with lower < upper, got {lower}, {upper}")
     extent = upper - lower
     counts = np.maximum(2, np.round((int(resolution) - 1) * extent / extent.max()).astype(int) + 1)
-    check_memory(f"resolution={int(resolution)}", BYTES_PER_NODE * float(np.prod(counts)),
-                 device=False)
+    check_memory(
+        f"resolution={int(resolution)}", BYTES_PER_NODE * float(np.prod(counts)), device=False
+    )
     xs = np.linspace(lower[0], upper[0], counts[0])
     ys = np.linspace(lower[1], upper[1], counts[1])
     return xs, ys, float(extent.max() / (int(resolution) - 1))
@@ -118,8 +119,9 @@ def evaluate_grid(spline, xs, ys, *, chunk: int = 1 << 15) -> np.ndarray:
     xy = np.stack([gx.ravel(), gy.ravel()], axis=1).astype(dtype)
     n = len(xy)
     padded = np.concatenate([xy, np.repeat(xy[-1:], -n % chunk, axis=0)])
-    out = np.concatenate([np.asarray(_evaluate(spline, padded[k:k + chunk]))
-                          for k in range(0, len(padded), chunk)])
+    out = np.concatenate(
+        [np.asarray(_evaluate(spline, padded[k : k + chunk])) for k in range(0, len(padded), chunk)]
+    )
     return out[:n].reshape(gx.shape).astype(float)
 
 
@@ -137,8 +139,11 @@ def contour_lines(xs, ys, values, level: float = 0.0):
     polylines repeat their first point at the end.
     """
     gen = contourpy.contour_generator(
-        np.asarray(xs, float), np.asarray(ys, float), np.asarray(values, float),
-        name="serial", line_type=contourpy.LineType.SeparateCode,
+        np.asarray(xs, float),
+        np.asarray(ys, float),
+        np.asarray(values, float),
+        name="serial",
+        line_type=contourpy.LineType.SeparateCode,
     )
     lines, codes = gen.lines(float(level))
     return [(np.asarray(p, float), bool(len(c) and c[-1] == 79)) for p, c in zip(lines, codes)]
@@ -222,13 +227,15 @@ def distance_to_polyline(points, polyline, *, closed: bool = False) -> np.ndarra
 def _central_gradient(fn, xy: np.ndarray, step: float) -> np.ndarray:
     """Central differences of ``fn`` at ``xy (k, 2)``: four evaluations, error ``O(step^2)``."""
     e = np.array([[step, 0.0], [0.0, step]])
-    values = np.asarray(fn(np.concatenate([xy + e[0], xy - e[0], xy + e[1], xy - e[1]])),
-                        float).reshape(4, -1)
+    values = np.asarray(
+        fn(np.concatenate([xy + e[0], xy - e[0], xy + e[1], xy - e[1]])), float
+    ).reshape(4, -1)
     return np.stack([values[0] - values[1], values[2] - values[3]], axis=1) / (2 * step)
 
 
-def project_to_zero_set(fn, points, *, grad=None, steps: int = 3, tol: float | None = None,
-                        step: float | None = None):
+def project_to_zero_set(
+    fn, points, *, grad=None, steps: int = 3, tol: float | None = None, step: float | None = None
+):
     """Move each of ``points (k, 2)`` onto ``{fn = 0}`` by Newton steps along the gradient,
     ``x <- x - f(x) grad f(x) / |grad f(x)|^2``; from a point near the zero set this lands
     on it near the point's foot, with the error squared every step.
@@ -271,8 +278,16 @@ def project_to_zero_set(fn, points, *, grad=None, steps: int = 3, tol: float | N
     return x, converged
 
 
-def refined_chamfer_hausdorff(fn, zero_points, reference, *, grad=None, closed: bool = True,
-                              reference_samples: int | None = None, steps: int = 3) -> dict:
+def refined_chamfer_hausdorff(
+    fn,
+    zero_points,
+    reference,
+    *,
+    grad=None,
+    closed: bool = True,
+    reference_samples: int | None = None,
+    steps: int = 3,
+) -> dict:
     """Chamfer and Hausdorff distances (as in :func:`chamfer_hausdorff`) between the zero
     set Z of ``fn`` and a reference curve, without the floor that sampling puts under them.
 
@@ -295,19 +310,27 @@ def refined_chamfer_hausdorff(fn, zero_points, reference, *, grad=None, closed: 
         raise ValueError(f"reference_samples must be >= 1, got {reference_samples}")
     count = len(reference) if reference_samples is None else int(reference_samples)
     if len(zero_points) == 0 or len(reference) == 0:
-        return {"chamfer": float("inf"), "hausdorff": float("inf"),
-                "unconverged_zero": 0, "unconverged_reference": 0}
+        return {
+            "chamfer": float("inf"),
+            "hausdorff": float("inf"),
+            "unconverged_zero": 0,
+            "unconverged_reference": 0,
+        }
     zero, zero_ok = project_to_zero_set(fn, zero_points, grad=grad, steps=steps)
     z_to_ref = distance_to_polyline(zero, reference, closed=closed)
     ref = reference[np.unique(np.linspace(0, len(reference) - 1, count).astype(int))]
     landed, ref_ok = project_to_zero_set(fn, ref, grad=grad, steps=steps)
     on_zero = zero[zero_ok] if zero_ok.any() else zero
-    ref_to_z = np.minimum(cKDTree(on_zero).query(ref)[0],
-                          np.where(ref_ok, np.linalg.norm(landed - ref, axis=1), np.inf))
-    return {"chamfer": float(0.5 * (z_to_ref.mean() + ref_to_z.mean())),
-            "hausdorff": float(max(z_to_ref.max(), ref_to_z.max())),
-            "unconverged_zero": int(np.sum(~zero_ok)),
-            "unconverged_reference": int(np.sum(~ref_ok))}
+    ref_to_z = np.minimum(
+        cKDTree(on_zero).query(ref)[0],
+        np.where(ref_ok, np.linalg.norm(landed - ref, axis=1), np.inf),
+    )
+    return {
+        "chamfer": float(0.5 * (z_to_ref.mean() + ref_to_z.mean())),
+        "hausdorff": float(max(z_to_ref.max(), ref_to_z.max())),
+        "unconverged_zero": int(np.sum(~zero_ok)),
+        "unconverged_reference": int(np.sum(~ref_ok)),
+    }
 
 
 @dataclasses.dataclass(frozen=True)
@@ -406,8 +429,9 @@ class LevelSetReport:
         }
 
 
-def classify(lines, points, *, threshold: float, cell_size: float,
-             tiny_cells: float = DEFAULT_TINY_CELLS) -> list[Component]:
+def classify(
+    lines, points, *, threshold: float, cell_size: float, tiny_cells: float = DEFAULT_TINY_CELLS
+) -> list[Component]:
     """Turn ``(polyline, closed)`` pairs into :class:`Component` s, longest first, measuring
     their distance to the data ``points (m, 2)`` with a KD-tree."""
     tree = cKDTree(np.asarray(points, float).reshape(-1, 2))
@@ -424,8 +448,17 @@ def classify(lines, points, *, threshold: float, cell_size: float,
         weight = seg if length > 0 else None
         mean = float(np.average(dist, weights=weight))
         far = float(np.average(dist > threshold, weights=weight))
-        out.append(Component(poly, closed, length, mean, far, far > 0.5,
-                             closed and length < tiny_cells * cell_size))
+        out.append(
+            Component(
+                poly,
+                closed,
+                length,
+                mean,
+                far,
+                far > 0.5,
+                closed and length < tiny_cells * cell_size,
+            )
+        )
     out.sort(key=lambda c: -c.length)
     return out
 
@@ -463,9 +496,17 @@ def analyze(
         :class:`LevelSetReport`.
     """
     xs, ys, _ = sampling_grid(*_box(spline, box), resolution)
-    return analyze_grid(xs, ys, evaluate_grid(spline, xs, ys), points, offset=offset,
-                        threshold=threshold, reference=reference, tiny_cells=tiny_cells,
-                        zero_tol=zero_tol)
+    return analyze_grid(
+        xs,
+        ys,
+        evaluate_grid(spline, xs, ys),
+        points,
+        offset=offset,
+        threshold=threshold,
+        reference=reference,
+        tiny_cells=tiny_cells,
+        zero_tol=zero_tol,
+    )
 
 
 def analyze_grid(
@@ -495,29 +536,47 @@ def analyze_grid(
         raise ValueError(f"threshold must be positive, got {threshold}")
     xs, ys, values = np.asarray(xs, float), np.asarray(ys, float), np.asarray(values, float)
     if values.shape != (len(ys), len(xs)):
-        raise ValueError(f"values must have shape (len(ys), len(xs)) = {(len(ys), len(xs))}, "
-                         f"got {values.shape}")
+        raise ValueError(
+            f"values must have shape (len(ys), len(xs)) = {(len(ys), len(xs))}, got {values.shape}"
+        )
     h = float(max(xs[-1] - xs[0], ys[-1] - ys[0]) / (max(len(xs), len(ys)) - 1))
     scale = float(np.nanmax(np.abs(values))) if np.isfinite(values).any() else 0.0
     zero_area = float(np.mean(np.abs(values) <= zero_tol * scale))
     lines = contour_lines(xs, ys, values)
-    components = classify(lines, points, threshold=float(threshold), cell_size=h,
-                          tiny_cells=tiny_cells)
+    components = classify(
+        lines, points, threshold=float(threshold), cell_size=h, tiny_cells=tiny_cells
+    )
     target = points if reference is None else np.asarray(reference, float).reshape(-1, 2)
     zero = [resample(c.polyline, h / 2) for c in components]
     zero = np.concatenate(zero) if zero else np.empty((0, 2))
     chamfer, hausdorff = chamfer_hausdorff(zero, target)
-    return LevelSetReport(tuple(components), float(threshold), h, max(len(xs), len(ys)),
-                          float(tiny_cells), zero_area, chamfer, hausdorff,
-                          "data points" if reference is None else "reference curve")
+    return LevelSetReport(
+        tuple(components),
+        float(threshold),
+        h,
+        max(len(xs), len(ys)),
+        float(tiny_cells),
+        zero_area,
+        chamfer,
+        hausdorff,
+        "data points" if reference is None else "reference curve",
+    )
 
 
 def polylines_table(components: Sequence[Component]) -> np.ndarray:
     """Rows ``(component, closed, supplementary, x, y)`` for every vertex, components
     numbered from 0 in the order given (as written to the CLI's CSV)."""
-    rows = [np.column_stack([np.full(len(c.polyline), k), np.full(len(c.polyline), c.closed),
-                             np.full(len(c.polyline), c.supplementary), c.polyline])
-            for k, c in enumerate(components)]
+    rows = [
+        np.column_stack(
+            [
+                np.full(len(c.polyline), k),
+                np.full(len(c.polyline), c.closed),
+                np.full(len(c.polyline), c.supplementary),
+                c.polyline,
+            ]
+        )
+        for k, c in enumerate(components)
+    ]
     return np.concatenate(rows) if rows else np.empty((0, 5))
 
 

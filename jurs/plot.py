@@ -48,8 +48,9 @@ def _heatmap(ax, xs, ys, values, limit=None):
     """Diverging heatmap of g, symmetric about 0 (blue inside, red outside)."""
     limit = float(np.nanmax(np.abs(values))) if limit is None else float(limit)
     limit = limit if limit > 0 else 1.0
-    return ax.pcolormesh(xs, ys, values, cmap="RdBu_r", vmin=-limit, vmax=limit,
-                         shading="auto", rasterized=True)
+    return ax.pcolormesh(
+        xs, ys, values, cmap="RdBu_r", vmin=-limit, vmax=limit, shading="auto", rasterized=True
+    )
 
 
 def _draw_data(ax, points, normals, offset, markersize=3):
@@ -58,12 +59,32 @@ def _draw_data(ax, points, normals, offset, markersize=3):
         normals = np.asarray(normals)
         normals = normals / np.linalg.norm(normals, axis=1, keepdims=True)
         out, inn = points + offset * normals, points - offset * normals
-        ax.plot(out[:, 0], out[:, 1], ".", color="tab:red", ms=markersize * 2 / 3,
-                label="outer offsets (+eps)")
-        ax.plot(inn[:, 0], inn[:, 1], ".", color="tab:blue", ms=markersize * 2 / 3,
-                label="inner offsets (-eps)")
-    ax.plot(points[:, 0], points[:, 1], "o", color="gold", mec="k", mew=0.4, ms=markersize,
-            label="data points")
+        ax.plot(
+            out[:, 0],
+            out[:, 1],
+            ".",
+            color="tab:red",
+            ms=markersize * 2 / 3,
+            label="outer offsets (+eps)",
+        )
+        ax.plot(
+            inn[:, 0],
+            inn[:, 1],
+            ".",
+            color="tab:blue",
+            ms=markersize * 2 / 3,
+            label="inner offsets (-eps)",
+        )
+    ax.plot(
+        points[:, 0],
+        points[:, 1],
+        "o",
+        color="gold",
+        mec="k",
+        mew=0.4,
+        ms=markersize,
+        label="data points",
+    )
 
 
 def _finish(ax, title=None):
@@ -74,8 +95,18 @@ def _finish(ax, title=None):
         ax.set_title(title, fontsize=10)
 
 
-def plot_fit(spline: ImplicitSpline, points=None, normals=None, offset=None, *, ax=None,
-             title=None, resolution: int = 400, levelset=None, colorbar: bool = True):
+def plot_fit(
+    spline: ImplicitSpline,
+    points=None,
+    normals=None,
+    offset=None,
+    *,
+    ax=None,
+    title=None,
+    resolution: int = 400,
+    levelset=None,
+    colorbar: bool = True,
+):
     """The paper's view: a heatmap of g over the box with a colour bar, its zero curve, the
     data points and, given ``normals`` and ``offset``, the inner and outer offset samples.
 
@@ -92,22 +123,41 @@ def plot_fit(spline: ImplicitSpline, points=None, normals=None, offset=None, *, 
         ax.contour(xs, ys, values, levels=[0.0], colors=ZERO_COLOUR, linewidths=1.5)
     else:
         for c in levelset.components:
-            ax.plot(c.polyline[:, 0], c.polyline[:, 1], "-", lw=1.5,
-                    color=SUPPLEMENTARY_COLOUR if c.supplementary else ZERO_COLOUR)
+            ax.plot(
+                c.polyline[:, 0],
+                c.polyline[:, 1],
+                "-",
+                lw=1.5,
+                color=SUPPLEMENTARY_COLOUR if c.supplementary else ZERO_COLOUR,
+            )
     if points is not None:
         _draw_data(ax, points, normals, offset)
     ax.plot([], [], "-", color=ZERO_COLOUR, label="g = 0")  # contour lines carry no legend entry
     if levelset is not None and levelset.num_supplementary:
-        ax.plot([], [], "-", color=SUPPLEMENTARY_COLOUR,
-                label=f"supplementary g = 0 ({levelset.num_supplementary})")
+        ax.plot(
+            [],
+            [],
+            "-",
+            color=SUPPLEMENTARY_COLOUR,
+            label=f"supplementary g = 0 ({levelset.num_supplementary})",
+        )
     # Below the x-axis label, not on it.
     ax.legend(loc="upper center", bbox_to_anchor=(0.5, -0.14), ncol=2, fontsize=8, frameon=False)
     _finish(ax, title)
     return fig
 
 
-def plot_iterations(states, points=None, normals=None, offset=None, *, resolution: int = 200,
-                    ncols: int | None = None, panel_size: float = 3.6, title=None):
+def plot_iterations(
+    states,
+    points=None,
+    normals=None,
+    offset=None,
+    *,
+    resolution: int = 200,
+    ncols: int | None = None,
+    panel_size: float = 3.6,
+    title=None,
+):
     """Several states of one run side by side on one colour scale (like the paper's Fig. 15).
 
     Args:
@@ -119,15 +169,17 @@ def plot_iterations(states, points=None, normals=None, offset=None, *, resolutio
 
     Returns the Figure (one colour bar for all panels).
     """
-    items = ([(f"step {k}", s) for k, s in sorted(states.items())]
-             if isinstance(states, Mapping) else list(states))
+    items = (
+        [(f"step {k}", s) for k, s in sorted(states.items())]
+        if isinstance(states, Mapping)
+        else list(states)
+    )
     if not items:
         raise ValueError("no states to plot")
     ncols = ncols or min(len(items), 4)
     nrows = -(-len(items) // ncols)
     figsize = (panel_size * ncols + 1.0, panel_size * nrows + 0.6)
-    fig, axes = plt.subplots(nrows, ncols, figsize=figsize, constrained_layout=True,
-                             squeeze=False)
+    fig, axes = plt.subplots(nrows, ncols, figsize=figsize, constrained_layout=True, squeeze=False)
     grids = [evaluate_on_grid(s, resolution) for _, s in items]
     limit = max(float(np.nanmax(np.abs(v))) for _, _, v in grids)
     for ax, (label, _), (xs, ys, values) in zip(axes.flat, items, grids):
@@ -137,7 +189,7 @@ def plot_iterations(states, points=None, normals=None, offset=None, *, resolutio
         if points is not None:
             _draw_data(ax, points, normals, offset, markersize=2)
         _finish(ax, label)
-    for ax in list(axes.flat)[len(items):]:
+    for ax in list(axes.flat)[len(items) :]:
         ax.set_visible(False)
     fig.colorbar(mesh, ax=axes, label="g(x, y)", shrink=0.8)
     handles, labels = axes.flat[0].get_legend_handles_labels()
@@ -164,8 +216,13 @@ def plot_energy_history(histories, *, ax=None, title=None):
             h = np.asarray(h.stats["energy_history"])[: k + 1]
         h = np.asarray(h, float)
         keep = np.isfinite(h) & (h > 0)
-        ax.plot(np.arange(len(h))[keep], h[keep], styles[i % len(styles)],
-                lw=1.5 + (i % len(styles) > 0) * 0.5, label=label)
+        ax.plot(
+            np.arange(len(h))[keep],
+            h[keep],
+            styles[i % len(styles)],
+            lw=1.5 + (i % len(styles) > 0) * 0.5,
+            label=label,
+        )
     ax.set_yscale("log")
     ax.set_xlabel("step")
     ax.set_ylabel("energy E = E_d + lambda R (eq. 35)")
@@ -177,16 +234,26 @@ def plot_energy_history(histories, *, ax=None, title=None):
 
 
 _SENSITIVITY_LABELS = {
-    "E": "E (eq. 35)", "E_d": "E_d (eq. 16)", "E_ave": "E_ave (eq. 36)", "E_max": "E_max (eq. 37)",
-    "R": "R(C) (eq. 31)", "num_supplementary": "supplementary components",
-    "num_components": "zero-set components", "chamfer": "Chamfer distance",
+    "E": "E (eq. 35)",
+    "E_d": "E_d (eq. 16)",
+    "E_ave": "E_ave (eq. 36)",
+    "E_max": "E_max (eq. 37)",
+    "R": "R(C) (eq. 31)",
+    "num_supplementary": "supplementary components",
+    "num_components": "zero-set components",
+    "chamfer": "Chamfer distance",
     "hausdorff": "Hausdorff distance",
 }
 
 
-def plot_lambda_sensitivity(lams: Sequence[float], records: Sequence[Mapping],
-                            keys=("E_ave", "E_max", "R", "num_supplementary"), *, title=None,
-                            lam_label: str = "lambda"):
+def plot_lambda_sensitivity(
+    lams: Sequence[float],
+    records: Sequence[Mapping],
+    keys=("E_ave", "E_max", "R", "num_supplementary"),
+    *,
+    title=None,
+    lam_label: str = "lambda",
+):
     """Metrics against the regularisation weight, one panel each (like the paper's Fig. 16).
 
     Args:
@@ -206,8 +273,9 @@ def plot_lambda_sensitivity(lams: Sequence[float], records: Sequence[Mapping],
     records = [records[i] for i in order]
     ncols = min(len(keys), 2)
     nrows = -(-len(keys) // ncols)
-    fig, axes = plt.subplots(nrows, ncols, figsize=(4.4 * ncols, 3.2 * nrows),
-                             constrained_layout=True, squeeze=False)
+    fig, axes = plt.subplots(
+        nrows, ncols, figsize=(4.4 * ncols, 3.2 * nrows), constrained_layout=True, squeeze=False
+    )
     positive = lams[lams > 0]
     for ax, key in zip(axes.flat, keys):
         y = np.array([float(r[key]) for r in records])
@@ -225,7 +293,7 @@ def plot_lambda_sensitivity(lams: Sequence[float], records: Sequence[Mapping],
         ax.set_xlabel(lam_label)
         ax.set_ylabel(_SENSITIVITY_LABELS.get(key, key))
         ax.grid(True, alpha=0.3)
-    for ax in list(axes.flat)[len(keys):]:
+    for ax in list(axes.flat)[len(keys) :]:
         ax.set_visible(False)
     if title:
         fig.suptitle(title)
@@ -291,8 +359,11 @@ def decimate_mesh(vertices, faces, max_faces: int, flags=None):
         keys = np.floor((vertices - vertices.min(axis=0)) / cube).astype(np.int64)
         cluster = np.unique(keys, axis=0, return_inverse=True)[1].reshape(-1)
         merged = cluster[faces]
-        keep = ((merged[:, 0] != merged[:, 1]) & (merged[:, 1] != merged[:, 2])
-                & (merged[:, 2] != merged[:, 0]))
+        keep = (
+            (merged[:, 0] != merged[:, 1])
+            & (merged[:, 1] != merged[:, 2])
+            & (merged[:, 2] != merged[:, 0])
+        )
         first = np.unique(np.sort(merged[keep], axis=1), axis=0, return_index=True)[1]
         if len(first) <= max_faces:
             break
@@ -338,8 +409,7 @@ def _shaded_colours(normals, flags, light) -> np.ndarray:
     bubble within it, show."""
     flags = np.asarray(flags, bool)
     cos = np.abs(normals @ light)[:, None]
-    base = np.where(flags[:, None], plt.matplotlib.colors.to_rgb(SUPPLEMENTARY_COLOUR),
-                    MESH_COLOUR)
+    base = np.where(flags[:, None], plt.matplotlib.colors.to_rgb(SUPPLEMENTARY_COLOUR), MESH_COLOUR)
     rgb = np.clip(base * (AMBIENT + (1.0 - AMBIENT) * cos), 0.0, 1.0)
     alpha = np.where(flags | ~flags.any(), 1.0, SEE_THROUGH_ALPHA)
     return np.column_stack([rgb, alpha])
@@ -348,10 +418,12 @@ def _shaded_colours(normals, flags, light) -> np.ndarray:
 def _mesh_axes(ax, views, panel_size):
     """``(figure, [3D axes])``: new panels side by side, one per view, or the given ones."""
     if ax is None:
-        fig = plt.figure(figsize=(panel_size * len(views), panel_size + 0.5),
-                         constrained_layout=True)
-        return fig, [fig.add_subplot(1, len(views), k + 1, projection="3d")
-                     for k in range(len(views))]
+        fig = plt.figure(
+            figsize=(panel_size * len(views), panel_size + 0.5), constrained_layout=True
+        )
+        return fig, [
+            fig.add_subplot(1, len(views), k + 1, projection="3d") for k in range(len(views))
+        ]
     axes = list(ax) if np.iterable(ax) else [ax]
     if not all(hasattr(a, "view_init") for a in axes):
         raise ValueError("ax must be a 3D Axes (projection='3d') or a sequence of them")
@@ -368,16 +440,28 @@ def _draw_mesh_panel(ax, vertices, faces, colours, view):
     ax.set_proj_type("ortho")
     ax.set_axis_off()
     # Below the drawing, out of the way of the figure's title.
-    ax.text2D(0.5, 0.04, f"elevation {view[0]:g}\N{DEGREE SIGN}, azimuth {view[1]:g}"
-              "\N{DEGREE SIGN}", ha="center", fontsize=8, color="0.35", transform=ax.transAxes)
+    ax.text2D(
+        0.5,
+        0.04,
+        f"elevation {view[0]:g}\N{DEGREE SIGN}, azimuth {view[1]:g}\N{DEGREE SIGN}",
+        ha="center",
+        fontsize=8,
+        color="0.35",
+        transform=ax.transAxes,
+    )
     if len(faces) == 0:
         ax.text2D(0.5, 0.5, "empty mesh", ha="center", va="center", transform=ax.transAxes)
         return
     # Edges in the face colour: without them antialiasing leaves hairline gaps between
     # opaque faces. Translucent faces get none (an edge over its face would show darker).
-    ax.add_collection3d(Poly3DCollection(vertices[faces], facecolors=colours,
-                                         edgecolors=colours,
-                                         linewidths=np.where(colours[:, 3] < 1, 0.0, 0.3)))
+    ax.add_collection3d(
+        Poly3DCollection(
+            vertices[faces],
+            facecolors=colours,
+            edgecolors=colours,
+            linewidths=np.where(colours[:, 3] < 1, 0.0, 0.3),
+        )
+    )
     lower, upper = vertices.min(axis=0), vertices.max(axis=0)
     centre, half = (lower + upper) / 2, (upper - lower) / 2
     half = np.maximum(half, 1e-3 * half.max() if half.max() > 0 else 1.0)  # flat meshes
@@ -387,9 +471,18 @@ def _draw_mesh_panel(ax, vertices, faces, colours, view):
     ax.set_box_aspect(half)  # equal scales on the three axes: a sphere looks round
 
 
-def plot_mesh(vertices, faces, *, ax=None, views=MESH_VIEWS, highlight=None,
-              highlight_label: str = "highlighted faces", max_faces: int = MAX_DRAWN_FACES,
-              title=None, panel_size: float = 4.0):
+def plot_mesh(
+    vertices,
+    faces,
+    *,
+    ax=None,
+    views=MESH_VIEWS,
+    highlight=None,
+    highlight_label: str = "highlighted faces",
+    max_faces: int = MAX_DRAWN_FACES,
+    title=None,
+    panel_size: float = 4.0,
+):
     """A triangle mesh from several directions side by side, with matplotlib's mplot3d.
 
     Faces are drawn (``Poly3DCollection``, orthographic projection, equal scales) in one
@@ -431,14 +524,21 @@ def plot_mesh(vertices, faces, *, ax=None, views=MESH_VIEWS, highlight=None,
         colours = _shaded_colours(normals, flags, _light(*view))
         _draw_mesh_panel(a, vertices, faces, colours, view)
     if flags.any():
-        handles = [plt.matplotlib.patches.Patch(color=MESH_COLOUR, label="g = 0"),
-                   plt.matplotlib.patches.Patch(color=SUPPLEMENTARY_COLOUR,
-                                                label=highlight_label)]
+        handles = [
+            plt.matplotlib.patches.Patch(color=MESH_COLOUR, label="g = 0"),
+            plt.matplotlib.patches.Patch(color=SUPPLEMENTARY_COLOUR, label=highlight_label),
+        ]
         # "outside": below the panels, where the layout engine can make room for it.
-        constrained = isinstance(fig.get_layout_engine(),
-                                 plt.matplotlib.layout_engine.ConstrainedLayoutEngine)
-        fig.legend(handles=handles, loc="outside lower center" if constrained else
-                   "lower center", ncol=2, fontsize=8, frameon=False)
+        constrained = isinstance(
+            fig.get_layout_engine(), plt.matplotlib.layout_engine.ConstrainedLayoutEngine
+        )
+        fig.legend(
+            handles=handles,
+            loc="outside lower center" if constrained else "lower center",
+            ncol=2,
+            fontsize=8,
+            frameon=False,
+        )
     if title:
         fig.suptitle(title, fontsize=10)
     return fig

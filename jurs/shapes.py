@@ -87,8 +87,9 @@ def orient(components) -> list[np.ndarray]:
     comps = [_dedupe(_drop_closing_vertex(np.asarray(c, float))) for c in components]
     out = []
     for i, comp in enumerate(comps):
-        depth = sum(bool(Path(other).contains_point(comp[0]))
-                    for j, other in enumerate(comps) if j != i)
+        depth = sum(
+            bool(Path(other).contains_point(comp[0])) for j, other in enumerate(comps) if j != i
+        )
         want_anticlockwise = depth % 2 == 0
         if (signed_area(comp) > 0) != want_anticlockwise:
             comp = comp[::-1]
@@ -108,8 +109,15 @@ def normalise(components, size: float = 8.0, center=(0.0, 0.0)) -> list[np.ndarr
     return [(c - mid) * scale + np.asarray(center, float) for c in components]
 
 
-def sample_outline(components, num_points: int, *, nonuniform: float = 0.0,
-                   gap: float = 0.0, gap_at: float = 0.0, tangent_window: float | None = None):
+def sample_outline(
+    components,
+    num_points: int,
+    *,
+    nonuniform: float = 0.0,
+    gap: float = 0.0,
+    gap_at: float = 0.0,
+    tangent_window: float | None = None,
+):
     """Sample closed polylines by arc length: ``(points, normals)``, each ``(num_points, 2)``.
 
     The components are laid end to end on one arc-length axis, so the spacing is the same
@@ -156,8 +164,9 @@ def sample_outline(components, num_points: int, *, nonuniform: float = 0.0,
         s = np.mod(s, lengths[k])
         c = comps[k]
         closed = np.vstack([c, c[:1]])
-        return np.stack([np.interp(s, cum[k], closed[:, 0]),
-                         np.interp(s, cum[k], closed[:, 1])], axis=-1)
+        return np.stack(
+            [np.interp(s, cum[k], closed[:, 0]), np.interp(s, cum[k], closed[:, 1])], axis=-1
+        )
 
     points = np.empty((num_points, 2))
     normals = np.empty((num_points, 2))
@@ -299,8 +308,11 @@ def coins_outline():
 def _glyph(char):
     def source():
         return glyph_outline(char)
-    source.__doc__ = (f"The glyph {char!r} of DejaVu Sans (ships with matplotlib), read with "
-                      "matplotlib.textpath.TextPath.")
+
+    source.__doc__ = (
+        f"The glyph {char!r} of DejaVu Sans (ships with matplotlib), read with "
+        "matplotlib.textpath.TextPath."
+    )
     return source
 
 
@@ -346,8 +358,16 @@ def outline(name: str, size: float = 8.0, center=(0.0, 0.0)) -> list[np.ndarray]
     return normalise([c.copy() for c in _raw(name)], size, center)
 
 
-def get(name: str, num_points: int, size: float = 8.0, *, center=(0.0, 0.0),
-        nonuniform: float = 0.0, gap: float = 0.0, gap_at: float = 0.0):
+def get(
+    name: str,
+    num_points: int,
+    size: float = 8.0,
+    *,
+    center=(0.0, 0.0),
+    nonuniform: float = 0.0,
+    gap: float = 0.0,
+    gap_at: float = 0.0,
+):
     """``num_points`` points of shape ``name`` with outward unit normals.
 
     Sampled by arc length across all components (same spacing everywhere; see
@@ -358,5 +378,6 @@ def get(name: str, num_points: int, size: float = 8.0, *, center=(0.0, 0.0),
     Returns:
         ``(points, normals)``, float64 arrays of shape ``(num_points, 2)``.
     """
-    return sample_outline(outline(name, size, center), num_points, nonuniform=nonuniform,
-                          gap=gap, gap_at=gap_at)
+    return sample_outline(
+        outline(name, size, center), num_points, nonuniform=nonuniform, gap=gap, gap_at=gap_at
+    )

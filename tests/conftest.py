@@ -37,8 +37,12 @@ def dense_basis(xy, lower, upper, shape):
 
 def dense_collocation(problem, weights):
     """D of eq. 23 (rows w_ij B_ij / W), dense, in the problem's slot order (test sizes only)."""
-    basis = dense_basis(np.asarray(problem.samples), np.asarray(problem.lower),
-                        np.asarray(problem.upper), problem.shape)
+    basis = dense_basis(
+        np.asarray(problem.samples),
+        np.asarray(problem.lower),
+        np.asarray(problem.upper),
+        problem.shape,
+    )
     wb = basis * np.asarray(weights).ravel()[None, :]
     return wb / wb.sum(axis=1, keepdims=True)
 
@@ -48,8 +52,12 @@ TABLE_FIELDS = ("terms", "terms_t", "index", "corner", "order", "position", "fil
 
 def without_table(problem):
     """The same problem with its basis in the power form only (as a traced build has it)."""
-    return eqx.tree_at(lambda p: tuple(getattr(p.local, f) for f in TABLE_FIELDS), problem,
-                       (None,) * len(TABLE_FIELDS), is_leaf=lambda x: x is None)
+    return eqx.tree_at(
+        lambda p: tuple(getattr(p.local, f) for f in TABLE_FIELDS),
+        problem,
+        (None,) * len(TABLE_FIELDS),
+        is_leaf=lambda x: x is None,
+    )
 
 
 @pytest.fixture

@@ -9,7 +9,13 @@ from jax.test_util import check_grads
 
 import jurs
 from jurs import _basis as jurs_basis
-from jurs._basis import CENTRED_POWER, grid_to_patches, patch_to_power, patches_to_grid, power_values
+from jurs._basis import (
+    CENTRED_POWER,
+    grid_to_patches,
+    patch_to_power,
+    patches_to_grid,
+    power_values,
+)
 
 
 def random_points(rng, n, lower=(-1.0, 2.0), upper=(3.0, 5.0)):
@@ -26,7 +32,9 @@ def test_partition_of_unity(rng, shape):
     assert np.all(np.asarray(local.products) >= 0)
     # On the box corners too (the last cell is closed on the right).
     corners = jnp.asarray([lower, upper, [lower[0], upper[1]]])
-    corner_sums = jurs.local_basis(corners, jnp.asarray(lower), jnp.asarray(upper), shape).products.sum(1)
+    corner_sums = jurs.local_basis(
+        corners, jnp.asarray(lower), jnp.asarray(upper), shape
+    ).products.sum(1)
     np.testing.assert_allclose(np.asarray(corner_sums), 1.0, atol=1e-14)
 
 
@@ -65,8 +73,7 @@ def test_windowed_patch_gather_matches_the_cell_patches(rng):
     shape = (9, 7)
     grids = jnp.asarray(rng.standard_normal((3,) + shape))
     cells = rng.integers(0, (shape[0] - 3) * (shape[1] - 3), size=40)
-    corner = jnp.asarray(np.stack([cells // (shape[1] - 3), cells % (shape[1] - 3)], 1),
-                         jnp.int32)
+    corner = jnp.asarray(np.stack([cells // (shape[1] - 3), cells % (shape[1] - 3)], 1), jnp.int32)
     got = np.asarray(gather_patches(grids, corner))  # (buckets, grids, 16)
     want = np.stack([np.asarray(grid_to_patches(g))[cells] for g in grids], axis=1)
     np.testing.assert_array_equal(got, want)
@@ -88,16 +95,21 @@ def test_rational_evaluation_against_definition(rng):
     xy, lower, upper = random_points(rng, 100)
     control = rng.standard_normal(shape)
     weights = 0.5 + rng.random(shape)
-    spline = jurs.ImplicitSpline(jnp.asarray(control), jnp.asarray(weights), jnp.asarray(lower),
-                                 jnp.asarray(upper))
+    spline = jurs.ImplicitSpline(
+        jnp.asarray(control), jnp.asarray(weights), jnp.asarray(lower), jnp.asarray(upper)
+    )
     basis = dense_basis(xy, lower, upper, shape)
     expected = basis @ (weights * control).ravel() / (basis @ weights.ravel())  # eq. 14
-    np.testing.assert_allclose(np.asarray(spline(jnp.asarray(xy))), expected, rtol=1e-12, atol=1e-14)
+    np.testing.assert_allclose(
+        np.asarray(spline(jnp.asarray(xy))), expected, rtol=1e-12, atol=1e-14
+    )
     # One point in, one value out.
     np.testing.assert_allclose(float(spline(jnp.asarray(xy[0]))), expected[0], rtol=1e-12)
     # All weights 1: the B-spline f of eq. 2.
     bspline = jurs.ImplicitSpline.bspline(jnp.asarray(control), lower, upper)
-    np.testing.assert_allclose(np.asarray(bspline(jnp.asarray(xy))), basis @ control.ravel(), atol=1e-12)
+    np.testing.assert_allclose(
+        np.asarray(bspline(jnp.asarray(xy))), basis @ control.ravel(), atol=1e-12
+    )
 
 
 @pytest.mark.slow
@@ -109,23 +121,31 @@ def test_check_grads_spline_evaluation(rng):
     def evaluate(control, weights, xy):
         return jurs.ImplicitSpline(control, weights, lower, upper)(xy)
 
-    args = (jnp.asarray(rng.standard_normal(shape)), jnp.asarray(0.5 + rng.random(shape)),
-            jnp.asarray(xy))
+    args = (
+        jnp.asarray(rng.standard_normal(shape)),
+        jnp.asarray(0.5 + rng.random(shape)),
+        jnp.asarray(xy),
+    )
     check_grads(evaluate, args, order=2, modes=("fwd", "rev"), eps=1e-6)
 
 
 def test_spatial_gradient(rng):
     shape = (8, 8)
     xy, lower, upper = random_points(rng, 10)
-    spline = jurs.ImplicitSpline(jnp.asarray(rng.standard_normal(shape)),
-                                 jnp.asarray(0.5 + rng.random(shape)), jnp.asarray(lower),
-                                 jnp.asarray(upper))
+    spline = jurs.ImplicitSpline(
+        jnp.asarray(rng.standard_normal(shape)),
+        jnp.asarray(0.5 + rng.random(shape)),
+        jnp.asarray(lower),
+        jnp.asarray(upper),
+    )
     grad = np.asarray(spline.grad(jnp.asarray(xy)))
     h = 1e-6
     for axis in range(2):
         step = np.zeros(2)
         step[axis] = h
-        fd = (np.asarray(spline(jnp.asarray(xy + step))) - np.asarray(spline(jnp.asarray(xy - step)))) / (2 * h)
+        fd = (
+            np.asarray(spline(jnp.asarray(xy + step))) - np.asarray(spline(jnp.asarray(xy - step)))
+        ) / (2 * h)
         np.testing.assert_allclose(grad[:, axis], fd, rtol=1e-6, atol=1e-8)
 
 
@@ -145,23 +165,30 @@ def test_bucket_layout_groups_samples_by_cell():
     assert (cells == cells[:, :1]).all(), "a bucket spans one cell"
     index = np.asarray(bucketed.sample_index)[np.asarray(bucketed.mask) > 0]
     assert sorted(index.tolist()) == list(range(900)), "every sample in exactly one real slot"
-    np.testing.assert_allclose(np.asarray(bucketed.samples)[np.asarray(bucketed.mask) > 0],
-                               np.asarray(flat.samples)[index])
+    np.testing.assert_allclose(
+        np.asarray(bucketed.samples)[np.asarray(bucketed.mask) > 0], np.asarray(flat.samples)[index]
+    )
     assert float(bucketed.is_data.sum()) == 300
 
 
 def test_centred_power_basis_is_the_cubic_basis(rng):
     s = jnp.asarray(rng.random(50) - 0.5)
     powers = jnp.stack([s**p for p in range(4)], axis=-1)
-    np.testing.assert_allclose(np.asarray(powers @ jnp.asarray(CENTRED_POWER.T)),
-                               np.asarray(jurs.cubic_weights(s + 0.5)), atol=1e-15)
+    np.testing.assert_allclose(
+        np.asarray(powers @ jnp.asarray(CENTRED_POWER.T)),
+        np.asarray(jurs.cubic_weights(s + 0.5)),
+        atol=1e-15,
+    )
     # A cell's patch in powers of (sx, sy) evaluates to the same bicubic as in B-splines.
     patch = rng.standard_normal(16)
     sx, sy = (jnp.asarray(rng.random(30) - 0.5) for _ in range(2))
     coeffs = patch @ patch_to_power()
-    by_basis = jurs_basis.tensor_basis(jurs.cubic_weights(sx + 0.5), jurs.cubic_weights(sy + 0.5)) @ patch
-    np.testing.assert_allclose(np.asarray(power_values(list(coeffs), sx, sy)),
-                               np.asarray(by_basis), rtol=1e-13, atol=1e-15)
+    by_basis = (
+        jurs_basis.tensor_basis(jurs.cubic_weights(sx + 0.5), jurs.cubic_weights(sy + 0.5)) @ patch
+    )
+    np.testing.assert_allclose(
+        np.asarray(power_values(list(coeffs), sx, sy)), np.asarray(by_basis), rtol=1e-13, atol=1e-15
+    )
 
 
 @pytest.mark.slow
@@ -173,8 +200,10 @@ def test_table_and_power_forms_agree(rng):
     assert table.local.terms is not None and table.local.bucket_size == 1
     np.testing.assert_array_equal(np.asarray(table.sample_index), np.arange(2100))
     local = table.local
-    assert np.all(np.asarray(local.to_layout(jnp.arange(2100.0)))[np.asarray(local.position)]
-                  == np.arange(2100)), "to_layout and position are inverse"
+    assert np.all(
+        np.asarray(local.to_layout(jnp.arange(2100.0)))[np.asarray(local.position)]
+        == np.arange(2100)
+    ), "to_layout and position are inverse"
     cells = np.asarray(local.cell)[np.asarray(local.order)].reshape(local.index.shape[0], -1)
     assert (cells == cells[:, :1]).all(), "a table bucket spans one cell"
     power = without_table(table)
@@ -184,16 +213,28 @@ def test_table_and_power_forms_agree(rng):
     grids = jnp.asarray(rng.standard_normal((2, 11, 9)))
     values = jnp.asarray(rng.standard_normal((2, 2100)))
     expected = np.asarray(jurs.bspline_values(power.local, grids))
-    np.testing.assert_allclose(np.asarray(jurs.bspline_values(local, grids)), expected,
-                               rtol=1e-13, atol=1e-14)
-    np.testing.assert_allclose(np.asarray(jurs.bspline_values(bucketed.local, grids))[:, real],
-                               expected[:, index], rtol=1e-13, atol=1e-14)
+    np.testing.assert_allclose(
+        np.asarray(jurs.bspline_values(local, grids)), expected, rtol=1e-13, atol=1e-14
+    )
+    np.testing.assert_allclose(
+        np.asarray(jurs.bspline_values(bucketed.local, grids))[:, real],
+        expected[:, index],
+        rtol=1e-13,
+        atol=1e-14,
+    )
     expected = np.asarray(jurs.bspline_transpose(power.local, values, (11, 9)))
-    np.testing.assert_allclose(np.asarray(jurs.bspline_transpose(local, values, (11, 9))),
-                               expected, rtol=1e-12, atol=1e-13)
-    spread = jnp.zeros((2, bucketed.samples.shape[0])).at[:, np.nonzero(real)[0]].set(values[:, index])
-    np.testing.assert_allclose(np.asarray(jurs.bspline_transpose(bucketed.local, spread, (11, 9))),
-                               expected, rtol=1e-12, atol=1e-13)
+    np.testing.assert_allclose(
+        np.asarray(jurs.bspline_transpose(local, values, (11, 9))), expected, rtol=1e-12, atol=1e-13
+    )
+    spread = (
+        jnp.zeros((2, bucketed.samples.shape[0])).at[:, np.nonzero(real)[0]].set(values[:, index])
+    )
+    np.testing.assert_allclose(
+        np.asarray(jurs.bspline_transpose(bucketed.local, spread, (11, 9))),
+        expected,
+        rtol=1e-12,
+        atol=1e-13,
+    )
 
 
 def test_bucket_layout_pads_to_a_rounded_count():
@@ -221,11 +262,26 @@ def test_host_and_traced_problems_agree(dtype):
     for leaf in jax.tree_util.tree_leaves(host):
         assert leaf.dtype in (dtype, jnp.int32), leaf.dtype
     rtol = 1e-6 if dtype == jnp.float32 else 1e-14
-    for name in ("points", "normals", "samples", "targets", "mask", "is_data", "lower",
-                 "upper", "offset", "eps"):
-        np.testing.assert_allclose(np.asarray(getattr(host, name)),
-                                   np.asarray(getattr(traced, name)), rtol=rtol, atol=rtol,
-                                   err_msg=name)
+    for name in (
+        "points",
+        "normals",
+        "samples",
+        "targets",
+        "mask",
+        "is_data",
+        "lower",
+        "upper",
+        "offset",
+        "eps",
+    ):
+        np.testing.assert_allclose(
+            np.asarray(getattr(host, name)),
+            np.asarray(getattr(traced, name)),
+            rtol=rtol,
+            atol=rtol,
+            err_msg=name,
+        )
     np.testing.assert_array_equal(np.asarray(host.local.cell), np.asarray(traced.local.cell))
-    np.testing.assert_allclose(np.asarray(host.local.s), np.asarray(traced.local.s),
-                               rtol=rtol, atol=10 * rtol)
+    np.testing.assert_allclose(
+        np.asarray(host.local.s), np.asarray(traced.local.s), rtol=rtol, atol=10 * rtol
+    )

@@ -13,8 +13,13 @@ SCRIPT = os.path.join(ROOT, "benchmarks", "paper.py")
 
 @pytest.mark.slow
 def test_paper_quick_writes_its_files(tmp_path):
-    proc = subprocess.run([sys.executable, SCRIPT, "--quick", "--out", str(tmp_path)],
-                          capture_output=True, text=True, timeout=300, cwd=ROOT)
+    proc = subprocess.run(
+        [sys.executable, SCRIPT, "--quick", "--out", str(tmp_path)],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        cwd=ROOT,
+    )
     assert proc.returncode == 0, proc.stderr[-3000:]
 
     markdown = (tmp_path / "paper_quick.md").read_text()

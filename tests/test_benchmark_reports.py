@@ -23,9 +23,14 @@ def _load(name):
 def test_speed_md_is_rendered_from_speed_json():
     data = json.loads(_load("speed.json"))
     data["bounds"] = speed.arithmetic_bounds(data["sweep"], data["example4"], data.get("ceiling"))
-    data["targets"] = speed.evaluate_targets(data["sweep"], data["rbf"], data["example4"],
-                                             data["bounds"], data.get("tuned"),
-                                             data.get("fit_steps"))
+    data["targets"] = speed.evaluate_targets(
+        data["sweep"],
+        data["rbf"],
+        data["example4"],
+        data["bounds"],
+        data.get("tuned"),
+        data.get("fit_steps"),
+    )
     assert speed.report(data) == _load("speed.md")
 
 

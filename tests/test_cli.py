@@ -14,10 +14,10 @@ from types import SimpleNamespace  # noqa: E402
 
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
+from conftest import PAPER  # noqa: E402
 
 import jurs  # noqa: E402
 from jurs import cli  # noqa: E402
-from conftest import PAPER  # noqa: E402
 
 # 20 steps run in one chunk (see jurs._progress.chunk_size), so the fit compiled here is the
 # one a direct jurs.fit with the same start and throw=False uses: the tests stay fast.
@@ -48,9 +48,23 @@ def test_fit_round_trip(example1_csv, tmp_path):
 
     record = json.loads((out / "metrics.json").read_text())
     m = record["metrics"]
-    for key in ("E", "E_d", "R", "E_ave", "E_max", "mu", "lam", "num_steps", "num_components",
-                "num_supplementary", "supplementary_length", "num_tiny_loops", "chamfer",
-                "hausdorff", "zero_area_fraction"):
+    for key in (
+        "E",
+        "E_d",
+        "R",
+        "E_ave",
+        "E_max",
+        "mu",
+        "lam",
+        "num_steps",
+        "num_components",
+        "num_supplementary",
+        "supplementary_length",
+        "num_tiny_loops",
+        "chamfer",
+        "hausdorff",
+        "zero_area_fraction",
+    ):
         assert key in m, key
     assert m["num_steps"] == 20
     assert record["settings"]["grid"] == [9, 9] and record["num_points"] == 120
@@ -59,14 +73,17 @@ def test_fit_round_trip(example1_csv, tmp_path):
     points, normals = jurs.datasets.load_points(example1_csv)
     problem = jurs.make_problem(points, normals, grid=(9, 9))
     start = jurs.ImplicitSpline.bspline(np.zeros((9, 9)), problem.lower, problem.upper)
-    direct = jurs.fit(points, normals, solver=jurs.IURS(max_steps=20, tol=0.0),
-                      init=start, throw=False, **PAPER)  # the CLI's defaults
+    direct = jurs.fit(
+        points, normals, solver=jurs.IURS(max_steps=20, tol=0.0), init=start, throw=False, **PAPER
+    )  # the CLI's defaults
     spline = jurs.load_spline(out / "spline.npz")
     assert isinstance(spline, jurs.ImplicitSpline)
-    np.testing.assert_allclose(np.asarray(spline.control), np.asarray(direct.spline.control),
-                               rtol=0, atol=1e-12)
-    np.testing.assert_allclose(np.asarray(spline.weights), np.asarray(direct.spline.weights),
-                               rtol=0, atol=1e-12)
+    np.testing.assert_allclose(
+        np.asarray(spline.control), np.asarray(direct.spline.control), rtol=0, atol=1e-12
+    )
+    np.testing.assert_allclose(
+        np.asarray(spline.weights), np.asarray(direct.spline.weights), rtol=0, atol=1e-12
+    )
     assert m["E_ave"] == pytest.approx(float(direct.metrics["E_ave"]), rel=1e-9)
 
     # The polylines lie on the zero set of the saved spline, one component per id.
@@ -148,14 +165,20 @@ def test_bad_text_files(kind, tmp_path, capsys):
     _check_failure(capsys, ["fit", str(path), "-o", str(out), *FIT_ARGS], out, path, needle)
 
 
-@pytest.mark.parametrize("kind, array, needle", [
-    ("three_columns", np.ones((5, 3)), "shape (5, 3)"),
-    ("one_dimensional", np.ones(8), "shape (8,)"),
-    ("three_dimensional", np.ones((2, 5, 4)), "shape (2, 5, 4)"),
-    ("nan_row", np.array([[1, 0, 1, 0], [0, 1, 0, 1], [np.nan, 0, -1, 0], [0, -1, 0, -1.0]]),
-     "row 3"),
-    ("strings", np.array([["a", "b", "c", "d"]] * 4), "not numeric"),
-])
+@pytest.mark.parametrize(
+    "kind, array, needle",
+    [
+        ("three_columns", np.ones((5, 3)), "shape (5, 3)"),
+        ("one_dimensional", np.ones(8), "shape (8,)"),
+        ("three_dimensional", np.ones((2, 5, 4)), "shape (2, 5, 4)"),
+        (
+            "nan_row",
+            np.array([[1, 0, 1, 0], [0, 1, 0, 1], [np.nan, 0, -1, 0], [0, -1, 0, -1.0]]),
+            "row 3",
+        ),
+        ("strings", np.array([["a", "b", "c", "d"]] * 4), "not numeric"),
+    ],
+)
 def test_bad_npy_files(kind, array, needle, tmp_path, capsys):
     path = tmp_path / f"{kind}.npy"
     np.save(path, array)
@@ -187,10 +210,15 @@ def test_bad_options_exit_2(tmp_path, capsys):
         with pytest.raises(SystemExit) as exc:
             cli.main(["fit", str(path), "-o", str(tmp_path / "o"), *args])
         assert exc.value.code == 2
-    assert cli.main(["fit", str(path), "-o", str(tmp_path / "o"), "--solver", "ipia",
-                     "--lam", "0.1"]) == 2
+    assert (
+        cli.main(["fit", str(path), "-o", str(tmp_path / "o"), "--solver", "ipia", "--lam", "0.1"])
+        == 2
+    )
     assert "ipia" in capsys.readouterr().err
-    for args in (["--smoothing", "1e-4", "--lam", "0.1"], ["--smoothing", "1e-4", "--solver", "iurs"]):
+    for args in (
+        ["--smoothing", "1e-4", "--lam", "0.1"],
+        ["--smoothing", "1e-4", "--solver", "iurs"],
+    ):
         assert cli.main(["fit", str(path), "-o", str(tmp_path / "o"), *args]) == 2
         assert "--smoothing" in capsys.readouterr().err
     assert not (tmp_path / "o").exists()
@@ -202,39 +230,58 @@ def test_console_script_exit_code(tmp_path):
         pytest.skip("console script not installed")
     path = tmp_path / "bad.csv"
     path.write_text(BAD_TEXT["non_number"][0])
-    proc = subprocess.run([str(script), "fit", str(path), "-o", str(tmp_path / "o")],
-                          capture_output=True, text=True, timeout=120)
+    proc = subprocess.run(
+        [str(script), "fit", str(path), "-o", str(tmp_path / "o")],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert proc.returncode == 2
     assert proc.stderr.strip().count("\n") == 0 and "row 3" in proc.stderr
     assert not (tmp_path / "o").exists()
 
 
-@pytest.mark.parametrize("solver", [
-    jurs.IURS(tau=1e-2, lam=0.005, max_steps=60, tol=0.0),
-    jurs.IPIA(max_steps=60, tol=0.0),
-    jurs.IURS(max_steps=300, tol=1e-6),  # converges early, mid-chunk
-])
+@pytest.mark.parametrize(
+    "solver",
+    [
+        jurs.IURS(tau=1e-2, lam=0.005, max_steps=60, tol=0.0),
+        jurs.IPIA(max_steps=60, tol=0.0),
+        jurs.IURS(max_steps=300, tol=1e-6),  # converges early, mid-chunk
+    ],
+)
 def test_chunked_run_equals_one_run(solver):
     """The progress bar's chunked run follows the iterates of one run."""
     p, n = jurs.datasets.example1(120)
     one = jurs.fit(p, n, solver=solver, **PAPER)
     calls = []
-    chunked, snaps = jurs.fit_in_chunks(p, n, solver=solver, checkpoints=(0, 10, 30), **PAPER,
-                                        callback=lambda d, t: calls.append((d, t)))
+    chunked, snaps = jurs.fit_in_chunks(
+        p,
+        n,
+        solver=solver,
+        checkpoints=(0, 10, 30),
+        **PAPER,
+        callback=lambda d, t: calls.append((d, t)),
+    )
     for key in ("control", "weights"):
-        np.testing.assert_allclose(np.asarray(getattr(chunked.spline, key)),
-                                   np.asarray(getattr(one.spline, key)), rtol=0, atol=1e-13)
+        np.testing.assert_allclose(
+            np.asarray(getattr(chunked.spline, key)),
+            np.asarray(getattr(one.spline, key)),
+            rtol=0,
+            atol=1e-13,
+        )
     assert int(chunked.stats["num_steps"]) == int(one.stats["num_steps"])
     assert chunked.result == one.result
-    np.testing.assert_allclose(chunked.stats["energy_history"],
-                               np.asarray(one.stats["energy_history"]), rtol=1e-12)
+    np.testing.assert_allclose(
+        chunked.stats["energy_history"], np.asarray(one.stats["energy_history"]), rtol=1e-12
+    )
     assert len(calls) > 1 and calls[-1][0] == int(one.stats["num_steps"])
     assert sorted(snaps) == [0, 10, 30]
     assert float(np.abs(np.asarray(snaps[0].control)).max()) == 0.0
     if isinstance(solver, jurs.IURS) and solver.lam:  # one snapshot checked against a run
         ten = jurs.fit(p, n, solver=jurs.IURS(tau=1e-2, lam=0.005, max_steps=10, tol=0.0), **PAPER)
-        np.testing.assert_allclose(np.asarray(snaps[10].control), np.asarray(ten.spline.control),
-                                   rtol=0, atol=1e-13)
+        np.testing.assert_allclose(
+            np.asarray(snaps[10].control), np.asarray(ten.spline.control), rtol=0, atol=1e-13
+        )
 
 
 def test_progress_bar_only_after_delay():
@@ -262,6 +309,7 @@ def _old_outputs(out):
 def test_output_folder_checked_before_the_fit(example1_csv, tmp_path, capsys, monkeypatch):
     """Issue 20, defects 1 and 10: a folder in place of an output, an unwritable folder
     and a full disk are one-line errors (exit 2) found before the fit; nothing changes."""
+
     def no_fit(*args, **kwargs):
         raise AssertionError("the fit ran before the output folder was checked")
 
@@ -285,8 +333,9 @@ def test_output_folder_checked_before_the_fit(example1_csv, tmp_path, capsys, mo
     fails("folder is not writable")
     monkeypatch.undo()
     monkeypatch.setattr("jurs._progress.fit_in_chunks", no_fit)
-    monkeypatch.setattr(cli.shutil, "disk_usage",
-                        lambda path: SimpleNamespace(total=1, used=1, free=1000))
+    monkeypatch.setattr(
+        cli.shutil, "disk_usage", lambda path: SimpleNamespace(total=1, used=1, free=1000)
+    )
     args[3] = str(tmp_path / "new" / "deeper")  # a folder to be made: its parent is checked
     assert cli.main(args) == 2
     assert "MiB free" in capsys.readouterr().err
@@ -297,8 +346,13 @@ def test_resolution_refused_up_front(example1_csv, tmp_path, capsys, monkeypatch
     """Issue 20, defect 8: --resolution 30000 ended in a MemoryError traceback."""
     monkeypatch.setattr("jurs._problem.available_memory", lambda device=True: 4 << 30)
     out = tmp_path / "o"
-    _check_failure(capsys, ["fit", str(example1_csv), "-o", str(out), "--resolution", "30000"],
-                   out, "--resolution 30000", "GiB")
+    _check_failure(
+        capsys,
+        ["fit", str(example1_csv), "-o", str(out), "--resolution", "30000"],
+        out,
+        "--resolution 30000",
+        "GiB",
+    )
 
 
 def test_failed_write_keeps_the_whole_old_set(example1_csv, tmp_path, capsys, monkeypatch):

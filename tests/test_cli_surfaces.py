@@ -76,8 +76,7 @@ def test_surface_from_ply_with_normals(sphere, sphere_files, tmp_path):
     assert isinstance(spline, jurs.ImplicitSpline) and spline.shape == (12, 12, 12)
     direct = jurs.fit(*jurs.datasets.load_points(sphere_files[0]), grid=12).spline
     xyz = np.random.default_rng(1).uniform(-1.2, 1.2, (200, 3))
-    np.testing.assert_allclose(np.asarray(spline(xyz)), np.asarray(direct(xyz)),
-                               rtol=0, atol=1e-9)
+    np.testing.assert_allclose(np.asarray(spline(xyz)), np.asarray(direct(xyz)), rtol=0, atol=1e-9)
     assert float(spline(np.zeros(3))) < 0  # inside: the normals point out
     jurs.save_spline(tmp_path / "again.npz", spline)
     back = jurs.load_spline(tmp_path / "again.npz")
@@ -86,8 +85,10 @@ def test_surface_from_ply_with_normals(sphere, sphere_files, tmp_path):
 
 def test_surface_from_xyz_without_normals(sphere_files, tmp_path):
     out = tmp_path / "result"
-    assert cli.main(["fit", str(sphere_files[1]), "-o", str(out), *FIT_ARGS,
-                     "--resolution", "40"]) == 0
+    assert (
+        cli.main(["fit", str(sphere_files[1]), "-o", str(out), *FIT_ARGS, "--resolution", "40"])
+        == 0
+    )
     assert sorted(os.listdir(out)) == sorted(cli.OUTPUTS_3D)
     record = _check_sphere_mesh(out)
     assert record["normals"] == "estimated" and record["mesh"]["resolution"] == 40
@@ -131,12 +132,20 @@ def test_malformed_ply_file(tmp_path, capsys):
 def test_options_of_the_other_dimension(sphere_files, tmp_path, capsys):
     """A 2D grid on a 3D cloud, and a 3D grid on a 2D one, are refused before the fit."""
     out = tmp_path / "out"
-    _refused(capsys, ["fit", str(sphere_files[0]), "-o", str(out), "--grid", "12x12"], out,
-             "--grid 12x12 is for a 2D cloud; this cloud is 3D")
+    _refused(
+        capsys,
+        ["fit", str(sphere_files[0]), "-o", str(out), "--grid", "12x12"],
+        out,
+        "--grid 12x12 is for a 2D cloud; this cloud is 3D",
+    )
     curve = tmp_path / "curve.csv"
     jurs.datasets.save_points(curve, *jurs.datasets.example1(60))
-    _refused(capsys, ["fit", str(curve), "-o", str(out), "--grid", "9x9x9"], out,
-             "--grid 9x9x9 is for a 3D cloud; this cloud is 2D")
+    _refused(
+        capsys,
+        ["fit", str(curve), "-o", str(out), "--grid", "9x9x9"],
+        out,
+        "--grid 9x9x9 is for a 3D cloud; this cloud is 2D",
+    )
     with pytest.raises(SystemExit):  # argparse: more than three numbers
         cli.main(["fit", str(sphere_files[0]), "-o", str(out), "--grid", "8x8x8x8"])
     assert not out.exists()
@@ -144,18 +153,23 @@ def test_options_of_the_other_dimension(sphere_files, tmp_path, capsys):
 
 def test_spline_files_3d(tmp_path):
     """3D spline files load as 3D splines; bad ones name the file and the problem."""
-    good = dict(control=np.zeros((5, 6, 7)), weights=np.ones((5, 6, 7)), lower=np.zeros(3),
-                upper=np.array([1.0, 2.0, 3.0]))
+    good = dict(
+        control=np.zeros((5, 6, 7)),
+        weights=np.ones((5, 6, 7)),
+        lower=np.zeros(3),
+        upper=np.array([1.0, 2.0, 3.0]),
+    )
     np.savez(tmp_path / "good.npz", **good)
     spline = jurs.load_spline(tmp_path / "good.npz")
     assert spline.ndim == 3 and spline.shape == (5, 6, 7)
-    for change, needle in ((dict(lower=np.zeros(2)), "shape (3,) for a 3D grid"),
-                           (dict(weights=np.ones((5, 6, 6))), "matching 2D or 3D grids"),
-                           (dict(control=np.zeros((3, 6, 7)), weights=np.ones((3, 6, 7))),
-                            "at least 4 x 4 x 4"),
-                           (dict(upper=np.array([1.0, 0.0, 3.0])), "every axis"),
-                           (dict(weights=-np.ones((5, 6, 7))), "weights must all be positive"),
-                           (dict(control=np.full((5, 6, 7), np.inf)), "control contain NaN")):
+    for change, needle in (
+        (dict(lower=np.zeros(2)), "shape (3,) for a 3D grid"),
+        (dict(weights=np.ones((5, 6, 6))), "matching 2D or 3D grids"),
+        (dict(control=np.zeros((3, 6, 7)), weights=np.ones((3, 6, 7))), "at least 4 x 4 x 4"),
+        (dict(upper=np.array([1.0, 0.0, 3.0])), "every axis"),
+        (dict(weights=-np.ones((5, 6, 7))), "weights must all be positive"),
+        (dict(control=np.full((5, 6, 7), np.inf)), "control contain NaN"),
+    ):
         path = tmp_path / "bad.npz"
         np.savez(path, **{**good, **change})
         with pytest.raises(ValueError) as info:

@@ -18,6 +18,7 @@ import jurs
 def test_options_are_accepted_and_keep_non_finite_semantics():
     """XLA rejects unknown option names, so this also guards against a renamed option; the
     driver's divergence check relies on isfinite / isnan seeing NaN and Inf."""
+
     def probe(x):
         total = jnp.sum(x * x)
         return jnp.isfinite(total), jnp.isnan(total), jnp.sum(x) / x[0]
@@ -42,8 +43,10 @@ def test_options_move_iurs_only_at_rounding_level():
     tuned = eqx.filter_jit(run, compiler_options=jurs.COMPILER_OPTIONS)(problem, solver)
     plain = eqx.filter_jit(run)(problem, solver)
     assert int(tuned.stats["num_steps"]) == int(plain.stats["num_steps"])
-    for a, b in ((tuned.spline.control, plain.spline.control),
-                 (tuned.spline.weights, plain.spline.weights)):
+    for a, b in (
+        (tuned.spline.control, plain.spline.control),
+        (tuned.spline.weights, plain.spline.weights),
+    ):
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-11, atol=1e-14)
 
 
@@ -81,16 +84,18 @@ def test_fit_of_a_large_layout_with_and_without_transformations(monkeypatch):
 
     calls = []
     tuned = fit_module._solve_reassociating
-    monkeypatch.setattr(fit_module, "_solve_reassociating",
-                        lambda *args: calls.append(1) or tuned(*args))
+    monkeypatch.setattr(
+        fit_module, "_solve_reassociating", lambda *args: calls.append(1) or tuned(*args)
+    )
     points, normals = jurs.datasets.example1(300)
     settings = dict(grid=12, offset=0.1, eps=0.01, bucket_size=8)
     sol = jurs.fit(points, normals, solver=jurs.IURS(lam=1e-3), **settings)
     assert calls == [1]
     plain = jurs.solve(jurs.IURS(lam=1e-3), _bucketed(points, normals))
     assert int(sol.stats["num_steps"]) == int(plain.stats["num_steps"])
-    np.testing.assert_allclose(np.asarray(sol.spline.control), np.asarray(plain.spline.control),
-                               rtol=1e-11, atol=1e-14)
+    np.testing.assert_allclose(
+        np.asarray(sol.spline.control), np.asarray(plain.spline.control), rtol=1e-11, atol=1e-14
+    )
 
     def energy(lam):
         return jurs.fit(points, normals, solver=jurs.IURS(lam=lam), **settings).metrics["E_ave"]
@@ -117,10 +122,19 @@ def test_a_fit_is_kept_by_the_persistent_compilation_cache(tmp_path):
     """jurs.fit at top level (throw=True by default) compiles no host callback into the fit,
     so JAX's persistent compilation cache writes it, for new processes to load; it writes
     a caller's jit of jurs.solve with throw=False too, as solve's docstring says."""
-    env = dict(os.environ, JAX_COMPILATION_CACHE_DIR=str(tmp_path),
-               JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0", JAX_PLATFORMS="cpu")
-    proc = subprocess.run([sys.executable, "-c", FIT_IN_A_FRESH_PROCESS], env=env,
-                          capture_output=True, text=True, timeout=300)
+    env = dict(
+        os.environ,
+        JAX_COMPILATION_CACHE_DIR=str(tmp_path),
+        JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS="0",
+        JAX_PLATFORMS="cpu",
+    )
+    proc = subprocess.run(
+        [sys.executable, "-c", FIT_IN_A_FRESH_PROCESS],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=300,
+    )
     assert proc.returncode == 0, proc.stderr
     assert proc.stdout.split() == ["5", "4"]
     for name in ("jit__run-", "jit_users_solve-"):
@@ -128,6 +142,7 @@ def test_a_fit_is_kept_by_the_persistent_compilation_cache(tmp_path):
 
 
 # --- Shape-stable fits: padding, rounded layouts and grids ------------------------------
+
 
 def test_size_ladder_rounds_up_by_at_most_a_quarter_with_four_sizes_an_octave():
     from jurs._compile import padded_count, round_size
@@ -159,15 +174,20 @@ def test_clouds_in_one_band_get_problems_of_one_shape():
     for m in (200, 215):
         points, normals = jurs.datasets.example1(m)
         for bucket_size in (None, 4):
-            problem = _fit_problem(points, normals, grid=(11, 13), offset=0.1, eps=0.01,
-                                   bucket_size=bucket_size)
+            problem = _fit_problem(
+                points, normals, grid=(11, 13), offset=0.1, eps=0.01, bucket_size=bucket_size
+            )
             real = np.asarray(problem.mask) > 0
-            assert np.array_equal(np.sort(np.asarray(problem.sample_index)[real]),
-                                  np.arange(3 * m) // m * 224 + np.arange(3 * m) % m)
+            assert np.array_equal(
+                np.sort(np.asarray(problem.sample_index)[real]),
+                np.arange(3 * m) // m * 224 + np.arange(3 * m) % m,
+            )
             if bucket_size is None:  # table: the real slots, each at one filled position
                 filled = np.asarray(problem.local.filled) > 0
-                assert np.sort(np.asarray(problem.local.order)[filled]).tolist() == \
-                    np.flatnonzero(real).tolist()
+                assert (
+                    np.sort(np.asarray(problem.local.order)[filled]).tolist()
+                    == np.flatnonzero(real).tolist()
+                )
             shapes.append(jax.tree.map(jnp.shape, problem))
     assert shapes[0] == shapes[2] and shapes[1] == shapes[3]
 
@@ -180,14 +200,14 @@ def _assert_padded_fit_agrees_with_the_unpadded_fit(solver):
     padded = jurs.fit(points, normals, solver=solver, **settings)
     plain = jurs.solve(solver, jurs.make_problem(points, normals, **settings))
     assert int(padded.stats["num_steps"]) == int(plain.stats["num_steps"])
-    for a, b in ((padded.spline.control, plain.spline.control),
-                 (padded.spline.weights, plain.spline.weights)):
+    for a, b in (
+        (padded.spline.control, plain.spline.control),
+        (padded.spline.weights, plain.spline.weights),
+    ):
         np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-10, atol=1e-13)
     for key in ("E", "E_ave", "E_max", "mu"):
-        np.testing.assert_allclose(float(padded.metrics[key]), float(plain.metrics[key]),
-                                   rtol=1e-9)
-    np.testing.assert_array_equal(np.asarray(padded.spline.lower),
-                                  np.asarray(plain.spline.lower))
+        np.testing.assert_allclose(float(padded.metrics[key]), float(plain.metrics[key]), rtol=1e-9)
+    np.testing.assert_array_equal(np.asarray(padded.spline.lower), np.asarray(plain.spline.lower))
 
 
 def test_padded_exact_fit_agrees_with_the_unpadded_one():
@@ -225,9 +245,12 @@ def test_two_clouds_in_one_band_compile_once():
     reuses the compiled fit; one in the next band compiles anew (the counter works)."""
     settings = dict(grid=(10, 11), offset=0.1, eps=0.01, solver=jurs.LeastSquares(lam=1e-4))
     counts = []
-    for points, normals in (jurs.datasets.example1(330), jurs.datasets.example1(370),
-                            jurs.datasets.add_noise(*jurs.datasets.example1(350), sigma=0.01),
-                            jurs.datasets.example1(400)):
+    for points, normals in (
+        jurs.datasets.example1(330),
+        jurs.datasets.example1(370),
+        jurs.datasets.add_noise(*jurs.datasets.example1(350), sigma=0.01),
+        jurs.datasets.example1(400),
+    ):
         with _CompileCounter() as counter:
             jax.block_until_ready(jurs.fit(points, normals, **settings).spline)
         counts.append(counter.count)
@@ -239,8 +262,12 @@ def test_automatic_grids_are_rounded_up_to_the_ladder():
     from jurs._defaults import DEFAULT_MAX_GRID, choose_grid
 
     lower = np.zeros(2)
-    for extent, spacing in (((10.0, 7.0), 0.3), ((10.0, 7.0), 0.27), ((4.0, 1.0), 0.01),
-                            ((3.0, 2.0), 1.0)):
+    for extent, spacing in (
+        ((10.0, 7.0), 0.3),
+        ((10.0, 7.0), 0.27),
+        ((4.0, 1.0), 0.01),
+        ((3.0, 2.0), 1.0),
+    ):
         upper = np.asarray(extent)
         grid = choose_grid(lower, upper, spacing, 0.0)
         exact = np.ceil(upper / max(1.5 * spacing, upper.max() / (DEFAULT_MAX_GRID - 3)) - 1e-9)
@@ -249,5 +276,8 @@ def test_automatic_grids_are_rounded_up_to_the_ladder():
             assert n - 3 in (round_size(n - 3), DEFAULT_MAX_GRID - 3) or n == 8
             assert n <= DEFAULT_MAX_GRID
     # Spacings 8 % apart (25-27 and 18-19 cells): one grid, 28 x 20 cells.
-    assert choose_grid(lower, np.array([10.0, 7.0]), 0.27, 0.0) == \
-        choose_grid(lower, np.array([10.0, 7.0]), 0.25, 0.0) == (31, 23)
+    assert (
+        choose_grid(lower, np.array([10.0, 7.0]), 0.27, 0.0)
+        == choose_grid(lower, np.array([10.0, 7.0]), 0.25, 0.0)
+        == (31, 23)
+    )

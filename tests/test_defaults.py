@@ -15,8 +15,9 @@ ROT90 = np.array([[0.0, -1.0], [1.0, 0.0]])
 
 
 def reference(name):
-    return np.concatenate([ls.resample(np.vstack([c, c[:1]]), 0.01)
-                           for c in jurs.shapes.outline(name)])
+    return np.concatenate(
+        [ls.resample(np.vstack([c, c[:1]]), 0.01) for c in jurs.shapes.outline(name)]
+    )
 
 
 def diagonal(points):
@@ -50,13 +51,18 @@ def test_settings_scale_and_rotate_with_the_data(lobes):
     p, n = lobes
     base = jurs.auto_settings(p, n)
     scaled = jurs.auto_settings(3.0 * p + 7.0, n)
-    np.testing.assert_allclose([scaled.spacing, scaled.offset, scaled.eps],
-                               [3 * base.spacing, 3 * base.offset, 3 * base.eps], rtol=1e-9)
+    np.testing.assert_allclose(
+        [scaled.spacing, scaled.offset, scaled.eps],
+        [3 * base.spacing, 3 * base.offset, 3 * base.eps],
+        rtol=1e-9,
+    )
     assert scaled.grid == base.grid
-    np.testing.assert_allclose([scaled.lam, scaled.smoothing], [base.lam, base.smoothing],
-                               rtol=1e-9)
-    np.testing.assert_allclose(np.asarray(scaled.domain), 3 * np.asarray(base.domain) + 7,
-                               rtol=1e-9, atol=1e-9)
+    np.testing.assert_allclose(
+        [scaled.lam, scaled.smoothing], [base.lam, base.smoothing], rtol=1e-9
+    )
+    np.testing.assert_allclose(
+        np.asarray(scaled.domain), 3 * np.asarray(base.domain) + 7, rtol=1e-9, atol=1e-9
+    )
     turned = jurs.auto_settings(p @ ROT90.T, n @ ROT90.T)
     assert turned.grid == base.grid[::-1]
     np.testing.assert_allclose([turned.offset, turned.lam], [base.offset, base.lam], rtol=1e-9)
@@ -92,7 +98,8 @@ def test_offset_does_not_cross_thin_parts():
     batched = _defaults.offset_agreement(points, normals, ladder)
     assert batched.shape == (4,)
     np.testing.assert_array_equal(
-        batched, [_defaults.offset_agreement(points, normals, x) for x in ladder])
+        batched, [_defaults.offset_agreement(points, normals, x) for x in ladder]
+    )
 
 
 @pytest.mark.slow
@@ -102,7 +109,10 @@ def test_overrides_are_kept(lobes):
     assert s.grid == (12, 14) and s.offset == 0.2 and s.eps == 0.2 and s.smoothing == 1e-3
     sol = jurs.fit(p, n, grid=12, solver=jurs.LeastSquares(lam=0.5))
     assert sol.settings.grid == (12, 12) and float(sol.metrics["lam"]) == 0.5
-    assert jurs.fit(p, n, grid=12, offset=0.1, eps=0.01, solver=jurs.IPIA(max_steps=2)).settings is None
+    assert (
+        jurs.fit(p, n, grid=12, offset=0.1, eps=0.01, solver=jurs.IPIA(max_steps=2)).settings
+        is None
+    )
 
 
 def test_fit_takes_the_smoothing_of_its_default_solver(lobes):
@@ -144,8 +154,9 @@ def test_default_fit_on_noisy_data():
     noisy, noisy_n = jurs.datasets.add_noise(p, n, sigma=0.005 * diag, seed=4)
     sol = jurs.fit(noisy, noisy_n)
     assert sol.settings.noise > 0.5 * 0.005 * diag
-    report = ls.analyze(sol.spline, noisy, offset=sol.settings.offset,
-                        reference=reference("glyph_8"))
+    report = ls.analyze(
+        sol.spline, noisy, offset=sol.settings.offset, reference=reference("glyph_8")
+    )
     assert report.num_supplementary == 0 and report.num_tiny_loops == 0
     assert report.num_components == 3  # the outline and the two counters
     assert report.chamfer < 0.5 * 0.005 * diag  # closer to the clean curve than the noise
@@ -156,10 +167,16 @@ def test_default_fit_on_noisy_data():
 def test_default_zero_set_moves_with_the_data(lobes, lobes_fit, motion):
     p, n = lobes
     shift, scale = np.array([13.0, -4.0]), 2.5
-    forward = {"translate": lambda x: x + shift, "rotate": lambda x: x @ ROT90.T,
-               "scale": lambda x: scale * x}[motion]
-    back = {"translate": lambda x: x - shift, "rotate": lambda x: x @ ROT90,
-            "scale": lambda x: x / scale}[motion]
+    forward = {
+        "translate": lambda x: x + shift,
+        "rotate": lambda x: x @ ROT90.T,
+        "scale": lambda x: scale * x,
+    }[motion]
+    back = {
+        "translate": lambda x: x - shift,
+        "rotate": lambda x: x @ ROT90,
+        "scale": lambda x: x / scale,
+    }[motion]
     moved = jurs.fit(forward(p), n @ ROT90.T if motion == "rotate" else n)
     chamfer, _ = ls.chamfer_hausdorff(back(zero_set(moved)), zero_set(lobes_fit))
     assert chamfer < 1e-3 * diagonal(p)

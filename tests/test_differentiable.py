@@ -20,10 +20,12 @@ HELD_OUT = jnp.asarray(jurs.datasets.example1(37)[0]) * 1.02  # near, not on, th
 SOLVERS = {
     "LeastSquares": lambda lam: jurs.LeastSquares(lam=lam),
     "LeastSquares(CG)": lambda lam: jurs.LeastSquares(
-        lam=lam, linear_solver=lx.CG(rtol=1e-13, atol=1e-16, max_steps=2000)),
+        lam=lam, linear_solver=lx.CG(rtol=1e-13, atol=1e-16, max_steps=2000)
+    ),
     # B-spline Gauss-Newton; gradients by optimistix's implicit adjoint.
     "optx.GaussNewton": lambda lam: jurs.OptimistixLeastSquares(
-        optx.GaussNewton(rtol=1e-12, atol=1e-14), lam=lam, max_steps=20),
+        optx.GaussNewton(rtol=1e-12, atol=1e-14), lam=lam, max_steps=20
+    ),
 }
 
 
@@ -45,12 +47,16 @@ def test_grad_matches_central_differences(name):
     points = points + 1e-3 * np.random.default_rng(0).standard_normal(points.shape)
     points, normals = jnp.asarray(points), jnp.asarray(normals)
     lam = jnp.asarray(1e-3)
-    loss = jax.jit(lambda p, n, l: validation_loss(p, n, l, make_solver))
-    grads = jax.jit(jax.grad(lambda p, n, l: validation_loss(p, n, l, make_solver),
-                             argnums=(0, 1, 2)))(points, normals, lam)
+    loss = jax.jit(lambda p, n, lam: validation_loss(p, n, lam, make_solver))
+    grads = jax.jit(
+        jax.grad(lambda p, n, lam: validation_loss(p, n, lam, make_solver), argnums=(0, 1, 2))
+    )(points, normals, lam)
     key_p, key_n = jax.random.split(jax.random.PRNGKey(0))
-    directions = (jax.random.normal(key_p, points.shape), jax.random.normal(key_n, normals.shape),
-                  jnp.asarray(1e-3))
+    directions = (
+        jax.random.normal(key_p, points.shape),
+        jax.random.normal(key_n, normals.shape),
+        jnp.asarray(1e-3),
+    )
     for k, (arg, grad, direction) in enumerate(zip((points, normals, lam), grads, directions)):
         h = 1e-5 if k < 2 else 1e-7
 
@@ -69,13 +75,19 @@ def _pad(points, normals, size):
     extra = size - len(points)
     mask = np.arange(size) < len(points)
     # Padding: copies of the first point (finite, inside the box), masked out.
-    return (np.concatenate([points, np.repeat(points[:1], extra, 0)]),
-            np.concatenate([normals, np.repeat(normals[:1], extra, 0)]), mask)
+    return (
+        np.concatenate([points, np.repeat(points[:1], extra, 0)]),
+        np.concatenate([normals, np.repeat(normals[:1], extra, 0)]),
+        mask,
+    )
 
 
 def test_vmap_over_padded_batch_matches_single_fits():
-    clouds = [jurs.datasets.example1(90), jurs.datasets.example1(64),
-              jurs.datasets.ellipse(75, a=3.0, b=2.0)]
+    clouds = [
+        jurs.datasets.example1(90),
+        jurs.datasets.example1(64),
+        jurs.datasets.ellipse(75, a=3.0, b=2.0),
+    ]
     size = max(len(p) for p, _ in clouds)
     batch = [_pad(p, n, size) for p, n in clouds]
     points, normals, masks = (np.stack(x) for x in zip(*batch))

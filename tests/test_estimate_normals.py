@@ -34,8 +34,14 @@ def circles(m, radii, centres):
 
 def band(m, length=4.0, width=0.12):
     """A thin stroke: a long rectangle whose two long sides are 6 spacings apart."""
-    rect = np.array([[-length / 2, -width / 2], [length / 2, -width / 2],
-                     [length / 2, width / 2], [-length / 2, width / 2]])
+    rect = np.array(
+        [
+            [-length / 2, -width / 2],
+            [length / 2, -width / 2],
+            [length / 2, width / 2],
+            [-length / 2, width / 2],
+        ]
+    )
     return jurs.shapes.sample_outline(jurs.shapes.orient([rect]), m)
 
 
@@ -64,7 +70,8 @@ def shell(m, outer=1.0, inner=0.75):
 
 CLEAN_2D = {
     "circle": lambda: jurs.datasets.parametric_curve(
-        lambda t: (np.cos(t), np.sin(t)), lambda t: (-np.sin(t), np.cos(t)), 300),
+        lambda t: (np.cos(t), np.sin(t)), lambda t: (-np.sin(t), np.cos(t)), 300
+    ),
     "ellipse": lambda: jurs.datasets.ellipse(400),
     "nested_rings": lambda: circles(800, (1.0, 0.85), ((0, 0), (0, 0))),
     "thin_band": lambda: band(800),
@@ -110,19 +117,22 @@ def test_baseline_fails_where_the_field_is_needed():
     share = correct_sign(_orient_mst(points, unsigned), truth)
     assert max(share, 1 - share) < 0.9
     circle, circle_truth = CLEAN_2D["circle"]()
-    share = correct_sign(_orient_mst(circle, estimate_normals(circle, orient=False)),
-                         circle_truth)
+    share = correct_sign(_orient_mst(circle, estimate_normals(circle, orient=False)), circle_truth)
     assert share == 1.0  # a single convex curve is easy for it
 
 
-@pytest.mark.parametrize("name, make", [("sphere", lambda: sphere(2500)),
-                                        ("torus", lambda: torus(3000)),
-                                        ("thick_shell", lambda: shell(6000))])
+@pytest.mark.parametrize(
+    "name, make",
+    [
+        ("sphere", lambda: sphere(2500)),
+        ("torus", lambda: torus(3000)),
+        ("thick_shell", lambda: shell(6000)),
+    ],
+)
 @pytest.mark.parametrize("level", [0.0, 0.005])
 def test_3d(name, make, level):
     points, truth = make()
-    normals, info = estimate_normals(noisy(points, level) if level else points,
-                                     return_info=True)
+    normals, info = estimate_normals(noisy(points, level) if level else points, return_info=True)
     assert normals.shape == points.shape
     share = correct_sign(normals, truth)
     assert share == 1.0 if level == 0 else share >= 0.995, (share, info.k)
@@ -135,8 +145,9 @@ def test_info_and_unoriented():
     assert isinstance(info, NormalsInfo)
     assert info.components == 2 and info.patches >= info.components
     assert 6 <= info.k <= 64 and 0 <= info.flipped <= info.patches
-    assert info.confidence.shape == (600,) and np.all((info.confidence >= 0)
-                                                      & (info.confidence <= 1))
+    assert info.confidence.shape == (600,) and np.all(
+        (info.confidence >= 0) & (info.confidence <= 1)
+    )
     assert info.residual < 0.2
     unsigned = estimate_normals(points, orient=False)
     np.testing.assert_allclose(np.abs(np.sum(unsigned * normals, axis=1)), 1.0, atol=1e-12)
@@ -154,14 +165,17 @@ def test_duplicates_float32_and_order():
     assert correct_sign(estimate_normals(points[order]), truth[order]) == 1.0
 
 
-@pytest.mark.parametrize("bad, error, match", [
-    (np.zeros((10, 4)), ValueError, "shape"),
-    (np.zeros(10), ValueError, "shape"),
-    (np.array([[0.0, 1.0]] * 20), ValueError, "distinct"),
-    (np.random.default_rng(0).random((4, 2)), ValueError, "distinct"),
-    (np.array([[np.nan, 0.0]] + [[i, i * i] for i in range(9)], float), ValueError, "NaN"),
-    ([["a", "b"]] * 8, TypeError, "numeric"),
-])
+@pytest.mark.parametrize(
+    "bad, error, match",
+    [
+        (np.zeros((10, 4)), ValueError, "shape"),
+        (np.zeros(10), ValueError, "shape"),
+        (np.array([[0.0, 1.0]] * 20), ValueError, "distinct"),
+        (np.random.default_rng(0).random((4, 2)), ValueError, "distinct"),
+        (np.array([[np.nan, 0.0]] + [[i, i * i] for i in range(9)], float), ValueError, "NaN"),
+        ([["a", "b"]] * 8, TypeError, "numeric"),
+    ],
+)
 def test_bad_points(bad, error, match):
     with pytest.raises(error, match=match):
         estimate_normals(bad)
@@ -188,8 +202,15 @@ def test_fit_without_normals_estimates_them():
     inside_outside = np.array([[0.0, -4.0], [0.0, 2.0]])
     assert np.all(np.sign(sol.spline(inside_outside)) == np.array([-1.0, 1.0]))
     scale = float(np.max(np.abs(np.asarray(reference.spline.control))))
-    np.testing.assert_allclose(np.asarray(sol.spline.control),
-                               np.asarray(reference.spline.control), atol=0.02 * scale)
+    np.testing.assert_allclose(
+        np.asarray(sol.spline.control), np.asarray(reference.spline.control), atol=0.02 * scale
+    )
     with pytest.raises(ValueError, match="mask"):
-        jurs.fit(points, grid=9, offset=0.1, eps=0.01, solver=jurs.LeastSquares(1e-3),
-                 mask=np.ones(len(points), bool))
+        jurs.fit(
+            points,
+            grid=9,
+            offset=0.1,
+            eps=0.01,
+            solver=jurs.LeastSquares(1e-3),
+            mask=np.ones(len(points), bool),
+        )

@@ -33,7 +33,9 @@ def test_autodiff_matches_hand_derived(data, rng, shape, lam):
     problem = jurs.make_problem(*data, grid=shape)
     control, weights = random_state(rng, shape)
     auto_c, auto_w = jax.grad(jurs.objective, argnums=(1, 2))(problem, control, weights, lam)
-    hand_c = jurs.data_energy_grad_control(problem, control, weights) + lam * jurs.regulariser_grad(control)
+    hand_c = jurs.data_energy_grad_control(problem, control, weights) + lam * jurs.regulariser_grad(
+        control
+    )
     hand_w = jurs.data_energy_grad_weights(problem, control, weights)  # R does not depend on w
     assert relative_error(auto_c, hand_c) <= 1e-10
     assert relative_error(auto_w, hand_w) <= 1e-10
@@ -48,22 +50,31 @@ def test_hand_derived_matches_dense_formulas(data, rng, shape):
     b = np.asarray(problem.targets)
     c = np.asarray(control).ravel()
     r = d @ c - b
-    np.testing.assert_allclose(float(jurs.data_energy(problem, control, weights)), r @ r, rtol=1e-12)
+    np.testing.assert_allclose(
+        float(jurs.data_energy(problem, control, weights)), r @ r, rtol=1e-12
+    )
     grad_c = np.asarray(jurs.data_energy_grad_control(problem, control, weights)).ravel()
     np.testing.assert_allclose(grad_c, 2 * d.T @ r, rtol=1e-10, atol=1e-14)
     # nabla_w by the quotient rule on dense basis rows: dg_k/dw_ij = B_ij (C_ij - g_k) / W_k.
-    basis = dense_basis(np.asarray(problem.samples), np.asarray(problem.lower),
-                        np.asarray(problem.upper), shape)
+    basis = dense_basis(
+        np.asarray(problem.samples), np.asarray(problem.lower), np.asarray(problem.upper), shape
+    )
     w = np.asarray(weights).ravel()
     denom = basis @ w
     g = basis @ (w * c) / denom
     grad_w = 2 * ((r / denom)[:, None] * basis * (c[None, :] - g[:, None])).sum(axis=0)
-    np.testing.assert_allclose(np.asarray(jurs.data_energy_grad_weights(problem, control, weights)).ravel(),
-                               grad_w, rtol=1e-10, atol=1e-14)
+    np.testing.assert_allclose(
+        np.asarray(jurs.data_energy_grad_weights(problem, control, weights)).ravel(),
+        grad_w,
+        rtol=1e-10,
+        atol=1e-14,
+    )
     # Explicit-row path agrees with the fast path.
     rr, wb, denom2, _ = jurs.residuals(problem, control, weights)
     via_rows = jurs.transpose_apply(problem, wb * (rr / denom2)[:, None])
-    np.testing.assert_allclose(2 * np.asarray(via_rows).ravel(), 2 * d.T @ r, rtol=1e-10, atol=1e-14)
+    np.testing.assert_allclose(
+        2 * np.asarray(via_rows).ravel(), 2 * d.T @ r, rtol=1e-10, atol=1e-14
+    )
 
 
 def regulariser_by_definition(c):
@@ -81,9 +92,13 @@ def regulariser_by_definition(c):
 @pytest.mark.parametrize("shape", [(4, 4), (6, 9)])
 def test_regulariser_and_its_gradient(rng, shape):
     c = rng.standard_normal(shape)
-    np.testing.assert_allclose(float(jurs.regulariser(jnp.asarray(c))), regulariser_by_definition(c), rtol=1e-13)
+    np.testing.assert_allclose(
+        float(jurs.regulariser(jnp.asarray(c))), regulariser_by_definition(c), rtol=1e-13
+    )
     auto = jax.grad(jurs.regulariser)(jnp.asarray(c))
-    np.testing.assert_allclose(np.asarray(jurs.regulariser_grad(jnp.asarray(c))), np.asarray(auto), atol=1e-12)
+    np.testing.assert_allclose(
+        np.asarray(jurs.regulariser_grad(jnp.asarray(c))), np.asarray(auto), atol=1e-12
+    )
     # Constants are free: the regulariser only sees differences.
     assert float(jurs.regulariser(jnp.full(shape, 3.0))) == 0.0
 
@@ -107,10 +122,15 @@ def test_bucketed_layout_gives_same_energy_and_gradients(rng):
     assert bucketed.local.bucket_size == 16
     control, weights = random_state(rng, shape)
     for fn in (jurs.data_energy, jurs.data_energy_grad_control, jurs.data_energy_grad_weights):
-        np.testing.assert_allclose(np.asarray(fn(bucketed, control, weights)),
-                                   np.asarray(fn(flat, control, weights)), rtol=1e-11, atol=1e-15)
-    np.testing.assert_allclose(float(jurs.step_size(bucketed, weights)),
-                               float(jurs.step_size(flat, weights)), rtol=1e-13)
+        np.testing.assert_allclose(
+            np.asarray(fn(bucketed, control, weights)),
+            np.asarray(fn(flat, control, weights)),
+            rtol=1e-11,
+            atol=1e-15,
+        )
+    np.testing.assert_allclose(
+        float(jurs.step_size(bucketed, weights)), float(jurs.step_size(flat, weights)), rtol=1e-13
+    )
 
 
 @pytest.mark.slow
@@ -135,8 +155,12 @@ def test_iurs_steps_agree_across_layouts(rng):
     (ref, e_ref), others = results[0], results[1:]
     for state, energy in others:
         for name in ("control", "weights", "weight_grad", "mu"):
-            np.testing.assert_allclose(np.asarray(getattr(state, name)),
-                                       np.asarray(getattr(ref, name)), rtol=1e-11, atol=1e-15)
+            np.testing.assert_allclose(
+                np.asarray(getattr(state, name)),
+                np.asarray(getattr(ref, name)),
+                rtol=1e-11,
+                atol=1e-15,
+            )
         np.testing.assert_allclose(float(energy), float(e_ref), rtol=1e-12)
 
 
@@ -147,8 +171,9 @@ def test_metrics_match_their_definitions(rng, layout):
     pass) against the spline evaluated at the points and the dense collocation."""
     points, normals = jurs.datasets.example1(150)
     shape, lam = (8, 9), 0.02
-    problem = jurs.make_problem(points, normals, grid=shape,
-                                bucket_size=8 if layout == "bucketed" else None)
+    problem = jurs.make_problem(
+        points, normals, grid=shape, bucket_size=8 if layout == "bucketed" else None
+    )
     if layout == "power":
         problem = without_table(problem)
     assert (problem.local.terms is not None) == (layout == "table")
@@ -159,8 +184,13 @@ def test_metrics_match_their_definitions(rng, layout):
     d = dense_collocation(problem, weights)[np.asarray(problem.mask) > 0]  # padding: no row
     e_d = float(jurs.data_energy(problem, control, weights))
     reg = float(jurs.regulariser(control))
-    expected = {"E_d": e_d, "R": reg, "E": e_d + lam * reg, "E_ave": np.mean(on_points ** 2),
-                "E_max": np.max(np.abs(on_points)),
-                "mu": 2.0 / np.abs(d.T @ d).sum(axis=1).max()}
+    expected = {
+        "E_d": e_d,
+        "R": reg,
+        "E": e_d + lam * reg,
+        "E_ave": np.mean(on_points**2),
+        "E_max": np.max(np.abs(on_points)),
+        "mu": 2.0 / np.abs(d.T @ d).sum(axis=1).max(),
+    }
     for name, value in expected.items():
         np.testing.assert_allclose(float(got[name]), value, rtol=1e-11, err_msg=name)

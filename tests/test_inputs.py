@@ -104,7 +104,9 @@ def test_inputs_are_not_modified(cloud):
     np.testing.assert_array_equal(normals, before[1])
     # Scaling the normals does not change the fit (they are normalised).
     unit = fit_small(points, normals / 3.0)
-    np.testing.assert_allclose(np.asarray(sol.spline.control), np.asarray(unit.spline.control), rtol=1e-12)
+    np.testing.assert_allclose(
+        np.asarray(sol.spline.control), np.asarray(unit.spline.control), rtol=1e-12
+    )
 
 
 def test_bucket_size(cloud):

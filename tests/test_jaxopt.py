@@ -31,8 +31,9 @@ def test_jurs_works_without_jaxopt():
             assert "jurs[jaxopt]" in str(exc), exc
             print("ok")
     """)
-    out = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True,
-                         timeout=300)
+    out = subprocess.run(
+        [sys.executable, "-c", script], capture_output=True, text=True, timeout=300
+    )
     assert out.stdout.strip() == "ok", out.stderr[-2000:]
 
 
@@ -42,15 +43,21 @@ jaxopt = pytest.importorskip("jaxopt")
 @pytest.fixture(scope="module")
 def example1():
     points, normals = jurs.datasets.example1(120)
-    reference = jurs.fit(points, normals, grid=9, offset=0.1, eps=0.01, solver=jurs.LeastSquares(lam=LAM))
+    reference = jurs.fit(
+        points, normals, grid=9, offset=0.1, eps=0.01, solver=jurs.LeastSquares(lam=LAM)
+    )
     return points, normals, float(reference.metrics["E"])
 
 
-@pytest.mark.parametrize("solver", [
-    jurs.JaxoptLBFGS(lam=LAM, max_steps=3000, tol=1e-9),
-    jurs.JaxoptGaussNewton(lam=LAM, max_steps=20, tol=1e-10),
-    jurs.JaxoptLevenbergMarquardt(lam=LAM, max_steps=50, tol=1e-10),
-], ids=["LBFGS", "GaussNewton", "LevenbergMarquardt"])
+@pytest.mark.parametrize(
+    "solver",
+    [
+        jurs.JaxoptLBFGS(lam=LAM, max_steps=3000, tol=1e-9),
+        jurs.JaxoptGaussNewton(lam=LAM, max_steps=20, tol=1e-10),
+        jurs.JaxoptLevenbergMarquardt(lam=LAM, max_steps=50, tol=1e-10),
+    ],
+    ids=["LBFGS", "GaussNewton", "LevenbergMarquardt"],
+)
 @pytest.mark.slow
 def test_fixed_weight_jaxopt_solvers_agree_with_least_squares(example1, solver):
     points, normals, reference = example1
@@ -64,9 +71,12 @@ def test_fixed_weight_jaxopt_solvers_agree_with_least_squares(example1, solver):
 @pytest.mark.slow
 def test_joint_jaxopt_levenberg_marquardt_improves_on_the_bspline(example1):
     points, normals, reference = example1
-    solver = jurs.JaxoptLevenbergMarquardt(lam=LAM, joint=True, max_steps=30,
-                                           options=(("solver", "cholesky"),
-                                                    ("materialize_jac", True)))
+    solver = jurs.JaxoptLevenbergMarquardt(
+        lam=LAM,
+        joint=True,
+        max_steps=30,
+        options=(("solver", "cholesky"), ("materialize_jac", True)),
+    )
     sol = jurs.fit(points, normals, grid=9, offset=0.1, eps=0.01, solver=solver)
     assert float(sol.metrics["E"]) < reference
     assert float(sol.spline.weights.min()) > 0

@@ -46,11 +46,14 @@ def test_bspline_stencil_matches_dense_normal_equations(example1_problem):
     nnz = np.diff(_normal.stencil_to_scipy(normal.stencil).indptr)
     assert nnz.max() == 49
     control = jax.random.normal(jax.random.PRNGKey(0), problem.shape)
-    np.testing.assert_allclose(normal.matvec(control).ravel(), d.T @ d @ np.ravel(control),
-                               atol=1e-12)
-    np.testing.assert_allclose(normal.data_energy(control),
-                               jurs.data_energy(problem, control, jnp.ones(problem.shape)),
-                               rtol=1e-12)
+    np.testing.assert_allclose(
+        normal.matvec(control).ravel(), d.T @ d @ np.ravel(control), atol=1e-12
+    )
+    np.testing.assert_allclose(
+        normal.data_energy(control),
+        jurs.data_energy(problem, control, jnp.ones(problem.shape)),
+        rtol=1e-12,
+    )
 
 
 def test_rational_stencil_chunked_matches_dense(example1_problem):
@@ -60,8 +63,9 @@ def test_rational_stencil_chunked_matches_dense(example1_problem):
     # chunk_size 100 forces several scan blocks and a zero-padded last block.
     normal = normal_equations(problem, weights, chunk_size=100)
     np.testing.assert_allclose(normal.to_dense(), d.T @ d, atol=1e-13)
-    np.testing.assert_allclose(np.asarray(normal.rhs).ravel(), d.T @ np.asarray(problem.targets),
-                               atol=1e-15)
+    np.testing.assert_allclose(
+        np.asarray(normal.rhs).ravel(), d.T @ np.asarray(problem.targets), atol=1e-15
+    )
 
 
 def test_masked_samples_do_not_contribute():
@@ -82,8 +86,9 @@ def test_masked_samples_do_not_contribute():
 def test_laplacian_stencil_is_grid_laplacian():
     control = jax.random.normal(jax.random.PRNGKey(2), (6, 9))
     lap = _normal.laplacian_stencil((6, 9))
-    np.testing.assert_allclose(_normal.stencil_matvec(lap, control), jurs.grid_laplacian(control),
-                               atol=1e-14)
+    np.testing.assert_allclose(
+        _normal.stencil_matvec(lap, control), jurs.grid_laplacian(control), atol=1e-14
+    )
 
 
 @pytest.mark.parametrize("lam", [0.0, LAM])
@@ -106,18 +111,21 @@ def test_least_squares_is_the_minimiser(example1_problem, lam):
     assert abs(energy - best_energy) <= 1e-9 * best_energy
     np.testing.assert_allclose(sol.metrics["E_d"] + lam * sol.metrics["R"], energy, rtol=1e-12)
     # Gradient of the objective vanishes at the solution (hand-derived gradients).
-    grad = (jurs.data_energy_grad_control(problem, sol.spline.control, sol.spline.weights)
-            + lam * jurs.regulariser_grad(sol.spline.control))
-    scale = jnp.abs(jurs.data_energy_grad_control(problem, jnp.zeros(problem.shape),
-                                                  sol.spline.weights)).max()
+    grad = jurs.data_energy_grad_control(
+        problem, sol.spline.control, sol.spline.weights
+    ) + lam * jurs.regulariser_grad(sol.spline.control)
+    scale = jnp.abs(
+        jurs.data_energy_grad_control(problem, jnp.zeros(problem.shape), sol.spline.weights)
+    ).max()
     assert float(jnp.abs(grad).max()) < 1e-8 * float(scale)
 
 
 def test_cg_and_cholesky_agree(example1_problem):
     chol = solve(least_squares(LAM, linear_solver=lx.Cholesky()), example1_problem)
-    cg = solve(least_squares(LAM, linear_solver=lx.CG(rtol=1e-12, atol=1e-14,
-                                                                   max_steps=2000)),
-                    example1_problem)
+    cg = solve(
+        least_squares(LAM, linear_solver=lx.CG(rtol=1e-12, atol=1e-14, max_steps=2000)),
+        example1_problem,
+    )
     assert cg.succeeded
     np.testing.assert_allclose(cg.spline.control, chol.spline.control, atol=1e-7)
     np.testing.assert_allclose(cg.metrics["E"], chol.metrics["E"], rtol=1e-10)
@@ -129,8 +137,9 @@ def test_keep_weights_solves_for_fixed_rational_weights(example1_problem):
     start = jurs.ImplicitSpline(jnp.zeros(problem.shape), weights, problem.lower, problem.upper)
     sol = solve(least_squares(LAM, keep_weights=True), problem, start)
     np.testing.assert_array_equal(sol.spline.weights, weights)
-    grad = (jurs.data_energy_grad_control(problem, sol.spline.control, weights)
-            + LAM * jurs.regulariser_grad(sol.spline.control))
+    grad = jurs.data_energy_grad_control(
+        problem, sol.spline.control, weights
+    ) + LAM * jurs.regulariser_grad(sol.spline.control)
     assert float(jnp.abs(grad).max()) < 1e-12
     # The default ignores the start weights and fits the B-spline.
     bspline = solve(least_squares(LAM), problem, start)
@@ -173,7 +182,9 @@ def test_ridge_keeps_singular_solves_bounded():
     plain = solve(least_squares(0.0, ridge=0.0), problem, throw=False)
     ridged = solve(least_squares(0.0), problem)
     assert float(jnp.abs(ridged.spline.control).max()) < 1e5
-    assert float(jnp.abs(plain.spline.control).max()) > 100 * float(jnp.abs(ridged.spline.control).max())
+    assert float(jnp.abs(plain.spline.control).max()) > 100 * float(
+        jnp.abs(ridged.spline.control).max()
+    )
     e_plain, e_ridged = float(plain.metrics["E_d"]), float(ridged.metrics["E_d"])
     assert e_plain <= e_ridged <= 1.02 * e_plain
     with pytest.raises(ValueError, match="ridge"):
@@ -206,7 +217,8 @@ def test_default_dense_solve_falls_back_to_lu():
     normal = normal_equations(problem)
     start = jnp.zeros(problem.shape)
     plain, _ = jax.jit(solve_normal_equations, static_argnums=3)(
-        normal.regularised(0.0), normal.rhs, start, lx.Cholesky())
+        normal.regularised(0.0), normal.rhs, start, lx.Cholesky()
+    )
     if np.all(np.isfinite(plain)):
         pytest.skip("this device's Cholesky factors the system: no breakdown to fall back from")
     sol = solve(least_squares(0.0, ridge=0.0), problem)
@@ -232,8 +244,9 @@ def test_block_cholesky_matches_dense_solve(shape):
     problem = jurs.make_problem(points, normals, grid=shape, offset=0.1, eps=0.01)
     normal = normal_equations(problem)
     system = normal.regularised(1e-3)
-    expected = np.linalg.solve(np.asarray(_normal.stencil_to_dense(system)),
-                               np.asarray(normal.rhs).ravel())
+    expected = np.linalg.solve(
+        np.asarray(_normal.stencil_to_dense(system)), np.asarray(normal.rhs).ravel()
+    )
     got = np.asarray(jax.jit(_normal.stencil_cholesky_solve)(system, normal.rhs)).ravel()
     np.testing.assert_allclose(got, expected, rtol=1e-10, atol=1e-13 * np.abs(expected).max())
 
@@ -263,8 +276,9 @@ def test_large_grid_default_is_direct_and_agrees_with_cg(monkeypatch):
         return direct_solve(stencil, rhs)
 
     monkeypatch.setattr(jurs.solvers._least_squares, "stencil_cholesky_solve", recording)
-    fresh_solve = eqx.filter_jit(lambda solver, problem, throw: jurs.solve(solver, problem,
-                                                                          throw=throw))
+    fresh_solve = eqx.filter_jit(
+        lambda solver, problem, throw: jurs.solve(solver, problem, throw=throw)
+    )
     direct = fresh_solve(least_squares(LAM), problem, True)
     jax.block_until_ready(direct.spline.control)
     assert factorised, "lam > 0 took the block Cholesky"
@@ -272,8 +286,9 @@ def test_large_grid_default_is_direct_and_agrees_with_cg(monkeypatch):
     unregularised = fresh_solve(least_squares(0.0), problem, False)
     jax.block_until_ready(unregularised.spline.control)
     assert not factorised, "lam = 0 took CG"
-    cg = solve(least_squares(LAM, linear_solver=lx.CG(rtol=1e-13, atol=1e-16, max_steps=20000)),
-               problem)
+    cg = solve(
+        least_squares(LAM, linear_solver=lx.CG(rtol=1e-13, atol=1e-16, max_steps=20000)), problem
+    )
     assert direct.succeeded and cg.succeeded
     np.testing.assert_allclose(direct.spline.control, cg.spline.control, rtol=1e-7, atol=1e-9)
     np.testing.assert_allclose(direct.metrics["E"], cg.metrics["E"], rtol=1e-11)
@@ -289,8 +304,9 @@ def test_gradient_through_the_direct_solve():
     held_out = jnp.asarray(jurs.datasets.example1(23)[0]) * 1.03
 
     def loss(lam):
-        sol = jurs.fit(points, normals, grid=(17, 16), solver=jurs.LeastSquares(lam=lam),
-                       offset=0.1, eps=0.01)
+        sol = jurs.fit(
+            points, normals, grid=(17, 16), solver=jurs.LeastSquares(lam=lam), offset=0.1, eps=0.01
+        )
         return jnp.mean(sol.spline(held_out) ** 2)
 
     lam = jnp.asarray(1e-3)
@@ -306,16 +322,20 @@ def test_float32_dense_solve_falls_back_to_cg():
     Example 1 with 60 points at 14 x 14 the float32 system does not factor on this CPU; CG
     lands at the float64 minimum energy (an LU solve lands 25 % above it)."""
     points, normals = jurs.datasets.example1(60)
-    problem = jurs.make_problem(points, normals, grid=14, offset=0.1, eps=0.01,
-                                dtype=jnp.float32)
+    problem = jurs.make_problem(points, normals, grid=14, offset=0.1, eps=0.01, dtype=jnp.float32)
     normal = normal_equations(problem)
     chol, _ = jax.jit(solve_normal_equations, static_argnums=3)(
-        normal.regularised(np.float32(0.0)), normal.rhs, jnp.zeros(problem.shape, jnp.float32),
-        lx.Cholesky(), DEFAULT_RIDGE)  # as the default solve calls it
+        normal.regularised(np.float32(0.0)),
+        normal.rhs,
+        jnp.zeros(problem.shape, jnp.float32),
+        lx.Cholesky(),
+        DEFAULT_RIDGE,
+    )  # as the default solve calls it
     if np.all(np.isfinite(chol)):
         pytest.skip("this device's Cholesky factors the system: no breakdown to fall back from")
     sol = solve(least_squares(np.float32(0.0)), problem)
     assert sol.result in (jurs.RESULTS.successful, jurs.RESULTS.max_steps_reached)
-    exact = solve(least_squares(0.0),
-                  jurs.make_problem(points, normals, grid=14, offset=0.1, eps=0.01))
+    exact = solve(
+        least_squares(0.0), jurs.make_problem(points, normals, grid=14, offset=0.1, eps=0.01)
+    )
     np.testing.assert_allclose(float(sol.metrics["E"]), float(exact.metrics["E"]), rtol=1e-3)

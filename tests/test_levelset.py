@@ -36,7 +36,9 @@ def dist(xy, centre):
 @pytest.fixture(scope="module")
 def circle_fit():
     points, normals = jurs.datasets.ellipse(100, a=2.0, b=2.0)
-    sol = jurs.fit(points, normals, grid=(9, 9), offset=0.1, eps=0.01, solver=jurs.IPIA(max_steps=200, tol=0.0))
+    sol = jurs.fit(
+        points, normals, grid=(9, 9), offset=0.1, eps=0.01, solver=jurs.IPIA(max_steps=200, tol=0.0)
+    )
     return points, sol
 
 
@@ -176,8 +178,9 @@ def test_resolution_default_and_grid():
 def test_float32_spline_does_not_crash(circle_fit):
     points, sol = circle_fit
     s = sol.spline
-    s32 = jurs.ImplicitSpline(*(jnp.asarray(getattr(s, k), jnp.float32)
-                                for k in ("control", "weights", "lower", "upper")))
+    s32 = jurs.ImplicitSpline(
+        *(jnp.asarray(getattr(s, k), jnp.float32) for k in ("control", "weights", "lower", "upper"))
+    )
     r32 = ls.analyze(s32, points, resolution=256)
     r64 = ls.analyze(s, points, resolution=256)
     assert r32.num_components == r64.num_components == 1
@@ -229,8 +232,9 @@ def test_distance_to_polyline_is_to_segments_not_vertices():
     rng = np.random.default_rng(0)
     v = np.cumsum(rng.normal(size=(40, 2)) * rng.uniform(0.01, 1.0, (40, 1)), axis=0)
     p = rng.uniform(v.min(0) - 1, v.max(0) + 1, (300, 2))
-    np.testing.assert_allclose(ls.distance_to_polyline(p, v), _brute_polyline_distance(p, v),
-                               rtol=1e-12, atol=1e-15)
+    np.testing.assert_allclose(
+        ls.distance_to_polyline(p, v), _brute_polyline_distance(p, v), rtol=1e-12, atol=1e-15
+    )
     assert np.all(np.isinf(ls.distance_to_polyline(p[:3], np.empty((0, 2)))))
 
 
@@ -247,9 +251,11 @@ def test_project_to_zero_set_lands_on_the_curve():
         np.testing.assert_array_equal(ok, [True, True, True, False])
         np.testing.assert_allclose(np.linalg.norm(x[:3], axis=1), 1.0, atol=1e-12)
         # Along each point's ray (the gradient direction), to its foot on the circle.
-        np.testing.assert_allclose(x[:3] / np.linalg.norm(x[:3], axis=1, keepdims=True),
-                                   start[:3] / np.linalg.norm(start[:3], axis=1, keepdims=True),
-                                   atol=1e-12)
+        np.testing.assert_allclose(
+            x[:3] / np.linalg.norm(x[:3], axis=1, keepdims=True),
+            start[:3] / np.linalg.norm(start[:3], axis=1, keepdims=True),
+            atol=1e-12,
+        )
         np.testing.assert_array_equal(x[3], [0.0, 0.0])  # no usable gradient: stays put
     with pytest.raises(ValueError, match="steps"):
         ls.project_to_zero_set(f, start, steps=-1)
@@ -273,9 +279,10 @@ def test_refined_chamfer_resolves_what_the_sampled_one_cannot():
     lines = ls.zero_level_set(spline, resolution=128)
     zero = np.concatenate([ls.resample(p, 0.01) for p, _ in lines])
     ref = circle_samples(20000, radius=2.0)
-    out = ls.refined_chamfer_hausdorff(spline, zero, ref, grad=spline.grad,
-                                       reference_samples=500)
-    first_order = np.abs(np.asarray(spline(ref))) / np.linalg.norm(np.asarray(spline.grad(ref)), axis=1)
+    out = ls.refined_chamfer_hausdorff(spline, zero, ref, grad=spline.grad, reference_samples=500)
+    first_order = np.abs(np.asarray(spline(ref))) / np.linalg.norm(
+        np.asarray(spline.grad(ref)), axis=1
+    )
     assert out["unconverged_zero"] == out["unconverged_reference"] == 0
     assert out["chamfer"] == pytest.approx(first_order.mean(), rel=0.05)
     assert out["hausdorff"] == pytest.approx(first_order.max(), rel=0.05)

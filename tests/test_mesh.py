@@ -44,8 +44,9 @@ def exact_sphere(radius=1.0, n=12, half=1.5):
     lower, upper = np.full(3, -half), np.full(3, half)
     _, h = greville_nodes(lower, upper, (n, n, n))
     shift = sum(hh * hh for hh in h) / 3.0
-    return sampled_spline(lambda p: np.sum(p * p, axis=1) - radius ** 2 - shift,
-                          lower, upper, (n, n, n))
+    return sampled_spline(
+        lambda p: np.sum(p * p, axis=1) - radius**2 - shift, lower, upper, (n, n, n)
+    )
 
 
 def torus_distance(p, major=1.0, minor=0.35):
@@ -69,8 +70,9 @@ def test_axis_basis_is_a_partition_of_unity_with_the_right_slopes():
     assert (values[inside] >= 0).all() and ((values[inside] > 0).sum(axis=1) <= 4).all()
     step = 1e-6
     slopes = _lattice.axis_basis(x, 0.0, 2.0, 7, derivative=True)
-    numeric = (_lattice.axis_basis(x + step, 0.0, 2.0, 7)
-               - _lattice.axis_basis(x - step, 0.0, 2.0, 7)) / (2 * step)
+    numeric = (
+        _lattice.axis_basis(x + step, 0.0, 2.0, 7) - _lattice.axis_basis(x - step, 0.0, 2.0, 7)
+    ) / (2 * step)
     interior = np.abs((x / (2 / 4)) - np.round(x / (2 / 4))) > 1e-3  # not on a knot
     np.testing.assert_allclose(slopes[interior], numeric[interior], atol=1e-8)
 
@@ -78,8 +80,9 @@ def test_axis_basis_is_a_partition_of_unity_with_the_right_slopes():
 def test_lattice_values_match_the_2d_spline_and_its_gradient():
     rng = np.random.default_rng(0)
     control, weights = rng.normal(size=(7, 9)), rng.uniform(0.5, 2.0, (7, 9))
-    spline = jurs.ImplicitSpline(jnp.asarray(control), jnp.asarray(weights),
-                                 jnp.array([-1.0, 0.0]), jnp.array([2.0, 1.5]))
+    spline = jurs.ImplicitSpline(
+        jnp.asarray(control), jnp.asarray(weights), jnp.array([-1.0, 0.0]), jnp.array([2.0, 1.5])
+    )
     xs, ys = np.linspace(-1.2, 2.1, 13), np.linspace(-0.1, 1.6, 11)
     grid = _lattice.lattice_values(spline, (xs, ys))
     xy = np.stack(np.meshgrid(xs, ys, indexing="ij"), axis=-1).reshape(-1, 2)
@@ -89,22 +92,27 @@ def test_lattice_values_match_the_2d_spline_and_its_gradient():
     value, gradient = _lattice.values_and_gradients(spline, xy, chunk=17)
     np.testing.assert_allclose(value, direct, atol=1e-13)
     np.testing.assert_allclose(gradient, direct_grad, atol=1e-12)
-    np.testing.assert_allclose(_lattice.lattice_values(spline, (xs, ys), xp=jnp), grid,
-                               atol=1e-13)
+    np.testing.assert_allclose(_lattice.lattice_values(spline, (xs, ys), xp=jnp), grid, atol=1e-13)
 
 
 def test_lattice_values_match_pointwise_evaluation_in_3d():
     rng = np.random.default_rng(1)
     shape = (5, 6, 7)
-    spline = Spline(rng.normal(size=shape), rng.uniform(0.5, 2.0, shape),
-                    np.array([0.0, -1.0, 2.0]), np.array([1.0, 1.0, 5.0]))
+    spline = Spline(
+        rng.normal(size=shape),
+        rng.uniform(0.5, 2.0, shape),
+        np.array([0.0, -1.0, 2.0]),
+        np.array([1.0, 1.0, 5.0]),
+    )
     axes = (np.linspace(-0.1, 1.1, 6), np.linspace(-1, 1, 5), np.linspace(2, 5, 4))
     grid = _lattice.lattice_values(spline, axes)
     assert grid.shape == (6, 5, 4)
     points = np.stack(np.meshgrid(*axes, indexing="ij"), axis=-1).reshape(-1, 3)
     # Independent reference: the dense basis of each axis at each point, summed in full.
-    b = [_lattice.axis_basis(points[:, k], spline.lower[k], spline.upper[k], shape[k])
-         for k in range(3)]
+    b = [
+        _lattice.axis_basis(points[:, k], spline.lower[k], spline.upper[k], shape[k])
+        for k in range(3)
+    ]
     num = np.einsum("ni,nj,nk,ijk->n", *b, spline.weights * spline.control)
     den = np.einsum("ni,nj,nk,ijk->n", *b, spline.weights)
     np.testing.assert_allclose(grid.ravel(), num / den, atol=1e-13)
@@ -114,8 +122,10 @@ def test_lattice_values_match_pointwise_evaluation_in_3d():
     for k in range(3):
         e = np.zeros(3)
         e[k] = step
-        numeric = (_lattice.values_and_gradients(spline, points + e)[0]
-                   - _lattice.values_and_gradients(spline, points - e)[0]) / (2 * step)
+        numeric = (
+            _lattice.values_and_gradients(spline, points + e)[0]
+            - _lattice.values_and_gradients(spline, points - e)[0]
+        ) / (2 * step)
         np.testing.assert_allclose(gradient[:, k], numeric, atol=1e-6)
 
 
@@ -155,8 +165,9 @@ def test_torus_has_genus_1_and_double_torus_genus_2():
     assert _mesh.genus(faces) == 1
     # The Greville-sampled distance is a close approximation, not the torus itself.
     assert np.abs(torus_distance(vertices)).max() < 0.05
-    double = sampled_spline(lambda p: datasets.genus2_function(p)[0], [-2.6, -1.6, -0.7],
-                            [2.6, 1.6, 0.7], (40, 26, 14))
+    double = sampled_spline(
+        lambda p: datasets.genus2_function(p)[0], [-2.6, -1.6, -0.7], [2.6, 1.6, 0.7], (40, 26, 14)
+    )
     report = _mesh.analyze_mesh(*_mesh.mesh(double))
     assert [(c.closed, c.genus) for c in report.components] == [(True, 2)]
 
@@ -212,8 +223,9 @@ def test_box_cuts_the_surface_open():
 
 def test_far_small_bubble_is_supplementary():
     def shapes(p):  # a sphere of radius 0.8 and a small one in the corner
-        return np.minimum(np.linalg.norm(p, axis=1) - 0.8,
-                          np.linalg.norm(p - [1.0, 1.0, 1.0], axis=1) - 0.15)
+        return np.minimum(
+            np.linalg.norm(p, axis=1) - 0.8, np.linalg.norm(p - [1.0, 1.0, 1.0], axis=1) - 0.15
+        )
 
     spline = sampled_spline(shapes, np.full(3, -1.3), np.full(3, 1.35), (30, 30, 30))
     vertices, faces = _mesh.mesh(spline)
@@ -287,8 +299,9 @@ def test_sample_mesh_is_uniform_by_area_with_face_normals():
 # --- files ----------------------------------------------------------------------------------
 
 
-@pytest.mark.parametrize("suffix, tol", [(".ply", 1e-6), (".obj", 1e-15), (".xyz", 0.0),
-                                         (".pts", 0.0)])
+@pytest.mark.parametrize(
+    "suffix, tol", [(".ply", 1e-6), (".obj", 1e-15), (".xyz", 0.0), (".pts", 0.0)]
+)
 def test_cloud_round_trip(tmp_path, suffix, tol):
     points, normals = datasets.torus(50)
     path = tmp_path / f"cloud{suffix}"
@@ -321,14 +334,17 @@ def test_points_of_a_mesh_file(tmp_path):
     np.testing.assert_allclose(points, vertices, atol=1e-6)
 
 
-@pytest.mark.parametrize("name, text, message", [
-    ("bad.ply", "not a ply\n", r"not a readable PLY file"),
-    ("bad.xyz", "0 0 0\n1 1\n", r"row 2: expected 3 columns"),
-    ("bad.xyz", "0 0 0 1\n", r"row 1: expected 3 columns x y z or 6"),
-    ("bad.pts", "0 0 0\n1 x 1\n", r"row 2: not all numbers"),
-    ("bad.xyz", "0 0 0 0 0 0\n", r"row 1 has a zero-length normal"),
-    ("bad.xyz", "# only a comment\n", r"no data rows"),
-])
+@pytest.mark.parametrize(
+    "name, text, message",
+    [
+        ("bad.ply", "not a ply\n", r"not a readable PLY file"),
+        ("bad.xyz", "0 0 0\n1 1\n", r"row 2: expected 3 columns"),
+        ("bad.xyz", "0 0 0 1\n", r"row 1: expected 3 columns x y z or 6"),
+        ("bad.pts", "0 0 0\n1 x 1\n", r"row 2: not all numbers"),
+        ("bad.xyz", "0 0 0 0 0 0\n", r"row 1 has a zero-length normal"),
+        ("bad.xyz", "# only a comment\n", r"no data rows"),
+    ],
+)
 def test_bad_cloud_files(tmp_path, name, text, message):
     path = tmp_path / name
     path.write_text(text)

@@ -106,8 +106,12 @@ def test_prolongation_is_knot_insertion(n):
 def random_gram(shape, seed):
     """``D^T D + 1e-3 L`` of random samples in a unit box, any dimension (dense)."""
     rng = np.random.default_rng(seed)
-    rows = design(rng.random((3 * int(np.prod(shape)), len(shape))), shape,
-                  np.zeros(len(shape)), np.ones(len(shape)))
+    rows = design(
+        rng.random((3 * int(np.prod(shape)), len(shape))),
+        shape,
+        np.zeros(len(shape)),
+        np.ones(len(shape)),
+    )
     return rows.T @ rows + 1e-3 * laplacian(shape)
 
 
@@ -137,11 +141,13 @@ def test_generic_kernels_in_3d():
     lap = _normal.laplacian_stencil(shape)
     x = np.random.default_rng(1).standard_normal(shape)
     padded = np.pad(x, 1, mode="edge")  # free boundary: a missing neighbour adds nothing
-    expected = sum(x - np.roll(padded, s, axis)[1:-1, 1:-1, 1:-1]
-                   for axis in range(3) for s in (1, -1))
+    expected = sum(
+        x - np.roll(padded, s, axis)[1:-1, 1:-1, 1:-1] for axis in range(3) for s in (1, -1)
+    )
     np.testing.assert_allclose(_normal.stencil_matvec(lap, jnp.asarray(x)), expected, atol=1e-12)
-    np.testing.assert_allclose(_normal.stencil_to_scipy(lap) @ x.ravel(), expected.ravel(),
-                               atol=1e-12)
+    np.testing.assert_allclose(
+        _normal.stencil_to_scipy(lap) @ x.ravel(), expected.ravel(), atol=1e-12
+    )
     assert _normal.stencil_diagonal(lap).shape == shape
 
 
@@ -165,12 +171,16 @@ def test_patches_are_principal_submatrices(shape, side, stride):
     ids = ids.astype(int) - 1  # -1: padding
     for p in range(len(ids)):
         real = ids[p] >= 0
-        np.testing.assert_array_equal(blocks[p][np.ix_(real, real)],
-                                      a[np.ix_(ids[p][real], ids[p][real])])
+        np.testing.assert_array_equal(
+            blocks[p][np.ix_(real, real)], a[np.ix_(ids[p][real], ids[p][real])]
+        )
         np.testing.assert_array_equal(blocks[p][np.ix_(~real, ~real)], np.eye((~real).sum()))
     assert cover.min() == 1 and cover.max() <= np.ceil(side / stride) ** d
-    np.testing.assert_allclose(np.einsum("pab,pbc->pac", inverses, blocks),
-                               np.broadcast_to(np.eye(layout.size), blocks.shape), atol=1e-11)
+    np.testing.assert_allclose(
+        np.einsum("pab,pbc->pac", inverses, blocks),
+        np.broadcast_to(np.eye(layout.size), blocks.shape),
+        atol=1e-11,
+    )
 
 
 @pytest.fixture(scope="module")
@@ -200,9 +210,11 @@ def test_smoother_spectrum_within_its_bound(systems):
 def stencil_solve(stencil, rhs, solver, target_norm2):
     """A lineax solve as LeastSquares calls it: a stencil operator, the stencil as an
     option (no gradient)."""
-    operator = lx.FunctionLinearOperator(lambda c: _normal.stencil_matvec(stencil, c),
-                                         jax.ShapeDtypeStruct(rhs.shape, rhs.dtype),
-                                         lx.positive_semidefinite_tag)
+    operator = lx.FunctionLinearOperator(
+        lambda c: _normal.stencil_matvec(stencil, c),
+        jax.ShapeDtypeStruct(rhs.shape, rhs.dtype),
+        lx.positive_semidefinite_tag,
+    )
     options = {"stencil": jax.lax.stop_gradient(stencil), "target_norm2": target_norm2}
     sol = lx.linear_solve(operator, rhs, solver, options=options, throw=False)
     return sol.value, sol.stats["num_steps"], sol.result
@@ -271,9 +283,11 @@ def test_cg_flags_an_indefinite_preconditioner():
     ill-conditioned patches are) stops CG with a breakdown instead of a wrong answer."""
     a = jnp.diag(jnp.arange(1.0, 7.0))
     sign = jnp.array([1.0, 1.0, -1.0, 1.0, 1.0, 1.0])
-    _, steps, _, broken = jit(lambda b: mg.preconditioned_cg(
-        lambda x: a @ x, lambda r: sign * r / jnp.diag(a), b, jnp.zeros(6), 1e-12, 0.0, 50))(
-        jnp.ones(6))
+    _, steps, _, broken = jit(
+        lambda b: mg.preconditioned_cg(
+            lambda x: a @ x, lambda r: sign * r / jnp.diag(a), b, jnp.zeros(6), 1e-12, 0.0, 50
+        )
+    )(jnp.ones(6))
     assert bool(broken) and int(steps) < 50
 
 
@@ -289,9 +303,15 @@ def test_3d_solve_matches_dense():
     @jit
     def solve(stencil, b):
         hierarchy = mg.build_hierarchy(stencil, coarsest_size=COARSEST, degree=1)
-        return mg.preconditioned_cg(lambda x: _normal.stencil_matvec(stencil, x),
-                                    lambda r: mg.v_cycle(hierarchy, r), b, jnp.zeros_like(b),
-                                    1e-12, 0.0, 100)
+        return mg.preconditioned_cg(
+            lambda x: _normal.stencil_matvec(stencil, x),
+            lambda r: mg.v_cycle(hierarchy, r),
+            b,
+            jnp.zeros_like(b),
+            1e-12,
+            0.0,
+            100,
+        )
 
     x, _, _, broken = solve(dense_to_stencil(a, shape), b)
     expected = sla.solve(a, b.ravel(), assume_a="pos").reshape(shape)
@@ -316,8 +336,10 @@ def test_gradients_through_lineax(systems):
     lam, scale, h = 1e-4, 1.0, 1e-7
     grads = jit(jax.grad(loss, argnums=(0, 1)))(lam, scale)
     value = jit(loss)
-    fd = ((value(lam + h * lam, scale) - value(lam - h * lam, scale)) / (2 * h * lam),
-          (value(lam, scale + h) - value(lam, scale - h)) / (2 * h))
+    fd = (
+        (value(lam + h * lam, scale) - value(lam - h * lam, scale)) / (2 * h * lam),
+        (value(lam, scale + h) - value(lam, scale - h)) / (2 * h),
+    )
     for got, want in zip(grads, fd):
         assert abs(float(got) - float(want)) <= 1e-5 * abs(float(want))
 

@@ -11,8 +11,9 @@ import pytest
 
 import jurs
 
-sys.path.insert(0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))),
-                                "benchmarks"))
+sys.path.insert(
+    0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "benchmarks")
+)
 import _numpy_port as port  # noqa: E402
 
 STEPS = 5
@@ -39,8 +40,7 @@ def _run_both(control, weights, tau, lam):
         np.testing.assert_allclose(ours["E"], energy, rtol=1e-10)
         np.testing.assert_allclose(ours["mu"], state.mu, rtol=1e-12)
         np.testing.assert_allclose(ours["w"].reshape(GRID), state.weights, rtol=1e-10)
-        np.testing.assert_allclose(ours["C"].reshape(GRID), state.control,
-                                   rtol=1e-9, atol=1e-12)
+        np.testing.assert_allclose(ours["C"].reshape(GRID), state.control, rtol=1e-9, atol=1e-12)
     return ours
 
 

@@ -15,7 +15,9 @@ pytestmark = pytest.mark.slow
 
 def dense_laplacian(shape):
     n = shape[0] * shape[1]
-    return np.asarray(jax.jacfwd(lambda c: jurs.grid_laplacian(c.reshape(shape)).ravel())(jnp.zeros(n)))
+    return np.asarray(
+        jax.jacfwd(lambda c: jurs.grid_laplacian(c.reshape(shape)).ravel())(jnp.zeros(n))
+    )
 
 
 @pytest.fixture(scope="module")
@@ -72,11 +74,16 @@ def test_regularised_fixed_point(lam):
     sol = jurs.solve(jurs.IURS(tau=0.0, lam=lam, max_steps=20000, tol=0.0), problem)
     mu = float(sol.metrics["mu"])
     lam_objective = float(jurs.objective_lam(lam, mu))
-    expected = np.linalg.solve(d.T @ d + 2 * lam_objective * dense_laplacian(problem.shape), d.T @ b)
-    np.testing.assert_allclose(np.asarray(sol.spline.control).ravel(), expected, rtol=1e-9, atol=1e-12)
+    expected = np.linalg.solve(
+        d.T @ d + 2 * lam_objective * dense_laplacian(problem.shape), d.T @ b
+    )
+    np.testing.assert_allclose(
+        np.asarray(sol.spline.control).ravel(), expected, rtol=1e-9, atol=1e-12
+    )
     # ... and it is the minimiser: the gradient of that objective vanishes there.
-    grad = jax.grad(jurs.objective, argnums=1)(problem, sol.spline.control, sol.spline.weights,
-                                             lam_objective)
+    grad = jax.grad(jurs.objective, argnums=1)(
+        problem, sol.spline.control, sol.spline.weights, lam_objective
+    )
     assert float(jnp.max(jnp.abs(grad))) < 1e-10
 
 
@@ -84,11 +91,15 @@ def test_iurs_with_tau_zero_is_ipia():
     problem = jurs.make_problem(*jurs.datasets.example1(60), grid=(8, 8))
     ipia = jurs.solve(jurs.IPIA(max_steps=60, tol=0.0), problem)
     iurs = jurs.solve(jurs.IURS(tau=0.0, lam=0.0, max_steps=60, tol=0.0), problem)
-    np.testing.assert_allclose(np.asarray(iurs.spline.control), np.asarray(ipia.spline.control),
-                               rtol=1e-12, atol=1e-16)
+    np.testing.assert_allclose(
+        np.asarray(iurs.spline.control), np.asarray(ipia.spline.control), rtol=1e-12, atol=1e-16
+    )
     np.testing.assert_array_equal(np.asarray(iurs.spline.weights), 1.0)
-    np.testing.assert_allclose(np.asarray(iurs.stats["energy_history"]),
-                               np.asarray(ipia.stats["energy_history"]), rtol=1e-12)
+    np.testing.assert_allclose(
+        np.asarray(iurs.stats["energy_history"]),
+        np.asarray(ipia.stats["energy_history"]),
+        rtol=1e-12,
+    )
 
 
 def test_iurs_step_is_algorithm1(rng):
@@ -98,7 +109,9 @@ def test_iurs_step_is_algorithm1(rng):
     weights = jnp.asarray(0.8 + 0.4 * rng.random((7, 7)))
     tau, lam = 0.05, 0.01
     solver = jurs.IURS(tau=tau, lam=lam)
-    state, _ = solver.init(problem, jurs.ImplicitSpline(control, weights, problem.lower, problem.upper))
+    state, _ = solver.init(
+        problem, jurs.ImplicitSpline(control, weights, problem.lower, problem.upper)
+    )
     new_state, energy = solver.step(problem, state)
     grad_w = jax.grad(jurs.data_energy, argnums=2)(problem, control, weights)
     w1 = np.maximum(np.asarray(weights - tau * grad_w), solver.min_weight)
@@ -115,8 +128,13 @@ def test_iurs_step_is_algorithm1(rng):
 
 def test_weights_stay_positive():
     points, normals = jurs.datasets.example1(80)
-    sol = jurs.fit(points, normals, solver=jurs.IURS(tau=50.0, max_steps=100, min_weight=1e-3),
-                   throw=False, **PAPER)
+    sol = jurs.fit(
+        points,
+        normals,
+        solver=jurs.IURS(tau=50.0, max_steps=100, min_weight=1e-3),
+        throw=False,
+        **PAPER,
+    )
     weights = np.asarray(sol.spline.weights)
     assert weights.min() >= 1e-3
     assert np.isfinite(weights).all()
@@ -150,7 +168,7 @@ def test_results_and_stop_rule():
     history = np.asarray(converged.stats["energy_history"])
     assert k < 500
     assert abs(history[k] - history[k - 1]) < 1e-5 <= abs(history[k - 1] - history[k - 2])  # eq. 38
-    assert np.isnan(history[k + 1:]).all()
+    assert np.isnan(history[k + 1 :]).all()
     np.testing.assert_allclose(history[k], float(converged.metrics["E"]), rtol=1e-12)
 
 
@@ -181,13 +199,14 @@ def test_float32_still_behaves():
 
 def test_fit_is_differentiable_and_batchable():
     points, normals = jurs.datasets.example1(40)
-    points = points + 0.01 * np.random.default_rng(3).standard_normal(points.shape)  # no ties in mu's max
+    points = points + 0.01 * np.random.default_rng(3).standard_normal(
+        points.shape
+    )  # no ties in mu's max
     held_out = jnp.asarray(jurs.datasets.example1(17)[0])
     domain = ((-5.0, -9.0), (5.0, 1.5))
 
     def loss(pts):
-        sol = jurs.fit(pts, normals, solver=jurs.IURS(max_steps=5, tol=0.0), domain=domain,
-                       **PAPER)
+        sol = jurs.fit(pts, normals, solver=jurs.IURS(max_steps=5, tol=0.0), domain=domain, **PAPER)
         return jnp.mean(sol.spline(held_out) ** 2)
 
     grad = np.asarray(jax.grad(loss)(jnp.asarray(points)))
@@ -198,8 +217,9 @@ def test_fit_is_differentiable_and_batchable():
         fd = (loss(jnp.asarray(points + e)) - loss(jnp.asarray(points - e))) / (2 * h)
         np.testing.assert_allclose(grad[row, col], float(fd), rtol=1e-5)
     batch = jnp.stack([jnp.asarray(points), jnp.asarray(points) * 1.1])
-    fit_one = lambda p: jurs.fit(p, normals, solver=jurs.IPIA(max_steps=5, tol=0.0),
-                                 **PAPER).metrics["E_d"]
+    fit_one = lambda p: jurs.fit(
+        p, normals, solver=jurs.IPIA(max_steps=5, tol=0.0), **PAPER
+    ).metrics["E_d"]
     batched = jax.vmap(fit_one)(batch)
     np.testing.assert_allclose(np.asarray(batched), [float(fit_one(p)) for p in batch], rtol=1e-12)
 
@@ -211,13 +231,25 @@ def test_normal_form_ipia_follows_ipia(bucket_size):
     problem = jurs.make_problem(points, normals, grid=(12, 12), bucket_size=bucket_size)
     per_sample = jurs.solve(jurs.IPIA(max_steps=80, tol=0.0), problem)
     normal_form = jurs.solve(jurs.NormalIPIA(max_steps=80, tol=0.0), problem)
-    np.testing.assert_allclose(np.asarray(normal_form.spline.control),
-                               np.asarray(per_sample.spline.control), rtol=1e-10, atol=1e-14)
-    np.testing.assert_allclose(np.asarray(normal_form.stats["energy_history"]),
-                               np.asarray(per_sample.stats["energy_history"]), rtol=1e-10)
-    np.testing.assert_allclose(float(normal_form.state.mu), float(per_sample.metrics["mu"]), rtol=1e-12)
+    np.testing.assert_allclose(
+        np.asarray(normal_form.spline.control),
+        np.asarray(per_sample.spline.control),
+        rtol=1e-10,
+        atol=1e-14,
+    )
+    np.testing.assert_allclose(
+        np.asarray(normal_form.stats["energy_history"]),
+        np.asarray(per_sample.stats["energy_history"]),
+        rtol=1e-10,
+    )
+    np.testing.assert_allclose(
+        float(normal_form.state.mu), float(per_sample.metrics["mu"]), rtol=1e-12
+    )
     # The carried product is D^T D C at the final C (one stencil product a step).
     state = normal_form.state
-    np.testing.assert_allclose(np.asarray(state.product),
-                               np.asarray(state.normal.matvec(state.control)), rtol=1e-12,
-                               atol=1e-14)
+    np.testing.assert_allclose(
+        np.asarray(state.product),
+        np.asarray(state.normal.matvec(state.control)),
+        rtol=1e-12,
+        atol=1e-14,
+    )

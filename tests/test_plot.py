@@ -12,10 +12,10 @@ matplotlib.use("Agg")
 import matplotlib.pyplot as plt  # noqa: E402
 import numpy as np  # noqa: E402
 import pytest  # noqa: E402
+from conftest import PAPER  # noqa: E402
 
 import jurs  # noqa: E402
 import jurs.plot as jplot  # noqa: E402
-from conftest import PAPER  # noqa: E402
 from jurs import levelset as ls  # noqa: E402
 
 # Every test here takes several seconds (fits and figures): make test-fast skips them.
@@ -25,8 +25,9 @@ pytestmark = pytest.mark.slow
 @pytest.fixture(scope="module")
 def run(example1_cloud):
     p, n = example1_cloud
-    return jurs.fit_in_chunks(p, n, solver=jurs.IURS(max_steps=40, tol=0.0),
-                              checkpoints=(0, 10, 40), **PAPER)
+    return jurs.fit_in_chunks(
+        p, n, solver=jurs.IURS(max_steps=40, tol=0.0), checkpoints=(0, 10, 40), **PAPER
+    )
 
 
 def _map_axes(fig):
@@ -69,8 +70,11 @@ def test_plot_fit_highlights_supplementary(run, example1_cloud, tmp_path):
     assert report.num_supplementary == 1
     fig = jplot.plot_fit(bumped, p, n, 0.1, levelset=report)
     (ax,) = _map_axes(fig)
-    magenta = [ln for ln in ax.get_lines()
-               if ln.get_color() == jplot.SUPPLEMENTARY_COLOUR and len(ln.get_xdata())]
+    magenta = [
+        ln
+        for ln in ax.get_lines()
+        if ln.get_color() == jplot.SUPPLEMENTARY_COLOUR and len(ln.get_xdata())
+    ]
     assert len(magenta) == report.num_supplementary
     labels = [t.get_text() for t in ax.get_legend().get_texts()]
     assert "supplementary g = 0 (1)" in labels
@@ -112,13 +116,19 @@ def test_plot_energy_history(run, example1_cloud, tmp_path):
 
 def test_plot_lambda_sensitivity(tmp_path):
     lams = [0.0, 1e-3, 1e-2, 3e-2]
-    records = [{"E_ave": 1e-7 * (1 + 10 * lam), "E_max": 1e-3, "R": 1.0 / (1 + 100 * lam),
-                "num_supplementary": 3 if lam == 0 else 0} for lam in lams]
+    records = [
+        {
+            "E_ave": 1e-7 * (1 + 10 * lam),
+            "E_max": 1e-3,
+            "R": 1.0 / (1 + 100 * lam),
+            "num_supplementary": 3 if lam == 0 else 0,
+        }
+        for lam in lams
+    ]
     fig = jplot.plot_lambda_sensitivity(lams, records, lam_label="lambda (eq. 33)")
     axes = _map_axes(fig)
     assert len(axes) == 4
-    assert all(ax.get_xscale() == "symlog" and ax.get_xlabel() == "lambda (eq. 33)"
-               for ax in axes)
+    assert all(ax.get_xscale() == "symlog" and ax.get_xlabel() == "lambda (eq. 33)" for ax in axes)
     assert axes[0].get_yscale() == "log" and axes[3].get_yscale() == "linear"
     np.testing.assert_array_equal(axes[3].get_lines()[0].get_ydata(), [3, 0, 0, 0])
     _saves(fig, tmp_path, "lambda")
@@ -130,6 +140,8 @@ def test_import_jurs_does_not_import_matplotlib():
     import subprocess
     import sys
 
-    code = "import sys, jurs; assert 'matplotlib' not in sys.modules; import jurs.levelset; " \
-           "assert 'matplotlib' not in sys.modules"
+    code = (
+        "import sys, jurs; assert 'matplotlib' not in sys.modules; import jurs.levelset; "
+        "assert 'matplotlib' not in sys.modules"
+    )
     subprocess.run([sys.executable, "-c", code], check=True, timeout=120)

@@ -37,9 +37,13 @@ M = 30
 GRID = (6, 6)
 # derandomize: the same examples every run (a test suite that fails only sometimes helps
 # nobody); run with --hypothesis-seed=N and derandomize off to explore further.
-FAST = settings(max_examples=20, deadline=None, database=None, derandomize=True,
-                suppress_health_check=[HealthCheck.function_scoped_fixture,
-                                       HealthCheck.too_slow])
+FAST = settings(
+    max_examples=20,
+    deadline=None,
+    database=None,
+    derandomize=True,
+    suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow],
+)
 FEW = settings(FAST, max_examples=10)
 
 POINTS, NORMALS = jurs.datasets.example1(M)
@@ -76,14 +80,22 @@ def assert_honest(sol):
 
 finite = st.floats(-1e6, 1e6, allow_nan=False)
 bad_float = st.sampled_from([np.nan, np.inf, -np.inf])
-junk_scalar = st.one_of(st.floats(allow_nan=True, allow_infinity=True),
-                        st.integers(-10, 10), st.text(max_size=3), st.none(),
-                        st.just([1.0, 2.0]))
+junk_scalar = st.one_of(
+    st.floats(allow_nan=True, allow_infinity=True),
+    st.integers(-10, 10),
+    st.text(max_size=3),
+    st.none(),
+    st.just([1.0, 2.0]),
+)
 
 
 @FAST
-@given(where=st.sampled_from(["points", "normals"]), row=st.integers(0, M - 1),
-       col=st.integers(0, 1), value=bad_float)
+@given(
+    where=st.sampled_from(["points", "normals"]),
+    row=st.integers(0, M - 1),
+    col=st.integers(0, 1),
+    value=bad_float,
+)
 def test_non_finite_entries(where, row, col, value):
     """1: NaN/Inf anywhere is refused with its row, on both paths."""
     p, n = POINTS.copy(), NORMALS.copy()
@@ -104,31 +116,43 @@ def test_zero_normals(rows):
 
 
 @FAST
-@given(shape=st.one_of(st.tuples(st.integers(0, 40)),
-                       st.tuples(st.integers(0, 40), st.integers(0, 5)),
-                       st.tuples(st.integers(1, 4), st.integers(1, 4), st.integers(1, 3))),
-       other=st.booleans())
+@given(
+    shape=st.one_of(
+        st.tuples(st.integers(0, 40)),
+        st.tuples(st.integers(0, 40), st.integers(0, 5)),
+        st.tuples(st.integers(1, 4), st.integers(1, 4), st.integers(1, 3)),
+    ),
+    other=st.booleans(),
+)
 def test_wrong_shapes(shape, other):
     """3, 4: wrong shapes and too few points are refused naming the array."""
     arr = np.ones(shape)
     p, n = (POINTS, arr) if other else (arr, arr)
-    for call in (lambda: jurs.fit(p, n, **EXPLICIT, solver=cheap_solver()),
-                 lambda: jurs.auto_settings(p, n),
-                 lambda: jurs.make_problem(p, n, grid=GRID)):
+    for call in (
+        lambda: jurs.fit(p, n, **EXPLICIT, solver=cheap_solver()),
+        lambda: jurs.auto_settings(p, n),
+        lambda: jurs.make_problem(p, n, grid=GRID),
+    ):
         result = raises_naming(call, "points", "normals")
         if result is not None:  # only the well-formed (m, 2) case with m >= 3 passes
             assert arr.ndim == 2 and arr.shape[1] == 2 and arr.shape[0] >= 3
 
 
 @FAST
-@given(kind=st.sampled_from(["str", "object", "bool", "ragged", "none"]),
-       where=st.sampled_from(["points", "normals"]))
+@given(
+    kind=st.sampled_from(["str", "object", "bool", "ragged", "none"]),
+    where=st.sampled_from(["points", "normals"]),
+)
 def test_non_numeric(kind, where):
     """5: strings, objects, booleans and ragged lists are refused naming the array. Normals
     None (omitted) are the one exception in jurs.fit: they are estimated."""
-    bad = {"str": POINTS.astype(str), "object": POINTS.astype(object),
-           "bool": POINTS > 0, "ragged": [[0.0, 1.0]] * (M - 1) + [[1.0]],
-           "none": None}[kind]
+    bad = {
+        "str": POINTS.astype(str),
+        "object": POINTS.astype(object),
+        "bool": POINTS > 0,
+        "ragged": [[0.0, 1.0]] * (M - 1) + [[1.0]],
+        "none": None,
+    }[kind]
     p, n = (bad, NORMALS) if where == "points" else (POINTS, bad)
     if kind == "none":
         p, n = (None, NORMALS) if where == "points" else (POINTS, None)
@@ -142,10 +166,17 @@ def test_non_numeric(kind, where):
 
 
 @FAST
-@given(grid=st.one_of(st.integers(-5, 3), st.tuples(st.integers(-2, 12), st.integers(-2, 3)),
-                      st.floats(4.5, 9.5).filter(lambda g: g != int(g)), st.text(max_size=4),
-                      st.tuples(st.integers(4, 9)), st.tuples(*[st.integers(4, 9)] * 3),
-                      st.none().map(lambda _: (6.5, 6))))
+@given(
+    grid=st.one_of(
+        st.integers(-5, 3),
+        st.tuples(st.integers(-2, 12), st.integers(-2, 3)),
+        st.floats(4.5, 9.5).filter(lambda g: g != int(g)),
+        st.text(max_size=4),
+        st.tuples(st.integers(4, 9)),
+        st.tuples(*[st.integers(4, 9)] * 3),
+        st.none().map(lambda _: (6.5, 6)),
+    )
+)
 def test_bad_grid(grid):
     """6: grids that are not pairs of ints >= 4 are refused naming grid."""
     with pytest.raises(ValueError, match="grid"):
@@ -155,9 +186,12 @@ def test_bad_grid(grid):
 
 
 @FAST
-@given(name=st.sampled_from(["offset", "eps"]),
-       value=st.one_of(st.floats(max_value=0.0), bad_float, st.text(max_size=3),
-                       st.floats(20.0, 1e300)))
+@given(
+    name=st.sampled_from(["offset", "eps"]),
+    value=st.one_of(
+        st.floats(max_value=0.0), bad_float, st.text(max_size=3), st.floats(20.0, 1e300)
+    ),
+)
 def test_bad_offset_and_eps(name, value):
     """7: offset/eps <= 0, non-finite, strings, and offsets beyond the cloud's extent."""
     kwargs = dict(EXPLICIT, solver=cheap_solver())
@@ -169,27 +203,33 @@ def test_bad_offset_and_eps(name, value):
 
 
 @FAST
-@given(margin=st.one_of(st.floats(max_value=-1e-9), bad_float, st.text(max_size=3)),
-       automatic=st.booleans())
+@given(
+    margin=st.one_of(st.floats(max_value=-1e-9), bad_float, st.text(max_size=3)),
+    automatic=st.booleans(),
+)
 def test_bad_margin(margin, automatic):
     """8: negative, NaN and non-numeric margins, on both paths."""
     kwargs = {} if automatic else dict(EXPLICIT, solver=cheap_solver())
-    assert raises_naming(lambda: jurs.fit(POINTS, NORMALS, margin=margin, **kwargs),
-                         "margin") is None
+    assert (
+        raises_naming(lambda: jurs.fit(POINTS, NORMALS, margin=margin, **kwargs), "margin") is None
+    )
 
 
 @FAST
-@given(domain=st.one_of(
-    st.tuples(st.tuples(finite, finite), st.tuples(finite, finite)),
-    st.tuples(st.tuples(bad_float, finite), st.tuples(finite, finite)),
-    st.lists(finite, max_size=5), st.text(max_size=3)))
+@given(
+    domain=st.one_of(
+        st.tuples(st.tuples(finite, finite), st.tuples(finite, finite)),
+        st.tuples(st.tuples(bad_float, finite), st.tuples(finite, finite)),
+        st.lists(finite, max_size=5),
+        st.text(max_size=3),
+    )
+)
 def test_bad_domain(domain):
     """9: malformed, non-finite, inverted or too small domains are refused naming the
     domain (or the points or offsets left outside it)."""
     for automatic in (True, False):
         kwargs = {} if automatic else dict(EXPLICIT, solver=cheap_solver())
-        result = raises_naming(lambda: jurs.fit(POINTS, NORMALS, domain=domain, **kwargs),
-                               "domain")
+        result = raises_naming(lambda: jurs.fit(POINTS, NORMALS, domain=domain, **kwargs), "domain")
         if result is not None:
             assert_honest(result)
             lo, hi = np.asarray(domain, float)
@@ -197,26 +237,33 @@ def test_bad_domain(domain):
 
 
 @FAST
-@given(smoothing=st.one_of(st.floats(max_value=-1e-12), bad_float, st.text(max_size=2)),
-       max_grid=st.one_of(st.integers(-3, 7), st.floats(8.5, 20.5), st.text(max_size=2)))
+@given(
+    smoothing=st.one_of(st.floats(max_value=-1e-12), bad_float, st.text(max_size=2)),
+    max_grid=st.one_of(st.integers(-3, 7), st.floats(8.5, 20.5), st.text(max_size=2)),
+)
 def test_bad_auto_settings_options(smoothing, max_grid):
     """10: auto_settings' smoothing and max_grid."""
-    assert raises_naming(lambda: jurs.auto_settings(POINTS, NORMALS, smoothing=smoothing),
-                         "smoothing") is None
-    assert raises_naming(lambda: jurs.auto_settings(POINTS, NORMALS, max_grid=max_grid),
-                         "max_grid") is None
+    assert (
+        raises_naming(lambda: jurs.auto_settings(POINTS, NORMALS, smoothing=smoothing), "smoothing")
+        is None
+    )
+    assert (
+        raises_naming(lambda: jurs.auto_settings(POINTS, NORMALS, max_grid=max_grid), "max_grid")
+        is None
+    )
 
 
 @FAST
-@given(mask=st.one_of(st.lists(st.booleans(), min_size=0, max_size=M + 3)
-                      .filter(lambda x: len(x) != M),
-                      st.lists(st.booleans(), min_size=M, max_size=M)
-                      .filter(lambda x: sum(x) < 3)))
+@given(
+    mask=st.one_of(
+        st.lists(st.booleans(), min_size=0, max_size=M + 3).filter(lambda x: len(x) != M),
+        st.lists(st.booleans(), min_size=M, max_size=M).filter(lambda x: sum(x) < 3),
+    )
+)
 def test_bad_mask(mask):
     """11: masks of the wrong length or selecting fewer than 3 points."""
     with pytest.raises(ValueError, match="mask"):
-        jurs.fit(POINTS, NORMALS, mask=np.asarray(mask, bool), **EXPLICIT,
-                 solver=cheap_solver())
+        jurs.fit(POINTS, NORMALS, mask=np.asarray(mask, bool), **EXPLICIT, solver=cheap_solver())
 
 
 @FAST
@@ -233,24 +280,37 @@ def test_coincident_points(x, y, automatic):
 def test_normal_length_does_not_matter(exponent):
     """13: normals of any length fit as unit ones."""
     reference = jurs.fit(POINTS, NORMALS, **EXPLICIT, solver=cheap_solver())
-    sol = jurs.fit(POINTS, 10.0 ** exponent * NORMALS, **EXPLICIT, solver=cheap_solver())
+    sol = jurs.fit(POINTS, 10.0**exponent * NORMALS, **EXPLICIT, solver=cheap_solver())
     assert_honest(sol)
-    np.testing.assert_allclose(np.asarray(sol.spline.control),
-                               np.asarray(reference.spline.control), rtol=1e-9, atol=1e-15)
+    np.testing.assert_allclose(
+        np.asarray(sol.spline.control), np.asarray(reference.spline.control), rtol=1e-9, atol=1e-15
+    )
 
 
 @FEW
-@given(log_scale=st.floats(-6, 6), shift=st.floats(-1.0, 1.0), log_shift=st.floats(0, 12),
-       x64=st.booleans())
+@given(
+    log_scale=st.floats(-6, 6),
+    shift=st.floats(-1.0, 1.0),
+    log_shift=st.floats(0, 12),
+    x64=st.booleans(),
+)
 def test_far_and_scaled_clouds(log_scale, shift, log_shift, x64):
     """14: any scale and translation either fits (finite, honest) or is refused for the
     precision it needs, in float64 and in float32."""
-    scale = 10.0 ** log_scale
-    points = scale * POINTS + shift * 10.0 ** log_shift
+    scale = 10.0**log_scale
+    points = scale * POINTS + shift * 10.0**log_shift
     with jax.enable_x64(x64):
         result = raises_naming(
-            lambda: jurs.fit(points, NORMALS, grid=GRID, offset=0.1 * scale,
-                             eps=0.01 * scale, solver=cheap_solver()), "resolves only")
+            lambda: jurs.fit(
+                points,
+                NORMALS,
+                grid=GRID,
+                offset=0.1 * scale,
+                eps=0.01 * scale,
+                solver=cheap_solver(),
+            ),
+            "resolves only",
+        )
     if result is not None:
         assert_honest(result)
     elif x64:  # float64 resolves steps of 1e-16 |x|: refused only when that is near d
@@ -258,14 +318,19 @@ def test_far_and_scaled_clouds(log_scale, shift, log_shift, x64):
 
 
 @FAST
-@given(solver=st.sampled_from(["IURS", "IPIA", "NormalIPIA", "LeastSquares"]),
-       field=st.sampled_from(["tau", "lam", "tol", "min_weight", "max_steps", "ridge"]),
-       value=junk_scalar)
+@given(
+    solver=st.sampled_from(["IURS", "IPIA", "NormalIPIA", "LeastSquares"]),
+    field=st.sampled_from(["tau", "lam", "tol", "min_weight", "max_steps", "ridge"]),
+    value=junk_scalar,
+)
 def test_solver_hyperparameters(solver, field, value):
     """15: every solver's constructor refuses bad hyperparameters naming the field."""
     cls = getattr(jurs, solver)
-    names = {f for f in ("tau", "lam", "tol", "min_weight", "max_steps", "ridge")
-             if f in getattr(cls, "__dataclass_fields__", {})}
+    names = {
+        f
+        for f in ("tau", "lam", "tol", "min_weight", "max_steps", "ridge")
+        if f in getattr(cls, "__dataclass_fields__", {})
+    }
     if field not in names:
         return
     try:
@@ -278,20 +343,40 @@ def test_solver_hyperparameters(solver, field, value):
     assert np.isfinite(float(v)) and float(v) >= 0
 
 
-spline_arrays = st.fixed_dictionaries({
-    "control": st.sampled_from([np.zeros((6, 6)), np.full((6, 6), np.nan), np.zeros((3, 3)),
-                                np.zeros(6), np.zeros((6, 6)).astype(str)]),
-    "weights": st.sampled_from([np.ones((6, 6)), np.zeros((6, 6)), -np.ones((6, 6)),
-                                np.ones((5, 6)), np.full((6, 6), np.inf)]),
-    "lower": st.sampled_from([np.zeros(2), np.array([2.0, 0.0]), np.zeros(3),
-                              np.array([np.nan, 0.0])]),
-    "upper": st.sampled_from([np.ones(2), np.ones((2, 2))]),
-})
+spline_arrays = st.fixed_dictionaries(
+    {
+        "control": st.sampled_from(
+            [
+                np.zeros((6, 6)),
+                np.full((6, 6), np.nan),
+                np.zeros((3, 3)),
+                np.zeros(6),
+                np.zeros((6, 6)).astype(str),
+            ]
+        ),
+        "weights": st.sampled_from(
+            [
+                np.ones((6, 6)),
+                np.zeros((6, 6)),
+                -np.ones((6, 6)),
+                np.ones((5, 6)),
+                np.full((6, 6), np.inf),
+            ]
+        ),
+        "lower": st.sampled_from(
+            [np.zeros(2), np.array([2.0, 0.0]), np.zeros(3), np.array([np.nan, 0.0])]
+        ),
+        "upper": st.sampled_from([np.ones(2), np.ones((2, 2))]),
+    }
+)
 
 
 @FAST
-@given(arrays=spline_arrays, drop=st.sampled_from([None, "control", "weights", "upper"]),
-       junk=st.binary(max_size=40))
+@given(
+    arrays=spline_arrays,
+    drop=st.sampled_from([None, "control", "weights", "upper"]),
+    junk=st.binary(max_size=40),
+)
 def test_spline_files(tmp_path_factory, arrays, drop, junk):
     """16: load_spline refuses every file that would not make an evaluable spline, naming
     the file; save_spline then load_spline round-trips the good ones under any name."""
@@ -300,11 +385,16 @@ def test_spline_files(tmp_path_factory, arrays, drop, junk):
     arrays = {k: v for k, v in arrays.items() if k != drop}
     with open(path, "wb") as fh:
         np.savez(fh, **arrays)
-    good = drop is None and all(a.dtype.kind == "f" and np.isfinite(a).all()
-                                for a in arrays.values()) and arrays["control"].shape == (6, 6) \
-        and arrays["weights"].shape == (6, 6) and (arrays["weights"] > 0).all() \
-        and arrays["lower"].shape == (2,) and arrays["upper"].shape == (2,) \
+    good = (
+        drop is None
+        and all(a.dtype.kind == "f" and np.isfinite(a).all() for a in arrays.values())
+        and arrays["control"].shape == (6, 6)
+        and arrays["weights"].shape == (6, 6)
+        and (arrays["weights"] > 0).all()
+        and arrays["lower"].shape == (2,)
+        and arrays["upper"].shape == (2,)
         and (arrays["lower"] < arrays["upper"]).all()
+    )
     try:
         spline = jurs.load_spline(path)
     except ValueError as exc:
@@ -326,31 +416,45 @@ def fitted():
 
 
 @FAST
-@given(resolution=st.one_of(st.integers(-5, 1), st.floats(2.5, 100.5), st.text(max_size=2),
-                            st.integers(10 ** 6, 10 ** 9)),
-       offset=st.one_of(st.floats(max_value=0.0), st.just(0.1)),
-       threshold=st.one_of(st.none(), st.floats(max_value=0.0), st.just(0.2)))
+@given(
+    resolution=st.one_of(
+        st.integers(-5, 1), st.floats(2.5, 100.5), st.text(max_size=2), st.integers(10**6, 10**9)
+    ),
+    offset=st.one_of(st.floats(max_value=0.0), st.just(0.1)),
+    threshold=st.one_of(st.none(), st.floats(max_value=0.0), st.just(0.2)),
+)
 def test_levelset_arguments(fitted, resolution, offset, threshold):
     """17: the level-set functions refuse bad resolutions (and sizes that cannot fit in
     memory), offsets and thresholds, naming them."""
     names = ["resolution", "offset", "threshold"]
-    report = raises_naming(lambda: jurs.levelset.analyze(
-        fitted, POINTS, offset=offset, threshold=threshold, resolution=resolution), *names)
+    report = raises_naming(
+        lambda: jurs.levelset.analyze(
+            fitted, POINTS, offset=offset, threshold=threshold, resolution=resolution
+        ),
+        *names,
+    )
     assert report is None  # every generated case has at least one bad argument
-    assert raises_naming(lambda: jurs.levelset.zero_level_set(fitted, resolution=resolution),
-                         "resolution") is None
-    assert raises_naming(lambda: jurs.levelset.sampling_grid([0, 0], [1, 1], resolution),
-                         "resolution") is None
+    assert (
+        raises_naming(
+            lambda: jurs.levelset.zero_level_set(fitted, resolution=resolution), "resolution"
+        )
+        is None
+    )
+    assert (
+        raises_naming(lambda: jurs.levelset.sampling_grid([0, 0], [1, 1], resolution), "resolution")
+        is None
+    )
 
 
-row_cell = st.one_of(st.floats(-5, 5, allow_nan=False).map(lambda v: f"{v:.6g}"),
-                     st.sampled_from(["nan", "inf", "", "x", "1,5", "1e999", "--1"]))
+row_cell = st.one_of(
+    st.floats(-5, 5, allow_nan=False).map(lambda v: f"{v:.6g}"),
+    st.sampled_from(["nan", "inf", "", "x", "1,5", "1e999", "--1"]),
+)
 csv_rows = st.lists(st.lists(row_cell, min_size=0, max_size=6), min_size=0, max_size=8)
 
 
 @FEW
-@given(rows=csv_rows, header=st.sampled_from(["", "x,y,nx,ny\n", "\ufeffx,y,nx,ny\n",
-                                              "a,b,c,d\n"]))
+@given(rows=csv_rows, header=st.sampled_from(["", "x,y,nx,ny\n", "\ufeffx,y,nx,ny\n", "a,b,c,d\n"]))
 def test_cli_point_files(tmp_path_factory, capsys, monkeypatch, rows, header):
     """18: the command line on generated (mostly malformed) point files: a one-line error
     with exit code 2 naming the file, and nothing written; or, for a well-formed file, a
@@ -370,18 +474,23 @@ def test_cli_point_files(tmp_path_factory, capsys, monkeypatch, rows, header):
         assert rc in (0, 1), err
         if rc == 0:
             record = json.loads((out / "metrics.json").read_text())
-            assert record["metrics"]["converged"] == (record["metrics"]["result"]
-                                                      .startswith("converged"))
+            assert record["metrics"]["converged"] == (
+                record["metrics"]["result"].startswith("converged")
+            )
 
 
 @pytest.mark.slow
 @settings(FEW, max_examples=8)
-@given(log_scale=st.floats(-3, 3), shift=st.floats(-100, 100), quarter=st.integers(0, 3),
-       flip=st.sampled_from([None, "half", "random"]))
+@given(
+    log_scale=st.floats(-3, 3),
+    shift=st.floats(-100, 100),
+    quarter=st.integers(0, 3),
+    flip=st.sampled_from([None, "half", "random"]),
+)
 def test_orientation_verdicts(log_scale, shift, quarter, flip):
     """19: the automatic fit of a moved and scaled Example 1 succeeds and its zero set lies
     on the data; with half or random normals flipped the verdict says so."""
-    scale = 10.0 ** log_scale
+    scale = 10.0**log_scale
     rotation = np.linalg.matrix_power(np.array([[0.0, -1.0], [1.0, 0.0]]), quarter)
     p, n = jurs.datasets.example1(120)
     points, normals = scale * p @ rotation.T + shift * scale, n @ rotation.T
@@ -393,8 +502,9 @@ def test_orientation_verdicts(log_scale, shift, quarter, flip):
     assert_honest(sol)
     if flip is None:
         assert sol.succeeded, sol.message
-        report = jurs.levelset.analyze(sol.spline, points, offset=sol.settings.offset,
-                                       resolution=128)
+        report = jurs.levelset.analyze(
+            sol.spline, points, offset=sol.settings.offset, resolution=128
+        )
         assert report.num_components == 1 and report.chamfer < 0.05 * scale * 8
     else:
         assert sol.result == jurs.RESULTS.inconsistent_normals

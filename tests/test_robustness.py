@@ -47,8 +47,9 @@ def test_normals_of_extreme_length(cloud, scale):
     p, n = cloud
     unit = jurs.fit(p, n, **CHEAP)
     scaled = jurs.fit(p, scale * n, **CHEAP)
-    np.testing.assert_allclose(np.asarray(scaled.spline.control),
-                               np.asarray(unit.spline.control), rtol=1e-12, atol=0)
+    np.testing.assert_allclose(
+        np.asarray(scaled.spline.control), np.asarray(unit.spline.control), rtol=1e-12, atol=0
+    )
     with jax.enable_x64(False):  # cast to float32 after normalising, not before
         sol = jurs.fit(p, scale * n, **CHEAP)
     assert np.isfinite(np.asarray(sol.spline.control)).all()
@@ -56,8 +57,9 @@ def test_normals_of_extreme_length(cloud, scale):
 
 def _rotate(normals, angles):
     c, s = np.cos(angles), np.sin(angles)
-    return np.stack([c * normals[:, 0] - s * normals[:, 1],
-                     s * normals[:, 0] + c * normals[:, 1]], axis=1)
+    return np.stack(
+        [c * normals[:, 0] - s * normals[:, 1], s * normals[:, 0] + c * normals[:, 1]], axis=1
+    )
 
 
 def test_flipped_normal_fraction():
@@ -82,8 +84,12 @@ def test_inconsistent_normals_verdict():
     rng = np.random.default_rng(0)
     p, n = jurs.datasets.example1(120)
     chosen = jurs.auto_settings(p, n)  # one compiled fit for every cloud below
-    settings = dict(grid=chosen.grid, offset=chosen.offset, eps=chosen.eps,
-                    solver=jurs.LeastSquares(lam=chosen.lam))
+    settings = dict(
+        grid=chosen.grid,
+        offset=chosen.offset,
+        eps=chosen.eps,
+        solver=jurs.LeastSquares(lam=chosen.lam),
+    )
     half = n.copy()
     half[:60] *= -1
     for normals in (half, rng.normal(size=n.shape)):
@@ -96,8 +102,7 @@ def test_inconsistent_normals_verdict():
     k = rng.choice(120, 12, replace=False)
     outliers[k] += rng.normal(0, 0.5, (12, 2))
     noisy = jurs.datasets.add_noise(p, n, sigma=0.05, normal_sigma=0.0, seed=1)
-    for points, normals in ((p, n), (p, _rotate(n, rng.normal(0, 0.1, 120))), noisy,
-                            (outliers, n)):
+    for points, normals in ((p, n), (p, _rotate(n, rng.normal(0, 0.1, 120))), noisy, (outliers, n)):
         sol = jurs.fit(points, normals, **settings)
         assert sol.succeeded, sol.message
         assert float(sol.metrics["flipped_normal_fraction"]) <= 0.01
@@ -122,13 +127,16 @@ def test_inconsistent_normals_by_iurs_and_by_the_sign_check(cloud):
     assert sol.result == jurs.RESULTS.inconsistent_normals
 
 
-@pytest.mark.parametrize("kwargs, error, needle", [
-    (dict(margin=-0.1), ValueError, "margin must be non-negative"),
-    (dict(margin=-0.6), ValueError, "margin must be non-negative"),
-    (dict(margin=float("nan")), ValueError, "margin must be finite"),
-    (dict(domain=((float("nan"), 0.0), (1.0, 1.0))), ValueError, "domain must be finite"),
-    (dict(margin="wide"), TypeError, "margin must be a number"),
-])
+@pytest.mark.parametrize(
+    "kwargs, error, needle",
+    [
+        (dict(margin=-0.1), ValueError, "margin must be non-negative"),
+        (dict(margin=-0.6), ValueError, "margin must be non-negative"),
+        (dict(margin=float("nan")), ValueError, "margin must be finite"),
+        (dict(domain=((float("nan"), 0.0), (1.0, 1.0))), ValueError, "domain must be finite"),
+        (dict(margin="wide"), TypeError, "margin must be a number"),
+    ],
+)
 def test_margin_and_domain(cloud, kwargs, error, needle):
     """5: margin unchecked, a NaN domain reported as "lam must be finite"."""
     for settings in ({}, CHEAP):  # the automatic path and the explicit one
@@ -187,21 +195,25 @@ def test_memory_refused_up_front(cloud, monkeypatch):
 
 def test_load_spline_checks_values(tmp_path):
     """9: load_spline accepted all-zero weights (g NaN everywhere) and lower > upper."""
-    good = dict(control=np.zeros((6, 6)), weights=np.ones((6, 6)), lower=np.zeros(2),
-                upper=np.ones(2))
-    for change, needle in ((dict(weights=np.zeros((6, 6))), "weights must all be positive"),
-                           (dict(lower=np.array([2.0, 0.0])), "lower must be below upper"),
-                           (dict(control=np.full((6, 6), np.nan)), "control contain NaN"),
-                           (dict(control=np.zeros((3, 3)), weights=np.ones((3, 3))),
-                            "at least 4 x 4")):
+    good = dict(
+        control=np.zeros((6, 6)), weights=np.ones((6, 6)), lower=np.zeros(2), upper=np.ones(2)
+    )
+    for change, needle in (
+        (dict(weights=np.zeros((6, 6))), "weights must all be positive"),
+        (dict(lower=np.array([2.0, 0.0])), "lower must be below upper"),
+        (dict(control=np.full((6, 6), np.nan)), "control contain NaN"),
+        (dict(control=np.zeros((3, 3)), weights=np.ones((3, 3))), "at least 4 x 4"),
+    ):
         path = tmp_path / "bad.npz"
         np.savez(path, **{**good, **change})
         with pytest.raises(ValueError, match=needle) as info:
             jurs.load_spline(path)
         assert str(path) in str(info.value)
     with pytest.raises(ValueError, match="weights must all be positive"):
-        jurs.save_spline(tmp_path / "x.npz", jurs.ImplicitSpline(
-            jnp.zeros((6, 6)), jnp.zeros((6, 6)), jnp.zeros(2), jnp.ones(2)))
+        jurs.save_spline(
+            tmp_path / "x.npz",
+            jurs.ImplicitSpline(jnp.zeros((6, 6)), jnp.zeros((6, 6)), jnp.zeros(2), jnp.ones(2)),
+        )
 
 
 def test_save_spline_writes_the_name_given(cloud, tmp_path, monkeypatch):

@@ -38,10 +38,18 @@ def test_normals_point_out_of_the_filled_region(name):
     assert checked > 1100
 
 
-@pytest.mark.parametrize("name,expected", [
-    ("annulus", [1, -1]), ("glyph_B", [1, -1, -1]), ("glyph_8", [1, -1, -1]),
-    ("glyph_a", [1, -1]), ("glyph_g", [1, -1]), ("rose", [1]), ("horse", [1]),
-])
+@pytest.mark.parametrize(
+    "name,expected",
+    [
+        ("annulus", [1, -1]),
+        ("glyph_B", [1, -1, -1]),
+        ("glyph_8", [1, -1, -1]),
+        ("glyph_a", [1, -1]),
+        ("glyph_g", [1, -1]),
+        ("rose", [1]),
+        ("horse", [1]),
+    ],
+)
 def test_holes_are_clockwise(name, expected):
     """Outer boundaries anticlockwise, holes clockwise (filled region on the left)."""
     comps = sorted(shapes.outline(name), key=lambda c: -abs(shapes.signed_area(c)))
@@ -119,7 +127,14 @@ def test_fits_as_input_to_jurs():
     import jurs
 
     points, normals = shapes.get("glyph_a", 200)
-    sol = jurs.fit(points, normals, grid=(10, 10), offset=0.1, eps=0.01, solver=jurs.IPIA(max_steps=100, tol=0.0))
+    sol = jurs.fit(
+        points,
+        normals,
+        grid=(10, 10),
+        offset=0.1,
+        eps=0.01,
+        solver=jurs.IPIA(max_steps=100, tol=0.0),
+    )
     inner = points - 0.1 * normals
     g = np.asarray(sol.spline(inner))
     assert np.mean(g < 0) > 0.9

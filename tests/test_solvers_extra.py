@@ -21,32 +21,44 @@ SOLVERS = {
     "LeastSquares": (jurs.LeastSquares(lam=LAM), "exact"),
     "optx.LevenbergMarquardt": (
         jurs.OptimistixLeastSquares(optx.LevenbergMarquardt(rtol=1e-10, atol=1e-12), lam=LAM),
-        "fixed"),
+        "fixed",
+    ),
     "optx.GaussNewton": (
-        jurs.OptimistixLeastSquares(optx.GaussNewton(rtol=1e-10, atol=1e-12), lam=LAM), "fixed"),
+        jurs.OptimistixLeastSquares(optx.GaussNewton(rtol=1e-10, atol=1e-12), lam=LAM),
+        "fixed",
+    ),
     "optx.Dogleg": (
-        jurs.OptimistixLeastSquares(optx.Dogleg(rtol=1e-10, atol=1e-12), lam=LAM), "fixed"),
+        jurs.OptimistixLeastSquares(optx.Dogleg(rtol=1e-10, atol=1e-12), lam=LAM),
+        "fixed",
+    ),
     "optx.BFGS": (
         jurs.OptimistixMinimiser(optx.BFGS(rtol=1e-9, atol=1e-12), lam=LAM, max_steps=2000),
-        "fixed"),
+        "fixed",
+    ),
     "optx.OptaxMinimiser(adam)": (
-        jurs.OptimistixMinimiser(optx.OptaxMinimiser(optax.adam(1e-2), rtol=1e-9, atol=1e-12),
-                                 lam=LAM, max_steps=5000),
-        "fixed"),
+        jurs.OptimistixMinimiser(
+            optx.OptaxMinimiser(optax.adam(1e-2), rtol=1e-9, atol=1e-12), lam=LAM, max_steps=5000
+        ),
+        "fixed",
+    ),
     # Nonlinear CG stalls on this ill-conditioned problem (12 % above the optimum after
     # 5000 steps, measured): only its descent is checked.
     "optx.NonlinearCG": (
-        jurs.OptimistixMinimiser(optx.NonlinearCG(rtol=1e-9, atol=1e-12), lam=LAM,
-                                 max_steps=500),
-        "descent"),
+        jurs.OptimistixMinimiser(optx.NonlinearCG(rtol=1e-9, atol=1e-12), lam=LAM, max_steps=500),
+        "descent",
+    ),
     "optx.LevenbergMarquardt(joint)": (
-        jurs.OptimistixLeastSquares(optx.LevenbergMarquardt(rtol=1e-8, atol=1e-12), lam=LAM,
-                                    joint=True, max_steps=30),
-        "joint"),
+        jurs.OptimistixLeastSquares(
+            optx.LevenbergMarquardt(rtol=1e-8, atol=1e-12), lam=LAM, joint=True, max_steps=30
+        ),
+        "joint",
+    ),
     "optx.BFGS(joint)": (
-        jurs.OptimistixMinimiser(optx.BFGS(rtol=1e-8, atol=1e-12), lam=LAM, joint=True,
-                                 max_steps=300),
-        "joint"),
+        jurs.OptimistixMinimiser(
+            optx.BFGS(rtol=1e-8, atol=1e-12), lam=LAM, joint=True, max_steps=300
+        ),
+        "joint",
+    ),
     "JointLevenbergMarquardt": (jurs.JointLevenbergMarquardt(lam=LAM, max_steps=60), "joint"),
 }
 
@@ -54,8 +66,10 @@ SOLVERS = {
 @pytest.fixture(scope="module")
 def fits(example1_cloud):
     points, normals = example1_cloud
-    return {name: jurs.fit(points, normals, grid=9, solver=solver, offset=0.1, eps=0.01)
-            for name, (solver, _) in SOLVERS.items()}
+    return {
+        name: jurs.fit(points, normals, grid=9, solver=solver, offset=0.1, eps=0.01)
+        for name, (solver, _) in SOLVERS.items()
+    }
 
 
 def _energy(sol):
@@ -66,8 +80,9 @@ def _energy(sol):
 def test_every_solver_reports_the_same_metrics(fits):
     for name, sol in fits.items():
         assert set(sol.metrics) >= {"E", "E_d", "R", "E_ave", "E_max", "lam"}, name
-        np.testing.assert_allclose(sol.metrics["E"], sol.metrics["E_d"] + LAM * sol.metrics["R"],
-                                   rtol=1e-12, err_msg=name)
+        np.testing.assert_allclose(
+            sol.metrics["E"], sol.metrics["E_d"] + LAM * sol.metrics["R"], rtol=1e-12, err_msg=name
+        )
         assert float(sol.metrics["lam"]) == LAM
         assert np.isfinite(_energy(sol)), name
 
@@ -113,8 +128,14 @@ def test_joint_fit_beats_the_bspline_by_3x_in_e_ave(example1_cloud):
     least 3x below the exact B-spline fit's. (Timing: benchmarks/solvers.py.)"""
     points, normals = example1_cloud
     bspline = jurs.fit(points, normals, grid=9, offset=0.1, eps=0.01, solver=jurs.LeastSquares())
-    rational = jurs.fit(points, normals, grid=9, offset=0.1, eps=0.01,
-                        solver=jurs.JointLevenbergMarquardt(max_steps=100))
+    rational = jurs.fit(
+        points,
+        normals,
+        grid=9,
+        offset=0.1,
+        eps=0.01,
+        solver=jurs.JointLevenbergMarquardt(max_steps=100),
+    )
     ratio = float(bspline.metrics["E_ave"] / rational.metrics["E_ave"])
     assert ratio >= 3.0, ratio
 
@@ -127,11 +148,13 @@ def test_joint_warm_start_survives_a_singular_unregularised_system():
     above the exact B-spline fit."""
     points, normals = jurs.datasets.example1(120)
     settings = dict(grid=15, throw=False)  # d and eps automatic, as benchmarks/solvers.py
-    reference = float(jurs.fit(points, normals, solver=jurs.LeastSquares(), **settings)
-                      .metrics["E"])
-    for solver in (jurs.JointLevenbergMarquardt(max_steps=5),
-                   jurs.OptimistixMinimiser(optx.BFGS(rtol=1e-8, atol=1e-12), joint=True,
-                                            max_steps=20)):
+    reference = float(
+        jurs.fit(points, normals, solver=jurs.LeastSquares(), **settings).metrics["E"]
+    )
+    for solver in (
+        jurs.JointLevenbergMarquardt(max_steps=5),
+        jurs.OptimistixMinimiser(optx.BFGS(rtol=1e-8, atol=1e-12), joint=True, max_steps=20),
+    ):
         sol = jurs.fit(points, normals, solver=solver, **settings)
         assert sol.result != jurs.RESULTS.nonfinite, type(solver).__name__
         assert np.isfinite(float(sol.metrics["E"])) and float(sol.metrics["E"]) <= reference
@@ -140,8 +163,9 @@ def test_joint_warm_start_survives_a_singular_unregularised_system():
 @pytest.mark.slow
 def test_optimistix_results_are_mapped(example1_cloud):
     points, normals = example1_cloud
-    solver = jurs.OptimistixLeastSquares(optx.LevenbergMarquardt(rtol=1e-8, atol=1e-12),
-                                         lam=LAM, joint=True, max_steps=2)
+    solver = jurs.OptimistixLeastSquares(
+        optx.LevenbergMarquardt(rtol=1e-8, atol=1e-12), lam=LAM, joint=True, max_steps=2
+    )
     sol = jurs.fit(points, normals, grid=9, offset=0.1, eps=0.01, solver=solver)
     assert int(sol.state.num_steps) == 2
     assert sol.result == jurs.RESULTS.max_steps_reached

@@ -11,8 +11,19 @@ import pytest
 
 import jurs
 
-HEAVY = ("matplotlib", "scipy.spatial", "optimistix", "optax", "jaxopt", "contourpy",
-         "skimage", "jurs.levelset", "jurs.plot", "jurs.shapes", "jurs.datasets")
+HEAVY = (
+    "matplotlib",
+    "scipy.spatial",
+    "optimistix",
+    "optax",
+    "jaxopt",
+    "contourpy",
+    "skimage",
+    "jurs.levelset",
+    "jurs.plot",
+    "jurs.shapes",
+    "jurs.datasets",
+)
 
 LAZY_IMPORTS = """
 import json, sys
@@ -28,15 +39,17 @@ print(json.dumps([loaded, missing, levelset, wrapper, unreachable,
 
 
 def _run_python(code, env=None, timeout=300):
-    proc = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
-                          timeout=timeout, env=env)
+    proc = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, timeout=timeout, env=env
+    )
     assert proc.returncode == 0, proc.stderr
     return proc.stdout
 
 
 def test_import_loads_only_the_core_and_every_name_on_first_use():
     loaded, missing, levelset, wrapper, unreachable, optimistix = json.loads(
-        _run_python(LAZY_IMPORTS.format(heavy=HEAVY)).splitlines()[-1])
+        _run_python(LAZY_IMPORTS.format(heavy=HEAVY)).splitlines()[-1]
+    )
     assert loaded == [] and missing == [] and unreachable == []
     assert levelset == "jurs.levelset" and wrapper == "OptimistixMinimiser" and optimistix
 
@@ -51,8 +64,14 @@ def _cli(args, tmp_path, **env):
     environ.pop("JAX_COMPILATION_CACHE_DIR", None)
     environ.pop("JURS_NO_COMPILATION_CACHE", None)
     environ.update(env)
-    return subprocess.run([sys.executable, "-m", "jurs.cli", *args], capture_output=True,
-                          text=True, timeout=300, env=environ, cwd=tmp_path)
+    return subprocess.run(
+        [sys.executable, "-m", "jurs.cli", *args],
+        capture_output=True,
+        text=True,
+        timeout=300,
+        env=environ,
+        cwd=tmp_path,
+    )
 
 
 @pytest.mark.slow

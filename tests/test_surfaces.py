@@ -24,7 +24,7 @@ def axis_basis_scipy(x, lower, upper, n):
     cells past the box), independently of jurs."""
     h = (upper - lower) / (n - 3)
     knots = lower + h * np.arange(-3, n + 1)
-    columns = [BSpline.basis_element(knots[i:i + 5], extrapolate=False)(x) for i in range(n)]
+    columns = [BSpline.basis_element(knots[i : i + 5], extrapolate=False)(x) for i in range(n)]
     return np.nan_to_num(np.stack(columns, axis=1))
 
 
@@ -41,8 +41,9 @@ def sphere():
 
 def test_trivariate_rational_spline_matches_dense_definition(rng):
     control, weights = rng.normal(size=SHAPE), rng.uniform(0.5, 2.0, size=SHAPE)
-    spline = jurs.ImplicitSpline(jnp.asarray(control), jnp.asarray(weights),
-                                 jnp.asarray(LOWER), jnp.asarray(UPPER))
+    spline = jurs.ImplicitSpline(
+        jnp.asarray(control), jnp.asarray(weights), jnp.asarray(LOWER), jnp.asarray(UPPER)
+    )
     x = rng.uniform(LOWER, UPPER, size=(80, 3))
     rows = dense_rows(x)
     expected = rows @ (control * weights).ravel() / (rows @ weights.ravel())  # eq. 14
@@ -52,8 +53,12 @@ def test_trivariate_rational_spline_matches_dense_definition(rng):
 
 
 def test_transpose_is_the_adjoint_in_3d(rng):
-    local = local_basis(jnp.asarray(rng.uniform(LOWER, UPPER, size=(70, 3))),
-                        jnp.asarray(LOWER), jnp.asarray(UPPER), SHAPE)
+    local = local_basis(
+        jnp.asarray(rng.uniform(LOWER, UPPER, size=(70, 3))),
+        jnp.asarray(LOWER),
+        jnp.asarray(UPPER),
+        SHAPE,
+    )
     grid, values = jnp.asarray(rng.normal(size=SHAPE)), jnp.asarray(rng.normal(size=70))
     lhs = jnp.vdot(bspline_values(local, grid), values)
     rhs = jnp.vdot(grid, bspline_transpose(local, values, SHAPE))
@@ -66,8 +71,9 @@ def test_normal_equations_in_3d_match_the_samples(sphere, rng):
     normal = jurs.normal_equations(problem)
     assert normal.stencil.shape == (7, 8, 6, 7, 7, 7)
     grid = jnp.asarray(rng.normal(size=problem.shape))
-    direct = bspline_transpose(problem.local,
-                               problem.mask * bspline_values(problem.local, grid), problem.shape)
+    direct = bspline_transpose(
+        problem.local, problem.mask * bspline_values(problem.local, grid), problem.shape
+    )
     scale = float(jnp.max(jnp.abs(direct)))
     assert float(jnp.max(jnp.abs(normal.matvec(grid) - direct))) <= 1e-12 * scale
     rhs = bspline_transpose(problem.local, problem.mask * problem.targets, problem.shape)
@@ -83,8 +89,9 @@ def test_autodiff_matches_hand_derived_in_3d(sphere, rng, lam):
     control = jnp.asarray(0.02 * rng.standard_normal(problem.shape))
     weights = jnp.asarray(0.5 + rng.random(problem.shape))
     auto_c, auto_w = jax.grad(jurs.objective, argnums=(1, 2))(problem, control, weights, lam)
-    hand_c = (jurs.data_energy_grad_control(problem, control, weights)
-              + lam * jurs.regulariser_grad(control))
+    hand_c = jurs.data_energy_grad_control(problem, control, weights) + lam * jurs.regulariser_grad(
+        control
+    )
     hand_w = jurs.data_energy_grad_weights(problem, control, weights)
     for auto, hand in ((auto_c, hand_c), (auto_w, hand_w)):
         assert np.linalg.norm(auto - hand) <= 1e-10 * np.linalg.norm(hand)
@@ -96,8 +103,9 @@ def test_regulariser_is_the_six_neighbour_sum(rng):
     assert float(jurs.regulariser(jnp.asarray(c))) == pytest.approx(2.0 * edges, rel=1e-12)
     # L is the 6-neighbour graph Laplacian, and R's gradient is 4 L C (eq. 34).
     lap = np.asarray(_normal.stencil_to_dense(_normal.laplacian_stencil(c.shape)))
-    np.testing.assert_allclose(np.asarray(jurs.grid_laplacian(jnp.asarray(c))).ravel(),
-                               lap @ c.ravel(), atol=1e-12)
+    np.testing.assert_allclose(
+        np.asarray(jurs.grid_laplacian(jnp.asarray(c))).ravel(), lap @ c.ravel(), atol=1e-12
+    )
 
 
 def test_surface_fit_recovers_a_sphere(sphere):
@@ -117,8 +125,9 @@ def test_automatic_settings_in_3d(sphere):
     # Exact samples of a smooth surface: only the quadratic's misfit to the sphere (its
     # fourth-order term over a few spacings).
     assert settings.noise < 1e-2 * settings.spacing
-    noisy = jurs.datasets.sphere3d(400, seed=1)[0] * (1 + 0.02 * np.random.default_rng(0)
-                                                      .standard_normal((400, 1)))
+    noisy = jurs.datasets.sphere3d(400, seed=1)[0] * (
+        1 + 0.02 * np.random.default_rng(0).standard_normal((400, 1))
+    )
     assert jurs.auto_settings(noisy, sphere[1]).noise > 0.005
 
 
@@ -129,11 +138,14 @@ def test_paper_iterations_run_in_3d(sphere):
     assert np.all(np.diff(energy) <= 1e-12 * energy[0]) and energy[-1] < 0.9 * energy[0]
 
 
-@pytest.mark.parametrize("kwargs, match", [
-    (dict(grid=(6, 6)), "triple"),
-    (dict(grid=6, bucket_size=4), "bucket_size"),
-    (dict(grid=6, domain=((0, 0), (1, 1))), "domain"),
-])
+@pytest.mark.parametrize(
+    "kwargs, match",
+    [
+        (dict(grid=(6, 6)), "triple"),
+        (dict(grid=6, bucket_size=4), "bucket_size"),
+        (dict(grid=6, domain=((0, 0), (1, 1))), "domain"),
+    ],
+)
 def test_surface_inputs_are_checked(sphere, kwargs, match):
     with pytest.raises(ValueError, match=match):
         jurs.make_problem(*sphere, offset=0.05, **kwargs)

@@ -17,10 +17,12 @@ from ._sparse_lm import JointLevenbergMarquardt, JointLMState
 
 #: Names of the lazily loaded wrapper modules.
 _LAZY = {
-    **dict.fromkeys(("JaxoptGaussNewton", "JaxoptLBFGS", "JaxoptLevenbergMarquardt",
-                     "JaxoptState"), "._jaxopt"),
-    **dict.fromkeys(("OptimistixLeastSquares", "OptimistixMinimiser", "OptimistixState"),
-                    "._optimistix"),
+    **dict.fromkeys(
+        ("JaxoptGaussNewton", "JaxoptLBFGS", "JaxoptLevenbergMarquardt", "JaxoptState"), "._jaxopt"
+    ),
+    **dict.fromkeys(
+        ("OptimistixLeastSquares", "OptimistixMinimiser", "OptimistixState"), "._optimistix"
+    ),
 }
 
 
@@ -37,9 +39,24 @@ def __dir__():
 
 
 __all__ = [
-    "AbstractSolver", "IPIA", "IPIAState", "IURS", "IURSState", "JaxoptGaussNewton",
-    "JaxoptLBFGS", "JaxoptLevenbergMarquardt", "JaxoptState", "JointLMState",
-    "JointLevenbergMarquardt", "LeastSquares", "LeastSquaresState", "NormalIPIA",
-    "NormalIPIAState", "OptimistixLeastSquares", "OptimistixMinimiser", "OptimistixState",
-    "objective_lam", "solve",
+    "AbstractSolver",
+    "IPIA",
+    "IPIAState",
+    "IURS",
+    "IURSState",
+    "JaxoptGaussNewton",
+    "JaxoptLBFGS",
+    "JaxoptLevenbergMarquardt",
+    "JaxoptState",
+    "JointLMState",
+    "JointLevenbergMarquardt",
+    "LeastSquares",
+    "LeastSquaresState",
+    "NormalIPIA",
+    "NormalIPIAState",
+    "OptimistixLeastSquares",
+    "OptimistixMinimiser",
+    "OptimistixState",
+    "objective_lam",
+    "solve",
 ]

@@ -108,7 +108,8 @@ def cascadic_start(problem: Problem, lam, solve, start: Array) -> Array:
         else:
             start = transfer(start, shape)
             # Absolute per-entry tolerance: see surface_linear_solver.
-            solver = lx.CG(rtol=0.0, atol=LEVEL_RTOL * jnp.max(jnp.abs(normal.rhs)),
-                           max_steps=LEVEL_MAX_STEPS)
+            solver = lx.CG(
+                rtol=0.0, atol=LEVEL_RTOL * jnp.max(jnp.abs(normal.rhs)), max_steps=LEVEL_MAX_STEPS
+            )
         start = solve(stencil, normal.rhs, start, solver)
     return transfer(start, problem.shape)

@@ -35,8 +35,13 @@ def offset_sign_disagreement(problem: Problem, spline: ImplicitSpline):
 
 
 @full_precision
-def solve(solver: AbstractSolver, problem: Problem, spline: ImplicitSpline | None = None,
-          *, throw: bool = True) -> Solution:
+def solve(
+    solver: AbstractSolver,
+    problem: Problem,
+    spline: ImplicitSpline | None = None,
+    *,
+    throw: bool = True,
+) -> Solution:
     """Run ``solver`` on ``problem`` from ``spline`` (default: C = 0, w = 1, as Algorithm 1).
 
     The loop is a ``jax.lax.while_loop``: it stops when ``|E_new - E_old| < solver.tol``
@@ -55,7 +60,9 @@ def solve(solver: AbstractSolver, problem: Problem, spline: ImplicitSpline | Non
     if spline is None:
         dtype = problem.samples.dtype
         spline = ImplicitSpline(
-            jnp.zeros(problem.shape, dtype), jnp.ones(problem.shape, dtype), problem.lower,
+            jnp.zeros(problem.shape, dtype),
+            jnp.ones(problem.shape, dtype),
+            problem.lower,
             problem.upper,
         )
     max_steps = solver.max_steps
@@ -82,7 +89,14 @@ def solve(solver: AbstractSolver, problem: Problem, spline: ImplicitSpline | Non
         energy = jnp.where(finite, new_energy, energy)
         return k + 1, state, energy, ~finite, history, stop
 
-    init = (jnp.array(0), state, energy, ~jnp.isfinite(energy), history, done | ~jnp.isfinite(energy))
+    init = (
+        jnp.array(0),
+        state,
+        energy,
+        ~jnp.isfinite(energy),
+        history,
+        done | ~jnp.isfinite(energy),
+    )
     # A checkpointed loop runs as a plain while loop forward and, unlike lax.while_loop,
     # can be reverse-differentiated (jax.grad of a loss of the fit), with O(log) memory.
     # The history buffer is written in place.
@@ -96,8 +110,11 @@ def solve(solver: AbstractSolver, problem: Problem, spline: ImplicitSpline | Non
     result = RESULTS.where(
         nonfinite,
         RESULTS.nonfinite,
-        RESULTS.where(solver_result != RESULTS.successful, solver_result,
-                      RESULTS.where(stop, RESULTS.successful, RESULTS.max_steps_reached)),
+        RESULTS.where(
+            solver_result != RESULTS.successful,
+            solver_result,
+            RESULTS.where(stop, RESULTS.successful, RESULTS.max_steps_reached),
+        ),
     )
     fitted = solver.to_spline(problem, state)
     if throw:
@@ -108,8 +125,10 @@ def solve(solver: AbstractSolver, problem: Problem, spline: ImplicitSpline | Non
     # targets say so; random normals converge to a fit that does not.
     disagreement = offset_sign_disagreement(problem, fitted)
     metrics["offset_sign_disagreement"] = disagreement
-    result = RESULTS.where((result == RESULTS.successful)
-                           & (disagreement > MAX_OFFSET_SIGN_DISAGREEMENT),
-                           RESULTS.inconsistent_normals, result)
+    result = RESULTS.where(
+        (result == RESULTS.successful) & (disagreement > MAX_OFFSET_SIGN_DISAGREEMENT),
+        RESULTS.inconsistent_normals,
+        result,
+    )
     stats = {"num_steps": k, "energy_history": history}
     return Solution(spline=fitted, metrics=metrics, stats=stats, result=result, state=state)

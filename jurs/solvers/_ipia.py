@@ -29,8 +29,9 @@ class _AbstractPIA(AbstractSolver[State]):
         check_count("max_steps", self.max_steps)
 
     def to_spline(self, problem: Problem, state) -> ImplicitSpline:
-        return ImplicitSpline(state.control, jnp.ones_like(state.control), problem.lower,
-                              problem.upper)
+        return ImplicitSpline(
+            state.control, jnp.ones_like(state.control), problem.lower, problem.upper
+        )
 
 
 class IPIAState(eqx.Module):
@@ -88,12 +89,16 @@ class NormalIPIA(_AbstractPIA[NormalIPIAState]):
         # D >= 0, so D^T D >= 0 entrywise and ||D^T D||_inf is its largest row sum (eq. 13).
         mu = 2.0 / jnp.max(jnp.sum(normal.stencil, axis=(2, 3)))
         product = normal.matvec(spline.control)
-        return (NormalIPIAState(spline.control, product, normal, mu),
-                normal.data_energy(spline.control, product))
+        return (
+            NormalIPIAState(spline.control, product, normal, mu),
+            normal.data_energy(spline.control, product),
+        )
 
     def step(self, problem: Problem, state: NormalIPIAState):
         normal = state.normal
         control = state.control - state.mu * (state.product - normal.rhs)  # eq. 11
         product = normal.matvec(control)
-        return (NormalIPIAState(control, product, normal, state.mu),
-                normal.data_energy(control, product))
+        return (
+            NormalIPIAState(control, product, normal, state.mu),
+            normal.data_energy(control, product),
+        )

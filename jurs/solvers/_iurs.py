@@ -81,14 +81,20 @@ class IURS(AbstractSolver[IURSState]):
         # Where W is known for these weights (a step's), g costs one B-spline evaluation.
         r, inv_denom, g = layout_residuals(local, *data, control, weights, inv_denom)
         # nabla_w E_d (eq. 19, as weight_gradient) and E_d in one pass over the samples.
-        t, (e_d,) = transpose_and_sum(local, jnp.stack([r * inv_denom, r * g * inv_denom]),
-                                      problem.shape, [r * r], layout=True)
+        t, (e_d,) = transpose_and_sum(
+            local,
+            jnp.stack([r * inv_denom, r * g * inv_denom]),
+            problem.shape,
+            [r * r],
+            layout=True,
+        )
         energy = e_d + self.lam * regulariser(control)
         return energy, 2.0 * (control * t[0] - t[1])
 
     def init(self, problem: Problem, spline: ImplicitSpline):
-        energy, grad_w = self._energy_and_weight_grad(problem, self._data(problem),
-                                                      spline.control, spline.weights)
+        energy, grad_w = self._energy_and_weight_grad(
+            problem, self._data(problem), spline.control, spline.weights
+        )
         mu = jnp.zeros((), energy.dtype)  # set by the first step, from the new weights
         return IURSState(spline.control, spline.weights, grad_w, mu), energy
 
@@ -102,23 +108,24 @@ class IURS(AbstractSolver[IURSState]):
         #    D^T v = w * T(v / W). W and F(w C) are computed together and kept, so that the
         #    pass over the samples only sums (1/W serves step 4 too).
         r, inv_denom, _ = layout_residuals(local, *data, state.control, weights)
-        grids, _ = transpose_and_sum(local, jnp.stack([r * inv_denom, inv_denom]),
-                                     problem.shape, layout=True)
+        grids, _ = transpose_and_sum(
+            local, jnp.stack([r * inv_denom, inv_denom]), problem.shape, layout=True
+        )
         dtr, col_sums = weights * grids
         mu = step_size_from_column_sums(col_sums)
         # 3. eq. 33: C + mu D^T (b - DC) - lam grad R(C).
         control = state.control - mu * dtr - self.lam * regulariser_grad(state.control)
         # 4. eq. 35 at the new (C, w), with nabla_w E_d there for the next step.
-        energy, grad_w = self._energy_and_weight_grad(problem, data, control, weights,
-                                                      inv_denom)
+        energy, grad_w = self._energy_and_weight_grad(problem, data, control, weights, inv_denom)
         return IURSState(control, weights, grad_w, mu), energy
 
     def terminate(self, problem: Problem, state: IURSState):
         # Never stops the loop; its verdict (weights pinned by a far too large tau) is
         # reported whether the run converged or reached max_steps.
         at_floor = jnp.mean(state.weights <= self.min_weight * (1.0 + 1e-6))
-        return jnp.array(False), RESULTS.where(at_floor > MAX_FLOOR_FRACTION,
-                                               RESULTS.weights_at_floor, RESULTS.successful)
+        return jnp.array(False), RESULTS.where(
+            at_floor > MAX_FLOOR_FRACTION, RESULTS.weights_at_floor, RESULTS.successful
+        )
 
     def to_spline(self, problem: Problem, state: IURSState) -> ImplicitSpline:
         return ImplicitSpline(state.control, state.weights, problem.lower, problem.upper)

@@ -84,14 +84,18 @@ class _AbstractJaxopt(AbstractSolver[JaxoptState]):
         flat0, unravel = ravel_pytree(state.params)
         joint = self.joint
         if self.least_squares:
+
             def fun(x, problem, lam):
                 return jnp.concatenate(
                     [r.ravel() for r in param.residual_vector(unravel(x), problem, lam, joint)]
                 )
+
             kwargs = {"residual_fun": fun}
         else:
+
             def fun(x, problem, lam):
                 return param.scalar_loss(unravel(x), problem, lam, joint)
+
             kwargs = {"fun": fun}
         solver = getattr(jaxopt, self.jaxopt_name)(
             **kwargs, maxiter=self.max_steps, tol=self.tol, **dict(self.options)
@@ -100,13 +104,15 @@ class _AbstractJaxopt(AbstractSolver[JaxoptState]):
         params = unravel(flat)
         control, weights = param.unpack(params, joint)
         energy = objective(problem, control, weights, self.lam)
-        new = JaxoptState(params, jnp.array(True), info.error <= self.tol, info.iter_num,
-                          info.error)
+        new = JaxoptState(
+            params, jnp.array(True), info.error <= self.tol, info.iter_num, info.error
+        )
         return new, energy
 
     def terminate(self, problem: Problem, state: JaxoptState):
-        result = RESULTS.where(state.converged | ~state.done, RESULTS.successful,
-                               RESULTS.max_steps_reached)
+        result = RESULTS.where(
+            state.converged | ~state.done, RESULTS.successful, RESULTS.max_steps_reached
+        )
         return state.done, result
 
     def to_spline(self, problem: Problem, state: JaxoptState) -> ImplicitSpline:

@@ -110,24 +110,36 @@ def _direct_stencil_solve(stencil: Array, rhs: Array) -> Array:
     solve (``lax.custom_linear_solve``: the adjoint system is solved by the same
     factorisation). Non-finite where the factorisation breaks down."""
     return jax.lax.custom_linear_solve(
-        lambda c: stencil_matvec(stencil, c), rhs,
-        lambda _, b: stencil_cholesky_solve(stencil, b), symmetric=True)
+        lambda c: stencil_matvec(stencil, c),
+        rhs,
+        lambda _, b: stencil_cholesky_solve(stencil, b),
+        symmetric=True,
+    )
 
 
-def _unless_nonfinite(solved: tuple, stencil: Array, rhs: Array, start: Array,
-                      fallback: lx.AbstractLinearSolver) -> tuple:
+def _unless_nonfinite(
+    solved: tuple, stencil: Array, rhs: Array, start: Array, fallback: lx.AbstractLinearSolver
+) -> tuple:
     """``solved`` (``(C, lineax result)``), or where C is not finite the solve by
     ``fallback``. A Cholesky factorisation breaks down (NaN) where the matrix is not
     numerically positive definite: unregularised systems on sparse data are singular at
     rounding level, and whether they factor depends on the device's rounding."""
     control, result = solved
-    return jax.lax.cond(jnp.all(jnp.isfinite(control)), lambda: (control, result),
-                        lambda: solve_normal_equations(stencil, rhs, start, fallback))
+    return jax.lax.cond(
+        jnp.all(jnp.isfinite(control)),
+        lambda: (control, result),
+        lambda: solve_normal_equations(stencil, rhs, start, fallback),
+    )
 
 
-def solve_normal_equations(stencil: Array, rhs: Array, start: Array,
-                           linear_solver: lx.AbstractLinearSolver | None, ridge=0.0,
-                           fallback: lx.AbstractLinearSolver | None = None):
+def solve_normal_equations(
+    stencil: Array,
+    rhs: Array,
+    start: Array,
+    linear_solver: lx.AbstractLinearSolver | None,
+    ridge=0.0,
+    fallback: lx.AbstractLinearSolver | None = None,
+):
     """Solve ``stencil * C = rhs`` (a symmetric positive semi-definite stencil) with lineax.
 
     Coefficients whose diagonal is 0 are in no sample's support and (with lam = 0)
@@ -150,8 +162,13 @@ def solve_normal_equations(stencil: Array, rhs: Array, start: Array,
     rhs = jnp.where(unseen, start, rhs)
     tags = lx.positive_semidefinite_tag
     if linear_solver is None:
-        return _unless_nonfinite((_direct_stencil_solve(stencil, rhs), lx.RESULTS.successful),
-                                 stencil, rhs, start, stencil_cg(rhs.shape))
+        return _unless_nonfinite(
+            (_direct_stencil_solve(stencil, rhs), lx.RESULTS.successful),
+            stencil,
+            rhs,
+            start,
+            stencil_cg(rhs.shape),
+        )
     if _is_matrix_free(linear_solver):
         operator = lx.FunctionLinearOperator(lambda c: stencil_matvec(stencil, c), rhs, tags)
         # The preconditioner and initial guess change the path, not the solution: no
@@ -160,16 +177,16 @@ def solve_normal_equations(stencil: Array, rhs: Array, start: Array,
             options = {"stencil": jax.lax.stop_gradient(stencil)}
         else:
             inv_diag = jax.lax.stop_gradient(1.0 / stencil[centre])
-            options = {"preconditioner": lx.FunctionLinearOperator(lambda c: inv_diag * c,
-                                                                   rhs, tags)}
+            options = {
+                "preconditioner": lx.FunctionLinearOperator(lambda c: inv_diag * c, rhs, tags)
+            }
         options["y0"] = jax.lax.stop_gradient(start)
         sol = lx.linear_solve(operator, rhs, linear_solver, throw=False, options=options)
         return sol.value, sol.result
     operator = lx.MatrixLinearOperator(stencil_to_dense(stencil), tags)
     sol = lx.linear_solve(operator, rhs.ravel(), linear_solver, throw=False)
     solved = sol.value.reshape(rhs.shape), sol.result
-    return solved if fallback is None else _unless_nonfinite(solved, stencil, rhs, start,
-                                                             fallback)
+    return solved if fallback is None else _unless_nonfinite(solved, stencil, rhs, start, fallback)
 
 
 class LeastSquares(AbstractSolver[LeastSquaresState]):
@@ -230,16 +247,16 @@ class LeastSquares(AbstractSolver[LeastSquaresState]):
         check_nonnegative("ridge", self.ridge)
         if int(self.chunk_size) < 1:
             raise ValueError(f"chunk_size must be >= 1, got {self.chunk_size}")
-        if self.linear_solver is not None and not isinstance(self.linear_solver,
-                                                             lx.AbstractLinearSolver):
+        if self.linear_solver is not None and not isinstance(
+            self.linear_solver, lx.AbstractLinearSolver
+        ):
             raise TypeError(f"linear_solver must be a lineax solver, got {self.linear_solver!r}")
 
     def _level_solve(self, stencil, rhs, start, linear_solver):
         """One level of the cascade: ``solve_normal_equations`` with this solver's ridge,
         and LU where a dense Cholesky breaks down."""
         fallback = lx.LU() if isinstance(linear_solver, lx.Cholesky) else None
-        return solve_normal_equations(stencil, rhs, start, linear_solver, self.ridge,
-                                      fallback)[0]
+        return solve_normal_equations(stencil, rhs, start, linear_solver, self.ridge, fallback)[0]
 
     def _weights(self, spline: ImplicitSpline) -> Array:
         return spline.weights if self.keep_weights else jnp.ones_like(spline.control)
@@ -247,16 +264,22 @@ class LeastSquares(AbstractSolver[LeastSquaresState]):
     def init(self, problem: Problem, spline: ImplicitSpline):
         weights = self._weights(spline)
         energy = objective(problem, spline.control, weights, self.lam)
-        return LeastSquaresState(spline.control, weights, jnp.array(False),
-                                 lx.RESULTS.successful), energy
+        return LeastSquaresState(
+            spline.control, weights, jnp.array(False), lx.RESULTS.successful
+        ), energy
 
     def step(self, problem: Problem, state: LeastSquaresState):
-        normal = normal_equations(problem, state.weights if self.keep_weights else None,
-                                  chunk_size=self.chunk_size)
+        normal = normal_equations(
+            problem, state.weights if self.keep_weights else None, chunk_size=self.chunk_size
+        )
         system = (normal.regularised(self.lam), normal.rhs, state.control)
         n, m = sorted(problem.shape, reverse=True)[:2]
-        if (self.linear_solver is None and problem.ndim == 2 and n * m > DENSE_MAX_COEFFICIENTS
-                and n * m * m <= DIRECT_MAX_ENTRIES):
+        if (
+            self.linear_solver is None
+            and problem.ndim == 2
+            and n * m > DENSE_MAX_COEFFICIENTS
+            and n * m * m <= DIRECT_MAX_ENTRIES
+        ):
             # lam > 0: the regulariser makes the system positive definite, and a direct
             # solve beats the tens of thousands of CG steps that sparse data need (18275
             # on 1e6 points at 128 x 128, lam = 1e-4). lam = 0: numerically singular
@@ -265,14 +288,19 @@ class LeastSquares(AbstractSolver[LeastSquaresState]):
             control, result = jax.lax.cond(
                 jnp.asarray(self.lam) > 0,
                 lambda: solve_normal_equations(*system, None, self.ridge),
-                lambda: solve_normal_equations(*system, cg, self.ridge))
-        elif self.linear_solver is None and problem.ndim == 3 and \
-                np.prod(problem.shape) > DENSE_MAX_COEFFICIENTS:
+                lambda: solve_normal_equations(*system, cg, self.ridge),
+            )
+        elif (
+            self.linear_solver is None
+            and problem.ndim == 3
+            and np.prod(problem.shape) > DENSE_MAX_COEFFICIENTS
+        ):
             # Surfaces: CG from the cascade's start (jurs/solvers/_cascade.py), which
             # carries the far field that CG from 0 leaves behind.
             start = cascadic_start(problem, self.lam, self._level_solve, state.control)
-            control, result = solve_normal_equations(*system[:2], start,
-                                                     surface_linear_solver(normal.rhs), self.ridge)
+            control, result = solve_normal_equations(
+                *system[:2], start, surface_linear_solver(normal.rhs), self.ridge
+            )
         elif self.linear_solver is None:
             control, result = solve_by_default(*system, self.ridge)
         else:
@@ -285,8 +313,11 @@ class LeastSquares(AbstractSolver[LeastSquaresState]):
         result = RESULTS.where(
             state.result == lx.RESULTS.successful,
             RESULTS.successful,
-            RESULTS.where(state.result == lx.RESULTS.max_steps_reached,
-                          RESULTS.max_steps_reached, RESULTS.failed),
+            RESULTS.where(
+                state.result == lx.RESULTS.max_steps_reached,
+                RESULTS.max_steps_reached,
+                RESULTS.failed,
+            ),
         )
         return state.done, result
 

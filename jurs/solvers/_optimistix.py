@@ -31,8 +31,11 @@ def map_result(result: optx.RESULTS) -> RESULTS:
     return RESULTS.where(
         result == optx.RESULTS.successful,
         RESULTS.successful,
-        RESULTS.where(result == optx.RESULTS.nonlinear_max_steps_reached,
-                      RESULTS.max_steps_reached, RESULTS.failed),
+        RESULTS.where(
+            result == optx.RESULTS.nonlinear_max_steps_reached,
+            RESULTS.max_steps_reached,
+            RESULTS.failed,
+        ),
     )
 
 
@@ -49,8 +52,16 @@ class _AbstractOptimistix(AbstractSolver[OptimistixState]):
 
     default_max_steps: ClassVar[int]  # each subclass sets its own
 
-    def __init__(self, solver, *, lam=0.0, joint=False, max_steps=None, warm_start=True,
-                 adjoint=optx.ImplicitAdjoint()):
+    def __init__(
+        self,
+        solver,
+        *,
+        lam=0.0,
+        joint=False,
+        max_steps=None,
+        warm_start=True,
+        adjoint=optx.ImplicitAdjoint(),
+    ):
         self.solver, self.lam, self.joint = solver, lam, joint
         self.max_steps = self.default_max_steps if max_steps is None else max_steps
         self.warm_start, self.adjoint = warm_start, adjoint
@@ -78,8 +89,7 @@ class _AbstractOptimistix(AbstractSolver[OptimistixState]):
         sol = self._run(problem, state.params)
         control, weights = param.unpack(sol.value, self.joint)
         energy = objective(problem, control, weights, self.lam)
-        new_state = OptimistixState(sol.value, jnp.array(True), sol.result,
-                                    sol.stats["num_steps"])
+        new_state = OptimistixState(sol.value, jnp.array(True), sol.result, sol.stats["num_steps"])
         return new_state, energy
 
     def terminate(self, problem: Problem, state: OptimistixState):
@@ -126,8 +136,12 @@ class OptimistixLeastSquares(_AbstractOptimistix):
     def _run(self, problem: Problem, y0) -> optx.Solution:
         return optx.least_squares(
             lambda y, args: param.residual_vector(y, args[0], args[1], self.joint),
-            self.solver, y0, (problem, self.lam), max_steps=self.max_steps,
-            adjoint=self.adjoint, throw=False,
+            self.solver,
+            y0,
+            (problem, self.lam),
+            max_steps=self.max_steps,
+            adjoint=self.adjoint,
+            throw=False,
         )
 
 
@@ -148,6 +162,10 @@ class OptimistixMinimiser(_AbstractOptimistix):
     def _run(self, problem: Problem, y0) -> optx.Solution:
         return optx.minimise(
             lambda y, args: param.scalar_loss(y, args[0], args[1], self.joint),
-            self.solver, y0, (problem, self.lam), max_steps=self.max_steps,
-            adjoint=self.adjoint, throw=False,
+            self.solver,
+            y0,
+            (problem, self.lam),
+            max_steps=self.max_steps,
+            adjoint=self.adjoint,
+            throw=False,
         )

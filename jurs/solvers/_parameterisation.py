@@ -48,8 +48,9 @@ def scalar_loss(y, problem: Problem, lam, joint: bool) -> Array:
     return sum(jnp.sum(r * r) for r in residual_vector(y, problem, lam, joint))
 
 
-def initial_parameters(problem: Problem, spline: ImplicitSpline, lam, joint: bool,
-                       warm_start: bool):
+def initial_parameters(
+    problem: Problem, spline: ImplicitSpline, lam, joint: bool, warm_start: bool
+):
     """Start of the search. B-spline: the start spline's C. Joint: ``v = log w`` shifted to
     mean 0, and, with ``warm_start``, C replaced by the exact minimiser for those fixed
     weights (one normal-equation solve): the joint search then starts at the best C for
@@ -63,8 +64,7 @@ def initial_parameters(problem: Problem, spline: ImplicitSpline, lam, joint: boo
     control = spline.control
     if warm_start:
         normal = normal_equations(problem, spline.weights)
-        control, _ = solve_by_default(normal.regularised(lam), normal.rhs, control,
-                                      DEFAULT_RIDGE)
+        control, _ = solve_by_default(normal.regularised(lam), normal.rhs, control, DEFAULT_RIDGE)
     return control, log_weights
 
 

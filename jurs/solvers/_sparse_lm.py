@@ -58,6 +58,7 @@ def _global_index(shape: tuple[int, int]) -> np.ndarray:
 
 def _laplacian_matrix(shape: tuple[int, int]) -> np.ndarray:
     """The grid Laplacian L (free boundary) as a dense ``NM x NM`` matrix."""
+
     def path(k):
         lap = np.diag(np.r_[1.0, 2.0 * np.ones(k - 2), 1.0]) if k > 1 else np.zeros((1, 1))
         return lap - np.eye(k, k=1) - np.eye(k, k=-1)
@@ -98,8 +99,9 @@ class JointLevenbergMarquardt(AbstractSolver[JointLMState]):
             raise ValueError("max_steps must be >= 0 and max_tries >= 1")
 
     def init(self, problem: Problem, spline: ImplicitSpline):
-        control, log_weights = param.initial_parameters(problem, spline, self.lam, True,
-                                                        self.warm_start)
+        control, log_weights = param.initial_parameters(
+            problem, spline, self.lam, True, self.warm_start
+        )
         energy = objective(problem, control, jnp.exp(log_weights), self.lam)
         damping = jnp.asarray(self.damping, energy.dtype)
         return JointLMState(control, log_weights, damping, energy), energy
@@ -113,18 +115,22 @@ class JointLevenbergMarquardt(AbstractSolver[JointLMState]):
         def outer(rows):
             return (rows[:, :, None] * rows[:, None, :]).reshape(rows.shape[0], -1)
 
-        gram = chunked_segment_sum(outer, [rows], problem.local.cell, num_cells(shape),
-                                   self.chunk_size)
+        gram = chunked_segment_sum(
+            outer, [rows], problem.local.cell, num_cells(shape), self.chunk_size
+        )
         index = jnp.asarray(_global_index(shape))
-        hessian = jnp.zeros((2 * size, 2 * size), r.dtype).at[
-            index[:, :, None], index[:, None, :]
-        ].add(gram.reshape(-1, 2 * NUM_LOCAL, 2 * NUM_LOCAL))
+        hessian = (
+            jnp.zeros((2 * size, 2 * size), r.dtype)
+            .at[index[:, :, None], index[:, None, :]]
+            .add(gram.reshape(-1, 2 * NUM_LOCAL, 2 * NUM_LOCAL))
+        )
         lap = jnp.asarray(_laplacian_matrix(shape), r.dtype)
         hessian = hessian.at[:size, :size].add(2.0 * self.lam * lap)
         # Gauge residual mean(v): its Jacobian row is 1/NM on every v.
         hessian = hessian.at[size:, size:].add(1.0 / size**2)
-        grads = transpose_apply(problem, jnp.stack([rows[:, :NUM_LOCAL], rows[:, NUM_LOCAL:]], 1)
-                                * r[:, None, None])
+        grads = transpose_apply(
+            problem, jnp.stack([rows[:, :NUM_LOCAL], rows[:, NUM_LOCAL:]], 1) * r[:, None, None]
+        )
         grad_c = grads[0].ravel() + 2.0 * self.lam * (lap @ control.ravel())
         grad_v = grads[1].ravel() + jnp.mean(log_weights) / size
         return hessian, jnp.concatenate([grad_c, grad_v])
@@ -139,8 +145,9 @@ class JointLevenbergMarquardt(AbstractSolver[JointLMState]):
         scale = jnp.maximum(diag, 1e-12 * jnp.max(diag))
 
         def trial(damping):
-            operator = lx.MatrixLinearOperator(hessian + jnp.diag(damping * scale),
-                                               lx.positive_semidefinite_tag)
+            operator = lx.MatrixLinearOperator(
+                hessian + jnp.diag(damping * scale), lx.positive_semidefinite_tag
+            )
             delta = lx.linear_solve(operator, -grad, lx.Cholesky(), throw=False).value
             control = state.control + delta[:size].reshape(shape)
             log_weights = state.log_weights + delta[size:].reshape(shape)
@@ -158,8 +165,13 @@ class JointLevenbergMarquardt(AbstractSolver[JointLMState]):
             damping = jnp.where(tries == 0, damping, damping * 4.0)
             return (tries + 1, damping, *trial(damping))
 
-        carry0 = (jnp.array(0), state.damping, state.control, state.log_weights,
-                  jnp.asarray(jnp.inf, state.energy.dtype))
+        carry0 = (
+            jnp.array(0),
+            state.damping,
+            state.control,
+            state.log_weights,
+            jnp.asarray(jnp.inf, state.energy.dtype),
+        )
         _, damping, control, log_weights, energy = jax.lax.while_loop(cond, body, carry0)
         accepted = energy < state.energy
         new = JointLMState(
@@ -171,5 +183,6 @@ class JointLevenbergMarquardt(AbstractSolver[JointLMState]):
         return new, new.energy
 
     def to_spline(self, problem: Problem, state: JointLMState) -> ImplicitSpline:
-        return ImplicitSpline(state.control, jnp.exp(state.log_weights), problem.lower,
-                              problem.upper)
+        return ImplicitSpline(
+            state.control, jnp.exp(state.log_weights), problem.lower, problem.upper
+        )
