@@ -44,6 +44,17 @@ class RESULTS(eqx.Enumeration):
     )
 
 
+#: The short names of the :class:`RESULTS` items, in their order (``Solution.status``).
+RESULT_NAMES = (
+    "successful",
+    "max_steps_reached",
+    "failed",
+    "nonfinite",
+    "inconsistent_normals",
+    "weights_at_floor",
+)
+
+
 class Solution(eqx.Module):
     """Result of :func:`jurs.fit` or :func:`jurs.solve`.
 
@@ -69,6 +80,13 @@ class Solution(eqx.Module):
     @property
     def message(self) -> str:
         return RESULTS[self.result]
+
+    @property
+    def status(self) -> str:
+        """The verdict's short name, one of :data:`RESULT_NAMES` (``"successful"``,
+        ``"max_steps_reached"``, ...): what scripts and the command line print. Needs a
+        concrete result (not inside ``jax.jit``)."""
+        return next(n for n in RESULT_NAMES if bool(self.result == getattr(RESULTS, n)))
 
     @property
     def succeeded(self) -> bool:
