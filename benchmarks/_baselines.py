@@ -25,7 +25,7 @@ def offset_samples(points, normals, offset: float, eps: float):
     points = np.asarray(points, float)
     normals = np.asarray(normals, float)
     normals = normals / np.linalg.norm(normals, axis=1, keepdims=True)
-    samples, targets = jurs.offset_samples(points, normals, offset, eps)
+    samples, targets = jurs.internal.offset_samples(points, normals, offset, eps)
     return np.asarray(samples, float), np.asarray(targets, float)
 
 

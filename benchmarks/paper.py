@@ -466,7 +466,7 @@ def table2(quick, warm, figdir, written):
             pair_runs[which] = (rec, sol)
             rows.append(rec)
         without, with_ = pair_runs["without"][0], pair_runs["with"][0]
-        with_["eta_E_ave"] = float(jurs.eta(without["E_ave"], with_["E_ave"]))
+        with_["eta_E_ave"] = float(jurs.internal.eta(without["E_ave"], with_["E_ave"]))
         fig = panel_figure(
             [
                 (

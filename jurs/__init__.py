@@ -1,4 +1,4 @@
-"""jurs: implicit curve reconstruction with uniform rational B-splines, in JAX.
+"""jurs: implicit curves and surfaces from point clouds with uniform rational B-splines, in JAX.
 
 Implements "Implicit Uniform Rational Spline Reconstruction Method With Regularization
 Term": the rational implicit function (eq. 14), the offset-sample energy (eq. 16), the
@@ -9,45 +9,21 @@ solver interface beside exact and general-purpose solvers.
 ``levelset``, ``plot`` and ``shapes`` (matplotlib, contourpy, SciPy's KD-tree) and the
 optimistix and jaxopt wrappers load on first use (``jurs.levelset.analyze(...)``,
 ``jurs.OptimistixMinimiser(...)``), through the module ``__getattr__`` below (PEP 562).
+The kernels, energies and gradients under the solvers are in :mod:`jurs.internal`.
 """
 
 import importlib
+from typing import TYPE_CHECKING
 
-from ._basis import cubic_derivatives, cubic_weights
 from ._compile import COMPILER_OPTIONS, enable_compilation_cache
 from ._defaults import Settings, auto_settings
-from ._energy import (
-    collocation_column_sums,
-    collocation_transpose,
-    data_energy,
-    data_energy_grad_control,
-    data_energy_grad_weights,
-    eta,
-    grid_laplacian,
-    metrics,
-    objective,
-    rational_residuals,
-    regulariser,
-    regulariser_grad,
-    residuals,
-    step_size,
-    transpose_apply,
-    weight_gradient,
-)
+from ._energy import objective
 from ._fit import fit
 from ._io import load_spline, save_spline
-from ._normal import NormalEquations, normal_equations
-from ._problem import Problem, auto_domain, bucket_layout, make_problem, offset_samples
+from ._problem import Problem, make_problem
 from ._progress import fit_in_chunks
 from ._solution import RESULTS, Solution
-from ._spline import (
-    ImplicitSpline,
-    LocalBasis,
-    bspline_transpose,
-    bspline_values,
-    local_basis,
-    rational_values,
-)
+from ._spline import ImplicitSpline
 from .solvers import (
     IPIA,
     IURS,
@@ -59,70 +35,63 @@ from .solvers import (
     solve,
 )
 
+if TYPE_CHECKING:  # loaded on first access at run time (``__getattr__`` below)
+    from . import datasets, levelset, plot, shapes
+    from ._orientation import estimate_normals
+    from .solvers import (
+        JaxoptGaussNewton,
+        JaxoptLBFGS,
+        JaxoptLevenbergMarquardt,
+        OptimistixLeastSquares,
+        OptimistixMinimiser,
+    )
+
 __version__ = "0.1.0"
 
+# Entry points and types first; the kernels under them live in ``jurs.internal``.
 __all__ = [
-    "AbstractSolver",
-    "COMPILER_OPTIONS",
-    "IPIA",
-    "IURS",
+    # fitting
+    "fit",
+    "fit_in_chunks",
+    "estimate_normals",
+    "auto_settings",
+    "Settings",
+    "Solution",
+    "RESULTS",
     "ImplicitSpline",
+    "save_spline",
+    "load_spline",
+    # solvers, one interface and one driver
+    "AbstractSolver",
+    "solve",
+    "LeastSquares",
+    "IURS",
+    "IPIA",
+    "NormalIPIA",
+    "JointLevenbergMarquardt",
+    "OptimistixLeastSquares",
+    "OptimistixMinimiser",
     "JaxoptGaussNewton",
     "JaxoptLBFGS",
     "JaxoptLevenbergMarquardt",
-    "JointLevenbergMarquardt",
-    "LeastSquares",
-    "LocalBasis",
-    "NormalEquations",
-    "NormalIPIA",
-    "OptimistixLeastSquares",
-    "OptimistixMinimiser",
-    "Problem",
-    "RESULTS",
-    "Settings",
-    "Solution",
-    "auto_domain",
-    "auto_settings",
-    "bspline_transpose",
-    "bspline_values",
-    "bucket_layout",
-    "collocation_column_sums",
-    "collocation_transpose",
-    "cubic_derivatives",
-    "cubic_weights",
-    "data_energy",
-    "data_energy_grad_control",
-    "data_energy_grad_weights",
-    "datasets",
-    "enable_compilation_cache",
-    "estimate_normals",
-    "eta",
-    "fit",
-    "fit_in_chunks",
-    "grid_laplacian",
-    "load_spline",
-    "local_basis",
+    # the problem and its objective, for custom losses
     "make_problem",
-    "metrics",
-    "normal_equations",
+    "Problem",
     "objective",
     "objective_lam",
-    "offset_samples",
-    "rational_residuals",
-    "rational_values",
-    "regulariser",
-    "regulariser_grad",
-    "residuals",
-    "save_spline",
-    "solve",
-    "step_size",
-    "transpose_apply",
-    "weight_gradient",
+    # compilation
+    "COMPILER_OPTIONS",
+    "enable_compilation_cache",
+    # submodules (loaded on first access)
+    "datasets",
+    "levelset",
+    "plot",
+    "shapes",
 ]
 
 #: Submodules loaded on first attribute access (``jurs.plot``): matplotlib, contourpy and
 #: SciPy's KD-tree cost more to import than the core.
-_LAZY_SUBMODULES = ("datasets", "levelset", "plot", "shapes")
+_LAZY_SUBMODULES = ("datasets", "internal", "levelset", "plot", "shapes")
 #: Names loaded from their module on first access: the solver wrappers of optional or
 #: heavy libraries (optimistix alone takes about 0.1 s to import) and the normal estimation
 #: (SciPy's sparse graphs and KD-tree).
@@ -149,6 +118,11 @@ def __getattr__(name):
         value = getattr(importlib.import_module(f"{__name__}.{_LAZY_NAMES[name]}"), name)
         globals()[name] = value  # later lookups skip __getattr__
         return value
+    internal = importlib.import_module(f"{__name__}.internal")
+    if name in internal.__all__:
+        raise AttributeError(
+            f"jurs.{name} is a kernel helper, not part of the public API: use jurs.internal.{name}"
+        )
     raise AttributeError(f"module {__name__!r} has no attribute {name!r}")
 
 

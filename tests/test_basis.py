@@ -26,13 +26,15 @@ def random_points(rng, n, lower=(-1.0, 2.0), upper=(3.0, 5.0)):
 @pytest.mark.parametrize("shape", [(4, 4), (9, 9), (7, 12)])
 def test_partition_of_unity(rng, shape):
     xy, lower, upper = random_points(rng, 500)
-    local = jurs.local_basis(jnp.asarray(xy), jnp.asarray(lower), jnp.asarray(upper), shape)
+    local = jurs.internal.local_basis(
+        jnp.asarray(xy), jnp.asarray(lower), jnp.asarray(upper), shape
+    )
     sums = np.asarray(local.products.sum(axis=1))
     np.testing.assert_allclose(sums, 1.0, atol=1e-14)
     assert np.all(np.asarray(local.products) >= 0)
     # On the box corners too (the last cell is closed on the right).
     corners = jnp.asarray([lower, upper, [lower[0], upper[1]]])
-    corner_sums = jurs.local_basis(
+    corner_sums = jurs.internal.local_basis(
         corners, jnp.asarray(lower), jnp.asarray(upper), shape
     ).products.sum(1)
     np.testing.assert_allclose(np.asarray(corner_sums), 1.0, atol=1e-14)
@@ -41,7 +43,9 @@ def test_partition_of_unity(rng, shape):
 @pytest.mark.parametrize("shape", [(4, 5), (9, 9), (13, 8)])
 def test_basis_matches_scipy(rng, shape):
     xy, lower, upper = random_points(rng, 200)
-    local = jurs.local_basis(jnp.asarray(xy), jnp.asarray(lower), jnp.asarray(upper), shape)
+    local = jurs.internal.local_basis(
+        jnp.asarray(xy), jnp.asarray(lower), jnp.asarray(upper), shape
+    )
     # Scatter the 16 local terms into a dense row per point.
     ours = np.zeros((len(xy), shape[0] * shape[1]))
     patch_index = np.asarray(grid_to_patches(jnp.arange(shape[0] * shape[1]).reshape(shape)))
@@ -52,8 +56,10 @@ def test_basis_matches_scipy(rng, shape):
 
 def test_cubic_derivatives_match_autodiff():
     t = jnp.linspace(-0.2, 1.2, 31)
-    auto = jax.vmap(jax.jacfwd(jurs.cubic_weights))(t)
-    np.testing.assert_allclose(np.asarray(jurs.cubic_derivatives(t)), np.asarray(auto), atol=1e-14)
+    auto = jax.vmap(jax.jacfwd(jurs.internal.cubic_weights))(t)
+    np.testing.assert_allclose(
+        np.asarray(jurs.internal.cubic_derivatives(t)), np.asarray(auto), atol=1e-14
+    )
 
 
 def test_patch_maps_are_adjoint(rng):
@@ -85,8 +91,8 @@ def test_transpose_is_adjoint_of_values(rng, bucket_size):
     problem = jurs.make_problem(points, normals, grid=(8, 7), bucket_size=bucket_size)
     grid = jnp.asarray(rng.standard_normal((8, 7)))
     values = jnp.asarray(rng.standard_normal(problem.samples.shape[0]))
-    lhs = jnp.vdot(jurs.bspline_values(problem.local, grid), values)
-    rhs = jnp.vdot(grid, jurs.bspline_transpose(problem.local, values, problem.shape))
+    lhs = jnp.vdot(jurs.internal.bspline_values(problem.local, grid), values)
+    rhs = jnp.vdot(grid, jurs.internal.bspline_transpose(problem.local, values, problem.shape))
     np.testing.assert_allclose(float(lhs), float(rhs), rtol=1e-12)
 
 
@@ -176,7 +182,7 @@ def test_centred_power_basis_is_the_cubic_basis(rng):
     powers = jnp.stack([s**p for p in range(4)], axis=-1)
     np.testing.assert_allclose(
         np.asarray(powers @ jnp.asarray(CENTRED_POWER.T)),
-        np.asarray(jurs.cubic_weights(s + 0.5)),
+        np.asarray(jurs.internal.cubic_weights(s + 0.5)),
         atol=1e-15,
     )
     # A cell's patch in powers of (sx, sy) evaluates to the same bicubic as in B-splines.
@@ -184,7 +190,10 @@ def test_centred_power_basis_is_the_cubic_basis(rng):
     sx, sy = (jnp.asarray(rng.random(30) - 0.5) for _ in range(2))
     coeffs = patch @ patch_to_power()
     by_basis = (
-        jurs_basis.tensor_basis(jurs.cubic_weights(sx + 0.5), jurs.cubic_weights(sy + 0.5)) @ patch
+        jurs_basis.tensor_basis(
+            jurs.internal.cubic_weights(sx + 0.5), jurs.internal.cubic_weights(sy + 0.5)
+        )
+        @ patch
     )
     np.testing.assert_allclose(
         np.asarray(power_values(list(coeffs), sx, sy)), np.asarray(by_basis), rtol=1e-13, atol=1e-15
@@ -212,25 +221,28 @@ def test_table_and_power_forms_agree(rng):
     index = np.asarray(bucketed.sample_index)[real]
     grids = jnp.asarray(rng.standard_normal((2, 11, 9)))
     values = jnp.asarray(rng.standard_normal((2, 2100)))
-    expected = np.asarray(jurs.bspline_values(power.local, grids))
+    expected = np.asarray(jurs.internal.bspline_values(power.local, grids))
     np.testing.assert_allclose(
-        np.asarray(jurs.bspline_values(local, grids)), expected, rtol=1e-13, atol=1e-14
+        np.asarray(jurs.internal.bspline_values(local, grids)), expected, rtol=1e-13, atol=1e-14
     )
     np.testing.assert_allclose(
-        np.asarray(jurs.bspline_values(bucketed.local, grids))[:, real],
+        np.asarray(jurs.internal.bspline_values(bucketed.local, grids))[:, real],
         expected[:, index],
         rtol=1e-13,
         atol=1e-14,
     )
-    expected = np.asarray(jurs.bspline_transpose(power.local, values, (11, 9)))
+    expected = np.asarray(jurs.internal.bspline_transpose(power.local, values, (11, 9)))
     np.testing.assert_allclose(
-        np.asarray(jurs.bspline_transpose(local, values, (11, 9))), expected, rtol=1e-12, atol=1e-13
+        np.asarray(jurs.internal.bspline_transpose(local, values, (11, 9))),
+        expected,
+        rtol=1e-12,
+        atol=1e-13,
     )
     spread = (
         jnp.zeros((2, bucketed.samples.shape[0])).at[:, np.nonzero(real)[0]].set(values[:, index])
     )
     np.testing.assert_allclose(
-        np.asarray(jurs.bspline_transpose(bucketed.local, spread, (11, 9))),
+        np.asarray(jurs.internal.bspline_transpose(bucketed.local, spread, (11, 9))),
         expected,
         rtol=1e-12,
         atol=1e-13,
@@ -239,7 +251,7 @@ def test_table_and_power_forms_agree(rng):
 
 def test_bucket_layout_pads_to_a_rounded_count():
     cells = np.array([3, 0, 3, 3, 1, 3, 0])
-    slot_sample, valid = jurs.bucket_layout(cells, 2, 5, num_buckets=6)
+    slot_sample, valid = jurs.internal.bucket_layout(cells, 2, 5, num_buckets=6)
     assert slot_sample.shape == (12,) and valid.sum() == 7
     slots = slot_sample.reshape(-1, 2)
     assert (cells[slots] == cells[slots[:, :1]]).all()

@@ -33,10 +33,12 @@ def test_autodiff_matches_hand_derived(data, rng, shape, lam):
     problem = jurs.make_problem(*data, grid=shape)
     control, weights = random_state(rng, shape)
     auto_c, auto_w = jax.grad(jurs.objective, argnums=(1, 2))(problem, control, weights, lam)
-    hand_c = jurs.data_energy_grad_control(problem, control, weights) + lam * jurs.regulariser_grad(
-        control
-    )
-    hand_w = jurs.data_energy_grad_weights(problem, control, weights)  # R does not depend on w
+    hand_c = jurs.internal.data_energy_grad_control(
+        problem, control, weights
+    ) + lam * jurs.internal.regulariser_grad(control)
+    hand_w = jurs.internal.data_energy_grad_weights(
+        problem, control, weights
+    )  # R does not depend on w
     assert relative_error(auto_c, hand_c) <= 1e-10
     assert relative_error(auto_w, hand_w) <= 1e-10
 
@@ -51,9 +53,9 @@ def test_hand_derived_matches_dense_formulas(data, rng, shape):
     c = np.asarray(control).ravel()
     r = d @ c - b
     np.testing.assert_allclose(
-        float(jurs.data_energy(problem, control, weights)), r @ r, rtol=1e-12
+        float(jurs.internal.data_energy(problem, control, weights)), r @ r, rtol=1e-12
     )
-    grad_c = np.asarray(jurs.data_energy_grad_control(problem, control, weights)).ravel()
+    grad_c = np.asarray(jurs.internal.data_energy_grad_control(problem, control, weights)).ravel()
     np.testing.assert_allclose(grad_c, 2 * d.T @ r, rtol=1e-10, atol=1e-14)
     # nabla_w by the quotient rule on dense basis rows: dg_k/dw_ij = B_ij (C_ij - g_k) / W_k.
     basis = dense_basis(
@@ -64,14 +66,14 @@ def test_hand_derived_matches_dense_formulas(data, rng, shape):
     g = basis @ (w * c) / denom
     grad_w = 2 * ((r / denom)[:, None] * basis * (c[None, :] - g[:, None])).sum(axis=0)
     np.testing.assert_allclose(
-        np.asarray(jurs.data_energy_grad_weights(problem, control, weights)).ravel(),
+        np.asarray(jurs.internal.data_energy_grad_weights(problem, control, weights)).ravel(),
         grad_w,
         rtol=1e-10,
         atol=1e-14,
     )
     # Explicit-row path agrees with the fast path.
-    rr, wb, denom2, _ = jurs.residuals(problem, control, weights)
-    via_rows = jurs.transpose_apply(problem, wb * (rr / denom2)[:, None])
+    rr, wb, denom2, _ = jurs.internal.residuals(problem, control, weights)
+    via_rows = jurs.internal.transpose_apply(problem, wb * (rr / denom2)[:, None])
     np.testing.assert_allclose(
         2 * np.asarray(via_rows).ravel(), 2 * d.T @ r, rtol=1e-10, atol=1e-14
     )
@@ -93,14 +95,14 @@ def regulariser_by_definition(c):
 def test_regulariser_and_its_gradient(rng, shape):
     c = rng.standard_normal(shape)
     np.testing.assert_allclose(
-        float(jurs.regulariser(jnp.asarray(c))), regulariser_by_definition(c), rtol=1e-13
+        float(jurs.internal.regulariser(jnp.asarray(c))), regulariser_by_definition(c), rtol=1e-13
     )
-    auto = jax.grad(jurs.regulariser)(jnp.asarray(c))
+    auto = jax.grad(jurs.internal.regulariser)(jnp.asarray(c))
     np.testing.assert_allclose(
-        np.asarray(jurs.regulariser_grad(jnp.asarray(c))), np.asarray(auto), atol=1e-12
+        np.asarray(jurs.internal.regulariser_grad(jnp.asarray(c))), np.asarray(auto), atol=1e-12
     )
     # Constants are free: the regulariser only sees differences.
-    assert float(jurs.regulariser(jnp.full(shape, 3.0))) == 0.0
+    assert float(jurs.internal.regulariser(jnp.full(shape, 3.0))) == 0.0
 
 
 @pytest.mark.parametrize("uniform", [True, False])
@@ -110,7 +112,9 @@ def test_step_size_equals_dense_norm(data, rng, uniform):
     weights = jnp.ones(shape) if uniform else random_state(rng, shape)[1]
     d = dense_collocation(problem, weights)
     dense_mu = 2.0 / np.abs(d.T @ d).sum(axis=1).max()  # 2 / ||D^T D||_inf, eq. 13 / 25
-    np.testing.assert_allclose(float(jurs.step_size(problem, weights)), dense_mu, rtol=1e-12)
+    np.testing.assert_allclose(
+        float(jurs.internal.step_size(problem, weights)), dense_mu, rtol=1e-12
+    )
 
 
 @pytest.mark.slow
@@ -121,7 +125,11 @@ def test_bucketed_layout_gives_same_energy_and_gradients(rng):
     bucketed = jurs.make_problem(points, normals, grid=shape, bucket_size=16)
     assert bucketed.local.bucket_size == 16
     control, weights = random_state(rng, shape)
-    for fn in (jurs.data_energy, jurs.data_energy_grad_control, jurs.data_energy_grad_weights):
+    for fn in (
+        jurs.internal.data_energy,
+        jurs.internal.data_energy_grad_control,
+        jurs.internal.data_energy_grad_weights,
+    ):
         np.testing.assert_allclose(
             np.asarray(fn(bucketed, control, weights)),
             np.asarray(fn(flat, control, weights)),
@@ -129,7 +137,9 @@ def test_bucketed_layout_gives_same_energy_and_gradients(rng):
             atol=1e-15,
         )
     np.testing.assert_allclose(
-        float(jurs.step_size(bucketed, weights)), float(jurs.step_size(flat, weights)), rtol=1e-13
+        float(jurs.internal.step_size(bucketed, weights)),
+        float(jurs.internal.step_size(flat, weights)),
+        rtol=1e-13,
     )
 
 
@@ -167,7 +177,7 @@ def test_iurs_steps_agree_across_layouts(rng):
 @pytest.mark.parametrize("layout", ["table", "power", "bucketed"])
 @pytest.mark.slow
 def test_metrics_match_their_definitions(rng, layout):
-    """``jurs.metrics`` (eq. 35-37 and mu of eq. 25, computed in the kernels' layout in one
+    """``jurs.internal.metrics`` (eq. 35-37 and mu of eq. 25, computed in the kernels' layout in one
     pass) against the spline evaluated at the points and the dense collocation."""
     points, normals = jurs.datasets.example1(150)
     shape, lam = (8, 9), 0.02
@@ -179,11 +189,11 @@ def test_metrics_match_their_definitions(rng, layout):
     assert (problem.local.terms is not None) == (layout == "table")
     control, weights = random_state(rng, shape)
     spline = jurs.ImplicitSpline(control, weights, problem.lower, problem.upper)
-    got = jurs.metrics(problem, spline, lam)
+    got = jurs.internal.metrics(problem, spline, lam)
     on_points = np.asarray(spline(jnp.asarray(points)))
     d = dense_collocation(problem, weights)[np.asarray(problem.mask) > 0]  # padding: no row
-    e_d = float(jurs.data_energy(problem, control, weights))
-    reg = float(jurs.regulariser(control))
+    e_d = float(jurs.internal.data_energy(problem, control, weights))
+    reg = float(jurs.internal.regulariser(control))
     expected = {
         "E_d": e_d,
         "R": reg,

@@ -21,7 +21,7 @@ LAM = 1e-4  # objective lambda used where the unregularised problem is too ill-p
 
 # Jitted once per solver configuration: op-by-op (eager) runs of the driver are slow.
 solve = eqx.filter_jit(jurs.solve)
-normal_equations = eqx.filter_jit(jurs.normal_equations)
+normal_equations = eqx.filter_jit(jurs.internal.normal_equations)
 
 
 def least_squares(lam, **kwargs):
@@ -51,7 +51,7 @@ def test_bspline_stencil_matches_dense_normal_equations(example1_problem):
     )
     np.testing.assert_allclose(
         normal.data_energy(control),
-        jurs.data_energy(problem, control, jnp.ones(problem.shape)),
+        jurs.internal.data_energy(problem, control, jnp.ones(problem.shape)),
         rtol=1e-12,
     )
 
@@ -87,7 +87,7 @@ def test_laplacian_stencil_is_grid_laplacian():
     control = jax.random.normal(jax.random.PRNGKey(2), (6, 9))
     lap = _normal.laplacian_stencil((6, 9))
     np.testing.assert_allclose(
-        _normal.stencil_matvec(lap, control), jurs.grid_laplacian(control), atol=1e-14
+        _normal.stencil_matvec(lap, control), jurs.internal.grid_laplacian(control), atol=1e-14
     )
 
 
@@ -111,11 +111,13 @@ def test_least_squares_is_the_minimiser(example1_problem, lam):
     assert abs(energy - best_energy) <= 1e-9 * best_energy
     np.testing.assert_allclose(sol.metrics["E_d"] + lam * sol.metrics["R"], energy, rtol=1e-12)
     # Gradient of the objective vanishes at the solution (hand-derived gradients).
-    grad = jurs.data_energy_grad_control(
+    grad = jurs.internal.data_energy_grad_control(
         problem, sol.spline.control, sol.spline.weights
-    ) + lam * jurs.regulariser_grad(sol.spline.control)
+    ) + lam * jurs.internal.regulariser_grad(sol.spline.control)
     scale = jnp.abs(
-        jurs.data_energy_grad_control(problem, jnp.zeros(problem.shape), sol.spline.weights)
+        jurs.internal.data_energy_grad_control(
+            problem, jnp.zeros(problem.shape), sol.spline.weights
+        )
     ).max()
     assert float(jnp.abs(grad).max()) < 1e-8 * float(scale)
 
@@ -137,9 +139,9 @@ def test_keep_weights_solves_for_fixed_rational_weights(example1_problem):
     start = jurs.ImplicitSpline(jnp.zeros(problem.shape), weights, problem.lower, problem.upper)
     sol = solve(least_squares(LAM, keep_weights=True), problem, start)
     np.testing.assert_array_equal(sol.spline.weights, weights)
-    grad = jurs.data_energy_grad_control(
+    grad = jurs.internal.data_energy_grad_control(
         problem, sol.spline.control, weights
-    ) + LAM * jurs.regulariser_grad(sol.spline.control)
+    ) + LAM * jurs.internal.regulariser_grad(sol.spline.control)
     assert float(jnp.abs(grad).max()) < 1e-12
     # The default ignores the start weights and fits the B-spline.
     bspline = solve(least_squares(LAM), problem, start)
@@ -150,7 +152,7 @@ def test_least_squares_is_the_fixed_point_of_the_paper_iteration(example1_proble
     """IURS with tau = 0 is eq. 33 with fixed w; its fixed point minimises E_d + (2 lam/mu) R
     (jurs.objective_lam): from the exact solution, one step must not move C."""
     problem = example1_problem
-    mu = jurs.step_size(problem, jnp.ones(problem.shape))
+    mu = jurs.internal.step_size(problem, jnp.ones(problem.shape))
     paper_lam = 1e-3
     exact = solve(least_squares(jurs.objective_lam(paper_lam, mu)), problem)
     iurs = solve(jurs.IURS(tau=0.0, lam=paper_lam, max_steps=1), problem, exact.spline)

@@ -16,7 +16,7 @@ pytestmark = pytest.mark.slow
 def dense_laplacian(shape):
     n = shape[0] * shape[1]
     return np.asarray(
-        jax.jacfwd(lambda c: jurs.grid_laplacian(c.reshape(shape)).ravel())(jnp.zeros(n))
+        jax.jacfwd(lambda c: jurs.internal.grid_laplacian(c.reshape(shape)).ravel())(jnp.zeros(n))
     )
 
 
@@ -113,7 +113,7 @@ def test_iurs_step_is_algorithm1(rng):
         problem, jurs.ImplicitSpline(control, weights, problem.lower, problem.upper)
     )
     new_state, energy = solver.step(problem, state)
-    grad_w = jax.grad(jurs.data_energy, argnums=2)(problem, control, weights)
+    grad_w = jax.grad(jurs.internal.data_energy, argnums=2)(problem, control, weights)
     w1 = np.maximum(np.asarray(weights - tau * grad_w), solver.min_weight)
     d = dense_collocation(problem, w1)
     b = np.asarray(problem.targets)
@@ -122,7 +122,9 @@ def test_iurs_step_is_algorithm1(rng):
     c1 = c0 + mu * d.T @ (b - d @ c0) - lam * 4 * dense_laplacian((7, 7)) @ c0
     np.testing.assert_allclose(np.asarray(new_state.weights), w1, rtol=1e-12)
     np.testing.assert_allclose(np.asarray(new_state.control).ravel(), c1, rtol=1e-10, atol=1e-15)
-    e1 = np.sum((d @ c1 - b) ** 2) + lam * float(jurs.regulariser(jnp.asarray(c1.reshape(7, 7))))
+    e1 = np.sum((d @ c1 - b) ** 2) + lam * float(
+        jurs.internal.regulariser(jnp.asarray(c1.reshape(7, 7)))
+    )
     np.testing.assert_allclose(float(energy), e1, rtol=1e-10)
 
 

@@ -68,7 +68,7 @@ def test_transpose_is_the_adjoint_in_3d(rng):
 def test_normal_equations_in_3d_match_the_samples(sphere, rng):
     problem = jurs.make_problem(*sphere, grid=(7, 8, 6), offset=0.1, eps=0.1)
     assert problem.ndim == 3 and problem.local.s.shape == (3, 1200)
-    normal = jurs.normal_equations(problem)
+    normal = jurs.internal.normal_equations(problem)
     assert normal.stencil.shape == (7, 8, 6, 7, 7, 7)
     grid = jnp.asarray(rng.normal(size=problem.shape))
     direct = bspline_transpose(
@@ -79,7 +79,7 @@ def test_normal_equations_in_3d_match_the_samples(sphere, rng):
     rhs = bspline_transpose(problem.local, problem.mask * problem.targets, problem.shape)
     np.testing.assert_allclose(np.asarray(normal.rhs), np.asarray(rhs), atol=1e-13)
     # The stencil's energy equals the samples' (eq. 16, w = 1).
-    energy = jurs.data_energy(problem, grid, jnp.ones_like(grid))
+    energy = jurs.internal.data_energy(problem, grid, jnp.ones_like(grid))
     assert float(normal.data_energy(grid)) == pytest.approx(float(energy), rel=1e-11)
 
 
@@ -89,10 +89,10 @@ def test_autodiff_matches_hand_derived_in_3d(sphere, rng, lam):
     control = jnp.asarray(0.02 * rng.standard_normal(problem.shape))
     weights = jnp.asarray(0.5 + rng.random(problem.shape))
     auto_c, auto_w = jax.grad(jurs.objective, argnums=(1, 2))(problem, control, weights, lam)
-    hand_c = jurs.data_energy_grad_control(problem, control, weights) + lam * jurs.regulariser_grad(
-        control
-    )
-    hand_w = jurs.data_energy_grad_weights(problem, control, weights)
+    hand_c = jurs.internal.data_energy_grad_control(
+        problem, control, weights
+    ) + lam * jurs.internal.regulariser_grad(control)
+    hand_w = jurs.internal.data_energy_grad_weights(problem, control, weights)
     for auto, hand in ((auto_c, hand_c), (auto_w, hand_w)):
         assert np.linalg.norm(auto - hand) <= 1e-10 * np.linalg.norm(hand)
 
@@ -100,11 +100,13 @@ def test_autodiff_matches_hand_derived_in_3d(sphere, rng, lam):
 def test_regulariser_is_the_six_neighbour_sum(rng):
     c = rng.normal(size=(4, 5, 6))
     edges = sum(np.sum(np.diff(c, axis=a) ** 2) for a in range(3))
-    assert float(jurs.regulariser(jnp.asarray(c))) == pytest.approx(2.0 * edges, rel=1e-12)
+    assert float(jurs.internal.regulariser(jnp.asarray(c))) == pytest.approx(2.0 * edges, rel=1e-12)
     # L is the 6-neighbour graph Laplacian, and R's gradient is 4 L C (eq. 34).
     lap = np.asarray(_normal.stencil_to_dense(_normal.laplacian_stencil(c.shape)))
     np.testing.assert_allclose(
-        np.asarray(jurs.grid_laplacian(jnp.asarray(c))).ravel(), lap @ c.ravel(), atol=1e-12
+        np.asarray(jurs.internal.grid_laplacian(jnp.asarray(c))).ravel(),
+        lap @ c.ravel(),
+        atol=1e-12,
     )
 
 
@@ -191,7 +193,7 @@ def test_rational_normal_equations_refuse_surfaces(sphere):
     """Fixed rational weights in 3D are not written yet: a clear error, not a wrong shape."""
     problem = jurs.make_problem(*sphere, grid=6, offset=0.05, eps=0.05)
     with pytest.raises(NotImplementedError, match="2D only"):
-        jurs.normal_equations(problem, jnp.ones(problem.shape))
+        jurs.internal.normal_equations(problem, jnp.ones(problem.shape))
 
 
 def test_surface_fit_is_differentiable(sphere, rng):

@@ -1,0 +1,69 @@
+"""Building blocks under the public API: the model's kernels, energies and gradients.
+
+What :func:`jurs.fit` and the solvers are made of, for tests, benchmarks and users who
+build their own solvers or losses (the optimistix pattern): the cubic B-spline basis and
+its sample layouts, the rational function and its transposes (eq. 14, 22-23), the energies
+and their hand-derived gradients (eq. 16-19, 31-33; docs/design.md section 2), the metrics
+(eq. 35-37) and the normal equations of the exact solve (docs/design.md section 3).
+
+These names may change between versions without notice; ``jurs.__all__`` is the stable
+surface. Importing this module costs nothing beyond ``import jurs``.
+"""
+
+from ._basis import cubic_derivatives, cubic_weights
+from ._energy import (
+    collocation_column_sums,
+    collocation_transpose,
+    data_energy,
+    data_energy_grad_control,
+    data_energy_grad_weights,
+    eta,
+    grid_laplacian,
+    metrics,
+    rational_residuals,
+    regulariser,
+    regulariser_grad,
+    residuals,
+    step_size,
+    transpose_apply,
+    weight_gradient,
+)
+from ._normal import NormalEquations, normal_equations
+from ._problem import auto_domain, bucket_layout, offset_samples
+from ._spline import (
+    LocalBasis,
+    bspline_transpose,
+    bspline_values,
+    local_basis,
+    rational_values,
+)
+
+__all__ = [
+    "LocalBasis",
+    "NormalEquations",
+    "auto_domain",
+    "bspline_transpose",
+    "bspline_values",
+    "bucket_layout",
+    "collocation_column_sums",
+    "collocation_transpose",
+    "cubic_derivatives",
+    "cubic_weights",
+    "data_energy",
+    "data_energy_grad_control",
+    "data_energy_grad_weights",
+    "eta",
+    "grid_laplacian",
+    "local_basis",
+    "metrics",
+    "normal_equations",
+    "offset_samples",
+    "rational_residuals",
+    "rational_values",
+    "regulariser",
+    "regulariser_grad",
+    "residuals",
+    "step_size",
+    "transpose_apply",
+    "weight_gradient",
+]
