@@ -13,13 +13,14 @@ from __future__ import annotations
 import dataclasses
 from typing import Callable
 
+import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
 from ._defaults import auto_settings
 from ._fit import fit
 from ._problem import make_problem
-from ._solution import RESULTS, Solution
+from ._solution import RAISED_RESULTS, RESULTS, Solution, error_message
 from ._spline import ImplicitSpline
 from .solvers import IPIA, IURS, AbstractSolver
 
@@ -54,7 +55,8 @@ def fit_in_chunks(
         chunk: steps per call (default :func:`chunk_size`, or the gcd with the checkpoints).
         checkpoints: step counts at which to keep the spline (e.g. ``(0, 10, 50, 200)``).
         callback: called as ``callback(steps_done, max_steps)`` after every chunk.
-        **fit_kwargs: passed to :func:`jurs.fit` (grid, offset, eps, domain, ...).
+        **fit_kwargs: passed to :func:`jurs.fit` (grid, offset, eps, domain, ...);
+            ``throw`` (default True) applies to the whole run's final verdict.
 
     Returns:
         ``(solution, snapshots)``: the final :class:`jurs.Solution`, with ``num_steps`` and
@@ -81,6 +83,57 @@ def fit_in_chunks(
             chunk = int(np.gcd(chunk, c)) if c else chunk
     chunk = max(1, int(chunk))
     snapshots = {}
+    settings, init = _fixed_settings_and_start(points, normals, fit_kwargs)
+    # Every chunk is fitted with throw=False: a verdict on the iterate so far is not the
+    # run's; the run's own verdict is raised at the end.
+    throw = fit_kwargs.pop("throw", True)
+    history = []
+    done, sol = 0, None
+    start = init
+    while done < total:
+        n = min(chunk, total - done)
+        sol = fit(
+            points,
+            normals,
+            solver=dataclasses.replace(solver, max_steps=n),
+            init=init,
+            throw=False,
+            **fit_kwargs,
+        )
+        k = int(sol.stats["num_steps"])
+        h = np.asarray(sol.stats["energy_history"])
+        history.append(h[: k + 1] if not history else h[1 : k + 1])
+        done += k
+        if 0 in checkpoints and 0 not in snapshots:
+            snapshots[0] = start
+        init = sol.spline
+        if done in checkpoints:
+            snapshots[done] = sol.spline
+        if callback:
+            callback(done, total)
+        # A chunk that ran all its steps goes on, also where the host-side checks gave a
+        # verdict on the iterate so far (normals, weights): a single fit would have gone on.
+        ran_on = (RESULTS.max_steps_reached, RESULTS.inconsistent_normals, RESULTS.weights_at_floor)
+        if k < n or not any(bool(sol.result == r) for r in ran_on):
+            break  # converged, diverged or stopped by the solver
+    if sol is None:  # max_steps = 0
+        sol = fit(points, normals, solver=solver, init=init, throw=False, **fit_kwargs)
+        history.append(np.asarray(sol.stats["energy_history"]))
+        if 0 in checkpoints:
+            snapshots[0] = sol.spline
+    full = np.full(total + 1, np.nan)
+    h = np.concatenate(history)
+    full[: len(h)] = h
+    stats = dict(sol.stats, num_steps=np.asarray(done), energy_history=full)
+    if throw and sol.status in RAISED_RESULTS:
+        raise eqx.EquinoxRuntimeError(error_message(sol.status))
+    return Solution(sol.spline, sol.metrics, stats, sol.result, sol.state, settings), snapshots
+
+
+def _fixed_settings_and_start(points, normals, fit_kwargs):
+    """``(settings, init)``: the automatic settings chosen once (None where grid, offset
+    and eps are given), written into ``fit_kwargs``, and the start popped from it (or
+    made), so that every chunk fits the same problem."""
     settings = None
     if any(fit_kwargs.get(k) is None for k in ("grid", "offset", "eps")):
         # Choose once, so every chunk fits the same problem.
@@ -106,41 +159,4 @@ def fit_in_chunks(
             problem.lower,
             problem.upper,
         )
-    history = []
-    done, sol = 0, None
-    start = init
-    while done < total:
-        n = min(chunk, total - done)
-        sol = fit(
-            points,
-            normals,
-            solver=dataclasses.replace(solver, max_steps=n),
-            init=init,
-            **fit_kwargs,
-        )
-        k = int(sol.stats["num_steps"])
-        h = np.asarray(sol.stats["energy_history"])
-        history.append(h[: k + 1] if not history else h[1 : k + 1])
-        done += k
-        if 0 in checkpoints and 0 not in snapshots:
-            snapshots[0] = start
-        init = sol.spline
-        if done in checkpoints:
-            snapshots[done] = sol.spline
-        if callback:
-            callback(done, total)
-        # A chunk that ran all its steps goes on, also where the host-side checks gave a
-        # verdict on the iterate so far (normals, weights): a single fit would have gone on.
-        ran_on = (RESULTS.max_steps_reached, RESULTS.inconsistent_normals, RESULTS.weights_at_floor)
-        if k < n or not any(bool(sol.result == r) for r in ran_on):
-            break  # converged, diverged or stopped by the solver
-    if sol is None:  # max_steps = 0
-        sol = fit(points, normals, solver=solver, init=init, **fit_kwargs)
-        history.append(np.asarray(sol.stats["energy_history"]))
-        if 0 in checkpoints:
-            snapshots[0] = sol.spline
-    full = np.full(total + 1, np.nan)
-    h = np.concatenate(history)
-    full[: len(h)] = h
-    stats = dict(sol.stats, num_steps=np.asarray(done), energy_history=full)
-    return Solution(sol.spline, sol.metrics, stats, sol.result, sol.state, settings), snapshots
+    return settings, init

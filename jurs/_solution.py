@@ -5,6 +5,8 @@ from __future__ import annotations
 from typing import Any
 
 import equinox as eqx
+import jax.numpy as jnp
+from jax import Array
 
 from ._spline import ImplicitSpline
 
@@ -55,13 +57,34 @@ RESULT_NAMES = (
 )
 
 
+#: The verdicts that ``throw=True`` raises (as ``equinox.EquinoxRuntimeError``): the fit is
+#: not a reconstruction. ``max_steps_reached`` is not one: Algorithm 1 stops there by design
+#: (the paper's fixed-step runs) and its iterate is usable.
+RAISED_RESULTS = ("failed", "nonfinite", "inconsistent_normals", "weights_at_floor")
+
+
+def unusable(result) -> Any:
+    """A boolean (traceable) that is True where ``result`` is one of
+    :data:`RAISED_RESULTS`, and the index of that verdict in it."""
+    hits = jnp.stack([result == getattr(RESULTS, name) for name in RAISED_RESULTS])
+    return jnp.any(hits), jnp.argmax(hits)
+
+
+def error_message(name: str) -> str:
+    """What ``throw=True`` raises for the verdict ``name``."""
+    return (
+        f"the fit's verdict is {name}: {RESULTS[getattr(RESULTS, name)]}. Pass throw=False "
+        "to get the Solution anyway and read sol.result"
+    )
+
+
 class Solution(eqx.Module):
     """Result of :func:`jurs.fit` or :func:`jurs.solve`.
 
     Attributes:
         spline: the fitted :class:`ImplicitSpline` (call it on (n, 2) points).
         metrics: ``E``, ``E_d``, ``R``, ``E_ave``, ``E_max``, ``mu`` (eq. 35-37; see
-            :func:`jurs.metrics`) and ``lam``, the lambda that ``E`` uses.
+            :func:`jurs.internal.metrics`) and ``lam``, the lambda that ``E`` uses.
         stats: ``num_steps`` and ``energy_history`` (``max_steps + 1`` entries: the energy
             before the first step and after each step, NaN past ``num_steps``).
         result: a :class:`RESULTS` item; ``sol.message`` reads it.
@@ -89,5 +112,6 @@ class Solution(eqx.Module):
         return next(n for n in RESULT_NAMES if bool(self.result == getattr(RESULTS, n)))
 
     @property
-    def succeeded(self) -> bool:
+    def succeeded(self) -> Array:
+        """Whether the verdict is ``successful``: a boolean scalar array (traceable)."""
         return self.result == RESULTS.successful

@@ -308,6 +308,7 @@ def test_far_and_scaled_clouds(log_scale, shift, log_shift, x64):
                 offset=0.1 * scale,
                 eps=0.01 * scale,
                 solver=cheap_solver(),
+                throw=False,  # a verdict is honest too; assert_honest checks it
             ),
             "resolves only",
         )
@@ -498,7 +499,7 @@ def test_orientation_verdicts(log_scale, shift, quarter, flip):
         normals[:60] *= -1
     elif flip == "random":
         normals = np.random.default_rng(int(quarter)).normal(size=normals.shape)
-    sol = jurs.fit(points, normals)
+    sol = jurs.fit(points, normals, throw=False)
     assert_honest(sol)
     if flip is None:
         assert sol.succeeded, sol.message

@@ -4,6 +4,7 @@ verdict. Numbers in the docstrings are the defects' numbers in the issue."""
 
 import warnings
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -93,9 +94,13 @@ def test_inconsistent_normals_verdict():
     half = n.copy()
     half[:60] *= -1
     for normals in (half, rng.normal(size=n.shape)):
-        sol = jurs.fit(p, normals, **settings)
+        sol = jurs.fit(p, normals, throw=False, **settings)
         assert sol.result == jurs.RESULTS.inconsistent_normals
+        assert sol.status == "inconsistent_normals"
         assert not sol.succeeded and "orient" in sol.message
+    # throw=True (the default) raises on this verdict, as on every unusable one.
+    with pytest.raises(eqx.EquinoxRuntimeError, match="inconsistent_normals"):
+        jurs.fit(p, half, **settings)
     # Consistent clouds keep their verdict: clean, 0.1 rad normal noise, noisy points,
     # 10 % positional outliers.
     outliers = p.copy()
@@ -118,13 +123,16 @@ def test_inconsistent_normals_by_iurs_and_by_the_sign_check(cloud):
     p, n = jurs.datasets.example1(120)
     half = n.copy()
     half[:60] *= -1
-    sol = jurs.fit(p, half, solver=jurs.IURS(max_steps=20), **PAPER)
+    sol = jurs.fit(p, half, solver=jurs.IURS(max_steps=20), throw=False, **PAPER)
     assert sol.result == jurs.RESULTS.inconsistent_normals
     alternate = n * np.where(np.arange(120) % 2, 1.0, -1.0)[:, None]
     problem = jurs.make_problem(p, alternate, **PAPER)
     sol = jax.jit(lambda pr: jurs.solve(jurs.LeastSquares(lam=1e-4), pr, throw=False))(problem)
     assert float(sol.metrics["offset_sign_disagreement"]) > 0.2
     assert sol.result == jurs.RESULTS.inconsistent_normals
+    # The driver's own check raises under jit too (a host callback in the compiled solve).
+    with pytest.raises(eqx.EquinoxRuntimeError, match="inconsistent_normals"):
+        eqx.filter_jit(lambda pr: jurs.solve(jurs.LeastSquares(lam=1e-4), pr).spline)(problem)
 
 
 @pytest.mark.parametrize(
@@ -230,9 +238,11 @@ def test_absurd_tau_has_its_own_verdict():
     """13: tau of 1e6 to 1e300 ended max_steps_reached, like a healthy run."""
     p, n = jurs.datasets.example1(120)
     for tau in (1e6, 1e300):
-        sol = jurs.fit(p, n, solver=jurs.IURS(tau=tau, max_steps=20), **PAPER)
+        sol = jurs.fit(p, n, solver=jurs.IURS(tau=tau, max_steps=20), throw=False, **PAPER)
         assert sol.result == jurs.RESULTS.weights_at_floor
         assert "tau" in sol.message
+    with pytest.raises(eqx.EquinoxRuntimeError, match="weights_at_floor"):
+        jurs.fit(p, n, solver=jurs.IURS(tau=1e6, max_steps=20), **PAPER)
     healthy = jurs.fit(p, n, solver=jurs.IURS(max_steps=20), **PAPER)
     assert healthy.result == jurs.RESULTS.max_steps_reached
 
@@ -245,3 +255,36 @@ def test_python_lists_take_no_deprecated_path(cloud):
         sol = jurs.fit(p, n, **CHEAP)
         jurs.make_problem(p, n, grid=6, mask=[True] * 30)
     assert np.isfinite(float(sol.metrics["E"]))
+
+
+def test_sparse_cloud_with_an_automatic_bucket_size():
+    """A concrete cloud too large for the table layout and sparser than 2 samples an
+    occupied cell (automatic bucket size 1) raised a TypeError from make_problem."""
+    rng = np.random.default_rng(0)
+    m = jurs._problem.TABLE_MAX_SLOTS // 3 + 1000
+    points = rng.uniform(-10.0, 10.0, (m, 2))
+    normals = rng.normal(size=points.shape)
+    normals /= np.linalg.norm(normals, axis=1)[:, None]
+    # Offsets of several cells: each sample alone in its cell (median count 1).
+    settings = dict(grid=4 * int(np.sqrt(m)), offset=0.2, eps=0.01)
+    auto = jurs.make_problem(points, normals, **settings)
+    ones = jurs.make_problem(points, normals, bucket_size=1, **settings)
+    control = jnp.asarray(rng.normal(size=auto.shape))
+    weights = jnp.ones(auto.shape)
+    np.testing.assert_allclose(
+        float(jurs.internal.data_energy(auto, control, weights)),
+        float(jurs.internal.data_energy(ones, control, weights)),
+        rtol=1e-12,
+    )
+
+
+def test_chunked_fit_raises_its_final_verdict_only():
+    """fit_in_chunks fits its chunks with throw=False (a verdict on the iterate so far is
+    not the run's) and raises the run's final verdict with throw=True."""
+    p, n = jurs.datasets.example1(120)
+    solver = jurs.IURS(tau=1e6, max_steps=20)
+    sol, _ = jurs.fit_in_chunks(p, n, solver=solver, chunk=5, throw=False, **PAPER)
+    assert sol.status == "weights_at_floor"
+    assert int(sol.stats["num_steps"]) == 20  # every chunk ran on
+    with pytest.raises(eqx.EquinoxRuntimeError, match="weights_at_floor"):
+        jurs.fit_in_chunks(p, n, solver=solver, chunk=5, **PAPER)

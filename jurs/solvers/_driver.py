@@ -11,7 +11,7 @@ from .._energy import layout_residuals
 from .._energy import metrics as compute_metrics
 from .._precision import full_precision
 from .._problem import Problem
-from .._solution import RESULTS, Solution
+from .._solution import RAISED_RESULTS, RESULTS, Solution, error_message, unusable
 from .._spline import ImplicitSpline
 from ._base import AbstractSolver
 
@@ -47,15 +47,15 @@ def solve(
     The loop is a ``jax.lax.while_loop``: it stops when ``|E_new - E_old| < solver.tol``
     (eq. 38), when the solver's :meth:`terminate` says so, after ``solver.max_steps`` steps,
     or when the energy is NaN/Inf. A non-finite step is not accepted: the solution keeps the
-    last finite iterate, and with ``throw=True`` a runtime error is raised. Reaching
-    ``max_steps`` is reported in ``sol.result`` but never raised: Algorithm 1 stops there
-    by design. Traceable: jit, grad and vmap go through it.
+    last finite iterate. ``throw=True`` raises ``equinox.EquinoxRuntimeError`` on every
+    verdict that is not a reconstruction (failed, nonfinite, inconsistent_normals,
+    weights_at_floor), never on ``max_steps_reached`` (Algorithm 1 stops there by design);
+    ``throw=False`` only reports it in ``sol.result``. Traceable (jit, grad, vmap).
 
-    ``throw=True`` compiles a host callback into the solve (``eqx.error_if``), and JAX's
-    persistent compilation cache does not store programs that hold one. Under your own
-    ``jax.jit`` pass ``throw=False`` and check ``sol.result`` yourself if new processes
-    should load the compiled solve from that cache (:func:`jurs.fit` at top level does
-    this by itself).
+    ``throw=True`` compiles a host callback into the solve, which JAX's persistent
+    compilation cache does not store: under your own ``jax.jit``, pass ``throw=False``
+    and check ``sol.result`` if new processes should load the solve from that cache
+    (:func:`jurs.fit` at top level does so by itself).
     """
     if spline is None:
         dtype = problem.samples.dtype
@@ -117,8 +117,6 @@ def solve(
         ),
     )
     fitted = solver.to_spline(problem, state)
-    if throw:
-        fitted = eqx.error_if(fitted, nonfinite, RESULTS[RESULTS.nonfinite])
     metrics = compute_metrics(problem, fitted, solver.lam)
     metrics["lam"] = jnp.asarray(solver.lam, dtype=energy.dtype)
     # A converged fit is "successful" only if it also reads inside from outside where its
@@ -130,5 +128,10 @@ def solve(
         RESULTS.inconsistent_normals,
         result,
     )
+    if throw:
+        bad, which = unusable(result)
+        fitted = eqx.branched_error_if(
+            fitted, bad, which, [error_message(name) for name in RAISED_RESULTS]
+        )
     stats = {"num_steps": k, "energy_history": history}
     return Solution(spline=fitted, metrics=metrics, stats=stats, result=result, state=state)
