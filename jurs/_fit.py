@@ -8,6 +8,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax.core import Tracer
 
 from ._compile import COMPILER_OPTIONS, call_stored, padded_count
 from ._defaults import auto_settings
@@ -23,7 +24,8 @@ from ._problem import (
     orientation_sample,
     tangential_normal_fraction,
 )
-from ._solution import RESULTS, Solution
+from ._sharding import is_sharded, place_fit
+from ._solution import RAISED_RESULTS, RESULTS, Solution, error_message
 from ._spline import ImplicitSpline
 from .solvers import IPIA, IURS, AbstractSolver, LeastSquares, solve
 
@@ -115,7 +117,7 @@ def _check_orientation(sol, points, normals, mask):
     ``RESULTS.inconsistent_normals`` in place of success or max_steps (half-flipped or
     random normals fitted "successfully" into 2 or 20 loops). Host side. Unlike an input
     error this is a verdict, as optimistix reports a failed solve in ``sol.result``: the
-    fit ran and is returned, for the caller to look at."""
+    fit ran; :func:`fit` raises it with ``throw=True`` and returns it otherwise."""
     p, n = np.asarray(points, float), np.asarray(normals, float)
     if mask is not None:
         keep = np.asarray(mask).astype(bool)
@@ -170,19 +172,21 @@ def _run(problem, solver, init, throw):
 
 _solve = eqx.filter_jit(_run)
 # The same compiled with COMPILER_OPTIONS, for large problems at top level (see fit).
-_solve_reassociating = eqx.filter_jit(_run, compiler_options=COMPILER_OPTIONS)
+# (filter_jit passes jax.jit's keywords on; its stub lists none of them.)
+_solve_reassociating = eqx.filter_jit(_run, compiler_options=COMPILER_OPTIONS)  # pyright: ignore[reportCallIssue]
 
 
 def _at_top_level(tree) -> bool:
-    """Whether no JAX transformation is tracing, nor holds a leaf of ``tree``: XLA takes
-    compiler options only on an outermost jit."""
+    """Whether no leaf of ``tree`` is traced and a jit called here runs as an outermost
+    computation, not staged into a caller's jit (XLA takes compiler options only there)."""
     if not _is_concrete(tree):
         return False
-    try:
-        from jax._src.core import trace_state_clean  # private: without it, never
-    except ImportError:
-        return False
-    return bool(trace_state_clean())
+    # JAX has no public "am I being staged out" check (jax-ml/jax#18544): a value made here
+    # comes back as a tracer exactly when a jit, make_jaxpr, scan, cond, ... is tracing.
+    # Under grad or vmap with no leaf of theirs in ``tree`` the jit runs on the concrete
+    # arrays, outside them, where compiler options are taken (and ``throw`` is checked
+    # on the host). A device_put compiles nothing.
+    return not isinstance(jax.device_put(np.float32(0)), Tracer)
 
 
 def _reassociation_pays(problem, solver) -> bool:
@@ -197,6 +201,95 @@ def reassociates(problem, solver, init=None) -> bool:
     """Whether :func:`jurs.fit` compiles this solve with :data:`jurs.COMPILER_OPTIONS`:
     where they pay (:func:`_reassociation_pays`), when called at top level."""
     return _reassociation_pays(problem, solver) and _at_top_level((problem, solver, init))
+
+
+def _resolved_settings(points, normals, grid, offset, eps, solver, domain, margin, mask, smoothing):
+    """``(settings, grid, offset, eps, solver)``: those not given chosen from the data."""
+    if smoothing is not None and solver is not None:
+        raise ValueError(
+            "smoothing sets the default solver's lambda; with a solver given, set its lam instead"
+        )
+    if grid is not None and offset is not None and eps is not None and solver is not None:
+        return None, grid, offset, eps, solver
+    if mask is not None:
+        raise ValueError(
+            "automatic settings do not take a mask; pass grid, offset, eps "
+            "and solver explicitly for padded batches"
+        )
+    settings = auto_settings(
+        points,
+        normals,
+        grid=grid,
+        offset=offset,
+        eps=eps,
+        domain=domain,
+        margin=margin,
+        smoothing=smoothing,
+    )
+    solver = LeastSquares(lam=settings.lam) if solver is None else solver
+    return settings, settings.grid, settings.offset, settings.eps, solver
+
+
+def _checked_shape(points, grid, solver, init) -> tuple[int, ...]:
+    """The grid's shape, once the solver, the memory it takes and ``init`` are checked."""
+    shape = normalise_grid(grid, _point_dimension(points))
+    if not isinstance(solver, AbstractSolver):
+        raise TypeError(f"solver must be a jurs solver, got {type(solver).__name__}")
+    check_memory(
+        "grid=" + "x".join(map(str, shape)),  # points are checked by make_problem
+        fit_memory(shape, 3 * (len(points) if hasattr(points, "__len__") else 0), solver),
+    )
+    if init is not None and not isinstance(init, ImplicitSpline):
+        raise TypeError(f"init must be a jurs.ImplicitSpline, got {type(init).__name__}")
+    if init is not None and tuple(init.shape) != shape:
+        raise ValueError(f"init spline has grid {init.shape}, expected {shape}")
+    if init is not None and _is_concrete(init):  # a NaN start ran into RESULTS.nonfinite
+        check_spline_arrays({k: np.asarray(getattr(init, k)) for k in SPLINE_KEYS}, "init: ")
+    return shape
+
+
+def _padded_problem(points, normals, mask, shape, offset, eps, domain, margin, bucket_size, dtype):
+    """:func:`make_problem` of the cloud, padded (:func:`padded_cloud`) when it has no mask."""
+    # The problem is built outside the solver's jit: its sample layout is chosen on the
+    # host from concrete data (see make_problem); under a caller's jit/grad/vmap it is traced.
+    padded = padded_cloud(points, normals) if mask is None else None
+    if padded is not None:  # shape-stable: clouds of similar size share one compiled fit
+        points, normals, mask = padded
+    return make_problem(
+        points,
+        normals,
+        grid=shape,
+        offset=offset,
+        eps=eps,
+        domain=domain,
+        margin=margin,
+        mask=mask,
+        bucket_size=bucket_size,
+        dtype=dtype,
+        stable_shapes=padded is not None,
+    )
+
+
+def _solve_fit(problem, solver, init, throw, given):
+    """The solve; at top level ``throw`` and the orientation of ``given`` checked on the host."""
+    top_level = _at_top_level((problem, solver, init))
+    run = _solve_reassociating if top_level and _reassociation_pays(problem, solver) else _solve
+    if not top_level:
+        return run(problem, solver, init, throw)
+    # ``throw`` checked on the host after the call, not by a host callback inside it:
+    # a compiled fit with a callback is never written to JAX's persistent compilation
+    # cache, and without one a new process loads the fit instead of compiling it.
+    # With jurs.enable_compilation_cache, the plain compilation also goes through the
+    # store of exported fits: a new process skips its tracing too (call_stored).
+    sol = (
+        run(problem, solver, init, False)
+        if run is _solve_reassociating or is_sharded(problem)  # the store is one-device
+        else call_stored(_run, run, problem, solver, init, False)
+    )
+    sol = _check_orientation(sol, *given)
+    if throw and sol.status in RAISED_RESULTS:
+        raise eqx.EquinoxRuntimeError(error_message(sol.status))
+    return sol
 
 
 def fit(
@@ -245,8 +338,11 @@ def fit(
         smoothing: the dimensionless strength of the default solver's lambda
             (:func:`jurs.auto_settings`); None chooses. Only with ``solver=None``: a solver
             given keeps its own lambda.
-        throw: raise if the energy becomes NaN/Inf (the last finite iterate is kept either
-            way; ``sol.result`` says what happened). Called outside any JAX
+        throw: raise ``equinox.EquinoxRuntimeError`` when the verdict says the fit is not
+            a reconstruction (``failed``, ``nonfinite``, ``inconsistent_normals``,
+            ``weights_at_floor``; never for ``max_steps_reached``). With ``throw=False``
+            the Solution is returned and ``sol.result`` / ``sol.status`` say what
+            happened (a non-finite run keeps its last finite iterate). Called outside any JAX
             transformation, the fit is checked once it has run, so this call then waits
             for it.
 
@@ -270,85 +366,27 @@ def fit(
     rounded up likewise (:func:`jurs._defaults.choose_grid`). The padding changes the result
     only at rounding level. With :func:`jurs.enable_compilation_cache`, new processes load
     compiled (and traced) fits from the cache folder.
+
+    Several devices: points (or normals) split along the point axis by a ``NamedSharding``
+    over several devices are solved there, per-sample work on each device's samples and
+    grid-sized sums all-reduced; the sample layout is still built from the whole cloud on
+    the host, in one process (docs/sharding.md).
     """
-    settings = None
     estimated = None
     if normals is None:
         normals, estimated = _estimated_normals(points, mask)
-    if smoothing is not None and solver is not None:
-        raise ValueError(
-            "smoothing sets the default solver's lambda; with a solver given, set its lam instead"
-        )
-    if grid is None or offset is None or eps is None or solver is None:
-        if mask is not None:
-            raise ValueError(
-                "automatic settings do not take a mask; pass grid, offset, eps "
-                "and solver explicitly for padded batches"
-            )
-        settings = auto_settings(
-            points,
-            normals,
-            grid=grid,
-            offset=offset,
-            eps=eps,
-            domain=domain,
-            margin=margin,
-            smoothing=smoothing,
-        )
-        grid, offset, eps = settings.grid, settings.offset, settings.eps
-        solver = LeastSquares(lam=settings.lam) if solver is None else solver
-    shape = normalise_grid(grid, _point_dimension(points))
-    if not isinstance(solver, AbstractSolver):
-        raise TypeError(f"solver must be a jurs solver, got {type(solver).__name__}")
-    check_memory(
-        "grid=" + "x".join(map(str, shape)),  # points are checked by make_problem
-        fit_memory(shape, 3 * (len(points) if hasattr(points, "__len__") else 0), solver),
+    settings, grid, offset, eps, solver = _resolved_settings(
+        points, normals, grid, offset, eps, solver, domain, margin, mask, smoothing
     )
+    shape = _checked_shape(points, grid, solver, init)
     dtype = jnp.result_type(float)
-    if init is not None and not isinstance(init, ImplicitSpline):
-        raise TypeError(f"init must be a jurs.ImplicitSpline, got {type(init).__name__}")
-    if init is not None and tuple(init.shape) != shape:
-        raise ValueError(f"init spline has grid {init.shape}, expected {shape}")
-    if init is not None and _is_concrete(init):  # a NaN start ran into RESULTS.nonfinite
-        check_spline_arrays({k: np.asarray(getattr(init, k)) for k in SPLINE_KEYS}, "init: ")
-    # The problem is built outside the solver's jit: its sample layout is chosen on the
-    # host from concrete data (see make_problem); under a caller's jit/grad/vmap it is traced.
     given = (points, normals, mask)  # before padding, for the orientation check
-    padded = padded_cloud(points, normals) if mask is None else None
-    if padded is not None:  # shape-stable: clouds of similar size share one compiled fit
-        points, normals, mask = padded
-    problem = make_problem(
-        points,
-        normals,
-        grid=shape,
-        offset=offset,
-        eps=eps,
-        domain=domain,
-        margin=margin,
-        mask=mask,
-        bucket_size=bucket_size,
-        dtype=dtype,
-        stable_shapes=padded is not None,
+    problem = _padded_problem(
+        points, normals, mask, shape, offset, eps, domain, margin, bucket_size, dtype
     )
-    solver = _as_arrays(solver, dtype)
-    top_level = _at_top_level((problem, solver, init))
-    run = _solve_reassociating if top_level and _reassociation_pays(problem, solver) else _solve
-    if top_level:
-        # ``throw`` checked on the host after the call, not by a host callback inside it:
-        # a compiled fit with a callback is never written to JAX's persistent compilation
-        # cache, and without one a new process loads the fit instead of compiling it.
-        # With jurs.enable_compilation_cache, the plain compilation also goes through the
-        # store of exported fits: a new process skips its tracing too (call_stored).
-        sol = (
-            run(problem, solver, init, False)
-            if run is _solve_reassociating
-            else call_stored(_run, run, problem, solver, init, False)
-        )
-        if throw and bool(sol.result == RESULTS.nonfinite):
-            raise eqx.EquinoxRuntimeError(RESULTS[RESULTS.nonfinite])
-        sol = _check_orientation(sol, *given)
-    else:
-        sol = run(problem, solver, init, throw)
+    # Points sharded over several devices: the problem split over them (jurs._sharding).
+    problem, solver, init = place_fit(points, normals, problem, _as_arrays(solver, dtype), init)
+    sol = _solve_fit(problem, solver, init, throw, given)
     if estimated is not None:
         sol = dataclasses.replace(sol, stats=dict(sol.stats, estimated_normals=estimated))
     return sol if settings is None else dataclasses.replace(sol, settings=settings)

@@ -9,13 +9,16 @@ negative inside and positive outside.
 from __future__ import annotations
 
 import os
+from collections import namedtuple
 from functools import partial
+from typing import Any
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import Array
+from jax.core import Tracer
 
 from ._basis import flat_cell, locate, num_cells
 from ._compile import round_size
@@ -148,7 +151,9 @@ def stable_layout(
     real = np.flatnonzero(np.asarray(sample_mask) > 0)
     cells = np.asarray(cells)
     num_slots = cells.shape[0]
-    occupied = min(count, round_size(np.count_nonzero(np.bincount(cells[real], minlength=count))))
+    occupied = min(
+        count, round_size(int(np.count_nonzero(np.bincount(cells[real], minlength=count))))
+    )
     if bucket_size is None:
         cap, per_cell = (
             (SMALL_MAX_BUCKET_SIZE, num_slots / occupied / 2.0)
@@ -208,7 +213,7 @@ def normalise_grid(grid, ndim: int = 2) -> tuple[int, ...]:
 
 
 def _is_concrete(*xs) -> bool:
-    return not any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(xs))
+    return not any(isinstance(x, Tracer) for x in jax.tree_util.tree_leaves(xs))
 
 
 def _as_array(x, dtype=None):
@@ -492,6 +497,112 @@ _geometry = eqx.filter_jit(_geometry_arrays)
 _slots = eqx.filter_jit(_slot_arrays)
 
 
+def _surface_bucket_size(bucket_size) -> int:
+    """1, the one sample layout of 3D points; ValueError for any other ``bucket_size``."""
+    # The buckets, the table and the power form are 2D kernels; a surface's samples
+    # take the generic form, one sample a slot.
+    if bucket_size not in (None, 1):
+        raise ValueError(f"bucket_size must be 1 for 3D points, got {bucket_size!r}")
+    return 1
+
+
+#: The results of :func:`_geometry_arrays`, by name.
+_Geometry = namedtuple("_Geometry", "normals samples targets sample_mask lower upper cells slots")
+
+
+def _converted_geometry(
+    points, normals, offset, eps, domain, margin, mask, shape, dtype, bucket_size, concrete, small
+):
+    """``(convert, points, geometry)``: the cast to ``dtype``, the cast points, a _Geometry."""
+    # Small concrete problems are laid out on the host in NumPy and transferred once at the
+    # end: nothing to compile (a first call would otherwise spend about 0.3 s compiling
+    # the geometry). Larger and traced ones take the same arithmetic jitted (at 1e6 points
+    # 0.17 s against 0.52 s in NumPy).
+    on_host = concrete and small
+    if on_host:
+        convert, geometry = (lambda x: np.asarray(x, dtype)), partial(_geometry_arrays, xp=np)
+        mask = None if mask is None else np.asarray(mask)
+    else:
+        convert, geometry = (lambda x: _as_array(x, dtype)), _geometry
+    points = convert(points)
+    if mask is not None and _shape(mask) != (points.shape[0],):
+        raise ValueError(f"mask must have shape ({points.shape[0]},), got {_shape(mask)}")
+    # One sample a slot unless a concrete problem gets the bucketed layout (built on the
+    # host between two compiled calls); otherwise the geometry builds the slots too.
+    identity = bucket_size == 1 or not concrete or (bucket_size is None and small)
+    arrays = geometry(
+        points,
+        convert(normals),
+        convert(offset),
+        convert(eps),
+        None if domain is None else convert(domain),
+        margin,
+        mask,
+        shape,
+        identity,
+    )
+    return convert, points, _Geometry(*arrays)
+
+
+def _choose_layout(cells, sample_mask, count, bucket_size, concrete, small, stable_shapes):
+    """``(table, layout, bucket_size)``; ``layout`` None where one sample takes each slot."""
+    if bucket_size is not None and bucket_size > 1 and not concrete:
+        raise ValueError("bucket_size > 1 needs concrete inputs (the layout is built on the host)")
+    table = layout = None
+    if concrete and bucket_size in (None, 1) and small:
+        # Small problems keep the paper's order, one sample a slot; the table form groups
+        # them into buckets of its own (see jurs._spline).
+        if stable_shapes:
+            order, real, k = stable_layout(cells, sample_mask, count, small=True)
+        else:
+            k = choose_bucket_size(cells, count, small=True)
+            needed = int((-(-np.bincount(cells, minlength=count) // k)).sum())
+            order, real = bucket_layout(cells, k, count, round_buckets(needed))
+        table = (order.reshape(-1, k), real.reshape(-1, k))
+        bucket_size = 1
+    elif concrete and bucket_size != 1:
+        cells = np.asarray(cells)
+        if stable_shapes:
+            *layout, bucket_size = stable_layout(cells, sample_mask, count, bucket_size)
+        bucket_size = bucket_size or choose_bucket_size(cells, count)
+    else:
+        bucket_size = 1
+    if bucket_size != 1 and layout is None:
+        layout = bucket_layout(cells, bucket_size, count)
+    return table, layout, bucket_size
+
+
+def _laid_out_slots(geometry, shape, bucket_size, concrete, small, stable_shapes) -> dict[str, Any]:
+    """The :class:`Problem` fields of the slots: the samples laid out, their basis and masks."""
+    _, samples, targets, sample_mask, lower, upper, cells, slots = geometry
+    table, layout, bucket_size = _choose_layout(
+        cells, sample_mask, num_cells(shape), bucket_size, concrete, small, stable_shapes
+    )
+    if layout is None and slots is None:
+        # An automatic bucket size of 1 (a sparse cloud: under 2 samples an occupied cell)
+        # on a problem whose geometry expected buckets: lay the samples out by cell.
+        layout = bucket_layout(np.asarray(cells), bucket_size, num_cells(shape))
+    if layout is None:  # the geometry built one sample a slot
+        assert slots is not None
+        slot_sample = (np if concrete else jnp).arange(samples.shape[0], dtype=np.int32)
+        slot_xy, local, slot_targets, slot_mask, slot_data = slots
+    else:
+        slot_sample, valid = layout
+        slot_xy, local, slot_targets, slot_mask, slot_data = _slots(
+            samples, targets, sample_mask, lower, upper, slot_sample, valid, shape, bucket_size
+        )
+    if table is not None:
+        local = with_table(local, *table, shape)
+    return dict(
+        samples=slot_xy,
+        targets=slot_targets,
+        mask=slot_mask,
+        is_data=slot_data,
+        sample_index=slot_sample,
+        local=local,
+    )
+
+
 def make_problem(
     points,
     normals,
@@ -559,85 +670,32 @@ def make_problem(
         normals = unit_normals(np.asarray(normals, float))
     small = 3 * _shape(points)[0] <= TABLE_MAX_SLOTS
     if ndim != 2:
-        # The buckets, the table and the power form are 2D kernels; a surface's samples
-        # take the generic form, one sample a slot.
-        if bucket_size not in (None, 1):
-            raise ValueError(f"bucket_size must be 1 for 3D points, got {bucket_size!r}")
-        bucket_size = 1
-        small = False
-    # Small concrete problems are laid out on the host in NumPy and transferred once at the
-    # end: nothing to compile (a first call would otherwise spend about 0.3 s compiling
-    # the geometry). Larger and traced ones take the same arithmetic jitted (at 1e6 points
-    # 0.17 s against 0.52 s in NumPy).
-    on_host = concrete and small
-    if on_host:
-        convert, geometry = (lambda x: np.asarray(x, dtype)), partial(_geometry_arrays, xp=np)
-        mask = None if mask is None else np.asarray(mask)
-    else:
-        convert, geometry = (lambda x: _as_array(x, dtype)), _geometry
-    points = convert(points)
-    if mask is not None and _shape(mask) != (points.shape[0],):
-        raise ValueError(f"mask must have shape ({points.shape[0]},), got {_shape(mask)}")
-    # One sample a slot unless a concrete problem gets the bucketed layout (built on the
-    # host between two compiled calls); otherwise the geometry builds the slots too.
-    identity = bucket_size == 1 or not concrete or (bucket_size is None and small)
-    normals, samples, targets, sample_mask, lower, upper, cells, slots = geometry(
+        bucket_size, small = _surface_bucket_size(bucket_size), False
+    convert, points, geometry = _converted_geometry(
         points,
-        convert(normals),
-        convert(offset),
-        convert(eps),
-        None if domain is None else convert(domain),
+        normals,
+        offset,
+        eps,
+        domain,
         margin,
         mask,
         shape,
-        identity,
+        dtype,
+        bucket_size,
+        concrete,
+        small,
     )
-    if bucket_size is not None and bucket_size > 1 and not concrete:
-        raise ValueError("bucket_size > 1 needs concrete inputs (the layout is built on the host)")
-    count = num_cells(shape)
-    table = layout = None
-    if concrete and bucket_size in (None, 1) and small:
-        # Small problems keep the paper's order, one sample a slot; the table form groups
-        # them into buckets of its own (see jurs._spline).
-        if stable_shapes:
-            order, real, k = stable_layout(cells, sample_mask, count, small=True)
-        else:
-            k = choose_bucket_size(cells, count, small=True)
-            needed = int((-(-np.bincount(cells, minlength=count) // k)).sum())
-            order, real = bucket_layout(cells, k, count, round_buckets(needed))
-        table = (order.reshape(-1, k), real.reshape(-1, k))
-        bucket_size = 1
-    elif concrete and bucket_size != 1:
-        cells = np.asarray(cells)
-        if stable_shapes:
-            *layout, bucket_size = stable_layout(cells, sample_mask, count, bucket_size)
-        bucket_size = bucket_size or choose_bucket_size(cells, count)
-    else:
-        bucket_size = 1
-    if bucket_size == 1 and layout is None:  # the geometry built one sample a slot
-        slot_sample = (np if concrete else jnp).arange(samples.shape[0], dtype=np.int32)
-        slot_xy, local, slot_targets, slot_mask, slot_data = slots
-    else:
-        slot_sample, valid = layout or bucket_layout(cells, bucket_size, count)
-        slot_xy, local, slot_targets, slot_mask, slot_data = _slots(
-            samples, targets, sample_mask, lower, upper, slot_sample, valid, shape, bucket_size
-        )
-    if table is not None:
-        local = with_table(local, *table, shape)
+    slots = _laid_out_slots(geometry, shape, bucket_size, concrete, small, stable_shapes)
+    # On the host the fields hold NumPy arrays until the device_put below.
     problem = Problem(
-        points=points,
-        normals=normals,
-        samples=slot_xy,
-        targets=slot_targets,
-        mask=slot_mask,
-        is_data=slot_data,
-        sample_index=slot_sample,
-        lower=lower,
-        upper=upper,
-        offset=convert(offset),
-        eps=convert(eps),
-        local=local,
+        points=points,  # pyright: ignore[reportArgumentType]
+        normals=geometry.normals,
+        lower=geometry.lower,
+        upper=geometry.upper,
+        offset=convert(offset),  # pyright: ignore[reportArgumentType]
+        eps=convert(eps),  # pyright: ignore[reportArgumentType]
         shape=shape,
+        **slots,
     )
     # Host arrays to the device in one transfer.
     return jax.device_put(problem) if concrete else problem
@@ -663,7 +721,7 @@ def orientation_sample(points, normals):
     :data:`ORIENTATION_MAX_POINTS`, evenly strided), their unit normals, and each point's
     :data:`ORIENTATION_NEIGHBOURS` + 1 nearest (itself first) from one KD-tree query, so a
     caller of both builds the tree once."""
-    from scipy.spatial import cKDTree
+    from scipy.spatial import cKDTree  # pyright: ignore[reportAttributeAccessIssue]  # no stub
 
     p = np.asarray(points, float)
     n = unit_normals(np.asarray(normals, float))

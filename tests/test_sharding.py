@@ -1,0 +1,118 @@
+"""Fits of clouds sharded over several devices (jurs._sharding, docs/sharding.md).
+
+JAX fixes its device count when it starts, so the multi-device checks run in a child
+process with four CPU devices (``--xla_force_host_platform_device_count``), each fit
+there compared with the one-device fit of the same cloud in the same process.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import subprocess
+import sys
+import textwrap
+
+import jax
+import numpy as np
+import pytest
+
+import jurs
+from jurs._sharding import input_sharding, place_fit
+
+# Run in a child process with 4 CPU devices and float64. Prints one JSON line.
+CHILD = textwrap.dedent(
+    """
+    import json, re
+    import jax, jax.numpy as jnp, numpy as np
+    from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
+    import jurs
+    from jurs import _fit
+    from jurs._sharding import place_fit
+
+    assert len(jax.devices()) == 4 and jnp.result_type(float) == jnp.float64
+    mesh = Mesh(np.array(jax.devices()), ("points",))
+    split = NamedSharding(mesh, P("points"))
+    out = {}
+
+    def compare(name, points, normals, **kw):
+        ref = jurs.fit(points, normals, **kw)
+        sol = jurs.fit(jax.device_put(points, split), jax.device_put(normals, split), **kw)
+        c0, c1 = np.asarray(ref.spline.control), np.asarray(sol.spline.control)
+        out[name] = dict(
+            rel=float(np.abs(c1 - c0).max() / np.abs(c0).max()),
+            status=[ref.status, sol.status],
+            devices=len(sol.spline.control.sharding.device_set),
+        )
+
+    compare("table", *jurs.datasets.example1(2000))  # automatic settings, table form
+    p, n = jurs.datasets.example1(3000)
+    grid, offset, eps = (24, 24), 0.02, 0.02
+    compare("buckets", p, n, grid=grid, offset=offset, eps=eps, bucket_size=8)
+    compare("sphere", *jurs.datasets.sphere3d(1000), grid=(6, 6, 6), offset=0.05, eps=0.05)
+
+    # The compiled bucketed (power-form) solve: which collectives GSPMD put in.
+    solver = _fit._as_arrays(jurs.LeastSquares(lam=1e-4), jnp.float64)
+    problem = _fit._padded_problem(p, n, None, grid, offset, eps, None, 0.1, 8, jnp.float64)
+    problem, solver, _ = place_fit(
+        jax.device_put(p, split), jax.device_put(n, split), problem, solver, None
+    )
+    out["slots_per_device"] = sorted({s.data.shape[0] for s in problem.samples.addressable_shards})
+    out["slots"] = problem.samples.shape[0]
+    hlo = _fit._solve.lower(problem, solver, None, False).compile().compiled.as_text()
+    out["collectives"] = sorted(
+        set(re.findall(r"(all-reduce|all-gather|all-to-all|reduce-scatter)(?:-start)?\\(", hlo))
+    )
+    print(json.dumps(out))
+    """
+)
+
+
+@pytest.fixture(scope="module")
+def child():
+    env = dict(
+        os.environ,
+        XLA_FLAGS="--xla_force_host_platform_device_count=4",
+        JAX_ENABLE_X64="1",
+        JAX_PLATFORMS="cpu",
+    )
+    run = subprocess.run(
+        [sys.executable, "-c", CHILD], env=env, capture_output=True, text=True, timeout=240
+    )
+    assert run.returncode == 0, run.stderr[-3000:]
+    return json.loads(run.stdout.strip().splitlines()[-1])
+
+
+@pytest.mark.parametrize("case", ["table", "buckets", "sphere"])
+def test_sharded_fit_equals_one_device_fit(child, case):
+    """Control points of the fit over 4 devices within 1e-9 (relative) of the one-device
+    fit: the small-cloud table form, the bucketed form, and a surface (on 6^3 = 216
+    coefficients, a direct solve: a surface's default CG stops at a tolerance of 1e-4,
+    and two fits whose sums differ in order then agree only to about that)."""
+    result = child[case]
+    assert result["rel"] < 1e-9
+    assert result["status"] == ["successful", "successful"]
+    assert result["devices"] == 4  # the result lives on the mesh
+
+
+def test_sharded_samples_stay_on_their_devices(child):
+    """The bucketed solve splits the slots evenly (whole buckets a device) and its compiled
+    form reduces across devices without gathering the samples."""
+    assert len(child["slots_per_device"]) == 1
+    assert child["slots_per_device"][0] * 4 == child["slots"]
+    assert child["slots_per_device"][0] % 8 == 0  # bucket_size=8
+    assert child["collectives"] == ["all-reduce"]
+
+
+def test_unsharded_fit_unaffected():
+    """One-device inputs (NumPy or a jax.Array) take the one-device path unchanged."""
+    p, n = jurs.datasets.example1(200)
+    assert input_sharding(p, n) is None
+    assert input_sharding(jax.device_put(p), jax.device_put(n)) is None
+    problem = jurs.make_problem(p, n, grid=9, offset=0.1, eps=0.01)
+    solver = jurs.LeastSquares(lam=1e-3)
+    assert place_fit(p, n, problem, solver, None) == (problem, solver, None)
+    kw = dict(grid=9, offset=0.1, eps=0.01, solver=solver)
+    a = jurs.fit(p, n, **kw)
+    b = jurs.fit(jax.device_put(p), jax.device_put(n), **kw)
+    np.testing.assert_array_equal(np.asarray(a.spline.control), np.asarray(b.spline.control))
