@@ -55,15 +55,18 @@ For 3D splines the same questions are asked of a triangle mesh of the zero set:
 from __future__ import annotations
 
 import dataclasses
-from typing import Sequence
+from typing import TYPE_CHECKING, Sequence, cast
 
 import contourpy
 import equinox as eqx
 import numpy as np
-from scipy.spatial import cKDTree
+from scipy.spatial import cKDTree  # pyright: ignore[reportAttributeAccessIssue]  # no stub
 
 from ._problem import check_memory
 from ._spline import ImplicitSpline
+
+if TYPE_CHECKING:
+    from contourpy._contourpy import LineReturn_SeparateCode
 
 #: Default number of grid nodes along the longer side of the box.
 DEFAULT_RESOLUTION = 512
@@ -145,7 +148,8 @@ def contour_lines(xs, ys, values, level: float = 0.0):
         name="serial",
         line_type=contourpy.LineType.SeparateCode,
     )
-    lines, codes = gen.lines(float(level))
+    # LineType.SeparateCode above: the stubs type lines() as the union over all line types
+    lines, codes = cast("LineReturn_SeparateCode", gen.lines(float(level)))
     return [(np.asarray(p, float), bool(len(c) and c[-1] == 79)) for p, c in zip(lines, codes)]
 
 

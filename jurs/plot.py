@@ -1,5 +1,6 @@
 """Figures with matplotlib. Each function returns the Figure; save it with ``fig.savefig``
-(``.png`` or ``.svg``).
+(``.png`` or ``.svg``). New figures are pyplot's (``plt.show()`` and notebooks show them);
+matplotlib itself loads at the first figure, not at ``import jurs.plot``.
 
 * :func:`plot_fit` - the paper's view: heatmap of g, its zero curve, data and offset points;
   given a :class:`jurs.levelset.LevelSetReport`, supplementary components are highlighted.
@@ -14,7 +15,6 @@ from __future__ import annotations
 
 from typing import Mapping, Sequence
 
-import matplotlib.pyplot as plt
 import numpy as np
 
 from ._mesh import _check_mesh
@@ -37,10 +37,27 @@ def evaluate_on_grid(spline: ImplicitSpline, resolution: int = 400, box=None):
     return xs, ys, evaluate_grid(spline, xs, ys)
 
 
-def _new_axes(ax, figsize=(6, 6)):
+def _new_figure(*, pyplot: bool = True, **kwargs):
+    """A new Figure (``kwargs`` as ``plt.figure`` takes them): pyplot's own, or with
+    ``pyplot=False`` a standalone one with an Agg canvas, which writes files without
+    loading pyplot or a GUI backend (the command line's figures)."""
+    if pyplot:
+        import matplotlib.pyplot as plt
+
+        return plt.figure(**kwargs)
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(**kwargs)
+    FigureCanvasAgg(fig)
+    return fig
+
+
+def _new_axes(ax, figsize=(6, 6), *, pyplot: bool = True):
+    """``(figure, axes)``: ``ax`` and its figure, or a new figure with one axes."""
     if ax is None:
-        fig, ax = plt.subplots(figsize=figsize, constrained_layout=True)
-        return fig, ax
+        fig = _new_figure(pyplot=pyplot, figsize=figsize, layout="constrained")
+        return fig, fig.subplots()
     return ax.figure, ax
 
 
@@ -179,7 +196,8 @@ def plot_iterations(
     ncols = ncols or min(len(items), 4)
     nrows = -(-len(items) // ncols)
     figsize = (panel_size * ncols + 1.0, panel_size * nrows + 0.6)
-    fig, axes = plt.subplots(nrows, ncols, figsize=figsize, constrained_layout=True, squeeze=False)
+    fig = _new_figure(figsize=figsize, layout="constrained")
+    axes = fig.subplots(nrows, ncols, squeeze=False)
     grids = [evaluate_on_grid(s, resolution) for _, s in items]
     limit = max(float(np.nanmax(np.abs(v))) for _, _, v in grids)
     for ax, (label, _), (xs, ys, values) in zip(axes.flat, items, grids):
@@ -193,7 +211,9 @@ def plot_iterations(
         ax.set_visible(False)
     fig.colorbar(mesh, ax=axes, label="g(x, y)", shrink=0.8)
     handles, labels = axes.flat[0].get_legend_handles_labels()
-    handles.append(plt.Line2D([], [], color=ZERO_COLOUR))
+    from matplotlib.lines import Line2D
+
+    handles.append(Line2D([], [], color=ZERO_COLOUR))
     labels.append("g = 0")
     fig.legend(handles, labels, loc="outside lower center", ncol=4, fontsize=8, frameon=False)
     if title:
@@ -265,25 +285,24 @@ def plot_lambda_sensitivity(
 
     Returns the Figure.
     """
-    lams = np.asarray(lams, float)
-    if len(lams) != len(records) or len(lams) == 0:
+    lam = np.asarray(lams, float)
+    if len(lam) != len(records) or len(lam) == 0:
         raise ValueError("need one record per lambda, and at least one")
-    order = np.argsort(lams)
-    lams = lams[order]
+    order = np.argsort(lam)
+    lam = lam[order]
     records = [records[i] for i in order]
     ncols = min(len(keys), 2)
     nrows = -(-len(keys) // ncols)
-    fig, axes = plt.subplots(
-        nrows, ncols, figsize=(4.4 * ncols, 3.2 * nrows), constrained_layout=True, squeeze=False
-    )
-    positive = lams[lams > 0]
+    fig = _new_figure(figsize=(4.4 * ncols, 3.2 * nrows), layout="constrained")
+    axes = fig.subplots(nrows, ncols, squeeze=False)
+    positive = lam[lam > 0]
     for ax, key in zip(axes.flat, keys):
         y = np.array([float(r[key]) for r in records])
         count = key.startswith("num_")
-        ax.plot(lams, y, "o-", lw=1.5, ms=4, drawstyle="default")
-        if positive.size and lams.min() == 0:
+        ax.plot(lam, y, "o-", lw=1.5, ms=4, drawstyle="default")
+        if positive.size and lam.min() == 0:
             ax.set_xscale("symlog", linthresh=positive.min())
-        elif positive.size == lams.size and lams.max() / lams.min() > 20:
+        elif positive.size == lam.size and lam.max() / lam.min() > 20:
             ax.set_xscale("log")
         if not count and (y > 0).all():
             ax.set_yscale("log")
@@ -407,19 +426,23 @@ def _shaded_colours(normals, flags, light) -> np.ndarray:
     boundary. Where some faces are flagged, the others are translucent
     (:data:`SEE_THROUGH_ALPHA`), so that flagged faces inside a closed surface, such as a
     bubble within it, show."""
+    from matplotlib.colors import to_rgb
+
     flags = np.asarray(flags, bool)
     cos = np.abs(normals @ light)[:, None]
-    base = np.where(flags[:, None], plt.matplotlib.colors.to_rgb(SUPPLEMENTARY_COLOUR), MESH_COLOUR)
+    base = np.where(flags[:, None], to_rgb(SUPPLEMENTARY_COLOUR), MESH_COLOUR)
     rgb = np.clip(base * (AMBIENT + (1.0 - AMBIENT) * cos), 0.0, 1.0)
     alpha = np.where(flags | ~flags.any(), 1.0, SEE_THROUGH_ALPHA)
     return np.column_stack([rgb, alpha])
 
 
-def _mesh_axes(ax, views, panel_size):
+def _mesh_axes(ax, views=MESH_VIEWS, panel_size=4.0, *, pyplot: bool = True):
     """``(figure, [3D axes])``: new panels side by side, one per view, or the given ones."""
     if ax is None:
-        fig = plt.figure(
-            figsize=(panel_size * len(views), panel_size + 0.5), constrained_layout=True
+        fig = _new_figure(
+            pyplot=pyplot,
+            figsize=(panel_size * len(views), panel_size + 0.5),
+            layout="constrained",
         )
         return fig, [
             fig.add_subplot(1, len(views), k + 1, projection="3d") for k in range(len(views))
@@ -524,14 +547,15 @@ def plot_mesh(
         colours = _shaded_colours(normals, flags, _light(*view))
         _draw_mesh_panel(a, vertices, faces, colours, view)
     if flags.any():
+        from matplotlib.layout_engine import ConstrainedLayoutEngine
+        from matplotlib.patches import Patch
+
         handles = [
-            plt.matplotlib.patches.Patch(color=MESH_COLOUR, label="g = 0"),
-            plt.matplotlib.patches.Patch(color=SUPPLEMENTARY_COLOUR, label=highlight_label),
+            Patch(color=MESH_COLOUR, label="g = 0"),
+            Patch(color=SUPPLEMENTARY_COLOUR, label=highlight_label),
         ]
         # "outside": below the panels, where the layout engine can make room for it.
-        constrained = isinstance(
-            fig.get_layout_engine(), plt.matplotlib.layout_engine.ConstrainedLayoutEngine
-        )
+        constrained = isinstance(fig.get_layout_engine(), ConstrainedLayoutEngine)
         fig.legend(
             handles=handles,
             loc="outside lower center" if constrained else "lower center",

@@ -68,6 +68,9 @@ def test_fit_round_trip(example1_csv, tmp_path):
         assert key in m, key
     assert m["num_steps"] == 20
     assert record["settings"]["grid"] == [9, 9] and record["num_points"] == 120
+    # The verdict: its short name (Solution.status) and its sentence (Solution.message).
+    assert m["status"] == "max_steps_reached" and m["converged"] is False
+    assert m["result"] == jurs.RESULTS[jurs.RESULTS.max_steps_reached]
 
     # The saved spline is the one jurs.fit gives with the same settings.
     points, normals = jurs.datasets.load_points(example1_csv)
@@ -108,6 +111,58 @@ def test_fit_round_trip(example1_csv, tmp_path):
         assert rerun[key] == expected, key
 
 
+def test_summary_names_the_verdict_and_skips_pyplot(example1_csv, tmp_path, capsys, monkeypatch):
+    """The summary line labels the run with Solution.status, not a piece of its message;
+    the figure is drawn on a standalone Agg canvas: pyplot never makes a figure."""
+    import matplotlib.pyplot as plt
+
+    def no_pyplot(*args, **kwargs):
+        raise AssertionError("jurs fit made a pyplot figure")
+
+    monkeypatch.setattr(plt, "figure", no_pyplot)
+    args = ["fit", str(example1_csv), "-o", str(tmp_path / "o"), *PAPER_ARGS, *FIT_ARGS]
+    assert cli.main([a for a in args if a != "-q"]) == 0
+    out = capsys.readouterr().out.splitlines()
+    assert ": 20 steps in " in out[0] and out[0].endswith(" s (max_steps_reached)"), out
+    assert (tmp_path / "o" / "fit.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+
+
+def test_other_verdicts_are_written_with_a_warning(tmp_path, capsys):
+    """A fit whose verdict is neither success nor max_steps (here half the normals flipped)
+    is written, and stderr names the verdict by its short name, then its sentence."""
+    points, normals = jurs.datasets.example1(120)
+    normals = normals.copy()
+    normals[:60] *= -1
+    path = tmp_path / "flipped.csv"
+    jurs.datasets.save_points(path, points, normals)
+    out = tmp_path / "o"
+    assert cli.main(["fit", str(path), "-o", str(out), *PAPER_ARGS, *FIT_ARGS]) == 0
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "verdict is inconsistent_normals: the normals are" in err[0], err
+    record = json.loads((out / "metrics.json").read_text())
+    assert record["metrics"]["status"] == "inconsistent_normals"
+    assert record["metrics"]["converged"] is False
+
+
+def test_standalone_figures():
+    """jurs.plot's figures without pyplot (the command line's): an Agg canvas, not in
+    pyplot's list of figures; by default they are pyplot's."""
+    import matplotlib.pyplot as plt
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+
+    from jurs import plot
+
+    before = plt.get_fignums()
+    fig, ax = plot._new_axes(None, pyplot=False)
+    assert isinstance(fig.canvas, FigureCanvasAgg) and ax.figure is fig
+    fig, axes = plot._mesh_axes(None, pyplot=False)
+    assert len(axes) == len(plot.MESH_VIEWS) and all(hasattr(a, "view_init") for a in axes)
+    assert plt.get_fignums() == before
+    fig, ax = plot._new_axes(None)
+    assert plt.fignum_exists(fig.number)
+    plt.close(fig)
+
+
 @pytest.mark.slow
 def test_npy_input(tmp_path):
     p, n = jurs.datasets.example1(120)
@@ -121,6 +176,7 @@ def test_npy_input(tmp_path):
     # The default solver is the exact solve with the settings chosen from the data.
     chosen = jurs.auto_settings(0.5 * p + 1.0, n)
     assert record["settings"]["solver"] == "auto" and m["num_steps"] == 1
+    assert m["status"] == "successful" and m["converged"] is True
     assert record["settings"]["grid"] == list(chosen.grid)
     assert record["settings"]["lam"] == pytest.approx(chosen.lam, rel=1e-12)
     assert record["settings"]["offset"] == pytest.approx(chosen.offset, rel=1e-12)
@@ -239,6 +295,33 @@ def test_console_script_exit_code(tmp_path):
     assert proc.returncode == 2
     assert proc.stderr.strip().count("\n") == 0 and "row 3" in proc.stderr
     assert not (tmp_path / "o").exists()
+
+
+@pytest.mark.slow
+def test_command_process_ends_with_its_outputs(example1_csv, tmp_path):
+    """The command as a process (``python -m jurs.cli``: ``cli.command``, which ends the
+    process through ``cli.end_process``): its summary printed, every output written,
+    exit status 0, and the compilation cache it filled kept."""
+    env = {k: v for k, v in os.environ.items() if k != "JURS_NO_COMPILATION_CACHE"}
+    env["XDG_CACHE_HOME"] = str(tmp_path / "cache")
+    out = tmp_path / "o"
+    args = [a for a in FIT_ARGS if a != "-q"]
+    proc = subprocess.run(
+        [sys.executable, "-m", "jurs.cli", "fit", str(example1_csv), "-o", str(out)]
+        + PAPER_ARGS
+        + args,
+        capture_output=True,
+        text=True,
+        timeout=600,
+        env=env,
+    )
+    assert proc.returncode == 0, proc.stderr
+    assert "(max_steps_reached)" in proc.stdout and "wrote metrics.json" in proc.stdout
+    assert sorted(os.listdir(out)) == sorted(cli.OUTPUTS)
+    assert json.loads((out / "metrics.json").read_text())["metrics"]["num_steps"] == 20
+    cache = tmp_path / "cache" / "jurs"
+    assert os.listdir(cache / "jurs-exported-fits")
+    assert [p for p in os.listdir(cache) if p != "jurs-exported-fits"]  # JAX's entries
 
 
 @pytest.mark.parametrize(
