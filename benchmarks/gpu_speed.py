@@ -36,7 +36,7 @@ sys.path.insert(0, HERE)
 
 import speed  # noqa: E402  (the workers and their orchestration)
 from _common import elapsed_log, machine, rerender_beside, write_results  # noqa: E402
-from _speed_report import (  # noqa: E402
+from speed import (  # noqa: E402  (the report's helpers)
     _err,
     _find,
     _gb,
@@ -53,8 +53,8 @@ from _speed_report import (  # noqa: E402
 #: run stays under ten minutes on an H100 (a 1e7 worker takes about half a minute).
 GPU_SWEEP = {1_000_000: (128, 256), 10_000_000: (128, 256)}
 QUICK_SWEEP = {100_000: (64,)}
-#: Points -> steps k of the in-fit step measurement (fits of 1 and 1 + k steps, target
-#: grid). A GPU step is so short next to the host's problem building, which both fits
+#: Points -> steps k of the in-fit step measurement (fits of 1 and 1 + k steps, the
+#: large grid). A GPU step is so short next to the host's problem building, which both fits
 #: repeat, that the CPU run's k = 20 leaves the difference in the noise.
 FIT_STEPS = {1_000_000: 200, 10_000_000: 50}
 QUICK_FIT_STEPS = {100_000: 200}
@@ -97,14 +97,14 @@ def run(quick: bool, out_dir: str, log) -> dict:
         data["fit_steps"].append(
             {
                 "m": m,
-                "grid": speed.TARGET_GRID,
+                "grid": speed.LARGE_GRID,
                 **speed.run_worker(
-                    {"kind": "fit_steps", "m": m, "grid": speed.TARGET_GRID, "steps": k}, log
+                    {"kind": "fit_steps", "m": m, "grid": speed.LARGE_GRID, "steps": k}, log
                 ),
             }
         )
         save()
-    # One process a fit: here they show what a GPU does with small problems, no target.
+    # One process a fit: here they show what a GPU does with small problems.
     data["example4"] = speed.run_example4(log, runs=1)
     save()
     return data
@@ -251,7 +251,7 @@ def _fit_steps_table(fit_steps, cpu) -> list[str]:
     cpu_step = ((cpu or {}).get("fit_steps") or {}).get("default", {})
     rows = []
     for r in fit_steps:
-        on_cpu = cpu_step.get("step_s") if r["m"] == speed.TARGET_POINTS else None
+        on_cpu = cpu_step.get("step_s") if r["m"] == speed.LARGE_POINTS else None
         rows.append(
             _measured_row(
                 _where(r),
