@@ -18,14 +18,26 @@ Reported: times and ratios, CG steps, the objective's relative gap to SuperLU's 
 measured as ``(x - x*) A (x - x*) - 2 (x - x*) r*`` over ``E*`` (no cancellation against
 ``b . b``), and XLA's memory plan of the whole multigrid solve (setup + iteration).
 
+``--memory N ...`` adds XLA's memory plans of 2D ``N x N`` solves, compiled but not run
+(abstract arguments: no system is built), with float64 and with float32 patch inverses.
+
     python benchmarks/multigrid.py --quick   # 2D 128, 256 at three lam; 3D 32^3
     python benchmarks/multigrid.py           # 2D 128..1024, 3D 32^3..64^3
+    python benchmarks/multigrid.py --quick --memory 512 1024
+    python benchmarks/multigrid.py --no-solves --memory 512   # memory plans only
+    python benchmarks/multigrid.py --append --no-solves --case 512 1e-4   # add a row
+    python benchmarks/multigrid.py --rerender   # multigrid.md from the JSON
+
+Results are rewritten after every case, so an interrupted run keeps what it measured;
+``--append`` keeps the rows already there and adds a run (each row's ratios still come
+from one process).
 """
 
 from __future__ import annotations
 
 import argparse
 import datetime
+import json
 import os
 import sys
 import time
@@ -33,7 +45,7 @@ import time
 import numpy as np
 
 sys.path.insert(0, os.path.dirname(__file__))
-from _common import machine, write_results  # noqa: E402
+from _common import RESULTS, machine, rerender_beside, write_results  # noqa: E402
 
 #: Square root of the objective gap asked of the multigrid solve, relative to the objective.
 RTOL = 1e-4
@@ -49,12 +61,13 @@ def system(n: int, m: int, lam: float, ndim: int):
     import jax.numpy as jnp
 
     import jurs
+    import jurs.internal
     from jurs import _normal
 
     data = jurs.datasets.example1 if ndim == 2 else jurs.datasets.torus
     points, normals = data(m)
     problem = jurs.make_problem(points, normals, grid=n)
-    normal = jurs.normal_equations(problem)
+    normal = jurs.internal.normal_equations(problem)
     stencil = normal.regularised(lam)
     diag = _normal.stencil_diagonal(stencil)
     centre = (Ellipsis,) + (_normal.HALF,) * ndim
@@ -62,14 +75,14 @@ def system(n: int, m: int, lam: float, ndim: int):
     return stencil, jnp.where(diag <= 0, 0.0, normal.rhs), float(normal.target_norm2)
 
 
-def multigrid_solver():
+def multigrid_solver(patch_dtype=None):
     """Jitted ``(setup, solve, memory)`` of the lineax Multigrid solve."""
     import jax
     import lineax as lx
 
     from jurs import _multigrid, _normal
 
-    solver = _multigrid.Multigrid(rtol=RTOL, max_steps=MAX_STEPS)
+    solver = _multigrid.Multigrid(rtol=RTOL, max_steps=MAX_STEPS, patch_dtype=patch_dtype)
 
     def operator(stencil, rhs):
         return lx.FunctionLinearOperator(
@@ -104,15 +117,28 @@ def multigrid_solver():
 
     plans = {}
 
-    def memory(stencil, rhs, b2) -> float:
-        """Bytes XLA plans for setup and solve in one call (arguments, outputs, temps), per
-        grid shape."""
-        if rhs.shape not in plans:
-            plan = jax.jit(whole).lower(stencil, rhs, b2).compile().memory_analysis()
-            plans[rhs.shape] = float(
-                plan.argument_size_in_bytes + plan.output_size_in_bytes + plan.temp_size_in_bytes
+    def memory(shape: tuple, ndim: int) -> dict:
+        """XLA's plan (bytes: arguments, outputs, temporaries, total) for setup and solve in
+        one call on a float64 grid of ``shape``, compiled from abstract arguments, and the
+        compile's seconds; once per shape."""
+        if shape not in plans:
+            f64 = jax.numpy.float64
+            args = (
+                jax.ShapeDtypeStruct(shape + (_normal.SIDE,) * ndim, f64),
+                jax.ShapeDtypeStruct(shape, f64),
+                jax.ShapeDtypeStruct((), f64),
             )
-        return plans[rhs.shape]
+            t0 = time.perf_counter()
+            plan = jax.jit(whole).lower(*args).compile().memory_analysis()
+            parts = {
+                "argument_bytes": float(plan.argument_size_in_bytes),
+                "output_bytes": float(plan.output_size_in_bytes),
+                "temp_bytes": float(plan.temp_size_in_bytes),
+            }
+            plans[shape] = dict(
+                parts, total_bytes=sum(parts.values()), compile_s=time.perf_counter() - t0
+            )
+        return plans[shape]
 
     return setup, solve, memory
 
@@ -154,7 +180,7 @@ def run_case(n, m, lam, ndim, mg):
         solve_s=solve_s,
         mg_s=setup_s + solve_s,
         compile_s=setup_first + solve_first - setup_s - solve_s,
-        mg_bytes=memory(stencil, rhs, b2),
+        mg_bytes=memory(rhs.shape, ndim)["total_bytes"],
     )
     if ndim == 2 or n <= SUPERLU_MAX_3D:
         a = _normal.stencil_to_scipy(stencil).tocsc()
@@ -174,7 +200,7 @@ def run_case(n, m, lam, ndim, mg):
     return row
 
 
-def markdown(rows, note) -> str:
+def markdown(rows, plans, note) -> str:
     def cell(row, key, fmt):
         return fmt.format(row[key]) if key in row else "-"
 
@@ -190,8 +216,9 @@ def markdown(rows, note) -> str:
         "objective (an estimated gap of 1e-8 of it), `MG` their sum; `SuperLU` SciPy's "
         "`spsolve`; `block Chol.` jurs' block Cholesky of grid lines (where LeastSquares uses "
         "it). `gap` is the objective's gap to SuperLU's optimum relative to that optimum "
-        "`E*` (`converged = no`: the step cap was reached first); `memory` XLA's plan for "
-        "setup and solve in one call.",
+        "`E*` (`(cap)`: the step cap was reached first); `memory` XLA's plan for "
+        "setup and solve in one call. Design, the issue's targets and what stops each: "
+        "`docs/multigrid.md`.",
         "",
         "| grid | m | lam | steps | setup | solve | MG | SuperLU | SuperLU/MG | block Chol. "
         "| gap | E* | memory | compile |",
@@ -206,9 +233,63 @@ def markdown(rows, note) -> str:
             f"{cell(r, 'superlu_over_mg', '{:.2f}')} | "
             f"{cell(r, 'block_cholesky_s', '{:.2f} s')} | {cell(r, 'gap', '{:.1e}')} | "
             f"{cell(r, 'optimum', '{:.1e}')} | {r['mg_bytes'] / 2**20:.0f} MiB | "
-            f"{r['compile_s']:.0f} s |"
+            f"{max(r['compile_s'], 0.0):.0f} s |"
         )
+    if plans:
+        lines += [
+            "",
+            "## Memory plans (compiled, not run)",
+            "",
+            "XLA's `memory_analysis` of one jitted call that builds the hierarchy and solves "
+            "(float64 system; arguments: the stencil, `n^2 x 49` floats, and the right-hand "
+            "side), compiled from abstract arguments on this CPU backend; the solve was not "
+            "run. `patches` is the storage of the patch inverses (`patch_dtype`).",
+            "",
+            "| grid | patches | arguments | temporaries | outputs | total | compile |",
+            "|---|---|---|---|---|---|---|",
+        ]
+        for p in plans:
+            lines.append(
+                f"| {p['n']} x {p['n']} | {p['patch_dtype']} | "
+                f"{p['argument_bytes'] / 2**20:.0f} MiB | {p['temp_bytes'] / 2**20:.0f} MiB | "
+                f"{p['output_bytes'] / 2**20:.0f} MiB | {p['total_bytes'] / 2**30:.2f} GiB | "
+                f"{p['compile_s']:.0f} s |"
+            )
     return "\n".join(lines) + "\n"
+
+
+def load_results(folder: str) -> tuple[list, list, list]:
+    """``(rows, memory plans, runs)`` of ``folder/multigrid.json``."""
+    with open(os.path.join(folder, "multigrid.json")) as fh:
+        old = json.load(fh)
+    rows, plans, runs = old["rows"], old.get("memory_plans", []), old.get("runs", [])
+    if not runs:  # results written before runs were recorded: one earlier run
+        runs = [
+            dict(started=old["date"], machine=old["machine"], solves=len(rows), plans=len(plans))
+        ]
+    return rows, plans, runs
+
+
+def plural(count: int, noun: str) -> str:
+    return f"{count} {noun}" + ("" if count == 1 else "s")
+
+
+def run_note(runs, rows, plans) -> str:
+    """The results' opening note: machine, load, and which run measured what."""
+    parts = []
+    for k, r in enumerate(runs):
+        load = f", load average {r['load']:.1f} at its start" if "load" in r else ""
+        parts.append(
+            f"run {k + 1} ({r['started']}{load}): {plural(r['solves'], 'solve case')}, "
+            f"{plural(r['plans'], 'memory plan')}"
+        )
+    return (
+        f"Measured on {runs[-1]['machine']}, a 2-core machine shared with other jobs: absolute "
+        "times are noisy, each row's ratios are from one process. "
+        + "; ".join(parts)
+        + (" (later runs appended with `--append`)." if len(runs) > 1 else ".")
+        + f" {plural(len(rows), 'solve case')} and {plural(len(plans), 'memory plan')} in all."
+    )
 
 
 def main():
@@ -216,37 +297,105 @@ def main():
     parser.add_argument(
         "--quick", action="store_true", help="2D 128 and 256 at three lam, 3D 32^3 at lam 1e-4"
     )
+    parser.add_argument(
+        "--case",
+        nargs=2,
+        action="append",
+        default=[],
+        metavar=("N", "LAM"),
+        help="a 2D N x N case at LAM (1e5 points), run after the set chosen; repeatable",
+    )
+    parser.add_argument(
+        "--memory",
+        type=int,
+        nargs="*",
+        default=[],
+        metavar="N",
+        help="also XLA's memory plans (compile only) of 2D N x N solves, after the solves",
+    )
+    parser.add_argument(
+        "--memory-dtypes",
+        nargs="+",
+        default=["float64", "float32"],
+        choices=["float64", "float32"],
+        help="patch inverse dtypes of the memory plans (default both)",
+    )
+    parser.add_argument(
+        "--no-solves", action="store_true", help="no default set: only --case and --memory"
+    )
+    parser.add_argument(
+        "--append", action="store_true", help="keep the results already in --results, add these"
+    )
+    parser.add_argument(
+        "--rerender", action="store_true", help="rewrite multigrid.md from the JSON, no measuring"
+    )
+    parser.add_argument("--results", default=RESULTS, help="folder for multigrid.{md,json}")
     args = parser.parse_args()
+    if args.rerender:
+
+        def render(data):
+            rows, plans, runs = load_results(args.results)
+            return markdown(rows, plans, run_note(runs, rows, plans))
+
+        print(rerender_beside(os.path.join(args.results, "multigrid.json"), render))
+        return
     import jax
+    import jax.numpy as jnp
 
     jax.config.update("jax_enable_x64", True)
     lams = (1e-4, 1e-8, 1e-14)
-    if args.quick:
+    if args.no_solves:
+        cases = []
+    elif args.quick:
         cases = [(n, 10**5, lam, 2) for n in (128, 256) for lam in lams] + [(32, 10**5, 1e-4, 3)]
     else:
         cases = [(n, 10**5, lam, 2) for n in (128, 256, 512, 1024) for lam in lams] + [
             (n, 10**5, lam, 3) for n in (32, 48, 64) for lam in (1e-4, 1e-8)
         ]
+    cases += [(int(n), 10**5, float(lam), 2) for n, lam in args.case]
     mg = multigrid_solver()
-    rows = []
-    today = datetime.date.today().isoformat()
-    for n, m, lam, ndim in cases:
-        rows.append(run_case(n, m, lam, ndim, mg))
-        print(
-            {k: (f"{v:.3g}" if isinstance(v, float) else v) for k, v in rows[-1].items()},
-            flush=True,
-        )
-        # Written after every case, so that an interrupted run keeps what it measured.
-        note = (
-            f"Measured {today} on {machine()} (a 2-core machine shared with other jobs: "
-            "absolute times are noisy, ratios are from the same run). "
-            f"{len(rows)} of {len(cases)} cases of this run."
+    rows, plans, runs = [], [], []
+    if args.append:
+        rows, plans, runs = load_results(args.results)
+    run = dict(
+        started=datetime.datetime.now().isoformat(timespec="minutes"),
+        load=os.getloadavg()[0],
+        machine=machine(),
+        solves=0,
+        plans=0,
+    )
+    runs.append(run)
+    tasks = [("solve", case) for case in cases] + [
+        ("memory", (n, dtype)) for n in args.memory for dtype in args.memory_dtypes
+    ]
+
+    def write():
+        # After every task, so that an interrupted run keeps what it measured.
+        payload = dict(
+            date=datetime.date.today().isoformat(),
+            machine=machine(),
+            rtol=RTOL,
+            runs=runs,
+            rows=rows,
+            memory_plans=plans,
         )
         write_results(
-            "multigrid",
-            {"date": today, "machine": machine(), "rtol": RTOL, "rows": rows},
-            markdown(rows, note),
+            "multigrid", payload, markdown(rows, plans, run_note(runs, rows, plans)), args.results
         )
+
+    for kind, task in tasks:
+        if kind == "solve":
+            rows.append(dict(run_case(*task, mg), run=len(runs)))
+            run["solves"] += 1
+            out = rows[-1]
+        else:
+            n, dtype = task
+            _, _, memory = mg if dtype == "float64" else multigrid_solver(jnp.float32)
+            plans.append(dict(n=n, ndim=2, patch_dtype=dtype, **memory((n, n), 2), run=len(runs)))
+            run["plans"] += 1
+            out = plans[-1]
+        print({k: (f"{v:.3g}" if isinstance(v, float) else v) for k, v in out.items()}, flush=True)
+        write()
 
 
 if __name__ == "__main__":
