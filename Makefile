@@ -5,7 +5,8 @@
 # and for development:
 #   make test-fast - the suite without the tests marked slow (pytest -m "not slow")
 #   make docs      - the documentation site, into site/
-#   make lint      - ruff's linter and formatter check (make test runs them first)
+#   make lint      - ruff's linter and formatter check and the type checker (make test
+#                    runs them first)
 PYTHON ?= python3
 VENV := .venv
 PY := $(VENV)/bin/python
@@ -32,6 +33,7 @@ demo: $(STAMP)
 test: $(STAMP)
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/ruff format --check --quiet .
+	$(VENV)/bin/basedpyright --level error
 	$(MKDOCS) build --strict --quiet
 	XLA_PYTHON_CLIENT_PREALLOCATE=false $(PY) -m pytest -q -n 2 --nbmake tests notebooks
 
@@ -44,6 +46,7 @@ docs: $(STAMP)
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/ruff format --check .
+	$(VENV)/bin/basedpyright
 
 bench: $(STAMP)
 	$(PY) benchmarks/step_speed.py

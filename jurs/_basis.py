@@ -16,6 +16,7 @@ per-cell ``(cells, 16)`` patches.
 from __future__ import annotations
 
 import itertools
+from typing import cast
 
 import jax.numpy as jnp
 import numpy as np
@@ -35,7 +36,7 @@ CENTRED_POWER = (
 )
 
 
-def cubic_weights(t: Array, xp=jnp) -> Array:
+def cubic_weights(t: Array | np.ndarray, xp=jnp) -> Array:
     """Values of the four uniform cubic B-spline pieces at ``t`` in ``[0, 1]``; ``(..., 4)``.
 
     Outside ``[0, 1]`` the end pieces are continued as polynomials, so evaluation beyond the
@@ -125,7 +126,7 @@ def patch_corner(cell: Array, shape: tuple[int, ...]) -> Array:
         corner = corner + (rest % cells[axis]) * stride
         rest = rest // cells[axis]
         stride *= int(shape[axis])
-    return corner
+    return cast(Array, corner)  # the loop runs at least once: never the int 0
 
 
 def tensor_basis(*axes: Array) -> Array:

@@ -86,7 +86,8 @@ def enable_compilation_cache(path=None, *, min_compile_time_s: float = 0.0) -> s
     import jax
 
     if path is None:
-        path = jax.config.jax_compilation_cache_dir or default_cache_dir()
+        # Config options are attributes made at run time, unknown to a type checker.
+        path = jax.config.jax_compilation_cache_dir or default_cache_dir()  # pyright: ignore[reportAttributeAccessIssue]
     path = os.path.abspath(os.path.expanduser(os.fspath(path)))
     exports = os.path.join(path, "jurs-exported-fits")
     os.makedirs(exports, exist_ok=True)
@@ -183,7 +184,7 @@ def _export_key(fn, args) -> str:
             _jurs_source_digest(),
             jax.__version__,
             jax.default_backend(),
-            bool(jax.config.jax_enable_x64),
+            bool(jax.config.jax_enable_x64),  # pyright: ignore[reportAttributeAccessIssue]
             fn.__module__,
             fn.__qualname__,
             str(treedef),
@@ -220,6 +221,7 @@ def _load_or_export(fn, args, key: str, dynamic_tree, static):
 
     if key in _exports:
         return _exports[key]
+    assert _export_dir is not None  # only called once the cache is enabled
     path = os.path.join(_export_dir, key + ".pickle")
     entry = None
     try:

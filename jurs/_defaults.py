@@ -37,7 +37,9 @@ from typing import TYPE_CHECKING
 import numpy as np
 
 if TYPE_CHECKING:  # SciPy's spatial module loads on the first fit (0.3 s), not on import
-    from scipy.spatial import cKDTree
+    # SciPy ships no stub for its compiled cKDTree, so a type checker sees no such class;
+    # KDTree, its pure-Python subclass with the same query(), stands in for it here.
+    from scipy.spatial import KDTree as cKDTree
 
 from ._compile import round_size
 from ._problem import (
@@ -78,21 +80,22 @@ class Settings:
     """What :func:`auto_settings` chose, and the measurements it chose from.
 
     Attributes:
-        grid: ``(N, M)`` basis functions along x and y.
+        grid: ``(N, M)`` basis functions along x and y (``(N, M, K)`` for a surface).
         offset: d, distance of the offset samples (eq. 4).
         eps: target value at the offsets (eq. 5); equal to ``offset``.
         lam: the objective's lambda in ``E_d + lam R`` (for :class:`jurs.LeastSquares`).
         smoothing: the dimensionless strength ``lam`` was made from.
-        domain: ``((x_min, y_min), (x_max, y_max))``, the box the grid covers.
+        domain: ``((x_min, y_min), (x_max, y_max))``, the box the grid covers (with z for a
+            surface).
         spacing, noise: the measurements (see the module docstring).
     """
 
-    grid: tuple[int, int]
+    grid: tuple[int, ...]
     offset: float
     eps: float
     lam: float
     smoothing: float
-    domain: tuple[tuple[float, float], tuple[float, float]]
+    domain: tuple[tuple[float, ...], tuple[float, ...]]
     spacing: float
     noise: float
 
@@ -102,7 +105,7 @@ class Settings:
 
 def kd_tree(points: np.ndarray) -> cKDTree:
     """``scipy.spatial.cKDTree(points)``, with SciPy's spatial module imported on first use."""
-    from scipy.spatial import cKDTree
+    from scipy.spatial import cKDTree  # pyright: ignore[reportAttributeAccessIssue]
 
     return cKDTree(points)
 
@@ -323,7 +326,12 @@ def scale_free_lam(
     scale-free)."""
     extent = np.asarray(upper, float) - np.asarray(lower, float)
     volume = float(np.prod(extent))
-    per_length = 1.0 if extent.size == 2 else float(cell) ** (extent.size - 2)
+    if extent.size == 2:
+        per_length = 1.0
+    elif cell is None:
+        raise ValueError("a surface's lambda needs its cell width")
+    else:
+        per_length = float(cell) ** (extent.size - 2)
     return float(smoothing * num_samples * diagonal**2 * per_length / volume)
 
 
@@ -386,7 +394,8 @@ def auto_settings(
     d = choose_offset(p, n, spacing, noise, tree, at) if offset is None else float(offset)
     e = d if eps is None else float(eps)
     if domain is None:  # the box make_problem will take
-        lower, upper = auto_domain(offset_samples(p, n, d, e, np)[0], margin, xp=np)
+        # offset_samples takes NumPy arrays with xp=np; its annotation says jax.Array only.
+        lower, upper = auto_domain(offset_samples(p, n, d, e, np)[0], margin, xp=np)  # pyright: ignore[reportArgumentType]
     else:
         lower, upper = (np.asarray(c, float) for c in domain)
     shape = (

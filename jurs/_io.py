@@ -66,7 +66,7 @@ def save_spline(path, spline: ImplicitSpline) -> None:
     arrays = {k: np.asarray(getattr(spline, k)) for k in SPLINE_KEYS}
     check_spline_arrays(arrays, "spline: ")
     with open(os.fspath(path), "wb") as fh:
-        np.savez(fh, **arrays)
+        np.savez(fh, **arrays)  # pyright: ignore[reportArgumentType]  # keys: SPLINE_KEYS only
 
 
 def load_spline(path, dtype=None) -> ImplicitSpline:

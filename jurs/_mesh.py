@@ -16,7 +16,7 @@ import dataclasses
 import numpy as np
 from scipy import sparse
 from scipy.sparse import csgraph
-from scipy.spatial import cKDTree
+from scipy.spatial import cKDTree  # pyright: ignore[reportAttributeAccessIssue]  # no stub
 
 from ._lattice import lattice_values, spline_fields, values_and_gradients
 from .datasets import sample_mesh

@@ -111,7 +111,7 @@ def restrict(grid: Array, coarse_shape: tuple[int, ...]) -> Array:
     for axis, n_coarse in enumerate(coarse_shape):
         if n_coarse != grid.shape[axis]:
             windows = _fine_windows(grid, axis, n_coarse)
-            grid = sum(float(w) * x for w, x in zip(MASK, windows))
+            grid = sum(float(w) * x for w, x in zip(MASK, windows))  # pyright: ignore[reportAssignmentType]
     return grid
 
 
@@ -417,7 +417,7 @@ def patch_inverses(layouts: list, stencils: list, dtype=None) -> list:
     if total > SHARED_INVERSION_BYTES:
         return [_slab_map(lay, st, invert) for lay, st in zip(layouts, stencils)]
     blocks = [_slab_map(lay, st, lambda b: b) for lay, st in zip(layouts, stencils)]
-    out = [None] * len(blocks)
+    out: list = [None] * len(blocks)
     for size in sorted({b.shape[-1] for b in blocks}):
         which = [i for i, b in enumerate(blocks) if b.shape[-1] == size]
         batch = jnp.concatenate([blocks[i] for i in which])

@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import itertools
 from math import comb
+from typing import TYPE_CHECKING, cast
 
 import equinox as eqx
 import jax
@@ -38,6 +39,10 @@ from ._precision import full_precision
 from ._problem import Problem
 from ._spline import rational_terms
 
+if TYPE_CHECKING:  # SciPy loads when a stencil is converted, not on import
+    import scipy.sparse
+    from jax.typing import DTypeLike
+
 #: Half-width of the stencil: cubic basis functions ``i`` and ``i + 3`` still share a cell.
 HALF = 3
 #: Stencil side, ``2 * HALF + 1``.
@@ -48,8 +53,9 @@ DEFAULT_CHUNK = 2**14
 
 
 def _cubic_bernstein() -> np.ndarray:
-    """Coefficients of the four uniform cubic B-spline pieces (:func:`jurs.cubic_weights`)
-    in the cubic Bernstein basis ``comb(3, p) t^p (1 - t)^(3 - p)``; ``(4, 4)``."""
+    """Coefficients of the four uniform cubic B-spline pieces
+    (:func:`jurs.internal.cubic_weights`) in the cubic Bernstein basis
+    ``comb(3, p) t^p (1 - t)^(3 - p)``; ``(4, 4)``."""
     return np.array([[1, 0, 0, 0], [4, 4, 2, 1], [1, 2, 4, 4], [0, 0, 0, 1]], float) / 6.0
 
 
@@ -124,7 +130,7 @@ def chunked_segment_sum(
     return total
 
 
-def _cells_to_stencil(blocks: Array, shape: tuple[int, int]) -> Array:
+def _cells_to_stencil(blocks: Array, shape: tuple[int, ...]) -> Array:
     """Fold per-cell couplings onto the stencil.
 
     ``blocks`` is ``(cells, 16, 7, 7)``: for local term ``(a, b)`` of a cell, its coupling
@@ -210,7 +216,7 @@ def _fold_axis(cells: Array, kernel: Array, axis: int) -> Array:
         pad = [(0, 0)] * part.ndim
         pad[axis] = (a, 3 - a)
         out = out + jnp.pad(part, pad)
-    return out
+    return cast(Array, out)  # the loop runs: never the float 0.0
 
 
 def _fold_axes(cells: Array, kernel: Array) -> Array:
@@ -284,7 +290,7 @@ def _offsets(ndim: int):
     return itertools.product(range(SIDE), repeat=ndim)
 
 
-def stencil_ndim(stencil: Array) -> int:
+def stencil_ndim(stencil: Array | np.ndarray) -> int:
     """The grid dimension d of a ``grid_shape + (7,) * d`` stencil."""
     d, odd = divmod(stencil.ndim, 2)
     if odd or stencil.shape[d:] != (SIDE,) * d:
@@ -292,10 +298,10 @@ def stencil_ndim(stencil: Array) -> int:
     return d
 
 
-def laplacian_stencil(shape: tuple[int, ...], dtype=float) -> Array:
-    """The grid Laplacian L of :func:`jurs.grid_laplacian` (free boundary) as a stencil, for
-    a grid of any dimension d: degree at the centre, -1 towards each existing one of the
-    ``2 d`` axis neighbours."""
+def laplacian_stencil(shape: tuple[int, ...], dtype: DTypeLike = float) -> Array:
+    """The grid Laplacian L of :func:`jurs.internal.grid_laplacian` (free boundary) as a
+    stencil, for a grid of any dimension d: degree at the centre, -1 towards each existing
+    one of the ``2 d`` axis neighbours."""
     d = len(shape)
     stencil = jnp.zeros(tuple(shape) + (SIDE,) * d, dtype)
     centre = (HALF,) * d
@@ -304,7 +310,7 @@ def laplacian_stencil(shape: tuple[int, ...], dtype=float) -> Array:
         index = jnp.arange(n).reshape((n,) + (1,) * (d - 1 - axis))
         for step, exists in ((-1, index > 0), (1, index < n - 1)):
             exists = jnp.broadcast_to(exists, shape).astype(dtype)
-            offset = list(centre)
+            offset: list[int] = list(centre)
             offset[axis] += step
             stencil = stencil.at[(Ellipsis, *offset)].set(-exists)
             degree = degree + exists
@@ -467,7 +473,7 @@ def stencil_cholesky_solve(stencil: Array, rhs: Array) -> Array:
     return x
 
 
-def stencil_to_scipy(stencil) -> "scipy.sparse.csr_matrix":  # noqa: F821
+def stencil_to_scipy(stencil) -> scipy.sparse.csr_matrix:
     """The stencil as a SciPy CSR matrix (NumPy side, for inspection or SciPy solvers)."""
     import scipy.sparse as sp
 

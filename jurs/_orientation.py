@@ -35,7 +35,7 @@ import numpy as np
 from scipy import sparse
 from scipy.sparse import csgraph
 from scipy.sparse.linalg import eigsh
-from scipy.spatial import cKDTree
+from scipy.spatial import cKDTree  # pyright: ignore[reportAttributeAccessIssue]  # no stub
 
 #: Candidate neighbour counts for PCA, per dimension (the smallest good one is taken).
 K_LADDER = {2: (6, 8, 11, 16, 22, 32, 45, 64), 3: (10, 14, 20, 28, 40, 56, 80)}
@@ -192,7 +192,7 @@ def _tangential_graph(points, normals, noise, neighbours) -> sparse.csr_matrix:
     align = 1.0 - np.abs(np.sum(normals[i] * normals[j], axis=1))
     weight = (align + across / length)[keep] + 1e-9  # csgraph reads 0 as "no edge"
     graph = sparse.coo_matrix((weight, (i[keep], j[keep])), shape=(m, m)).tocsr()
-    return graph.maximum(graph.T)
+    return graph.maximum(graph.T)  # pyright: ignore[reportReturnType]  # SciPy is unannotated
 
 
 def _tree_signs(tree: sparse.csr_matrix, normals: np.ndarray) -> np.ndarray:
@@ -350,7 +350,7 @@ def _subtree_moves(patch_tree: sparse.csr_matrix) -> tuple[np.ndarray, np.ndarra
     which undoes one propagation error at a cut edge, and every single patch. Coarse: whole
     components and single patches only (greedy descent is path dependent: the smaller set
     sometimes ends lower)."""
-    n = patch_tree.shape[0]
+    n = patch_tree.shape[0]  # pyright: ignore[reportOptionalSubscript]  # SciPy is unannotated
     n_trees, tree_of = csgraph.connected_components(patch_tree, directed=False)
     below = np.eye(n, dtype=bool)
     roots = []

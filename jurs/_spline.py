@@ -38,6 +38,7 @@ Two ways to run F and T, chosen by what the :class:`LocalBasis` holds:
 from __future__ import annotations
 
 from functools import partial
+from typing import cast
 
 import equinox as eqx
 import jax
@@ -131,6 +132,7 @@ class LocalBasis(eqx.Module):
         kernels in this layout must be 0 at the padding."""
         if self.terms is None:
             return values
+        assert self.filled is not None  # the table fields are set together
         return values[..., self.order] * self.filled
 
     def centred(self):
@@ -161,7 +163,7 @@ def local_basis(
     s = (t - 0.5).T
     return LocalBasis(
         cell=flat_cell(cell, shape),
-        s=np.ascontiguousarray(s) if xp is np else s,
+        s=np.ascontiguousarray(s) if xp is np else s,  # pyright: ignore[reportArgumentType]
         bucket_size=bucket_size,
     )
 
@@ -290,10 +292,13 @@ def bspline_values(local: LocalBasis, grids: Array, *, layout: bool = False) -> 
     lead = grids.shape[:-2]
     flat = grids.reshape((-1,) + grids.shape[-2:])
     if local.terms is not None:
+        assert local.corner is not None  # the table fields are set together
         # (C, buckets, 1) per term, broadcast along each bucket's entries. lax slicing:
         # these unrolled loops are traced in every solver, and jnp indexing traces slowly.
         patches = jnp.transpose(gather_patches(flat, local.corner), (1, 0, 2))[..., None]
-        values = sum(_take(local.terms, j, 0) * _take(patches, j, 2) for j in range(NUM_LOCAL))
+        values = cast(
+            Array, sum(_take(local.terms, j, 0) * _take(patches, j, 2) for j in range(NUM_LOCAL))
+        )  # a sum of 16 arrays, never its start 0
         values = values.reshape(flat.shape[0], -1)
         if layout:
             return values.reshape(lead + values.shape[-1:])
@@ -329,13 +334,14 @@ def values_apart(local: LocalBasis, grids: Array) -> Array:
 
 @full_precision
 def transpose_and_sum(
-    local: LocalBasis, values: Array, shape: tuple[int, int], extra=(), *, layout: bool = False
+    local: LocalBasis, values: Array, shape: tuple[int, ...], extra=(), *, layout: bool = False
 ):
     """:func:`bspline_transpose` of ``values (C, S)``, and the totals of the ``extra``
     per-sample arrays ``(S,)`` computed in the same pass over the samples. ``layout=True``:
     ``values`` and ``extra`` are in the kernels' layout (:meth:`LocalBasis.to_layout`)."""
     k = local.bucket_size
     if local.terms is not None:
+        assert local.index is not None  # the table fields are set together
         num_buckets = local.index.shape[0]
         if not layout:
             values = local.to_layout(values)
@@ -390,7 +396,7 @@ def transpose_and_sum(
     return grid, tuple(jnp.sum(x) for x in sums)
 
 
-def bspline_transpose(local: LocalBasis, values: Array, shape: tuple[int, int]) -> Array:
+def bspline_transpose(local: LocalBasis, values: Array, shape: tuple[int, ...]) -> Array:
     """T, the transpose of :func:`bspline_values`: ``sum_k v_k B_i B_j(x_k)`` on the grid.
 
     ``values`` is ``(..., S)``; returns ``(..., N, M)``. Several value vectors share one

@@ -240,7 +240,10 @@ MESH_SUFFIXES = (".ply", ".obj", ".stl", ".off")
 def _trimesh():
     """trimesh, imported on first use (an optional dependency)."""
     try:
+        # ``import trimesh`` loads its exchange modules; named here for a type checker.
         import trimesh
+        import trimesh.exchange.obj
+        import trimesh.exchange.ply
     except ImportError:
         raise ImportError(
             '3D point-cloud and mesh files need trimesh: pip install "jurs[surfaces]"'
@@ -416,9 +419,10 @@ def load_mesh(path):
     faces = np.asarray(getattr(loaded, "faces", np.empty((0, 3))))
     if faces.ndim != 2 or faces.shape[1] != 3 or len(faces) == 0:
         raise ValueError(f"{path}: no triangle faces")
+    # force="mesh" makes it a Trimesh; trimesh.load is annotated as returning any Geometry.
     if _suffix(path) == ".stl":
-        loaded.merge_vertices()
-    return np.asarray(loaded.vertices, dtype=np.float64), np.asarray(loaded.faces, np.int64)
+        loaded.merge_vertices()  # pyright: ignore[reportAttributeAccessIssue]
+    return np.asarray(loaded.vertices, dtype=np.float64), np.asarray(loaded.faces, np.int64)  # pyright: ignore[reportAttributeAccessIssue]
 
 
 def save_mesh(path, vertices, faces) -> None:
@@ -464,7 +468,8 @@ def _load_cloud(path: str):
     points = np.concatenate(points) if points else np.empty((0, 3))
     if any(n is None for n in normals) or not normals:
         return _checked_cloud(points, None, path)
-    return _checked_cloud(points, np.concatenate(normals).astype(np.float64), path)
+    # No None left in normals (returned above); the checker cannot see that in a list.
+    return _checked_cloud(points, np.concatenate(normals).astype(np.float64), path)  # pyright: ignore[reportCallIssue, reportArgumentType]
 
 
 def _load_xyz(path: str):

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import os
 import time
+from typing import Any
 
 import jax
 
@@ -25,7 +26,7 @@ def run(output_dir: str = "demo-output", steps: int = 200) -> dict:
     import jurs.plot
 
     points, normals = jurs.datasets.example1(120)
-    settings = dict(grid=(9, 9), offset=0.1, eps=0.01)
+    settings: dict[str, Any] = dict(grid=(9, 9), offset=0.1, eps=0.01)
     # tol = 0: run all 200 steps, as the paper's Table 1 does.
     solvers = {
         "B-spline (IPIA)": jurs.IPIA(max_steps=steps, tol=0.0),

@@ -241,7 +241,8 @@ def glyph_outline(text: str, family: str = "DejaVu Sans") -> list[np.ndarray]:
     path = TextPath((0.0, 0.0), text, size=1.0, prop=FontProperties(family=family))
     components, current = [], []
     t = np.linspace(0.0, 1.0, _BEZIER_SAMPLES, endpoint=False)
-    for segment, code in path.iter_bezier():
+    # matplotlib's stub says iter_bezier yields segments; it yields (segment, code) pairs.
+    for segment, code in path.iter_bezier():  # pyright: ignore[reportGeneralTypeIssues]
         if code == Path.MOVETO:
             if len(current) > 2:
                 components.append(np.concatenate(current))
@@ -287,7 +288,7 @@ def horse_outline():
     concavities."""
     from skimage import data
 
-    return mask_outline(~data.horse(), blur=1.5)
+    return mask_outline(~data.horse(), blur=1.5)  # pyright: ignore[reportOperatorIssue]  # bool
 
 
 def coins_outline():
@@ -337,7 +338,7 @@ NAMES = tuple(SOURCES)
 def origin(name: str) -> str:
     """One line saying where shape ``name`` comes from (its source's docstring)."""
     _check(name)
-    return " ".join(SOURCES[name].__doc__.split())
+    return " ".join((SOURCES[name].__doc__ or "").split())
 
 
 def _check(name):

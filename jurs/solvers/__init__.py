@@ -7,6 +7,7 @@ their names (module ``__getattr__``, PEP 562): optimistix takes about 0.1 s to i
 """
 
 import importlib
+from typing import TYPE_CHECKING
 
 from ._base import AbstractSolver
 from ._driver import solve
@@ -14,6 +15,10 @@ from ._ipia import IPIA, IPIAState, NormalIPIA, NormalIPIAState
 from ._iurs import IURS, IURSState, objective_lam
 from ._least_squares import LeastSquares, LeastSquaresState
 from ._sparse_lm import JointLevenbergMarquardt, JointLMState
+
+if TYPE_CHECKING:  # loaded on first access at run time (``__getattr__`` below)
+    from ._jaxopt import JaxoptGaussNewton, JaxoptLBFGS, JaxoptLevenbergMarquardt, JaxoptState
+    from ._optimistix import OptimistixLeastSquares, OptimistixMinimiser, OptimistixState
 
 #: Names of the lazily loaded wrapper modules.
 _LAZY = {

@@ -99,7 +99,7 @@ def cascadic_start(problem: Problem, lam, solve, start: Array) -> Array:
     if not shapes:
         return start
     problem, lam = jax.lax.stop_gradient((problem, lam))
-    start = None
+    start = None  # pyright: ignore[reportAssignmentType]  # the iterate: none before the coarsest
     for shape in shapes:
         normal = normal_equations(on_grid(problem, shape))
         stencil = normal.regularised(level_lam(lam, problem.shape, shape))
@@ -107,9 +107,11 @@ def cascadic_start(problem: Problem, lam, solve, start: Array) -> Array:
             start, solver = jnp.zeros(shape, normal.rhs.dtype), lx.Cholesky()
         else:
             start = transfer(start, shape)
-            # Absolute per-entry tolerance: see surface_linear_solver.
+            # Absolute per-entry tolerance: see surface_linear_solver (an array atol).
             solver = lx.CG(
-                rtol=0.0, atol=LEVEL_RTOL * jnp.max(jnp.abs(normal.rhs)), max_steps=LEVEL_MAX_STEPS
+                rtol=0.0,
+                atol=LEVEL_RTOL * jnp.max(jnp.abs(normal.rhs)),  # pyright: ignore[reportArgumentType]
+                max_steps=LEVEL_MAX_STEPS,
             )
         start = solve(stencil, normal.rhs, start, solver)
     return transfer(start, problem.shape)

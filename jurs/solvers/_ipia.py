@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import ClassVar
+from typing import ClassVar, Protocol, TypeVar
 
 import equinox as eqx
 import jax.numpy as jnp
@@ -12,10 +12,18 @@ from .._energy import bspline_residuals, step_size
 from .._normal import NormalEquations, normal_equations
 from .._problem import Problem, check_count, check_nonnegative
 from .._spline import ImplicitSpline, bspline_transpose
-from ._base import AbstractSolver, State
+from ._base import AbstractSolver
 
 
-class _AbstractPIA(AbstractSolver[State]):
+class _HasControl(Protocol):
+    @property
+    def control(self) -> Array: ...
+
+
+_PIAState = TypeVar("_PIAState", bound=_HasControl)
+
+
+class _AbstractPIA(AbstractSolver[_PIAState]):
     """Shared by the two forms of I-PIA: settings, checks, and a B-spline (w = 1) result.
     The state carries the coefficients as ``state.control``."""
 

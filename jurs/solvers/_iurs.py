@@ -76,7 +76,9 @@ class IURS(AbstractSolver[IURSState]):
         the table's own order, so no step permutes samples back and forth."""
         return problem.local.to_layout(problem.mask), problem.local.to_layout(problem.targets)
 
-    def _energy_and_weight_grad(self, problem, data, control, weights, inv_denom=None):
+    def _energy_and_weight_grad(
+        self, problem, data: tuple[Array, Array], control, weights, inv_denom=None
+    ):
         local = problem.local
         # Where W is known for these weights (a step's), g costs one B-spline evaluation.
         r, inv_denom, g = layout_residuals(local, *data, control, weights, inv_denom)

@@ -2,7 +2,7 @@
 
 from __future__ import annotations
 
-from typing import ClassVar
+from typing import Any, ClassVar
 
 import equinox as eqx
 import jax
@@ -76,7 +76,8 @@ def surface_linear_solver(rhs: Array) -> lx.AbstractLinearSolver:
     field's right-hand side is 0, where a purely relative test never passes (it ran to its
     step cap, then drifted away from the solution)."""
     scale = jax.lax.stop_gradient(jnp.max(jnp.abs(rhs)))  # a stop rule, not a variable
-    return lx.CG(rtol=0.0, atol=SURFACE_RTOL * scale, max_steps=SURFACE_MAX_STEPS)
+    # lineax annotates atol as a float; an array tolerance works and can be traced.
+    return lx.CG(rtol=0.0, atol=SURFACE_RTOL * scale, max_steps=SURFACE_MAX_STEPS)  # pyright: ignore[reportArgumentType]
 
 
 def solve_by_default(stencil: Array, rhs: Array, start: Array, ridge=0.0):
@@ -174,7 +175,7 @@ def solve_normal_equations(
         # The preconditioner and initial guess change the path, not the solution: no
         # gradient through them (lineax refuses tangents in `options`).
         if isinstance(linear_solver, Multigrid):  # builds its own preconditioner
-            options = {"stencil": jax.lax.stop_gradient(stencil)}
+            options: dict[str, Any] = {"stencil": jax.lax.stop_gradient(stencil)}
         else:
             inv_diag = jax.lax.stop_gradient(1.0 / stencil[centre])
             options = {
@@ -194,7 +195,7 @@ class LeastSquares(AbstractSolver[LeastSquaresState]):
 
     Solves the normal equations ``(D^T D + 2 lam L) C = D^T b`` once: ``D^T D`` is
     assembled as a 49-point stencil in one pass over the samples
-    (:func:`jurs.normal_equations`, never the dense collocation), then solved: Cholesky on
+    (:func:`jurs.internal.normal_equations`, never the dense collocation), then solved: Cholesky on
     the assembled matrix for grids up to :data:`DENSE_MAX_COEFFICIENTS` coefficients (where
     it breaks down, as a numerically singular system can: LU in float64, CG in float32);
     above, a block Cholesky of the stencil in grid lines when ``lam > 0``

@@ -13,6 +13,8 @@ Gauss-Newton systems non-singular.
 
 from __future__ import annotations
 
+from typing import cast
+
 import jax.numpy as jnp
 from jax import Array
 
@@ -45,7 +47,7 @@ def residual_vector(y, problem: Problem, lam, joint: bool):
 
 def scalar_loss(y, problem: Problem, lam, joint: bool) -> Array:
     """``E_d + lam R`` (eq. 32) (+ ``mean(v)^2`` for joint fits): sum of squared residuals."""
-    return sum(jnp.sum(r * r) for r in residual_vector(y, problem, lam, joint))
+    return cast(Array, sum(jnp.sum(r * r) for r in residual_vector(y, problem, lam, joint)))
 
 
 def initial_parameters(

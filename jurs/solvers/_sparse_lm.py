@@ -46,7 +46,7 @@ def _jacobian_rows(problem: Problem, control: Array, weights: Array):
     return r, jnp.concatenate([d_control, d_log_weight], axis=1)
 
 
-def _global_index(shape: tuple[int, int]) -> np.ndarray:
+def _global_index(shape: tuple[int, ...]) -> np.ndarray:
     """``(cells, 32)`` position of each cell's local C and v terms in the unknown vector
     ``[C.ravel(), v.ravel()]``."""
     n, m = shape[0] - 3, shape[1] - 3
@@ -56,7 +56,7 @@ def _global_index(shape: tuple[int, int]) -> np.ndarray:
     return np.concatenate([flat, flat + shape[0] * shape[1]], axis=1)
 
 
-def _laplacian_matrix(shape: tuple[int, int]) -> np.ndarray:
+def _laplacian_matrix(shape: tuple[int, ...]) -> np.ndarray:
     """The grid Laplacian L (free boundary) as a dense ``NM x NM`` matrix."""
 
     def path(k):
