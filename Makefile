@@ -33,7 +33,7 @@ demo: $(STAMP)
 test: $(STAMP)
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/ruff format --check --quiet .
-	$(VENV)/bin/basedpyright --level error
+	$(VENV)/bin/basedpyright --project . --level error
 	$(MKDOCS) build --strict --quiet
 	XLA_PYTHON_CLIENT_PREALLOCATE=false $(PY) -m pytest -q -n 2 --nbmake tests notebooks
 
@@ -46,7 +46,7 @@ docs: $(STAMP)
 lint: $(STAMP)
 	$(VENV)/bin/ruff check .
 	$(VENV)/bin/ruff format --check .
-	$(VENV)/bin/basedpyright
+	$(VENV)/bin/basedpyright --project .
 
 bench: $(STAMP)
 	$(PY) benchmarks/step_speed.py
