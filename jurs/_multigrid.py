@@ -594,7 +594,8 @@ def preconditioned_cg(
     normal equations these are, the objective ``b . b - 2 x . rhs + x . A x`` itself. It
     also stops, flagging a breakdown, where ``r . M r`` or ``p . A p`` is not positive and
     finite (an indefinite preconditioner or operator). Returns ``(x, steps, estimate /
-    reference, breakdown)``.
+    reference, breakdown, converged)``; ``converged`` says the stop test passed (also on
+    the last allowed step).
     """
     residual = rhs - matvec(start)
     z = precondition(residual)
@@ -630,7 +631,8 @@ def preconditioned_cg(
         keep_going, step, (start, residual, z, gamma, window, jnp.array(0), broken)
     )
     estimate, reference = estimate_and_reference(x, residual, gamma, window)
-    return x, steps, estimate / jnp.where(reference > 0, reference, 1.0), broken
+    converged = estimate <= rtol**2 * reference + atol**2
+    return x, steps, estimate / jnp.where(reference > 0, reference, 1.0), broken, converged
 
 
 def _grid_structure(operator: lx.AbstractLinearOperator) -> jax.ShapeDtypeStruct:
@@ -737,7 +739,7 @@ class Multigrid(lx.AbstractLinearSolver):
             start = full_multigrid(state, vector)
         else:
             start = options.get("y0", jnp.zeros_like(vector))
-        x, steps, error2, broken = preconditioned_cg(
+        x, steps, error2, broken, converged = preconditioned_cg(
             matvec,
             lambda r: v_cycle(state, r),
             vector,
@@ -747,9 +749,7 @@ class Multigrid(lx.AbstractLinearSolver):
             self.max_steps,
             options.get("target_norm2"),
         )
-        result = lx.RESULTS.where(
-            steps >= self.max_steps, lx.RESULTS.max_steps_reached, lx.RESULTS.successful
-        )
+        result = lx.RESULTS.where(converged, lx.RESULTS.successful, lx.RESULTS.max_steps_reached)
         result = lx.RESULTS.where(broken, lx.RESULTS.breakdown, result)
         return x, result, {"num_steps": steps, "relative_error2": error2}
 

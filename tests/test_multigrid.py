@@ -5,6 +5,8 @@ Systems are built in NumPy/SciPy (dense B-spline collocation of Example 1's curv
 offsets), so the only compilations are the solver's own; configurations that compare
 alike share one jitted solve. About 45 s on a 2-core CPU."""
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import lineax as lx
@@ -266,6 +268,21 @@ def test_steps_do_not_grow_with_the_grid(systems):
     assert int(steps[48]) <= int(steps[24]) + 1, steps
 
 
+def test_success_on_the_last_allowed_step(systems):
+    """A solve whose stop test passes on its last allowed step is successful; one step
+    fewer is max_steps_reached."""
+    a, rhs, b2 = systems[(24, 1e-4)]
+    stencil, rhs = jnp.asarray(dense_to_stencil(a, (24, 24))), jnp.asarray(rhs)
+    _, steps, _ = jitted_solve(stencil, rhs, SOLVER, b2)
+    for cap, expected in (
+        (int(steps), lx.RESULTS.successful),
+        (int(steps) - 1, lx.RESULTS.max_steps_reached),
+    ):
+        solver = dataclasses.replace(SOLVER, max_steps=cap)
+        _, capped_steps, result = jitted_solve(stencil, rhs, solver, b2)
+        assert int(capped_steps) == cap and result == expected
+
+
 def test_float32_solve(systems):
     """In float32 the solve converges to float32 accuracy of the float64 minimiser."""
     a, rhs, b2 = systems[(24, 1e-4)]
@@ -283,7 +300,7 @@ def test_cg_flags_an_indefinite_preconditioner():
     ill-conditioned patches are) stops CG with a breakdown instead of a wrong answer."""
     a = jnp.diag(jnp.arange(1.0, 7.0))
     sign = jnp.array([1.0, 1.0, -1.0, 1.0, 1.0, 1.0])
-    _, steps, _, broken = jit(
+    _, steps, _, broken, _ = jit(
         lambda b: mg.preconditioned_cg(
             lambda x: a @ x, lambda r: sign * r / jnp.diag(a), b, jnp.zeros(6), 1e-12, 0.0, 50
         )
@@ -313,9 +330,9 @@ def test_3d_solve_matches_dense():
             100,
         )
 
-    x, _, _, broken = solve(dense_to_stencil(a, shape), b)
+    x, _, _, broken, converged = solve(dense_to_stencil(a, shape), b)
     expected = sla.solve(a, b.ravel(), assume_a="pos").reshape(shape)
-    assert not broken
+    assert not broken and converged
     assert np.linalg.norm(x - expected) <= 1e-10 * np.linalg.norm(expected)
 
 
