@@ -31,6 +31,7 @@ from .solvers import (
     JointLevenbergMarquardt,
     LeastSquares,
     NormalIPIA,
+    RobustLeastSquares,
     objective_lam,
     solve,
 )
@@ -65,6 +66,7 @@ __all__ = [
     "AbstractSolver",
     "solve",
     "LeastSquares",
+    "RobustLeastSquares",
     "IURS",
     "IPIA",
     "NormalIPIA",

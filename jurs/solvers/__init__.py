@@ -1,9 +1,10 @@
 """Solvers: one interface (:class:`AbstractSolver`), one driver (:func:`solve`).
 
-The paper's iterations (I-PIA, IURS), the exact solve for fixed weights, a sparse joint
-Levenberg-Marquardt, and optimistix and jaxopt wrappers (jaxopt itself is imported only
-when one of its solvers runs). The two wrapper modules load on first access to one of
-their names (module ``__getattr__``, PEP 562): optimistix takes about 0.1 s to import.
+The paper's iterations (I-PIA, IURS), the exact solve for fixed weights and its
+outlier-robust reweighting, a sparse joint Levenberg-Marquardt, and optimistix and jaxopt
+wrappers (jaxopt itself is imported only when one of its solvers runs). The two wrapper
+modules load on first access to one of their names (module ``__getattr__``, PEP 562):
+optimistix takes about 0.1 s to import.
 """
 
 import importlib
@@ -14,6 +15,7 @@ from ._driver import solve
 from ._ipia import IPIA, IPIAState, NormalIPIA, NormalIPIAState
 from ._iurs import IURS, IURSState, objective_lam
 from ._least_squares import LeastSquares, LeastSquaresState
+from ._robust import RobustLeastSquares, RobustLeastSquaresState
 from ._sparse_lm import JointLevenbergMarquardt, JointLMState
 
 if TYPE_CHECKING:  # loaded on first access at run time (``__getattr__`` below)
@@ -62,6 +64,8 @@ __all__ = [
     "OptimistixLeastSquares",
     "OptimistixMinimiser",
     "OptimistixState",
+    "RobustLeastSquares",
+    "RobustLeastSquaresState",
     "objective_lam",
     "solve",
 ]
