@@ -86,6 +86,7 @@ def test_windowed_patch_gather_matches_the_cell_patches(rng):
 
 
 @pytest.mark.parametrize("bucket_size", [1, 4])
+@pytest.mark.slow
 def test_transpose_is_adjoint_of_values(rng, bucket_size):
     points, normals = jurs.datasets.example1(400)
     problem = jurs.make_problem(points, normals, grid=(8, 7), bucket_size=bucket_size)

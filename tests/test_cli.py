@@ -39,6 +39,7 @@ def example1_csv(tmp_path_factory):
     return path
 
 
+@pytest.mark.slow
 def test_fit_round_trip(example1_csv, tmp_path):
     out = tmp_path / "result"
     rc = cli.main(["fit", str(example1_csv), "-o", str(out), *PAPER_ARGS, *FIT_ARGS])
@@ -332,6 +333,7 @@ def test_command_process_ends_with_its_outputs(example1_csv, tmp_path):
         jurs.IURS(max_steps=300, tol=1e-6),  # converges early, mid-chunk
     ],
 )
+@pytest.mark.slow
 def test_chunked_run_equals_one_run(solver):
     """The progress bar's chunked run follows the iterates of one run."""
     p, n = jurs.datasets.example1(120)

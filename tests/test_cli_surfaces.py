@@ -58,6 +58,7 @@ def _check_sphere_mesh(out):
     return record
 
 
+@pytest.mark.slow
 def test_surface_from_ply_with_normals(sphere, sphere_files, tmp_path):
     out = tmp_path / "result"
     assert cli.main(["fit", str(sphere_files[0]), "-o", str(out), *FIT_ARGS]) == 0

@@ -30,6 +30,7 @@ def test_options_are_accepted_and_keep_non_finite_semantics():
     assert not bool(finite) and bool(nan)
 
 
+@pytest.mark.slow
 def test_options_move_iurs_only_at_rounding_level():
     """The same IURS run compiled with and without the options: the same steps,
     coefficients and weights equal to rounding."""
@@ -118,6 +119,7 @@ print(int(sol.stats["num_steps"]), int(jax.jit(users_solve)(problem).stats["num_
 """
 
 
+@pytest.mark.slow
 def test_a_fit_is_kept_by_the_persistent_compilation_cache(tmp_path):
     """jurs.fit at top level (throw=True by default) compiles no host callback into the fit,
     so JAX's persistent compilation cache writes it, for new processes to load; it writes
@@ -210,6 +212,7 @@ def _assert_padded_fit_agrees_with_the_unpadded_fit(solver):
     np.testing.assert_array_equal(np.asarray(padded.spline.lower), np.asarray(plain.spline.lower))
 
 
+@pytest.mark.slow
 def test_padded_exact_fit_agrees_with_the_unpadded_one():
     _assert_padded_fit_agrees_with_the_unpadded_fit(jurs.LeastSquares(lam=1e-4))
 
@@ -240,6 +243,7 @@ class _CompileCounter:
         jax.monitoring.unregister_event_duration_listener(self)
 
 
+@pytest.mark.slow
 def test_two_clouds_in_one_band_compile_once():
     """A new cloud of another size in the same band (and another shape of the same extent)
     reuses the compiled fit; one in the next band compiles anew (the counter works)."""

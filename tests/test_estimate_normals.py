@@ -188,6 +188,7 @@ def test_bad_k(k):
         estimate_normals(points, k=k)
 
 
+@pytest.mark.slow
 def test_fit_without_normals_estimates_them():
     """jurs.fit(points) orients the normals itself: the zero set is the one fitted with the
     true normals, and sol.stats says the normals were estimated."""

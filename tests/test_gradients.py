@@ -106,6 +106,7 @@ def test_regulariser_and_its_gradient(rng, shape):
 
 
 @pytest.mark.parametrize("uniform", [True, False])
+@pytest.mark.slow
 def test_step_size_equals_dense_norm(data, rng, uniform):
     shape = (7, 8)
     problem = jurs.make_problem(*data, grid=shape)

@@ -19,6 +19,9 @@ import jurs
 from jurs import _multigrid as mg
 from jurs import _normal
 
+#: Every test here compiles solvers for seconds: the whole module is slow.
+pytestmark = pytest.mark.slow
+
 jax.config.update("jax_enable_x64", True)
 
 #: XLA's backend optimisation off for the tests' compilations: their systems are tiny, so

@@ -20,6 +20,9 @@ import pytest
 import jurs
 from jurs._sharding import input_sharding, place_fit
 
+#: The module fixture runs fits on forced devices in a process of its own (about 30 s).
+pytestmark = pytest.mark.slow
+
 # Run in a child process with 4 CPU devices and float64. Prints one JSON line.
 CHILD = textwrap.dedent(
     """

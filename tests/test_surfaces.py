@@ -39,6 +39,7 @@ def sphere():
     return jurs.datasets.sphere3d(400, seed=1)
 
 
+@pytest.mark.slow
 def test_trivariate_rational_spline_matches_dense_definition(rng):
     control, weights = rng.normal(size=SHAPE), rng.uniform(0.5, 2.0, size=SHAPE)
     spline = jurs.ImplicitSpline(
@@ -65,6 +66,7 @@ def test_transpose_is_the_adjoint_in_3d(rng):
     assert float(lhs) == pytest.approx(float(rhs), rel=1e-12)
 
 
+@pytest.mark.slow
 def test_normal_equations_in_3d_match_the_samples(sphere, rng):
     problem = jurs.make_problem(*sphere, grid=(7, 8, 6), offset=0.1, eps=0.1)
     assert problem.ndim == 3 and problem.local.s.shape == (3, 1200)
@@ -84,6 +86,7 @@ def test_normal_equations_in_3d_match_the_samples(sphere, rng):
 
 
 @pytest.mark.parametrize("lam", [0.0, 0.3])
+@pytest.mark.slow
 def test_autodiff_matches_hand_derived_in_3d(sphere, rng, lam):
     problem = jurs.make_problem(*sphere, grid=(5, 6, 5), offset=0.1, eps=0.1)
     control = jnp.asarray(0.02 * rng.standard_normal(problem.shape))
@@ -110,6 +113,7 @@ def test_regulariser_is_the_six_neighbour_sum(rng):
     )
 
 
+@pytest.mark.slow
 def test_surface_fit_recovers_a_sphere(sphere):
     sol = jurs.fit(*sphere, grid=6, offset=0.05, eps=0.05)  # dense Cholesky at 6^3
     assert sol.result == jurs.RESULTS.successful
@@ -158,6 +162,7 @@ def test_spline_refuses_mismatched_box():
         jurs.ImplicitSpline.bspline(jnp.zeros((5, 5, 5)), [0.0, 0.0], [1.0, 1.0])
 
 
+@pytest.mark.slow
 def test_cascade_reaches_the_far_field():
     """Above the dense size the final CG starts from the cascade of coarser grids: CG from 0
     left the sphere's centre at g = 0 and grew a second surface there."""
@@ -196,6 +201,7 @@ def test_rational_normal_equations_refuse_surfaces(sphere):
         jurs.internal.normal_equations(problem, jnp.ones(problem.shape))
 
 
+@pytest.mark.slow
 def test_surface_fit_is_differentiable(sphere, rng):
     """jax.grad goes through a surface fit (implicit differentiation of the exact solve);
     checked against a central difference along one direction. A dense grid: the default
