@@ -75,23 +75,14 @@ def _draw_data(ax, points, normals, offset, markersize=3):
     if normals is not None and offset is not None:
         normals = np.asarray(normals)
         normals = normals / np.linalg.norm(normals, axis=1, keepdims=True)
-        out, inn = points + offset * normals, points - offset * normals
-        ax.plot(
-            out[:, 0],
-            out[:, 1],
-            ".",
-            color="tab:red",
-            ms=markersize * 2 / 3,
-            label="outer offsets (+eps)",
-        )
-        ax.plot(
-            inn[:, 0],
-            inn[:, 1],
-            ".",
-            color="tab:blue",
-            ms=markersize * 2 / 3,
-            label="inner offsets (-eps)",
-        )
+        for side, color, label in (
+            (1, "tab:red", "outer offsets (+eps)"),
+            (-1, "tab:blue", "inner offsets (-eps)"),
+        ):
+            shifted = points + side * offset * normals
+            ax.plot(
+                shifted[:, 0], shifted[:, 1], ".", color=color, ms=markersize * 2 / 3, label=label
+            )
     ax.plot(
         points[:, 0],
         points[:, 1],

@@ -145,18 +145,18 @@ class RobustLeastSquares(AbstractSolver[RobustLeastSquaresState]):
             ridge=self.ridge,
         )
 
-    def _point_residuals(self, problem: Problem, control: Array) -> tuple[Array, Array, Array]:
-        """``(e, point, real)``: ``e_i`` (m,), the point of every slot, and 1 for real points."""
+    def _point_residuals(self, problem: Problem, control: Array) -> tuple[Array, Array]:
+        """``(e, real)``: ``e_i`` (m,) and whether point i is a real (not padding) point."""
         m = problem.num_points
         point = _slot_points(problem)
         r = bspline_residuals(problem, control)  # 0 at padding
         e2 = jax.ops.segment_sum(r * r, point, num_segments=m)
         real = jax.ops.segment_sum(problem.is_data, point, num_segments=m) > 0
-        return jnp.sqrt(e2), point, real
+        return jnp.sqrt(e2), real
 
     def _reweigh(self, problem: Problem, control: Array):
         """``(weights, scale, E_rob)`` of the fit in ``control``."""
-        e, _, real = self._point_residuals(problem, control)
+        e, real = self._point_residuals(problem, control)
         if self.scale is None:
             median = jnp.nanmedian(jnp.where(real, e, jnp.nan))
             scale = jnp.maximum(MAD_TO_SIGMA * median, SCALE_FLOOR * problem.eps)
@@ -177,21 +177,23 @@ class RobustLeastSquares(AbstractSolver[RobustLeastSquaresState]):
         state = RobustLeastSquaresState(spline.control, weights, scale, lx.RESULTS.successful)
         return state, energy
 
+    @staticmethod
+    def _exact_state(state: RobustLeastSquaresState, result) -> LeastSquaresState:
+        """The LeastSquares state at ``state``'s fit (w = 1, not yet solved)."""
+        return LeastSquaresState(
+            state.control, jnp.ones_like(state.control), jnp.array(False), result
+        )
+
     def step(self, problem: Problem, state: RobustLeastSquaresState):
         slot_weights = state.point_weights[_slot_points(problem)]
         weighted = eqx.tree_at(lambda p: p.mask, problem, problem.mask * slot_weights)
-        exact = LeastSquaresState(
-            state.control, jnp.ones_like(state.control), jnp.array(False), lx.RESULTS.successful
-        )
+        exact = self._exact_state(state, lx.RESULTS.successful)
         solved, _ = self._exact().step(weighted, exact)
         weights, scale, energy = self._reweigh(problem, solved.control)
         return RobustLeastSquaresState(solved.control, weights, scale, solved.result), energy
 
     def terminate(self, problem: Problem, state: RobustLeastSquaresState):
-        exact = LeastSquaresState(
-            state.control, jnp.ones_like(state.control), jnp.array(False), state.result
-        )
-        _, result = self._exact().terminate(problem, exact)
+        _, result = self._exact().terminate(problem, self._exact_state(state, state.result))
         return jnp.array(False), result  # the driver's energy test stops the loop
 
     def to_spline(self, problem: Problem, state: RobustLeastSquaresState) -> ImplicitSpline:
