@@ -44,7 +44,7 @@ CHILD = textwrap.dedent(
     import jax, jax.numpy as jnp, numpy as np
     from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
     import jurs
-    from jurs import _fit
+    from jurs import _fit, _problem
     from jurs._compile import COMPILER_OPTIONS
     from jurs._sharding import place_fit
 
@@ -65,7 +65,7 @@ CHILD = textwrap.dedent(
         sol = jax.block_until_ready(jurs.fit(p, n, **kw))
         times.append(time.perf_counter() - t0)
     # The solve that fit compiled, compiled again to read XLA's buffer assignment.
-    problem = _fit._padded_problem(
+    problem = _problem.padded_problem(
         np.asarray(p), np.asarray(n), None, grid, 0.005, 0.005, None, 0.1, None, jnp.float64
     )
     dyn = _fit._as_arrays(solver, jnp.float64)

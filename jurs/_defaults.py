@@ -41,17 +41,27 @@ if TYPE_CHECKING:  # SciPy's spatial module loads on the first fit (0.3 s), not 
     # KDTree, its pure-Python subclass with the same query(), stands in for it here.
     from scipy.spatial import KDTree as cKDTree
 
+import equinox as eqx
+import jax.numpy as jnp
+
 from ._compile import round_size
 from ._problem import (
     DEFAULT_MARGIN,
     _is_concrete,
     auto_domain,
+    check_memory,
     check_nonnegative,
+    fit_memory,
     normalise_grid,
     offset_samples,
+    padded_problem,
     unit_normals,
     validate_inputs,
 )
+from .solvers._held_out import select_lam
+
+# Compiled once per problem shape; clouds padded to one size share it.
+_select_lam = eqx.filter_jit(select_lam)
 
 #: Neighbours used for the noise estimate (the point itself included).
 NOISE_NEIGHBOURS = 16
@@ -69,6 +79,17 @@ DEFAULT_MAX_GRID_3D = 48
 #: the 31^3 grid of 3 spacings (the exact solve's cost grows with the coefficients); at
 #: 31^3 the fitted zero set lay 1.5e-4 from the unit sphere on average.
 CELL_SPACINGS = {2: 1.5, 3: 3.0}
+#: Most coefficients a curve's grid is refined to for thin features (:func:`choose_grid`):
+#: the exact solve's block Cholesky costs about ``N M^3`` (M the shorter side), 3.2x that
+#: of 96 x 96 at 128 x 128.
+MAX_FEATURE_COEFFICIENTS = 128 * 128
+#: Share of the points whose feature width sets the finest cell (:func:`feature_width`):
+#: the narrowest 0.5 %, so that a short neck of a few points counts, a single odd point not.
+FEATURE_QUANTILE = 0.005
+#: A feature is resolved when it is at least this many cells wide. The clean shapes of
+#: the quality suite fit at 96 x 96 with at most 1 % of their points on features narrower
+#: than half a cell; a 100:1 ellipse (its whole length a feature 0.87 cell wide) did not.
+FEATURE_CELLS = 0.5
 #: Smallest automatic grid along either side.
 MIN_GRID = 8
 #: Clouds above this many points are measured at this many (evenly strided) of them.
@@ -88,6 +109,15 @@ class Settings:
         domain: ``((x_min, y_min), (x_max, y_max))``, the box the grid covers (with z for a
             surface).
         spacing, noise: the measurements (see the module docstring).
+        held_out: where the smoothing was chosen by held-out points
+            (:func:`choose_smoothing`), ``((smoothing, score), ...)`` for every candidate,
+            the score being the held-out points' mean squared distance to the candidate's
+            zero set; None otherwise.
+        set_aside: indices of the points that stand alone (:func:`isolated_points`): they
+            took no part in the measurements, and :func:`jurs.fit` fits without them.
+        thin_fraction: the fraction of the points on features (thin parts, narrow gaps:
+            :func:`feature_width`) narrower than :data:`FEATURE_CELLS` cells of ``grid``;
+            0 for a surface (not measured).
     """
 
     grid: tuple[int, ...]
@@ -98,6 +128,9 @@ class Settings:
     domain: tuple[tuple[float, ...], tuple[float, ...]]
     spacing: float
     noise: float
+    held_out: tuple[tuple[float, float], ...] | None = None
+    set_aside: tuple[int, ...] = ()
+    thin_fraction: float = 0.0
 
     def as_dict(self) -> dict:
         return dataclasses.asdict(self)
@@ -124,6 +157,59 @@ def point_spacing(points: np.ndarray, tree: cKDTree | None = None, at=None) -> f
     if finite.size == 0:
         raise ValueError("all points coincide; the cloud has no extent")
     return float(np.median(finite))
+
+
+#: A point stands alone (:func:`isolated_points`) when its :data:`ISOLATION_RANK`-th
+#: nearest other point is farther than this many times the same distance typical around it.
+ISOLATION_RATIO = 3.0
+#: The sparsest sampling around a point, relative to the cloud's median spacing, that
+#: :func:`isolated_points` takes as the shape's: far from the shape, the points around
+#: an outlier are other outliers, as sparse as it is. With ratio 4 and 2 here, 1.5 %
+#: outliers uniform in the box of a 4500-point font outline stood at 4-7.6 typical
+#: reaches and 23 of 68 stayed in; with 3 and 1.5, 4 of 68. On 0.5 % noise these values
+#: set aside up to 12 of 2600 points, the most displaced ones (none on clean or unevenly
+#: sampled outlines, gaps and separate small components).
+SPARSE_SPACING = 1.5
+#: Where more points than this fraction stand alone, the cloud has no dense shape for them
+#: to stand apart from (a sparse sampling), and none is set aside.
+MAX_SET_ASIDE = 0.2
+#: Which neighbour's distance says how far a point is from the rest: the third, so that
+#: outliers in pairs and threes stand alone too.
+ISOLATION_RANK = 3
+#: Neighbours whose own such distances say what is typical around a point.
+ISOLATION_NEIGHBOURS = 8
+
+
+def isolated_points(points: np.ndarray, tree: cKDTree | None = None) -> np.ndarray:
+    """``(m,)`` booleans: the points that stand alone, away from the curve or surface the
+    others sample. Point i stands alone when its :data:`ISOLATION_RANK`-th nearest other
+    point is more than :data:`ISOLATION_RATIO` times farther than is typical around it: the
+    median of the same distance over its :data:`ISOLATION_NEIGHBOURS` nearest points,
+    taken as at most :data:`SPARSE_SPACING` times the cloud's median.
+
+    Why this test: an outlier far from the shape has no neighbours at the sampling's
+    spacing, while its nearest points (on the shape) do; a fit through it grows a loop
+    around it (1.5 % outliers gave 24 supplementary loops). The k-th neighbour, not the
+    first, finds outliers in pairs and threes too; comparing with the point's own
+    neighbours, not the cloud's median spacing, keeps uneven sampling (5x density
+    changes), gap ends and small separate components in: their neighbours are as sparse
+    as they are. Larger clusters of outliers, and outliers within a few spacings of the
+    shape, are not found here (the robust reweighting of :func:`jurs.fit` weighs the near
+    ones down).
+    """
+    tree = kd_tree(points) if tree is None else tree
+    k = min(len(points) - 1, ISOLATION_RANK)
+    reach = tree.query(points, k=k + 1)[0][:, k]  # the k-th nearest other point
+    typical = float(np.median(reach))
+    isolated = np.zeros(len(points), bool)
+    candidates = np.flatnonzero(reach > ISOLATION_RATIO * typical)
+    if candidates.size:
+        count = min(len(points), ISOLATION_NEIGHBOURS + 1)
+        around = np.asarray(tree.query(points[candidates], k=count)[1])[:, 1:]
+        # Capped: the points around an outlier far from the shape can be other outliers.
+        local = np.minimum(np.median(reach[around], axis=1), SPARSE_SPACING * typical)
+        isolated[candidates[reach[candidates] > ISOLATION_RATIO * local]] = True
+    return isolated
 
 
 def _tangent_frame(rel: np.ndarray, keep: np.ndarray) -> np.ndarray:
@@ -214,10 +300,48 @@ def offset_agreement(
     return agreement.reshape(offsets.shape) if offsets.ndim else float(agreement[0])
 
 
-#: Dimensionless smoothing on clean clouds and on noise-dominated ones
-#: (see :func:`choose_smoothing`).
+#: Dimensionless smoothing on clean clouds, and the most a noisy surface gets (see
+#: :func:`noise_smoothing`).
 CLEAN_SMOOTHING = 1e-6
 NOISY_SMOOTHING = 1e-3
+#: The dimensionless smoothings a curve's lambda is chosen among by held-out points
+#: (:func:`choose_smoothing`): decades from the clean floor to the noisy end.
+SMOOTHING_CANDIDATES = (1e-6, 1e-5, 1e-4, 1e-3)
+#: Below this ratio ``2 sigma / d`` the cloud is clean at the scale of its offsets and
+#: gets :data:`CLEAN_SMOOTHING` without a held-out selection (which would choose it too:
+#: see :func:`choose_smoothing`).
+CLEAN_NOISE_RATIO = 0.1
+
+
+def feature_width(
+    points: np.ndarray, normals: np.ndarray, radius: float, spacing: float, at=None
+) -> tuple[np.ndarray, np.ndarray]:
+    """``(width, partner)`` per probe point (``at``, default all): the distance to the
+    nearest point whose normal faces the other way (more than 120 degrees apart), within
+    ``radius`` (inf where there is none), and that point's index (-1 where none).
+
+    On a thin part of the shape it is the part's width at that point, on the far side of a
+    narrow gap the gap's: the features a grid must resolve. Clouds much denser than the
+    radius are thinned to about 16 points a radius first (by stride: only the nearest
+    opposite point matters, and 64 neighbours must reach across)."""
+    own = _probe(points, at)
+    stride = max(1, min(int(radius / (16.0 * spacing)), len(points) // 64))
+    keep = np.arange(0, len(points), stride)
+    tree = kd_tree(points[keep])
+    k = min(len(keep), 64)
+    # k as a list: 2-D results even for k = 1 (SciPy's stub types k as an int only).
+    ks = list(range(1, k + 1))
+    dist, idx = tree.query(points[own], k=ks, distance_upper_bound=radius)  # pyright: ignore[reportArgumentType]
+    found = np.isfinite(dist)
+    idx = np.where(found, idx, 0)
+    facing = (normals[keep][idx] * normals[own][:, None, :]).sum(axis=-1)
+    dist = np.where(found & (facing < -0.5), dist, np.inf)
+    nearest = np.argmin(dist, axis=1)
+    width = np.take_along_axis(dist, nearest[:, None], axis=1)[:, 0]
+    partner = np.where(
+        np.isfinite(width), keep[np.take_along_axis(idx, nearest[:, None], 1)[:, 0]], -1
+    )
+    return width, partner
 
 
 def choose_offset(
@@ -256,32 +380,88 @@ def choose_grid(
     spacing: float,
     noise: float,
     max_grid: int = DEFAULT_MAX_GRID,
+    feature: float = np.inf,
 ) -> tuple[int, ...]:
     """Basis functions along each axis (x and y, and z for a surface): cells of side ``h =
     max(1.5 s, 4 sigma)`` (``3 s`` on a surface, :data:`CELL_SPACINGS`), the same along
-    every axis, with at most ``max_grid`` functions
-    along the longest side and at least :data:`MIN_GRID` along each.
+    every axis, with at most ``max_grid`` functions along the longest side and at least
+    :data:`MIN_GRID` along each; then, on a curve whose narrowest ``feature`` (thin parts,
+    narrow gaps: :func:`feature_width`) is under :data:`FEATURE_CELLS` cells wide, finer
+    cells down to that width, beyond ``max_grid`` but within
+    :data:`MAX_FEATURE_COEFFICIENTS` coefficients and never below one spacing or 4 sigma.
 
     Why: a cell must hold a few points along the curve for the least-squares fit to pin
     its coefficients (1.5 spacings, on clean data the measured accuracy no longer improved
     below), and on noisy data a few noise widths, so that each coefficient averages out the
     noise instead of following it (4 sigma measured best against 2 and 8, in Chamfer
     distance to the clean curve at 0.5 % noise). The cap bounds time and memory: the exact
-    solve grows with the number of coefficients, not with m.
+    solve grows with the number of coefficients, not with m. A feature narrower than about
+    half a cell is cut or bridged (a neck pinched, two rings fused), whatever the number of
+    points: there the data need the finer grid, and the budget in coefficients (not in
+    functions a side) lets elongated shapes have it cheaply.
 
     The cell counts are then rounded up to :func:`jurs._compile.round_size` (four sizes an
-    octave, within the cap), so that clouds of similar size and extent get the same grid
-    and share one compiled fit: cells up to 25 % narrower than chosen, never wider.
+    octave), so that clouds of similar size and extent get the same grid and share one
+    compiled fit: cells up to 25 % narrower than chosen, never wider.
     """
     extent = np.asarray(upper, float) - np.asarray(lower, float)
     h = max(CELL_SPACINGS[extent.size] * spacing, 4.0 * noise, float(extent.max()) / (max_grid - 3))
-    cells = np.maximum(1, np.ceil(extent / h - 1e-9).astype(int))
     cap = max(max_grid - 3, 1)
+    if extent.size == 2 and feature < FEATURE_CELLS * h:
+        # Never below the noise's cell: finer cells would follow the noise, not the feature.
+        finest = max(feature / FEATURE_CELLS, spacing, 4.0 * noise, _budget_cell(extent))
+        if finest < h:
+            h, cap = finest, np.inf
+    cells = np.maximum(1, np.ceil(extent / h - 1e-9).astype(int))
     return tuple(int(max(MIN_GRID, min(round_size(c), max(cap, c)) + 3)) for c in cells)
 
 
-def choose_smoothing(offset: float, noise: float) -> float:
-    """Dimensionless smoothing: from :data:`CLEAN_SMOOTHING` on clean clouds to
+def _budget_cell(extent: np.ndarray) -> float:
+    """The narrowest square cell whose grid over ``extent`` (with its 3 extra functions a
+    side, and :func:`jurs._compile.round_size`'s rounding up of at most 25 %) stays within
+    :data:`MAX_FEATURE_COEFFICIENTS`."""
+    budget = MAX_FEATURE_COEFFICIENTS / 1.25**extent.size
+
+    def count(h):
+        return float(np.prod(np.ceil(extent / h) + 3))
+
+    lo, hi = float(extent.max()) / 1e5, float(extent.max())  # count(hi) is small
+    for _ in range(60):  # bisection in log h
+        mid = float(np.sqrt(lo * hi))
+        lo, hi = (mid, hi) if count(mid) > budget else (lo, mid)
+    return hi
+
+
+def choose_smoothing(offset: float, noise: float, ndim: int = 2) -> float | None:
+    """Dimensionless smoothing from the measurements, or None where the data must choose.
+
+    * Clean clouds (``2 sigma / d`` below :data:`CLEAN_NOISE_RATIO`): :data:`CLEAN_SMOOTHING`.
+    * Other curves: None. :func:`auto_settings` then chooses among
+      :data:`SMOOTHING_CANDIDATES` the one whose fit of 80 % of the points passes nearest
+      the other 20 % (:func:`jurs.solvers._held_out.select_lam`).
+    * Other surfaces: :func:`noise_smoothing` (a held-out selection would cost four more of
+      their iterative solves).
+
+    Why held-out points and not the noise estimate: sigma measures how far points stray
+    from a smooth local fit, and a pixel staircase traced from an image, polygon corners
+    or uneven spacing stray as much as noise does (traced outlines measured sigma = 12-26 %
+    of the spacing), yet they are the shape, not noise. Points held out from such a curve
+    lie on what the kept points trace, and the fit that follows it closely predicts them
+    best; points displaced by independent noise are predicted best by a fit that averages
+    the neighbours. So the choice needs no noise model, only the data. The floor stays:
+    smaller smoothings let supplementary loops grow away from the data, where no point
+    says so (``benchmarks/results/smoothing.md``); the clean shortcut saves the selection's
+    solves where it would pick the floor (it did on every clean shape measured).
+    """
+    ratio = 2.0 * noise / offset if offset > 0 else 1.0
+    if ratio < CLEAN_NOISE_RATIO:
+        return CLEAN_SMOOTHING
+    return None if ndim == 2 else noise_smoothing(offset, noise)
+
+
+def noise_smoothing(offset: float, noise: float) -> float:
+    """A surface's dimensionless smoothing (curves choose theirs by held-out points,
+    :func:`choose_smoothing`): from :data:`CLEAN_SMOOTHING` on clean clouds to
     :data:`NOISY_SMOOTHING` where noise sets the offset (``2 sigma >= d``), on the fourth
     power of ``2 sigma / d`` between.
 
@@ -335,6 +515,25 @@ def scale_free_lam(
     return float(smoothing * num_samples * diagonal**2 * per_length / volume)
 
 
+def _held_out_smoothing(cloud, support, shape, offset, eps, domain, unit: float):
+    """``(smoothing, record)``: the :data:`SMOOTHING_CANDIDATES` entry chosen by held-out
+    points (:func:`jurs.solvers._held_out.select_lam`) on the fit's own problem (padded
+    as :func:`jurs.fit` pads it, so clouds of similar size share the compiled selection),
+    and ``((smoothing, score), ...)``."""
+    # The same memory check as the fit's, before this first solve on the grid.
+    samples = 3 * len(cloud[0])
+    check_memory("grid=" + "x".join(map(str, shape)), fit_memory(shape, samples, None))
+    points, normals = cloud
+    dtype = jnp.result_type(float)
+    problem = padded_problem(
+        points, normals, None, shape, offset, eps, domain, 0.0, None, dtype, support
+    )
+    candidates = np.asarray(SMOOTHING_CANDIDATES)
+    scores = np.asarray(_select_lam(problem, jnp.asarray(candidates * unit))[1], float)
+    best = int(np.argmin(np.where(np.isfinite(scores), scores, np.inf)))  # as select_lam
+    return float(candidates[best]), tuple(zip(map(float, candidates), map(float, scores)))
+
+
 def auto_settings(
     points,
     normals,
@@ -381,9 +580,15 @@ def auto_settings(
         or max_grid < MIN_GRID
     ):
         raise ValueError(f"max_grid must be an int >= {MIN_GRID}, got {max_grid!r}")
-    p = np.asarray(points, float)
-    n = unit_normals(np.asarray(normals, float))
+    cloud = np.asarray(points, float), unit_normals(np.asarray(normals, float))
+    p, n = cloud
     tree = kd_tree(p)
+    isolated = isolated_points(p, tree)
+    if isolated.mean() > MAX_SET_ASIDE:  # no dense shape to stand apart from: keep all
+        isolated[:] = False
+    if isolated.any():  # measure the shape without them
+        p, n = p[~isolated], n[~isolated]
+        tree = kd_tree(p)
     # Large clouds are measured at an evenly strided subset (the same points wherever the
     # cloud is placed), against the whole cloud.
     at = (
@@ -395,18 +600,30 @@ def auto_settings(
     e = d if eps is None else float(eps)
     if domain is None:  # the box make_problem will take
         # offset_samples takes NumPy arrays with xp=np; its annotation says jax.Array only.
-        lower, upper = auto_domain(offset_samples(p, n, d, e, np)[0], margin, xp=np)  # pyright: ignore[reportArgumentType]
+        lower, upper = auto_domain(offset_samples(*cloud, d, e, np)[0], margin, xp=np)  # pyright: ignore[reportArgumentType]
     else:
         lower, upper = (np.asarray(c, float) for c in domain)
+    width = None
+    if ndim == 2:  # widths below two cells of the coarsest grid this would choose
+        radius = 2.0 * float(np.max(upper - lower)) / (max_grid - 3)
+        width = feature_width(p, n, radius, spacing, at)[0]
+    feature = np.inf if width is None else float(np.sort(width)[int(FEATURE_QUANTILE * width.size)])
     shape = (
-        choose_grid(lower, upper, spacing, noise, max_grid)
+        choose_grid(lower, upper, spacing, noise, max_grid, feature)
         if grid is None
         else normalise_grid(grid, ndim)
     )
-    beta = choose_smoothing(d, noise) if smoothing is None else float(smoothing)
     diagonal = float(np.linalg.norm(p.max(axis=0) - p.min(axis=0)))
     cell = float(np.max((upper - lower) / (np.asarray(shape) - 3)))
-    lam = scale_free_lam(beta, 3 * len(p), diagonal, lower, upper, cell)
+    thin = 0.0 if width is None else float(np.mean(width < FEATURE_CELLS * cell))
+    # lam is linear in the smoothing: lam = smoothing * unit.
+    unit = scale_free_lam(1.0, 3 * len(p), diagonal, lower, upper, cell)
+    beta = choose_smoothing(d, noise, ndim) if smoothing is None else float(smoothing)
+    held_out = None
+    if beta is None:
+        support = None if not isolated.any() else (~isolated).astype(float)
+        beta, held_out = _held_out_smoothing(cloud, support, shape, d, e, (lower, upper), unit)
+    lam = beta * unit
     return Settings(
         grid=shape,
         offset=d,
@@ -416,4 +633,7 @@ def auto_settings(
         domain=(tuple(map(float, lower)), tuple(map(float, upper))),
         spacing=spacing,
         noise=noise,
+        held_out=held_out,
+        set_aside=tuple(int(i) for i in np.flatnonzero(isolated)),
+        thin_fraction=thin,
     )

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import warnings
 
 import equinox as eqx
 import jax
@@ -10,58 +11,32 @@ import jax.numpy as jnp
 import numpy as np
 from jax.core import Tracer
 
-from ._compile import COMPILER_OPTIONS, call_stored, padded_count
-from ._defaults import auto_settings
+from ._compile import COMPILER_OPTIONS, call_stored
+from ._defaults import auto_settings, feature_width
 from ._io import SPLINE_KEYS, check_spline_arrays
 from ._problem import (
     DEFAULT_MARGIN,
     _is_concrete,
     _shape,
     check_memory,
+    fit_memory,
     flipped_normal_fraction,
-    make_problem,
     normalise_grid,
     orientation_sample,
+    padded_problem,
     tangential_normal_fraction,
+    unit_normals,
 )
 from ._sharding import is_sharded, place_fit
 from ._solution import RAISED_RESULTS, RESULTS, Solution, error_message
 from ._spline import ImplicitSpline
-from .solvers import IPIA, IURS, AbstractSolver, LeastSquares, solve
+from .solvers import AbstractSolver, LeastSquares, RobustLeastSquares, solve
 
 
 def _as_arrays(tree, dtype):
     """Python floats -> 0-d arrays, so new hyperparameter values do not recompile."""
     return jax.tree_util.tree_map(
         lambda x: jnp.asarray(x, dtype) if isinstance(x, float) else x, tree
-    )
-
-
-def padded_cloud(points, normals):
-    """``(points, normals, mask)`` padded to :func:`jurs._compile.padded_count` points with
-    masked-out copies of the first point (inside any box the cloud fits in), or None where
-    the inputs are traced or malformed (make_problem then reports them as given).
-
-    Why: a compiled fit is specialised to its array shapes; clouds padded to one of a few
-    sizes, with a layout sized from that (``make_problem(stable_shapes=True)``), reuse one
-    compilation. Masked points take no part in the fit, so the result is the unpadded one
-    up to rounding (the per-bucket sums group the samples differently).
-    """
-    if not _is_concrete(points, normals):
-        return None
-    try:  # ragged lists: make_problem names them
-        p, n = np.asarray(points), np.asarray(normals)
-    except (TypeError, ValueError):
-        return None
-    if p.ndim != 2 or p.shape[1] not in (2, 3) or n.shape != p.shape or p.shape[0] < 3:
-        return None
-    m = p.shape[0]
-    extra = padded_count(m) - m
-    mask = np.arange(m + extra) < m
-    return (
-        np.concatenate([p, np.repeat(p[:1], extra, axis=0)]),
-        np.concatenate([n, np.repeat(n[:1], extra, axis=0)]),
-        mask,
     )
 
 
@@ -73,40 +48,6 @@ def padded_cloud(points, normals):
 #: random normals about 0.5 along the curve.
 MAX_FLIPPED_FRACTION = 0.2
 MAX_TANGENTIAL_FRACTION = 0.2
-
-
-#: Peak bytes a fit holds per coefficient: the exact solve and the normal-equation form
-#: assemble the 49-point stencil of D^T D and solve with it (LeastSquares measured 0.8 GB,
-#: 3.1 KB a coefficient, at 512 x 512, peak resident memory above the process' baseline
-#: on this 2-core CPU; XLA asked for 2.5 KB a coefficient at 10000 x 10000); the
-#: per-sample iterations hold a few grids (IURS: 0.19 GB at 64 x 64 and at 256 x 256,
-#: compilation included). At 2000 x 2000 it held 10 GB (2.5 KB a coefficient) after 8
-#: minutes and was still growing: the limit is twice the largest rate measured, so that a
-#: fit it lets through does not run the machine out of memory.
-BYTES_PER_COEFFICIENT = 8192
-BYTES_PER_COEFFICIENT_ITERATIVE = 1024
-#: Peak bytes per sample (positions, basis values, residuals).
-BYTES_PER_SAMPLE = 256
-#: The same for surfaces (3D), from peak resident sets on this 2-core CPU: the 343-point
-#: stencil, the per-cell moments it is folded from and the fold's intermediates (a 64^3 fit
-#: of 2e4 points peaked at 4.8 GB, 18 KB a coefficient), and each sample's 64 gathered
-#: coefficients and basis products (1e6 points at 48^3 peaked at 10 GB: 2.9 KB a sample
-#: after the grid's share).
-BYTES_PER_COEFFICIENT_3D = 20480
-BYTES_PER_SAMPLE_3D = 3072
-
-
-def fit_memory(shape, num_samples: int, solver) -> float:
-    """Estimated peak bytes of a fit on an ``(N, M)`` (or ``(N, M, K)``) grid with
-    ``num_samples`` samples (:data:`BYTES_PER_COEFFICIENT`, :data:`BYTES_PER_SAMPLE` and
-    their 3D counterparts)."""
-    surface = len(shape) == 3
-    if isinstance(solver, (IPIA, IURS)):
-        per_coefficient = BYTES_PER_COEFFICIENT_ITERATIVE
-    else:
-        per_coefficient = BYTES_PER_COEFFICIENT_3D if surface else BYTES_PER_COEFFICIENT
-    per_sample = BYTES_PER_SAMPLE_3D if surface else BYTES_PER_SAMPLE
-    return float(per_coefficient * np.prod(shape) + per_sample * num_samples)
 
 
 def _check_orientation(sol, points, normals, mask):
@@ -135,6 +76,119 @@ def _check_orientation(sol, points, normals, mask):
     if bad and bool((result == RESULTS.successful) | (result == RESULTS.max_steps_reached)):
         result = RESULTS.inconsistent_normals
     return dataclasses.replace(sol, metrics=metrics, result=result)
+
+
+#: A fit is ``doubtful`` where more than this fraction of its points (and more than 2)
+#: sit across a thin part or a narrow gap (less than a cell wide) from a point whose side
+#: the fit gets wrong (:func:`crossed_features`): a neck pinched, two parts fused, a tip
+#: cut short. The clean shapes of the quality suite (2000 points) measured 0-5 such
+#: points (0.25 %, the wedges of glyphs' sharp inner corners, rounded off within a cell);
+#: a 100:1 ellipse 92 (its tips cut short), a 1000:1 one 260.
+MAX_CROSSED_FRACTION = 0.005
+#: ... or where more than this fraction of the points (those set aside excepted) lie
+#: farther from the zero set than the fit resolves (:func:`far_point_fraction`): fits of
+#: four shapes with 1 % noise left 0-1.5 % of their points there, with 10 % of the
+#: points displaced by 0.1 of the diagonal 1-1.5 %.
+MAX_FAR_FRACTION = 0.02
+#: Far points lie beyond this many times the spread of the points' distances to the zero
+#: set (:func:`far_point_fraction`): 6e-5 of Gaussian noise does; noisy clouds (1 % of
+#: the diagonal) had 1.3-2.1 % of their points beyond 2 d, d being set from an estimate
+#: of the noise below the true one.
+FAR_SPREAD = 4.0
+#: Points at most this many are measured for the far-point check (evenly strided).
+DOUBT_PROBES = 20000
+
+
+@jax.jit
+def zero_set_distance(spline: ImplicitSpline, points: jax.Array) -> jax.Array:
+    """First-order distance ``|g(p)| / |grad g(p)|`` from each point to the zero set."""
+
+    def one(p):
+        value, gradient = jax.value_and_grad(lambda x: spline(x[None])[0])(p)
+        return jnp.abs(value) / jnp.maximum(jnp.linalg.norm(gradient), 1e-300)
+
+    return jax.vmap(one)(points)
+
+
+def far_point_fraction(spline: ImplicitSpline, points, offset: float) -> tuple[float, float]:
+    """``(fraction, threshold)``: the fraction of ``points`` (at most :data:`DOUBT_PROBES`,
+    evenly strided) whose :func:`zero_set_distance` exceeds the largest of 2 d, half a
+    cell, and :data:`FAR_SPREAD` times the distances' own robust spread (1.4826 times their
+    median): the distance within which a fit's zero set lies of its data where it follows
+    them (the offsets reach d; a grid's cell bounds what its zero set can follow; noisy
+    points scatter about it by their noise, which d may underestimate)."""
+    p = np.asarray(points, float)
+    if len(p) > DOUBT_PROBES:
+        p = p[np.linspace(0, len(p) - 1, DOUBT_PROBES).round().astype(int)]
+    lower, upper = np.asarray(spline.lower), np.asarray(spline.upper)
+    cell = float(np.max((upper - lower) / (np.asarray(spline.shape) - 3)))
+    distance = np.asarray(zero_set_distance(spline, jnp.asarray(p, spline.control.dtype)))
+    spread = 1.4826 * float(np.nanmedian(distance)) if np.isfinite(distance).any() else 0.0
+    threshold = max(2.0 * float(offset), 0.5 * cell, FAR_SPREAD * spread)
+    return float(np.mean(~(distance <= threshold))), threshold
+
+
+def crossed_features(spline: ImplicitSpline, points, normals, spacing: float) -> int:
+    """How many of ``points`` (at most :data:`DOUBT_PROBES`, evenly strided) face a point
+    less than a cell away across a thin part or a narrow gap
+    (:func:`jurs._defaults.feature_width`) while the fit puts the midpoint between the two
+    on the wrong side: outside for a thin part (normals pointing away from each other),
+    inside for a gap. Each such pair is a part cut or a gap bridged by the zero set."""
+    p, n = np.asarray(points, float), unit_normals(np.asarray(normals, float), np)
+    at = None if len(p) <= DOUBT_PROBES else np.linspace(0, len(p) - 1, DOUBT_PROBES).round()
+    own = np.arange(len(p)) if at is None else at.astype(int)
+    lower, upper = np.asarray(spline.lower), np.asarray(spline.upper)
+    cell = float(np.max((upper - lower) / (np.asarray(spline.shape) - 3)))
+    _, partner = feature_width(p, n, cell, spacing, own)
+    paired = partner >= 0
+    if not paired.any():
+        return 0
+    a, b = p[own[paired]], p[partner[paired]]
+    inside = np.sum((b - a) * n[own[paired]], axis=1) < 0  # a thin part, not a gap
+    value = np.asarray(spline(jnp.asarray(0.5 * (a + b), spline.control.dtype)))
+    return int(np.sum(np.where(inside, value > 0, value < 0)))
+
+
+def _check_doubts(sol, settings, points, normals, mask, offset):
+    """``sol`` with ``metrics["far_point_fraction"]``, ``stats["doubts"]`` (the reasons to
+    doubt the zero set, in words) and, where there is one, the verdict
+    ``RESULTS.doubtful`` in place of success, and a warning. Host side."""
+    p = np.asarray(points, float)
+    keep = np.ones(len(p), bool) if mask is None else np.asarray(mask).astype(bool)
+    if settings is not None and settings.set_aside:
+        keep[list(settings.set_aside)] = False
+    far, threshold = far_point_fraction(sol.spline, p[keep], offset)
+    crossed, thin = 0, 0.0 if settings is None else settings.thin_fraction
+    if settings is not None and p.shape[1] == 2:
+        crossed = crossed_features(sol.spline, p[keep], np.asarray(normals)[keep], settings.spacing)
+    doubts = []
+    if crossed > max(2, MAX_CROSSED_FRACTION * min(int(keep.sum()), DOUBT_PROBES)):
+        doubts.append(
+            f"{crossed} points sit across a thin part or a narrow gap (less than a cell "
+            "wide) from a point the zero set puts on the wrong side: parts are cut or "
+            "bridged there. A finer grid= (cells about as wide as the features) or "
+            "denser sampling resolves them"
+            + (
+                f"; {thin:.1%} of the points lie on features narrower than half a cell of this grid"
+                if thin > 0
+                else ""
+            )
+        )
+    if far > MAX_FAR_FRACTION:
+        doubts.append(
+            f"{far:.1%} of the points lie farther than {threshold:.3g} from the zero set: "
+            "the fit does not follow the data there (features too fine for the grid, "
+            "outliers or inconsistent normals)"
+        )
+    metrics = dict(
+        sol.metrics, far_point_fraction=jnp.asarray(far), crossed_features=jnp.asarray(crossed)
+    )
+    stats = dict(sol.stats, doubts=tuple(doubts))
+    result = sol.result
+    if doubts and bool(result == RESULTS.successful):
+        result = RESULTS.doubtful
+        warnings.warn("jurs.fit: doubtful fit: " + "; ".join(doubts), stacklevel=4)
+    return dataclasses.replace(sol, metrics=metrics, stats=stats, result=result)
 
 
 def _point_dimension(points) -> int:
@@ -226,8 +280,51 @@ def _resolved_settings(points, normals, grid, offset, eps, solver, domain, margi
         margin=margin,
         smoothing=smoothing,
     )
-    solver = LeastSquares(lam=settings.lam) if solver is None else solver
+    if solver is None:
+        solver = default_solver(settings)
     return settings, settings.grid, settings.offset, settings.eps, solver
+
+
+#: Reweighted solves at most in the default robust fit (:func:`default_solver`): each is
+#: one exact solve.
+DEFAULT_ROBUST_STEPS = 8
+#: ... and its stop rule: ``E_rob`` changing by at most this fraction between steps.
+DEFAULT_ROBUST_RTOL = 1e-3
+
+
+def default_solver(settings) -> AbstractSolver:
+    """The solver :func:`fit` uses with the automatic ``settings``: the exact solve
+    ``LeastSquares(lam=settings.lam)``; where points were set aside as standing alone
+    (``settings.set_aside``), the robust reweighting ``RobustLeastSquares(lam, loss="huber")``
+    of the rest, which also weighs down points that stray less far (Huber's loss is
+    convex: it never sets an inlier aside, unlike Cauchy's or Tukey's, measured to drop
+    the points of curved parts on coarse grids)."""
+    if settings.set_aside:
+        return RobustLeastSquares(
+            lam=settings.lam, loss="huber", max_steps=DEFAULT_ROBUST_STEPS, rtol=DEFAULT_ROBUST_RTOL
+        )
+    return LeastSquares(lam=settings.lam)
+
+
+def _support(points, settings, mask):
+    """``(m,)`` weights, 0 at the points ``settings`` set aside, or None where none were."""
+    if settings is None or not settings.set_aside or mask is not None:
+        return None
+    support = np.ones(len(points))
+    support[list(settings.set_aside)] = 0.0
+    return support
+
+
+def set_aside_mask(points, settings):
+    """The ``mask`` that fits without the points ``settings`` set aside (None: none were),
+    for a caller that passes the automatic settings to :func:`fit` explicitly."""
+    return _support(points, settings, None)
+
+
+def automatic_fit_checks(sol, settings, points, normals):
+    """The checks :func:`fit` makes after a fit with automatic ``settings``
+    (:func:`_check_doubts`), for a fit made with them passed explicitly."""
+    return _check_doubts(sol, settings, points, normals, None, settings.offset)
 
 
 def _checked_shape(points, grid, solver, init) -> tuple[int, ...]:
@@ -248,29 +345,7 @@ def _checked_shape(points, grid, solver, init) -> tuple[int, ...]:
     return shape
 
 
-def _padded_problem(points, normals, mask, shape, offset, eps, domain, margin, bucket_size, dtype):
-    """:func:`make_problem` of the cloud, padded (:func:`padded_cloud`) when it has no mask."""
-    # The problem is built outside the solver's jit: its sample layout is chosen on the
-    # host from concrete data (see make_problem); under a caller's jit/grad/vmap it is traced.
-    padded = padded_cloud(points, normals) if mask is None else None
-    if padded is not None:  # shape-stable: clouds of similar size share one compiled fit
-        points, normals, mask = padded
-    return make_problem(
-        points,
-        normals,
-        grid=shape,
-        offset=offset,
-        eps=eps,
-        domain=domain,
-        margin=margin,
-        mask=mask,
-        bucket_size=bucket_size,
-        dtype=dtype,
-        stable_shapes=padded is not None,
-    )
-
-
-def _solve_fit(problem, solver, init, throw, given):
+def _solve_fit(problem, solver, init, throw, given, settings=None):
     """The solve; at top level ``throw`` and the orientation of ``given`` checked on the host."""
     top_level = _at_top_level((problem, solver, init))
     run = _solve_reassociating if top_level and _reassociation_pays(problem, solver) else _solve
@@ -287,6 +362,9 @@ def _solve_fit(problem, solver, init, throw, given):
         else call_stored(_run, run, problem, solver, init, False)
     )
     sol = _check_orientation(sol, *given)
+    if settings is not None:  # automatic settings: the data were not looked at by a person
+        points, normals, mask = given
+        sol = _check_doubts(sol, settings, points, normals, mask, problem.offset)
     if throw and sol.status in RAISED_RESULTS:
         raise eqx.EquinoxRuntimeError(error_message(sol.status))
     return sol
@@ -372,7 +450,7 @@ def fit(
     grid-sized sums all-reduced; the sample layout is still built from the whole cloud on
     the host, in one process (docs/sharding.md).
     """
-    estimated = None
+    estimated, solver_given = None, solver
     if normals is None:
         normals, estimated = _estimated_normals(points, mask)
     settings, grid, offset, eps, solver = _resolved_settings(
@@ -381,12 +459,15 @@ def fit(
     shape = _checked_shape(points, grid, solver, init)
     dtype = jnp.result_type(float)
     given = (points, normals, mask)  # before padding, for the orientation check
-    problem = _padded_problem(
-        points, normals, mask, shape, offset, eps, domain, margin, bucket_size, dtype
+    support = _support(points, settings, mask) if solver_given is None else None
+    if support is not None:  # the box that holds the points set aside too
+        domain = settings.domain  # pyright: ignore[reportOptionalMemberAccess]
+    problem = padded_problem(
+        points, normals, mask, shape, offset, eps, domain, margin, bucket_size, dtype, support
     )
     # Points sharded over several devices: the problem split over them (jurs._sharding).
     problem, solver, init = place_fit(points, normals, problem, _as_arrays(solver, dtype), init)
-    sol = _solve_fit(problem, solver, init, throw, given)
+    sol = _solve_fit(problem, solver, init, throw, given, settings)
     if estimated is not None:
         sol = dataclasses.replace(sol, stats=dict(sol.stats, estimated_normals=estimated))
     return sol if settings is None else dataclasses.replace(sol, settings=settings)

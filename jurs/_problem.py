@@ -21,7 +21,7 @@ from jax import Array
 from jax.core import Tracer
 
 from ._basis import flat_cell, locate, num_cells
-from ._compile import round_size
+from ._compile import padded_count, round_size
 from ._spline import TABLE_MAX_SLOTS, LocalBasis, local_basis, with_table
 
 #: Default margin added around the samples' bounding box, as a fraction of its longest side.
@@ -852,3 +852,97 @@ def tangential_normal_fraction(points, normals, sample=None) -> float:
     # (the smallest variance's).
     along = np.abs(np.sum(axes[:, :, 0] * n, axis=1)) < np.sqrt(0.5)
     return float(np.mean(clear & along))
+
+
+#: Peak bytes a fit holds per coefficient: the exact solve and the normal-equation form
+#: assemble the 49-point stencil of D^T D and solve with it (LeastSquares measured 0.8 GB,
+#: 3.1 KB a coefficient, at 512 x 512, peak resident memory above the process' baseline
+#: on this 2-core CPU; XLA asked for 2.5 KB a coefficient at 10000 x 10000); the
+#: per-sample iterations hold a few grids (IURS: 0.19 GB at 64 x 64 and at 256 x 256,
+#: compilation included). At 2000 x 2000 it held 10 GB (2.5 KB a coefficient) after 8
+#: minutes and was still growing: the limit is twice the largest rate measured, so that a
+#: fit it lets through does not run the machine out of memory.
+BYTES_PER_COEFFICIENT = 8192
+BYTES_PER_COEFFICIENT_ITERATIVE = 1024
+#: Peak bytes per sample (positions, basis values, residuals).
+BYTES_PER_SAMPLE = 256
+#: The same for surfaces (3D), from peak resident sets on this 2-core CPU: the 343-point
+#: stencil, the per-cell moments it is folded from and the fold's intermediates (a 64^3 fit
+#: of 2e4 points peaked at 4.8 GB, 18 KB a coefficient), and each sample's 64 gathered
+#: coefficients and basis products (1e6 points at 48^3 peaked at 10 GB: 2.9 KB a sample
+#: after the grid's share).
+BYTES_PER_COEFFICIENT_3D = 20480
+BYTES_PER_SAMPLE_3D = 3072
+
+
+def fit_memory(shape, num_samples: int, solver) -> float:
+    """Estimated peak bytes of a fit on an ``(N, M)`` (or ``(N, M, K)``) grid with
+    ``num_samples`` samples (:data:`BYTES_PER_COEFFICIENT`, :data:`BYTES_PER_SAMPLE` and
+    their 3D counterparts)."""
+    surface = len(shape) == 3
+    if getattr(solver, "per_sample_iterations", False):
+        per_coefficient = BYTES_PER_COEFFICIENT_ITERATIVE
+    else:
+        per_coefficient = BYTES_PER_COEFFICIENT_3D if surface else BYTES_PER_COEFFICIENT
+    per_sample = BYTES_PER_SAMPLE_3D if surface else BYTES_PER_SAMPLE
+    return float(per_coefficient * np.prod(shape) + per_sample * num_samples)
+
+
+def padded_cloud(points, normals):
+    """``(points, normals, mask)`` padded to :func:`jurs._compile.padded_count` points with
+    masked-out copies of the first point (inside any box the cloud fits in), or None where
+    the inputs are traced or malformed (make_problem then reports them as given).
+
+    Why: a compiled fit is specialised to its array shapes; clouds padded to one of a few
+    sizes, with a layout sized from that (``make_problem(stable_shapes=True)``), reuse one
+    compilation. Masked points take no part in the fit, so the result is the unpadded one
+    up to rounding (the per-bucket sums group the samples differently).
+    """
+    if not _is_concrete(points, normals):
+        return None
+    try:  # ragged lists: make_problem names them
+        p, n = np.asarray(points), np.asarray(normals)
+    except (TypeError, ValueError):
+        return None
+    if p.ndim != 2 or p.shape[1] not in (2, 3) or n.shape != p.shape or p.shape[0] < 3:
+        return None
+    m = p.shape[0]
+    extra = padded_count(m) - m
+    mask = np.arange(m + extra) < m
+    return (
+        np.concatenate([p, np.repeat(p[:1], extra, axis=0)]),
+        np.concatenate([n, np.repeat(n[:1], extra, axis=0)]),
+        mask,
+    )
+
+
+def padded_problem(
+    points, normals, mask, shape, offset, eps, domain, margin, bucket_size, dtype, support=None
+):
+    """:func:`make_problem` of the cloud, padded (:func:`padded_cloud`) when it has no mask.
+
+    ``support``: optional ``(m,)`` weights of the caller's points (0 sets a point aside,
+    :func:`jurs._defaults.isolated_points`), multiplied into the mask."""
+    # The problem is built outside the solver's jit: its sample layout is chosen on the
+    # host from concrete data (see make_problem); under a caller's jit/grad/vmap it is traced.
+    padded = padded_cloud(points, normals) if mask is None else None
+    if padded is not None:  # shape-stable: clouds of similar size share one compiled fit
+        points, normals, mask = padded
+    if support is not None:
+        count = len(points)
+        base = np.ones(count) if mask is None else np.asarray(mask, float)
+        weights = np.asarray(support, float)
+        mask = base * np.concatenate([weights, np.zeros(count - len(weights))])
+    return make_problem(
+        points,
+        normals,
+        grid=shape,
+        offset=offset,
+        eps=eps,
+        domain=domain,
+        margin=margin,
+        mask=mask,
+        bucket_size=bucket_size,
+        dtype=dtype,
+        stable_shapes=padded is not None,
+    )

@@ -44,6 +44,12 @@ class RESULTS(eqx.Enumeration):
         "the grid: the weight step tau is far too large for this problem, and the zero set "
         "is degraded. Lower tau (the default 1e-2 suits unit-scale data)"
     )
+    doubtful = (
+        "the solve succeeded, but checks of the data and of the fit doubt the zero set in "
+        "places (features narrower than the grid resolves, or data points left far from "
+        "the zero set); sol.stats['doubts'] says which and what to change. The fit is "
+        "returned as it is"
+    )
 
 
 #: The short names of the :class:`RESULTS` items, in their order (``Solution.status``).
@@ -54,12 +60,14 @@ RESULT_NAMES = (
     "nonfinite",
     "inconsistent_normals",
     "weights_at_floor",
+    "doubtful",
 )
 
 
 #: The verdicts that ``throw=True`` raises (as ``equinox.EquinoxRuntimeError``): the fit is
 #: not a reconstruction. ``max_steps_reached`` is not one: Algorithm 1 stops there by design
-#: (the paper's fixed-step runs) and its iterate is usable.
+#: (the paper's fixed-step runs) and its iterate is usable; nor is ``doubtful``, a usable fit
+#: that :func:`jurs.fit` also warns about.
 RAISED_RESULTS = ("failed", "nonfinite", "inconsistent_normals", "weights_at_floor")
 
 

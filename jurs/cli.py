@@ -42,6 +42,7 @@ import shutil
 import sys
 import tempfile
 import time
+import warnings
 from typing import TYPE_CHECKING, cast
 
 from ._compile import cache_disabled_by_environment, enable_compilation_cache
@@ -280,17 +281,19 @@ def _one_line(exc) -> str:
     return " ".join(str(exc).split())
 
 
-def make_solver(
-    name: str, *, lam: float | None, tau: float, steps: int, tol: float, auto_lam: float = 0.0
-):
-    """The solver named on the command line (``auto_lam``: the automatic lambda, used by
-    ``auto`` when ``--lam`` is not given)."""
+def make_solver(name: str, *, lam: float | None, tau: float, steps: int, tol: float, chosen=None):
+    """The solver named on the command line (``chosen``: the automatic settings, whose
+    solver ``auto`` takes when ``--lam`` is not given, as :func:`jurs.fit` would)."""
     import jurs
 
     if steps < 0:
         raise InputError(f"--steps must be >= 0, got {steps}")
+    if name == "auto" and lam is None and chosen is not None:
+        from ._fit import default_solver
+
+        return default_solver(chosen)
     if name == "auto":
-        return jurs.LeastSquares(lam=auto_lam if lam is None else lam)
+        return jurs.LeastSquares(lam=0.0 if lam is None else lam)
     lam = 0.0 if lam is None else lam
     if name == "ipia":
         if lam:
@@ -562,7 +565,7 @@ def prepare_fit(args) -> FitJob:
     except (ValueError, TypeError) as exc:
         raise InputError(f"{shown}: {_one_line(exc)}") from None
     solver = make_solver(
-        args.solver, lam=args.lam, tau=args.tau, steps=args.steps, tol=args.tol, auto_lam=chosen.lam
+        args.solver, lam=args.lam, tau=args.tau, steps=args.steps, tol=args.tol, chosen=chosen
     )
     job = FitJob(path, points, normals, estimated, out, chosen, solver, resolution)
     check_output_folder(out, _output_bytes(job), job.outputs)
@@ -576,10 +579,14 @@ def _solve(job: FitJob, args):
 
     import jurs
 
+    from ._fit import automatic_fit_checks, set_aside_mask
     from ._progress import fit_in_chunks
 
     bar = ProgressBar(f"{args.solver} {'x'.join(map(str, job.grid))}", enabled=not args.quiet)
     t0 = time.perf_counter()
+    # The automatic solver fits without the points the settings set aside, as jurs.fit.
+    automatic = args.solver == "auto" and args.lam is None
+    mask = set_aside_mask(job.points, job.chosen) if automatic else None
     try:
         sol, _ = fit_in_chunks(
             job.points,
@@ -590,7 +597,13 @@ def _solve(job: FitJob, args):
             grid=job.grid,
             offset=job.chosen.offset,
             eps=job.chosen.eps,
+            mask=mask,
+            domain=None if mask is None else job.chosen.domain,
         )
+        if automatic:  # the doubt checks of jurs.fit, said below as the verdict
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", UserWarning)
+                sol = automatic_fit_checks(sol, job.chosen, job.points, job.normals)
     except (ValueError, TypeError) as exc:
         bar.close()
         raise InputError(f"{job.shown}: {_one_line(exc)}") from None
@@ -605,8 +618,10 @@ def _solve(job: FitJob, args):
         return None
     if not sol.succeeded and sol.result != jurs.RESULTS.max_steps_reached:
         # Written all the same (the figure shows what went wrong), but said on stderr too.
+        doubts = sol.stats.get("doubts") or ()
+        said = "; ".join(doubts) if doubts else sol.message
         print(
-            f"jurs: warning: {job.shown}: the fit's verdict is {sol.status}: {sol.message}",
+            f"jurs: warning: {job.shown}: the fit's verdict is {sol.status}: {said}",
             file=sys.stderr,
         )
     return sol, seconds

@@ -17,7 +17,10 @@ Definitions (all lengths in data units):
 * **Distance of a component to the data**: the distance from each segment midpoint to the
   nearest data point (a KD-tree query), weighted by segment length. A component is
   **supplementary** when more than half of its length lies farther than ``threshold``
-  (default ``2 d``, twice the offset of the fit) from the data, i.e. its arc-length median
+  (default ``2 d``, twice the offset of the fit, or an eighth of a cell of the fit's grid
+  where that is more: a grid capped far coarser than a dense cloud's spacing follows the
+  data to within a fraction of its cells, not to within 2 d) from the data, i.e. its
+  arc-length median
   distance exceeds the threshold. The median, not the mean: a true curve that bridges a
   gap in the sampling has the gap's large distances in its mean (a rose with 8 % of its
   outline unsampled, clean data: the mean was above 2 d and flagged the curve itself) but
@@ -72,6 +75,12 @@ if TYPE_CHECKING:
 DEFAULT_RESOLUTION = 512
 #: Peak bytes per grid node of :func:`analyze` (node coordinates, their stacked and padded
 #: copies, the values and contourpy's working arrays).
+#: The default supplementary threshold is at least this fraction of the fit's cell
+#: (:func:`analyze_grid`): on 1e6 points of a circle, d = 3e-6 on a grid capped at 96 a
+#: side (cells 0.024), the one accurate component lay more than 2 d from the data and
+#: was counted supplementary. An eighth of a cell stays below 2 d on the automatic
+#: settings' grids (cells at most 16 d) and on the paper's Example 1 (9 x 9, d = 0.1).
+FIT_CELL_FRACTION = 0.125
 BYTES_PER_NODE = 128
 #: Default tiny-loop size, in grid cells of perimeter.
 DEFAULT_TINY_CELLS = 4.0
@@ -486,7 +495,8 @@ def analyze(
             with ``lower``/``upper`` works, given ``box``; for other functions, e.g. NumPy
             or SciPy ones, sample them yourself and call :func:`analyze_grid`).
         points: ``(m, 2)`` data points the fit was made from.
-        offset: d of the fit; the default threshold is ``2 d``.
+        offset: d of the fit; the default threshold is ``2 d`` (or an eighth of a cell
+            of the spline's grid, where more).
         threshold: distance above which a component is supplementary (overrides ``offset``).
         reference: optional ``(k, 2)`` dense samples of the true curve for the Chamfer and
             Hausdorff distances; default the data points.
@@ -507,10 +517,20 @@ def analyze(
         points,
         offset=offset,
         threshold=threshold,
+        fit_cell=_fit_cell(spline),
         reference=reference,
         tiny_cells=tiny_cells,
         zero_tol=zero_tol,
     )
+
+
+def _fit_cell(spline) -> float:
+    """The width of the spline's cells (its box over its knot spans), 0 for a function that
+    is not a :class:`jurs.ImplicitSpline`."""
+    if not isinstance(spline, ImplicitSpline):
+        return 0.0
+    extent = np.asarray(spline.upper, float) - np.asarray(spline.lower, float)
+    return float(np.max(extent / (np.asarray(spline.shape) - 3)))
 
 
 def analyze_grid(
@@ -521,6 +541,7 @@ def analyze_grid(
     *,
     offset: float = 0.1,
     threshold: float | None = None,
+    fit_cell: float = 0.0,
     reference=None,
     tiny_cells: float = DEFAULT_TINY_CELLS,
     zero_tol: float = 1e-12,
@@ -528,14 +549,19 @@ def analyze_grid(
     """:func:`analyze` for a function already sampled on a grid: ``values[j, i]`` at
     ``(xs[i], ys[j])``, with ``xs``/``ys`` from :func:`sampling_grid` (any implicit function
     can be measured this way, so other methods are compared on equal terms). The cell size
-    is the spacing along the longer side; other arguments as in :func:`analyze`."""
+    is the spacing along the longer side; ``fit_cell``, the width of the fitted function's
+    own cells (0: none), raises the default threshold to :data:`FIT_CELL_FRACTION` of it;
+    other arguments as in
+    :func:`analyze`."""
     points = np.asarray(points, float)
     if points.ndim != 2 or points.shape[1] != 2 or len(points) == 0:
         raise ValueError(f"points must have shape (m, 2) with m >= 1, got {points.shape}")
     if threshold is None:
         if not offset > 0:
             raise ValueError(f"offset must be positive, got {offset}")
-        threshold = DEFAULT_THRESHOLD_FACTOR * float(offset)
+        threshold = max(
+            DEFAULT_THRESHOLD_FACTOR * float(offset), FIT_CELL_FRACTION * float(fit_cell)
+        )
     if not threshold > 0:
         raise ValueError(f"threshold must be positive, got {threshold}")
     xs, ys, values = np.asarray(xs, float), np.asarray(ys, float), np.asarray(values, float)

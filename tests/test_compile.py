@@ -162,7 +162,7 @@ def test_size_ladder_rounds_up_by_at_most_a_quarter_with_four_sizes_an_octave():
 
 def _fit_problem(points, normals, **settings):
     """The problem jurs.fit builds: padded cloud, layout sized for the band."""
-    from jurs._fit import padded_cloud
+    from jurs._problem import padded_cloud
 
     p, n, mask = padded_cloud(points, normals)
     return jurs.make_problem(p, n, mask=mask, stable_shapes=True, **settings)

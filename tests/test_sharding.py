@@ -30,7 +30,7 @@ CHILD = textwrap.dedent(
     import jax, jax.numpy as jnp, numpy as np
     from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
     import jurs
-    from jurs import _fit
+    from jurs import _fit, _problem
     from jurs._sharding import place_fit
 
     assert len(jax.devices()) == 4 and jnp.result_type(float) == jnp.float64
@@ -56,7 +56,7 @@ CHILD = textwrap.dedent(
 
     # The compiled bucketed (power-form) solve: which collectives GSPMD put in.
     solver = _fit._as_arrays(jurs.LeastSquares(lam=1e-4), jnp.float64)
-    problem = _fit._padded_problem(p, n, None, grid, offset, eps, None, 0.1, 8, jnp.float64)
+    problem = _problem.padded_problem(p, n, None, grid, offset, eps, None, 0.1, 8, jnp.float64)
     problem, solver, _ = place_fit(
         jax.device_put(p, split), jax.device_put(n, split), problem, solver, None
     )

@@ -12,6 +12,7 @@ from typing import TYPE_CHECKING
 
 from ._base import AbstractSolver
 from ._driver import solve
+from ._held_out import HeldOutLeastSquares, HeldOutLeastSquaresState
 from ._ipia import IPIA, IPIAState, NormalIPIA, NormalIPIAState
 from ._iurs import IURS, IURSState, objective_lam
 from ._least_squares import LeastSquares, LeastSquaresState
@@ -47,6 +48,8 @@ def __dir__():
 
 __all__ = [
     "AbstractSolver",
+    "HeldOutLeastSquares",
+    "HeldOutLeastSquaresState",
     "IPIA",
     "IPIAState",
     "IURS",

@@ -36,6 +36,9 @@ class AbstractSolver(eqx.Module, Generic[State]):
     #: move at rounding level with them; an outside optimiser that wanders near its minimum
     #: can end elsewhere (see :mod:`jurs._compile`).
     reassociation_safe: ClassVar[bool] = False
+    #: Whether the solver works sample by sample and holds a few grids, never the
+    #: normal equations' stencil (its memory estimate, :func:`jurs._problem.fit_memory`).
+    per_sample_iterations: ClassVar[bool] = False
 
     @abc.abstractmethod
     def init(self, problem: Problem, spline: ImplicitSpline) -> tuple[State, Array]:
@@ -48,6 +51,11 @@ class AbstractSolver(eqx.Module, Generic[State]):
     @abc.abstractmethod
     def to_spline(self, problem: Problem, state: State) -> ImplicitSpline:
         """The spline a state stands for."""
+
+    def fitted_lam(self, state: State) -> Any:
+        """The lambda of the fit in ``state``, which ``sol.metrics`` report: ``lam``, except
+        for a solver that chooses it among candidates."""
+        return self.lam
 
     def terminate(self, problem: Problem, state: State) -> tuple[Array, RESULTS]:
         """Solver-specific stop (e.g. a direct solve is done after one step)."""

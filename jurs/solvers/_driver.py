@@ -24,14 +24,30 @@ MAX_OFFSET_SIGN_DISAGREEMENT = 0.2
 
 
 def offset_sign_disagreement(problem: Problem, spline: ImplicitSpline):
-    """Fraction of the offset samples (targets +/-eps) where the sign of g is not the
-    target's: outside points where ``g <= 0``, inside points where ``g >= 0``."""
+    """Fraction of the points whose two offset samples the fit reads the wrong way round:
+    ``g(P + d n) <= g(P - d n)``, the fit rising inward across the point.
+
+    The two samples are compared with each other, not with 0: where the grid's cells are
+    much wider than d (a dense cloud on a capped grid) the zero set lies farther than d
+    from the data, so an offset can sit on the wrong side of it while the fit still
+    rises outward through the point (1e6 points of a circle: a third of the offsets on the
+    wrong side of an accurate fit)."""
     local = problem.local
     mask, targets = local.to_layout(problem.mask), local.to_layout(problem.targets)
     r, _, _ = layout_residuals(local, mask, targets, spline.control, spline.weights)
-    offsets = mask * (targets != 0)
-    wrong = offsets * ((r + targets) * targets <= 0)  # r = g - b where mask is 1
-    return jnp.sum(wrong) / jnp.maximum(jnp.sum(offsets), 1)
+    m = problem.num_points
+    # (The table form, for small problems only, carries it as floats: exact there.)
+    index = local.to_layout(problem.sample_index).astype(jnp.int32)
+    point, kind = index % m, index // m  # kind 1: P + d n, 2: P - d n
+    real = mask > 0
+    g = r + targets  # r = g - b where mask is 1
+
+    def per_point(k):
+        return jax.ops.segment_sum(jnp.where(real & (kind == k), g, 0.0), point, m)
+
+    counted = jax.ops.segment_sum(jnp.where(real & (kind == 1), 1.0, 0.0), point, m) > 0
+    wrong = counted & (per_point(1) <= per_point(2))
+    return jnp.sum(wrong) / jnp.maximum(jnp.sum(counted), 1)
 
 
 @full_precision
@@ -117,8 +133,9 @@ def solve(
         ),
     )
     fitted = solver.to_spline(problem, state)
-    metrics = compute_metrics(problem, fitted, solver.lam)
-    metrics["lam"] = jnp.asarray(solver.lam, dtype=energy.dtype)
+    lam = solver.fitted_lam(state)
+    metrics = compute_metrics(problem, fitted, lam)
+    metrics["lam"] = jnp.asarray(lam, dtype=energy.dtype)
     # A converged fit is "successful" only if it also reads inside from outside where its
     # targets say so; random normals converge to a fit that does not.
     disagreement = offset_sign_disagreement(problem, fitted)

@@ -56,6 +56,8 @@ class IPIA(_AbstractPIA[IPIAState]):
     (eq. 38) or after ``max_steps``. ``lam`` is always 0 (no regulariser in Section II).
     """
 
+    per_sample_iterations: ClassVar[bool] = True
+
     def init(self, problem: Problem, spline: ImplicitSpline):
         r = bspline_residuals(problem, spline.control)
         mu = step_size(problem, jnp.ones_like(spline.control))

@@ -56,6 +56,8 @@ class IURS(AbstractSolver[IURSState]):
     ``tau = 0, lam = 0`` is exactly I-PIA (:class:`IPIA`) on the B-spline.
     """
 
+    per_sample_iterations: ClassVar[bool] = True
+
     tau: float = 1e-2
     lam: float = 0.0
     max_steps: int = eqx.field(static=True, default=200)

@@ -273,7 +273,15 @@ class LeastSquares(AbstractSolver[LeastSquaresState]):
         normal = normal_equations(
             problem, state.weights if self.keep_weights else None, chunk_size=self.chunk_size
         )
-        system = (normal.regularised(self.lam), normal.rhs, state.control)
+        control, result = self.solve_assembled(problem, normal, self.lam, state.control)
+        energy = objective(problem, control, state.weights, self.lam)
+        return LeastSquaresState(control, state.weights, jnp.array(True), result), energy
+
+    def solve_assembled(self, problem: Problem, normal, lam, start: Array):
+        """``(C, lineax result)``: the minimiser of ``E_d + lam R`` from the assembled
+        ``normal`` equations (:class:`jurs.internal.NormalEquations` of ``problem``), by
+        this solver's linear solver (see the class docstring), started from ``start``."""
+        system = (normal.regularised(lam), normal.rhs, start)
         n, m = sorted(problem.shape, reverse=True)[:2]
         if (
             self.linear_solver is None
@@ -286,28 +294,25 @@ class LeastSquares(AbstractSolver[LeastSquaresState]):
             # on 1e6 points at 128 x 128, lam = 1e-4). lam = 0: numerically singular
             # systems, where CG's early stop acts as a further regulariser (see ``ridge``).
             cg = stencil_cg(problem.shape)
-            control, result = jax.lax.cond(
-                jnp.asarray(self.lam) > 0,
+            return jax.lax.cond(
+                jnp.asarray(lam) > 0,
                 lambda: solve_normal_equations(*system, None, self.ridge),
                 lambda: solve_normal_equations(*system, cg, self.ridge),
             )
-        elif (
+        if (
             self.linear_solver is None
             and problem.ndim == 3
             and np.prod(problem.shape) > DENSE_MAX_COEFFICIENTS
         ):
             # Surfaces: CG from the cascade's start (jurs/solvers/_cascade.py), which
             # carries the far field that CG from 0 leaves behind.
-            start = cascadic_start(problem, self.lam, self._level_solve, state.control)
-            control, result = solve_normal_equations(
+            start = cascadic_start(problem, lam, self._level_solve, start)
+            return solve_normal_equations(
                 *system[:2], start, surface_linear_solver(normal.rhs), self.ridge
             )
-        elif self.linear_solver is None:
-            control, result = solve_by_default(*system, self.ridge)
-        else:
-            control, result = solve_normal_equations(*system, self.linear_solver, self.ridge)
-        energy = objective(problem, control, state.weights, self.lam)
-        return LeastSquaresState(control, state.weights, jnp.array(True), result), energy
+        if self.linear_solver is None:
+            return solve_by_default(*system, self.ridge)
+        return solve_normal_equations(*system, self.linear_solver, self.ridge)
 
     def terminate(self, problem: Problem, state: LeastSquaresState):
         # A CG that hits its step cap still leaves a usable iterate; other failures do not.

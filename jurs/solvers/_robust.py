@@ -52,7 +52,7 @@ def robust_loss(loss: str, t: Array) -> Array:
     return c * c / 3.0 * (1.0 - (1.0 - u) ** 3)
 
 
-def _slot_points(problem: Problem) -> Array:
+def slot_points(problem: Problem) -> Array:
     """The point of every slot: slots index the paper's order [P, P + d n, P - d n]."""
     return problem.sample_index % problem.num_points
 
@@ -62,6 +62,8 @@ class RobustLeastSquaresState(eqx.Module):
     point_weights: Array  # (m,) robust weight of each point, for the fit in ``control``
     scale: Array  # s the weights were computed with
     result: lx.RESULTS  # the last linear solve's verdict
+    energy: Array  # E_rob of the fit in ``control``
+    settled: Array  # bool: E_rob changed by at most rtol |E_rob| in the last step
 
 
 class RobustLeastSquares(AbstractSolver[RobustLeastSquaresState]):
@@ -106,6 +108,7 @@ class RobustLeastSquares(AbstractSolver[RobustLeastSquaresState]):
             leave residuals far below eps, where a tiny unit would set curved parts aside).
         max_steps: reweighted solves at most (the first is the plain fit).
         tol: stop when ``E_rob`` changes by less than this (absolute) between steps.
+        rtol: stop, too, when it changes by at most ``rtol |E_rob|`` (0: off).
         linear_solver, chunk_size, ridge: as :class:`LeastSquares`.
 
     Curves and surfaces; polynomial B-splines only (a float mask is a row weight only in
@@ -119,6 +122,7 @@ class RobustLeastSquares(AbstractSolver[RobustLeastSquaresState]):
     scale: float | None = None
     max_steps: int = eqx.field(static=True, default=30)
     tol: float = 1e-10
+    rtol: float = 0.0
     linear_solver: lx.AbstractLinearSolver | None = None
     chunk_size: int = eqx.field(static=True, default=DEFAULT_CHUNK)
     ridge: float = DEFAULT_RIDGE
@@ -131,6 +135,7 @@ class RobustLeastSquares(AbstractSolver[RobustLeastSquaresState]):
             raise ValueError(f"loss must be one of {sorted(TUNING)}, got {self.loss!r}")
         check_nonnegative("lam", self.lam)
         check_nonnegative("tol", self.tol)
+        check_nonnegative("rtol", self.rtol)
         check_count("max_steps", self.max_steps, 1)
         if self.scale is not None:
             check_nonnegative("scale", self.scale, strict=True)
@@ -148,7 +153,7 @@ class RobustLeastSquares(AbstractSolver[RobustLeastSquaresState]):
     def _point_residuals(self, problem: Problem, control: Array) -> tuple[Array, Array]:
         """``(e, real)``: ``e_i`` (m,) and whether point i is a real (not padding) point."""
         m = problem.num_points
-        point = _slot_points(problem)
+        point = slot_points(problem)
         r = bspline_residuals(problem, control)  # 0 at padding
         e2 = jax.ops.segment_sum(r * r, point, num_segments=m)
         real = jax.ops.segment_sum(problem.is_data, point, num_segments=m) > 0
@@ -174,7 +179,9 @@ class RobustLeastSquares(AbstractSolver[RobustLeastSquaresState]):
         # The first solve is the plain fit: the start (C = 0 by default) says nothing
         # about which points are outliers.
         weights = jnp.ones(problem.num_points, spline.control.dtype)
-        state = RobustLeastSquaresState(spline.control, weights, scale, lx.RESULTS.successful)
+        state = RobustLeastSquaresState(
+            spline.control, weights, scale, lx.RESULTS.successful, energy, jnp.array(False)
+        )
         return state, energy
 
     @staticmethod
@@ -185,16 +192,21 @@ class RobustLeastSquares(AbstractSolver[RobustLeastSquaresState]):
         )
 
     def step(self, problem: Problem, state: RobustLeastSquaresState):
-        slot_weights = state.point_weights[_slot_points(problem)]
+        slot_weights = state.point_weights[slot_points(problem)]
         weighted = eqx.tree_at(lambda p: p.mask, problem, problem.mask * slot_weights)
         exact = self._exact_state(state, lx.RESULTS.successful)
         solved, _ = self._exact().step(weighted, exact)
         weights, scale, energy = self._reweigh(problem, solved.control)
-        return RobustLeastSquaresState(solved.control, weights, scale, solved.result), energy
+        settled = jnp.abs(energy - state.energy) <= self.rtol * jnp.abs(energy)
+        new = RobustLeastSquaresState(
+            solved.control, weights, scale, solved.result, energy, settled
+        )
+        return new, energy
 
     def terminate(self, problem: Problem, state: RobustLeastSquaresState):
         _, result = self._exact().terminate(problem, self._exact_state(state, state.result))
-        return jnp.array(False), result  # the driver's energy test stops the loop
+        # The driver's energy test (tol) stops the loop too.
+        return state.settled & (self.rtol > 0), result
 
     def to_spline(self, problem: Problem, state: RobustLeastSquaresState) -> ImplicitSpline:
         ones = jnp.ones_like(state.control)
