@@ -391,8 +391,13 @@ def fit(
     With nothing but points and normals, the grid, the offset d, eps and the solver are
     chosen from the data (:func:`jurs.auto_settings`: cells a few point spacings or noise
     widths wide, d from the spacing and noise, the exact solve :class:`jurs.LeastSquares`
-    with a scale-free lambda); ``sol.settings`` records the choices. Give any of them to
-    override; the paper's Example 1 settings are ``grid=(9, 9), offset=0.1, eps=0.01``.
+    with a scale-free lambda, chosen by held-out points on noisy curves); ``sol.settings``
+    records the choices. Points that stand alone, away from the shape, are then set aside
+    (``sol.settings.set_aside``) and the rest fitted by ``RobustLeastSquares`` (Huber), and
+    the fit is checked against the data: parts cut, gaps bridged or points left far from
+    the zero set make the verdict ``doubtful``, with a warning and the reasons in
+    ``sol.stats["doubts"]`` (docs/guide/settings.md). Give any setting to override it; the
+    paper's Example 1 settings are ``grid=(9, 9), offset=0.1, eps=0.01``.
 
     Args:
         points: ``(m, 2)`` data points of a curve, or ``(m, 3)`` of a surface (then
