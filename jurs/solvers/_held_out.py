@@ -125,8 +125,9 @@ class HeldOutLeastSquares(AbstractSolver[HeldOutLeastSquaresState]):
 
     A fraction ``holdout`` of the points (with their two offset samples) is set aside,
     spread evenly over the point order (:func:`held_out_points`). For every candidate the
-    remaining points are fitted and scored by ``E_d`` on the held-out samples: the squared
-    residuals of g at the held-out points and their offsets (eq. 16 restricted to them).
+    remaining points are fitted and scored by the held-out points' mean squared distance
+    to the fit's zero set (:func:`held_out_distance`; not by their residuals of eq. 16,
+    which a flatter g lowers: scored that way, noisy clouds chose the smallest lambda).
     The candidate with the lowest score is refitted on all points, and that fit is the
     result (``sol.state.lam``, ``sol.metrics["lam"]``; ``sol.state.scores`` holds every
     candidate's score).
