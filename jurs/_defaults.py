@@ -143,6 +143,12 @@ def kd_tree(points: np.ndarray) -> cKDTree:
     return cKDTree(points)
 
 
+def strided_probes(count: int, most: int) -> np.ndarray | None:
+    """Indices of at most ``most`` of ``count`` points, evenly strided over their order (the
+    same points wherever the cloud is placed); None where all ``count`` fit."""
+    return None if count <= most else np.linspace(0, count - 1, most).round().astype(int)
+
+
 def _probe(points: np.ndarray, at) -> np.ndarray:
     return np.arange(len(points)) if at is None else np.asarray(at)
 
@@ -591,9 +597,7 @@ def auto_settings(
         tree = kd_tree(p)
     # Large clouds are measured at an evenly strided subset (the same points wherever the
     # cloud is placed), against the whole cloud.
-    at = (
-        None if len(p) <= MAX_PROBES else np.linspace(0, len(p) - 1, MAX_PROBES).round().astype(int)
-    )
+    at = strided_probes(len(p), MAX_PROBES)
     spacing = point_spacing(p, tree, at)
     noise = estimate_noise(p, n, tree, at=at)
     d = choose_offset(p, n, spacing, noise, tree, at) if offset is None else float(offset)

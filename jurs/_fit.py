@@ -12,7 +12,7 @@ import numpy as np
 from jax.core import Tracer
 
 from ._compile import COMPILER_OPTIONS, call_stored
-from ._defaults import auto_settings, feature_width
+from ._defaults import auto_settings, feature_width, strided_probes
 from ._io import SPLINE_KEYS, check_spline_arrays
 from ._problem import (
     DEFAULT_MARGIN,
@@ -118,10 +118,9 @@ def far_point_fraction(spline: ImplicitSpline, points, offset: float) -> tuple[f
     them (the offsets reach d; a grid's cell bounds what its zero set can follow; noisy
     points scatter about it by their noise, which d may underestimate)."""
     p = np.asarray(points, float)
-    if len(p) > DOUBT_PROBES:
-        p = p[np.linspace(0, len(p) - 1, DOUBT_PROBES).round().astype(int)]
-    lower, upper = np.asarray(spline.lower), np.asarray(spline.upper)
-    cell = float(np.max((upper - lower) / (np.asarray(spline.shape) - 3)))
+    at = strided_probes(len(p), DOUBT_PROBES)
+    p = p if at is None else p[at]
+    cell = spline.cell_width
     distance = np.asarray(zero_set_distance(spline, jnp.asarray(p, spline.control.dtype)))
     spread = 1.4826 * float(np.nanmedian(distance)) if np.isfinite(distance).any() else 0.0
     threshold = max(2.0 * float(offset), 0.5 * cell, FAR_SPREAD * spread)
@@ -135,11 +134,9 @@ def crossed_features(spline: ImplicitSpline, points, normals, spacing: float) ->
     on the wrong side: outside for a thin part (normals pointing away from each other),
     inside for a gap. Each such pair is a part cut or a gap bridged by the zero set."""
     p, n = np.asarray(points, float), unit_normals(np.asarray(normals, float), np)
-    at = None if len(p) <= DOUBT_PROBES else np.linspace(0, len(p) - 1, DOUBT_PROBES).round()
-    own = np.arange(len(p)) if at is None else at.astype(int)
-    lower, upper = np.asarray(spline.lower), np.asarray(spline.upper)
-    cell = float(np.max((upper - lower) / (np.asarray(spline.shape) - 3)))
-    _, partner = feature_width(p, n, cell, spacing, own)
+    at = strided_probes(len(p), DOUBT_PROBES)
+    own = np.arange(len(p)) if at is None else at
+    _, partner = feature_width(p, n, spline.cell_width, spacing, own)
     paired = partner >= 0
     if not paired.any():
         return 0
@@ -306,19 +303,15 @@ def default_solver(settings) -> AbstractSolver:
     return LeastSquares(lam=settings.lam)
 
 
-def _support(points, settings, mask):
-    """``(m,)`` weights, 0 at the points ``settings`` set aside, or None where none were."""
-    if settings is None or not settings.set_aside or mask is not None:
+def set_aside_mask(points, settings):
+    """``(m,)`` weights, 0 at the points ``settings`` set aside, or None where none were: the
+    ``mask`` that fits without them (also for a caller that passes the automatic settings
+    to :func:`fit` explicitly)."""
+    if settings is None or not settings.set_aside:
         return None
     support = np.ones(len(points))
     support[list(settings.set_aside)] = 0.0
     return support
-
-
-def set_aside_mask(points, settings):
-    """The ``mask`` that fits without the points ``settings`` set aside (None: none were),
-    for a caller that passes the automatic settings to :func:`fit` explicitly."""
-    return _support(points, settings, None)
 
 
 def automatic_fit_checks(sol, settings, points, normals):
@@ -464,7 +457,8 @@ def fit(
     shape = _checked_shape(points, grid, solver, init)
     dtype = jnp.result_type(float)
     given = (points, normals, mask)  # before padding, for the orientation check
-    support = _support(points, settings, mask) if solver_given is None else None
+    automatic = solver_given is None and mask is None
+    support = set_aside_mask(points, settings) if automatic else None
     if support is not None:  # the box that holds the points set aside too
         domain = settings.domain  # pyright: ignore[reportOptionalMemberAccess]
     problem = padded_problem(

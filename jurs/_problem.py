@@ -888,6 +888,17 @@ def fit_memory(shape, num_samples: int, solver) -> float:
     return float(per_coefficient * np.prod(shape) + per_sample * num_samples)
 
 
+def values_by_point(values: Array, sample_index: Array, real: Array, num_points: int):
+    """``(g(P_i), g(P_i + d n_i), g(P_i - d n_i))``, three ``(m,)`` arrays, from per-slot
+    ``values`` (``sample_index`` the slots' positions in the paper's order, eq. 9); a sample
+    that is not ``real`` (padding) counts 0."""
+    point, kind = sample_index % num_points, sample_index // num_points
+    return tuple(
+        jax.ops.segment_sum(jnp.where(real & (kind == k), values, 0.0), point, num_points)
+        for k in range(3)
+    )
+
+
 def padded_cloud(points, normals):
     """``(points, normals, mask)`` padded to :func:`jurs._compile.padded_count` points with
     masked-out copies of the first point (inside any box the cloud fits in), or None where

@@ -480,6 +480,13 @@ class ImplicitSpline(eqx.Module):
         """2 for a curve's spline g(x, y), 3 for a surface's g(x, y, z)."""
         return self.control.ndim
 
+    @property
+    def cell_width(self) -> float:
+        """The widest side of a knot span (the box over ``N - 3`` spans per axis), on the
+        host: the length below which the spline cannot follow a shape."""
+        extent = np.asarray(self.upper, float) - np.asarray(self.lower, float)
+        return float(np.max(extent / (np.asarray(self.shape) - 3)))
+
     @classmethod
     def bspline(cls, control: Array, lower, upper) -> "ImplicitSpline":
         """A polynomial B-spline (all weights 1)."""

@@ -527,10 +527,7 @@ def analyze(
 def _fit_cell(spline) -> float:
     """The width of the spline's cells (its box over its knot spans), 0 for a function that
     is not a :class:`jurs.ImplicitSpline`."""
-    if not isinstance(spline, ImplicitSpline):
-        return 0.0
-    extent = np.asarray(spline.upper, float) - np.asarray(spline.lower, float)
-    return float(np.max(extent / (np.asarray(spline.shape) - 3)))
+    return spline.cell_width if isinstance(spline, ImplicitSpline) else 0.0
 
 
 def analyze_grid(

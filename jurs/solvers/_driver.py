@@ -10,7 +10,7 @@ import jax.numpy as jnp
 from .._energy import layout_residuals
 from .._energy import metrics as compute_metrics
 from .._precision import full_precision
-from .._problem import Problem
+from .._problem import Problem, values_by_point
 from .._solution import RAISED_RESULTS, RESULTS, Solution, error_message, unusable
 from .._spline import ImplicitSpline
 from ._base import AbstractSolver
@@ -38,15 +38,10 @@ def offset_sign_disagreement(problem: Problem, spline: ImplicitSpline):
     m = problem.num_points
     # (The table form, for small problems only, carries it as floats: exact there.)
     index = local.to_layout(problem.sample_index).astype(jnp.int32)
-    point, kind = index % m, index // m  # kind 1: P + d n, 2: P - d n
     real = mask > 0
-    g = r + targets  # r = g - b where mask is 1
-
-    def per_point(k):
-        return jax.ops.segment_sum(jnp.where(real & (kind == k), g, 0.0), point, m)
-
-    counted = jax.ops.segment_sum(jnp.where(real & (kind == 1), 1.0, 0.0), point, m) > 0
-    wrong = counted & (per_point(1) <= per_point(2))
+    _, g_out, g_in = values_by_point(r + targets, index, real, m)  # r = g - b where real
+    counted = values_by_point(jnp.ones_like(r), index, real, m)[1] > 0
+    wrong = counted & (g_out <= g_in)
     return jnp.sum(wrong) / jnp.maximum(jnp.sum(counted), 1)
 
 

@@ -14,7 +14,7 @@ from jax.core import Tracer
 
 from .._energy import objective
 from .._normal import DEFAULT_CHUNK, NormalEquations, normal_equations
-from .._problem import Problem, check_nonnegative
+from .._problem import Problem, check_nonnegative, values_by_point
 from .._spline import ImplicitSpline, bspline_values
 from ._base import AbstractSolver
 from ._least_squares import DEFAULT_RIDGE, LeastSquares, LeastSquaresState
@@ -48,13 +48,9 @@ def held_out_distance(problem: Problem, values: Array, point_held: Array) -> Arr
     m, d = problem.num_points, problem.offset
     point = slot_points(problem)
     real = problem.mask > 0
-    kind = problem.sample_index // m  # 0: P, 1: P + d n, 2: P - d n
-
-    def per_point(k):
-        weight = jnp.where(real & (kind == k), 1.0, 0.0).astype(values.dtype)
-        return jax.vmap(lambda v: jax.ops.segment_sum(v * weight, point, num_segments=m))(values)
-
-    g_point, g_out, g_in = (per_point(k) for k in range(3))
+    g_point, g_out, g_in = jax.vmap(lambda v: values_by_point(v, problem.sample_index, real, m))(
+        values
+    )
     slope = (g_out - g_in) / (2.0 * d)
     distance = jnp.where(slope > 0, jnp.abs(g_point) / jnp.where(slope > 0, slope, 1.0), d)
     distance = jnp.minimum(distance, d)
