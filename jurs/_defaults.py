@@ -110,9 +110,10 @@ class Settings:
             surface).
         spacing, noise: the measurements (see the module docstring).
         held_out: where the smoothing was chosen by held-out points
-            (:func:`choose_smoothing`), ``((smoothing, score), ...)`` for every candidate,
-            the score being the held-out points' mean squared distance to the candidate's
-            zero set; None otherwise.
+            (:func:`choose_smoothing`), ``((smoothing, score), ...)`` for every candidate
+            tried (from the smallest up, until the score rises), the score being the
+            held-out points' mean squared distance to the candidate's zero set; None
+            otherwise.
         set_aside: indices of the points that stand alone (:func:`isolated_points`): they
             took no part in the measurements, and :func:`jurs.fit` fits without them.
         thin_fraction: the fraction of the points on features (thin parts, narrow gaps:
@@ -525,7 +526,8 @@ def _held_out_smoothing(cloud, support, shape, offset, eps, domain, unit: float)
     """``(smoothing, record)``: the :data:`SMOOTHING_CANDIDATES` entry chosen by held-out
     points (:func:`jurs.solvers._held_out.select_lam`) on the fit's own problem (padded
     as :func:`jurs.fit` pads it, so clouds of similar size share the compiled selection),
-    and ``((smoothing, score), ...)``."""
+    and ``((smoothing, score), ...)`` for the candidates tried (from the smallest up, until
+    the score rises)."""
     # The same memory check as the fit's, before this first solve on the grid.
     samples = 3 * len(cloud[0])
     check_memory("grid=" + "x".join(map(str, shape)), fit_memory(shape, samples, None))
@@ -536,8 +538,10 @@ def _held_out_smoothing(cloud, support, shape, offset, eps, domain, unit: float)
     )
     candidates = np.asarray(SMOOTHING_CANDIDATES)
     scores = np.asarray(_select_lam(problem, jnp.asarray(candidates * unit))[1], float)
+    tried = ~np.isnan(scores)
     best = int(np.argmin(np.where(np.isfinite(scores), scores, np.inf)))  # as select_lam
-    return float(candidates[best]), tuple(zip(map(float, candidates), map(float, scores)))
+    record = tuple(zip(map(float, candidates[tried]), map(float, scores[tried])))
+    return float(candidates[best]), record
 
 
 def auto_settings(

@@ -1,6 +1,7 @@
 """The defaults on real data: lambda by held-out points, points set aside, finer grids for
-thin features, and the doubt verdict (docs/guide/real_data.md)."""
+thin features, and the doubt verdict (docs/guide/settings.md, docs/design.md section 6)."""
 
+import dataclasses
 import warnings
 
 import jax.numpy as jnp
@@ -95,11 +96,22 @@ def test_held_out_solver_reports_its_choice():
     sol = jurs.fit(p, n, grid=(20, 20), offset=0.05, eps=0.05, solver=solver)
     assert sol.status == "successful"
     assert float(sol.state.lam) == 1e-4 == float(sol.metrics["lam"])
-    assert sol.state.scores.shape == (3,) and np.all(np.isfinite(sol.state.scores))
+    # The search stopped where the score rose (at 1e-2): 10 was never tried.
+    scores = np.asarray(sol.state.scores)
+    assert scores.shape == (3,) and np.all(np.isfinite(scores[:2])) and np.isnan(scores[2])
+    assert scores[1] > scores[0]
+    every = dataclasses.replace(solver, early_stop=False)
+    full = jurs.fit(p, n, grid=(20, 20), offset=0.05, eps=0.05, solver=every)
+    assert np.all(np.isfinite(full.state.scores)) and float(full.state.lam) == 1e-4
+    assert np.allclose(full.state.scores[:2], scores[:2], rtol=1e-10)
+    assert np.allclose(full.spline.control, sol.spline.control, rtol=1e-10, atol=1e-12)
+    with pytest.raises(ValueError, match="ascend"):
+        jurs.HeldOutLeastSquares(lam=jnp.asarray([1e-2, 1e-4]))
+    jurs.HeldOutLeastSquares(lam=jnp.asarray([1e-2, 1e-4]), early_stop=False)
     with pytest.raises(ValueError, match="lam"):
         jurs.HeldOutLeastSquares(lam=jnp.zeros((2, 2)))
     with pytest.raises(ValueError, match="holdout"):
-        jurs.HeldOutLeastSquares(lam=jnp.ones(2), holdout=0.7)
+        jurs.HeldOutLeastSquares(lam=jnp.asarray([1.0, 2.0]), holdout=0.7)
 
 
 @pytest.mark.slow
