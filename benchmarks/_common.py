@@ -8,12 +8,32 @@ import os
 import platform
 import sys
 import time
+from typing import Any
 
 import numpy as np
 
 RESULTS = os.path.join(os.path.dirname(__file__), "results")
 #: A first call slower than this gets a single warm repeat (LeastSquares at 256 x 256).
 LONG_CALL_S = 20.0
+
+
+def import_open3d() -> Any:
+    """``open3d``, the benchmarks' reference (an optional extra). Its wheel links the
+    system's ``libusb-1.0``; where the system lacks it, the copy in the ``libusb-package``
+    wheel (in the ``bench`` extra) is loaded first. ImportError when Open3D is missing."""
+    import ctypes
+    import ctypes.util
+
+    if ctypes.util.find_library("usb-1.0") is None:
+        try:
+            import libusb_package  # pyright: ignore[reportMissingImports]
+        except ImportError:
+            pass
+        else:
+            ctypes.CDLL(str(libusb_package.get_library_path()), mode=ctypes.RTLD_GLOBAL)
+    import open3d  # pyright: ignore[reportMissingImports]
+
+    return open3d
 
 
 def machine() -> str:

@@ -49,6 +49,8 @@ import platform
 import resource
 import sys
 import time
+from collections.abc import Callable
+from typing import Any
 
 import numpy as np
 
@@ -56,7 +58,13 @@ sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 # Nothing heavier at module level: each method runs in a spawned child that re-imports this
 # file, and importing JAX there would put JAX's resident set into Poisson's peak.
-from _common import RESULTS, elapsed_log, rerender_beside, write_results  # noqa: E402
+from _common import (  # noqa: E402
+    RESULTS,
+    elapsed_log,
+    import_open3d,
+    rerender_beside,
+    write_results,
+)
 
 NOISE = 0.005
 CASES = ("sphere", "torus", "genus2", "bunny", "airplane")
@@ -120,7 +128,7 @@ class MeshDistance:
     """Point-to-triangle-mesh distances through Open3D's ``RaycastingScene`` (float32)."""
 
     def __init__(self, vertices, faces):
-        import open3d as o3d
+        o3d = import_open3d()
 
         self.o3d = o3d
         self.scene = o3d.t.geometry.RaycastingScene()
@@ -147,10 +155,10 @@ class Truth:
     """A case: exact samples, distance to the true surface, and its topology."""
 
     name: str
-    sample: object  # (m, seed) -> (points, normals), exact
-    closest: object  # (x) -> (distance, true unit normal at the closest point)
+    sample: Callable[..., Any]  # (m, seed) -> (points, normals), exact
+    closest: Callable[..., Any]  # (x) -> (distance, true unit normal at the closest point)
     components: int
-    genus: int
+    genus: int | list[int]
     origin: str
 
 
@@ -160,9 +168,12 @@ def mesh_path(name: str):
     from normals import MESHES, optional
 
     pymeshlab = optional("pymeshlab")
-    if MESHES is None and pymeshlab is None:
+    if MESHES is not None:
+        folder = MESHES
+    elif pymeshlab is None or pymeshlab.__file__ is None:
         return None
-    folder = MESHES or os.path.join(os.path.dirname(pymeshlab.__file__), "tests", "sample_meshes")
+    else:
+        folder = os.path.join(os.path.dirname(pymeshlab.__file__), "tests", "sample_meshes")
     path = os.path.join(folder, f"{name}.obj")
     return path if os.path.exists(path) else None
 
@@ -289,7 +300,7 @@ def run_jurs(points, normals, max_grid):
 
 def run_poisson(points, normals, depth):
     """In a child: Open3D's screened Poisson reconstruction, its mesh as returned."""
-    import open3d as o3d
+    o3d = import_open3d()
 
     o3d.utility.set_verbosity_level(o3d.utility.VerbosityLevel.Error)
     base = current_rss_bytes()
@@ -655,7 +666,7 @@ def figure(meshes, records, path):
 
 
 def parse():
-    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser = argparse.ArgumentParser(description=(__doc__ or "").split("\n\n")[0])
     parser.add_argument(
         "--quick",
         action="store_true",
