@@ -27,7 +27,7 @@ from ._problem import (
     tangential_normal_fraction,
     unit_normals,
 )
-from ._sharding import is_sharded, place_fit
+from ._sharding import fit_across_processes, is_sharded, place_fit, spans_processes
 from ._solution import RAISED_RESULTS, RESULTS, Solution, error_message
 from ._spline import ImplicitSpline
 from .solvers import AbstractSolver, LeastSquares, RobustLeastSquares, solve
@@ -445,9 +445,15 @@ def fit(
 
     Several devices: points (or normals) split along the point axis by a ``NamedSharding``
     over several devices are solved there, per-sample work on each device's samples and
-    grid-sized sums all-reduced; the sample layout is still built from the whole cloud on
-    the host, in one process (docs/sharding.md).
+    grid-sized sums all-reduced; in one process the sample layout is built from the whole
+    cloud on the host. Points held by several processes (``jax.distributed``) are laid out
+    by each process for its own rows; those fits need ``grid``, ``offset``, ``eps``,
+    ``domain`` and ``solver`` given, and skip the checks that read the whole cloud
+    (docs/sharding.md).
     """
+    if spans_processes(points, normals):  # each process lays out its own part (jurs._sharding)
+        args = grid, solver, offset, eps, domain, margin, init, mask, bucket_size, smoothing, throw
+        return fit_across_processes(points, normals, *args)
     estimated, solver_given = None, solver
     if normals is None:
         normals, estimated = _estimated_normals(points, mask)

@@ -10,17 +10,28 @@ over the samples (F, T, the moments of the normal equations) run on each device'
 slots, and their sums onto the grid become local sums and an all-reduce of grid-sized
 arrays. Nothing here partitions by hand (docs/sharding.md).
 
-What stays on one machine: the sample layout (:func:`jurs.make_problem`: the offset
-samples, the sort into buckets, the table form) is built from the whole cloud gathered on
-the host, and the automatic settings and the orientation check read it there too. So a
-sharded fit spreads the solve's memory and work over the devices, not the host's; clouds
-split over several processes (``jax.distributed``, arrays that are not fully addressable)
-are refused.
+In one process the sample layout (:func:`jurs.make_problem`: the offset samples, the sort
+into buckets, the table form) is built from the whole cloud gathered on the host, and the
+automatic settings and the orientation check read it there too: a sharded fit spreads the
+solve's memory and work over the devices, not the host's.
+
+Over several processes (``jax.distributed``: points and normals global arrays that are not
+fully addressable, :func:`spans_processes`) :func:`jurs.fit` hands over to
+:func:`fit_across_processes`: each process builds the layout of its own rows only
+(:func:`process_problem`, the bucketed layout for curves, one sample a slot for
+surfaces), the processes agree on the bucket size and on the slot count (two small
+all-gathers), pad to it, and the per-slot arrays are assembled with
+``jax.make_array_from_process_local_data``; ``sample_index`` counts in the global point
+order. No process holds the whole cloud. What would read it on a host is not run there:
+the automatic settings (grid, offset, eps, domain and solver must be given), the
+estimation of normals, the orientation and doubt checks, the padding to stable sizes.
 
 The slot count is padded to a whole number of buckets a device with masked-out copies of
 the last bucket (the padding convention of :func:`jurs._problem.bucket_layout`), which the
 solvers leave out of every sum; a sharded fit therefore equals the one-device fit up to
-the order of the sums (rounding).
+the order of the sums (rounding). Each device's cells stay sorted (its part of one
+process's layout, sorted by cell), as the per-device sums onto the grid declare
+(``indices_are_sorted``); over several processes the global slot order is not.
 """
 
 from __future__ import annotations
@@ -29,27 +40,38 @@ import math
 
 import equinox as eqx
 import jax
+import jax.numpy as jnp
 import numpy as np
 from jax.core import Tracer
 from jax.sharding import NamedSharding, PartitionSpec
 
-from ._problem import Problem
+from ._basis import flat_cell, locate, num_cells
+from ._problem import (
+    Problem,
+    _surface_bucket_size,
+    check_memory,
+    choose_bucket_size,
+    fit_memory,
+    make_problem,
+    normalise_grid,
+    offset_samples,
+    unit_normals,
+    validate_inputs,
+)
+from ._solution import RAISED_RESULTS, error_message
+from ._spline import ImplicitSpline, LocalBasis
+from .solvers import AbstractSolver
 
 
 def _point_sharding(x) -> NamedSharding | None:
     """``x``'s sharding where it is a concrete ``jax.Array`` split over more than one
-    device, else None. ValueError for a split the fit cannot follow (not along the point
-    axis, not a NamedSharding); NotImplementedError for arrays spread over processes."""
+    device (of one process or several), else None. ValueError for a split the fit cannot
+    follow (not along the point axis, not a NamedSharding)."""
     if not isinstance(x, jax.Array) or isinstance(x, Tracer):
         return None
     sharding = x.sharding
     if len(sharding.device_set) <= 1:
         return None
-    if not x.is_fully_addressable:
-        raise NotImplementedError(
-            "points sharded over several processes: jurs builds the sample layout from "
-            "the whole cloud on one host (docs/sharding.md); gather it in one process"
-        )
     spec = getattr(sharding, "spec", None)
     if not isinstance(sharding, NamedSharding) or spec is None or not spec or spec[0] is None:
         raise ValueError(
@@ -203,3 +225,282 @@ def place_fit(points, normals, problem: Problem, solver, init):
     if sharding is None or not isinstance(problem.samples, jax.Array):
         return problem, solver, init
     return shard_problem(problem, sharding), replicate(solver, sharding), replicate(init, sharding)
+
+
+# Several processes (jax.distributed): each lays out its own points.
+
+#: What a fit over several processes must be given: the automatic choices (grid, offset,
+#: eps, lambda) and the box read the whole cloud, which no process holds.
+PROCESS_SETTINGS = ("grid", "offset", "eps", "domain", "solver")
+
+
+def spans_processes(points, normals) -> bool:
+    """Whether ``points`` or ``normals`` is a concrete ``jax.Array`` on the devices of
+    several processes (not fully addressable): :func:`fit_across_processes` fits those."""
+    return any(
+        isinstance(x, jax.Array) and not isinstance(x, Tracer) and not x.is_fully_addressable
+        for x in (points, normals)
+    )
+
+
+def _process_positions(sharding: NamedSharding, shards: int) -> list[int]:
+    """The positions along the point axis (``0 .. shards - 1``) held by this process's
+    devices, in order. ValueError where devices of two processes hold one position (the
+    points replicated across processes: both would count them)."""
+    owners: dict[int, set[int]] = {}
+    for device, index in sharding.devices_indices_map((shards,)).items():
+        owners.setdefault(index[0].start or 0, set()).add(device.process_index)
+    if any(len(o) > 1 for o in owners.values()):
+        raise ValueError(
+            "points over several processes must give each process its own rows: split the "
+            f"point axis over mesh axes that separate the processes, got {sharding}"
+        )
+    me = jax.process_index()
+    return sorted(p for p, o in owners.items() if me in o)
+
+
+def _local_rows(x) -> tuple[np.ndarray, np.ndarray]:
+    """``(rows, data)``: this process's rows of the global array ``x``, each once (its
+    shards with replica id 0, in global order), and their indices in ``x``."""
+    parts = sorted(
+        (
+            (s.index[0].start or 0, np.asarray(s.data))
+            for s in x.addressable_shards
+            if s.replica_id == 0
+        ),
+        key=lambda part: part[0],
+    )
+    rows = np.concatenate([start + np.arange(len(data)) for start, data in parts])
+    return rows, np.concatenate([data for _, data in parts])
+
+
+def _agreed(values: list[int], failure: Exception | None, what: str) -> np.ndarray:
+    """``(processes, len(values))``: ``values`` of every process (one small all-gather).
+    Where a process failed (``failure``) it raises its own error and every other process
+    a RuntimeError naming it, instead of waiting for it in the next collective."""
+    from jax.experimental.multihost_utils import process_allgather
+
+    row = np.array([failure is not None, *values], np.int32)
+    table = np.asarray(process_allgather(row))
+    if failure is not None:
+        raise failure
+    failed = np.flatnonzero(table[:, 0])
+    if failed.size:
+        raise RuntimeError(f"process {failed.tolist()} failed {what} (see its error)")
+    return table[:, 1:]
+
+
+def _in_process(error: Exception) -> Exception:
+    """``error`` (a ValueError or TypeError of this process's inputs) with its process
+    named: rows it names count in that process's part."""
+    named = type(error)(f"process {jax.process_index()}, its own part: {error}")
+    named.__cause__ = error
+    return named
+
+
+def _local_bucket_size(points, normals, offset, shape, domain) -> int:
+    """The automatic bucket size (:func:`jurs._problem.choose_bucket_size`) of this
+    process's samples."""
+    n = unit_normals(np.asarray(normals, float))
+    p = np.asarray(points, float)
+    samples, _ = offset_samples(p, n, float(offset), 1.0, np)  # pyright: ignore[reportArgumentType]
+    box = np.asarray(domain, float)
+    cells = flat_cell(locate(samples, box[0], box[1], shape, np)[0], shape)
+    return choose_bucket_size(np.asarray(cells), num_cells(shape))
+
+
+def process_problem(
+    points, normals, shape, offset, eps, domain, margin, bucket_size, dtype, solver=None
+) -> Problem:
+    """The :class:`Problem` of a cloud held by several processes, each building the sample
+    layout of its own points only (their addressable rows): :func:`jurs.make_problem` of
+    those, in the bucketed layout (one sample a slot for surfaces), with every process's
+    slot count padded to the largest (masked copies of its last bucket) and the per-slot
+    arrays assembled into global ones split along the points' mesh axis
+    (``jax.make_array_from_process_local_data``); ``sample_index`` counts in the global
+    point order, so per-point sums see one cloud. Box, offset and eps replicated. Every
+    process calls this (it runs two small all-gathers: the bucket size, the slot count);
+    an input error in one process is raised in all. ``solver``: checks the memory of
+    this process's share of the fit (:func:`jurs._problem.fit_memory`)."""
+    sharding = input_sharding(points, normals)
+    assert sharding is not None
+    shards = _axis_size(sharding)
+    positions = _process_positions(sharding, shards)
+    rows, p = _local_rows(points)
+    normal_rows, n = _local_rows(normals)
+    total = int(points.shape[0])
+    if not np.array_equal(rows, normal_rows) or tuple(normals.shape) != tuple(points.shape):
+        raise ValueError("normals must be shaped and split like the points")
+    if 3 * total > np.iinfo(np.int32).max:  # sample_index is int32
+        raise ValueError(f"{total} points: their sample indices exceed int32")
+    surface = len(shape) == 3
+    failure, k = None, 0
+    try:  # this process's inputs, checked as make_problem checks a cloud
+        validate_inputs(p, n, offset=offset, eps=eps, domain=domain, margin=margin)
+        if solver is not None:
+            grid = "grid=" + "x".join(map(str, shape))
+            check_memory(grid, fit_memory(shape, 3 * len(rows), solver))
+        if surface:
+            k = _surface_bucket_size(bucket_size)
+        elif bucket_size is not None:
+            if int(bucket_size) != bucket_size or bucket_size < 2:
+                raise ValueError(
+                    "bucket_size must be an int >= 2 for a curve fitted over several "
+                    f"processes (the bucketed layout), got {bucket_size!r}"
+                )
+            k = int(bucket_size)
+        else:
+            k = _local_bucket_size(p, n, offset, shape, domain)
+    except (TypeError, ValueError) as error:
+        failure = _in_process(error)
+    # One bucket size for all (a static field of the basis): the smallest chosen; a
+    # curve's at least 2, so that small parts too take the bucketed layout, not the table.
+    k = int(_agreed([k], failure, "checking its points")[:, 0].min())
+    k = k if surface else max(k, 2)
+    failure, per_device, local = None, 0, None
+    try:
+        local = make_problem(
+            p, n, grid=shape, offset=offset, eps=eps, domain=domain, margin=margin,
+            bucket_size=k, dtype=dtype,
+        )  # fmt: skip
+        per_device = -(-local.samples.shape[0] // (len(positions) * k)) * k
+    except (TypeError, ValueError) as error:
+        failure = _in_process(error)
+    per_device = int(_agreed([per_device], failure, "laying out its samples").max())
+    assert local is not None and local.local.terms is None  # no table form
+    extra = per_device * len(positions) - local.samples.shape[0]
+    index = np.asarray(local.sample_index).astype(np.int64)
+    kind, point = np.divmod(index, len(rows))
+    fields = dict(
+        samples=_padded(local.samples, 0, extra, False),
+        targets=_padded(local.targets, 0, extra, False),
+        mask=_padded(local.mask, 0, extra, True),
+        is_data=_padded(local.is_data, 0, extra, True),
+        sample_index=_padded((kind * total + rows[point]).astype(np.int32), 0, extra, False),
+    )
+    mesh, names = sharding.mesh, sharding.spec[0]
+    replicated = NamedSharding(mesh, PartitionSpec())
+
+    def spread(x, axis: int):  # this process's slots of the global per-slot array
+        size = list(x.shape)
+        size[axis] = per_device * shards
+        return jax.make_array_from_process_local_data(
+            NamedSharding(mesh, _spec(axis, names)), x, tuple(size)
+        )
+
+    def same(x):  # one value on every device (the same in every process)
+        x = np.asarray(x)
+        return jax.make_array_from_process_local_data(replicated, x, x.shape)
+
+    def by_point(x):
+        return jax.make_array_from_process_local_data(
+            NamedSharding(mesh, _spec(0, names)), np.asarray(x), tuple(points.shape)
+        )
+
+    basis = LocalBasis(
+        cell=spread(_padded(local.local.cell, 0, extra, False), 0),
+        s=spread(_padded(local.local.s, 1, extra, False), 1),
+        bucket_size=local.local.bucket_size,
+    )
+    return Problem(
+        points=by_point(local.points),
+        normals=by_point(local.normals),
+        lower=same(local.lower),
+        upper=same(local.upper),
+        offset=same(local.offset),
+        eps=same(local.eps),
+        local=basis,
+        shape=tuple(shape),
+        **{name: spread(x, 0) for name, x in fields.items()},
+    )
+
+
+def replicate_across_processes(tree, sharding: NamedSharding):
+    """Every array of ``tree`` (host values, the same in every process) replicated on every
+    device of ``sharding``'s mesh, in all processes."""
+    replicated = NamedSharding(sharding.mesh, PartitionSpec())
+    arrays, rest = eqx.partition(tree, eqx.is_array)
+    arrays = jax.tree_util.tree_map(
+        lambda x: jax.make_array_from_process_local_data(
+            replicated, np.asarray(x), tuple(np.shape(x))
+        ),
+        arrays,
+    )
+    return eqx.combine(arrays, rest)
+
+
+def fit_across_processes(
+    points,
+    normals,
+    grid,
+    solver,
+    offset,
+    eps,
+    domain,
+    margin,
+    init,
+    mask,
+    bucket_size,
+    smoothing,
+    throw,
+):
+    """:func:`jurs.fit` of points and normals held by several processes (global
+    ``jax.Array`` s split along the point axis, :func:`spans_processes`); every process
+    calls it with the same settings. The sample layout is built per process
+    (:func:`process_problem`), the solve is the one jitted function over all devices, and
+    the fitted spline is replicated on every device. What reads the whole cloud on a host
+    is not run: the automatic settings (ValueError unless ``grid``, ``offset``, ``eps``,
+    ``domain`` and ``solver`` are given), the estimation of normals, the orientation and
+    doubt checks, the padding to stable sizes and the store of exported fits
+    (docs/sharding.md)."""
+    from ._fit import _as_arrays, _at_top_level, _reassociation_pays, _solve, _solve_reassociating
+
+    if normals is None:
+        raise ValueError(
+            "normals=None estimates normals from the whole cloud, which no process holds "
+            "here: estimate them per process (jurs.estimate_normals) and pass them split "
+            "like the points"
+        )
+    given = dict(grid=grid, offset=offset, eps=eps, domain=domain, solver=solver)
+    missing = [name for name in PROCESS_SETTINGS if given[name] is None]
+    if missing or smoothing is not None:
+        raise ValueError(
+            "points split over several processes: the automatic settings read the whole "
+            "cloud, which no process holds; pass "
+            + (", ".join(missing) if missing else "a solver with its lam, not smoothing")
+            + " explicitly (a fit over several processes needs all of "
+            + f"{', '.join(PROCESS_SETTINGS)}), "
+            "e.g. from jurs.auto_settings(points, normals) on a subsample in one process, "
+            "solver=jurs.LeastSquares(lam=settings.lam)"
+        )
+    if mask is not None:
+        raise ValueError("mask: fits over several processes take no mask (docs/sharding.md)")
+    for name, x in (("points", points), ("normals", normals)):
+        if not isinstance(x, jax.Array) or x.is_fully_addressable or x.ndim != 2:
+            raise ValueError(
+                f"{name}: over several processes pass points and normals both as global "
+                "(m, d) jax.Arrays split the same way along the point axis "
+                "(jax.make_array_from_process_local_data)"
+            )
+    shape = normalise_grid(grid, int(points.shape[1]))
+    if not isinstance(solver, AbstractSolver):
+        raise TypeError(f"solver must be a jurs solver, got {type(solver).__name__}")
+    if init is not None and not isinstance(init, ImplicitSpline):
+        raise TypeError(f"init must be a jurs.ImplicitSpline, got {type(init).__name__}")
+    if init is not None and tuple(init.shape) != shape:
+        raise ValueError(f"init spline has grid {init.shape}, expected {shape}")
+    dtype = jnp.result_type(float)
+    problem = process_problem(
+        points, normals, shape, offset, eps, domain, margin, bucket_size, dtype, solver
+    )
+    sharding = input_sharding(points, normals)
+    assert sharding is not None
+    solver = replicate_across_processes(_as_arrays(solver, dtype), sharding)
+    init = replicate_across_processes(init, sharding)
+    if not _at_top_level((problem, solver, init)):
+        return _solve(problem, solver, init, throw)
+    run = _solve_reassociating if _reassociation_pays(problem, solver) else _solve
+    sol = run(problem, solver, init, False)  # throw checked here, as jurs.fit does
+    if throw and sol.status in RAISED_RESULTS:
+        raise eqx.EquinoxRuntimeError(error_message(sol.status))
+    return sol

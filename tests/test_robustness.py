@@ -135,6 +135,23 @@ def test_inconsistent_normals_by_iurs_and_by_the_sign_check(cloud):
         eqx.filter_jit(lambda pr: jurs.solve(jurs.LeastSquares(lam=1e-4), pr).spline)(problem)
 
 
+def test_offset_sign_check_reads_a_strided_subset_of_large_clouds(monkeypatch):
+    """Above SIGN_CHECK_POINTS points the sign check reads every k-th point (its per-point
+    sums stay bounded); the fraction it gives is that of the points read."""
+    from jurs.solvers import _driver
+
+    p, n = jurs.datasets.example1(400)
+    settings = dict(grid=(24, 24), offset=0.02, eps=0.02)
+    spline = jurs.fit(p, n, solver=jurs.LeastSquares(lam=1e-4), **settings).spline
+    flipped = np.random.default_rng(3).random(400) < 0.3
+    problem = jurs.make_problem(p, np.where(flipped[:, None], -n, n), **settings)
+    exact = float(_driver.offset_sign_disagreement(problem, spline))
+    assert exact == pytest.approx(flipped.mean())
+    monkeypatch.setattr(_driver, "SIGN_CHECK_POINTS", 100)  # every 4th point
+    strided = float(_driver.offset_sign_disagreement(problem, spline))
+    assert strided == pytest.approx(flipped[::4].mean()) and strided != exact
+
+
 @pytest.mark.parametrize(
     "kwargs, error, needle",
     [

@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 import jurs
-from jurs._sharding import input_sharding, place_fit
+from jurs._sharding import input_sharding, place_fit, spans_processes
 
 #: The module fixture runs fits on forced devices in a process of its own (about 30 s).
 pytestmark = pytest.mark.slow
@@ -112,10 +112,12 @@ def test_unsharded_fit_unaffected():
     p, n = jurs.datasets.example1(200)
     assert input_sharding(p, n) is None
     assert input_sharding(jax.device_put(p), jax.device_put(n)) is None
+    assert not spans_processes(p, n)  # the several-process path (tests/test_distributed.py)
+    assert not spans_processes(jax.device_put(p), jax.device_put(n))
     problem = jurs.make_problem(p, n, grid=9, offset=0.1, eps=0.01)
     solver = jurs.LeastSquares(lam=1e-3)
     assert place_fit(p, n, problem, solver, None) == (problem, solver, None)
-    kw = dict(grid=9, offset=0.1, eps=0.01, solver=solver)
+    kw: dict = dict(grid=9, offset=0.1, eps=0.01, solver=solver)
     a = jurs.fit(p, n, **kw)
     b = jurs.fit(jax.device_put(p), jax.device_put(n), **kw)
     np.testing.assert_array_equal(np.asarray(a.spline.control), np.asarray(b.spline.control))

@@ -1,0 +1,207 @@
+"""Fits of clouds held by several processes (``jax.distributed``; jurs._sharding,
+docs/sharding.md).
+
+Two child processes on localhost, two CPU devices each, joined by
+``jax.distributed.initialize`` (cross-process collectives by gloo). Each holds half of the
+cloud (a global ``jax.Array`` made by ``jax.make_array_from_process_local_data``), lays out
+its own samples and fits with explicit settings; process 0 then fits the whole cloud alone
+and compares. The children are started and stopped here, within :data:`TIMEOUT` seconds.
+
+Surfaces take the same path with one sample a slot; a 3D case here would double the
+time (one more compiled solve in each child), so it is not in the suite (docs/sharding.md
+gives its measured agreement).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import socket
+import subprocess
+import sys
+import textwrap
+import time
+
+import pytest
+
+#: Two processes compile and run a fit each, process 0 one more (about 30 s here).
+pytestmark = pytest.mark.slow
+
+#: Seconds both children together may take before they are killed.
+TIMEOUT = 150
+
+# argv: process id, coordinator port. Prints one JSON line.
+CHILD = textwrap.dedent(
+    """
+    import json, sys
+    import jax
+
+    jax.config.update("jax_cpu_collectives_implementation", "gloo")
+    pid, port = int(sys.argv[1]), sys.argv[2]
+    jax.distributed.initialize(
+        coordinator_address=f"localhost:{port}", num_processes=2, process_id=pid,
+        initialization_timeout=60,
+    )
+    import jax.numpy as jnp, numpy as np
+    from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
+    import jurs
+    from jurs._sharding import process_problem
+
+    assert jax.process_count() == 2 and len(jax.local_devices()) == 2
+    assert jnp.result_type(float) == jnp.float64
+    mesh = Mesh(np.array(jax.devices()), ("points",))  # process 0's devices first
+    split, whole = NamedSharding(mesh, P("points")), NamedSharding(mesh, P())
+    out = {}
+
+    def spread(p, n):
+        # This process's half of the rows only, made into global arrays.
+        half = len(p) // 2
+        mine = slice(pid * half, (pid + 1) * half)
+        return [
+            jax.make_array_from_process_local_data(split, np.ascontiguousarray(a[mine]), a.shape)
+            for a in (p, n)
+        ]
+
+    def box(p):
+        lo, hi = p.min(0), p.max(0)
+        pad = 0.1 * (hi - lo).max()
+        return tuple(map(tuple, (lo - pad, hi + pad)))
+
+    def error(call):
+        try:
+            call()
+        except (ValueError, RuntimeError) as e:
+            return [type(e).__name__, str(e)]
+        return None
+
+    p, n = jurs.datasets.example1(4000)
+    gp, gn = spread(p, n)
+    grid, offset, eps, domain = (24, 24), 0.02, 0.02, box(p)
+    kw = dict(grid=grid, offset=offset, eps=eps, domain=domain, solver=jurs.LeastSquares(lam=1e-4))
+
+    # Refusals: automatic settings, a missing domain, and an input error in one process
+    # (process 1's points outside a box around process 0's half), raised in both.
+    out["auto"] = error(lambda: jurs.fit(gp, gn))
+    out["no_domain"] = error(lambda: jurs.fit(gp, gn, **dict(kw, domain=None)))
+    out["outside"] = error(lambda: jurs.fit(gp, gn, **dict(kw, domain=box(p[:2000]))))
+
+    # The layout: this process's slots only, every sample counted once in global order.
+    problem = process_problem(gp, gn, grid, offset, eps, domain, 0.1, None, jnp.float64)
+    counts = jax.jit(
+        lambda i, w: jax.ops.segment_sum(w, i, 3 * len(p)), out_shardings=whole
+    )(problem.sample_index, problem.mask)
+    out["layout"] = dict(
+        slots=problem.samples.shape[0],
+        local_slots=sum(s.data.shape[0] for s in problem.samples.addressable_shards),
+        local_points=sum(s.data.shape[0] for s in problem.points.addressable_shards),
+        bucket_size=problem.local.bucket_size,
+        each_sample_once=bool(np.all(np.asarray(counts) == 1)),
+    )
+
+    def compare(name, p, n, **kw):
+        sol = jurs.fit(*spread(p, n), **kw)
+        control = sol.spline.control
+        entry = dict(
+            status=sol.status,
+            replicated=bool(control.is_fully_replicated),
+            devices=len(control.sharding.device_set),
+        )
+        if pid == 0:  # the whole cloud in one process, on one device
+            ref = jurs.fit(p, n, **kw)
+            c0, c1 = np.asarray(ref.spline.control), np.asarray(control)
+            entry.update(rel=float(np.abs(c1 - c0).max() / np.abs(c0).max()), ref=ref.status)
+        out[name] = entry
+
+    compare("curve", p, n, **kw)
+    print(json.dumps(out), flush=True)
+    jax.distributed.shutdown()
+    """
+)
+
+
+def _free_port() -> int:
+    with socket.socket() as s:
+        s.bind(("localhost", 0))
+        return s.getsockname()[1]
+
+
+def _run_processes() -> list[dict]:
+    """Both children's JSON reports; each is killed past :data:`TIMEOUT`, and a failure
+    shows their errors."""
+    env = dict(
+        os.environ,
+        XLA_FLAGS="--xla_force_host_platform_device_count=2",
+        JAX_ENABLE_X64="1",
+        JAX_PLATFORMS="cpu",
+    )
+    port = str(_free_port())
+    children = [
+        subprocess.Popen(
+            [sys.executable, "-c", CHILD, str(i), port],
+            env=env,
+            stdout=subprocess.PIPE,
+            stderr=subprocess.PIPE,
+            text=True,
+        )
+        for i in range(2)
+    ]
+    deadline = time.monotonic() + TIMEOUT
+    outputs = []
+    try:
+        for child in children:
+            outputs.append(child.communicate(timeout=max(1.0, deadline - time.monotonic())))
+    except subprocess.TimeoutExpired:
+        pass
+    finally:
+        for child in children:
+            if child.poll() is None:
+                child.kill()
+                child.wait()
+    if len(outputs) < 2 or any(c.returncode != 0 for c in children):
+        errors = [err[-3000:] for _, err in outputs]
+        pytest.fail(f"children exited {[c.returncode for c in children]}: {errors}")
+    return [json.loads(out.strip().splitlines()[-1]) for out, _ in outputs]
+
+
+@pytest.fixture(scope="module")
+def reports():
+    return _run_processes()
+
+
+def test_fit_over_two_processes_equals_one_process_fit(reports):
+    """Control points of the fit over 2 processes x 2 devices within 1e-9 (relative) of the
+    one-process fit of the whole cloud; the spline replicated in both processes."""
+    for report in reports:
+        curve = report["curve"]
+        assert curve["status"] == "successful"
+        assert curve["replicated"] and curve["devices"] == 4
+    assert reports[0]["curve"]["ref"] == "successful"
+    assert reports[0]["curve"]["rel"] < 1e-9
+
+
+def test_each_process_lays_out_its_own_points(reports):
+    """Each process holds half the points and half the slots (equal counts, whole buckets
+    a device), and the global layout holds every sample of the cloud exactly once."""
+    for report in reports:
+        layout = report["layout"]
+        assert layout["local_points"] == 2000
+        assert layout["local_slots"] * 2 == layout["slots"]
+        assert layout["local_slots"] % (2 * layout["bucket_size"]) == 0
+        assert layout["bucket_size"] > 1  # the bucketed layout, not the table form
+        assert layout["each_sample_once"]
+
+
+def test_automatic_settings_refused_across_processes(reports):
+    """Automatic settings read the whole cloud: refused, naming what to pass; an input
+    error found in one process is raised in every process, not left to hang."""
+    for report in reports:
+        kind, message = report["auto"]
+        assert kind == "ValueError"
+        assert "grid, offset, eps, domain, solver explicitly" in message
+        assert "jurs.auto_settings" in message
+        kind, message = report["no_domain"]
+        assert kind == "ValueError" and "pass domain explicitly" in message
+    kind, message = reports[1]["outside"]
+    assert kind == "ValueError" and "outside the given domain" in message
+    kind, message = reports[0]["outside"]
+    assert kind == "RuntimeError" and "process [1] failed" in message
