@@ -311,6 +311,9 @@ def test_gradient_through_the_direct_solve():
         )
         return jnp.mean(sol.spline(held_out) ** 2)
 
+    # Jitted: one compile for the two evaluations, one for the gradient (unjitted, the
+    # fit under grad runs op by op).
+    loss = jax.jit(loss)
     lam = jnp.asarray(1e-3)
     grad = float(jax.grad(loss)(lam))
     h = 1e-7
