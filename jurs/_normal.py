@@ -98,7 +98,12 @@ def _bernstein_terms(t: Array, degree: int) -> list:
 
 
 def chunked_segment_sum(
-    rows_fn, inputs, segments: Array, num_segments: int, chunk_size: int = DEFAULT_CHUNK
+    rows_fn,
+    inputs,
+    segments: Array,
+    num_segments: int,
+    chunk_size: int = DEFAULT_CHUNK,
+    parts: int = 1,
 ) -> Array:
     """``segment_sum(rows_fn(*inputs), segments)`` computed ``chunk_size`` rows at a time.
 
@@ -106,28 +111,39 @@ def chunked_segment_sum(
     ``(block, ...)`` rows; it must return 0 rows for zero-padded inputs whose weight
     (the caller's mask) is 0. Peak memory is one block of rows, whatever the number of
     samples.
+
+    ``parts``: the leading axis is taken as that many equal parts (the devices of a sharded
+    fit, :attr:`jurs.LocalBasis.parts`), each summed a chunk at a time on its own, then
+    the parts' sums added. Why: a scan over chunks of an axis split over devices walks
+    across the devices, and the partitioner gathers every chunk to every device; chunks
+    taken within each part stay where they are, and only the grid-sized sums are reduced.
     """
     n = segments.shape[0]
-    if n <= chunk_size:
+    parts = parts if parts > 1 and n % parts == 0 else 1
+    per_part = n // parts
+    if per_part <= chunk_size:
         return jax.ops.segment_sum(rows_fn(*inputs), segments, num_segments=num_segments)
-    pad = (-n) % chunk_size
-    blocks = (n + pad) // chunk_size
+    pad = (-per_part) % chunk_size
+    blocks = (per_part + pad) // chunk_size
 
-    def split(x):
-        x = jnp.pad(x, [(0, pad)] + [(0, 0)] * (x.ndim - 1))
-        return x.reshape((blocks, chunk_size) + x.shape[1:])
+    def split(x):  # (n, ...) -> (blocks, parts, chunk, ...), each part padded on its own
+        x = x.reshape((parts, per_part) + x.shape[1:])
+        x = jnp.pad(x, [(0, 0), (0, pad)] + [(0, 0)] * (x.ndim - 2))
+        return jnp.moveaxis(x.reshape((parts, blocks, chunk_size) + x.shape[2:]), 1, 0)
 
     split_inputs = [split(x) for x in inputs]
     split_segments = split(segments)
-    out_struct = jax.eval_shape(rows_fn, *[x[0] for x in split_inputs])
+    out_struct = jax.eval_shape(rows_fn, *[x[0, 0] for x in split_inputs])
+
+    def part_sum(seg, *xs):
+        return jax.ops.segment_sum(rows_fn(*xs), seg, num_segments=num_segments)
 
     def body(total, block):
-        seg, *xs = block
-        return total + jax.ops.segment_sum(rows_fn(*xs), seg, num_segments=num_segments), None
+        return total + jax.vmap(part_sum)(*block), None
 
-    total0 = jnp.zeros((num_segments,) + out_struct.shape[1:], out_struct.dtype)
+    total0 = jnp.zeros((parts, num_segments) + out_struct.shape[1:], out_struct.dtype)
     total, _ = jax.lax.scan(body, total0, [split_segments, *split_inputs])
-    return total
+    return total.sum(axis=0)
 
 
 def _cells_to_stencil(blocks: Array, shape: tuple[int, ...]) -> Array:
@@ -199,9 +215,8 @@ def _bernstein_moments(problem: Problem, chunk_size: int) -> Array:
         rhs = tensor_basis(*[_bernstein(t[:, a], 3) for a in axes]) * target[:, None]
         return jnp.concatenate([gram, rhs], axis=1) * mask[:, None]
 
-    return chunked_segment_sum(
-        moments, [t, problem.mask, problem.targets], local.cell, count, chunk_size
-    )
+    inputs = [t, problem.mask, problem.targets]
+    return chunked_segment_sum(moments, inputs, local.cell, count, chunk_size, local.parts)
 
 
 def _fold_axis(cells: Array, kernel: Array, axis: int) -> Array:
@@ -276,8 +291,9 @@ def rational_normal_equations(problem: Problem, weights: Array, chunk_size: int 
         return jnp.concatenate([gram, rows * target[:, None]], axis=1)
 
     inputs = [problem.local.bx, problem.local.by, w_patches, problem.mask, problem.targets]
+    cells = num_cells(problem.shape)
     sums = chunked_segment_sum(
-        products, inputs, problem.local.cell, num_cells(problem.shape), chunk_size
+        products, inputs, problem.local.cell, cells, chunk_size, problem.local.parts
     )
     gram = sums[:, : NUM_LOCAL * NUM_LOCAL].reshape(-1, NUM_LOCAL, NUM_LOCAL)
     stencil = _cells_to_stencil(_gram_to_blocks(gram), problem.shape)

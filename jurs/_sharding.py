@@ -36,6 +36,7 @@ process's layout, sorted by cell), as the per-device sums onto the grid declare
 
 from __future__ import annotations
 
+import dataclasses
 import math
 
 import equinox as eqx
@@ -186,6 +187,10 @@ def shard_problem(problem: Problem, sharding: NamedSharding) -> Problem:
     ``problem`` up to the order of its sums."""
     shards = _axis_size(sharding)
     problem, axes = _padded_problem(problem, shards)
+    # Chunked sums over the slots run per device (jurs._normal.chunked_segment_sum).
+    problem = eqx.tree_at(
+        lambda p: p.local, problem, dataclasses.replace(problem.local, parts=shards)
+    )
     mesh, names = sharding.mesh, sharding.spec[0]
     replicated = NamedSharding(mesh, PartitionSpec())
 
@@ -401,6 +406,7 @@ def process_problem(
         cell=spread(_padded(local.local.cell, 0, extra, False), 0),
         s=spread(_padded(local.local.s, 1, extra, False), 1),
         bucket_size=local.local.bucket_size,
+        parts=shards,
     )
     return Problem(
         points=by_point(local.points),

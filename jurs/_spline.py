@@ -85,6 +85,9 @@ class LocalBasis(eqx.Module):
     position: Array | None = None  # table: (S,) table position of each sample slot
     filled: Array | None = None  # table: (P,) 1.0 where a table position holds a sample
     bucket_size: int = eqx.field(static=True, default=1)
+    # The slot axis in this many equal parts, one a device of a sharded fit: sums over the
+    # slots taken a chunk at a time run per part, so that no device reads another's slots.
+    parts: int = eqx.field(static=True, default=1)
 
     @property
     def num_buckets(self) -> int:

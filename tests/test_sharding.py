@@ -66,6 +66,35 @@ CHILD = textwrap.dedent(
     out["collectives"] = sorted(
         set(re.findall(r"(all-reduce|all-gather|all-to-all|reduce-scatter)(?:-start)?\\(", hlo))
     )
+
+    # A surface's normal equations summed a chunk at a time (3 x 24000 samples, more than
+    # a chunk a device): per device, then all-reduced; no chunk gathered.
+    from jurs._normal import normal_equations
+
+    s3, n3 = jurs.datasets.sphere3d(24000)
+    grid3 = (6, 6, 6)
+    problem3 = _problem.padded_problem(
+        s3, n3, None, grid3, 0.05, 0.05, None, 0.1, None, jnp.float64
+    )
+    moments = jax.jit(normal_equations)
+    ref = moments(problem3)
+    placed, _, _ = place_fit(
+        jax.device_put(s3, split), jax.device_put(n3, split), problem3, solver, None
+    )
+    got = moments(placed)
+    rel = max(
+        float(jnp.abs(a - b).max() / jnp.abs(a).max())
+        for a, b in zip(jax.tree.leaves(ref), jax.tree.leaves(got))
+    )
+    hlo3 = moments.lower(placed).compile().as_text()
+    out["surface_sums"] = dict(
+        parts=placed.local.parts,
+        rel=rel,
+        collectives=sorted(set(re.findall(
+            r"(all-reduce|all-gather|all-to-all|reduce-scatter|collective-permute)(?:-start)?\\(",
+            hlo3,
+        ))),
+    )
     print(json.dumps(out))
     """
 )
@@ -105,6 +134,16 @@ def test_sharded_samples_stay_on_their_devices(child):
     assert child["slots_per_device"][0] * 4 == child["slots"]
     assert child["slots_per_device"][0] % 8 == 0  # bucket_size=8
     assert child["collectives"] == ["all-reduce"]
+
+
+def test_surface_sums_stay_on_their_devices(child):
+    """A surface's normal equations, summed a chunk of samples at a time, run per device
+    (``LocalBasis.parts``) and reduce the grid-sized sums: no chunk is gathered, and the
+    sums equal the one-device ones to rounding."""
+    result = child["surface_sums"]
+    assert result["parts"] == 4
+    assert result["rel"] < 1e-12
+    assert result["collectives"] == ["all-reduce"]
 
 
 def test_unsharded_fit_unaffected():

@@ -116,8 +116,9 @@ class JointLevenbergMarquardt(AbstractSolver[JointLMState]):
             return (rows[:, :, None] * rows[:, None, :]).reshape(rows.shape[0], -1)
 
         gram = chunked_segment_sum(
-            outer, [rows], problem.local.cell, num_cells(shape), self.chunk_size
-        )
+            outer, [rows], problem.local.cell, num_cells(shape), self.chunk_size,
+            problem.local.parts,
+        )  # fmt: skip
         index = jnp.asarray(_global_index(shape))
         hessian = (
             jnp.zeros((2 * size, 2 * size), r.dtype)
