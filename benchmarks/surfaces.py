@@ -730,7 +730,7 @@ def main():
         print(rerender_beside(path, rerender))
         return
     try:
-        import open3d
+        open3d = import_open3d()
     except ImportError:
         sys.exit("this benchmark compares with Open3D: pip install -e '.[bench]'")
     from _common import machine
