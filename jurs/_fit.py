@@ -27,7 +27,15 @@ from ._problem import (
     tangential_normal_fraction,
     unit_normals,
 )
-from ._sharding import fit_across_processes, is_sharded, place_fit, spans_processes
+from ._sharding import (
+    PROCESS_SETTINGS,
+    input_sharding,
+    is_sharded,
+    place_fit,
+    process_problem,
+    replicate_across_processes,
+    spans_processes,
+)
 from ._solution import RAISED_RESULTS, RESULTS, Solution, error_message
 from ._spline import ImplicitSpline
 from .solvers import AbstractSolver, LeastSquares, RobustLeastSquares, solve
@@ -358,6 +366,81 @@ def _solve_fit(problem, solver, init, throw, given, settings=None):
     if settings is not None:  # automatic settings: the data were not looked at by a person
         points, normals, mask = given
         sol = _check_doubts(sol, settings, points, normals, mask, problem.offset)
+    if throw and sol.status in RAISED_RESULTS:
+        raise eqx.EquinoxRuntimeError(error_message(sol.status))
+    return sol
+
+
+def fit_across_processes(
+    points,
+    normals,
+    grid,
+    solver,
+    offset,
+    eps,
+    domain,
+    margin,
+    init,
+    mask,
+    bucket_size,
+    smoothing,
+    throw,
+):
+    """:func:`jurs.fit` of points and normals held by several processes (global
+    ``jax.Array`` s split along the point axis, :func:`jurs._sharding.spans_processes`);
+    every process calls it with the same settings. The sample layout is built per process
+    (:func:`jurs._sharding.process_problem`), the solve is the one jitted function over
+    all devices, and the fitted spline is replicated on every device. What reads the whole
+    cloud on a host is not run: the automatic settings (ValueError unless ``grid``,
+    ``offset``, ``eps``, ``domain`` and ``solver`` are given), the estimation of normals,
+    the orientation and doubt checks, the padding to stable sizes and the store of
+    exported fits (docs/sharding.md)."""
+    if normals is None:
+        raise ValueError(
+            "normals=None estimates normals from the whole cloud, which no process holds "
+            "here: estimate them per process (jurs.estimate_normals) and pass them split "
+            "like the points"
+        )
+    given = dict(grid=grid, offset=offset, eps=eps, domain=domain, solver=solver)
+    missing = [name for name in PROCESS_SETTINGS if given[name] is None]
+    if missing or smoothing is not None:
+        raise ValueError(
+            "points split over several processes: the automatic settings read the whole "
+            "cloud, which no process holds; pass "
+            + (", ".join(missing) if missing else "a solver with its lam, not smoothing")
+            + " explicitly (a fit over several processes needs all of "
+            + f"{', '.join(PROCESS_SETTINGS)}), "
+            "e.g. from jurs.auto_settings(points, normals) on a subsample in one process, "
+            "solver=jurs.LeastSquares(lam=settings.lam)"
+        )
+    if mask is not None:
+        raise ValueError("mask: fits over several processes take no mask (docs/sharding.md)")
+    for name, x in (("points", points), ("normals", normals)):
+        if not isinstance(x, jax.Array) or x.is_fully_addressable or x.ndim != 2:
+            raise ValueError(
+                f"{name}: over several processes pass points and normals both as global "
+                "(m, d) jax.Arrays split the same way along the point axis "
+                "(jax.make_array_from_process_local_data)"
+            )
+    shape = normalise_grid(grid, int(points.shape[1]))
+    if not isinstance(solver, AbstractSolver):
+        raise TypeError(f"solver must be a jurs solver, got {type(solver).__name__}")
+    if init is not None and not isinstance(init, ImplicitSpline):
+        raise TypeError(f"init must be a jurs.ImplicitSpline, got {type(init).__name__}")
+    if init is not None and tuple(init.shape) != shape:
+        raise ValueError(f"init spline has grid {init.shape}, expected {shape}")
+    dtype = jnp.result_type(float)
+    problem = process_problem(
+        points, normals, shape, offset, eps, domain, margin, bucket_size, dtype, solver
+    )
+    sharding = input_sharding(points, normals)
+    assert sharding is not None
+    solver = replicate_across_processes(_as_arrays(solver, dtype), sharding)
+    init = replicate_across_processes(init, sharding)
+    if not _at_top_level((problem, solver, init)):
+        return _solve(problem, solver, init, throw)
+    run = _solve_reassociating if _reassociation_pays(problem, solver) else _solve
+    sol = run(problem, solver, init, False)  # throw checked here, as jurs.fit does
     if throw and sol.status in RAISED_RESULTS:
         raise eqx.EquinoxRuntimeError(error_message(sol.status))
     return sol

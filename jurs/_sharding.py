@@ -17,7 +17,7 @@ solve's memory and work over the devices, not the host's.
 
 Over several processes (``jax.distributed``: points and normals global arrays that are not
 fully addressable, :func:`spans_processes`) :func:`jurs.fit` hands over to
-:func:`fit_across_processes`: each process builds the layout of its own rows only
+``jurs._fit.fit_across_processes``: each process builds the layout of its own rows only
 (:func:`process_problem`, the bucketed layout for curves, one sample a slot for
 surfaces), the processes agree on the bucket size and on the slot count (two small
 all-gathers), pad to it, and the per-slot arrays are assembled with
@@ -41,7 +41,6 @@ import math
 
 import equinox as eqx
 import jax
-import jax.numpy as jnp
 import numpy as np
 from jax.core import Tracer
 from jax.sharding import NamedSharding, PartitionSpec
@@ -54,14 +53,11 @@ from ._problem import (
     choose_bucket_size,
     fit_memory,
     make_problem,
-    normalise_grid,
     offset_samples,
     unit_normals,
     validate_inputs,
 )
-from ._solution import RAISED_RESULTS, error_message
-from ._spline import ImplicitSpline, LocalBasis
-from .solvers import AbstractSolver
+from ._spline import LocalBasis
 
 
 def _point_sharding(x) -> NamedSharding | None:
@@ -241,7 +237,8 @@ PROCESS_SETTINGS = ("grid", "offset", "eps", "domain", "solver")
 
 def spans_processes(points, normals) -> bool:
     """Whether ``points`` or ``normals`` is a concrete ``jax.Array`` on the devices of
-    several processes (not fully addressable): :func:`fit_across_processes` fits those."""
+    several processes (not fully addressable): ``jurs._fit.fit_across_processes``
+    fits those."""
     return any(
         isinstance(x, jax.Array) and not isinstance(x, Tracer) and not x.is_fully_addressable
         for x in (points, normals)
@@ -433,80 +430,3 @@ def replicate_across_processes(tree, sharding: NamedSharding):
         arrays,
     )
     return eqx.combine(arrays, rest)
-
-
-def fit_across_processes(
-    points,
-    normals,
-    grid,
-    solver,
-    offset,
-    eps,
-    domain,
-    margin,
-    init,
-    mask,
-    bucket_size,
-    smoothing,
-    throw,
-):
-    """:func:`jurs.fit` of points and normals held by several processes (global
-    ``jax.Array`` s split along the point axis, :func:`spans_processes`); every process
-    calls it with the same settings. The sample layout is built per process
-    (:func:`process_problem`), the solve is the one jitted function over all devices, and
-    the fitted spline is replicated on every device. What reads the whole cloud on a host
-    is not run: the automatic settings (ValueError unless ``grid``, ``offset``, ``eps``,
-    ``domain`` and ``solver`` are given), the estimation of normals, the orientation and
-    doubt checks, the padding to stable sizes and the store of exported fits
-    (docs/sharding.md)."""
-    from ._fit import _as_arrays, _at_top_level, _reassociation_pays, _solve, _solve_reassociating
-
-    if normals is None:
-        raise ValueError(
-            "normals=None estimates normals from the whole cloud, which no process holds "
-            "here: estimate them per process (jurs.estimate_normals) and pass them split "
-            "like the points"
-        )
-    given = dict(grid=grid, offset=offset, eps=eps, domain=domain, solver=solver)
-    missing = [name for name in PROCESS_SETTINGS if given[name] is None]
-    if missing or smoothing is not None:
-        raise ValueError(
-            "points split over several processes: the automatic settings read the whole "
-            "cloud, which no process holds; pass "
-            + (", ".join(missing) if missing else "a solver with its lam, not smoothing")
-            + " explicitly (a fit over several processes needs all of "
-            + f"{', '.join(PROCESS_SETTINGS)}), "
-            "e.g. from jurs.auto_settings(points, normals) on a subsample in one process, "
-            "solver=jurs.LeastSquares(lam=settings.lam)"
-        )
-    if mask is not None:
-        raise ValueError("mask: fits over several processes take no mask (docs/sharding.md)")
-    for name, x in (("points", points), ("normals", normals)):
-        if not isinstance(x, jax.Array) or x.is_fully_addressable or x.ndim != 2:
-            raise ValueError(
-                f"{name}: over several processes pass points and normals both as global "
-                "(m, d) jax.Arrays split the same way along the point axis "
-                "(jax.make_array_from_process_local_data)"
-            )
-    shape = normalise_grid(grid, int(points.shape[1]))
-    if not isinstance(solver, AbstractSolver):
-        raise TypeError(f"solver must be a jurs solver, got {type(solver).__name__}")
-    if init is not None and not isinstance(init, ImplicitSpline):
-        raise TypeError(f"init must be a jurs.ImplicitSpline, got {type(init).__name__}")
-    if init is not None and tuple(init.shape) != shape:
-        raise ValueError(f"init spline has grid {init.shape}, expected {shape}")
-    dtype = jnp.result_type(float)
-    problem = process_problem(
-        points, normals, shape, offset, eps, domain, margin, bucket_size, dtype, solver
-    )
-    sharding = input_sharding(points, normals)
-    assert sharding is not None
-    solver = replicate_across_processes(_as_arrays(solver, dtype), sharding)
-    init = replicate_across_processes(init, sharding)
-    if not _at_top_level((problem, solver, init)):
-        return _solve(problem, solver, init, throw)
-    run = _solve_reassociating if _reassociation_pays(problem, solver) else _solve
-    sol = run(problem, solver, init, False)  # throw checked here, as jurs.fit does
-    if throw and sol.status in RAISED_RESULTS:
-        raise eqx.EquinoxRuntimeError(error_message(sol.status))
-    return sol
