@@ -162,6 +162,26 @@ def test_isolated_points_finds_planted_outliers_only():
     assert set(np.flatnonzero(isolated_points(pair))) == set(index) | {len(po)}
 
 
+def test_stray_groups_are_set_aside_small_rings_kept():
+    """A group of five outliers a few spacings apart (each one's third neighbour near) with
+    random normals is set aside with normals given; six points on a small far ring, with
+    outward normals or inward ones (a hole), are kept."""
+    p, n = _circle(600)  # spacing about 0.01
+    rng = np.random.default_rng(4)
+    group = np.array([3.0, 3.0]) + 0.03 * rng.standard_normal((5, 2))
+    angle = rng.uniform(0.0, 2.0 * np.pi, 5)
+    random_normals = np.stack([np.cos(angle), np.sin(angle)], 1)
+    # Chosen to disagree: three of five facing away from the group's centre.
+    facing = np.einsum("ij,ij->i", group - group.mean(0), random_normals) > 0
+    assert 1 < facing.sum() < 4
+    ring, ring_n = _circle(6, 0.03, (-3.0, 3.0))
+    points = np.concatenate([p, group, ring, ring + [0.0, -6.0]])
+    normals = np.concatenate([n, random_normals, ring_n, -ring_n])
+    assert not isolated_points(points)[600:605].all()  # the rank test alone keeps them
+    found = np.flatnonzero(isolated_points(points, None, normals))
+    assert set(found) == set(range(600, 605))
+
+
 @pytest.mark.slow
 def test_default_fit_sets_outliers_aside():
     """1.5 % outliers: set aside, a robust fit of the rest (Huber), their weights 0, no loop
