@@ -35,9 +35,12 @@ class RESULTS(eqx.Enumeration):
         "the normals are not consistently oriented: neighbouring normals point to opposite "
         "sides of the curve (part of the cloud flipped), they lie along it (random "
         "normals), or the fit's own sign disagrees with the inside/outside targets at many "
-        "offset samples (random normals, or a lambda so large that the fit cannot follow "
-        "the data); the zero set is not a reconstruction. Orient the normals (all outward) "
-        "and fit again; see sol.metrics for the measured fractions"
+        "offset samples (random normals, features narrower than the noise or the grid, or "
+        "a lambda so large that the fit cannot follow the data); the zero set is not a "
+        "reconstruction. Orient the normals (all outward) and fit again; see sol.metrics "
+        "for the measured fractions: where few normals are flipped against their "
+        "neighbours (flipped_normal_fraction, tangential_normal_fraction near 0), the "
+        "shape is finer than the fit resolves (a finer grid=, denser or less noisy points)"
     )
     weights_at_floor = (
         "the rational weights were driven to their floor (min_weight) on a large part of "
