@@ -267,8 +267,9 @@ def stray_clusters(points, normals, dist, near, link: float) -> np.ndarray:
     where = np.full(m, -1)
     where[index] = np.arange(index.size)
     nbr, ok = near[index, 1:], link_ok[index]
-    anchored = (ok & ~candidate[np.where(ok, nbr, 0)]).any(axis=1)
-    inner = ok & candidate[np.where(ok, nbr, 0)]
+    linked_candidate = candidate[np.where(ok, nbr, 0)]
+    anchored = (ok & ~linked_candidate).any(axis=1)
+    inner = ok & linked_candidate
     rows = np.repeat(np.arange(index.size), nbr.shape[1])[inner.ravel()]
     cols = where[nbr.ravel()[inner.ravel()]]
     graph = sparse.coo_matrix((np.ones(rows.size), (rows, cols)), shape=(index.size,) * 2)

@@ -331,23 +331,30 @@ def automatic_fit_checks(sol, settings, points, normals):
 def _checked_shape(points, grid, solver, init) -> tuple[int, ...]:
     """The grid's shape, once the solver, the memory it takes and ``init`` are checked."""
     shape = normalise_grid(grid, _point_dimension(points))
-    if not isinstance(solver, AbstractSolver):
-        raise TypeError(f"solver must be a jurs solver, got {type(solver).__name__}")
+    _check_start(shape, solver, init)
     check_memory(
         "grid=" + "x".join(map(str, shape)),  # points are checked by make_problem
         fit_memory(shape, 3 * (len(points) if hasattr(points, "__len__") else 0), solver),
     )
+    return shape
+
+
+def _check_start(shape, solver, init) -> None:
+    """TypeError or ValueError unless ``solver`` is a jurs solver and ``init`` (if given) a
+    finite spline on the grid ``shape``."""
+    if not isinstance(solver, AbstractSolver):
+        raise TypeError(f"solver must be a jurs solver, got {type(solver).__name__}")
     if init is not None and not isinstance(init, ImplicitSpline):
         raise TypeError(f"init must be a jurs.ImplicitSpline, got {type(init).__name__}")
     if init is not None and tuple(init.shape) != shape:
         raise ValueError(f"init spline has grid {init.shape}, expected {shape}")
     if init is not None and _is_concrete(init):  # a NaN start ran into RESULTS.nonfinite
         check_spline_arrays({k: np.asarray(getattr(init, k)) for k in SPLINE_KEYS}, "init: ")
-    return shape
 
 
 def _solve_fit(problem, solver, init, throw, given, settings=None):
-    """The solve; at top level ``throw`` and the orientation of ``given`` checked on the host."""
+    """The solve; at top level ``throw`` and the orientation of ``given`` (``(points,
+    normals, mask)``; None: not checked, no host holds the cloud) checked on the host."""
     top_level = _at_top_level((problem, solver, init))
     run = _solve_reassociating if top_level and _reassociation_pays(problem, solver) else _solve
     if not top_level:
@@ -362,8 +369,10 @@ def _solve_fit(problem, solver, init, throw, given, settings=None):
         if run is _solve_reassociating or is_sharded(problem)  # the store is one-device
         else call_stored(_run, run, problem, solver, init, False)
     )
-    sol = _check_orientation(sol, *given)
-    if settings is not None:  # automatic settings: the data were not looked at by a person
+    if given is not None:
+        sol = _check_orientation(sol, *given)
+    # Automatic settings: the data were not looked at by a person.
+    if settings is not None and given is not None:
         points, normals, mask = given
         sol = _check_doubts(sol, settings, points, normals, mask, problem.offset)
     if throw and sol.status in RAISED_RESULTS:
@@ -423,12 +432,7 @@ def fit_across_processes(
                 "(jax.make_array_from_process_local_data)"
             )
     shape = normalise_grid(grid, int(points.shape[1]))
-    if not isinstance(solver, AbstractSolver):
-        raise TypeError(f"solver must be a jurs solver, got {type(solver).__name__}")
-    if init is not None and not isinstance(init, ImplicitSpline):
-        raise TypeError(f"init must be a jurs.ImplicitSpline, got {type(init).__name__}")
-    if init is not None and tuple(init.shape) != shape:
-        raise ValueError(f"init spline has grid {init.shape}, expected {shape}")
+    _check_start(shape, solver, init)  # memory: per process, by process_problem
     dtype = jnp.result_type(float)
     problem = process_problem(
         points, normals, shape, offset, eps, domain, margin, bucket_size, dtype, solver
@@ -437,13 +441,7 @@ def fit_across_processes(
     assert sharding is not None
     solver = replicate_across_processes(_as_arrays(solver, dtype), sharding)
     init = replicate_across_processes(init, sharding)
-    if not _at_top_level((problem, solver, init)):
-        return _solve(problem, solver, init, throw)
-    run = _solve_reassociating if _reassociation_pays(problem, solver) else _solve
-    sol = run(problem, solver, init, False)  # throw checked here, as jurs.fit does
-    if throw and sol.status in RAISED_RESULTS:
-        raise eqx.EquinoxRuntimeError(error_message(sol.status))
-    return sol
+    return _solve_fit(problem, solver, init, throw, None)
 
 
 def fit(
