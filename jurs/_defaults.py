@@ -380,6 +380,17 @@ def offset_agreement(
 #: :func:`noise_smoothing`).
 CLEAN_SMOOTHING = 1e-6
 NOISY_SMOOTHING = 1e-3
+#: A clean surface's smoothing: lower than a curve's, since a surface's cells hold many
+#: more points (about ``c^2`` against ``c`` for a cell of ``c`` spacings) and the data pin
+#: the fit down between them. The membrane term's pull on the surface was most of the
+#: error of clean fits at 1e-6: on 1e5 exact points of a unit sphere (48^3 grid) the zero
+#: set lay 5.5e-5 from the sphere on average, 1.9e-5 at 1e-7, 7.5e-6 at 1e-8. Measured on
+#: the five shapes of benchmarks/surfaces.py (clean, 1e5 points, 2-core CPU, 2026-12-02),
+#: 1e-7 against 1e-6 lowered the Chamfer distance of the mesh to the true surface by
+#: 8-23 % (bunny 1.47 to 1.13e-4 of the diagonal) and the Hausdorff distance by 3-41 %,
+#: and the exact solve took fewer CG steps; at 5e3 and 2e4 points likewise. 1e-8 grew a
+#: bubble on the bunny and 1e-9 39 of them.
+CLEAN_SURFACE_SMOOTHING = 1e-7
 #: The dimensionless smoothings a curve's lambda is chosen among by held-out points
 #: (:func:`choose_smoothing`): decades from the clean floor to the noisy end.
 SMOOTHING_CANDIDATES = (1e-6, 1e-5, 1e-4, 1e-3)
@@ -511,7 +522,7 @@ def _budget_cell(extent: np.ndarray) -> float:
 def choose_smoothing(offset: float, noise: float, ndim: int = 2) -> float | None:
     """Dimensionless smoothing from the measurements, or None where the data must choose.
 
-    * Clean clouds (``2 sigma / d`` below :data:`CLEAN_NOISE_RATIO`): :data:`CLEAN_SMOOTHING`.
+    * Clean clouds (``2 sigma / d`` below :data:`CLEAN_NOISE_RATIO`): :func:`clean_smoothing`.
     * Other curves: None. :func:`auto_settings` then chooses among
       :data:`SMOOTHING_CANDIDATES` the one whose fit of 80 % of the points passes nearest
       the other 20 % (:func:`jurs.solvers._held_out.select_lam`).
@@ -531,13 +542,19 @@ def choose_smoothing(offset: float, noise: float, ndim: int = 2) -> float | None
     """
     ratio = 2.0 * noise / offset if offset > 0 else 1.0
     if ratio < CLEAN_NOISE_RATIO:
-        return CLEAN_SMOOTHING
-    return None if ndim == 2 else noise_smoothing(offset, noise)
+        return clean_smoothing(ndim)
+    return None if ndim == 2 else noise_smoothing(offset, noise, ndim)
 
 
-def noise_smoothing(offset: float, noise: float) -> float:
+def clean_smoothing(ndim: int) -> float:
+    """The smoothing of clean clouds: :data:`CLEAN_SMOOTHING` for curves,
+    :data:`CLEAN_SURFACE_SMOOTHING` for surfaces."""
+    return CLEAN_SMOOTHING if ndim == 2 else CLEAN_SURFACE_SMOOTHING
+
+
+def noise_smoothing(offset: float, noise: float, ndim: int = 3) -> float:
     """A surface's dimensionless smoothing (curves choose theirs by held-out points,
-    :func:`choose_smoothing`): from :data:`CLEAN_SMOOTHING` on clean clouds to
+    :func:`choose_smoothing`): from :func:`clean_smoothing` on clean clouds to
     :data:`NOISY_SMOOTHING` where noise sets the offset (``2 sigma >= d``), on the fourth
     power of ``2 sigma / d`` between.
 
@@ -557,7 +574,8 @@ def noise_smoothing(offset: float, noise: float) -> float:
     of the square lowered the Chamfer distance to the outline by 28 % (horse) and 16 %
     (coins); data whose noise sets d get 1e-3 either way."""
     ratio = min(1.0, 2.0 * noise / offset) if offset > 0 else 1.0
-    return float(CLEAN_SMOOTHING + (NOISY_SMOOTHING - CLEAN_SMOOTHING) * ratio**4)
+    clean = clean_smoothing(ndim)
+    return float(clean + (NOISY_SMOOTHING - clean) * ratio**4)
 
 
 def scale_free_lam(

@@ -225,7 +225,7 @@ def _fit_parser(sub) -> argparse.ArgumentParser:
         default=None,
         help="2D: level-set grid nodes along the longer side of the box (None: "
         "512); 3D: marching-cubes lattice nodes along the longest side "
-        "(None: 3 per spline cell, 32 to 256)",
+        "(None: 5 per spline cell, 32 to 256)",
     )
     f.add_argument(
         "--threshold",

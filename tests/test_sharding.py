@@ -119,7 +119,7 @@ def child():
 def test_sharded_fit_equals_one_device_fit(child, case):
     """Control points of the fit over 4 devices within 1e-9 (relative) of the one-device
     fit: the small-cloud table form, the bucketed form, and a surface (on 6^3 = 216
-    coefficients, a direct solve: a surface's default CG stops at a tolerance of 1e-4,
+    coefficients, a direct solve: a surface's default CG stops at a tolerance of 1e-3,
     and two fits whose sums differ in order then agree only to about that)."""
     result = child[case]
     assert result["rel"] < 1e-9
