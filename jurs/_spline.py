@@ -313,15 +313,45 @@ def bspline_values(local: LocalBasis, grids: Array, *, layout: bool = False) -> 
     return values.reshape(lead + (local.cell.shape[0],))
 
 
+#: Samples a block of the generic (3D) evaluation: each block gathers ``(block, 64)``
+#: coefficients and basis products, so the whole cloud's never exist at once. Unblocked,
+#: the objective of 1e6 surface points (3e6 samples) held 3.6 GB of such temporaries
+#: (XLA's memory analysis), most of a 1e6-point fit's peak.
+GATHER_BLOCK = 1 << 16
+
+
 def _gathered_values(local: LocalBasis, grids: Array) -> Array:
     """F in the generic form (any d, one sample a slot): each sample's ``4 ** d``
-    coefficients gathered from the flat grid against its basis products. This is the path
-    of 3D grids, whose samples are not bucketed (see :func:`jurs.make_problem`)."""
+    coefficients gathered from the flat grid against its basis products, a block of
+    :data:`GATHER_BLOCK` samples at a time (within each of the ``local.parts`` parts of a
+    split sample axis, so that no device reads another's samples). This is the path of 3D
+    grids, whose samples are not bucketed (see :func:`jurs.make_problem`)."""
     shape = grids.shape[grids.ndim - local.ndim :]
     lead = grids.shape[: grids.ndim - local.ndim]
     flat = grids.reshape(lead + (-1,))
-    coeffs = jnp.take(flat, local.patch_index(shape), axis=-1)  # (..., S, 4 ** d)
-    return jnp.sum(coeffs * local.products, axis=-1)
+
+    def values(cell, s):  # (n,) cells and (d, n) coordinates -> (..., n)
+        block = LocalBasis(cell=cell, s=s)
+        coeffs = jnp.take(flat, block.patch_index(shape), axis=-1)  # (..., n, 4 ** d)
+        return jnp.sum(coeffs * block.products, axis=-1)
+
+    count = local.cell.shape[0]
+    parts = local.parts if local.parts > 1 and count % local.parts == 0 else 1
+    per_part = count // parts
+    if per_part <= GATHER_BLOCK:
+        return values(local.cell, local.s)
+    pad = (-per_part) % GATHER_BLOCK
+    blocks = (per_part + pad) // GATHER_BLOCK
+
+    def split(x):  # (..., count) -> (blocks, ..., parts, GATHER_BLOCK); padding in cell 0
+        x = x.reshape(x.shape[:-1] + (parts, per_part))
+        x = jnp.pad(x, [(0, 0)] * (x.ndim - 1) + [(0, pad)])
+        return jnp.moveaxis(x.reshape(x.shape[:-1] + (blocks, GATHER_BLOCK)), -2, 0)
+
+    by_part = jax.vmap(values, in_axes=(0, 1), out_axes=-2)  # over the parts
+    out = jax.lax.map(lambda block: by_part(*block), (split(local.cell), split(local.s)))
+    out = jnp.moveaxis(out, 0, -2)  # (..., parts, blocks, GATHER_BLOCK)
+    return out.reshape(lead + (parts, -1))[..., :per_part].reshape(lead + (count,))
 
 
 def values_apart(local: LocalBasis, grids: Array) -> Array:

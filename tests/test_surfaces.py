@@ -243,3 +243,22 @@ def test_cascade_levels_assemble_a_stride_of_dense_clouds(monkeypatch):
     # Not the same compiled fit (a start of other samples moves the CG's last digits) and
     # the same minimiser to the solve's tolerance.
     assert 0 < np.max(gap) < 1e-3 * 0.02
+
+
+@pytest.mark.parametrize("parts", [1, 2])
+def test_surface_values_are_gathered_a_block_at_a_time(monkeypatch, rng, parts):
+    """Blocks of samples (padded at the end of each part) give the values of the whole
+    gather; two grids evaluated in one pass."""
+    import dataclasses
+
+    from jurs import _spline
+
+    x = rng.uniform(LOWER, UPPER, size=(1000, 3))
+    local = dataclasses.replace(local_basis(jnp.asarray(x), LOWER, UPPER, SHAPE), parts=parts)
+    grids = jnp.asarray(rng.standard_normal((2,) + SHAPE))
+    whole = _spline._gathered_values(local, grids)
+    monkeypatch.setattr(_spline, "GATHER_BLOCK", 96)  # 1000 / parts is not a multiple
+    blocked = _spline._gathered_values(local, grids)
+    expected = np.einsum("pn,qn->qp", dense_rows(x), np.asarray(grids).reshape(2, -1))
+    np.testing.assert_allclose(np.asarray(whole), expected, atol=1e-12)
+    np.testing.assert_allclose(np.asarray(blocked), expected, atol=1e-12)
