@@ -262,3 +262,7 @@ def test_surface_values_are_gathered_a_block_at_a_time(monkeypatch, rng, parts):
     expected = np.einsum("pn,qn->qp", dense_rows(x), np.asarray(grids).reshape(2, -1))
     np.testing.assert_allclose(np.asarray(whole), expected, atol=1e-12)
     np.testing.assert_allclose(np.asarray(blocked), expected, atol=1e-12)
+    # Reverse mode goes through the blocks: the gradient is D^T (D G) per grid.
+    grad = jax.grad(lambda g: 0.5 * jnp.sum(_spline._gathered_values(local, g) ** 2))(grids)
+    adjoint = np.einsum("pn,qp->qn", dense_rows(x), expected).reshape(grids.shape)
+    np.testing.assert_allclose(np.asarray(grad), adjoint, atol=1e-10)
