@@ -120,11 +120,12 @@ def cascadic_start(problem: Problem, lam, solve, start: Array) -> Array:
         return start
     problem, lam = jax.lax.stop_gradient((problem, lam))
     start = None  # pyright: ignore[reportAssignmentType]  # the iterate: none before the coarsest
+    samples = jnp.maximum(jnp.sum(problem.mask), 1.0)
     for shape in shapes:
-        stride = level_stride(problem, shape)
-        normal = normal_equations(on_grid(problem, shape, stride))
+        level = on_grid(problem, shape, level_stride(problem, shape))
+        normal = normal_equations(level)
         # E_d sums the kept samples only: lambda scaled alike keeps the balance.
-        kept = jnp.sum(problem.mask[::stride]) / jnp.maximum(jnp.sum(problem.mask), 1.0)
+        kept = jnp.sum(level.mask) / samples
         stencil = normal.regularised(level_lam(lam, problem.shape, shape) * kept)
         if start is None:
             start, solver = jnp.zeros(shape, normal.rhs.dtype), lx.Cholesky()
