@@ -3,10 +3,19 @@ with known normals (2D curves and 3D surfaces), beside the spanning-tree baselin
 
 import numpy as np
 import pytest
+from scipy.spatial import cKDTree
 
 import jurs.datasets
 import jurs.shapes
-from jurs._orientation import NormalsInfo, _orient_mst, estimate_normals
+from jurs._orientation import (
+    K_LADDER,
+    NormalsInfo,
+    _choose_k,
+    _orient_mst,
+    _pca,
+    _slab_noise,
+    estimate_normals,
+)
 
 
 def correct_sign(normals, truth):
@@ -137,6 +146,36 @@ def test_3d(name, make, level):
     share = correct_sign(normals, truth)
     assert share == 1.0 if level == 0 else share >= 0.995, (share, info.k)
     assert median_angle_deg(normals, truth) < (3.0 if level == 0 else 10.0)
+
+
+@pytest.mark.parametrize("d", [2, 3])
+def test_slab_noise_reads_the_noise_that_near_neighbours_cut_off(d):
+    """A flat sheet with noise about as wide as its spacing (2 spacings on a line, 0.3 on
+    a plane): the residual over the nearest 10 points reads less than the true noise (the
+    ball cuts the noise's tails off), the slab-corrected one reads it within 10 %."""
+    rng = np.random.default_rng(0)
+    m, sigma = (20000, 2.0 / 20000) if d == 2 else (40000, 0.3 / 200)
+    points = np.c_[rng.uniform(0.0, 1.0, (m, d - 1)), sigma * rng.standard_normal(m)]
+    inner = np.flatnonzero(np.all((points[:, :-1] > 0.1) & (points[:, :-1] < 0.9), axis=1))
+    distance, neighbours = cKDTree(points).query(points[inner[:1000]], k=11)
+    values, _ = _pca(points, neighbours)
+    raw = np.median(np.sqrt(values[:, 0]))
+    corrected = np.median(_slab_noise(values[:, 0], distance[:, -1], 11, d))
+    assert raw < 0.82 * sigma, raw / sigma
+    assert abs(corrected / sigma - 1.0) < min(0.1, 0.5 * abs(raw / sigma - 1.0)), corrected / sigma
+
+
+def test_noisier_clouds_get_more_neighbours():
+    """k grows with the noise (clean: the ladder's first rung) and reaches the rungs whose
+    normals keep the sign on a noisy sphere of 2e4 points."""
+    points, truth = sphere(20000)
+    chosen = []
+    for level in (0.0, 0.0025, 0.005):
+        cloud = noisy(points, level) if level else points
+        chosen.append(_choose_k(cloud, cKDTree(cloud), np.random.default_rng(0)))
+    assert chosen[0] == K_LADDER[3][0] and chosen[0] < chosen[1] < chosen[2], chosen
+    normals = estimate_normals(noisy(points, 0.005))
+    assert correct_sign(normals, truth) >= 0.999
 
 
 def test_info_and_unoriented():
