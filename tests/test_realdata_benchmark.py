@@ -233,6 +233,30 @@ def test_markdown_counts_the_runs_meeting_each_target():
     assert realdata.worst_runs(runs, 2) == [1, 2]  # a/noisy (topology), then b/clean
 
 
+def test_verdict_and_time_tables_count_flagged_misses_and_solves():
+    runs = [
+        _run("a", "clean", exact=True, hausdorff=0.003, chamfer=1e-4, rbf_chamfer=2e-4, warm_s=0.1),
+        _run("a", "noisy", exact=False, hausdorff=0.02, chamfer=3e-4, rbf_chamfer=2e-4, warm_s=0.3),
+        _run(
+            "b", "clean", exact=False, hausdorff=0.003, chamfer=1e-4, rbf_chamfer=2e-4, warm_s=0.2
+        ),
+    ]
+    runs[1]["jurs"]["status"] = "doubtful"  # the miss flagged; b/clean's miss is silent
+    runs[1]["settings"]["held_out"] = [[1e-6, 0.1], [1e-5, 0.2]]
+
+    def cells(lines, first):
+        line = next(x for x in lines if x.startswith(f"| {first} |"))
+        return [c.strip() for c in line.strip("|").split("|")][1:]
+
+    verdicts = realdata.verdict_table(runs)
+    assert cells(verdicts, "topology not exact") == ["2", "1"]
+    assert cells(verdicts, "Hausdorff over its target") == ["1", "1"]
+    assert cells(verdicts, "both met") == ["1", "0"]
+    times = realdata.time_table(runs)
+    assert cells(times, "1") == ["2", "3072", "150 ms", "1"]  # medians of 0.1 and 0.2 s
+    assert cells(times, "3") == ["1", "3072", "300 ms", "0"]
+
+
 def test_the_figure_shows_one_run_per_case():
     def run(case, variant, exact, hausdorff):
         return _run(
