@@ -20,7 +20,8 @@ One command measures everything, prints the tables and writes the dated results
 * **Scores.** Correct sign: strictly outward (``outward``) and up to one global flip
   (``consistent``, what propagation alone can give); median angle to the truth (unsigned);
   wall time. A fit with estimated normals against true ones on a few 2D cases
-  (``jurs.fit(points, normals)`` with defaults; Chamfer and Hausdorff to the clean outline).
+  (``jurs.fit(points, normals)`` with defaults; Chamfer and Hausdorff to the clean outline)
+  and on two surfaces of 1e5 points (the clouds of benchmarks/surfaces.py, meshed).
 
     python benchmarks/normals.py [--quick] [--markdown-only]
     python benchmarks/normals.py --cases text,horse/noise --only-2d   # a subset, not saved
@@ -59,6 +60,10 @@ M_3D = (10_000, 100_000)
 #: 3D cases run at the larger size (the rest at the smaller only, to keep the run short).
 LARGE_3D = ("sphere", "torus", "bunny")
 FIT_CASES = ("annulus", "glyph_a", "horse", "coins")
+#: Surfaces fitted with true and with estimated normals, on the clouds of
+#: benchmarks/surfaces.py (same samples, noise and evaluation; its Poisson figures apply).
+FIT_SURFACES = ("sphere", "bunny")
+FIT_SURFACE_POINTS = 100_000
 MESHES = os.environ.get("PYMESHLAB_SAMPLES")
 
 
@@ -258,6 +263,52 @@ def fit_quality(name, variant):
     return out
 
 
+def fit_quality_3d(name, variant, m=FIT_SURFACE_POINTS):
+    """``jurs.fit`` + ``jurs.levelset.mesh`` with true and with estimated normals on the
+    cloud benchmarks/surfaces.py fits at ``m`` points (the same seeds, noise and
+    distances); Chamfer / Hausdorff to the true surface in 1e-3 of the diagonal, mesh
+    components (supplementary), wall seconds of the fit and mesh (warm) and of the
+    estimation. None when the case's mesh is not available."""
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    import surfaces
+
+    import jurs.levelset
+
+    truth = surfaces.make_truth(name)
+    if truth is None:
+        return None
+    reference, _ = truth.sample(surfaces.EVAL_SAMPLES, surfaces.SEEDS["truth"])
+    diag = surfaces.diagonal(reference)
+    points, true_normals = truth.sample(m, surfaces.SEEDS["cloud"])
+    if variant == "noise":
+        rng = np.random.default_rng(surfaces.SEEDS["noise"])
+        points = points + surfaces.NOISE * diag * rng.standard_normal(points.shape)
+    start = time.perf_counter()
+    estimated = estimate_normals(points)
+    out = {"estimate_s": time.perf_counter() - start, "true_components": truth.components}
+    for label, normals in (("true", true_normals), ("estimated", estimated)):
+        jurs.fit(points, normals, throw=False)  # compiles
+        start = time.perf_counter()
+        sol = jurs.fit(points, normals, throw=False)
+        vertices, faces = jurs.levelset.mesh(sol.spline)
+        seconds = time.perf_counter() - start
+        dist = surfaces.surface_distances(
+            vertices, faces, truth, reference, diag, surfaces.EVAL_SAMPLES
+        )
+        shape, _ = surfaces.topology(vertices, faces, points)
+        out[label] = {
+            "chamfer": 1e3 * dist["chamfer_rel"],
+            "hausdorff": 1e3 * dist["hausdorff_rel"],
+            "components": shape["num_components"],
+            "supplementary": shape["num_supplementary"],
+            "status": sol.status,
+            "seconds": seconds,
+        }
+    return out
+
+
 # --------------------------------------------------------------------------- report
 
 
@@ -322,6 +373,27 @@ def markdown(payload):
             for s in ("true", "estimated")
         ]
         lines.append(f"| {key} ({f['true_components']} true) | {cell[0]} | {cell[1]} |")
+    if payload.get("surface_fits"):
+        lines += [
+            "",
+            f"Surfaces: `jurs.fit` then `jurs.levelset.mesh`, defaults, "
+            f"{payload['surface_points']} points, on the clouds of "
+            "`benchmarks/surfaces.py` (same samples, noise and distances: its Poisson "
+            "figures apply); Chamfer / Hausdorff to the true surface in 1e-3 of the "
+            "diagonal; mesh components (supplementary); warm fit + mesh seconds "
+            "(estimation seconds).",
+            "",
+            "| case | true normals | estimated normals |",
+            "|---|---|---|",
+        ]
+        for key, f in payload["surface_fits"].items():
+            cell = [
+                f"{f[s]['chamfer']:.3f} / {f[s]['hausdorff']:.2f}, {f[s]['components']} "
+                f"({f[s]['supplementary']}), {f[s]['seconds']:.1f} s"
+                for s in ("true", "estimated")
+            ]
+            cell[1] += f" ({f['estimate_s']:.1f} s)"
+            lines.append(f"| {key} ({f['true_components']} true) | {cell[0]} | {cell[1]} |")
     lines += ["", "Cases: " + "; ".join(f"`{k}`: {v}" for k, v in payload["origins"].items()), ""]
     return "\n".join(lines)
 
@@ -421,6 +493,13 @@ def main():
         for variant in ("clean", "noise"):
             fits[f"{name}/{variant}"] = fit_quality(name, variant)
             print("fit", name, variant, fits[f"{name}/{variant}"], flush=True)
+    surface_fits = {}
+    for name in FIT_SURFACES[:1] if args.quick else FIT_SURFACES:
+        for variant in ("clean", "noise"):
+            result = fit_quality_3d(name, variant)
+            if result is not None:
+                surface_fits[f"{name}/{variant}"] = result
+                print("fit", name, variant, result, flush=True)
     origins.update(
         {
             "2D": "jurs.shapes outlines (horse, coins: scikit-image images; glyphs: "
@@ -446,6 +525,8 @@ def main():
         or "pymeshlab/trimesh not installed",
         "runs": runs,
         "fits": fits,
+        "surface_fits": surface_fits,
+        "surface_points": FIT_SURFACE_POINTS,
         "origins": origins,
     }
     payload["total_s"] = time.perf_counter() - start
