@@ -630,7 +630,9 @@ def _orient(points, normals, values, noise, neighbours, tree, rng, confidence):
     )
     normals = normals * signs[patch][:, None]
     offset = np.maximum(0.5 * eps, CHECK_NOISE_OFFSET * noise)
-    normals, corrected = _point_corrections(points, normals, area * weight, eps, offset, tree)
+    normals, corrected = _point_corrections(
+        points, normals, area * weight, eps, offset, tree, neighbours
+    )
     return normals, dict(
         corrected=corrected,
         components=n_comp,
@@ -640,19 +642,24 @@ def _orient(points, normals, values, noise, neighbours, tree, rng, confidence):
     )
 
 
-def _point_corrections(points, normals, area, eps, offset, tree, rounds: int = 6):
+def _point_corrections(points, normals, area, eps, offset, tree, neighbours, rounds: int = 6):
     """Per-point sign check against the field (as WNNC iterates): the winding number (width
     ``eps``) must fall outward, ``w(p + delta n) < w(p - delta n)`` with delta = ``offset``
     (half the field width, or :data:`CHECK_NOISE_OFFSET` local noise levels where that is
     more); points where it rises are flipped. Only the nearest :data:`CHECK_NEIGHBOURS`
     points enter the difference: far sources add almost the same to both sides. Repairs
     the stretches a patch's propagation got wrong, from their ends inward over the rounds.
+    ``neighbours`` (each point's nearest, itself first, as the PCA's) serve where they
+    are enough (noisy 3D clouds: k + 1 = 81; a second query of 1e5 points took 0.7 s).
     Returns ``(normals, points flipped)``."""
     m, d = points.shape
     count = min(CHECK_NEIGHBOURS[d], m)
     flipped = np.zeros(m, bool)
     normals = normals.copy()
-    near_all = tree.query(points, k=count, workers=-1)[1]
+    if neighbours.shape[1] >= count:
+        near_all = neighbours[:, :count]
+    else:
+        near_all = tree.query(points, k=count, workers=-1)[1]
     check = np.arange(m)
     for _ in range(rounds):
         dipoles = normals * area[:, None]
