@@ -223,16 +223,17 @@ def test_padded_iurs_fit_agrees_with_the_unpadded_one():
 
 
 class _CompileCounter:
-    """Counts XLA compilations of jurs.fit's jitted solve, through JAX's public
-    monitoring events."""
+    """Counts XLA compilations of jurs.fit's jitted solve (or, with ``name=""``, of
+    anything), through JAX's public monitoring events."""
 
     EVENT = "/jax/core/compile/backend_compile_duration"
 
-    def __init__(self):
+    def __init__(self, name: str = "_run"):
         self.count = 0
+        self.name = name
 
     def __call__(self, event, duration, **kwargs):
-        if event == self.EVENT and "_run" in str(kwargs.get("fun_name", "")):
+        if event == self.EVENT and self.name in str(kwargs.get("fun_name", "")):
             self.count += 1
 
     def __enter__(self):
@@ -259,6 +260,22 @@ def test_two_clouds_in_one_band_compile_once():
             jax.block_until_ready(jurs.fit(points, normals, **settings).spline)
         counts.append(counter.count)
     assert counts == [1, 0, 0, 1]
+
+
+@pytest.mark.slow
+def test_a_new_cloud_reuses_the_compiled_checks_of_automatic_settings():
+    """With automatic settings the fit is checked on the host (orientation, doubts), which
+    evaluates the spline at the cloud's points: a new cloud of another size (in the same
+    band, on the same grid) compiles nothing, not even those evaluations."""
+    counts = []
+    for m in (3200, 3300):
+        points, normals = jurs.datasets.example1(m)
+        with _CompileCounter(name="") as counter:
+            sol = jurs.fit(points, normals, grid=64)
+            jax.block_until_ready(sol.spline)
+        assert "far_point_fraction" in sol.metrics  # the checks ran
+        counts.append(counter.count)
+    assert counts[0] >= 1 and counts[1] == 0, counts
 
 
 def test_automatic_grids_are_rounded_up_to_the_ladder():
