@@ -527,6 +527,22 @@ def tables(runs):
     return acc, cost, ratios
 
 
+#: The bounds measured behind the ratios above 1 (docs/surfaces.md, "Accuracy, speed and
+#: limits", where each is measured and dated).
+LIMITS = (
+    'Measured in `docs/surfaces.md` ("Accuracy, speed and limits"). Accuracy on the bunny '
+    "and the airplane: detail finer than the default cap of 48 functions a side (ears, "
+    "wings), which Poisson's octree resolves; a cap of 64 brought the clean bunny to 1.31x "
+    "and the airplane to 0.98x Poisson's Chamfer (noisy: 0.75x, 0.92x), for warm fits of "
+    "35 s and 9 s and 5.2 GB. At 1e6 points Poisson's depth 10 is finer still. Time: at "
+    "48^3 about 2 s of assembly, 1.4 s of the cascade and 200-300 CG steps of the "
+    "343-point stencil at about 20 ms each; two stencil layouts and a scattered assembly "
+    "measured slower, `Multigrid()` 14 % faster on the sphere with several times the "
+    "memory. Noisy fits whose thin parts are cut (noise over half their thickness) are "
+    "reported `doubtful`."
+)
+
+
 def markdown(payload):
     acc, cost, ratios = tables(payload["runs"])
     quick = " A `--quick` development run: not the issue's sizes." if payload["quick"] else ""
@@ -576,6 +592,7 @@ def markdown(payload):
         * bool(notes(payload["runs"]))
         + ["## jurs / Poisson", "", "Ratios (below 1: jurs smaller, i.e. better).", ""]
         + ratios
+        + ["", "## What limits the misses", "", LIMITS]
         + ["", "## Accuracy", ""]
         + acc
         + ["", "## Cost", ""]
