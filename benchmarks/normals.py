@@ -319,6 +319,23 @@ def fmt(entry):
     )
 
 
+def fit_rows(fits: dict, timed: bool = False) -> list:
+    """The table of fits with true and with estimated normals: Chamfer / Hausdorff,
+    components (supplementary) and, where ``timed``, the seconds of each fit and of the
+    estimation."""
+    rows = ["| case | true normals | estimated normals |", "|---|---|---|"]
+    for key, f in fits.items():
+        cell = [
+            f"{f[s]['chamfer']:.3f} / {f[s]['hausdorff']:.2f}, {f[s]['components']} "
+            f"({f[s]['supplementary']})" + (f", {f[s]['seconds']:.1f} s" if timed else "")
+            for s in ("true", "estimated")
+        ]
+        if timed:
+            cell[1] += f" ({f['estimate_s']:.1f} s)"
+        rows.append(f"| {key} ({f['true_components']} true) | {cell[0]} | {cell[1]} |")
+    return rows
+
+
 def markdown(payload):
     lines = [
         "# Normals without normals: `jurs.estimate_normals` beside the spanning tree and Open3D",
@@ -363,16 +380,8 @@ def markdown(payload):
         "to the clean outline in 1e-3 of the diagonal; zero-set components "
         "(supplementary).",
         "",
-        "| case | true normals | estimated normals |",
-        "|---|---|---|",
+        *fit_rows(payload["fits"]),
     ]
-    for key, f in payload["fits"].items():
-        cell = [
-            f"{f[s]['chamfer']:.3f} / {f[s]['hausdorff']:.2f}, {f[s]['components']} "
-            f"({f[s]['supplementary']})"
-            for s in ("true", "estimated")
-        ]
-        lines.append(f"| {key} ({f['true_components']} true) | {cell[0]} | {cell[1]} |")
     if payload.get("surface_fits"):
         lines += [
             "",
@@ -383,17 +392,8 @@ def markdown(payload):
             "diagonal; mesh components (supplementary); warm fit + mesh seconds "
             "(estimation seconds).",
             "",
-            "| case | true normals | estimated normals |",
-            "|---|---|---|",
+            *fit_rows(payload["surface_fits"], timed=True),
         ]
-        for key, f in payload["surface_fits"].items():
-            cell = [
-                f"{f[s]['chamfer']:.3f} / {f[s]['hausdorff']:.2f}, {f[s]['components']} "
-                f"({f[s]['supplementary']}), {f[s]['seconds']:.1f} s"
-                for s in ("true", "estimated")
-            ]
-            cell[1] += f" ({f['estimate_s']:.1f} s)"
-            lines.append(f"| {key} ({f['true_components']} true) | {cell[0]} | {cell[1]} |")
     lines += [
         "",
         "## What limits the misses",
