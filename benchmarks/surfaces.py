@@ -538,7 +538,7 @@ LIMITS = (
     "48^3 about 2 s of assembly, 1.4 s of the cascade and 200-300 CG steps of the "
     "343-point stencil at about 20 ms each; two stencil layouts and a scattered assembly "
     "measured slower, `Multigrid()` 14 % faster on the sphere with several times the "
-    "memory. Noisy fits whose thin parts are cut (noise over half their thickness) are "
+    "memory. Noisy fits whose thin parts are cut (noise about half their thickness or more) are "
     "reported `doubtful`."
 )
 
