@@ -483,19 +483,19 @@ def verdict_table(runs: list) -> list:
     """How many of the runs missing a quality target the fit's own verdict flagged (any
     status but ``successful``: the user is told), and how many that met both were flagged
     anyway."""
+    met = [(targets(r), r["jurs"]["status"] != "successful") for r in runs]
     rows = [
-        ("topology not exact", lambda r, t: not t["topology"]),
-        ("Hausdorff over its target", lambda r, t: not t["hausdorff"]),
-        ("both met", lambda r, t: t["topology"] and t["hausdorff"]),
+        ("topology not exact", lambda t: not t["topology"]),
+        ("Hausdorff over its target", lambda t: not t["hausdorff"]),
+        ("both met", lambda t: t["topology"] and t["hausdorff"]),
     ]
     lines = [
         "| runs | count | flagged by the fit (status not successful) |",
         "|---|---|---|",
     ]
     for name, keep in rows:
-        group = [r for r in runs if keep(r, targets(r))]
-        flagged = sum(r["jurs"]["status"] != "successful" for r in group)
-        lines.append(f"| {name} | {len(group)} | {flagged} |")
+        group = [flagged for t, flagged in met if keep(t)]
+        lines.append(f"| {name} | {len(group)} | {sum(group)} |")
     return lines
 
 

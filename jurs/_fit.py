@@ -114,7 +114,10 @@ DOUBT_PROBES = 20000
 #: The checks evaluate the fit at point counts rounded up to a power of two (at least
 #: this), so that a new cloud reuses their compiled evaluations: with a count of its
 #: own, each new cloud of Example 1 (3000-3300 points, grid 64) spent 0.56-0.62 s
-#: compiling them, most of its 0.66-0.70 s fit.
+#: compiling them, most of its 0.66-0.70 s fit. Powers of two, not the fit's own ladder
+#: (:func:`jurs._compile.round_size`, four sizes an octave): padding these evaluations
+#: costs milliseconds, a compilation about half a second, and the count of pairs across
+#: thin parts varies from cloud to cloud within one of the fit's size bands.
 MIN_CHECK_BUCKET = 1024
 
 

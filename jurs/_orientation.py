@@ -215,13 +215,13 @@ def _choose_k(points: np.ndarray, tree: cKDTree, rng: np.random.Generator) -> in
     ladder = [k for k in K_LADDER[d] if k < m] or [m - 1]
     sample = rng.choice(m, size=min(m, 2000), replace=False)
     distance, neighbours = tree.query(points[sample], k=ladder[-1] + 1, workers=-1)
-    small_noise2 = _local_noise(points, neighbours) ** 2
+    small_noise2 = None if NOISE_AT_SCALE[d] else _local_noise(points, neighbours) ** 2
     errors = []
     for k in ladder:
         values, _ = _pca(points, neighbours[:, : k + 1])
         noise2 = (
             _slab_noise(values[:, 0], distance[:, k], k + 1, d) ** 2
-            if NOISE_AT_SCALE[d]
+            if small_noise2 is None
             else small_noise2
         )
         errors.append(float(np.median(_expected_angle_error(noise2, values, k + 1))))
