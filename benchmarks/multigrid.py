@@ -1,4 +1,4 @@
-"""Multigrid (jurs._multigrid.Multigrid) against direct solves of the same normal equations.
+"""Multigrid (jurs._linalg.multigrid.Multigrid) against direct solves of the same normal equations.
 
 2D: Example 1 sampled with ``m`` points on an ``n x n`` grid; 3D: the torus
 (``jurs.datasets.torus``) on ``n^3``. For each lam the system ``(D^T D + 2 lam L) C = D^T b``
@@ -62,7 +62,7 @@ def system(n: int, m: int, lam: float, ndim: int):
 
     import jurs
     import jurs.internal
-    from jurs import _normal
+    from jurs._linalg import normal as _normal
 
     data = jurs.datasets.example1 if ndim == 2 else jurs.datasets.torus
     points, normals = data(m)
@@ -80,7 +80,8 @@ def multigrid_solver(patch_dtype=None):
     import jax
     import lineax as lx
 
-    from jurs import _multigrid, _normal
+    from jurs._linalg import multigrid as _multigrid
+    from jurs._linalg import normal as _normal
 
     solver = _multigrid.Multigrid(rtol=RTOL, max_steps=MAX_STEPS, patch_dtype=patch_dtype)
 
@@ -162,7 +163,7 @@ def run_case(n, m, lam, ndim, mg):
     import jax
     import scipy.sparse.linalg as spl
 
-    from jurs import _normal
+    from jurs._linalg import normal as _normal
 
     setup, solve, memory = mg
     stencil, rhs, b2 = system(n, m, lam, ndim)

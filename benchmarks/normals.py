@@ -46,7 +46,7 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 from _common import RESULTS, import_open3d, write_results  # noqa: E402
 
 import jurs.shapes  # noqa: E402
-from jurs._orientation import _orient_mst, estimate_normals  # noqa: E402
+from jurs._cloud.normals import _orient_mst, estimate_normals  # noqa: E402
 
 NOISE = 0.005
 OUTLIERS = 0.02

@@ -47,9 +47,10 @@ CHILD = textwrap.dedent(
     import jax, jax.numpy as jnp, numpy as np
     from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
     import jurs
-    from jurs import _fit, _problem
-    from jurs._compile import COMPILER_OPTIONS
-    from jurs._sharding import place_fit
+    from jurs._fit import fit as _fit
+    from jurs._problem import problem as _problem
+    from jurs._fit.compile import COMPILER_OPTIONS
+    from jurs._fit.sharding import place_fit
 
     m, grid = int(sys.argv[1]), tuple(json.loads(sys.argv[2]))
     devices = len(jax.devices())

@@ -342,7 +342,7 @@ def work_fit_steps(spec: dict) -> dict:
     call pays once: building the problem, the init and final energy passes, and page-faulting
     the call's fresh buffers (counted here per fit call)."""
     jax, jurs = _start_jax()
-    from jurs._fit import reassociates
+    from jurs._fit.fit import reassociates
 
     points, normals = jurs.datasets.example1(spec["m"])
     kwargs = {"grid": spec["grid"], "offset": OFFSET, "eps": EPS}
@@ -437,7 +437,7 @@ def pass_times(jax, problem, repeats: int = PASS_REPEATS) -> dict:
     or the two sums of the weight gradient). An IURS step makes one F2, one F1 and two T2."""
     import jax.numpy as jnp
 
-    from jurs._spline import transpose_and_sum, values_apart
+    from jurs._model.spline import transpose_and_sum, values_apart
 
     local, shape = problem.local, problem.shape
     grids = jnp.ones((2,) + tuple(shape), problem.samples.dtype)

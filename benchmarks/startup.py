@@ -11,7 +11,7 @@ runs do not change what is measured), with a fresh cache folder:
 
 1. import time: ``import jax`` against ``import jurs`` (interleaved, median of 5);
 2. first fit and new-cloud fit in one process, at 100, 1e3, 1e4 and 1e5 points: a cloud A
-   of a similar size in the same size band (:func:`jurs._compile.padded_count`) is fitted
+   of a similar size in the same size band (:func:`jurs._problem.sizes.padded_count`) is fitted
    first (compiling), then a new cloud B (Example 1 at the target size): its first fit
    against its warm fit (median of 3), all with automatic settings (``jurs.fit(p, n)``);
 3. the command line ``jurs fit cloud.csv -o out`` on a 1000-point cloud: the first run
@@ -81,7 +81,7 @@ import jax
 jax.config.update("jax_enable_x64", True)
 import numpy as np
 import jurs
-from jurs._compile import padded_count
+from jurs._problem.sizes import padded_count
 imported = time.perf_counter() - t0
 n = int(sys.argv[1])
 band = padded_count(n)
@@ -123,7 +123,7 @@ import sys
 import jax
 jax.config.update("jax_enable_x64", True)
 from jurs import cli
-from jurs._compile import enable_compilation_cache
+from jurs._fit.compile import enable_compilation_cache
 args = cli.build_parser().parse_args(["fit", sys.argv[1], "-o", "unused-out", "-q"])
 enable_compilation_cache()
 job = cli.prepare_fit(args)

@@ -15,15 +15,15 @@ The kernels, energies and gradients under the solvers are in :mod:`jurs.internal
 import importlib
 from typing import TYPE_CHECKING
 
-from ._compile import COMPILER_OPTIONS, enable_compilation_cache
-from ._defaults import Settings, auto_settings
-from ._energy import objective
-from ._fit import fit
-from ._io import load_spline, save_spline
-from ._problem import Problem, make_problem
-from ._progress import fit_in_chunks
-from ._solution import RESULTS, Solution
-from ._spline import ImplicitSpline
+from ._fit.compile import COMPILER_OPTIONS, enable_compilation_cache
+from ._fit.fit import fit
+from ._fit.progress import fit_in_chunks
+from ._fit.settings import Settings, auto_settings
+from ._model.io import load_spline, save_spline
+from ._model.spline import ImplicitSpline
+from ._problem.energy import objective
+from ._problem.problem import Problem, make_problem
+from ._solution.solution import RESULTS, Solution
 from .solvers import (
     IPIA,
     IURS,
@@ -39,7 +39,7 @@ from .solvers import (
 
 if TYPE_CHECKING:  # loaded on first access at run time (``__getattr__`` below)
     from . import datasets, levelset, plot, shapes
-    from ._orientation import estimate_normals
+    from ._cloud.normals import estimate_normals
     from .solvers import (
         JaxoptGaussNewton,
         JaxoptLBFGS,
@@ -110,7 +110,7 @@ _LAZY_NAMES = {
             "OptimistixMinimiser",
         )
     },
-    "estimate_normals": "_orientation",
+    "estimate_normals": "_cloud.normals",
 }
 
 

@@ -45,12 +45,12 @@ import time
 import warnings
 from typing import TYPE_CHECKING, cast
 
-from ._compile import cache_disabled_by_environment, enable_compilation_cache
+from ._fit.compile import cache_disabled_by_environment, enable_compilation_cache
 
 if TYPE_CHECKING:  # the command line imports NumPy and jurs's modules when it runs them
     import numpy as np
 
-    from ._defaults import Settings
+    from ._fit.settings import Settings
     from .solvers import AbstractSolver
 
 EXIT_BAD_INPUT = 2
@@ -289,7 +289,7 @@ def make_solver(name: str, *, lam: float | None, tau: float, steps: int, tol: fl
     if steps < 0:
         raise InputError(f"--steps must be >= 0, got {steps}")
     if name == "auto" and lam is None and chosen is not None:
-        from ._fit import default_solver
+        from ._fit.fit import default_solver
 
         return default_solver(chosen)
     if name == "auto":
@@ -480,7 +480,7 @@ def _check_options(resolution, dim: int, out: str, names) -> None:
     """The options checked before anything is computed: the level-set (2D) or
     marching-cubes (3D) resolution, also against memory, and the output folder."""
     from . import levelset as ls
-    from ._problem import check_memory
+    from ._problem.problem import check_memory
 
     if resolution is not None:
         if resolution < 16:
@@ -502,8 +502,8 @@ def _check_options(resolution, dim: int, out: str, names) -> None:
 def _surface_libraries() -> None:
     """InputError unless the libraries a surface's outputs need are installed
     (scikit-image meshes, trimesh writes mesh.ply): found out before the fit, not after."""
-    from ._mesh import _marching_cubes
     from .datasets import _trimesh
+    from .levelset._surfaces import _marching_cubes
 
     try:
         _marching_cubes()
@@ -516,7 +516,7 @@ def _output_bytes(job: FitJob) -> int:
     """Bytes the outputs take: the spline (two grids of float64 in the .npz), the figure
     and the metrics, and in 2D the polylines (at most about resolution^2 / 2 vertices of
     ~40 bytes as text), in 3D the mesh (:data:`MESH_VERTICES_PER_PLANE_NODE`)."""
-    from ._mesh import MAX_RESOLUTION
+    from .levelset._surfaces import MAX_RESOLUTION
 
     spline = 16 * math.prod(job.grid)
     if job.dim == 2:
@@ -579,8 +579,8 @@ def _solve(job: FitJob, args):
 
     import jurs
 
-    from ._fit import automatic_fit_checks, set_aside_mask
-    from ._progress import fit_in_chunks
+    from ._fit.fit import automatic_fit_checks, set_aside_mask
+    from ._fit.progress import fit_in_chunks
 
     bar = ProgressBar(f"{args.solver} {'x'.join(map(str, job.grid))}", enabled=not args.quiet)
     t0 = time.perf_counter()
@@ -778,7 +778,7 @@ def surface_outputs(job: FitJob, args, sol, seconds: float):
 
     from . import datasets, plot
     from . import levelset as ls
-    from ._mesh import default_resolution
+    from .levelset._surfaces import default_resolution
 
     spline = sol.spline
     resolution = job.resolution or default_resolution(

@@ -10,8 +10,16 @@ These names may change between versions without notice; ``jurs.__all__`` is the 
 surface. Importing this module costs nothing beyond ``import jurs``.
 """
 
-from ._basis import cubic_derivatives, cubic_weights
-from ._energy import (
+from ._linalg.normal import NormalEquations, normal_equations
+from ._model.basis import cubic_derivatives, cubic_weights
+from ._model.spline import (
+    LocalBasis,
+    bspline_transpose,
+    bspline_values,
+    local_basis,
+    rational_values,
+)
+from ._problem.energy import (
     collocation_column_sums,
     collocation_transpose,
     data_energy,
@@ -28,15 +36,7 @@ from ._energy import (
     transpose_apply,
     weight_gradient,
 )
-from ._normal import NormalEquations, normal_equations
-from ._problem import auto_domain, bucket_layout, offset_samples
-from ._spline import (
-    LocalBasis,
-    bspline_transpose,
-    bspline_values,
-    local_basis,
-    rational_values,
-)
+from ._problem.problem import auto_domain, bucket_layout, offset_samples
 
 __all__ = [
     "LocalBasis",

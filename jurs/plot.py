@@ -17,9 +17,9 @@ from typing import Mapping, Sequence
 
 import numpy as np
 
-from ._mesh import _check_mesh
-from ._spline import ImplicitSpline
+from ._model.spline import ImplicitSpline
 from .levelset import evaluate_grid, sampling_grid
+from .levelset._surfaces import _check_mesh
 
 #: Colour of the zero curve, and of supplementary components when they are highlighted.
 ZERO_COLOUR = "k"

@@ -33,7 +33,7 @@ def test_a_moved_name_says_where_it_went():
 
 
 def test_every_verdict_has_a_short_name():
-    from jurs._solution import RAISED_RESULTS, RESULT_NAMES
+    from jurs._solution.solution import RAISED_RESULTS, RESULT_NAMES
 
     items = [getattr(jurs.RESULTS, name) for name in RESULT_NAMES]
     for i, a in enumerate(items):  # distinct items, so Solution.status names each one

@@ -8,8 +8,8 @@ from conftest import dense_basis, without_table
 from jax.test_util import check_grads
 
 import jurs
-from jurs import _basis as jurs_basis
-from jurs._basis import (
+from jurs._model import basis as jurs_basis
+from jurs._model.basis import (
     CENTRED_POWER,
     grid_to_patches,
     patch_to_power,
@@ -74,7 +74,7 @@ def test_patch_maps_are_adjoint(rng):
 def test_windowed_patch_gather_matches_the_cell_patches(rng):
     """The table form's one-window-a-bucket gather reads the same 16 coefficients, in the
     same order, as grid_to_patches gives each cell, for every grid of a stack."""
-    from jurs._spline import gather_patches
+    from jurs._model.spline import gather_patches
 
     shape = (9, 7)
     grids = jnp.asarray(rng.standard_normal((3,) + shape))

@@ -19,7 +19,7 @@ from conftest import PAPER  # noqa: E402
 import jurs  # noqa: E402
 from jurs import cli  # noqa: E402
 
-# 20 steps run in one chunk (see jurs._progress.chunk_size), so the fit compiled here is the
+# 20 steps run in one chunk (see jurs._fit.progress.chunk_size), so the fit compiled here is the
 # one a direct jurs.fit with the same start and throw=False uses: the tests stay fast.
 FIT_ARGS = ["--steps", "20", "--tol", "0", "-q", "--resolution", "200"]
 PAPER_ARGS = ["--solver", "iurs", "--grid", "9x9", "-d", "0.1", "--eps", "0.01"]
@@ -398,7 +398,7 @@ def test_output_folder_checked_before_the_fit(example1_csv, tmp_path, capsys, mo
     def no_fit(*args, **kwargs):
         raise AssertionError("the fit ran before the output folder was checked")
 
-    monkeypatch.setattr("jurs._progress.fit_in_chunks", no_fit)
+    monkeypatch.setattr("jurs._fit.progress.fit_in_chunks", no_fit)
     out = tmp_path / "out"
     _old_outputs(out)
     (out / "fit.png").mkdir()
@@ -417,7 +417,7 @@ def test_output_folder_checked_before_the_fit(example1_csv, tmp_path, capsys, mo
     monkeypatch.setattr(cli.os, "access", lambda path, mode: False)
     fails("folder is not writable")
     monkeypatch.undo()
-    monkeypatch.setattr("jurs._progress.fit_in_chunks", no_fit)
+    monkeypatch.setattr("jurs._fit.progress.fit_in_chunks", no_fit)
     monkeypatch.setattr(
         cli.shutil, "disk_usage", lambda path: SimpleNamespace(total=1, used=1, free=1000)
     )
@@ -429,7 +429,7 @@ def test_output_folder_checked_before_the_fit(example1_csv, tmp_path, capsys, mo
 
 def test_resolution_refused_up_front(example1_csv, tmp_path, capsys, monkeypatch):
     """Issue 20, defect 8: --resolution 30000 ended in a MemoryError traceback."""
-    monkeypatch.setattr("jurs._problem.available_memory", lambda device=True: 4 << 30)
+    monkeypatch.setattr("jurs._problem.problem.available_memory", lambda device=True: 4 << 30)
     out = tmp_path / "o"
     _check_failure(
         capsys,

@@ -57,7 +57,7 @@ def _bucketed(points, normals):
 
 
 def test_fit_reassociates_only_own_solvers_on_large_layouts_at_top_level():
-    from jurs._fit import reassociates
+    from jurs._fit.fit import reassociates
 
     points, normals = jurs.datasets.example1(300)
     bucketed = _bucketed(points, normals)
@@ -81,7 +81,7 @@ def test_fit_of_a_large_layout_with_and_without_transformations(monkeypatch):
     """At top level jurs.fit compiles a bucketed IURS fit with the options, under grad it
     cannot (XLA refuses options on a nested jit) and must not try; both agree at rounding
     level with the plain compilation."""
-    import jurs._fit as fit_module
+    import jurs._fit.fit as fit_module
 
     calls = []
     tuned = fit_module._solve_reassociating
@@ -147,7 +147,7 @@ def test_a_fit_is_kept_by_the_persistent_compilation_cache(tmp_path):
 
 
 def test_size_ladder_rounds_up_by_at_most_a_quarter_with_four_sizes_an_octave():
-    from jurs._compile import padded_count, round_size
+    from jurs._problem.sizes import padded_count, round_size
 
     sizes = np.arange(1, 5000)
     rounded = np.array([round_size(n) for n in sizes])
@@ -162,7 +162,7 @@ def test_size_ladder_rounds_up_by_at_most_a_quarter_with_four_sizes_an_octave():
 
 def _fit_problem(points, normals, **settings):
     """The problem jurs.fit builds: padded cloud, layout sized for the band."""
-    from jurs._problem import padded_cloud
+    from jurs._problem.problem import padded_cloud
 
     p, n, mask = padded_cloud(points, normals)
     return jurs.make_problem(p, n, mask=mask, stable_shapes=True, **settings)
@@ -279,8 +279,8 @@ def test_a_new_cloud_reuses_the_compiled_checks_of_automatic_settings():
 
 
 def test_automatic_grids_are_rounded_up_to_the_ladder():
-    from jurs._compile import round_size
-    from jurs._defaults import DEFAULT_MAX_GRID, choose_grid
+    from jurs._fit.settings import DEFAULT_MAX_GRID, choose_grid
+    from jurs._problem.sizes import round_size
 
     lower = np.zeros(2)
     for extent, spacing in (

@@ -9,7 +9,7 @@ import pytest
 import jurs
 import jurs.levelset as ls
 import jurs.shapes
-from jurs import _defaults
+from jurs._fit import settings as _defaults
 
 ROT90 = np.array([[0.0, -1.0], [1.0, 0.0]])
 

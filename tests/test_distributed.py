@@ -1,4 +1,4 @@
-"""Fits of clouds held by several processes (``jax.distributed``; jurs._sharding,
+"""Fits of clouds held by several processes (``jax.distributed``; jurs._fit.sharding,
 docs/sharding.md).
 
 Two child processes on localhost, two CPU devices each, joined by
@@ -45,7 +45,7 @@ CHILD = textwrap.dedent(
     import jax.numpy as jnp, numpy as np
     from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
     import jurs
-    from jurs._sharding import process_problem
+    from jurs._fit.sharding import process_problem
 
     assert jax.process_count() == 2 and len(jax.local_devices()) == 2
     assert jnp.result_type(float) == jnp.float64

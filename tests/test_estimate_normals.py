@@ -7,7 +7,7 @@ from scipy.spatial import cKDTree
 
 import jurs.datasets
 import jurs.shapes
-from jurs._orientation import (
+from jurs._cloud.normals import (
     K_LADDER,
     NormalsInfo,
     _choose_k,
@@ -274,7 +274,7 @@ def test_noise_shrinks_the_field_less():
     (geometric mean of the planarity and the planarity relative to its median) bring it
     to about 0.43, unit weights to 0.53. Field of dipoles (true length per point, PCA
     normals signed by the truth)."""
-    from jurs._orientation import _dipole_matrix, _source_weight
+    from jurs._cloud.normals import _dipole_matrix, _source_weight
 
     points, truth = jurs.shapes.get("annulus", 2000)
     length = np.sum(np.linalg.norm(points - np.roll(points, 1, axis=0), axis=1)) / len(points)

@@ -9,7 +9,7 @@ import pytest
 from conftest import dense_collocation
 
 import jurs
-from jurs import _normal
+from jurs._linalg import normal as _normal
 from jurs.solvers._least_squares import DEFAULT_RIDGE, solve_normal_equations
 
 # Every test here takes several seconds (compiles and long iterations): make test-fast skips them.
@@ -202,7 +202,7 @@ def test_float32_runs(example1_9x9):
     # The float32 system is singular at rounding level: whether its Cholesky factor exists
     # depends on the device's rounding. Where it does not, CG solves (see solve_by_default
     # and test_float32_dense_solve_falls_back_to_cg), and in float32 stops at its step cap.
-    # On a GPU this also needs full-precision products (jurs._precision): with TF32 the
+    # On a GPU this also needs full-precision products (jurs._model.precision): with TF32 the
     # energy here ended 3.9 times the minimum.
     assert sol.result in (jurs.RESULTS.successful, jurs.RESULTS.max_steps_reached)
     assert np.isfinite(float(sol.metrics["E"]))

@@ -16,7 +16,9 @@ import pytest
 from scipy.spatial import cKDTree
 
 import jurs
-from jurs import _lattice, _mesh, datasets
+from jurs import datasets
+from jurs._model import lattice as _lattice
+from jurs.levelset import _surfaces as _mesh
 
 pytest.importorskip("skimage")
 pytest.importorskip("trimesh")

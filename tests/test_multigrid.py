@@ -1,4 +1,4 @@
-"""Geometric multigrid for stencil systems (jurs._multigrid): transfer, Galerkin operators,
+"""Geometric multigrid for stencil systems (jurs._linalg.multigrid): transfer, Galerkin operators,
 patch smoother, and solves against direct ones.
 
 Systems are built in NumPy/SciPy (dense B-spline collocation of Example 1's curve and its
@@ -16,8 +16,8 @@ import scipy.linalg as sla
 from scipy.interpolate import BSpline
 
 import jurs
-from jurs import _multigrid as mg
-from jurs import _normal
+from jurs._linalg import multigrid as mg
+from jurs._linalg import normal as _normal
 
 #: Every test here compiles solvers for seconds: the whole module is slow.
 pytestmark = pytest.mark.slow
@@ -69,7 +69,7 @@ def dense_to_stencil(a, shape):
 
 def laplacian(shape):
     """jurs' grid Laplacian (free boundary) as a dense matrix: a sum over axes of path
-    Laplacians (NumPy; jurs._normal.laplacian_stencil's matrix)."""
+    Laplacians (NumPy; jurs._linalg.normal.laplacian_stencil's matrix)."""
     out = 0
     for axis, n in enumerate(shape):
         path = np.diag(np.r_[1.0, np.full(n - 2, 2.0), 1.0]) - np.eye(n, k=1) - np.eye(n, k=-1)

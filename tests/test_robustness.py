@@ -12,7 +12,7 @@ import pytest
 from conftest import PAPER
 
 import jurs
-from jurs import _problem
+from jurs._problem import problem as _problem
 
 CHEAP = dict(grid=(6, 6), offset=0.1, eps=0.01, solver=jurs.IPIA(max_steps=2))
 
@@ -215,7 +215,7 @@ def test_memory_refused_up_front(cloud, monkeypatch):
     with pytest.raises(ValueError, match=r"resolution=30000 needs about .* GiB"):
         jurs.levelset.analyze(sol.spline, cloud[0], resolution=30000)
     # The estimate of a default fit is far below (the limit is not in the way).
-    assert jurs._fit.fit_memory((96, 96), 3000, jurs.LeastSquares()) < 128 << 20
+    assert jurs._fit.fit.fit_memory((96, 96), 3000, jurs.LeastSquares()) < 128 << 20
 
 
 def test_load_spline_checks_values(tmp_path):
@@ -278,7 +278,7 @@ def test_sparse_cloud_with_an_automatic_bucket_size():
     """A concrete cloud too large for the table layout and sparser than 2 samples an
     occupied cell (automatic bucket size 1) raised a TypeError from make_problem."""
     rng = np.random.default_rng(0)
-    m = jurs._problem.TABLE_MAX_SLOTS // 3 + 1000
+    m = jurs._problem.problem.TABLE_MAX_SLOTS // 3 + 1000
     points = rng.uniform(-10.0, 10.0, (m, 2))
     normals = rng.normal(size=points.shape)
     normals /= np.linalg.norm(normals, axis=1)[:, None]

@@ -1,4 +1,4 @@
-"""Fits of clouds sharded over several devices (jurs._sharding, docs/sharding.md).
+"""Fits of clouds sharded over several devices (jurs._fit.sharding, docs/sharding.md).
 
 JAX fixes its device count when it starts, so the multi-device checks run in a child
 process with four CPU devices (``--xla_force_host_platform_device_count``), each fit
@@ -18,7 +18,7 @@ import numpy as np
 import pytest
 
 import jurs
-from jurs._sharding import input_sharding, place_fit, spans_processes
+from jurs._fit.sharding import input_sharding, place_fit, spans_processes
 
 #: The module fixture runs fits on forced devices in a process of its own (about 30 s).
 pytestmark = pytest.mark.slow
@@ -30,8 +30,9 @@ CHILD = textwrap.dedent(
     import jax, jax.numpy as jnp, numpy as np
     from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
     import jurs
-    from jurs import _fit, _problem
-    from jurs._sharding import place_fit
+    from jurs._fit import fit as _fit
+    from jurs._problem import problem as _problem
+    from jurs._fit.sharding import place_fit
 
     assert len(jax.devices()) == 4 and jnp.result_type(float) == jnp.float64
     mesh = Mesh(np.array(jax.devices()), ("points",))
@@ -69,7 +70,7 @@ CHILD = textwrap.dedent(
 
     # A surface's normal equations summed a chunk at a time (3 x 24000 samples, more than
     # a chunk a device): per device, then all-reduced; no chunk gathered.
-    from jurs._normal import normal_equations
+    from jurs._linalg.normal import normal_equations
 
     s3, n3 = jurs.datasets.sphere3d(24000)
     grid3 = (6, 6, 6)

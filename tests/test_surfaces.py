@@ -11,8 +11,8 @@ import pytest
 from scipy.interpolate import BSpline
 
 import jurs
-from jurs import _normal
-from jurs._spline import bspline_transpose, bspline_values, local_basis
+from jurs._linalg import normal as _normal
+from jurs._model.spline import bspline_transpose, bspline_values, local_basis
 
 SHAPE = (6, 7, 5)
 LOWER = np.array([-1.0, -2.0, 0.0])
@@ -127,8 +127,8 @@ def test_surface_fit_recovers_a_sphere(sphere):
 def test_automatic_settings_in_3d(sphere):
     settings = jurs.auto_settings(*sphere)
     assert len(settings.grid) == 3 and len(settings.domain[0]) == 3
-    assert max(settings.grid) <= jurs._defaults.DEFAULT_MAX_GRID_3D
-    assert settings.smoothing == jurs._defaults.CLEAN_SURFACE_SMOOTHING  # exact samples
+    assert max(settings.grid) <= jurs._fit.settings.DEFAULT_MAX_GRID_3D
+    assert settings.smoothing == jurs._fit.settings.CLEAN_SURFACE_SMOOTHING  # exact samples
     # Exact samples of a smooth surface: only the quadratic's misfit to the sphere (its
     # fourth-order term over a few spacings).
     assert settings.noise < 1e-2 * settings.spacing
@@ -258,7 +258,7 @@ def test_surface_values_are_gathered_a_block_at_a_time(monkeypatch, rng, parts):
     gather; two grids evaluated in one pass."""
     import dataclasses
 
-    from jurs import _spline
+    from jurs._model import spline as _spline
 
     x = rng.uniform(LOWER, UPPER, size=(1000, 3))
     local = dataclasses.replace(local_basis(jnp.asarray(x), LOWER, UPPER, SHAPE), parts=parts)

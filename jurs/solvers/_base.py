@@ -9,9 +9,9 @@ import equinox as eqx
 import jax.numpy as jnp
 from jax import Array
 
-from .._problem import Problem
-from .._solution import RESULTS
-from .._spline import ImplicitSpline
+from .._model.spline import ImplicitSpline
+from .._problem.problem import Problem
+from .._solution.solution import RESULTS
 
 State = TypeVar("State")
 
@@ -34,10 +34,10 @@ class AbstractSolver(eqx.Module, Generic[State]):
     #: Whether :func:`jurs.fit` may compile this solver with :data:`jurs.COMPILER_OPTIONS`
     #: (floating-point reassociation) on large problems. True only for solvers measured to
     #: move at rounding level with them; an outside optimiser that wanders near its minimum
-    #: can end elsewhere (see :mod:`jurs._compile`).
+    #: can end elsewhere (see :mod:`jurs._fit.compile`).
     reassociation_safe: ClassVar[bool] = False
     #: Whether the solver works sample by sample and holds a few grids, never the
-    #: normal equations' stencil (its memory estimate, :func:`jurs._problem.fit_memory`).
+    #: normal equations' stencil (its memory estimate, :func:`jurs._problem.problem.fit_memory`).
     per_sample_iterations: ClassVar[bool] = False
 
     @abc.abstractmethod

@@ -28,10 +28,10 @@ import lineax as lx
 import numpy as np
 from jax import Array
 
-from .._basis import cubic_weights
-from .._normal import normal_equations
-from .._problem import Problem
-from .._spline import local_basis
+from .._linalg.normal import normal_equations
+from .._model.basis import cubic_weights
+from .._model.spline import local_basis
+from .._problem.problem import Problem
 
 #: Largest number of coefficients of the coarsest level (solved by dense Cholesky: at
 #: 12^3 = 1728 about 0.1 s on a 2-core CPU, at 16^3 = 4096 3 s).
@@ -103,7 +103,8 @@ def level_stride(problem: Problem, shape: tuple[int, ...]) -> int:
 
 def level_lam(lam, fine: tuple[int, ...], coarse: tuple[int, ...]):
     """The lambda that weighs the regulariser on the ``coarse`` grid as ``lam`` does on the
-    ``fine`` one: R of a fixed g grows as ``h^(2 - d)`` (:func:`jurs._defaults.scale_free_lam`)."""
+    ``fine`` one: R of a fixed g grows as ``h^(2 - d)``
+    (:func:`jurs._fit.settings.scale_free_lam`)."""
     ratio = (fine[0] - 3) / (coarse[0] - 3)  # h_coarse / h_fine
     return lam * ratio ** (len(fine) - 2)
 

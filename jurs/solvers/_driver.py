@@ -7,12 +7,12 @@ import equinox.internal as eqxi
 import jax
 import jax.numpy as jnp
 
-from .._energy import layout_residuals
-from .._energy import metrics as compute_metrics
-from .._precision import full_precision
-from .._problem import Problem, values_by_point
-from .._solution import RAISED_RESULTS, RESULTS, Solution, error_message, unusable
-from .._spline import ImplicitSpline
+from .._model.precision import full_precision
+from .._model.spline import ImplicitSpline
+from .._problem.energy import layout_residuals
+from .._problem.energy import metrics as compute_metrics
+from .._problem.problem import Problem, values_by_point
+from .._solution.solution import RAISED_RESULTS, RESULTS, Solution, error_message, unusable
 from ._base import AbstractSolver
 
 #: A fit whose stop rule was met but whose own sign is wrong at more than this fraction of

@@ -12,10 +12,10 @@ import numpy as np
 from jax import Array
 from jax.core import Tracer
 
-from .._energy import objective
-from .._normal import DEFAULT_CHUNK, NormalEquations, normal_equations
-from .._problem import Problem, check_nonnegative, values_by_point
-from .._spline import ImplicitSpline, bspline_values
+from .._linalg.normal import DEFAULT_CHUNK, NormalEquations, normal_equations
+from .._model.spline import ImplicitSpline, bspline_values
+from .._problem.energy import objective
+from .._problem.problem import Problem, check_nonnegative, values_by_point
 from ._base import AbstractSolver
 from ._least_squares import DEFAULT_RIDGE, LeastSquares, LeastSquaresState
 from ._robust import slot_points

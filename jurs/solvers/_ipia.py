@@ -8,10 +8,10 @@ import equinox as eqx
 import jax.numpy as jnp
 from jax import Array
 
-from .._energy import bspline_residuals, step_size
-from .._normal import NormalEquations, normal_equations
-from .._problem import Problem, check_count, check_nonnegative
-from .._spline import ImplicitSpline, bspline_transpose
+from .._linalg.normal import NormalEquations, normal_equations
+from .._model.spline import ImplicitSpline, bspline_transpose
+from .._problem.energy import bspline_residuals, step_size
+from .._problem.problem import Problem, check_count, check_nonnegative
 from ._base import AbstractSolver
 
 

@@ -8,15 +8,15 @@ import equinox as eqx
 import jax.numpy as jnp
 from jax import Array
 
-from .._energy import (
+from .._model.spline import ImplicitSpline, transpose_and_sum
+from .._problem.energy import (
     layout_residuals,
     regulariser,
     regulariser_grad,
     step_size_from_column_sums,
 )
-from .._problem import Problem, check_count, check_nonnegative
-from .._solution import RESULTS
-from .._spline import ImplicitSpline, transpose_and_sum
+from .._problem.problem import Problem, check_count, check_nonnegative
+from .._solution.solution import RESULTS
 from ._base import AbstractSolver
 
 #: More than this fraction of the weights at ``min_weight`` ends a run with

@@ -15,10 +15,10 @@ import jax.numpy as jnp
 from jax import Array
 from jax.flatten_util import ravel_pytree
 
-from .._energy import objective
-from .._problem import Problem, check_nonnegative
-from .._solution import RESULTS
-from .._spline import ImplicitSpline
+from .._model.spline import ImplicitSpline
+from .._problem.energy import objective
+from .._problem.problem import Problem, check_nonnegative
+from .._solution.solution import RESULTS
 from . import _parameterisation as param
 from ._base import AbstractSolver
 

@@ -11,9 +11,8 @@ import lineax as lx
 import numpy as np
 from jax import Array
 
-from .._energy import objective
-from .._multigrid import Multigrid
-from .._normal import (
+from .._linalg.multigrid import Multigrid
+from .._linalg.normal import (
     DEFAULT_CHUNK,
     DIRECT_MAX_ENTRIES,
     HALF,
@@ -22,9 +21,10 @@ from .._normal import (
     stencil_matvec,
     stencil_to_dense,
 )
-from .._problem import Problem, check_nonnegative
-from .._solution import RESULTS
-from .._spline import ImplicitSpline
+from .._model.spline import ImplicitSpline
+from .._problem.energy import objective
+from .._problem.problem import Problem, check_nonnegative
+from .._solution.solution import RESULTS
 from ._base import AbstractSolver
 from ._cascade import cascadic_start
 
@@ -70,7 +70,7 @@ def surface_linear_solver(rhs: Array) -> lx.AbstractLinearSolver:
     Jacobi-preconditioned CG on the stencil to :data:`SURFACE_RTOL`, started from the
     cascade of coarser grids (:mod:`jurs.solvers._cascade`). No direct factorisation fits
     here (a block Cholesky of grid planes of a 64^3 grid would store 64 dense blocks of
-    64^4 entries each), and :class:`jurs._multigrid.Multigrid` measured slower and 7x
+    64^4 entries each), and :class:`jurs._linalg.multigrid.Multigrid` measured slower and 7x
     larger (a 24^3 sphere fit of 2e4 points on a 2-core CPU: 4.2 s and 5.6 GB against
     2.5 s and 0.8 GB for CG).
 
@@ -110,7 +110,7 @@ def _is_matrix_free(solver: lx.AbstractLinearSolver) -> bool:
 
 
 def _direct_stencil_solve(stencil: Array, rhs: Array) -> Array:
-    """:func:`jurs._normal.stencil_cholesky_solve`, differentiated implicitly like a lineax
+    """:func:`jurs._linalg.normal.stencil_cholesky_solve`, differentiated implicitly like a lineax
     solve (``lax.custom_linear_solve``: the adjoint system is solved by the same
     factorisation). Non-finite where the factorisation breaks down."""
     return jax.lax.custom_linear_solve(
@@ -151,7 +151,7 @@ def solve_normal_equations(
     positive definite whenever the data determine it. Matrix-free solvers (CG, BiCGStab,
     GMRES) get the stencil as an operator and a Jacobi preconditioner; others the
     assembled ``NM x NM`` matrix; ``None`` the block Cholesky of the stencil
-    (:func:`jurs._normal.stencil_cholesky_solve`, with CG if it breaks down). ``fallback``
+    (:func:`jurs._linalg.normal.stencil_cholesky_solve`, with CG if it breaks down). ``fallback``
     solves instead where the solve's C is not finite (a factorisation that broke down).
     Returns ``(C, lineax result)``.
     """
@@ -202,8 +202,8 @@ class LeastSquares(AbstractSolver[LeastSquaresState]):
     the assembled matrix for grids up to :data:`DENSE_MAX_COEFFICIENTS` coefficients (where
     it breaks down, as a numerically singular system can: LU in float64, CG in float32);
     above, a block Cholesky of the stencil in grid lines when ``lam > 0``
-    (:func:`jurs._normal.stencil_cholesky_solve`, up to
-    :data:`jurs._normal.DIRECT_MAX_ENTRIES`, 256 x 256) and Jacobi-preconditioned CG when
+    (:func:`jurs._linalg.normal.stencil_cholesky_solve`, up to
+    :data:`jurs._linalg.normal.DIRECT_MAX_ENTRIES`, 256 x 256) and Jacobi-preconditioned CG when
     ``lam = 0`` or beyond; or the lineax ``linear_solver`` given. One driver step; the result is the
     point the paper's iterations (I-PIA, eq. 11; IURS's eq. 33 with fixed w) converge to.
 
@@ -215,7 +215,7 @@ class LeastSquares(AbstractSolver[LeastSquaresState]):
             eq. 23.
         linear_solver: a lineax solver for the symmetric positive (semi-)definite system;
             default (None) per grid size and lam, as above. ``Multigrid()``
-            (:mod:`jurs._multigrid`: knot-insertion multigrid-preconditioned CG, 2D or 3D)
+            (:mod:`jurs._linalg.multigrid`: knot-insertion multigrid-preconditioned CG, 2D or 3D)
             is never chosen by default: on a 2-core CPU it was slower than the direct
             solves at 128 x 128 and 256 x 256 (docs/multigrid.md).
         chunk_size: samples accumulated at once when assembling rational rows.

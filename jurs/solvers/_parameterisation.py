@@ -18,10 +18,10 @@ from typing import cast
 import jax.numpy as jnp
 from jax import Array
 
-from .._energy import residuals
-from .._normal import normal_equations
-from .._problem import Problem
-from .._spline import ImplicitSpline
+from .._linalg.normal import normal_equations
+from .._model.spline import ImplicitSpline
+from .._problem.energy import residuals
+from .._problem.problem import Problem
 from ._least_squares import DEFAULT_RIDGE, solve_by_default
 
 

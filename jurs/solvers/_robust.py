@@ -10,10 +10,10 @@ import jax.numpy as jnp
 import lineax as lx
 from jax import Array
 
-from .._energy import bspline_residuals, regulariser
-from .._normal import DEFAULT_CHUNK
-from .._problem import Problem, check_count, check_nonnegative
-from .._spline import ImplicitSpline
+from .._linalg.normal import DEFAULT_CHUNK
+from .._model.spline import ImplicitSpline
+from .._problem.energy import bspline_residuals, regulariser
+from .._problem.problem import Problem, check_count, check_nonnegative
 from ._base import AbstractSolver
 from ._least_squares import DEFAULT_RIDGE, LeastSquares, LeastSquaresState
 

@@ -1,7 +1,7 @@
 """Geometric multigrid for stencil systems: the normal equations ``(D^T D + 2 lam L) C = D^T b``.
 
 One code path for grids of any dimension d (2D curves, 3D surfaces): a stencil is an array
-``grid_shape + (7,) * d`` (:mod:`jurs._normal`), and every operation here (transfer, coarse
+``grid_shape + (7,) * d`` (:mod:`jurs._linalg.normal`), and every operation here (transfer, coarse
 operators, smoothing, coarsest solve) works axis by axis. Design and measurements:
 ``docs/multigrid.md``.
 
@@ -45,7 +45,7 @@ import lineax as lx
 import numpy as np
 from jax import Array
 
-from ._normal import HALF, SIDE, stencil_matvec, stencil_ndim, stencil_to_dense
+from .normal import HALF, SIDE, stencil_matvec, stencil_ndim, stencil_to_dense
 
 #: Uniform cubic B-spline subdivision mask: coarse function ``I`` is ``sum_a MASK[a]`` times
 #: fine function ``2 I - 3 + a``.

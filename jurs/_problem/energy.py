@@ -1,6 +1,6 @@
 """Energies, metrics, the PIA step size and the hand-derived gradients.
 
-Everything is written with the two linear maps of :mod:`jurs._spline`: ``F`` (coefficient
+Everything is written with the two linear maps of :mod:`jurs._model.spline`: ``F`` (coefficient
 grid -> values at the samples) and its transpose ``T``. With ``W = F(w)``:
 
 * ``g = F(w C) / W`` (eq. 14) and the collocation transpose ``D^T v = w * T(v / W)``;
@@ -17,9 +17,8 @@ import jax
 import jax.numpy as jnp
 from jax import Array
 
-from ._basis import num_cells, patches_to_grid
-from ._problem import Problem
-from ._spline import (
+from .._model.basis import num_cells, patches_to_grid
+from .._model.spline import (
     ImplicitSpline,
     LocalBasis,
     bspline_transpose,
@@ -29,6 +28,7 @@ from ._spline import (
     transpose_and_sum,
     values_apart,
 )
+from .problem import Problem
 
 
 def rational_residuals(problem: Problem, control: Array, weights: Array):
@@ -155,7 +155,7 @@ def step_size_from_column_sums(column_sums: Array) -> Array:
 def residuals(problem: Problem, control: Array, weights: Array):
     """Residuals with the explicit collocation rows of eq. 23, for row-based algorithms
     and checks: ``(r, wb, denom, g)`` with row ``k`` of D equal to ``wb[k] / denom[k]``
-    (see :func:`jurs._spline.rational_terms`). ``r`` is 0 at padding slots."""
+    (see :func:`jurs._model.spline.rational_terms`). ``r`` is 0 at padding slots."""
     wb, denom, g = rational_terms(problem.local, control, weights)
     return problem.mask * (g - problem.targets), wb, denom, g
 

@@ -20,9 +20,9 @@ import numpy as np
 from jax import Array
 from jax.core import Tracer
 
-from ._basis import flat_cell, locate, num_cells
-from ._compile import padded_count, round_size
-from ._spline import TABLE_MAX_SLOTS, LocalBasis, local_basis, with_table
+from .._model.basis import flat_cell, locate, num_cells
+from .._model.spline import TABLE_MAX_SLOTS, LocalBasis, local_basis, with_table
+from .sizes import padded_count, round_size
 
 #: Default margin added around the samples' bounding box, as a fraction of its longest side.
 DEFAULT_MARGIN = 0.1
@@ -33,7 +33,7 @@ class Problem(eqx.Module):
 
     Build it with :func:`make_problem`. Every per-sample array (``samples``, ``targets``,
     ``mask``, ``is_data``, ``local``) is indexed the same way, by *slot*: the 3m samples of
-    eq. 4 regrouped into buckets that share a cell (see :mod:`jurs._spline`), plus padding
+    eq. 4 regrouped into buckets that share a cell (see :mod:`jurs._model.spline`), plus padding
     slots with ``mask`` 0. ``sample_index`` maps each slot to the paper's order (eq. 9: the
     m data points, then the outer, then the inner offsets). With ``bucket_size`` 1 the slots
     are exactly the paper's order. ``shape`` is static; all other fields are arrays, so a
@@ -139,7 +139,7 @@ def stable_layout(
 ):
     """:func:`bucket_layout` of the real samples (``sample_mask`` > 0), sized from the
     number of slots (padding included) and the occupied cells rounded up by
-    :func:`jurs._compile.round_size`, not from the exact counts: clouds padded to one size
+    :func:`jurs._problem.sizes.round_size`, not from the exact counts: clouds padded to one size
     (:func:`jurs.fit`) whose samples occupy about as many cells get the same shapes, so one
     compiled fit. Padding samples take no bucket.
 
@@ -551,7 +551,7 @@ def _choose_layout(cells, sample_mask, count, bucket_size, concrete, small, stab
     table = layout = None
     if concrete and bucket_size in (None, 1) and small:
         # Small problems keep the paper's order, one sample a slot; the table form groups
-        # them into buckets of its own (see jurs._spline).
+        # them into buckets of its own (see jurs._model.spline).
         if stable_shapes:
             order, real, k = stable_layout(cells, sample_mask, count, small=True)
         else:
@@ -634,12 +634,12 @@ def make_problem(
             the fit, the box or the metrics. Lets clouds of different sizes share one shape
             so that a fit can be ``jax.vmap``-ed over a padded batch.
         bucket_size: samples per bucket of the slot layout. ``None`` chooses: up to
-            :data:`jurs._spline.TABLE_MAX_SLOTS` samples the paper's order, one sample a
-            slot, with the table form of :mod:`jurs._spline` (its own buckets, built on the
+            :data:`jurs._model.spline.TABLE_MAX_SLOTS` samples the paper's order, one sample a
+            slot, with the table form of :mod:`jurs._model.spline` (its own buckets, built on the
             host); above, buckets of :func:`choose_bucket_size`. 1 keeps the paper's order
             (with the table form when small and concrete). Sizes above 1 need concrete
             (untraced) inputs: the layout is computed on the host. 3D problems always
-            take one sample a slot (the generic form of :mod:`jurs._spline`).
+            take one sample a slot (the generic form of :mod:`jurs._model.spline`).
         dtype: floating dtype; default float64 when ``jax_enable_x64`` is on, else float32.
         stable_shapes: size a concrete problem's sample layout from the number of points
             and the rounded number of occupied cells (:func:`stable_layout`), so that
@@ -900,7 +900,7 @@ def values_by_point(values: Array, sample_index: Array, real: Array, num_points:
 
 
 def padded_cloud(points, normals):
-    """``(points, normals, mask)`` padded to :func:`jurs._compile.padded_count` points with
+    """``(points, normals, mask)`` padded to :func:`jurs._problem.sizes.padded_count` points with
     masked-out copies of the first point (inside any box the cloud fits in), or None where
     the inputs are traced or malformed (make_problem then reports them as given).
 
@@ -933,7 +933,7 @@ def padded_problem(
     """:func:`make_problem` of the cloud, padded (:func:`padded_cloud`) when it has no mask.
 
     ``support``: optional ``(m,)`` weights of the caller's points (0 sets a point aside,
-    :func:`jurs._defaults.isolated_points`), multiplied into the mask."""
+    :func:`jurs._fit.settings.isolated_points`), multiplied into the mask."""
     # The problem is built outside the solver's jit: its sample layout is chosen on the
     # host from concrete data (see make_problem); under a caller's jit/grad/vmap it is traced.
     padded = padded_cloud(points, normals) if mask is None else None

@@ -17,7 +17,7 @@ solve's memory and work over the devices, not the host's.
 
 Over several processes (``jax.distributed``: points and normals global arrays that are not
 fully addressable, :func:`spans_processes`) :func:`jurs.fit` hands over to
-``jurs._fit.fit_across_processes``: each process builds the layout of its own rows only
+``jurs._fit.fit.fit_across_processes``: each process builds the layout of its own rows only
 (:func:`process_problem`, the bucketed layout for curves, one sample a slot for
 surfaces), the processes agree on the bucket size and on the slot count (two small
 all-gathers), pad to it, and the per-slot arrays are assembled with
@@ -27,7 +27,7 @@ the automatic settings (grid, offset, eps, domain and solver must be given), the
 estimation of normals, the orientation and doubt checks, the padding to stable sizes.
 
 The slot count is padded to a whole number of buckets a device with masked-out copies of
-the last bucket (the padding convention of :func:`jurs._problem.bucket_layout`), which the
+the last bucket (the padding convention of :func:`jurs._problem.problem.bucket_layout`), which the
 solvers leave out of every sum; a sharded fit therefore equals the one-device fit up to
 the order of the sums (rounding). Each device's cells stay sorted (its part of one
 process's layout, sorted by cell), as the per-device sums onto the grid declare
@@ -45,8 +45,9 @@ import numpy as np
 from jax.core import Tracer
 from jax.sharding import NamedSharding, PartitionSpec
 
-from ._basis import flat_cell, locate, num_cells
-from ._problem import (
+from .._model.basis import flat_cell, locate, num_cells
+from .._model.spline import LocalBasis
+from .._problem.problem import (
     Problem,
     _surface_bucket_size,
     check_memory,
@@ -57,7 +58,6 @@ from ._problem import (
     unit_normals,
     validate_inputs,
 )
-from ._spline import LocalBasis
 
 
 def _point_sharding(x) -> NamedSharding | None:
@@ -183,7 +183,7 @@ def shard_problem(problem: Problem, sharding: NamedSharding) -> Problem:
     ``problem`` up to the order of its sums."""
     shards = _axis_size(sharding)
     problem, axes = _padded_problem(problem, shards)
-    # Chunked sums over the slots run per device (jurs._normal.chunked_segment_sum).
+    # Chunked sums over the slots run per device (jurs._linalg.normal.chunked_segment_sum).
     problem = eqx.tree_at(
         lambda p: p.local, problem, dataclasses.replace(problem.local, parts=shards)
     )
@@ -237,7 +237,7 @@ PROCESS_SETTINGS = ("grid", "offset", "eps", "domain", "solver")
 
 def spans_processes(points, normals) -> bool:
     """Whether ``points`` or ``normals`` is a concrete ``jax.Array`` on the devices of
-    several processes (not fully addressable): ``jurs._fit.fit_across_processes``
+    several processes (not fully addressable): ``jurs._fit.fit.fit_across_processes``
     fits those."""
     return any(
         isinstance(x, jax.Array) and not isinstance(x, Tracer) and not x.is_fully_addressable
@@ -301,7 +301,7 @@ def _in_process(error: Exception) -> Exception:
 
 
 def _local_bucket_size(points, normals, offset, shape, domain) -> int:
-    """The automatic bucket size (:func:`jurs._problem.choose_bucket_size`) of this
+    """The automatic bucket size (:func:`jurs._problem.problem.choose_bucket_size`) of this
     process's samples."""
     n = unit_normals(np.asarray(normals, float))
     p = np.asarray(points, float)
@@ -323,7 +323,7 @@ def process_problem(
     point order, so per-point sums see one cloud. Box, offset and eps replicated. Every
     process calls this (it runs two small all-gathers: the bucket size, the slot count);
     an input error in one process is raised in all. ``solver``: checks the memory of
-    this process's share of the fit (:func:`jurs._problem.fit_memory`)."""
+    this process's share of the fit (:func:`jurs._problem.problem.fit_memory`)."""
     sharding = input_sharding(points, normals)
     assert sharding is not None
     shards = _axis_size(sharding)

@@ -11,10 +11,9 @@ import jax.numpy as jnp
 import numpy as np
 from jax.core import Tracer
 
-from ._compile import COMPILER_OPTIONS, call_stored
-from ._defaults import auto_settings, feature_width, strided_probes
-from ._io import SPLINE_KEYS, check_spline_arrays
-from ._problem import (
+from .._model.io import SPLINE_KEYS, check_spline_arrays
+from .._model.spline import ImplicitSpline
+from .._problem.problem import (
     DEFAULT_MARGIN,
     _is_concrete,
     _shape,
@@ -27,7 +26,11 @@ from ._problem import (
     tangential_normal_fraction,
     unit_normals,
 )
-from ._sharding import (
+from .._solution.solution import RAISED_RESULTS, RESULTS, Solution, error_message
+from ..solvers import AbstractSolver, LeastSquares, RobustLeastSquares, solve
+from .compile import COMPILER_OPTIONS, call_stored
+from .settings import auto_settings, feature_width, strided_probes
+from .sharding import (
     PROCESS_SETTINGS,
     input_sharding,
     is_sharded,
@@ -36,9 +39,6 @@ from ._sharding import (
     replicate_across_processes,
     spans_processes,
 )
-from ._solution import RAISED_RESULTS, RESULTS, Solution, error_message
-from ._spline import ImplicitSpline
-from .solvers import AbstractSolver, LeastSquares, RobustLeastSquares, solve
 
 
 def _as_arrays(tree, dtype):
@@ -49,8 +49,8 @@ def _as_arrays(tree, dtype):
 
 
 #: More than this fraction of the points with normals flipped against their neighbours
-#: (:func:`jurs._problem.flipped_normal_fraction`), or with normals along the curve
-#: (:func:`jurs._problem.tangential_normal_fraction`), makes a fit
+#: (:func:`jurs._problem.problem.flipped_normal_fraction`), or with normals along the curve
+#: (:func:`jurs._problem.problem.tangential_normal_fraction`), makes a fit
 #: ``inconsistent_normals``: consistent clouds measured 0 and at most 0.03 (0.12 flipped
 #: on a horse sampled coarser than its legs); half or every other normal flipped 0.5,
 #: random normals about 0.5 along the curve.
@@ -115,7 +115,7 @@ DOUBT_PROBES = 20000
 #: this), so that a new cloud reuses their compiled evaluations: with a count of its
 #: own, each new cloud of Example 1 (3000-3300 points, grid 64) spent 0.56-0.62 s
 #: compiling them, most of its 0.66-0.70 s fit. Powers of two, not the fit's own ladder
-#: (:func:`jurs._compile.round_size`, four sizes an octave): padding these evaluations
+#: (:func:`jurs._problem.sizes.round_size`, four sizes an octave): padding these evaluations
 #: costs milliseconds, a compilation about half a second, and the count of pairs across
 #: thin parts varies from cloud to cloud within one of the fit's size bands.
 MIN_CHECK_BUCKET = 1024
@@ -171,7 +171,7 @@ def far_point_fraction(spline: ImplicitSpline, points, offset: float) -> tuple[f
 def crossed_features(spline: ImplicitSpline, points, normals, spacing: float) -> int:
     """How many of ``points`` (at most :data:`DOUBT_PROBES`, evenly strided) face a point
     less than a cell away across a thin part or a narrow gap
-    (:func:`jurs._defaults.feature_width`) while the fit puts the midpoint between the two
+    (:func:`jurs._fit.settings.feature_width`) while the fit puts the midpoint between the two
     on the wrong side: outside for a thin part (normals pointing away from each other),
     inside for a gap. Each such pair is a part cut or a gap bridged by the zero set."""
     p, n = np.asarray(points, float), unit_normals(np.asarray(normals, float), np)
@@ -252,7 +252,7 @@ def _estimated_normals(points, mask):
             "normals=None estimates normals on the host from concrete points; "
             "under jit, grad or vmap pass normals (jurs.estimate_normals)"
         )
-    from ._orientation import estimate_normals  # SciPy's graphs: loaded when first needed
+    from .._cloud.normals import estimate_normals  # SciPy's graphs: loaded when first needed
 
     normals, info = estimate_normals(points, return_info=True)
     return normals, {k: v for k, v in info._asdict().items() if k != "confidence"}
@@ -429,9 +429,9 @@ def fit_across_processes(
     throw,
 ):
     """:func:`jurs.fit` of points and normals held by several processes (global
-    ``jax.Array`` s split along the point axis, :func:`jurs._sharding.spans_processes`);
+    ``jax.Array`` s split along the point axis, :func:`jurs._fit.sharding.spans_processes`);
     every process calls it with the same settings. The sample layout is built per process
-    (:func:`jurs._sharding.process_problem`), the solve is the one jitted function over
+    (:func:`jurs._fit.sharding.process_problem`), the solve is the one jitted function over
     all devices, and the fitted spline is replicated on every device. What reads the whole
     cloud on a host is not run: the automatic settings (ValueError unless ``grid``,
     ``offset``, ``eps``, ``domain`` and ``solver`` are given), the estimation of normals,
@@ -542,7 +542,7 @@ def fit(
         given (automatic choices need concrete points; input checks run only on concrete
         inputs).
 
-    Large problems (more than :data:`jurs._spline.TABLE_MAX_SLOTS` samples, or
+    Large problems (more than :data:`jurs._model.spline.TABLE_MAX_SLOTS` samples, or
     ``bucket_size > 1`` given) fitted by jurs's own solvers outside any JAX transformation
     are compiled with :data:`jurs.COMPILER_OPTIONS`, which vectorise their per-bucket sums
     (``benchmarks/results/speed.md`` times the IURS step at 1e6 points with and without
@@ -550,10 +550,10 @@ def fit(
     level.
 
     Shape-stable: a concrete cloud without a ``mask`` is padded to one of four sizes an
-    octave (:func:`jurs._compile.padded_count`: ..., 896, 1024, 1280, 1536, ...) with
+    octave (:func:`jurs._problem.sizes.padded_count`: ..., 896, 1024, 1280, 1536, ...) with
     masked-out points, and its sample layout sized from that, so that a new cloud of a
     similar size reuses the compiled fit instead of compiling again; automatic grids are
-    rounded up likewise (:func:`jurs._defaults.choose_grid`). The padding changes the result
+    rounded up likewise (:func:`jurs._fit.settings.choose_grid`). The padding changes the result
     only at rounding level. With :func:`jurs.enable_compilation_cache`, new processes load
     compiled (and traced) fits from the cache folder.
 
@@ -565,7 +565,7 @@ def fit(
     ``domain`` and ``solver`` given, and skip the checks that read the whole cloud
     (docs/sharding.md).
     """
-    if spans_processes(points, normals):  # each process lays out its own part (jurs._sharding)
+    if spans_processes(points, normals):  # each process lays out its own part (jurs._fit.sharding)
         args = grid, solver, offset, eps, domain, margin, init, mask, bucket_size, smoothing, throw
         return fit_across_processes(points, normals, *args)
     estimated, solver_given = None, solver
@@ -584,7 +584,7 @@ def fit(
     problem = padded_problem(
         points, normals, mask, shape, offset, eps, domain, margin, bucket_size, dtype, support
     )
-    # Points sharded over several devices: the problem split over them (jurs._sharding).
+    # Points sharded over several devices: the problem split over them (jurs._fit.sharding).
     problem, solver, init = place_fit(points, normals, problem, _as_arrays(solver, dtype), init)
     sol = _solve_fit(problem, solver, init, throw, given, settings)
     if estimated is not None:

@@ -34,10 +34,17 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
-from ._basis import NUM_LOCAL, cell_shape, grid_to_patches, num_cells, patches_to_grid, tensor_basis
-from ._precision import full_precision
-from ._problem import Problem
-from ._spline import rational_terms
+from .._model.basis import (
+    NUM_LOCAL,
+    cell_shape,
+    grid_to_patches,
+    num_cells,
+    patches_to_grid,
+    tensor_basis,
+)
+from .._model.precision import full_precision
+from .._model.spline import rational_terms
+from .._problem.problem import Problem
 
 if TYPE_CHECKING:  # SciPy loads when a stencil is converted, not on import
     import scipy.sparse
@@ -152,7 +159,7 @@ def _cells_to_stencil(blocks: Array, shape: tuple[int, ...]) -> Array:
     ``blocks`` is ``(cells, 16, 7, 7)``: for local term ``(a, b)`` of a cell, its coupling
     to the term at offset ``(da, db)`` (stored at ``[3 + da, 3 + db]``). Term ``(a, b)`` of
     cell ``(cx, cy)`` is coefficient ``(cx + a, cy + b)``, so this is the adjoint of the
-    patch gather (:func:`jurs._basis.patches_to_grid`) with 49 channels.
+    patch gather (:func:`jurs._model.basis.patches_to_grid`) with 49 channels.
     """
     n, m = shape[0] - 3, shape[1] - 3
     per_cell = blocks.reshape(n, m, NUM_LOCAL, SIDE, SIDE)

@@ -44,8 +44,7 @@ if TYPE_CHECKING:  # SciPy's spatial module loads on the first fit (0.3 s), not 
 import equinox as eqx
 import jax.numpy as jnp
 
-from ._compile import round_size
-from ._problem import (
+from .._problem.problem import (
     DEFAULT_MARGIN,
     _is_concrete,
     auto_domain,
@@ -58,7 +57,8 @@ from ._problem import (
     unit_normals,
     validate_inputs,
 )
-from .solvers._held_out import select_lam
+from .._problem.sizes import round_size
+from ..solvers._held_out import select_lam
 
 # Compiled once per problem shape; clouds padded to one size share it.
 _select_lam = eqx.filter_jit(select_lam)
@@ -487,7 +487,7 @@ def choose_grid(
     points: there the data need the finer grid, and the budget in coefficients (not in
     functions a side) lets elongated shapes have it cheaply.
 
-    The cell counts are then rounded up to :func:`jurs._compile.round_size` (four sizes an
+    The cell counts are then rounded up to :func:`jurs._problem.sizes.round_size` (four sizes an
     octave), so that clouds of similar size and extent get the same grid and share one
     compiled fit: cells up to 25 % narrower than chosen, never wider.
     """
@@ -505,7 +505,7 @@ def choose_grid(
 
 def _budget_cell(extent: np.ndarray) -> float:
     """The narrowest square cell whose grid over ``extent`` (with its 3 extra functions a
-    side, and :func:`jurs._compile.round_size`'s rounding up of at most 25 %) stays within
+    side, and :func:`jurs._problem.sizes.round_size`'s rounding up of at most 25 %) stays within
     :data:`MAX_FEATURE_COEFFICIENTS`."""
     budget = MAX_FEATURE_COEFFICIENTS / 1.25**extent.size
 

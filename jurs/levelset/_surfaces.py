@@ -1,6 +1,6 @@
 """Triangle meshes of the zero set of a 3D spline, and what to measure on them.
 
-:func:`mesh` samples g on a lattice slab by slab (:func:`jurs._lattice.lattice_values`),
+:func:`mesh` samples g on a lattice slab by slab (:func:`jurs._model.lattice.lattice_values`),
 runs marching cubes (scikit-image) on each slab, stitches the slabs and moves the vertices
 onto {g = 0} by Newton steps. :func:`analyze_mesh` splits a mesh into connected components
 and measures each (area, closed or open, genus, distance to the data), flagging the
@@ -18,8 +18,8 @@ from scipy import sparse
 from scipy.sparse import csgraph
 from scipy.spatial import cKDTree  # pyright: ignore[reportAttributeAccessIssue]  # no stub
 
-from ._lattice import lattice_values, spline_fields, values_and_gradients
-from .datasets import sample_mesh
+from .._model.lattice import lattice_values, spline_fields, values_and_gradients
+from ..datasets import sample_mesh
 
 #: Lattice nodes per spline cell along the finest axis for the default resolution: g is a
 #: cubic in each cell, and marching cubes sees at most one zero crossing per lattice edge,

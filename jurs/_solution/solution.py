@@ -8,7 +8,7 @@ import equinox as eqx
 import jax.numpy as jnp
 from jax import Array
 
-from ._spline import ImplicitSpline
+from .._model.spline import ImplicitSpline
 
 
 class RESULTS(eqx.Enumeration):

@@ -1,59 +1,6 @@
-"""The zero-level set of a fitted spline: extraction, supplementary components, distances.
+"""Zero sets of curves (2D splines): extraction, supplementary components, distances.
 
-A user judges an implicit fit by its zero set {g = 0}: does it follow the data, and does it
-grow extra curves away from the data (the paper's *supplementary zero-level sets*, Section
-IV)? This module measures both. It depends on NumPy, SciPy and contourpy only (no
-matplotlib), so it can run in scripts and on servers without a display.
-
-Definitions (all lengths in data units):
-
-* **Sampling grid.** g is evaluated on a regular grid over the box (default the spline's
-  own box) with ``resolution`` nodes along the longer side and the same spacing ``h`` (the
-  *cell size*) along the shorter one.
-* **Zero-level set.** The polylines of marching squares (``contourpy``, ``serial``
-  algorithm) at level 0 on that grid. Each connected polyline is a *component*; it is
-  *closed* when it returns to its start, *open* when it ends on the box border.
-* **Length** of a component: the sum of its segment lengths.
-* **Distance of a component to the data**: the distance from each segment midpoint to the
-  nearest data point (a KD-tree query), weighted by segment length. A component is
-  **supplementary** when more than half of its length lies farther than ``threshold``
-  (default ``2 d``, twice the offset of the fit, or an eighth of a cell of the fit's grid
-  where that is more: a grid capped far coarser than a dense cloud's spacing follows the
-  data to within a fraction of its cells, not to within 2 d) from the data, i.e. its
-  arc-length median
-  distance exceeds the threshold. The median, not the mean: a true curve that bridges a
-  gap in the sampling has the gap's large distances in its mean (a rose with 8 % of its
-  outline unsampled, clean data: the mean was above 2 d and flagged the curve itself) but
-  most of its length on the data, while an extra curve away from the data has most of its
-  length off it. The arc-length mean is kept too (``mean_distance``).
-* A **tiny loop** is a closed component shorter than ``tiny_cells * h`` (default 4 cells):
-  a sign flip at one or two grid nodes, at the resolution limit of the grid.
-* **Chamfer and Hausdorff distances** between the zero set Z and a reference set Y: Z is
-  resampled along its arc length at spacing ``h / 2``; with ``d(a, B) = min_b |a - b|``,
-  ``chamfer = (mean_{z in Z} d(z, Y) + mean_{y in Y} d(y, Z)) / 2`` (symmetric, mean of
-  unsquared distances) and ``hausdorff = max(max_z d(z, Y), max_y d(y, Z))``. Y is the given
-  reference curve (dense samples) or, when none is given, the data points. Against sparse
-  data points the Z -> Y half includes the gaps between points (up to half the spacing).
-  With an empty zero set both are ``inf``.
-* **Refined distances** (:func:`refined_chamfer_hausdorff`): the same two distances with
-  the sampling floor removed, for comparing accurate fits. The floor above is about
-  ``h / 8`` whatever the fit (marching squares' own error and the resampling), so two fits
-  whose zero sets lie far closer to the curve than that measure alike. Here zero-set
-  samples are moved onto the zero set by Newton steps and measured to the reference
-  polyline's segments, and reference points are projected onto the zero set the same way.
-* **Zero-area fraction**: the fraction of grid nodes where ``|g| <= zero_tol * max|g|``
-  (default ``1e-12``). Where g vanishes identically (e.g. coefficients that no sample
-  touches stay exactly 0 under I-PIA started from C = 0) the zero set is an area, not a
-  curve; the contour then traces the border of that plateau, and the component count
-  there describes the plateau's shape on the grid. A large fraction flags this case.
-* Caveat: the distance of a curve that passes through every data point is about a
-  quarter of the data spacing on average; the default threshold ``2 d`` suits clouds whose
-  spacing is below ``8 d``. Pass ``threshold`` for sparser data.
-
-For 3D splines the same questions are asked of a triangle mesh of the zero set:
-:func:`mesh`, :func:`analyze_mesh`, :func:`mesh_distances` and friends (from
-:mod:`jurs._mesh`; see docs/surfaces.md).
-"""
+The definitions are in the docstring of :mod:`jurs.levelset`."""
 
 from __future__ import annotations
 
@@ -65,8 +12,8 @@ import equinox as eqx
 import numpy as np
 from scipy.spatial import cKDTree  # pyright: ignore[reportAttributeAccessIssue]  # no stub
 
-from ._problem import check_memory
-from ._spline import ImplicitSpline
+from .._model.spline import ImplicitSpline
+from .._problem.problem import check_memory
 
 if TYPE_CHECKING:
     from contourpy._contourpy import LineReturn_SeparateCode
@@ -605,17 +552,3 @@ def polylines_table(components: Sequence[Component]) -> np.ndarray:
         for k, c in enumerate(components)
     ]
     return np.concatenate(rows) if rows else np.empty((0, 5))
-
-
-# 3D surfaces: triangle meshes of a 3D spline's zero set and what to measure on them
-# (defined in jurs._mesh, re-exported here beside their 2D counterparts).
-from ._mesh import (  # noqa: E402, F401 (re-exported)
-    MeshComponent,
-    MeshReport,
-    analyze_mesh,
-    face_areas,
-    genus,
-    mesh,
-    mesh_components,
-    mesh_distances,
-)

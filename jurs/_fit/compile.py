@@ -9,7 +9,7 @@ import os
 #:
 #: What they do: allow floating-point reassociation, so that LLVM vectorises sums that
 #: XLA's CPU backend otherwise runs as scalar accumulator chains: the per-bucket moment
-#: sums of the power form (:func:`jurs._basis.power_moments`). NaN and Inf, division and
+#: sums of the power form (:func:`jurs._model.basis.power_moments`). NaN and Inf, division and
 #: library functions keep their IEEE semantics (the ``honor`` options), so the non-finite
 #: checks of the solver driver still work. Measured effect in
 #: ``benchmarks/results/speed.md`` (1e6 points, 128 x 128).
@@ -98,38 +98,6 @@ def enable_compilation_cache(path=None, *, min_compile_time_s: float = 0.0) -> s
     return path
 
 
-#: Fewest points a fit is padded to (smaller clouds all share the size 32).
-MIN_PADDED_POINTS = 32
-
-
-def round_size(n: int) -> int:
-    """``n`` rounded up to the size ladder 1, 2, ..., 8, then 4, 5, 6, 7 times a power of
-    two (10, 12, 14, 16, 20, 24, 28, 32, 40, ...): four sizes an octave.
-
-    Shapes that XLA compiles for (point counts, grid cells, occupied cells) are rounded to
-    it, so that clouds of similar size share one compiled fit. Why four an octave: a new
-    shape costs a compilation, seconds against a warm fit's 0.01-1 s (automatic fits of
-    1e2-1e5 points on a 2-core CPU: 6-13 s of XLA compilation under load,
-    ``benchmarks/results/startup.md``), while a size rounded up by at most 25 % (10 % on
-    average over sizes) costs at most that much more work; eight an octave
-    would halve the waste and double the compilations. A size in ``[4, 8) * 2^k`` on it is
-    divisible by 2^k (a cell count halves k times), which multigrid coarsening likes.
-    """
-    n = int(n)
-    if n <= 8:
-        return max(n, 1)
-    shift = n.bit_length() - 3  # n in [4, 8) * 2^shift
-    step = 1 << shift
-    return -(-n // step) * step
-
-
-def padded_count(num_points: int) -> int:
-    """The number of points :func:`jurs.fit` pads a cloud of ``num_points`` to (with
-    masked-out copies of its first point): :func:`round_size`, at least
-    :data:`MIN_PADDED_POINTS`."""
-    return max(MIN_PADDED_POINTS, round_size(num_points))
-
-
 # --- Traced fits kept across processes -------------------------------------------------
 #
 # JAX's persistent cache skips XLA's compilation, not the tracing and lowering before it:
@@ -153,7 +121,7 @@ def _jurs_source_digest() -> str:
         import hashlib
 
         digest = hashlib.sha256()
-        root = os.path.dirname(os.path.abspath(__file__))
+        root = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))  # jurs/
         for folder, subfolders, files in os.walk(root):
             subfolders.sort()
             for name in sorted(f for f in files if f.endswith(".py")):

@@ -17,12 +17,12 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
-from ._defaults import auto_settings
-from ._fit import fit
-from ._problem import make_problem
-from ._solution import RAISED_RESULTS, RESULTS, Solution, error_message
-from ._spline import ImplicitSpline
-from .solvers import IPIA, IURS, AbstractSolver
+from .._model.spline import ImplicitSpline
+from .._problem.problem import make_problem
+from .._solution.solution import RAISED_RESULTS, RESULTS, Solution, error_message
+from ..solvers import IPIA, IURS, AbstractSolver
+from .fit import fit
+from .settings import auto_settings
 
 #: Solvers whose warm start from a spline continues the same run.
 CHUNKABLE = (IPIA, IURS)

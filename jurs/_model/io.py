@@ -8,7 +8,7 @@ import os
 import jax.numpy as jnp
 import numpy as np
 
-from ._spline import ImplicitSpline
+from .spline import ImplicitSpline
 
 SPLINE_KEYS = ("control", "weights", "lower", "upper")
 

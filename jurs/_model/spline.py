@@ -46,7 +46,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
-from ._basis import (
+from .basis import (
     NUM_LOCAL,
     cubic_weights,
     flat_cell,
@@ -61,7 +61,7 @@ from ._basis import (
     power_values,
     tensor_basis,
 )
-from ._precision import full_precision
+from .precision import full_precision
 
 
 class LocalBasis(eqx.Module):
@@ -156,7 +156,7 @@ def local_basis(
     ``[lower, upper]`` at ``xy (S, d)``, in the power form (2D) or the generic form.
 
     With ``bucket_size > 1`` the caller guarantees that each run of ``bucket_size``
-    consecutive points lies in one cell (see :func:`jurs._problem.bucket_layout`).
+    consecutive points lies in one cell (see :func:`jurs._problem.problem.bucket_layout`).
     ``xp=numpy`` computes on the host (its fields are then NumPy arrays).
     """
     cell, t = locate(xy, lower, upper, shape, xp)
@@ -263,7 +263,7 @@ def gather_patches(grids: Array, corner: Array) -> Array:
 
 def power_coefficients(grids: Array) -> Array:
     """``(C, N, M)`` coefficient grids -> ``(C, cells, 16)``: each cell's bicubic piece in
-    powers of its centred local coordinates (see :func:`jurs._basis.patch_to_power`).
+    powers of its centred local coordinates (see :func:`jurs._model.basis.patch_to_power`).
 
     One 4 x 4 convolution with 16 output channels: the patch gather and the change of
     basis in a single kernel.

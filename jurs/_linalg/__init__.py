@@ -1,0 +1,2 @@
+"""Linear algebra of the exact solve: the normal equations as a banded stencil, their
+direct and multigrid solves."""
