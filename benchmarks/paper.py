@@ -49,7 +49,7 @@ import jurs  # noqa: E402
 import jurs.levelset  # noqa: E402
 import jurs.plot  # noqa: E402
 import jurs.shapes  # noqa: E402
-from jurs._problem.problem import DEFAULT_MARGIN  # noqa: E402
+from jurs._problem.sizes import DEFAULT_MARGIN  # noqa: E402
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from _common import RESULTS, machine  # noqa: E402

@@ -342,7 +342,7 @@ def work_fit_steps(spec: dict) -> dict:
     call pays once: building the problem, the init and final energy passes, and page-faulting
     the call's fresh buffers (counted here per fit call)."""
     jax, jurs = _start_jax()
-    from jurs._fit.fit import reassociates
+    from jurs._fit.call import reassociates
 
     points, normals = jurs.datasets.example1(spec["m"])
     kwargs = {"grid": spec["grid"], "offset": OFFSET, "eps": EPS}

@@ -15,6 +15,7 @@ The kernels, energies and gradients under the solvers are in :mod:`jurs.internal
 import importlib
 from typing import TYPE_CHECKING
 
+from ._cloud.cloud import Cloud
 from ._fit.compile import COMPILER_OPTIONS, enable_compilation_cache
 from ._fit.fit import fit
 from ._fit.progress import fit_in_chunks
@@ -54,6 +55,7 @@ __version__ = "0.1.0"
 __all__ = [
     # fitting
     "fit",
+    "Cloud",
     "fit_in_chunks",
     "estimate_normals",
     "auto_settings",

@@ -50,6 +50,7 @@ from ._fit.compile import cache_disabled_by_environment, enable_compilation_cach
 if TYPE_CHECKING:  # the command line imports NumPy and jurs's modules when it runs them
     import numpy as np
 
+    from ._cloud.cloud import Cloud
     from ._fit.settings import Settings
     from .solvers import AbstractSolver
 
@@ -282,16 +283,14 @@ def _one_line(exc) -> str:
 
 
 def make_solver(name: str, *, lam: float | None, tau: float, steps: int, tol: float, chosen=None):
-    """The solver named on the command line (``chosen``: the automatic settings, whose
-    solver ``auto`` takes when ``--lam`` is not given, as :func:`jurs.fit` would)."""
+    """The solver named on the command line; None for ``auto`` without ``--lam`` where
+    settings were ``chosen``: :func:`jurs.fit` then takes the solver of those settings."""
     import jurs
 
     if steps < 0:
         raise InputError(f"--steps must be >= 0, got {steps}")
     if name == "auto" and lam is None and chosen is not None:
-        from ._fit.fit import default_solver
-
-        return default_solver(chosen)
+        return None  # jurs.fit's own, from the automatic settings
     if name == "auto":
         return jurs.LeastSquares(lam=0.0 if lam is None else lam)
     lam = 0.0 if lam is None else lam
@@ -447,8 +446,9 @@ class FitJob:
     estimated: bool
     out: str
     chosen: Settings
-    solver: AbstractSolver
+    solver: AbstractSolver | None  # None: jurs.fit's own, from ``chosen``
     resolution: int | None
+    cloud: Cloud
 
     @property
     def dim(self) -> int:
@@ -464,6 +464,8 @@ class FitJob:
 
     @property
     def lam(self) -> float:
+        if self.solver is None:
+            return float(self.chosen.lam)
         return float(getattr(self.solver, "lam", 0.0))
 
     @property
@@ -480,7 +482,7 @@ def _check_options(resolution, dim: int, out: str, names) -> None:
     """The options checked before anything is computed: the level-set (2D) or
     marching-cubes (3D) resolution, also against memory, and the output folder."""
     from . import levelset as ls
-    from ._problem.problem import check_memory
+    from ._problem.memory import check_memory
 
     if resolution is not None:
         if resolution < 16:
@@ -558,16 +560,17 @@ def prepare_fit(args) -> FitJob:
         raise InputError(
             "--smoothing sets the automatic lambda of --solver auto; give --lam instead"
         )
-    try:  # auto_settings runs make_problem's input checks (e.g. degenerate clouds) first
+    try:  # the cloud checked once, then measured for the settings and fitted
+        cloud = jurs.Cloud(points, normals)
         chosen = jurs.auto_settings(
-            points, normals, grid=grid, offset=args.offset, eps=args.eps, smoothing=args.smoothing
+            cloud, grid=grid, offset=args.offset, eps=args.eps, smoothing=args.smoothing
         )
     except (ValueError, TypeError) as exc:
         raise InputError(f"{shown}: {_one_line(exc)}") from None
     solver = make_solver(
         args.solver, lam=args.lam, tau=args.tau, steps=args.steps, tol=args.tol, chosen=chosen
     )
-    job = FitJob(path, points, normals, estimated, out, chosen, solver, resolution)
+    job = FitJob(path, points, normals, estimated, out, chosen, solver, resolution, cloud)
     check_output_folder(out, _output_bytes(job), job.outputs)
     return job
 
@@ -579,31 +582,17 @@ def _solve(job: FitJob, args):
 
     import jurs
 
-    from ._fit.fit import automatic_fit_checks, set_aside_mask
-    from ._fit.progress import fit_in_chunks
-
     bar = ProgressBar(f"{args.solver} {'x'.join(map(str, job.grid))}", enabled=not args.quiet)
     t0 = time.perf_counter()
-    # The automatic solver fits without the points the settings set aside, as jurs.fit.
-    automatic = args.solver == "auto" and args.lam is None
-    mask = set_aside_mask(job.points, job.chosen) if automatic else None
     try:
-        sol, _ = fit_in_chunks(
-            job.points,
-            job.normals,
-            solver=job.solver,
-            callback=bar,
-            throw=False,
-            grid=job.grid,
-            offset=job.chosen.offset,
-            eps=job.chosen.eps,
-            mask=mask,
-            domain=None if mask is None else job.chosen.domain,
-        )
-        if automatic:  # the doubt checks of jurs.fit, said below as the verdict
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", UserWarning)
-                sol = automatic_fit_checks(sol, job.chosen, job.points, job.normals)
+        # The automatic settings as chosen up front: with solver None jurs.fit takes their
+        # solver, sets aside their stray points and checks its doubts, said below as the
+        # verdict (not warned).
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", UserWarning)
+            sol = jurs.fit(
+                job.cloud, settings=job.chosen, solver=job.solver, callback=bar, throw=False
+            )
     except (ValueError, TypeError) as exc:
         bar.close()
         raise InputError(f"{job.shown}: {_one_line(exc)}") from None

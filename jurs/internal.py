@@ -36,7 +36,8 @@ from ._problem.energy import (
     transpose_apply,
     weight_gradient,
 )
-from ._problem.problem import auto_domain, bucket_layout, offset_samples
+from ._problem.layout import bucket_layout
+from ._problem.problem import auto_domain, offset_samples
 
 __all__ = [
     "LocalBasis",

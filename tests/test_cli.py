@@ -429,7 +429,7 @@ def test_output_folder_checked_before_the_fit(example1_csv, tmp_path, capsys, mo
 
 def test_resolution_refused_up_front(example1_csv, tmp_path, capsys, monkeypatch):
     """Issue 20, defect 8: --resolution 30000 ended in a MemoryError traceback."""
-    monkeypatch.setattr("jurs._problem.problem.available_memory", lambda device=True: 4 << 30)
+    monkeypatch.setattr("jurs._problem.memory.available_memory", lambda device=True: 4 << 30)
     out = tmp_path / "o"
     _check_failure(
         capsys,

@@ -57,7 +57,7 @@ def _bucketed(points, normals):
 
 
 def test_fit_reassociates_only_own_solvers_on_large_layouts_at_top_level():
-    from jurs._fit.fit import reassociates
+    from jurs._fit.call import reassociates
 
     points, normals = jurs.datasets.example1(300)
     bucketed = _bucketed(points, normals)
@@ -81,7 +81,7 @@ def test_fit_of_a_large_layout_with_and_without_transformations(monkeypatch):
     """At top level jurs.fit compiles a bucketed IURS fit with the options, under grad it
     cannot (XLA refuses options on a nested jit) and must not try; both agree at rounding
     level with the plain compilation."""
-    import jurs._fit.fit as fit_module
+    import jurs._fit.call as fit_module
 
     calls = []
     tuned = fit_module._solve_reassociating
@@ -162,7 +162,7 @@ def test_size_ladder_rounds_up_by_at_most_a_quarter_with_four_sizes_an_octave():
 
 def _fit_problem(points, normals, **settings):
     """The problem jurs.fit builds: padded cloud, layout sized for the band."""
-    from jurs._problem.problem import padded_cloud
+    from jurs._problem.padding import padded_cloud
 
     p, n, mask = padded_cloud(points, normals)
     return jurs.make_problem(p, n, mask=mask, stable_shapes=True, **settings)

@@ -9,6 +9,7 @@ import pytest
 import jurs
 import jurs.levelset as ls
 import jurs.shapes
+from jurs._cloud import measure as _measure
 from jurs._fit import settings as _defaults
 
 ROT90 = np.array([[0.0, -1.0], [1.0, 0.0]])
@@ -41,10 +42,10 @@ def lobes_fit(lobes):
 
 def test_noise_estimate():
     p, n = jurs.shapes.get("ellipse", 800)
-    assert _defaults.estimate_noise(p, n) < 1e-4  # the quadratic absorbs the curvature
+    assert _measure.estimate_noise(p, n) < 1e-4  # the quadratic absorbs the curvature
     for sigma in (0.02, 0.05):
         noisy, noisy_n = jurs.datasets.add_noise(p, n, sigma=sigma, seed=2)
-        assert abs(_defaults.estimate_noise(noisy, noisy_n) / sigma - 1.0) < 0.25
+        assert abs(_measure.estimate_noise(noisy, noisy_n) / sigma - 1.0) < 0.25
 
 
 def test_settings_scale_and_rotate_with_the_data(lobes):
@@ -88,17 +89,17 @@ def test_offset_does_not_cross_thin_parts():
     bottom = np.stack([length * t, np.full_like(t, -width / 2)], 1)
     points = np.concatenate([top, bottom])
     normals = np.concatenate([np.tile([0.0, 1.0], (40, 1)), np.tile([0.0, -1.0], (40, 1))])
-    spacing = _defaults.point_spacing(points)
-    assert _defaults.offset_agreement(points, normals, 0.4) < 0.6  # crosses
+    spacing = _measure.point_spacing(points)
+    assert _measure.offset_agreement(points, normals, 0.4) < 0.6  # crosses
     d = _defaults.choose_offset(points, normals, spacing, noise=0.2)
     assert d < width
-    assert _defaults.offset_agreement(points, normals, d) == 1.0
+    assert _measure.offset_agreement(points, normals, d) == 1.0
     # The whole ladder in one query gives what one offset at a time gives.
     ladder = np.array([0.4, 0.28, 0.1, 0.05])
-    batched = _defaults.offset_agreement(points, normals, ladder)
+    batched = _measure.offset_agreement(points, normals, ladder)
     assert batched.shape == (4,)
     np.testing.assert_array_equal(
-        batched, [_defaults.offset_agreement(points, normals, x) for x in ladder]
+        batched, [_measure.offset_agreement(points, normals, x) for x in ladder]
     )
 
 

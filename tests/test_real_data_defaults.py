@@ -9,14 +9,10 @@ import numpy as np
 import pytest
 
 import jurs
-from jurs._fit.fit import crossed_features
-from jurs._fit.settings import (
-    CLEAN_SMOOTHING,
-    MAX_FEATURE_COEFFICIENTS,
-    SMOOTHING_CANDIDATES,
-    feature_width,
-    isolated_points,
-)
+from jurs._cloud.measure import feature_width
+from jurs._cloud.outliers import isolated_points
+from jurs._fit.settings import CLEAN_SMOOTHING, MAX_FEATURE_COEFFICIENTS, SMOOTHING_CANDIDATES
+from jurs._solution.verdicts import crossed_features
 from jurs.solvers._held_out import held_out_distance, held_out_points, select_lam
 
 

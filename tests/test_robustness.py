@@ -12,7 +12,8 @@ import pytest
 from conftest import PAPER
 
 import jurs
-from jurs._problem import problem as _problem
+from jurs._cloud import orientation as _orientation
+from jurs._problem import memory as _memory
 
 CHEAP = dict(grid=(6, 6), offset=0.1, eps=0.01, solver=jurs.IPIA(max_steps=2))
 
@@ -67,16 +68,16 @@ def test_flipped_normal_fraction():
     """4: the orientation check reads 0 on consistent clouds and 1/2 with half flipped."""
     rng = np.random.default_rng(0)
     p, n = jurs.datasets.example1(120)
-    assert _problem.flipped_normal_fraction(p, n) == 0.0
-    assert _problem.flipped_normal_fraction(p, _rotate(n, rng.normal(0, 0.1, 120))) == 0.0
+    assert _orientation.flipped_normal_fraction(p, n) == 0.0
+    assert _orientation.flipped_normal_fraction(p, _rotate(n, rng.normal(0, 0.1, 120))) == 0.0
     half = n.copy()
     half[:60] *= -1
-    assert _problem.flipped_normal_fraction(p, half) == 0.5
+    assert _orientation.flipped_normal_fraction(p, half) == 0.5
     alternate = n * np.where(np.arange(120) % 2, 1.0, -1.0)[:, None]
-    assert _problem.flipped_normal_fraction(p, alternate) == 0.5
+    assert _orientation.flipped_normal_fraction(p, alternate) == 0.5
     # An annulus: the hole's normals face the ring's across the gap, legitimately.
     comps = jurs.shapes.normalise(jurs.shapes.annulus_outline())
-    assert _problem.flipped_normal_fraction(*jurs.shapes.sample_outline(comps, 600)) == 0.0
+    assert _orientation.flipped_normal_fraction(*jurs.shapes.sample_outline(comps, 600)) == 0.0
 
 
 @pytest.mark.slow
@@ -138,7 +139,7 @@ def test_inconsistent_normals_by_iurs_and_by_the_sign_check(cloud):
 def test_offset_sign_check_reads_a_strided_subset_of_large_clouds(monkeypatch):
     """Above SIGN_CHECK_POINTS points the sign check reads every k-th point (its per-point
     sums stay bounded); the fraction it gives is that of the points read."""
-    from jurs.solvers import _driver
+    from jurs._solution import verdicts as _driver
 
     p, n = jurs.datasets.example1(400)
     settings = dict(grid=(24, 24), offset=0.02, eps=0.02)
@@ -206,7 +207,7 @@ def test_absurd_offset(cloud):
 
 def test_memory_refused_up_front(cloud, monkeypatch):
     """8: grid=10000 asked XLA for 248 GB after 20 s; resolution 30000 a MemoryError."""
-    monkeypatch.setattr(_problem, "available_memory", lambda device=True: 2 << 30)
+    monkeypatch.setattr(_memory, "available_memory", lambda device=True: 2 << 30)
     with pytest.raises(ValueError, match=r"grid=10000x10000 needs about .* GiB .* 2 GiB"):
         jurs.fit(*cloud, grid=10000)
     with pytest.raises(ValueError, match=r"grid=2000x2000 needs about"):
@@ -215,7 +216,7 @@ def test_memory_refused_up_front(cloud, monkeypatch):
     with pytest.raises(ValueError, match=r"resolution=30000 needs about .* GiB"):
         jurs.levelset.analyze(sol.spline, cloud[0], resolution=30000)
     # The estimate of a default fit is far below (the limit is not in the way).
-    assert jurs._fit.fit.fit_memory((96, 96), 3000, jurs.LeastSquares()) < 128 << 20
+    assert jurs._problem.memory.fit_memory((96, 96), 3000, jurs.LeastSquares()) < 128 << 20
 
 
 def test_load_spline_checks_values(tmp_path):

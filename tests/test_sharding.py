@@ -30,7 +30,7 @@ CHILD = textwrap.dedent(
     import jax, jax.numpy as jnp, numpy as np
     from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
     import jurs
-    from jurs._fit import fit as _fit
+    from jurs._fit import call as _fit
     from jurs._problem import problem as _problem
     from jurs._fit.sharding import place_fit
 
@@ -56,7 +56,7 @@ CHILD = textwrap.dedent(
     compare("sphere", *jurs.datasets.sphere3d(1000), grid=(6, 6, 6), offset=0.05, eps=0.05)
 
     # The compiled bucketed (power-form) solve: which collectives GSPMD put in.
-    solver = _fit._as_arrays(jurs.LeastSquares(lam=1e-4), jnp.float64)
+    solver = _fit.as_arrays(jurs.LeastSquares(lam=1e-4), jnp.float64)
     problem = _problem.padded_problem(p, n, None, grid, offset, eps, None, 0.1, 8, jnp.float64)
     problem, solver, _ = place_fit(
         jax.device_put(p, split), jax.device_put(n, split), problem, solver, None

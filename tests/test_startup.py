@@ -92,15 +92,15 @@ FIT_WITH_THE_STORE = """
 import functools, json, sys
 import jax
 jax.config.update("jax_enable_x64", True)
-import jurs, jurs._fit.fit
+import jurs, jurs._fit.call
 folder = jurs.enable_compilation_cache(sys.argv[1])
 traced = []
-run = jurs._fit.fit._run
+run = jurs._fit.call._run
 @functools.wraps(run)
 def counting(*args):
     traced.append(1)
     return run(*args)
-jurs._fit.fit._run = counting
+jurs._fit.call._run = counting
 points, normals = jurs.datasets.example1(90)
 sol = jurs.fit(points, normals, grid=9, offset=0.1, eps=0.01, solver=jurs.LeastSquares(lam=1e-4))
 again = jurs.fit(points[:85], normals[:85], grid=9, offset=0.1, eps=0.01,

@@ -28,9 +28,9 @@ What is left wrong at 0.5 % noise in 2D is where the noise is as wide as the gap
 horse's legs, the necks of blobs): the tree crosses between the two sides inside a patch,
 and the on-surface objective is too noisy to split such patches finer (docs/normals.md).
 
-docs/normals.md gives the reasoning and the measurements. ``_orient_mst`` is the plain
-spanning-tree orientation (Hoppe's rule: the topmost point's normal points up), kept as the
-baseline the benchmark measures beside this method.
+docs/normals.md gives the reasoning and the measurements; the plain spanning-tree
+orientation the benchmark measures beside this method lives with the benchmarks
+(``benchmarks/_baselines.py``).
 """
 
 from __future__ import annotations
@@ -43,6 +43,8 @@ from scipy import sparse
 from scipy.sparse import csgraph
 from scipy.sparse.linalg import eigsh
 from scipy.spatial import cKDTree  # pyright: ignore[reportAttributeAccessIssue]  # no stub
+
+from .signs import forest_signs
 
 #: Candidate neighbour counts for PCA, per dimension (the smallest good one is taken).
 K_LADDER = {2: (6, 8, 11, 16, 22, 32, 45, 64), 3: (10, 14, 20, 28, 40, 56, 80)}
@@ -264,22 +266,6 @@ def _tangential_graph(points, normals, noise, neighbours) -> sparse.csr_matrix:
     weight = (align + across / length)[keep] + 1e-9  # csgraph reads 0 as "no edge"
     graph = sparse.coo_matrix((weight, (i[keep], j[keep])), shape=(m, m)).tocsr()
     return graph.maximum(graph.T)  # pyright: ignore[reportReturnType]  # SciPy is unannotated
-
-
-def _tree_signs(tree: sparse.csr_matrix, normals: np.ndarray) -> np.ndarray:
-    """Signs (+1/-1) making normals consistent along every edge of a forest, relative to an
-    arbitrary sign per tree. Each tree edge says "same" or "opposite" (the sign of n_i . n_j);
-    a doubled graph (nodes i+ and i-, joined straight or crosswise) has two components per
-    tree, and a node is + when its i+ copy lies in the lower-labelled one."""
-    m = len(normals)
-    coo = tree.tocoo()
-    i, j = coo.row, coo.col
-    same = np.sum(normals[i] * normals[j], axis=1) >= 0
-    rows = np.concatenate([i, i + m])
-    cols = np.concatenate([np.where(same, j, j + m), np.where(same, j + m, j)])
-    doubled = sparse.coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(2 * m, 2 * m))
-    _, labels = csgraph.connected_components(doubled, directed=False)
-    return np.where(labels[:m] < labels[m:], 1.0, -1.0)
 
 
 def _rejoin_tiny(forest, keep, patch) -> bool:
@@ -592,7 +578,7 @@ def _orient(points, normals, values, noise, neighbours, tree, rng, confidence):
     graph_k = min(GRAPH_NEIGHBOURS[d], neighbours.shape[1] - 1)
     graph = _tangential_graph(points, normals, noise, neighbours[:, : graph_k + 1])
     forest, component, patch, patch_tree = _spanning_patches(graph, m, d)
-    normals = normals * _tree_signs(forest, normals)[:, None]
+    normals = normals * forest_signs(forest, normals)[:, None]
     # Start each component pointing away from its centroid (a guess the field corrects).
     n_comp, n_patch = int(component.max()) + 1, int(patch.max()) + 1
     centroid = np.stack([np.bincount(component, points[:, a]) for a in range(d)], 1)
@@ -678,27 +664,3 @@ def _point_corrections(points, normals, area, eps, offset, tree, neighbours, rou
         flipped ^= rising
         check = np.flatnonzero(rising[near_all].any(axis=1))  # only where something moved
     return normals, int(flipped.sum())
-
-
-def _orient_mst(points, normals, k: int = 15) -> np.ndarray:
-    """Baseline: Hoppe et al. (1992) orientation. Minimum spanning tree of the symmetric
-    ``k``-nearest-neighbour graph with weight ``1 - |n_i . n_j|``, signs propagated along
-    it, each tree's topmost point (largest last coordinate) made to point up."""
-    points = _check_points(points)
-    normals = np.asarray(normals, float)
-    m = len(points)
-    _, neighbours = cKDTree(points).query(points, k=min(k + 1, m))
-    i = np.repeat(np.arange(m), neighbours.shape[1])
-    j = neighbours.ravel()
-    keep = i != j
-    i, j = i[keep], j[keep]
-    weight = 1.0 - np.abs(np.sum(normals[i] * normals[j], axis=1)) + 1e-9
-    graph = sparse.coo_matrix((weight, (i, j)), shape=(m, m)).tocsr()
-    forest = csgraph.minimum_spanning_tree(graph.maximum(graph.T))
-    signed = normals * _tree_signs(forest, normals)[:, None]
-    _, component = csgraph.connected_components(forest, directed=False)
-    top = np.zeros(component.max() + 1, np.int64)
-    order = np.argsort(points[:, -1])  # ascending: the last write per component is its top
-    top[component[order]] = order
-    flip = np.where(signed[top, -1] < 0, -1.0, 1.0)
-    return signed * flip[component][:, None]

@@ -44,27 +44,34 @@ if TYPE_CHECKING:  # SciPy's spatial module loads on the first fit (0.3 s), not 
 import equinox as eqx
 import jax.numpy as jnp
 
-from .._problem.problem import (
-    DEFAULT_MARGIN,
-    _is_concrete,
-    auto_domain,
-    check_memory,
-    check_nonnegative,
-    fit_memory,
-    normalise_grid,
-    offset_samples,
-    padded_problem,
-    unit_normals,
-    validate_inputs,
+from .._cloud.cloud import Cloud
+from .._cloud.measure import (
+    PROBES,
+    estimate_noise,
+    feature_width,
+    kd_tree,
+    offset_agreement,
+    point_spacing,
+    strided_probes,
 )
-from .._problem.sizes import round_size
+from .._cloud.outliers import MAX_SET_ASIDE, isolated_points
+from .._problem.memory import check_memory, fit_memory
+from .._problem.padding import padded_problem
+from .._problem.problem import auto_domain, offset_samples
+from .._problem.sizes import DEFAULT_MARGIN, round_size
+from .._problem.validate import (
+    _is_concrete,
+    check_nonnegative,
+    check_values,
+    normalise_grid,
+    validate_settings,
+)
+from ..solvers import AbstractSolver, LeastSquares, RobustLeastSquares
 from ..solvers._held_out import select_lam
 
 # Compiled once per problem shape; clouds padded to one size share it.
 _select_lam = eqx.filter_jit(select_lam)
 
-#: Neighbours used for the noise estimate (the point itself included).
-NOISE_NEIGHBOURS = 16
 #: Default largest grid (basis functions along the longer side).
 DEFAULT_MAX_GRID = 96
 #: Default largest grid of a surface (3D). The 343-point stencil of D^T D holds 2.7 KB a
@@ -92,8 +99,6 @@ FEATURE_QUANTILE = 0.005
 FEATURE_CELLS = 0.5
 #: Smallest automatic grid along either side.
 MIN_GRID = 8
-#: Clouds above this many points are measured at this many (evenly strided) of them.
-MAX_PROBES = 20000
 
 
 @dataclasses.dataclass(frozen=True)
@@ -137,245 +142,6 @@ class Settings:
         return dataclasses.asdict(self)
 
 
-def kd_tree(points: np.ndarray) -> cKDTree:
-    """``scipy.spatial.cKDTree(points)``, with SciPy's spatial module imported on first use."""
-    from scipy.spatial import cKDTree  # pyright: ignore[reportAttributeAccessIssue]
-
-    return cKDTree(points)
-
-
-def strided_probes(count: int, most: int) -> np.ndarray | None:
-    """Indices of at most ``most`` of ``count`` points, evenly strided over their order (the
-    same points wherever the cloud is placed); None where all ``count`` fit."""
-    return None if count <= most else np.linspace(0, count - 1, most).round().astype(int)
-
-
-def _probe(points: np.ndarray, at) -> np.ndarray:
-    return np.arange(len(points)) if at is None else np.asarray(at)
-
-
-def point_spacing(points: np.ndarray, tree: cKDTree | None = None, at=None) -> float:
-    """Median distance from a point to its nearest other point (duplicates skipped),
-    over the points indexed by ``at`` (default all)."""
-    tree = kd_tree(points) if tree is None else tree
-    dist = tree.query(points[_probe(points, at)], k=min(len(points), 4))[0][:, 1:]
-    dist = np.where(dist > 0, dist, np.inf).min(axis=1)
-    finite = dist[np.isfinite(dist)]
-    if finite.size == 0:
-        raise ValueError("all points coincide; the cloud has no extent")
-    return float(np.median(finite))
-
-
-#: A point stands alone (:func:`isolated_points`) when its :data:`ISOLATION_RANK`-th
-#: nearest other point is farther than this many times the same distance typical around it.
-ISOLATION_RATIO = 3.0
-#: The sparsest sampling around a point, relative to the cloud's median spacing, that
-#: :func:`isolated_points` takes as the shape's: far from the shape, the points around
-#: an outlier are other outliers, as sparse as it is. With ratio 4 and 2 here, 1.5 %
-#: outliers uniform in the box of a 4500-point font outline stood at 4-7.6 typical
-#: reaches and 23 of 68 stayed in; with 3 and 1.5, 4 of 68. On 0.5 % noise these values
-#: set aside up to 12 of 2600 points, the most displaced ones (none on clean or unevenly
-#: sampled outlines, gaps and separate small components).
-SPARSE_SPACING = 1.5
-#: Where more points than this fraction stand alone, the cloud has no dense shape for them
-#: to stand apart from (a sparse sampling), and none is set aside.
-MAX_SET_ASIDE = 0.2
-#: Which neighbour's distance says how far a point is from the rest: the third, so that
-#: outliers in pairs and threes stand alone too.
-ISOLATION_RANK = 3
-#: Neighbours whose own such distances say what is typical around a point.
-ISOLATION_NEIGHBOURS = 8
-#: A group of at most this many points apart from the rest (:func:`stray_clusters`) is
-#: set aside unless its normals agree on a side of it: a closed outline sampled by more
-#: points is left to the fit (a small far ring of 12 points is kept).
-STRAY_CLUSTER = 8
-#: The fraction of a small group's normals that must point away from its centroid (or
-#: all towards it) for it to count as a ring or shell of its own.
-RING_AGREEMENT = 0.8
-
-
-def isolated_points(
-    points: np.ndarray, tree: cKDTree | None = None, normals: np.ndarray | None = None
-) -> np.ndarray:
-    """``(m,)`` booleans: the points that stand alone, away from the curve or surface the
-    others sample. Point i stands alone when its :data:`ISOLATION_RANK`-th nearest other
-    point is more than :data:`ISOLATION_RATIO` times farther than is typical around it: the
-    median of the same distance over its :data:`ISOLATION_NEIGHBOURS` nearest points,
-    taken as at most :data:`SPARSE_SPACING` times the cloud's median. With ``normals``, so
-    do the points of a small stray cluster (:func:`stray_clusters`).
-
-    Why this test: an outlier far from the shape has no neighbours at the sampling's
-    spacing, while its nearest points (on the shape) do; a fit through it grows a loop
-    around it (1.5 % outliers gave 24 supplementary loops). The k-th neighbour, not the
-    first, finds outliers in pairs and threes too; comparing with the point's own
-    neighbours, not the cloud's median spacing, keeps uneven sampling (5x density
-    changes), gap ends and small separate components in: their neighbours are as sparse
-    as they are. Outliers within a few spacings of the shape are not found here (the
-    robust reweighting of :func:`jurs.fit` weighs the near ones down).
-    """
-    tree = kd_tree(points) if tree is None else tree
-    m = len(points)
-    k = min(m - 1, ISOLATION_RANK)
-    count = min(m, max(ISOLATION_RANK, ISOLATION_NEIGHBOURS) + 1)
-    dist, near = tree.query(points, k=count, workers=-1)  # reach, neighbours, clusters
-    dist, near = np.asarray(dist).reshape(m, -1), np.asarray(near).reshape(m, -1)
-    reach = dist[:, k]  # the k-th nearest other point
-    typical = float(np.median(reach))
-    isolated = np.zeros(m, bool)
-    candidates = np.flatnonzero(reach > ISOLATION_RATIO * typical)
-    if candidates.size:
-        around = near[candidates, 1 : ISOLATION_NEIGHBOURS + 1]
-        # Capped: the points around an outlier far from the shape can be other outliers.
-        local = np.minimum(np.median(reach[around], axis=1), SPARSE_SPACING * typical)
-        isolated[candidates[reach[candidates] > ISOLATION_RATIO * local]] = True
-    if normals is not None and m > STRAY_CLUSTER:
-        link = ISOLATION_RATIO * SPARSE_SPACING * typical
-        isolated |= stray_clusters(points, normals, dist, near, link)
-    return isolated
-
-
-def stray_clusters(points, normals, dist, near, link: float) -> np.ndarray:
-    """``(m,)`` booleans: the points of the small groups that stand apart from the rest and
-    do not sample a closed curve or surface of their own.
-
-    The groups are the connected components of the nearest-neighbour graph (``near``,
-    ``dist``: each point's nearest points, itself first) cut at ``link`` (the farthest
-    spacing :func:`isolated_points` takes as the shape's). A component of at most
-    :data:`STRAY_CLUSTER` points is stray unless its normals agree on a side of it: at
-    least :data:`RING_AGREEMENT` of them pointing away from its centroid (a small ring or
-    shell of its own) or towards it (a small hole).
-
-    Why: outliers uniform in the box fall in groups of four or five points a few spacings
-    apart now and then; each one's third neighbour is then near, so the test of
-    :func:`isolated_points` keeps them, and the fit loops around the group (3-4 of 22-75
-    outliers stayed in on traced outlines: an extra component, Hausdorff 8-10 % of the
-    diagonal). A real small component samples its outline with outward normals; random
-    normals agree that well on 5 points one time in 2.7."""
-    from scipy import sparse  # lazily: import jurs loads no SciPy sparse
-    from scipy.sparse import csgraph
-
-    m = len(points)
-    # Only a point with a neighbour beyond the link among its nearest can belong to a
-    # group small enough (its nearest points would all be in its group otherwise); a
-    # group holding one point linked to any other point is not small.
-    link_ok = (dist[:, 1:] <= link) & (near[:, 1:] < m)
-    candidate = ~link_ok.all(axis=1) if near.shape[1] > STRAY_CLUSTER else np.ones(m, bool)
-    small = np.zeros(m, bool)
-    if not candidate.any():
-        return small
-    index = np.flatnonzero(candidate)
-    where = np.full(m, -1)
-    where[index] = np.arange(index.size)
-    nbr, ok = near[index, 1:], link_ok[index]
-    linked_candidate = candidate[np.where(ok, nbr, 0)]
-    anchored = (ok & ~linked_candidate).any(axis=1)
-    inner = ok & linked_candidate
-    rows = np.repeat(np.arange(index.size), nbr.shape[1])[inner.ravel()]
-    cols = where[nbr.ravel()[inner.ravel()]]
-    graph = sparse.coo_matrix((np.ones(rows.size), (rows, cols)), shape=(index.size,) * 2)
-    _, label = csgraph.connected_components(graph, directed=False)
-    size = np.bincount(label)
-    stray = (size[label] <= STRAY_CLUSTER) & ~(np.bincount(label, weights=anchored) > 0)[label]
-    if not stray.any():
-        return small
-    pts, nrm = points[index], normals[index]
-    centroid = np.stack(
-        [np.bincount(label, weights=pts[:, a]) / size for a in range(points.shape[1])], 1
-    )
-    facing = np.sign(np.einsum("ij,ij->i", pts - centroid[label], nrm))
-    agreement = np.abs(np.bincount(label, weights=facing) / size)  # |2 f - 1|
-    small[index] = stray & (agreement[label] < 2.0 * RING_AGREEMENT - 1.0)
-    return small
-
-
-def _tangent_frame(rel: np.ndarray, keep: np.ndarray) -> np.ndarray:
-    """``(probes, d, d)`` principal frames of the kept neighbours ``rel (probes, k, d)``
-    (centred): the rows are the covariance's eigenvectors, largest first, so the last row
-    is the direction across the curve or surface."""
-    cov = np.matmul((keep[:, :, None] * rel).transpose(0, 2, 1), rel)
-    return np.linalg.eigh(cov)[1][:, :, ::-1].transpose(0, 2, 1)
-
-
-def _quadratic_terms(u: np.ndarray) -> np.ndarray:
-    """``1``, the tangent coordinates ``u (probes, k, d - 1)`` and their products of degree
-    two: the terms of a quadratic height function; ``(probes, k, terms)``."""
-    dims = u.shape[-1]
-    products = [u[..., i] * u[..., j] for i in range(dims) for j in range(i, dims)]
-    return np.concatenate([np.ones(u.shape[:-1] + (1,)), u, np.stack(products, -1)], axis=-1)
-
-
-def estimate_noise(
-    points: np.ndarray,
-    normals: np.ndarray,
-    tree: cKDTree | None = None,
-    neighbours: int = NOISE_NEIGHBOURS,
-    at=None,
-) -> float:
-    """Positional noise sigma: the median over points of the RMS residual of a quadratic
-    height ``v = q(u)`` fitted, in the principal frame of the point's ``neighbours``
-    nearest same-facing neighbours (normals within 60 degrees), to those neighbours: ``u``
-    the coordinate along the curve (the two tangent coordinates on a surface), ``v`` the
-    one across. The quadratic absorbs the curvature, so clean samples of a smooth curve or
-    surface give about 0; the residual divides by the neighbours less the quadratic's
-    terms (3 in 2D, 6 in 3D), so it is unbiased for independent noise. The median ignores
-    corners and the ends of a gap. Measured at the points indexed by ``at`` (default all),
-    with neighbours from the whole cloud."""
-    at = _probe(points, at)
-    k = min(len(points), neighbours)
-    tree = kd_tree(points) if tree is None else tree
-    idx = tree.query(points[at], k=k)[1]
-    nb = points[idx]  # (probes, k, d)
-    # Plain broadcasts and sums below: NumPy's einsum runs these small contractions
-    # several times slower (it was half of auto_settings' time at 1000 points).
-    keep = ((normals[idx] * normals[at][:, None, :]).sum(axis=2) > 0.5).astype(float)
-    count = keep.sum(axis=1)
-    centre = (keep[:, :, None] * nb).sum(axis=1) / np.maximum(count, 1)[:, None]
-    rel = nb - centre[:, None, :]
-    frame = _tangent_frame(rel, keep)
-    local = np.matmul(rel, frame.transpose(0, 2, 1))  # (probes, k, d): tangent..., across
-    u, v = local[..., :-1], local[..., -1]
-    # Scale u to unit RMS so the powers stay conditioned (and finite where all coincide).
-    scale = np.sqrt((keep[:, :, None] * u * u).sum(axis=(1, 2)) / np.maximum(count, 1))
-    scale = np.where(scale > 0, scale, 1.0)
-    basis = _quadratic_terms(u / scale[:, None, None])  # (probes, k, terms)
-    terms = basis.shape[-1]
-    weighted = keep[:, :, None] * basis
-    gram = np.matmul(weighted.transpose(0, 2, 1), basis)  # (probes, terms, terms)
-    rhs = (weighted * v[:, :, None]).sum(axis=1)
-    ok = count >= 2 * terms
-    gram[~ok] = np.eye(terms)
-    coef = np.linalg.solve(gram + 1e-12 * np.eye(terms), rhs[..., None])[..., 0]
-    resid = v - (basis * coef[:, None, :]).sum(axis=2)
-    rms = np.sqrt((keep * resid * resid).sum(axis=1) / np.maximum(count - terms, 1))
-    return float(np.median(rms[ok])) if ok.any() else 0.0
-
-
-def offset_agreement(
-    points: np.ndarray, normals: np.ndarray, offset, tree: cKDTree | None = None, at=None
-):
-    """Fraction of the 2m offset samples ``P_i +/- d n_i`` that lie on their intended side
-    (outside for ``+``, inside for ``-``) of the tangent line of their nearest data point
-    other than ``P_i``.
-
-    It is low for small d on noisy data (a neighbour's noise is larger than d) and for large
-    d where the offsets cross a thin part of the shape or the gap between two parts (they
-    land nearer the far side and read the wrong side there); in between it is near 1.
-    Measured for the points indexed by ``at`` (default all). ``offset`` may be a 1-D array
-    of offsets (one KD-tree query for all of them); then so is the result.
-    """
-    tree = kd_tree(points) if tree is None else tree
-    own = _probe(points, at)
-    offsets = np.asarray(offset, float)
-    # (offsets, sign, probes): +d then -d for every offset.
-    signed = offsets.reshape(-1, 1, 1) * np.array([1.0, -1.0]).reshape(1, 2, 1)
-    q = points[own] + signed[..., None] * normals[own]
-    idx = tree.query(q.reshape(-1, points.shape[1]), k=2)[1].reshape(q.shape[:3] + (2,))
-    j = np.where(idx[..., 0] == own, idx[..., 1], idx[..., 0])
-    side = ((q - points[j]) * normals[j]).sum(axis=-1)
-    agreement = (signed * side > 0).mean(axis=(1, 2))
-    return agreement.reshape(offsets.shape) if offsets.ndim else float(agreement[0])
-
-
 #: Dimensionless smoothing on clean clouds, and the most a noisy surface gets (see
 #: :func:`noise_smoothing`).
 CLEAN_SMOOTHING = 1e-6
@@ -398,37 +164,6 @@ SMOOTHING_CANDIDATES = (1e-6, 1e-5, 1e-4, 1e-3)
 #: gets :data:`CLEAN_SMOOTHING` without a held-out selection (which would choose it too:
 #: see :func:`choose_smoothing`).
 CLEAN_NOISE_RATIO = 0.1
-
-
-def feature_width(
-    points: np.ndarray, normals: np.ndarray, radius: float, spacing: float, at=None
-) -> tuple[np.ndarray, np.ndarray]:
-    """``(width, partner)`` per probe point (``at``, default all): the distance to the
-    nearest point whose normal faces the other way (more than 120 degrees apart), within
-    ``radius`` (inf where there is none), and that point's index (-1 where none).
-
-    On a thin part of the shape it is the part's width at that point, on the far side of a
-    narrow gap the gap's: the features a grid must resolve. Clouds much denser than the
-    radius are thinned to about 16 points a radius first (by stride: only the nearest
-    opposite point matters, and 64 neighbours must reach across)."""
-    own = _probe(points, at)
-    stride = max(1, min(int(radius / (16.0 * spacing)), len(points) // 64))
-    keep = np.arange(0, len(points), stride)
-    tree = kd_tree(points[keep])
-    k = min(len(keep), 64)
-    # k as a list: 2-D results even for k = 1 (SciPy's stub types k as an int only).
-    ks = list(range(1, k + 1))
-    dist, idx = tree.query(points[own], k=ks, distance_upper_bound=radius)  # pyright: ignore[reportArgumentType]
-    found = np.isfinite(dist)
-    idx = np.where(found, idx, 0)
-    facing = (normals[keep][idx] * normals[own][:, None, :]).sum(axis=-1)
-    dist = np.where(found & (facing < -0.5), dist, np.inf)
-    nearest = np.argmin(dist, axis=1)
-    width = np.take_along_axis(dist, nearest[:, None], axis=1)[:, 0]
-    partner = np.where(
-        np.isfinite(width), keep[np.take_along_axis(idx, nearest[:, None], 1)[:, 0]], -1
-    )
-    return width, partner
 
 
 def choose_offset(
@@ -615,13 +350,9 @@ def _held_out_smoothing(cloud, support, shape, offset, eps, domain, unit: float)
     as :func:`jurs.fit` pads it, so clouds of similar size share the compiled selection),
     and ``((smoothing, score), ...)`` for the candidates tried (from the smallest up, until
     the score rises)."""
-    # The same memory check as the fit's, before this first solve on the grid.
-    samples = 3 * len(cloud[0])
-    check_memory("grid=" + "x".join(map(str, shape)), fit_memory(shape, samples, None))
-    points, normals = cloud
     dtype = jnp.result_type(float)
     problem = padded_problem(
-        points, normals, None, shape, offset, eps, domain, 0.0, None, dtype, support
+        cloud.points, cloud.normals, None, shape, offset, eps, domain, 0.0, None, dtype, support
     )
     candidates = np.asarray(SMOOTHING_CANDIDATES)
     scores = np.asarray(_select_lam(problem, jnp.asarray(candidates * unit))[1], float)
@@ -633,7 +364,7 @@ def _held_out_smoothing(cloud, support, shape, offset, eps, domain, unit: float)
 
 def auto_settings(
     points,
-    normals,
+    normals=None,
     *,
     grid=None,
     offset=None,
@@ -644,7 +375,8 @@ def auto_settings(
     max_grid: int | None = None,
 ) -> Settings:
     """Choose the grid, offset d, eps and lambda for ``points`` and ``normals``, ``(m, 2)``
-    for a curve or ``(m, 3)`` for a surface.
+    for a curve or ``(m, 3)`` for a surface, or for a :class:`jurs.Cloud` (then
+    ``normals`` is None: the cloud holds them, and its measurements are kept for the fit).
 
     Any of ``grid``, ``offset``, ``eps``, ``domain`` and ``smoothing`` given is kept and the
     others are chosen around it (see the module docstring and each ``choose_*`` function).
@@ -663,12 +395,46 @@ def auto_settings(
             "jit/grad/vmap pass grid, offset and eps explicitly, e.g. from "
             "jurs.auto_settings(points, normals) called outside"
         )
-    # The same checks as make_problem's, before anything is computed from the inputs (a
-    # NaN domain was reported as "lam must be finite").
-    validate_inputs(points, normals, offset=offset, eps=eps, domain=domain, margin=margin)
+    if isinstance(points, Cloud):
+        cloud = points
+        if normals is not None:
+            raise ValueError("auto_settings(cloud): the cloud holds its normals; pass none")
+    else:
+        # The same checks as make_problem's, before anything is computed from the inputs
+        # (a NaN domain was reported as "lam must be finite").
+        check_values(offset=offset, eps=eps, margin=margin, domain=domain)
+        cloud = Cloud(points, normals)
+    if cloud.normals is None:
+        raise ValueError("auto_settings needs outward normals (jurs.estimate_normals)")
+    check_values(offset=offset, eps=eps, margin=margin, domain=domain)
+    validate_settings(cloud.points, cloud.normals, None, offset=offset, domain=domain)
+    shape = None if grid is None else normalise_grid(grid, cloud.ndim)
+    return choose_settings(cloud, shape, offset, eps, domain, margin, smoothing, max_grid)
+
+
+def choose_settings(
+    cloud: Cloud,
+    shape: tuple[int, ...] | None,
+    offset=None,
+    eps=None,
+    domain=None,
+    margin: float = DEFAULT_MARGIN,
+    smoothing: float | None = None,
+    max_grid: int | None = None,
+    solver=None,
+) -> Settings:
+    """:func:`auto_settings` of a :class:`jurs.Cloud` whose settings given were checked
+    (:func:`jurs._problem.validate.check_values`, a normalised ``shape``). The memory the
+    fit will take on the chosen grid, with ``solver`` (None: the default), is checked
+    here, once, before the first solve on it (the held-out choice of lambda)."""
+    if cloud.mask is not None:
+        raise ValueError(
+            "automatic settings do not take a mask; pass grid, offset, eps "
+            "and solver explicitly for padded batches"
+        )
     if smoothing is not None:
         check_nonnegative("smoothing", smoothing)
-    ndim = np.shape(points)[1]
+    ndim = cloud.ndim
     if max_grid is None:
         max_grid = DEFAULT_MAX_GRID if ndim == 2 else DEFAULT_MAX_GRID_3D
     if (
@@ -677,25 +443,28 @@ def auto_settings(
         or max_grid < MIN_GRID
     ):
         raise ValueError(f"max_grid must be an int >= {MIN_GRID}, got {max_grid!r}")
-    cloud = np.asarray(points, float), unit_normals(np.asarray(normals, float))
-    p, n = cloud
-    tree = kd_tree(p)
+    assert cloud.normals is not None
+    p, n = cloud.points, cloud.normals
+    tree = cloud.tree
     isolated = isolated_points(p, tree, n)
     if isolated.mean() > MAX_SET_ASIDE:  # no dense shape to stand apart from: keep all
         isolated[:] = False
+    # Large clouds are measured at an evenly strided subset (the same points wherever the
+    # cloud is placed), against the whole cloud.
+    at = cloud.probes
     if isolated.any():  # measure the shape without them
         p, n = p[~isolated], n[~isolated]
         tree = kd_tree(p)
-    # Large clouds are measured at an evenly strided subset (the same points wherever the
-    # cloud is placed), against the whole cloud.
-    at = strided_probes(len(p), MAX_PROBES)
+        at = strided_probes(len(p), PROBES)
     spacing = point_spacing(p, tree, at)
     noise = estimate_noise(p, n, tree, at=at)
     d = choose_offset(p, n, spacing, noise, tree, at) if offset is None else float(offset)
     e = d if eps is None else float(eps)
     if domain is None:  # the box make_problem will take
         # offset_samples takes NumPy arrays with xp=np; its annotation says jax.Array only.
-        lower, upper = auto_domain(offset_samples(*cloud, d, e, np)[0], margin, xp=np)  # pyright: ignore[reportArgumentType]
+        lower, upper = auto_domain(
+            offset_samples(cloud.points, cloud.normals, d, e, np)[0], margin, xp=np
+        )  # pyright: ignore[reportArgumentType]
     else:
         lower, upper = (np.asarray(c, float) for c in domain)
     width = None
@@ -703,11 +472,10 @@ def auto_settings(
         radius = 2.0 * float(np.max(upper - lower)) / (max_grid - 3)
         width = feature_width(p, n, radius, spacing, at)[0]
     feature = np.inf if width is None else float(np.sort(width)[int(FEATURE_QUANTILE * width.size)])
-    shape = (
-        choose_grid(lower, upper, spacing, noise, max_grid, feature)
-        if grid is None
-        else normalise_grid(grid, ndim)
-    )
+    if shape is None:
+        shape = choose_grid(lower, upper, spacing, noise, max_grid, feature)
+    # Once per fit, before the first solve on the grid (the held-out choice below).
+    check_memory("grid=" + "x".join(map(str, shape)), fit_memory(shape, 3 * len(cloud), solver))
     diagonal = float(np.linalg.norm(p.max(axis=0) - p.min(axis=0)))
     cell = float(np.max((upper - lower) / (np.asarray(shape) - 3)))
     thin = 0.0 if width is None else float(np.mean(width < FEATURE_CELLS * cell))
@@ -732,3 +500,37 @@ def auto_settings(
         set_aside=tuple(int(i) for i in np.flatnonzero(isolated)),
         thin_fraction=thin,
     )
+
+
+#: Reweighted solves at most in the default robust fit (:func:`default_solver`): each is
+#: one exact solve.
+DEFAULT_ROBUST_STEPS = 8
+
+
+#: ... and its stop rule: ``E_rob`` changing by at most this fraction between steps.
+DEFAULT_ROBUST_RTOL = 1e-3
+
+
+def default_solver(settings) -> AbstractSolver:
+    """The solver :func:`fit` uses with the automatic ``settings``: the exact solve
+    ``LeastSquares(lam=settings.lam)``; where points were set aside as standing alone
+    (``settings.set_aside``), the robust reweighting ``RobustLeastSquares(lam, loss="huber")``
+    of the rest, which also weighs down points that stray less far (Huber's loss is
+    convex: it never sets an inlier aside, unlike Cauchy's or Tukey's, measured to drop
+    the points of curved parts on coarse grids)."""
+    if settings.set_aside:
+        return RobustLeastSquares(
+            lam=settings.lam, loss="huber", max_steps=DEFAULT_ROBUST_STEPS, rtol=DEFAULT_ROBUST_RTOL
+        )
+    return LeastSquares(lam=settings.lam)
+
+
+def set_aside_mask(points, settings):
+    """``(m,)`` weights, 0 at the points ``settings`` set aside, or None where none were: the
+    ``mask`` that fits without them (also for a caller that passes the automatic settings
+    to :func:`fit` explicitly)."""
+    if settings is None or not settings.set_aside:
+        return None
+    support = np.ones(len(points))
+    support[list(settings.set_aside)] = 0.0
+    return support

@@ -47,17 +47,10 @@ from jax.sharding import NamedSharding, PartitionSpec
 
 from .._model.basis import flat_cell, locate, num_cells
 from .._model.spline import LocalBasis
-from .._problem.problem import (
-    Problem,
-    _surface_bucket_size,
-    check_memory,
-    choose_bucket_size,
-    fit_memory,
-    make_problem,
-    offset_samples,
-    unit_normals,
-    validate_inputs,
-)
+from .._problem.layout import choose_bucket_size
+from .._problem.memory import check_memory, fit_memory
+from .._problem.problem import Problem, _surface_bucket_size, make_problem, offset_samples
+from .._problem.validate import unit_normals, validate_inputs
 
 
 def _point_sharding(x) -> NamedSharding | None:

@@ -8,7 +8,6 @@ negative inside and positive outside.
 
 from __future__ import annotations
 
-import os
 from collections import namedtuple
 from functools import partial
 from typing import Any
@@ -18,14 +17,21 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import Array
-from jax.core import Tracer
 
 from .._model.basis import flat_cell, locate, num_cells
 from .._model.spline import TABLE_MAX_SLOTS, LocalBasis, local_basis, with_table
-from .sizes import padded_count, round_size
-
-#: Default margin added around the samples' bounding box, as a fraction of its longest side.
-DEFAULT_MARGIN = 0.1
+from .layout import bucket_layout, choose_bucket_size, round_buckets, stable_layout
+from .sizes import DEFAULT_MARGIN
+from .validate import (
+    _is_concrete,
+    _shape,
+    check_count,  # noqa: F401 (imported from here by solvers; moves to .validate)
+    check_nonnegative,  # noqa: F401 (as above)
+    check_precision,
+    normalise_grid,
+    unit_normals,
+    validate_inputs,
+)
 
 
 class Problem(eqx.Module):
@@ -65,107 +71,6 @@ class Problem(eqx.Module):
         return self.points.shape[0]
 
 
-#: Largest automatic bucket size.
-MAX_BUCKET_SIZE = 64
-#: Largest automatic bucket size of the table form of small problems (their per-bucket
-#: sums are unrolled in one kernel).
-SMALL_MAX_BUCKET_SIZE = 16
-
-
-def choose_bucket_size(cells: np.ndarray, count: int, small: bool = False) -> int:
-    """Automatic bucket size, a power of two: the largest not above the median number of
-    samples per occupied cell (at most ``MAX_BUCKET_SIZE``), so that most buckets are full
-    and padding stays below about half the slots. ``small`` (the table form of small
-    problems): the largest not above half that median (at most ``SMALL_MAX_BUCKET_SIZE``),
-    where padding costs as much as extra buckets (measured on 640-point outlines at
-    15 x 15, median 51 and 25 samples a cell: 16 and 8 were fastest)."""
-    counts = np.bincount(cells, minlength=count)
-    median = float(np.median(counts[counts > 0]))
-    if not small:
-        cap = MAX_BUCKET_SIZE
-    else:
-        cap, median = SMALL_MAX_BUCKET_SIZE, median / 2.0
-    return int(min(cap, 2 ** int(np.floor(np.log2(max(median, 1.0))))))
-
-
-def round_buckets(count: int) -> int:
-    """``count`` buckets rounded up to one of eight sizes an octave (at most 1/8 more),
-    so that clouds of similar size share one compiled fit."""
-    if count <= 32:
-        return count
-    step = 1 << (int(count).bit_length() - 4)
-    return -(-count // step) * step
-
-
-def bucket_layout(cells: np.ndarray, bucket_size: int, count: int, num_buckets: int | None = None):
-    """Group sample indices into buckets of ``bucket_size`` samples sharing a cell.
-
-    ``cells`` (S,) is each sample's flat cell, ``count`` the number of cells. Returns
-    ``(slot_sample, valid)``, both ``(num_buckets * bucket_size,)``: the sample in each slot
-    and whether it is real. Padding slots repeat their bucket's first sample (so the basis
-    stays well defined) and have ``valid`` False. A cell with more samples than a bucket
-    holds gets several buckets. Buckets are in cell order; ``num_buckets`` (at least the
-    number needed) appends empty buckets in the last cell.
-    """
-    k = bucket_size
-    # A stable sort by cell; 16-bit keys sort by radix, several times faster.
-    keys = cells.astype(np.uint16) if count <= 1 << 16 else cells
-    order = np.argsort(keys, kind="stable").astype(np.int32)
-    sorted_cells = cells[order]
-    counts = np.bincount(cells, minlength=count)
-    buckets_per_cell = -(-counts // k)
-    first_slot = (np.cumsum(buckets_per_cell) - buckets_per_cell) * k
-    cell_start = np.cumsum(counts) - counts
-    # Position within its cell (rank) plus the cell's first slot: consecutive buckets of a
-    # cell are consecutive slots.
-    slot = (first_slot - cell_start)[sorted_cells] + np.arange(cells.shape[0])
-    needed = int(buckets_per_cell.sum())
-    slot_sample = np.full(max(needed, num_buckets or 0) * k, -1, dtype=np.int32)
-    slot_sample[slot] = order
-    slot_sample[needed * k :] = order[-1]
-    slot_sample = slot_sample.reshape(-1, k)
-    valid = slot_sample >= 0
-    valid[needed:] = False
-    slot_sample = np.where(valid, slot_sample, slot_sample[:, :1])
-    return slot_sample.reshape(-1), valid.reshape(-1)
-
-
-def stable_layout(
-    cells: np.ndarray,
-    sample_mask: np.ndarray,
-    count: int,
-    bucket_size: int | None = None,
-    small: bool = False,
-):
-    """:func:`bucket_layout` of the real samples (``sample_mask`` > 0), sized from the
-    number of slots (padding included) and the occupied cells rounded up by
-    :func:`jurs._problem.sizes.round_size`, not from the exact counts: clouds padded to one size
-    (:func:`jurs.fit`) whose samples occupy about as many cells get the same shapes, so one
-    compiled fit. Padding samples take no bucket.
-
-    The bucket size (None chooses) is the power of two :func:`choose_bucket_size` would take
-    with the mean count per rounded occupied cell in place of the median. The number of
-    buckets, ``ceil(S / K) + occupied``, bounds ``sum_cells ceil(count / K)`` for any
-    placement of the real samples. Returns ``(slot_sample, valid, bucket_size)``.
-    """
-    real = np.flatnonzero(np.asarray(sample_mask) > 0)
-    cells = np.asarray(cells)
-    num_slots = cells.shape[0]
-    occupied = min(
-        count, round_size(int(np.count_nonzero(np.bincount(cells[real], minlength=count))))
-    )
-    if bucket_size is None:
-        cap, per_cell = (
-            (SMALL_MAX_BUCKET_SIZE, num_slots / occupied / 2.0)
-            if small
-            else (MAX_BUCKET_SIZE, num_slots / occupied)
-        )
-        bucket_size = int(min(cap, 2 ** int(np.floor(np.log2(max(per_cell, 1.0))))))
-    num_buckets = -(-num_slots // bucket_size) + occupied
-    slot, valid = bucket_layout(cells[real], bucket_size, count, num_buckets)
-    return real[slot].astype(np.int32), valid, bucket_size
-
-
 def offset_samples(points: Array, normals: Array, offset, eps, xp=jnp):
     """Samples and targets of eq. 4-5 and 9: ``[P, P + d n, P - d n]`` and ``[0, +eps, -eps]``.
 
@@ -191,256 +96,12 @@ def auto_domain(samples: Array, margin: float = DEFAULT_MARGIN, mask: Array | No
     return lo - pad, hi + pad
 
 
-def normalise_grid(grid, ndim: int = 2) -> tuple[int, ...]:
-    """``9`` or ``(9, 9)`` -> ``(9, 9)`` (``ndim`` 3: ``9`` or ``(9, 9, 9)`` -> ``(9, 9,
-    9)``); raises ValueError for anything below 4 functions an axis."""
-    kind = "a pair" if ndim == 2 else "a triple"
-    if isinstance(grid, (int, np.integer)):
-        grid = (grid,) * ndim
-    try:
-        shape = tuple(int(g) for g in grid)
-        if any(int(g) != g for g in grid):
-            raise TypeError
-    except (TypeError, ValueError):
-        raise ValueError(f"grid must be an int or {kind} of ints, got {grid!r}") from None
-    if len(shape) != ndim:
-        raise ValueError(f"grid must be {kind} of ints for {ndim}D points, got {grid!r}")
-    if min(shape) < 4:
-        raise ValueError(
-            f"grid must be at least {' x '.join('4' * ndim)} for cubic B-splines, got {shape}"
-        )
-    return shape
-
-
-def _is_concrete(*xs) -> bool:
-    return not any(isinstance(x, Tracer) for x in jax.tree_util.tree_leaves(xs))
-
-
 def _as_array(x, dtype=None):
     """``jnp.asarray(x, dtype)``; concrete values are converted on the host and transferred,
     which compiles nothing (an eager conversion compiles a small kernel on first use)."""
     if isinstance(x, jax.Array) or not _is_concrete(x):
         return jnp.asarray(x, dtype=dtype)
     return jax.device_put(np.asarray(x, dtype=dtype))
-
-
-def check_nonnegative(name: str, value, *, strict: bool = False) -> None:
-    """Raise ValueError unless ``value`` is a finite number >= 0 (> 0 when ``strict``);
-    TypeError for something that is not a number (a string, None, ...).
-
-    Traced values are not checked (their value is unknown at trace time).
-    """
-    if not _is_concrete(value):
-        return
-    if isinstance(value, (str, bytes)):  # NumPy would parse "1" as a number
-        raise TypeError(f"{name} must be a number, got {value!r}")
-    try:
-        v = np.asarray(value, dtype=float)
-    except (TypeError, ValueError):
-        raise TypeError(f"{name} must be a number, got {value!r}") from None
-    if v.shape != ():
-        raise ValueError(f"{name} must be a scalar, got shape {v.shape}")
-    if not np.isfinite(v):
-        raise ValueError(f"{name} must be finite, got {float(v)}")
-    if v < 0 or (strict and v == 0):
-        raise ValueError(
-            f"{name} must be {'positive' if strict else 'non-negative'}, got {float(v)}"
-        )
-
-
-def check_count(name: str, value, minimum: int = 0) -> None:
-    """TypeError unless ``value`` is an int (not a bool, not a float: a step count of 2.5
-    or NaN has no meaning), ValueError if it is below ``minimum``."""
-    if isinstance(value, bool) or not isinstance(value, (int, np.integer)):
-        raise TypeError(f"{name} must be an int, got {value!r}")
-    if value < minimum:
-        raise ValueError(f"{name} must be >= {minimum}, got {value}")
-
-
-def _shape(x) -> tuple:
-    """The shape of an array, or of a nested list on the host (``jnp.shape`` of a list is
-    deprecated by JAX)."""
-    return tuple(x.shape) if hasattr(x, "shape") else np.shape(x)
-
-
-def numeric_array(name: str, x) -> np.ndarray:
-    """``x`` as a NumPy array of numbers: TypeError naming ``name`` for strings, objects or
-    booleans, ValueError for ragged nested lists (NumPy's own errors name nothing)."""
-    try:
-        a = np.asarray(x)
-    except (TypeError, ValueError) as exc:
-        raise ValueError(f"{name} must be an array of numbers ({exc})") from None
-    if a.dtype.kind not in "iuf":
-        raise TypeError(f"{name} must be an array of numbers, got dtype {a.dtype}")
-    return a
-
-
-def unit_normals(normals, xp=np):
-    """``normals`` scaled to unit length, robustly: divided by their largest component
-    first, so that lengths beyond the float range (1e200: the squares overflow) or below it
-    (1e-200: they underflow) normalise as well as unit ones."""
-    scale = xp.max(xp.abs(normals), axis=1, keepdims=True)
-    n = normals / scale
-    return n / xp.linalg.norm(n, axis=1, keepdims=True)
-
-
-def _validate_points(points, normals, mask=None) -> None:
-    p = numeric_array("points", points)
-    n = numeric_array("normals", normals)
-    if p.ndim != 2 or p.shape[1] not in (2, 3):
-        raise ValueError(f"points must have shape (m, 2) or (m, 3), got {p.shape}")
-    if n.shape != p.shape:
-        raise ValueError(f"normals must have the same shape as points {p.shape}, got {n.shape}")
-    if p.shape[0] < 3:
-        raise ValueError(f"need at least 3 points, got {p.shape[0]}")
-    for name, a in (("points", p), ("normals", n)):
-        if not np.isfinite(a).all():  # one pass; rows only to name the first bad one
-            bad = ~np.isfinite(a).all(axis=1)
-            raise ValueError(f"{name} contain NaN or Inf (first at row {int(np.argmax(bad))})")
-    # Any non-zero length normalises (unit_normals divides by the largest component first).
-    short = np.abs(n).max(axis=1) == 0
-    if short.any():
-        raise ValueError(
-            f"normals must be non-zero (zero-length normal at row {int(np.argmax(short))})"
-        )
-    if mask is not None:
-        keep = np.asarray(mask)
-        if keep.shape != (p.shape[0],):
-            raise ValueError(f"mask must have shape ({p.shape[0]},), got {keep.shape}")
-        keep = keep.astype(bool)
-        if keep.sum() < 3:
-            raise ValueError(f"mask must select at least 3 points, got {int(keep.sum())}")
-        p = p[keep]
-    # The automatic path refused these in point_spacing; the explicit one fitted them
-    # "successfully" (a degenerate box). Both paths check here.
-    if not np.ptp(p, axis=0).max() > 0:
-        raise ValueError("points: all points coincide; the cloud has no extent")
-
-
-def check_domain(domain, ndim: int | None = None) -> np.ndarray:
-    """``domain`` as a ``(2, d)`` float array; ValueError naming it unless it is
-    ``((x_min, y_min), (x_max, y_max))`` (or with z in 3D; ``ndim`` None takes either),
-    finite, with min < max on every axis."""
-    try:
-        d = np.asarray(domain, dtype=float)
-    except (TypeError, ValueError):
-        raise ValueError(
-            f"domain must be ((x_min, y_min), (x_max, y_max)) numbers, got {domain!r}"
-        ) from None
-    if d.ndim != 2 or d.shape[0] != 2 or d.shape[1] not in ((2, 3) if ndim is None else (ndim,)):
-        raise ValueError(
-            f"domain must be ((x_min, y_min), (x_max, y_max)) (with z_min, z_max "
-            f"for 3D points), got shape {d.shape}"
-        )
-    if not np.isfinite(d).all() or not (d[0] < d[1]).all():
-        raise ValueError(f"domain must be finite with min < max on both axes, got {d.tolist()}")
-    return d
-
-
-def _validate_domain(domain, samples, m: int):
-    d = check_domain(domain, np.shape(samples)[1])
-    s = np.asarray(samples)
-    outside = ((s < d[0]) | (s > d[1])).any(axis=1)
-    if outside[:m].any():
-        raise ValueError(
-            f"points outside the given domain (first at row {int(np.argmax(outside[:m]))})"
-        )
-    if outside.any():
-        row = int(np.argmax(outside)) % m
-        raise ValueError(
-            f"offset samples P +/- d*n fall outside the given domain (point row {row}): "
-            "enlarge the domain or reduce the offset"
-        )
-
-
-def check_offset_scale(points, offset, mask=None) -> None:
-    """ValueError when the offset d exceeds the cloud's extent (its bounding-box diagonal):
-    the offset samples P +/- d n then lie beyond the whole shape, on every side of every
-    other point, and no fit can read inside from outside (offset=1e6 on a unit cloud ran
-    for a minute into 203 loops). Concrete values only."""
-    if not _is_concrete(points, offset, mask):
-        return
-    p = np.asarray(points, float)
-    if mask is not None:
-        p = p[np.asarray(mask).astype(bool)]
-    extent = float(np.linalg.norm(np.ptp(p, axis=0)))
-    if float(offset) > extent:
-        raise ValueError(
-            f"offset d = {float(offset):.4g} exceeds the cloud's extent (its "
-            f"bounding-box diagonal, {extent:.4g}): the offset samples would lie "
-            "beyond the whole shape; choose d below the point spacing or leave "
-            "it to the automatic choice"
-        )
-
-
-#: Largest ratio of the floating-point resolution at the cloud's coordinates to the offset
-#: d: a circle of radius 1 (d = 0.016) fitted in float32 kept its Chamfer distance within
-#: 2 % up to a translation of 3e4 (ratio 0.12), lost 13 % at 1e5 (0.5), grew 11 loops at
-#: 1e6 (4) and had no zero set at 1e7 (64).
-MAX_RESOLUTION_TO_OFFSET = 0.125
-
-
-def check_precision(points, offset, dtype, domain=None, eps=None) -> None:
-    """ValueError when ``dtype`` cannot resolve the offset d at the cloud's coordinates:
-    float32 at |x| = 1e7 steps by 1, so offsets of 0.01 collapse onto the points and the
-    fit silently loses its zero set; or when the energy, a sum of 3m squares of about
-    ``eps``, would overflow it (eps = 1e153 in float64). Concrete values only."""
-    if not _is_concrete(points, offset, domain, eps):
-        return
-    info = np.finfo(np.dtype(dtype))
-    if eps is not None:
-        terms = 3.0 * len(points)
-        if float(eps) > np.sqrt(float(info.max) / (1e4 * terms)):
-            raise ValueError(
-                f"eps = {float(eps):.3g} is too large for {np.dtype(dtype).name}: "
-                "the energy (a sum of squares of about eps) would overflow; "
-                "eps only scales g, so take eps about the offset d"
-            )
-    big = float(np.max(np.abs(np.asarray(points, float))))
-    if domain is not None:
-        big = max(big, float(np.max(np.abs(np.asarray(domain, float)))))
-    if big > float(info.max) / 4:
-        raise ValueError(
-            f"points reach |x| = {big:.3g}, beyond the range of {np.dtype(dtype).name}"
-        )
-    resolution = float(np.spacing(np.asarray(big, dtype)))
-    if resolution > MAX_RESOLUTION_TO_OFFSET * float(offset):
-        raise ValueError(
-            f"points reach |x| = {big:.3g}, where {np.dtype(dtype).name} resolves only steps "
-            f"of {resolution:.3g}, more than {MAX_RESOLUTION_TO_OFFSET} x the offset d = "
-            f"{float(offset):.3g}: translate the cloud near the origin or enable float64 "
-            "(jax.config.update('jax_enable_x64', True))"
-        )
-
-
-def validate_inputs(
-    points, normals, *, offset, eps, domain=None, margin=DEFAULT_MARGIN, mask=None
-) -> None:
-    """All input checks of :func:`make_problem`, on concrete values (traced ones are skipped).
-
-    Raises ValueError (TypeError for non-numbers) naming the problem; see
-    :func:`make_problem`. ``offset`` or ``eps`` None (to be chosen from the data) skips
-    their checks.
-    """
-    for name, value in (("offset", offset), ("eps", eps)):
-        if value is not None:
-            check_nonnegative(name, value, strict=True)
-    # A negative margin shrinks the box until it leaves out the data (below -1/2 the box
-    # turns inside out); the fit then "succeeded" on samples the basis does not cover.
-    check_nonnegative("margin", margin)
-    if domain is not None and _is_concrete(domain):
-        check_domain(domain)
-    if not _is_concrete(points, normals, mask):
-        return
-    _validate_points(points, normals, mask)
-    if offset is None:
-        return
-    check_offset_scale(points, offset, mask)
-    if domain is not None and _is_concrete(domain, offset):
-        p = np.asarray(points, dtype=float)
-        n = unit_normals(np.asarray(normals, dtype=float))
-        d = float(offset)
-        _validate_domain(domain, np.concatenate([p, p + d * n, p - d * n]), p.shape[0])
 
 
 def _slot_arrays(
@@ -658,8 +319,29 @@ def make_problem(
     validate_inputs(
         points, normals, offset=offset, eps=eps, domain=domain, margin=margin, mask=mask
     )
-    ndim = _shape(points)[1]
-    shape = normalise_grid(grid, ndim)
+    shape = normalise_grid(grid, _shape(points)[1])
+    return build_problem(
+        points, normals, shape, offset, eps, domain, margin, mask, bucket_size, dtype, stable_shapes
+    )
+
+
+def build_problem(
+    points,
+    normals,
+    shape: tuple[int, ...],
+    offset,
+    eps,
+    domain=None,
+    margin: float = DEFAULT_MARGIN,
+    mask=None,
+    bucket_size: int | None = None,
+    dtype=None,
+    stable_shapes: bool = False,
+) -> Problem:
+    """:func:`make_problem` of inputs already checked (:func:`jurs._problem.validate.
+    validate_inputs`) on a normalised grid ``shape``: what :func:`jurs.fit` calls, having
+    checked its cloud once."""
+    ndim = len(shape)
     if bucket_size is not None and (int(bucket_size) != bucket_size or bucket_size < 1):
         raise ValueError(f"bucket_size must be a positive int, got {bucket_size!r}")
     dtype = dtype or jnp.result_type(float)
@@ -701,193 +383,6 @@ def make_problem(
     return jax.device_put(problem) if concrete else problem
 
 
-def _join_roots(tree, roots, m):
-    """The ``(m + 1, m + 1)`` graph of ``tree`` with node ``m`` joined to ``roots``."""
-    from scipy.sparse import bmat, coo_matrix
-
-    link = coo_matrix((np.ones(len(roots)), (np.zeros(len(roots), int), roots)), shape=(1, m))
-    return bmat([[tree, link.T], [link, None]]).tocsr()
-
-
-#: Neighbours per point in :func:`flipped_normal_fraction`'s graph.
-ORIENTATION_NEIGHBOURS = 8
-#: Clouds above this many points are checked at this many, evenly strided.
-ORIENTATION_MAX_POINTS = 20_000
-
-
-def orientation_sample(points, normals):
-    """``(p, n, dist, idx)`` that :func:`flipped_normal_fraction` and
-    :func:`tangential_normal_fraction` read: the points (at most
-    :data:`ORIENTATION_MAX_POINTS`, evenly strided), their unit normals, and each point's
-    :data:`ORIENTATION_NEIGHBOURS` + 1 nearest (itself first) from one KD-tree query, so a
-    caller of both builds the tree once."""
-    from scipy.spatial import cKDTree  # pyright: ignore[reportAttributeAccessIssue]  # no stub
-
-    p = np.asarray(points, float)
-    n = unit_normals(np.asarray(normals, float))
-    if len(p) > ORIENTATION_MAX_POINTS:
-        keep = np.linspace(0, len(p) - 1, ORIENTATION_MAX_POINTS).round().astype(int)
-        p, n = p[keep], n[keep]
-    dist, idx = cKDTree(p).query(p, k=min(ORIENTATION_NEIGHBOURS + 1, len(p)))
-    return p, n, dist, idx
-
-
-def flipped_normal_fraction(points, normals, sample=None) -> float:
-    """Fraction of the points whose normal is flipped against its neighbours along the
-    curve, after Hoppe et al. (1992): the sign is carried along a minimum spanning tree of
-    the neighbour graph (weights ``1 - |n_i . n_j|``) and, in each connected part, the
-    smaller of the two sign classes counts. 0 for consistently oriented normals; about 1/2
-    when half the cloud is flipped, however large the cloud.
-
-    Only *tangential* neighbours are edges (the displacement within 72.5 degrees of both
-    tangents, within two median spacings): the two sides of a thin part, or a ring and its
-    hole, face opposite ways legitimately, and lie across, not along, each other. Where
-    noise scrambles the displacement's direction the graph falls apart into small parts
-    and the check turns blind, not wrong. Measured: 0 on Examples 1, 9, 10, the rose,
-    lobes, annulus, horse, coins and glyphs B, a, g, W at 300-20000 points, also with
-    0.1 rad normal noise and with 10 % positional outliers; 0.12 on the horse at 100 points
-    (legs thinner than the spacing); 0.5 with half or every other normal flipped.
-    Runs on the host (SciPy), on concrete inputs.
-    """
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import (
-        breadth_first_order,
-        connected_components,
-        minimum_spanning_tree,
-    )
-
-    p, n, dist, idx = orientation_sample(points, normals) if sample is None else sample
-    m = len(p)
-    k = dist.shape[1] - 1
-    dist, idx = dist[:, 1:], idx[:, 1:]
-    nearest = dist[:, 0][dist[:, 0] > 0]
-    if nearest.size == 0:
-        return 0.0
-    spacing = float(np.median(nearest))
-    i, j, d = np.repeat(np.arange(m), k), idx.ravel(), dist.ravel()
-    u = (p[j] - p[i]) / np.where(d > 0, d, 1.0)[:, None]
-    dot = np.sum(n[i] * n[j], axis=1)
-    edge = (
-        (d > 0)
-        & (d <= 2.0 * spacing)
-        & (np.abs(np.sum(u * n[i], axis=1)) < 0.3)
-        & (np.abs(np.sum(u * n[j], axis=1)) < 0.3)
-    )
-    graph = coo_matrix((1.0 - np.abs(dot[edge]) + 1e-3, (i[edge], j[edge])), shape=(m, m))
-    tree = minimum_spanning_tree(graph.tocsr().maximum(graph.T.tocsr()))
-    tree = tree + tree.T
-    count, labels = connected_components(tree, directed=False)
-    # Parent of every point in one breadth-first forest: a virtual node m joined to each
-    # part's first point is searched from (roots are their own parent). Whether a normal
-    # opposes its parent's, then the parity of flips up to the root by pointer jumping.
-    roots = np.unique(labels, return_index=True)[1]
-    joined = _join_roots(tree, roots, m)
-    pred = breadth_first_order(joined, m, directed=False)[1][:m]
-    parent = np.where(pred == m, np.arange(m), pred)
-    flip = np.sum(n * n[parent], axis=1) < 0
-    while np.any(parent != parent[parent]):
-        flip = flip ^ flip[parent]
-        parent = parent[parent]
-    flipped = np.bincount(labels, weights=flip, minlength=count)
-    size = np.bincount(labels, minlength=count)
-    return float(np.minimum(flipped, size - flipped).sum() / m)
-
-
-def available_memory(device: bool = True) -> int | None:
-    """Bytes a new allocation can take: with ``device`` on an accelerator its free memory,
-    else the host's available memory (``MemAvailable`` of /proc/meminfo, else the physical
-    memory); None where neither is known."""
-    stats = {}
-    if device:
-        try:
-            stats = jax.devices()[0].memory_stats() or {}
-        except Exception:  # backends without memory statistics
-            stats = {}
-    if "bytes_limit" in stats:
-        return int(stats["bytes_limit"]) - int(stats.get("bytes_in_use", 0))
-    try:
-        with open("/proc/meminfo") as fh:
-            for line in fh:
-                if line.startswith("MemAvailable:"):
-                    return int(line.split()[1]) * 1024
-    except OSError:
-        pass
-    try:
-        return int(os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES"))
-    except (AttributeError, ValueError, OSError):
-        return None
-
-
-def check_memory(
-    setting: str, estimate: float, available: int | None = None, device: bool = True
-) -> None:
-    """MemoryError-free refusal: ValueError naming ``setting`` when ``estimate`` bytes
-    exceed the memory available (:func:`available_memory`, on the device or with
-    ``device=False`` on the host), before anything is allocated
-    (grid=10000 otherwise asked XLA for 248 GB after 20 s, and a level-set resolution of
-    30000 ended in a MemoryError traceback)."""
-    available = available_memory(device) if available is None else available
-    if available is not None and estimate > available:
-        raise ValueError(
-            f"{setting} needs about {estimate / 2**30:.3g} GiB of memory, more "
-            f"than the {available / 2**30:.3g} GiB available; choose a smaller "
-            f"{setting.split(' ')[0].split('=')[0]}"
-        )
-
-
-def tangential_normal_fraction(points, normals, sample=None) -> float:
-    """Fraction of the points whose normal lies within 45 degrees of the curve's tangent
-    (of a surface's tangent plane), spanned by the principal directions of the point and
-    its :data:`ORIENTATION_NEIGHBOURS` nearest neighbours (counted only where the direction
-    across is clear, the variance along each tangent direction at least 4 times its: not
-    at corners, not in clouds sampled coarser than their features).
-    About 1/2 for random normals, which :func:`flipped_normal_fraction` cannot see (its
-    graph falls apart) and a fine grid fits "successfully"; measured at most 0.03 on the
-    consistent clouds listed there, also with 10 % of the normals random. Host side."""
-    p, n, _, idx = orientation_sample(points, normals) if sample is None else sample
-    near = p[idx] - p[idx].mean(axis=1, keepdims=True)
-    variance, axes = np.linalg.eigh(np.einsum("mki,mkj->mij", near, near))
-    clear = variance[:, 1] > 4.0 * variance[:, 0]
-    # Within 45 degrees of the tangent: at most cos 45 degrees along the direction across
-    # (the smallest variance's).
-    along = np.abs(np.sum(axes[:, :, 0] * n, axis=1)) < np.sqrt(0.5)
-    return float(np.mean(clear & along))
-
-
-#: Peak bytes a fit holds per coefficient: the exact solve and the normal-equation form
-#: assemble the 49-point stencil of D^T D and solve with it (LeastSquares measured 0.8 GB,
-#: 3.1 KB a coefficient, at 512 x 512, peak resident memory above the process' baseline
-#: on this 2-core CPU; XLA asked for 2.5 KB a coefficient at 10000 x 10000); the
-#: per-sample iterations hold a few grids (IURS: 0.19 GB at 64 x 64 and at 256 x 256,
-#: compilation included). At 2000 x 2000 it held 10 GB (2.5 KB a coefficient) after 8
-#: minutes and was still growing: the limit is twice the largest rate measured, so that a
-#: fit it lets through does not run the machine out of memory.
-BYTES_PER_COEFFICIENT = 8192
-BYTES_PER_COEFFICIENT_ITERATIVE = 1024
-#: Peak bytes per sample (positions, basis values, residuals).
-BYTES_PER_SAMPLE = 256
-#: The same for surfaces (3D), from peak resident sets on this 2-core CPU: the 343-point
-#: stencil, the per-cell moments it is folded from and the fold's intermediates (a 64^3 fit
-#: of 2e4 points peaked at 4.8 GB, 18 KB a coefficient), and each sample's 64 gathered
-#: coefficients and basis products (1e6 points at 48^3 peaked at 10 GB: 2.9 KB a sample
-#: after the grid's share).
-BYTES_PER_COEFFICIENT_3D = 20480
-BYTES_PER_SAMPLE_3D = 3072
-
-
-def fit_memory(shape, num_samples: int, solver) -> float:
-    """Estimated peak bytes of a fit on an ``(N, M)`` (or ``(N, M, K)``) grid with
-    ``num_samples`` samples (:data:`BYTES_PER_COEFFICIENT`, :data:`BYTES_PER_SAMPLE` and
-    their 3D counterparts)."""
-    surface = len(shape) == 3
-    if getattr(solver, "per_sample_iterations", False):
-        per_coefficient = BYTES_PER_COEFFICIENT_ITERATIVE
-    else:
-        per_coefficient = BYTES_PER_COEFFICIENT_3D if surface else BYTES_PER_COEFFICIENT
-    per_sample = BYTES_PER_SAMPLE_3D if surface else BYTES_PER_SAMPLE
-    return float(per_coefficient * np.prod(shape) + per_sample * num_samples)
-
-
 def values_by_point(values: Array, sample_index: Array, real: Array, num_points: int):
     """``(g(P_i), g(P_i + d n_i), g(P_i - d n_i))``, three ``(m,)`` arrays, from per-slot
     ``values`` (``sample_index`` the slots' positions in the paper's order, eq. 9); a sample
@@ -896,64 +391,4 @@ def values_by_point(values: Array, sample_index: Array, real: Array, num_points:
     return tuple(
         jax.ops.segment_sum(jnp.where(real & (kind == k), values, 0.0), point, num_points)
         for k in range(3)
-    )
-
-
-def padded_cloud(points, normals):
-    """``(points, normals, mask)`` padded to :func:`jurs._problem.sizes.padded_count` points with
-    masked-out copies of the first point (inside any box the cloud fits in), or None where
-    the inputs are traced or malformed (make_problem then reports them as given).
-
-    Why: a compiled fit is specialised to its array shapes; clouds padded to one of a few
-    sizes, with a layout sized from that (``make_problem(stable_shapes=True)``), reuse one
-    compilation. Masked points take no part in the fit, so the result is the unpadded one
-    up to rounding (the per-bucket sums group the samples differently).
-    """
-    if not _is_concrete(points, normals):
-        return None
-    try:  # ragged lists: make_problem names them
-        p, n = np.asarray(points), np.asarray(normals)
-    except (TypeError, ValueError):
-        return None
-    if p.ndim != 2 or p.shape[1] not in (2, 3) or n.shape != p.shape or p.shape[0] < 3:
-        return None
-    m = p.shape[0]
-    extra = padded_count(m) - m
-    mask = np.arange(m + extra) < m
-    return (
-        np.concatenate([p, np.repeat(p[:1], extra, axis=0)]),
-        np.concatenate([n, np.repeat(n[:1], extra, axis=0)]),
-        mask,
-    )
-
-
-def padded_problem(
-    points, normals, mask, shape, offset, eps, domain, margin, bucket_size, dtype, support=None
-):
-    """:func:`make_problem` of the cloud, padded (:func:`padded_cloud`) when it has no mask.
-
-    ``support``: optional ``(m,)`` weights of the caller's points (0 sets a point aside,
-    :func:`jurs._fit.settings.isolated_points`), multiplied into the mask."""
-    # The problem is built outside the solver's jit: its sample layout is chosen on the
-    # host from concrete data (see make_problem); under a caller's jit/grad/vmap it is traced.
-    padded = padded_cloud(points, normals) if mask is None else None
-    if padded is not None:  # shape-stable: clouds of similar size share one compiled fit
-        points, normals, mask = padded
-    if support is not None:
-        count = len(points)
-        base = np.ones(count) if mask is None else np.asarray(mask, float)
-        weights = np.asarray(support, float)
-        mask = base * np.concatenate([weights, np.zeros(count - len(weights))])
-    return make_problem(
-        points,
-        normals,
-        grid=shape,
-        offset=offset,
-        eps=eps,
-        domain=domain,
-        margin=margin,
-        mask=mask,
-        bucket_size=bucket_size,
-        dtype=dtype,
-        stable_shapes=padded is not None,
     )

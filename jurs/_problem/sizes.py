@@ -1,5 +1,5 @@
-"""The size ladder that compiled shapes are rounded to, so that similar clouds share one
-compiled fit (docs/design.md, "Compiled shapes")."""
+"""Sizes: the margin of the automatic box, and the ladder that compiled shapes are rounded
+to so that similar clouds share one compiled fit."""
 
 from __future__ import annotations
 
@@ -33,3 +33,7 @@ def padded_count(num_points: int) -> int:
     masked-out copies of its first point): :func:`round_size`, at least
     :data:`MIN_PADDED_POINTS`."""
     return max(MIN_PADDED_POINTS, round_size(num_points))
+
+
+#: Default margin added around the samples' bounding box, as a fraction of its longest side.
+DEFAULT_MARGIN = 0.1

@@ -13,7 +13,7 @@ import numpy as np
 from scipy.spatial import cKDTree  # pyright: ignore[reportAttributeAccessIssue]  # no stub
 
 from .._model.spline import ImplicitSpline
-from .._problem.problem import check_memory
+from .._problem.memory import check_memory
 
 if TYPE_CHECKING:
     from contourpy._contourpy import LineReturn_SeparateCode

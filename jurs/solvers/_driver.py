@@ -9,50 +9,11 @@ import jax.numpy as jnp
 
 from .._model.precision import full_precision
 from .._model.spline import ImplicitSpline
-from .._problem.energy import layout_residuals
 from .._problem.energy import metrics as compute_metrics
-from .._problem.problem import Problem, values_by_point
+from .._problem.problem import Problem
 from .._solution.solution import RAISED_RESULTS, RESULTS, Solution, error_message, unusable
+from .._solution.verdicts import MAX_OFFSET_SIGN_DISAGREEMENT, offset_sign_disagreement
 from ._base import AbstractSolver
-
-#: A fit whose stop rule was met but whose own sign is wrong at more than this fraction of
-#: the offset samples (g <= 0 outside, g >= 0 inside) is reported as
-#: ``RESULTS.inconsistent_normals``. Measured with the automatic settings: clean and noisy
-#: clouds 0-2 %, 10 % positional outliers 12.5 %, random normals 32 %, every other normal
-#: flipped 42 %.
-MAX_OFFSET_SIGN_DISAGREEMENT = 0.2
-#: The check reads every k-th point, at most this many: its per-point sums are arrays of
-#: the points' length, which a sharded fit all-reduces to every device (a 1e7-point cloud:
-#: 240 MB a device, more than its share of the samples on 8 devices). 65536 points estimate
-#: the fraction within about 0.4 % (two standard errors at the threshold).
-SIGN_CHECK_POINTS = 1 << 16
-
-
-def offset_sign_disagreement(problem: Problem, spline: ImplicitSpline):
-    """Fraction of the points whose two offset samples the fit reads the wrong way round:
-    ``g(P + d n) <= g(P - d n)``, the fit rising inward across the point.
-
-    The two samples are compared with each other, not with 0: where the grid's cells are
-    much wider than d (a dense cloud on a capped grid) the zero set lies farther than d
-    from the data, so an offset can sit on the wrong side of it while the fit still
-    rises outward through the point (1e6 points of a circle: a third of the offsets on the
-    wrong side of an accurate fit). Above :data:`SIGN_CHECK_POINTS` points, an evenly
-    strided subset of them is read."""
-    local = problem.local
-    mask, targets = local.to_layout(problem.mask), local.to_layout(problem.targets)
-    r, _, _ = layout_residuals(local, mask, targets, spline.control, spline.weights)
-    m = problem.num_points
-    # (The table form, for small problems only, carries it as floats: exact there.)
-    index = local.to_layout(problem.sample_index).astype(jnp.int32)
-    stride = -(-m // SIGN_CHECK_POINTS)  # every point up to SIGN_CHECK_POINTS
-    size = -(-m // stride)
-    point, kind = index % m, index // m
-    real = (mask > 0) & (point % stride == 0)
-    index = kind * size + point // stride
-    _, g_out, g_in = values_by_point(r + targets, index, real, size)  # r = g - b where real
-    counted = values_by_point(jnp.ones_like(r), index, real, size)[1] > 0
-    wrong = counted & (g_out <= g_in)
-    return jnp.sum(wrong) / jnp.maximum(jnp.sum(counted), 1)
 
 
 @full_precision

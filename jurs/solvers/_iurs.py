@@ -15,7 +15,8 @@ from .._problem.energy import (
     regulariser_grad,
     step_size_from_column_sums,
 )
-from .._problem.problem import Problem, check_count, check_nonnegative
+from .._problem.problem import Problem
+from .._problem.validate import check_count, check_nonnegative
 from .._solution.solution import RESULTS
 from ._base import AbstractSolver
 

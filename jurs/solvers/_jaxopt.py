@@ -17,7 +17,8 @@ from jax.flatten_util import ravel_pytree
 
 from .._model.spline import ImplicitSpline
 from .._problem.energy import objective
-from .._problem.problem import Problem, check_nonnegative
+from .._problem.problem import Problem
+from .._problem.validate import check_nonnegative
 from .._solution.solution import RESULTS
 from . import _parameterisation as param
 from ._base import AbstractSolver

@@ -1,0 +1,173 @@
+"""Measurements of a point cloud on the host, in data units: the spacing of its points, the
+noise about a smooth curve or surface, which side of the tangent the offsets land, and the
+width of thin parts and narrow gaps. :func:`jurs.auto_settings` chooses from them."""
+
+from __future__ import annotations
+
+from typing import TYPE_CHECKING
+
+import numpy as np
+
+if TYPE_CHECKING:  # SciPy's spatial module loads on the first fit, not on import
+    # SciPy ships no stub for its compiled cKDTree, so a type checker sees no such class;
+    # KDTree, its pure-Python subclass with the same query(), stands in for it here.
+    from scipy.spatial import KDTree as cKDTree
+
+#: Clouds above this many points are measured and checked at this many of them, evenly
+#: strided over their order (the same points wherever the cloud is placed): the settings'
+#: measurements, the orientation check and the doubt checks all read one such subsample.
+#: Their medians and fractions settle well below it; neighbour searches past it cost time
+#: that grows with the cloud and buys nothing.
+PROBES = 20_000
+
+
+#: Neighbours used for the noise estimate (the point itself included).
+NOISE_NEIGHBOURS = 16
+
+
+def kd_tree(points: np.ndarray) -> cKDTree:
+    """``scipy.spatial.cKDTree(points)``, with SciPy's spatial module imported on first use."""
+    from scipy.spatial import cKDTree  # pyright: ignore[reportAttributeAccessIssue]
+
+    return cKDTree(points)
+
+
+def strided_probes(count: int, most: int) -> np.ndarray | None:
+    """Indices of at most ``most`` of ``count`` points, evenly strided over their order (the
+    same points wherever the cloud is placed); None where all ``count`` fit."""
+    return None if count <= most else np.linspace(0, count - 1, most).round().astype(int)
+
+
+def _probe(points: np.ndarray, at) -> np.ndarray:
+    return np.arange(len(points)) if at is None else np.asarray(at)
+
+
+def point_spacing(points: np.ndarray, tree: cKDTree | None = None, at=None) -> float:
+    """Median distance from a point to its nearest other point (duplicates skipped),
+    over the points indexed by ``at`` (default all)."""
+    tree = kd_tree(points) if tree is None else tree
+    dist = tree.query(points[_probe(points, at)], k=min(len(points), 4))[0][:, 1:]
+    dist = np.where(dist > 0, dist, np.inf).min(axis=1)
+    finite = dist[np.isfinite(dist)]
+    if finite.size == 0:
+        raise ValueError("all points coincide; the cloud has no extent")
+    return float(np.median(finite))
+
+
+def _tangent_frame(rel: np.ndarray, keep: np.ndarray) -> np.ndarray:
+    """``(probes, d, d)`` principal frames of the kept neighbours ``rel (probes, k, d)``
+    (centred): the rows are the covariance's eigenvectors, largest first, so the last row
+    is the direction across the curve or surface."""
+    cov = np.matmul((keep[:, :, None] * rel).transpose(0, 2, 1), rel)
+    return np.linalg.eigh(cov)[1][:, :, ::-1].transpose(0, 2, 1)
+
+
+def _quadratic_terms(u: np.ndarray) -> np.ndarray:
+    """``1``, the tangent coordinates ``u (probes, k, d - 1)`` and their products of degree
+    two: the terms of a quadratic height function; ``(probes, k, terms)``."""
+    dims = u.shape[-1]
+    products = [u[..., i] * u[..., j] for i in range(dims) for j in range(i, dims)]
+    return np.concatenate([np.ones(u.shape[:-1] + (1,)), u, np.stack(products, -1)], axis=-1)
+
+
+def estimate_noise(
+    points: np.ndarray,
+    normals: np.ndarray,
+    tree: cKDTree | None = None,
+    neighbours: int = NOISE_NEIGHBOURS,
+    at=None,
+) -> float:
+    """Positional noise sigma: the median over points of the RMS residual of a quadratic
+    height ``v = q(u)`` fitted, in the principal frame of the point's ``neighbours``
+    nearest same-facing neighbours (normals within 60 degrees), to those neighbours: ``u``
+    the coordinate along the curve (the two tangent coordinates on a surface), ``v`` the
+    one across. The quadratic absorbs the curvature, so clean samples of a smooth curve or
+    surface give about 0; the residual divides by the neighbours less the quadratic's
+    terms (3 in 2D, 6 in 3D), so it is unbiased for independent noise. The median ignores
+    corners and the ends of a gap. Measured at the points indexed by ``at`` (default all),
+    with neighbours from the whole cloud."""
+    at = _probe(points, at)
+    k = min(len(points), neighbours)
+    tree = kd_tree(points) if tree is None else tree
+    idx = tree.query(points[at], k=k)[1]
+    nb = points[idx]  # (probes, k, d)
+    # Plain broadcasts and sums below: NumPy's einsum runs these small contractions
+    # several times slower (it was half of auto_settings' time at 1000 points).
+    keep = ((normals[idx] * normals[at][:, None, :]).sum(axis=2) > 0.5).astype(float)
+    count = keep.sum(axis=1)
+    centre = (keep[:, :, None] * nb).sum(axis=1) / np.maximum(count, 1)[:, None]
+    rel = nb - centre[:, None, :]
+    frame = _tangent_frame(rel, keep)
+    local = np.matmul(rel, frame.transpose(0, 2, 1))  # (probes, k, d): tangent..., across
+    u, v = local[..., :-1], local[..., -1]
+    # Scale u to unit RMS so the powers stay conditioned (and finite where all coincide).
+    scale = np.sqrt((keep[:, :, None] * u * u).sum(axis=(1, 2)) / np.maximum(count, 1))
+    scale = np.where(scale > 0, scale, 1.0)
+    basis = _quadratic_terms(u / scale[:, None, None])  # (probes, k, terms)
+    terms = basis.shape[-1]
+    weighted = keep[:, :, None] * basis
+    gram = np.matmul(weighted.transpose(0, 2, 1), basis)  # (probes, terms, terms)
+    rhs = (weighted * v[:, :, None]).sum(axis=1)
+    ok = count >= 2 * terms
+    gram[~ok] = np.eye(terms)
+    coef = np.linalg.solve(gram + 1e-12 * np.eye(terms), rhs[..., None])[..., 0]
+    resid = v - (basis * coef[:, None, :]).sum(axis=2)
+    rms = np.sqrt((keep * resid * resid).sum(axis=1) / np.maximum(count - terms, 1))
+    return float(np.median(rms[ok])) if ok.any() else 0.0
+
+
+def offset_agreement(
+    points: np.ndarray, normals: np.ndarray, offset, tree: cKDTree | None = None, at=None
+):
+    """Fraction of the 2m offset samples ``P_i +/- d n_i`` that lie on their intended side
+    (outside for ``+``, inside for ``-``) of the tangent line of their nearest data point
+    other than ``P_i``.
+
+    It is low for small d on noisy data (a neighbour's noise is larger than d) and for large
+    d where the offsets cross a thin part of the shape or the gap between two parts (they
+    land nearer the far side and read the wrong side there); in between it is near 1.
+    Measured for the points indexed by ``at`` (default all). ``offset`` may be a 1-D array
+    of offsets (one KD-tree query for all of them); then so is the result.
+    """
+    tree = kd_tree(points) if tree is None else tree
+    own = _probe(points, at)
+    offsets = np.asarray(offset, float)
+    # (offsets, sign, probes): +d then -d for every offset.
+    signed = offsets.reshape(-1, 1, 1) * np.array([1.0, -1.0]).reshape(1, 2, 1)
+    q = points[own] + signed[..., None] * normals[own]
+    idx = tree.query(q.reshape(-1, points.shape[1]), k=2)[1].reshape(q.shape[:3] + (2,))
+    j = np.where(idx[..., 0] == own, idx[..., 1], idx[..., 0])
+    side = ((q - points[j]) * normals[j]).sum(axis=-1)
+    agreement = (signed * side > 0).mean(axis=(1, 2))
+    return agreement.reshape(offsets.shape) if offsets.ndim else float(agreement[0])
+
+
+def feature_width(
+    points: np.ndarray, normals: np.ndarray, radius: float, spacing: float, at=None
+) -> tuple[np.ndarray, np.ndarray]:
+    """``(width, partner)`` per probe point (``at``, default all): the distance to the
+    nearest point whose normal faces the other way (more than 120 degrees apart), within
+    ``radius`` (inf where there is none), and that point's index (-1 where none).
+
+    On a thin part of the shape it is the part's width at that point, on the far side of a
+    narrow gap the gap's: the features a grid must resolve. Clouds much denser than the
+    radius are thinned to about 16 points a radius first (by stride: only the nearest
+    opposite point matters, and 64 neighbours must reach across)."""
+    own = _probe(points, at)
+    stride = max(1, min(int(radius / (16.0 * spacing)), len(points) // 64))
+    keep = np.arange(0, len(points), stride)
+    tree = kd_tree(points[keep])
+    k = min(len(keep), 64)
+    # k as a list: 2-D results even for k = 1 (SciPy's stub types k as an int only).
+    ks = list(range(1, k + 1))
+    dist, idx = tree.query(points[own], k=ks, distance_upper_bound=radius)  # pyright: ignore[reportArgumentType]
+    found = np.isfinite(dist)
+    idx = np.where(found, idx, 0)
+    facing = (normals[keep][idx] * normals[own][:, None, :]).sum(axis=-1)
+    dist = np.where(found & (facing < -0.5), dist, np.inf)
+    nearest = np.argmin(dist, axis=1)
+    width = np.take_along_axis(dist, nearest[:, None], axis=1)[:, 0]
+    partner = np.where(
+        np.isfinite(width), keep[np.take_along_axis(idx, nearest[:, None], 1)[:, 0]], -1
+    )
+    return width, partner

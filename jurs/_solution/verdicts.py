@@ -1,0 +1,261 @@
+"""Every verdict a fit can get beyond the solver's own, and its thresholds, in one place.
+
+The driver's loop (:func:`jurs.solve`) sets ``successful``, ``max_steps_reached``,
+``failed``, ``nonfinite`` and ``weights_at_floor`` from the run, and
+``inconsistent_normals`` where the fit reads its offsets the wrong way round
+(:func:`offset_sign_disagreement`, traced with the fit). :func:`jurs.fit` then judges a
+fit made at top level against its cloud on the host (:func:`judge`): normals flipped or
+lying along the shape make it ``inconsistent_normals`` (:func:`check_orientation`); with
+automatic settings, parts cut, gaps bridged or points left far from the zero set make it
+``doubtful`` (:func:`check_doubts`). The reasoning behind each threshold is in
+docs/robustness.md; the measurements in ``benchmarks/results/quality.md`` and
+``benchmarks/results/surfaces.md``.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import warnings
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from .._cloud.measure import PROBES, feature_width, strided_probes
+from .._model.spline import ImplicitSpline
+from .._problem.energy import layout_residuals
+from .._problem.problem import Problem, values_by_point
+from .._problem.validate import unit_normals
+from .solution import RESULTS
+
+#: A fit whose stop rule was met but whose own sign is wrong at more than this fraction of
+#: the offset samples (g <= 0 outside, g >= 0 inside) is reported as
+#: ``RESULTS.inconsistent_normals``. Measured with the automatic settings: clean and noisy
+#: clouds 0-2 %, 10 % positional outliers 12.5 %, random normals 32 %, every other normal
+#: flipped 42 %.
+MAX_OFFSET_SIGN_DISAGREEMENT = 0.2
+
+
+#: The check reads every k-th point, at most this many: its per-point sums are arrays of
+#: the points' length, which a sharded fit all-reduces to every device (a 1e7-point cloud:
+#: 240 MB a device, more than its share of the samples on 8 devices). 65536 points estimate
+#: the fraction within about 0.4 % (two standard errors at the threshold).
+SIGN_CHECK_POINTS = 1 << 16
+
+
+def offset_sign_disagreement(problem: Problem, spline: ImplicitSpline):
+    """Fraction of the points whose two offset samples the fit reads the wrong way round:
+    ``g(P + d n) <= g(P - d n)``, the fit rising inward across the point.
+
+    The two samples are compared with each other, not with 0: where the grid's cells are
+    much wider than d (a dense cloud on a capped grid) the zero set lies farther than d
+    from the data, so an offset can sit on the wrong side of it while the fit still
+    rises outward through the point (1e6 points of a circle: a third of the offsets on the
+    wrong side of an accurate fit). Above :data:`SIGN_CHECK_POINTS` points, an evenly
+    strided subset of them is read."""
+    local = problem.local
+    mask, targets = local.to_layout(problem.mask), local.to_layout(problem.targets)
+    r, _, _ = layout_residuals(local, mask, targets, spline.control, spline.weights)
+    m = problem.num_points
+    # (The table form, for small problems only, carries it as floats: exact there.)
+    index = local.to_layout(problem.sample_index).astype(jnp.int32)
+    stride = -(-m // SIGN_CHECK_POINTS)  # every point up to SIGN_CHECK_POINTS
+    size = -(-m // stride)
+    point, kind = index % m, index // m
+    real = (mask > 0) & (point % stride == 0)
+    index = kind * size + point // stride
+    _, g_out, g_in = values_by_point(r + targets, index, real, size)  # r = g - b where real
+    counted = values_by_point(jnp.ones_like(r), index, real, size)[1] > 0
+    wrong = counted & (g_out <= g_in)
+    return jnp.sum(wrong) / jnp.maximum(jnp.sum(counted), 1)
+
+
+#: More than this fraction of the points with normals flipped against their neighbours
+#: (:func:`jurs._problem.problem.flipped_normal_fraction`), or with normals along the curve
+#: (:func:`jurs._problem.problem.tangential_normal_fraction`), makes a fit
+#: ``inconsistent_normals``: consistent clouds measured 0 and at most 0.03 (0.12 flipped
+#: on a horse sampled coarser than its legs); half or every other normal flipped 0.5,
+#: random normals about 0.5 along the curve.
+MAX_FLIPPED_FRACTION = 0.2
+
+
+MAX_TANGENTIAL_FRACTION = 0.2
+
+
+def check_orientation(sol, cloud):
+    """``sol`` with ``metrics["flipped_normal_fraction"]`` and
+    ``metrics["tangential_normal_fraction"]`` (measured once per ``cloud``,
+    :attr:`jurs._cloud.cloud.Cloud.orientation`) and, where more than
+    :data:`MAX_FLIPPED_FRACTION` of the normals are flipped against their neighbours or
+    more than :data:`MAX_TANGENTIAL_FRACTION` lie along the curve, the verdict
+    ``RESULTS.inconsistent_normals`` in place of success or max_steps (half-flipped or
+    random normals fitted "successfully" into 2 or 20 loops). Host side. Unlike an input
+    error this is a verdict, as optimistix reports a failed solve in ``sol.result``: the
+    fit ran; :func:`jurs.fit` raises it with ``throw=True`` and returns it otherwise."""
+    flipped, along = cloud.orientation
+    metrics = dict(
+        sol.metrics,
+        flipped_normal_fraction=jnp.asarray(flipped),
+        tangential_normal_fraction=jnp.asarray(along),
+    )
+    result = sol.result
+    bad = flipped > MAX_FLIPPED_FRACTION or along > MAX_TANGENTIAL_FRACTION
+    if bad and bool((result == RESULTS.successful) | (result == RESULTS.max_steps_reached)):
+        result = RESULTS.inconsistent_normals
+    return dataclasses.replace(sol, metrics=metrics, result=result)
+
+
+#: A fit is ``doubtful`` where more than this fraction of its points (and more than 2)
+#: sit across a thin part or a narrow gap (less than a cell wide) from a point whose side
+#: the fit gets wrong (:func:`crossed_features`): a neck pinched, two parts fused, a tip
+#: cut short. The clean shapes of the quality suite (2000 points) measured 0-5 such
+#: points (0.25 %, the wedges of glyphs' sharp inner corners, rounded off within a cell);
+#: a 100:1 ellipse 92 (its tips cut short), a 1000:1 one 260. Surfaces of 1e5 points
+#: (20000 probed; sphere, torus, bunny, airplane): 0 clean; with noise of 0.5 % of the
+#: diagonal 0 on sphere and torus, 174 on the bunny (ears) and 361 on the airplane (wings,
+#: noise 0.6x their width), of which the clean cloud's fit put 99 and 228 midpoints on
+#: the pair's side: parts the noisy fit cut.
+MAX_CROSSED_FRACTION = 0.005
+
+
+#: ... or where more than this fraction of the points (those set aside excepted) lie
+#: farther from the zero set than the fit resolves (:func:`far_point_fraction`): fits of
+#: four shapes with 1 % noise left 0-1.5 % of their points there, with 10 % of the
+#: points displaced by 0.1 of the diagonal 1-1.5 %.
+MAX_FAR_FRACTION = 0.02
+
+
+#: Far points lie beyond this many times the spread of the points' distances to the zero
+#: set (:func:`far_point_fraction`): 6e-5 of Gaussian noise does; noisy clouds (1 % of
+#: the diagonal) had 1.3-2.1 % of their points beyond 2 d, d being set from an estimate
+#: of the noise below the true one.
+FAR_SPREAD = 4.0
+
+
+#: The checks evaluate the fit at point counts rounded up to a power of two (at least
+#: this), so that a new cloud reuses their compiled evaluations: with a count of its
+#: own, each new cloud of Example 1 (3000-3300 points, grid 64) spent 0.56-0.62 s
+#: compiling them, most of its 0.66-0.70 s fit. Powers of two, not the fit's own ladder
+#: (:func:`jurs._problem.sizes.round_size`, four sizes an octave): padding these evaluations
+#: costs milliseconds, a compilation about half a second, and the count of pairs across
+#: thin parts varies from cloud to cloud within one of the fit's size bands.
+MIN_CHECK_BUCKET = 1024
+
+
+@jax.jit
+def zero_set_distance(spline: ImplicitSpline, points: jax.Array) -> jax.Array:
+    """First-order distance ``|g(p)| / |grad g(p)|`` from each point to the zero set."""
+
+    def one(p):
+        value, gradient = jax.value_and_grad(lambda x: spline(x[None])[0])(p)
+        return jnp.abs(value) / jnp.maximum(jnp.linalg.norm(gradient), 1e-300)
+
+    return jax.vmap(one)(points)
+
+
+@jax.jit
+def _spline_values(spline: ImplicitSpline, points: jax.Array) -> jax.Array:
+    return spline(points)
+
+
+def evaluate_bucketed(fn, spline: ImplicitSpline, points) -> np.ndarray:
+    """``fn(spline, points)`` (a jitted per-point evaluation) on the host's ``(n, d)``
+    ``points``, padded with copies of the first to a power of two of at least
+    :data:`MIN_CHECK_BUCKET` rows and cut back to ``n``: clouds of different sizes share
+    one compiled evaluation."""
+    points = np.asarray(points, float)
+    n = len(points)
+    if n == 0:
+        return np.empty(0)
+    size = max(MIN_CHECK_BUCKET, 1 << (n - 1).bit_length())
+    padded = np.concatenate([points, np.repeat(points[:1], size - n, axis=0)])
+    return np.asarray(fn(spline, jnp.asarray(padded, spline.control.dtype)))[:n]
+
+
+def far_point_fraction(spline: ImplicitSpline, points, offset: float) -> tuple[float, float]:
+    """``(fraction, threshold)``: the fraction of ``points`` (at most :data:`PROBES`,
+    evenly strided) whose :func:`zero_set_distance` exceeds the largest of 2 d, half a
+    cell, and :data:`FAR_SPREAD` times the distances' own robust spread (1.4826 times their
+    median): the distance within which a fit's zero set lies of its data where it follows
+    them (the offsets reach d; a grid's cell bounds what its zero set can follow; noisy
+    points scatter about it by their noise, which d may underestimate)."""
+    p = np.asarray(points, float)
+    at = strided_probes(len(p), PROBES)
+    p = p if at is None else p[at]
+    cell = spline.cell_width
+    distance = evaluate_bucketed(zero_set_distance, spline, p)
+    spread = 1.4826 * float(np.nanmedian(distance)) if np.isfinite(distance).any() else 0.0
+    threshold = max(2.0 * float(offset), 0.5 * cell, FAR_SPREAD * spread)
+    return float(np.mean(~(distance <= threshold))), threshold
+
+
+def crossed_features(spline: ImplicitSpline, points, normals, spacing: float) -> int:
+    """How many of ``points`` (at most :data:`PROBES`, evenly strided) face a point
+    less than a cell away across a thin part or a narrow gap
+    (:func:`jurs._fit.settings.feature_width`) while the fit puts the midpoint between the two
+    on the wrong side: outside for a thin part (normals pointing away from each other),
+    inside for a gap. Each such pair is a part cut or a gap bridged by the zero set."""
+    p, n = np.asarray(points, float), unit_normals(np.asarray(normals, float), np)
+    at = strided_probes(len(p), PROBES)
+    own = np.arange(len(p)) if at is None else at
+    _, partner = feature_width(p, n, spline.cell_width, spacing, own)
+    paired = partner >= 0
+    if not paired.any():
+        return 0
+    a, b = p[own[paired]], p[partner[paired]]
+    inside = np.sum((b - a) * n[own[paired]], axis=1) < 0  # a thin part, not a gap
+    value = evaluate_bucketed(_spline_values, spline, 0.5 * (a + b))
+    return int(np.sum(np.where(inside, value > 0, value < 0)))
+
+
+def check_doubts(sol, cloud, settings, offset):
+    """``sol`` with ``metrics["far_point_fraction"]``, ``metrics["crossed_features"]``,
+    ``stats["doubts"]`` (the reasons to doubt the zero set, in words) and, where there is
+    one, the verdict ``RESULTS.doubtful`` in place of success, and a warning. Host side;
+    ``settings`` (None: a fit with settings given) says which points were set aside and
+    the cloud's spacing, without which the thin-part check is not made."""
+    keep = np.zeros(len(cloud), bool)
+    keep[cloud.kept] = True
+    if settings is not None and settings.set_aside:
+        keep[list(settings.set_aside)] = False
+    p = cloud.points
+    far, threshold = far_point_fraction(sol.spline, p[keep], offset)
+    crossed, thin = 0, 0.0 if settings is None else settings.thin_fraction
+    if settings is not None:
+        crossed = crossed_features(sol.spline, p[keep], cloud.normals[keep], settings.spacing)
+    doubts = []
+    if crossed > max(2, MAX_CROSSED_FRACTION * min(int(keep.sum()), PROBES)):
+        doubts.append(
+            f"{crossed} points sit across a thin part or a narrow gap (less than a cell "
+            "wide) from a point the zero set puts on the wrong side: parts are cut or "
+            "bridged there. A finer grid= (cells about as wide as the features) or "
+            "denser sampling resolves them"
+            + (
+                f"; {thin:.1%} of the points lie on features narrower than half a cell of this grid"
+                if thin > 0
+                else ""
+            )
+        )
+    if far > MAX_FAR_FRACTION:
+        doubts.append(
+            f"{far:.1%} of the points lie farther than {threshold:.3g} from the zero set: "
+            "the fit does not follow the data there (features too fine for the grid, "
+            "outliers or inconsistent normals)"
+        )
+    metrics = dict(
+        sol.metrics, far_point_fraction=jnp.asarray(far), crossed_features=jnp.asarray(crossed)
+    )
+    stats = dict(sol.stats, doubts=tuple(doubts))
+    result = sol.result
+    if doubts and bool(result == RESULTS.successful):
+        result = RESULTS.doubtful
+        warnings.warn("jurs.fit: doubtful fit: " + "; ".join(doubts), stacklevel=4)
+    return dataclasses.replace(sol, metrics=metrics, stats=stats, result=result)
+
+
+def judge(sol, cloud, settings, offset):
+    """The host's verdicts on a fit of ``cloud`` made at top level: the orientation of the
+    normals (:func:`check_orientation`) and, where the settings were chosen automatically
+    (the data were not looked at by a person), the doubts (:func:`check_doubts`)."""
+    sol = check_orientation(sol, cloud)
+    return sol if settings is None else check_doubts(sol, cloud, settings, offset)
