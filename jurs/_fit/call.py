@@ -19,9 +19,10 @@ from .sharding import is_sharded
 
 
 def as_arrays(tree, dtype):
-    """Python floats -> 0-d arrays, so new hyperparameter values do not recompile."""
+    """Python floats -> 0-d arrays, so new hyperparameter values do not recompile. NumPy's:
+    a jit traces them as it traces JAX arrays, and making one dispatches nothing."""
     return jax.tree_util.tree_map(
-        lambda x: jnp.asarray(x, dtype) if isinstance(x, float) else x, tree
+        lambda x: np.asarray(x, jnp.dtype(dtype)) if isinstance(x, float) else x, tree
     )
 
 
@@ -43,9 +44,63 @@ def _run(problem, solver, init, throw):
 
 
 _solve = eqx.filter_jit(_run)
+
+
+class _FlatJit:
+    """``fn`` jit-compiled over the flat array leaves of its arguments, one program per
+    tree structure and static part. What equinox's ``filter_jit`` does, with the per-call
+    work cut to a partition, a flatten and a dictionary look-up: at top level that per-call
+    work is what a warm fit of a small cloud pays beyond its compiled solve
+    (``benchmarks/startup.py``, the overhead case)."""
+
+    def __init__(self, fn):
+        self.fn = fn
+        self.programs: dict = {}
+
+    def __call__(self, *args):
+        dynamic, static = eqx.partition(args, eqx.is_array)
+        leaves, tree = jax.tree_util.tree_flatten(dynamic)
+        static_leaves, static_tree = jax.tree_util.tree_flatten(static)
+        key = (tree, static_tree, tuple(static_leaves))
+        try:
+            program = self.programs.get(key)
+        except TypeError:  # an unhashable static part: equinox handles it
+            return eqx.filter_jit(self.fn)(*args)
+        if program is None:
+            program = self.programs[key] = self._compile(tree, static)
+        out_leaves, out_static = program(leaves)
+        return eqx.combine(jax.tree_util.tree_unflatten(out_static[0], out_leaves), out_static[1])
+
+    def _compile(self, tree, static):
+        # The output's static part is known once traced; kept beside the program.
+        kept: list = []
+
+        def flat(leaves):
+            out = self.fn(*eqx.combine(jax.tree_util.tree_unflatten(tree, leaves), static))
+            out_dynamic, out_static = eqx.partition(out, eqx.is_array)
+            out_leaves, out_tree = jax.tree_util.tree_flatten(out_dynamic)
+            kept[:] = [(out_tree, out_static)]
+            return out_leaves
+
+        jitted = jax.jit(flat)
+        return lambda leaves: (jitted(leaves), kept[0])
+
+
+# The top-level plain compilation of a fit.
+_solve_top_level = _FlatJit(_run)
 # The same compiled with COMPILER_OPTIONS, for large problems at top level (see fit).
 # (filter_jit passes jax.jit's keywords on; its stub lists none of them.)
 _solve_reassociating = eqx.filter_jit(_run, compiler_options=COMPILER_OPTIONS)  # pyright: ignore[reportCallIssue]
+
+
+def _trace_state_clean() -> bool:
+    """Whether no JAX transformation is tracing (JAX's own private test, where it has one;
+    False leaves the answer to the public test below)."""
+    try:
+        from jax._src.core import trace_state_clean
+    except ImportError:  # pragma: no cover - an older or newer JAX without it
+        return False
+    return bool(trace_state_clean())
 
 
 def at_top_level(tree) -> bool:
@@ -53,6 +108,8 @@ def at_top_level(tree) -> bool:
     computation, not staged into a caller's jit (XLA takes compiler options only there)."""
     if not _is_concrete(tree):
         return False
+    if _trace_state_clean():  # nothing is tracing: the common, cheap answer
+        return True
     # JAX has no public "am I being staged out" check (jax-ml/jax#18544): a value made here
     # comes back as a tracer exactly when a jit, make_jaxpr, scan, cond, ... is tracing.
     # Under grad or vmap with no leaf of theirs in ``tree`` the jit runs on the concrete
@@ -90,4 +147,4 @@ def solve_fit(problem, solver, init, throw: bool):
     # store of exported fits: a new process skips its tracing too (call_stored).
     if run is _solve_reassociating or is_sharded(problem):  # the store is one-device
         return run(problem, solver, init, False), True
-    return call_stored(_run, run, problem, solver, init, False), True
+    return call_stored(_run, _solve_top_level, problem, solver, init, False), True

@@ -34,6 +34,10 @@ def available_memory(device: bool = True) -> int | None:
         return None
 
 
+#: Estimates below this are never refused: every machine jurs runs on has this much.
+NEVER_REFUSED_BYTES = 64 << 20
+
+
 def check_memory(
     setting: str, estimate: float, available: int | None = None, device: bool = True
 ) -> None:
@@ -42,6 +46,8 @@ def check_memory(
     ``device=False`` on the host), before anything is allocated
     (grid=10000 otherwise asked XLA for 248 GB after 20 s, and a level-set resolution of
     30000 ended in a MemoryError traceback)."""
+    if estimate < NEVER_REFUSED_BYTES and available is None:
+        return  # nothing to ask the system (reading its memory costs more than a small fit)
     available = available_memory(device) if available is None else available
     if available is not None and estimate > available:
         raise ValueError(

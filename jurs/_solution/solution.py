@@ -6,6 +6,7 @@ from typing import Any
 
 import equinox as eqx
 import jax.numpy as jnp
+import numpy as np
 from jax import Array
 
 from .._model.spline import ImplicitSpline
@@ -67,6 +68,9 @@ RESULT_NAMES = (
 )
 
 
+#: The short name of each :class:`RESULTS` item's index.
+_NAME_OF_INDEX = {int(np.asarray(getattr(RESULTS, n)._value)): n for n in RESULT_NAMES}
+
 #: The verdicts that ``throw=True`` raises (as ``equinox.EquinoxRuntimeError``): the fit is
 #: not a reconstruction. ``max_steps_reached`` is not one: Algorithm 1 stops there by design
 #: (the paper's fixed-step runs) and its iterate is usable; nor is ``doubtful``, a usable fit
@@ -120,7 +124,9 @@ class Solution(eqx.Module):
         """The verdict's short name, one of :data:`RESULT_NAMES` (``"successful"``,
         ``"max_steps_reached"``, ...): what scripts and the command line print. Needs a
         concrete result (not inside ``jax.jit``)."""
-        return next(n for n in RESULT_NAMES if bool(self.result == getattr(RESULTS, n)))
+        # One read of the item's index (a comparison per name dispatches a JAX op each).
+        index = int(np.asarray(self.result._value))
+        return _NAME_OF_INDEX[index]
 
     @property
     def succeeded(self) -> Array:

@@ -95,8 +95,8 @@ def check_orientation(sol, cloud):
     flipped, along = cloud.orientation
     metrics = dict(
         sol.metrics,
-        flipped_normal_fraction=jnp.asarray(flipped),
-        tangential_normal_fraction=jnp.asarray(along),
+        flipped_normal_fraction=np.asarray(flipped),
+        tangential_normal_fraction=np.asarray(along),
     )
     result = sol.result
     bad = flipped > MAX_FLIPPED_FRACTION or along > MAX_TANGENTIAL_FRACTION

@@ -1,0 +1,108 @@
+"""jurs.Cloud: a cloud checked and measured once, reused across fits."""
+
+import sys
+
+import jax
+import numpy as np
+import pytest
+
+import jurs
+from jurs._cloud import cloud as cloud_module
+from jurs._problem import memory, validate
+
+PAPER = dict(grid=(9, 9), offset=0.1, eps=0.01)
+
+
+def _count_calls(monkeypatch, function) -> list:
+    """Counts the calls of ``function`` from every jurs module that imported it."""
+    calls = []
+
+    def counting(*args, **kwargs):
+        calls.append(1)
+        return function(*args, **kwargs)
+
+    for name, module in list(sys.modules.items()):
+        if name == "jurs" or name.startswith("jurs."):
+            for attribute, value in list(vars(module).items()):
+                if value is function:
+                    monkeypatch.setattr(module, attribute, counting)
+    return calls
+
+
+@pytest.mark.parametrize("automatic", [True, False])
+def test_checks_run_once_per_fit(monkeypatch, automatic):
+    """Validation of the points, normalisation of the grid and the memory check run once
+    each in a fit, automatic or fully specified (they ran two or three times)."""
+    points, normals = jurs.datasets.example1(300)
+    validated = _count_calls(monkeypatch, validate.validate_points)
+    normalised = _count_calls(monkeypatch, validate.normalise_grid)
+    memory_checked = _count_calls(monkeypatch, memory.check_memory)
+    kwargs = {} if automatic else dict(PAPER, solver=jurs.LeastSquares(lam=1e-6))
+    sol = jurs.fit(points, normals, grid=12, **{k: v for k, v in kwargs.items() if k != "grid"})
+    assert sol.status in ("successful", "doubtful")
+    assert len(validated) == 1
+    assert len(normalised) == 1
+    assert len(memory_checked) == 1
+
+
+def test_a_cloud_is_measured_once_and_fits_as_arrays_do(monkeypatch):
+    """A Cloud passed to several fits is validated and orientation-checked once, and each
+    fit equals the fit of the arrays."""
+    points, normals = jurs.datasets.example1(120)
+    solver = jurs.LeastSquares(lam=1e-6)
+    cloud = jurs.Cloud(points, normals)
+    orientation = _count_calls(monkeypatch, cloud_module.flipped_normal_fraction)
+    validated = _count_calls(monkeypatch, validate.validate_points)
+    first = jurs.fit(cloud, solver=solver, **PAPER)
+    second = jurs.fit(cloud, solver=jurs.LeastSquares(lam=1e-4), **PAPER)
+    assert len(orientation) == 1 and len(validated) == 0
+    plain = jurs.fit(points, normals, solver=solver, **PAPER)
+    np.testing.assert_allclose(first.spline.control, plain.spline.control, rtol=1e-12)
+    assert float(first.metrics["flipped_normal_fraction"]) == 0.0
+    assert not np.allclose(first.spline.control, second.spline.control)
+    assert "Cloud(120 points in 2D, with normals)" == repr(cloud)
+
+
+def test_a_cloud_with_automatic_settings_matches_the_arrays():
+    points, normals = jurs.datasets.example1(200)
+    cloud = jurs.Cloud(points, normals)
+    settings = jurs.auto_settings(cloud)
+    assert settings == jurs.auto_settings(points, normals)
+    from_cloud = jurs.fit(cloud)
+    from_arrays = jurs.fit(points, normals)
+    assert from_cloud.settings == from_arrays.settings
+    np.testing.assert_allclose(from_cloud.spline.control, from_arrays.spline.control, rtol=1e-10)
+    # Settings chosen before give the same fit without choosing again.
+    again = jurs.fit(cloud, settings=settings)
+    np.testing.assert_allclose(again.spline.control, from_arrays.spline.control, rtol=1e-10)
+    assert "far_point_fraction" in again.metrics  # the doubt checks of automatic settings
+
+
+def test_checks_false_skips_the_verdicts_of_the_host():
+    """checks=False returns the solver's verdict: half-flipped normals fit without
+    inconsistent_normals from the host check (the caller said the data are fine)."""
+    points, normals = jurs.datasets.example1(120)
+    half = normals.copy()
+    half[:60] *= -1
+    solver = jurs.LeastSquares(lam=1e-6)
+    checked = jurs.fit(points, half, solver=solver, throw=False, **PAPER)
+    assert checked.status == "inconsistent_normals"
+    assert "flipped_normal_fraction" in checked.metrics
+    unchecked = jurs.fit(points, half, solver=solver, throw=False, checks=False, **PAPER)
+    assert "flipped_normal_fraction" not in unchecked.metrics
+    np.testing.assert_allclose(unchecked.spline.control, checked.spline.control, rtol=1e-12)
+
+
+def test_cloud_refuses_bad_input_and_traced_points():
+    with pytest.raises(ValueError, match="NaN"):
+        jurs.Cloud(np.array([[0.0, 0.0], [1.0, np.nan], [0.0, 1.0]]), np.ones((3, 2)))
+    with pytest.raises(ValueError, match="shape"):
+        jurs.Cloud(np.zeros((5, 4)), np.ones((5, 4)))
+    points, normals = jurs.datasets.example1(60)
+    with pytest.raises(ValueError, match="concrete"):
+        jax.jit(lambda p: jurs.Cloud(p, normals).ndim)(points)
+    cloud = jurs.Cloud(points, normals)
+    with pytest.raises(ValueError, match="holds its normals"):
+        jurs.fit(cloud, normals, **PAPER)
+    with pytest.raises(ValueError, match="holds its normals"):
+        jurs.auto_settings(cloud, normals)
