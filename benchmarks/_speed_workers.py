@@ -46,14 +46,14 @@ REFERENCE_POINTS = 1_000_000
 #: The refined distances (see refined_distances): zero-set samples along the contour, at
 #: this many per box diagonal, and reference points projected onto the zero set. Every
 #: sample costs the RBF 15 evaluations (3 Newton rounds of a value and a central-difference
-#: gradient), 10 s at 5000 points.
+#: gradient), each a sum over its 3m centres: these counts bound the RBF's analysis time.
 REFINED_SAMPLES_PER_DIAGONAL = 2000
 REFINED_REFERENCE_SAMPLES = 2000
 OFFSET, EPS = 0.1, 0.01
 
 #: The Example-4-size full fit: a 640-point closed shape, 15 x 15, regularised IURS to tol.
 #: The paper's Example 4 settings (its lambda, 1.155 s in its Table 2) on the project's
-#: stand-in shape, and a smaller lambda on a smooth shape, which converges ten times slower.
+#: stand-in shape, and a smaller lambda on a smooth shape, which takes many more steps.
 EXAMPLE4 = [
     {
         "label": "paper's Example 4: glyph_B, 639 pts",

@@ -53,7 +53,7 @@ from _common import (  # noqa: E402  (the report's helpers)
 from _speed_workers import step_passes_s  # noqa: E402
 
 #: Points -> grids of the step sweep (Example 1 clouds, 3m samples); sized so that the whole
-#: run stays under ten minutes on an H100 (a 1e7 worker takes about half a minute).
+#: run takes minutes, not hours, on one accelerator (the report gives its duration).
 GPU_SWEEP = {1_000_000: (128, 256), 10_000_000: (128, 256)}
 QUICK_SWEEP = {100_000: (64,)}
 #: Points -> steps k of the in-fit step measurement (fits of 1 and 1 + k steps, the

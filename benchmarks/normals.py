@@ -53,9 +53,9 @@ NOISE = 0.005
 OUTLIERS = 0.02
 M_2D = 2000
 #: 2D cases sampled with more points. scikit-image's ``text`` traced at 2000 points has
-#: strokes of median width 1.2 spacings (5 % of them under 0.7; gaps between letters:
-#: median 1.7): its two sides are not separable at that density, and the case stays as
-#: the hard one. At 20000 points the median stroke is 12 spacings (5 %: 7).
+#: strokes about one point spacing wide: their two sides are not separable at that
+#: density, and the case stays as the hard one; ten times the points makes the strokes
+#: several spacings wide (docs/normals.md gives the widths).
 M_CASE = {"text_dense": 20_000}
 M_3D = (10_000, 100_000)
 #: 3D cases run at the larger size (the rest at the smaller only, to keep the run short).

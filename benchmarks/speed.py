@@ -85,7 +85,8 @@ from _speed_workers import (  # noqa: E402
 
 #: Sweep: points m -> grids (N = M). Fine grids on few points are pruned (with 3m samples
 #: far below N*M coefficients the fit is mostly undetermined and says nothing new about
-#: speed), and so is part of the rest, to keep the whole run near 30 minutes on 2 cores.
+#: speed), and so is part of the rest, to keep the whole run short on 2 cores (the report
+#: gives its duration).
 FULL_SWEEP = {
     100: (8, 16, 32),
     1_000: (8, 16, 32, 64),
