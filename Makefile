@@ -1,7 +1,7 @@
 # Two commands do all setup on a machine that has only Python 3.10+:
 #   make demo   - fit the paper's Example 1 with I-PIA and IURS, print the table, save the figure
 #   make test   - build the docs with warnings as errors, then run the whole test suite
-#                 (notebooks included)
+#                 (the benchmarks' own tests in benchmarks/tests and the notebooks included)
 # and for development:
 #   make test-fast - the suite without the tests marked slow (pytest -m "not slow")
 #   make docs      - the documentation site, into site/
@@ -35,10 +35,10 @@ test: $(STAMP)
 	$(VENV)/bin/ruff format --check --quiet .
 	$(VENV)/bin/basedpyright --project . --level error
 	$(MKDOCS) build --strict --quiet
-	XLA_PYTHON_CLIENT_PREALLOCATE=false $(PY) -m pytest -q -n 2 --nbmake tests notebooks
+	XLA_PYTHON_CLIENT_PREALLOCATE=false $(PY) -m pytest -q -n 2 --nbmake tests benchmarks/tests notebooks
 
 test-fast: $(STAMP)
-	XLA_PYTHON_CLIENT_PREALLOCATE=false $(PY) -m pytest -q -n 2 -m "not slow" tests
+	XLA_PYTHON_CLIENT_PREALLOCATE=false $(PY) -m pytest -q -n 2 -m "not slow" tests benchmarks/tests
 
 docs: $(STAMP)
 	$(MKDOCS) build --strict

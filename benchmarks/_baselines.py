@@ -6,7 +6,12 @@ same 3m offset samples and targets as jurs (eq. 4-5: ``[P, P + d n, P - d n] -> 
 memory. ``smoothing > 0`` turns interpolation into a smoothing fit (for noisy data).
 
 ``rbf_report`` measures the RBF's zero set with the same level-set analysis as jurs fits, on
-the same box and grid, so Chamfer distances and supplementary counts compare like for like.
+the same box and grid, so Chamfer distances and supplementary counts compare like for like;
+``rbf_grid_values`` evaluates the RBF on that grid adaptively, exactly wherever the zero set
+can pass.
+
+``orient_mst`` is the plain spanning-tree orientation of normals (Hoppe et al. 1992), the
+baseline ``benchmarks/normals.py`` measures beside ``jurs.estimate_normals``.
 """
 
 from __future__ import annotations
@@ -14,7 +19,11 @@ from __future__ import annotations
 import time
 
 import numpy as np
+from scipy import sparse
 from scipy.interpolate import RBFInterpolator
+from scipy.ndimage import binary_dilation, maximum_filter
+from scipy.sparse import csgraph
+from scipy.spatial import cKDTree  # pyright: ignore[reportAttributeAccessIssue]  # no stub
 
 import jurs
 import jurs.levelset
@@ -53,6 +62,98 @@ def evaluate_rbf_grid(rbf, xs, ys, chunk: int = 4096) -> np.ndarray:
     return evaluate_rbf(rbf, np.stack([gx.ravel(), gy.ravel()], axis=1), chunk).reshape(gx.shape)
 
 
+def rbf_grid_values(fn, xs, ys, coarse: int = 8, safety: float = 1.0, chunk: int = 4096):
+    """Values of ``fn`` on the analysis grid ``xs x ys``, exact wherever the zero set can pass.
+
+    A full 512-node grid costs 2.6e5 RBF evaluations of 3m kernel terms each, and the
+    smoothing ladder of ``benchmarks/quality.py`` needs several fits per case, so the grid is
+    refined adaptively, quadtree-style: exact values on every
+    ``coarse``-th node; a cell is split (exact values on the half-step lattice inside it) when
+    its corners change sign or the smallest corner |value| is at most ``safety`` times the
+    largest corner-to-corner variation among it and its 8 neighbours, and then its 8
+    neighbours are split too; down to single grid cells. Cells never split have all corners
+    of one sign and far from 0 relative to the local variation; their inner nodes get the
+    bilinear interpolant of their corners (same sign, so no zero crossing is lost). Every
+    grid cell the zero set crosses therefore has exact corner values, and the contour is the
+    one :func:`rbf_report` draws from the full grid: ``benchmarks/quality.py`` checks this on
+    the runs in its ``CHECKS_*`` (signs at every grid node, component counts, Chamfer and
+    Hausdorff distances).
+
+    Returns ``(values (len(ys), len(xs)), number of exact evaluations)``.
+    """
+    xs, ys = np.asarray(xs, float), np.asarray(ys, float)
+    nx, ny = len(xs), len(ys)
+    big_x = -(-(nx - 1) // coarse) * coarse + 1  # grid extended to a multiple of coarse
+    big_y = -(-(ny - 1) // coarse) * coarse + 1
+    gx = xs[0] + (xs[1] - xs[0]) * np.arange(big_x)
+    gy = ys[0] + (ys[1] - ys[0]) * np.arange(big_y)
+    gx[:nx], gy[:ny] = xs, ys
+    vals = np.zeros((big_y, big_x))
+    known = np.zeros((big_y, big_x), bool)
+    count = 0
+
+    def evaluate(jj, ii):
+        nonlocal count
+        keep = ~known[jj, ii]
+        jj, ii = jj[keep], ii[keep]
+        if len(jj):
+            pts = np.stack([gx[ii], gy[jj]], axis=1)
+            vals[jj, ii] = np.concatenate(
+                [
+                    np.asarray(fn(pts[k : k + chunk]), float).reshape(-1)
+                    for k in range(0, len(pts), chunk)
+                ]
+            )
+            known[jj, ii] = True
+            count += len(jj)
+
+    jj, ii = np.meshgrid(np.arange(0, big_y, coarse), np.arange(0, big_x, coarse), indexing="ij")
+    evaluate(jj.ravel(), ii.ravel())
+    active = np.ones(((big_y - 1) // coarse, (big_x - 1) // coarse), bool)
+    step = coarse
+    while step >= 2:
+        cj, ci = np.nonzero(active)
+        j0, i0 = cj * step, ci * step
+        corners = np.stack(
+            [vals[j0, i0], vals[j0, i0 + step], vals[j0 + step, i0], vals[j0 + step, i0 + step]]
+        )
+        var = np.zeros(active.shape)
+        var[cj, ci] = corners.max(0) - corners.min(0)
+        var = maximum_filter(var, size=3, mode="nearest")[cj, ci]
+        split = np.zeros(active.shape, bool)
+        split[cj, ci] = ((corners.min(0) <= 0) & (corners.max(0) >= 0)) | (
+            np.abs(corners).min(0) <= safety * var
+        )
+        split = binary_dilation(split, np.ones((3, 3), bool)) & active
+        # cells kept whole: bilinear fill of the nodes not evaluated exactly
+        fj, fi = np.nonzero(active & ~split)
+        u = np.arange(step + 1) / step
+        c00, c01 = vals[fj * step, fi * step], vals[fj * step, fi * step + step]
+        c10, c11 = vals[fj * step + step, fi * step], vals[fj * step + step, fi * step + step]
+        for a in range(step + 1):
+            for b in range(step + 1):
+                jj, ii = fj * step + a, fi * step + b
+                w = (1 - u[a]) * ((1 - u[b]) * c00 + u[b] * c01) + u[a] * (
+                    (1 - u[b]) * c10 + u[b] * c11
+                )
+                free = ~known[jj, ii]
+                vals[jj[free], ii[free]] = w[free]
+        # split cells: exact values on the half-step lattice inside them
+        sj, si = np.nonzero(split)
+        half = step // 2
+        off = np.array([0, half, step])
+        jj = (sj[:, None, None] * step + off[None, :, None] + 0 * off[None, None, :]).ravel()
+        ii = (si[:, None, None] * step + 0 * off[None, :, None] + off[None, None, :]).ravel()
+        flat = np.unique(jj * big_x + ii)
+        evaluate(flat // big_x, flat % big_x)
+        nxt = np.zeros((2 * active.shape[0], 2 * active.shape[1]), bool)
+        for a in (0, 1):
+            for b in (0, 1):
+                nxt[2 * sj + a, 2 * si + b] = True
+        active, step = nxt, half
+    return vals[:ny, :nx], count
+
+
 def rbf_report(
     rbf,
     points,
@@ -66,3 +167,57 @@ def rbf_report(
     xs, ys, _ = jurs.levelset.sampling_grid(*box, resolution)
     values = evaluate_rbf_grid(rbf, xs, ys)
     return jurs.levelset.analyze_grid(xs, ys, values, points, offset=offset, reference=reference)
+
+
+def _check_points(points) -> np.ndarray:
+    """``points`` as a finite float64 (m, 2) or (m, 3) array (the checks of
+    ``jurs.estimate_normals``)."""
+    try:
+        array = np.asarray(points, dtype=np.float64)
+    except (TypeError, ValueError) as err:
+        raise TypeError(f"points must be a numeric (m, d) array: {err}") from None
+    if array.ndim != 2 or array.shape[1] not in (2, 3):
+        raise ValueError(f"points must have shape (m, 2) or (m, 3), got {array.shape}")
+    if not np.all(np.isfinite(array)):
+        raise ValueError("points contain NaN or infinite coordinates")
+    return array
+
+
+def _tree_signs(tree: sparse.csr_matrix, normals: np.ndarray) -> np.ndarray:
+    """Signs (+1/-1) making normals consistent along every edge of a forest, relative to an
+    arbitrary sign per tree. Each tree edge says "same" or "opposite" (the sign of n_i . n_j);
+    a doubled graph (nodes i+ and i-, joined straight or crosswise) has two components per
+    tree, and a node is + when its i+ copy lies in the lower-labelled one."""
+    m = len(normals)
+    coo = tree.tocoo()
+    i, j = coo.row, coo.col
+    same = np.sum(normals[i] * normals[j], axis=1) >= 0
+    rows = np.concatenate([i, i + m])
+    cols = np.concatenate([np.where(same, j, j + m), np.where(same, j + m, j)])
+    doubled = sparse.coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(2 * m, 2 * m))
+    _, labels = csgraph.connected_components(doubled, directed=False)
+    return np.where(labels[:m] < labels[m:], 1.0, -1.0)
+
+
+def orient_mst(points, normals, k: int = 15) -> np.ndarray:
+    """Baseline: Hoppe et al. (1992) orientation. Minimum spanning tree of the symmetric
+    ``k``-nearest-neighbour graph with weight ``1 - |n_i . n_j|``, signs propagated along
+    it, each tree's topmost point (largest last coordinate) made to point up."""
+    points = _check_points(points)
+    normals = np.asarray(normals, float)
+    m = len(points)
+    _, neighbours = cKDTree(points).query(points, k=min(k + 1, m))
+    i = np.repeat(np.arange(m), neighbours.shape[1])
+    j = neighbours.ravel()
+    keep = i != j
+    i, j = i[keep], j[keep]
+    weight = 1.0 - np.abs(np.sum(normals[i] * normals[j], axis=1)) + 1e-9
+    graph = sparse.coo_matrix((weight, (i, j)), shape=(m, m)).tocsr()
+    forest = csgraph.minimum_spanning_tree(graph.maximum(graph.T))
+    signed = normals * _tree_signs(forest, normals)[:, None]
+    _, component = csgraph.connected_components(forest, directed=False)
+    top = np.zeros(component.max() + 1, np.int64)
+    order = np.argsort(points[:, -1])  # ascending: the last write per component is its top
+    top[component[order]] = order
+    flip = np.where(signed[top, -1] < 0, -1.0, 1.0)
+    return signed * flip[component][:, None]

@@ -1,8 +1,10 @@
-"""Shared helpers for the benchmark scripts: timing, machine description, result files.
-Imports no JAX at module level (``time_repeated`` and ``machine`` import it when called)."""
+"""Shared helpers for the benchmark scripts: timing, machine description, result files and
+the markdown tables of the reports. Imports no JAX at module level (``time_repeated`` and
+``machine`` import it when called)."""
 
 from __future__ import annotations
 
+import importlib
 import json
 import os
 import platform
@@ -34,6 +36,15 @@ def import_open3d() -> Any:
     import open3d  # pyright: ignore[reportMissingImports]
 
     return open3d
+
+
+def optional(name):
+    """The module ``name`` (``open3d`` through :func:`import_open3d`), or None when it
+    cannot be imported."""
+    try:
+        return import_open3d() if name == "open3d" else importlib.import_module(name)
+    except Exception:  # noqa: BLE001 - any import failure means "not available"
+        return None
 
 
 def machine() -> str:
@@ -107,3 +118,71 @@ def elapsed_log():
         print(f"[{time.perf_counter() - start:7.1f} s] {msg}", file=sys.stderr, flush=True)
 
     return log
+
+
+# --------------------------------------------------------------------------- markdown tables
+# Cell formatters and table helpers of the speed reports (speed.py, gpu_speed.py).
+
+
+def find_row(rows, **keys):
+    """The first of ``rows`` (dicts) whose entries equal ``keys``; None if none does."""
+    for r in rows:
+        if all(r.get(k) == v for k, v in keys.items()):
+            return r
+    return None
+
+
+def ms_text(s):
+    """Seconds as ms below one second (3 significant digits)."""
+    return "—" if s is None else (f"{s * 1e3:.3g} ms" if s < 1 else f"{s:.3g} s")
+
+
+def range_text(runs) -> str:
+    """``low-high`` of a list of per-process times."""
+    return f"{s_text(min(runs))}-{s_text(max(runs))}"
+
+
+def us_text(s):
+    return "—" if s is None else f"{s * 1e6:.3g} us"
+
+
+def s_text(s):
+    return "—" if s is None else f"{s:.3g} s"
+
+
+def bytes_text(b):
+    if b is None:
+        return "—"
+    return f"{b / 2**30:.2f} GiB" if abs(b) >= 2**30 else f"{b / 2**20:.0f} MiB"
+
+
+def ratio_text(ratio):
+    """A speed ratio: 2 significant digits, so that 0.61x does not print as 1x."""
+    return "—" if ratio is None else f"{ratio:.2g}x" if ratio < 100 else f"{ratio:.0f}x"
+
+
+def md_table(header, rows):
+    """A markdown table: the header line, the rule and one line per row."""
+    lines = ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
+    lines += ["| " + " | ".join(str(c) for c in row) + " |" for row in rows]
+    return lines
+
+
+def error_text(res):
+    """The cell of a failed measurement (``res`` holds ``error``), else None."""
+    return f"error: {res['error'][:80]}" if "error" in res else None
+
+
+def grid_text(grid) -> str:
+    """``128`` -> ``128x128``; ``(92, 96)`` -> ``92x96``."""
+    return "x".join(map(str, grid)) if isinstance(grid, (list, tuple)) else f"{grid}x{grid}"
+
+
+def where_cells(r) -> list:
+    """The m and grid cells of a sweep row."""
+    return [f"{r['m']:.0e}", grid_text(r["grid"])]
+
+
+def measured_row(cells, res, width: int, values) -> list:
+    """``cells``, then ``values()`` (``width`` cells), or ``res``'s error padded to ``width``."""
+    return cells + ([error_text(res)] + [""] * (width - 1) if error_text(res) else values())

@@ -12,7 +12,7 @@ rebuilds the dense collocation matrix ``D`` of eq. 23 from the current weights:
 
 This is the same order of operations as :class:`jurs.IURS` (the weight gradient used by a
 step is the one computed at the end of the previous step, or by :func:`init`), so the
-iterates agree with jurs to rounding; ``tests/test_numpy_port.py`` checks it. Memory is
+iterates agree with jurs to rounding; ``benchmarks/tests/test_numpy_port.py`` checks it. Memory is
 O(m N M): it only runs where the dense matrices fit (see :func:`dense_bytes`).
 """
 

@@ -34,23 +34,26 @@ import time
 HERE = os.path.dirname(os.path.abspath(__file__))
 sys.path.insert(0, HERE)
 
-import speed  # noqa: E402  (the workers and their orchestration)
-from _common import elapsed_log, machine, rerender_beside, write_results  # noqa: E402
-from speed import (  # noqa: E402  (the report's helpers)
-    _err,
-    _find,
-    _gb,
-    _measured_row,
-    _ms,
-    _s,
-    _table,
-    _where,
-    _x,
-    step_passes_s,
+import _speed_workers as workers  # noqa: E402  (the workers and their orchestration)
+from _common import (  # noqa: E402  (the report's helpers)
+    bytes_text,
+    elapsed_log,
+    error_text,
+    find_row,
+    machine,
+    md_table,
+    measured_row,
+    ms_text,
+    ratio_text,
+    rerender_beside,
+    s_text,
+    where_cells,
+    write_results,
 )
+from _speed_workers import step_passes_s  # noqa: E402
 
 #: Points -> grids of the step sweep (Example 1 clouds, 3m samples); sized so that the whole
-#: run stays under ten minutes on an H100 (a 1e7 worker takes about half a minute).
+#: run takes minutes, not hours, on one accelerator (the report gives its duration).
 GPU_SWEEP = {1_000_000: (128, 256), 10_000_000: (128, 256)}
 QUICK_SWEEP = {100_000: (64,)}
 #: Points -> steps k of the in-fit step measurement (fits of 1 and 1 + k steps, the
@@ -69,7 +72,7 @@ def run(quick: bool, out_dir: str, log) -> dict:
     data = {
         "quick": quick,
         "machine": machine(),
-        "device": speed._device_name(jax),
+        "device": workers.device_name(jax),
         "devices": [str(d) for d in jax.devices()],
         "sweep": [],
         "fit_steps": [],
@@ -86,26 +89,28 @@ def run(quick: bool, out_dir: str, log) -> dict:
         for g in grids:
             row = {"m": m, "samples": 3 * m, "grid": g}
             data["sweep"].append(row)
-            for key in speed.STEP_SOLVERS:
-                row[key] = speed.run_worker({"kind": "step", "m": m, "grid": g, "solver": key}, log)
+            for key in workers.STEP_SOLVERS:
+                row[key] = workers.run_worker(
+                    {"kind": "step", "m": m, "grid": g, "solver": key}, log
+                )
                 save()
-            row["lstsq"] = speed.run_worker(
-                {"kind": "lstsq", "m": m, "grid": g, "lam": speed.LSQ_LAM}, log
+            row["lstsq"] = workers.run_worker(
+                {"kind": "lstsq", "m": m, "grid": g, "lam": workers.LSQ_LAM}, log
             )
             save()
     for m, k in (QUICK_FIT_STEPS if quick else FIT_STEPS).items():
         data["fit_steps"].append(
             {
                 "m": m,
-                "grid": speed.LARGE_GRID,
-                **speed.run_worker(
-                    {"kind": "fit_steps", "m": m, "grid": speed.LARGE_GRID, "steps": k}, log
+                "grid": workers.LARGE_GRID,
+                **workers.run_worker(
+                    {"kind": "fit_steps", "m": m, "grid": workers.LARGE_GRID, "steps": k}, log
                 ),
             }
         )
         save()
     # One process a fit: here they show what a GPU does with small problems.
-    data["example4"] = speed.run_example4(log, runs=1)
+    data["example4"] = workers.run_example4(log, runs=1)
     save()
     return data
 
@@ -158,36 +163,36 @@ def report(data: dict) -> str:
 
 def _step_tables(sweep, cpu_sweep) -> list[str]:
     lines = []
-    for key, (label, _, _) in speed.STEP_SOLVERS.items():
+    for key, (label, _, _) in workers.STEP_SOLVERS.items():
         rows = []
         for r in sweep:
             res = r.get(key)
             if res is None:
                 continue
-            c = (_find(cpu_sweep, m=r["m"], grid=r["grid"]) or {}).get(key, {})
+            c = (find_row(cpu_sweep, m=r["m"], grid=r["grid"]) or {}).get(key, {})
             extra = key == "normal_ipia"
             rows.append(
-                _measured_row(
-                    _where(r),
+                measured_row(
+                    where_cells(r),
                     res,
                     6 + extra,
                     lambda res=res, c=c: (
                         [
-                            f"{_ms(res['step_warm_s'])} ({_ms(res['step_min_s'])})",
-                            _s(res["step_compile_s"]),
-                            _gb(res.get("device_peak_b")),
-                            _s(res["build_s"]),
+                            f"{ms_text(res['step_warm_s'])} ({ms_text(res['step_min_s'])})",
+                            s_text(res["step_compile_s"]),
+                            bytes_text(res.get("device_peak_b")),
+                            s_text(res["build_s"]),
                         ]
-                        + ([_ms(res["init_warm_s"])] if extra else [])
+                        + ([ms_text(res["init_warm_s"])] if extra else [])
                         + [
-                            _ms(c.get("step_warm_s")),
-                            _x(_ratio(c.get("step_warm_s"), res["step_warm_s"])),
+                            ms_text(c.get("step_warm_s")),
+                            ratio_text(_ratio(c.get("step_warm_s"), res["step_warm_s"])),
                         ]
                     ),
                 )
             )
         lines += [f"## {label}: one step", ""]
-        lines += _table(
+        lines += md_table(
             ["m", "grid", "warm step (min)", "compile", "device peak", "problem build (host)"]
             + (["assembly (init) warm"] if key == "normal_ipia" else [])
             + ["CPU warm step", "CPU / GPU"],
@@ -203,32 +208,32 @@ def _lstsq_table(sweep, cpu_sweep) -> list[str]:
         res = r.get("lstsq")
         if res is None:
             continue
-        c = (_find(cpu_sweep, m=r["m"], grid=r["grid"]) or {}).get("lstsq", {})
+        c = (find_row(cpu_sweep, m=r["m"], grid=r["grid"]) or {}).get("lstsq", {})
         rows.append(
-            _measured_row(
-                _where(r),
+            measured_row(
+                where_cells(r),
                 res,
                 7,
                 lambda res=res, c=c: [
-                    f"{_s(res['fit_warm_s'])} ({_s(res['fit_min_s'])})",
-                    _s(res["fit_first_s"]),
-                    _gb(res.get("device_peak_b")),
+                    f"{s_text(res['fit_warm_s'])} ({s_text(res['fit_min_s'])})",
+                    s_text(res["fit_first_s"]),
+                    bytes_text(res.get("device_peak_b")),
                     f"{res['E_ave']:.3e}",
-                    _s(c.get("fit_warm_s")),
+                    s_text(c.get("fit_warm_s")),
                     f"{c['E_ave']:.3e}" if "E_ave" in c else "—",
-                    _x(_ratio(c.get("fit_warm_s"), res["fit_warm_s"])),
+                    ratio_text(_ratio(c.get("fit_warm_s"), res["fit_warm_s"])),
                 ],
             )
         )
     lines = [
-        f"## LeastSquares(lam={speed.LSQ_LAM:g}) end to end through jurs.fit",
+        f"## LeastSquares(lam={workers.LSQ_LAM:g}) end to end through jurs.fit",
         "",
         "From NumPy arrays to the solved spline: the host builds the sample layout, the "
         "device assembles D^T D and D^T b and solves. E_ave on both devices shows the "
         "same fit.",
         "",
     ]
-    lines += _table(
+    lines += md_table(
         [
             "m",
             "grid",
@@ -251,19 +256,19 @@ def _fit_steps_table(fit_steps, cpu) -> list[str]:
     cpu_step = ((cpu or {}).get("fit_steps") or {}).get("default", {})
     rows = []
     for r in fit_steps:
-        on_cpu = cpu_step.get("step_s") if r["m"] == speed.LARGE_POINTS else None
+        on_cpu = cpu_step.get("step_s") if r["m"] == workers.LARGE_POINTS else None
         rows.append(
-            _measured_row(
-                _where(r),
+            measured_row(
+                where_cells(r),
                 r,
                 6,
                 lambda r=r, on_cpu=on_cpu: [
                     r["steps"],
-                    f"{_ms(r['step_s'])} ({_ms(r['step_min_s'])})",
-                    _ms(r["fits"]["1"]["warm_s"]),
-                    _gb(r.get("device_peak_b")),
-                    _ms(on_cpu),
-                    _x(_ratio(on_cpu, r["step_s"])),
+                    f"{ms_text(r['step_s'])} ({ms_text(r['step_min_s'])})",
+                    ms_text(r["fits"]["1"]["warm_s"]),
+                    bytes_text(r.get("device_peak_b")),
+                    ms_text(on_cpu),
+                    ratio_text(_ratio(on_cpu, r["step_s"])),
                 ],
             )
         )
@@ -275,7 +280,7 @@ def _fit_steps_table(fit_steps, cpu) -> list[str]:
         "run's k is 20).",
         "",
     ]
-    lines += _table(
+    lines += md_table(
         [
             "m",
             "grid",
@@ -297,21 +302,21 @@ def _example4_table(rows_in, cpu) -> list[str]:
     cpu_rows = (cpu or {}).get("example4", [])
     rows = []
     for r in rows_in:
-        c = _find(cpu_rows, label=r["label"]) or {}
+        c = find_row(cpu_rows, label=r["label"]) or {}
         rows.append(
-            _measured_row(
+            measured_row(
                 [r["label"]],
                 r,
                 8,
                 lambda r=r, c=c: [
                     f"{r['num_steps']} ({c.get('num_steps', '—')})",
                     f"{r['E_ave']:.3e} ({c['E_ave']:.3e})" if "E_ave" in c else f"{r['E_ave']:.3e}",
-                    f"{_ms(r['warm_s'])} ({_ms(r['min_s'])})",
-                    _s(r["cold_s"]),
-                    _ms(c.get("warm_s")),
-                    _s(c.get("cold_s")),
-                    _x(_ratio(c.get("warm_s"), r["warm_s"])),
-                    _ms(step_passes_s(r) and step_passes_s(r) * r["num_steps"]),
+                    f"{ms_text(r['warm_s'])} ({ms_text(r['min_s'])})",
+                    s_text(r["cold_s"]),
+                    ms_text(c.get("warm_s")),
+                    s_text(c.get("cold_s")),
+                    ratio_text(_ratio(c.get("warm_s"), r["warm_s"])),
+                    ms_text(step_passes_s(r) and step_passes_s(r) * r["num_steps"]),
                 ],
             )
         )
@@ -324,7 +329,7 @@ def _example4_table(rows_in, cpu) -> list[str]:
         "timed alone in a jitted loop, times the steps (see `speed.md`).",
         "",
     ]
-    lines += _table(
+    lines += md_table(
         [
             "fit",
             "steps (CPU)",
@@ -377,7 +382,7 @@ def main(argv=None):
         for r in data["sweep"]
         for k, v in r.items()
         if isinstance(v, dict)
-        for e in [_err(v)]
+        for e in [error_text(v)]
         if e
     ]
     if failed:

@@ -13,9 +13,9 @@ One command measures everything, prints the tables and writes the dated results
 * **3D cases.** Area-uniform samples of the bunny and the cow from pymeshlab's sample meshes
   (``pip install pymeshlab trimesh``; face normals as truth), a sphere, a torus and a thick
   spherical shell (both surfaces); clean and with 0.5 % noise; 1e4 and 1e5 points.
-* **Methods.** ``jurs.estimate_normals(points)``; the baseline ``_orient_mst`` (PCA normals
-  of the same ``k``, minimum spanning tree over 15 neighbours, topmost point up); Open3D
-  (``pip install open3d-cpu``, 3D only) with PCA over 30 neighbours and
+* **Methods.** ``jurs.estimate_normals(points)``; the baseline ``_baselines.orient_mst``
+  (PCA normals of the same ``k``, minimum spanning tree over 15 neighbours, topmost point
+  up); Open3D (``pip install open3d-cpu``, 3D only) with PCA over 30 neighbours and
   ``orient_normals_consistent_tangent_plane(15)``, as the issue's anchors.
 * **Scores.** Correct sign: strictly outward (``outward``) and up to one global flip
   (``consistent``, what propagation alone can give); median angle to the truth (unsigned);
@@ -33,7 +33,6 @@ from __future__ import annotations
 
 import argparse
 import datetime
-import importlib
 import os
 import platform
 import sys
@@ -43,18 +42,20 @@ import numpy as np
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-from _common import RESULTS, import_open3d, write_results  # noqa: E402
+import _surface_cases as surface_cases  # noqa: E402
+from _baselines import orient_mst  # noqa: E402
+from _common import RESULTS, optional, write_results  # noqa: E402
 
+import jurs  # noqa: E402
 import jurs.shapes  # noqa: E402
-from jurs._cloud.normals import _orient_mst, estimate_normals  # noqa: E402
 
 NOISE = 0.005
 OUTLIERS = 0.02
 M_2D = 2000
 #: 2D cases sampled with more points. scikit-image's ``text`` traced at 2000 points has
-#: strokes of median width 1.2 spacings (5 % of them under 0.7; gaps between letters:
-#: median 1.7): its two sides are not separable at that density, and the case stays as
-#: the hard one. At 20000 points the median stroke is 12 spacings (5 %: 7).
+#: strokes about one point spacing wide: their two sides are not separable at that
+#: density, and the case stays as the hard one; ten times the points makes the strokes
+#: several spacings wide (docs/normals.md gives the widths).
 M_CASE = {"text_dense": 20_000}
 M_3D = (10_000, 100_000)
 #: 3D cases run at the larger size (the rest at the smaller only, to keep the run short).
@@ -64,14 +65,7 @@ FIT_CASES = ("annulus", "glyph_a", "horse", "coins")
 #: benchmarks/surfaces.py (same samples, noise and evaluation; its Poisson figures apply).
 FIT_SURFACES = ("sphere", "bunny")
 FIT_SURFACE_POINTS = 100_000
-MESHES = os.environ.get("PYMESHLAB_SAMPLES")
-
-
-def optional(name):
-    try:
-        return import_open3d() if name == "open3d" else importlib.import_module(name)
-    except Exception:  # noqa: BLE001 - any import failure means "not available"
-        return None
+MESHES = surface_cases.MESHES
 
 
 # --------------------------------------------------------------------------- 2D cases
@@ -213,7 +207,7 @@ def score(normals, truth, mask, seconds):
 def run_methods(points, truth, mask, o3d):
     out = {}
     t0 = time.perf_counter()
-    normals, info = estimate_normals(points, return_info=True)
+    normals, info = jurs.estimate_normals(points, return_info=True)
     out["jurs"] = {
         **score(normals, truth, mask, time.perf_counter() - t0),
         "k": info.k,
@@ -224,8 +218,8 @@ def run_methods(points, truth, mask, o3d):
         "residual": info.residual,
     }
     t0 = time.perf_counter()
-    unsigned = estimate_normals(points, k=info.k, orient=False)
-    baseline = _orient_mst(points, unsigned, k=15)
+    unsigned = jurs.estimate_normals(points, k=info.k, orient=False)
+    baseline = orient_mst(points, unsigned, k=15)
     out["mst"] = score(baseline, truth, mask, time.perf_counter() - t0)
     if o3d is not None and points.shape[1] == 3:
         cloud = o3d.geometry.PointCloud(o3d.utility.Vector3dVector(points))
@@ -248,7 +242,7 @@ def fit_quality(name, variant):
     reference = jurs.shapes.sample_outline(comps, 20000)[0]
     diag = float(np.linalg.norm(np.ptp(reference, axis=0)))
     out = {}
-    for label, normals in (("true", truth), ("estimated", estimate_normals(points))):
+    for label, normals in (("true", truth), ("estimated", jurs.estimate_normals(points))):
         sol = jurs.fit(points, normals)
         rep = jurs.levelset.analyze(
             sol.spline, points, offset=sol.settings.offset, reference=reference
@@ -272,21 +266,19 @@ def fit_quality_3d(name, variant, m=FIT_SURFACE_POINTS):
     import jax
 
     jax.config.update("jax_enable_x64", True)
-    import surfaces
-
     import jurs.levelset
 
-    truth = surfaces.make_truth(name)
+    truth = surface_cases.make_truth(name)
     if truth is None:
         return None
-    reference, _ = truth.sample(surfaces.EVAL_SAMPLES, surfaces.SEEDS["truth"])
-    diag = surfaces.diagonal(reference)
-    points, true_normals = truth.sample(m, surfaces.SEEDS["cloud"])
+    reference, _ = truth.sample(surface_cases.EVAL_SAMPLES, surface_cases.SEEDS["truth"])
+    diag = surface_cases.diagonal(reference)
+    points, true_normals = truth.sample(m, surface_cases.SEEDS["cloud"])
     if variant == "noise":
-        rng = np.random.default_rng(surfaces.SEEDS["noise"])
-        points = points + surfaces.NOISE * diag * rng.standard_normal(points.shape)
+        rng = np.random.default_rng(surface_cases.SEEDS["noise"])
+        points = points + surface_cases.NOISE * diag * rng.standard_normal(points.shape)
     start = time.perf_counter()
-    estimated = estimate_normals(points)
+    estimated = jurs.estimate_normals(points)
     out = {"estimate_s": time.perf_counter() - start, "true_components": truth.components}
     for label, normals in (("true", true_normals), ("estimated", estimated)):
         jurs.fit(points, normals, throw=False)  # compiles
@@ -294,10 +286,10 @@ def fit_quality_3d(name, variant, m=FIT_SURFACE_POINTS):
         sol = jurs.fit(points, normals, throw=False)
         vertices, faces = jurs.levelset.mesh(sol.spline)
         seconds = time.perf_counter() - start
-        dist = surfaces.surface_distances(
-            vertices, faces, truth, reference, diag, surfaces.EVAL_SAMPLES
+        dist = surface_cases.surface_distances(
+            vertices, faces, truth, reference, diag, surface_cases.EVAL_SAMPLES
         )
-        shape, _ = surfaces.topology(vertices, faces, points)
+        shape, _ = surface_cases.topology(vertices, faces, points)
         out[label] = {
             "chamfer": 1e3 * dist["chamfer_rel"],
             "hausdorff": 1e3 * dist["hausdorff_rel"],

@@ -29,6 +29,7 @@ copied from the paper and labelled as such. Times are warm wall-clock seconds of
 from __future__ import annotations
 
 import argparse
+import inspect
 import json
 import math
 import os
@@ -49,7 +50,6 @@ import jurs  # noqa: E402
 import jurs.levelset  # noqa: E402
 import jurs.plot  # noqa: E402
 import jurs.shapes  # noqa: E402
-from jurs._problem.sizes import DEFAULT_MARGIN  # noqa: E402
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 from _common import RESULTS, machine  # noqa: E402
@@ -64,6 +64,8 @@ NOISE_SEED = 0
 DPI = 90
 REFERENCE_LAM = 1e-10  # objective lambda of Table 1's least-squares reference row
 REFERENCE_LABEL = "least-squares minimum (reference)"
+#: jurs's default box margin, as a fraction of the longest side (``jurs.fit``'s default).
+DEFAULT_MARGIN = inspect.signature(jurs.fit).parameters["margin"].default
 
 # --------------------------------------------------------------------------- the paper's numbers
 

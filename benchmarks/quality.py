@@ -14,7 +14,7 @@ written to the same files and marked as a quick subset):
 * **Baseline.** ``_baselines.rbf_fit``: SciPy's thin-plate ``RBFInterpolator`` on the same
   offset samples (jurs's chosen d and eps), without smoothing and, on noisy cases, with a
   ladder of smoothing values; measured with the same level-set analysis on the same box
-  and grid (see :func:`rbf_grid_values` for how the grid is evaluated).
+  and grid (see :func:`_baselines.rbf_grid_values` for how the grid is evaluated).
 * **Ratios.** jurs's Chamfer over the reference RBF's (the unsmoothed one on clean cases,
   the best smoothed one on noisy cases) and the RBF's fit time over jurs's, per run.
 
@@ -36,7 +36,6 @@ import jax
 
 jax.config.update("jax_enable_x64", True)
 import numpy as np  # noqa: E402
-from scipy.ndimage import binary_dilation, maximum_filter  # noqa: E402
 
 import jurs  # noqa: E402
 import jurs.datasets  # noqa: E402
@@ -44,49 +43,32 @@ import jurs.levelset  # noqa: E402
 import jurs.shapes  # noqa: E402
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from _baselines import evaluate_rbf_grid, rbf_fit  # noqa: E402
+from _baselines import evaluate_rbf_grid, rbf_fit, rbf_grid_values  # noqa: E402
 from _common import RESULTS, machine, write_results  # noqa: E402
+from _quality_cases import (  # noqa: E402  (the cases, shared with smoothing.py)
+    CASES,
+    M_MAX,
+    M_MIN,
+    M_PER_LENGTH,
+    REFERENCE_DIVISOR,
+    RESOLUTION,
+    choose_m,
+    clean_outline,
+)
 
 # --------------------------------------------------------------------------- configuration
 
-#: Base cases: key -> (shape name, sampling keyword arguments, what it tests).
-CASES = {
-    "example1": ("example1", {}, "the paper's Example 1 curve (concave dent)"),
-    "ellipse": ("ellipse", {}, "ellipse (the paper's Example 10 curve)"),
-    "rose": ("rose", {}, "five-petal rose, five concave bays"),
-    "lobes": ("lobes", {}, "lopsided three-lobed curve"),
-    "annulus": ("annulus", {}, "disc with an off-centre hole (2 components)"),
-    "glyph_B": ("glyph_B", {}, "DejaVu Sans 'B': corners, two holes"),
-    "glyph_a": ("glyph_a", {}, "DejaVu Sans 'a': one hole, thin strokes"),
-    "glyph_8": ("glyph_8", {}, "DejaVu Sans '8': two holes"),
-    "glyph_g": ("glyph_g", {}, "DejaVu Sans 'g': hole, descender"),
-    "horse": ("horse", {}, "scikit-image horse: legs, tail, ears (thin parts)"),
-    "coins": ("coins", {}, "scikit-image coins: 24 separate components"),
-    "lobes_nonuniform": (
-        "lobes",
-        {"nonuniform": 0.6},
-        "lobes, sampling density varying 0.4x-1.6x along the curve",
-    ),
-    "rose_gap": ("rose", {"gap": 0.08}, "rose with 8 % of its length unsampled"),
-}
 #: Noise levels, as fractions of the clean outline's bounding-box diagonal.
 NOISE_LEVELS = (0.0, 0.002, 0.005, 0.01)
 QUICK_CASES = ("example1", "annulus", "glyph_a")
 QUICK_NOISE_LEVELS = (0.0, 0.005)
 
-#: m = clip(round(M_PER_LENGTH * L / diag, -2), M_MIN, M_MAX), L the outline's total length:
-#: longer, more detailed outlines get more points, within a range of 1000 to 2000 points.
-M_PER_LENGTH, M_MIN, M_MAX = 250, 1000, 2000
 #: Warm fits timed after the first call (median reported).
 WARM_REPEATS = 3
-#: Reference samples of the clean outline: spacing diag / REFERENCE_DIVISOR.
-REFERENCE_DIVISOR = 2000
 #: RBF smoothing ladder (noisy cases), searched from the top down; see :func:`smoothing_search`.
 SMOOTHING_LADDER = (1e-3, 1e-2, 1e-1, 1.0, 10.0)
 #: Tried above the ladder while its top value is still the best.
 SMOOTHING_EXTENSION = (100.0, 1000.0)
-#: Zero-set analysis grid (nodes along the longer side), the same for jurs and the RBF.
-RESOLUTION = jurs.levelset.DEFAULT_RESOLUTION
 #: Runs whose RBF grid evaluation is checked against a full ``rbf_report`` (case, noise).
 CHECKS_FULL = (("glyph_a", 0.01),)
 CHECKS_QUICK = (("example1", 0.005),)
@@ -97,120 +79,11 @@ FIGURE_DIR = os.path.join(RESULTS, "quality")
 # --------------------------------------------------------------------------- data
 
 
-def clean_outline(shape: str):
-    """Components, reference samples, bounding-box diagonal and total length of the clean
-    outline of ``shape`` (as :func:`jurs.shapes.get` samples it)."""
-    comps = jurs.shapes.outline(shape)
-    allp = np.concatenate(comps)
-    diag = float(np.linalg.norm(allp.max(axis=0) - allp.min(axis=0)))
-    length = float(sum(np.linalg.norm(np.roll(c, -1, 0) - c, axis=1).sum() for c in comps))
-    ref = np.concatenate(
-        [jurs.levelset.resample(np.vstack([c, c[:1]]), diag / REFERENCE_DIVISOR) for c in comps]
-    )
-    return comps, ref, diag, length
-
-
-def choose_m(length: float, diag: float) -> int:
-    return int(np.clip(round(M_PER_LENGTH * length / diag, -2), M_MIN, M_MAX))
-
-
 def noise_seed(case: str, level: float) -> int:
     return zlib.crc32(f"{case}/{level}".encode())
 
 
-# --------------------------------------------------------------------------- RBF grid
-
-
-def rbf_grid_values(fn, xs, ys, coarse: int = 8, safety: float = 1.0, chunk: int = 4096):
-    """Values of ``fn`` on the analysis grid ``xs x ys``, exact wherever the zero set can pass.
-
-    A full 512-node grid costs 2.6e5 RBF evaluations of 3m kernel terms each (half a minute
-    to a minute per fit on this machine, and the smoothing ladder needs several fits per
-    case), so the grid is refined adaptively, quadtree-style: exact values on every
-    ``coarse``-th node; a cell is split (exact values on the half-step lattice inside it) when
-    its corners change sign or the smallest corner |value| is at most ``safety`` times the
-    largest corner-to-corner variation among it and its 8 neighbours, and then its 8
-    neighbours are split too; down to single grid cells. Cells never split have all corners
-    of one sign and far from 0 relative to the local variation; their inner nodes get the
-    bilinear interpolant of their corners (same sign, so no zero crossing is lost). Every
-    grid cell the zero set crosses therefore has exact corner values, and the contour is the
-    one ``_baselines.rbf_report`` draws from the full grid: ``--quick`` and the full run check
-    this on the runs in ``CHECKS_*`` (signs at every grid node, component counts, Chamfer and
-    Hausdorff distances).
-
-    Returns ``(values (len(ys), len(xs)), number of exact evaluations)``.
-    """
-    xs, ys = np.asarray(xs, float), np.asarray(ys, float)
-    nx, ny = len(xs), len(ys)
-    big_x = -(-(nx - 1) // coarse) * coarse + 1  # grid extended to a multiple of coarse
-    big_y = -(-(ny - 1) // coarse) * coarse + 1
-    gx = xs[0] + (xs[1] - xs[0]) * np.arange(big_x)
-    gy = ys[0] + (ys[1] - ys[0]) * np.arange(big_y)
-    gx[:nx], gy[:ny] = xs, ys
-    vals = np.zeros((big_y, big_x))
-    known = np.zeros((big_y, big_x), bool)
-    count = 0
-
-    def evaluate(jj, ii):
-        nonlocal count
-        keep = ~known[jj, ii]
-        jj, ii = jj[keep], ii[keep]
-        if len(jj):
-            pts = np.stack([gx[ii], gy[jj]], axis=1)
-            vals[jj, ii] = np.concatenate(
-                [
-                    np.asarray(fn(pts[k : k + chunk]), float).reshape(-1)
-                    for k in range(0, len(pts), chunk)
-                ]
-            )
-            known[jj, ii] = True
-            count += len(jj)
-
-    jj, ii = np.meshgrid(np.arange(0, big_y, coarse), np.arange(0, big_x, coarse), indexing="ij")
-    evaluate(jj.ravel(), ii.ravel())
-    active = np.ones(((big_y - 1) // coarse, (big_x - 1) // coarse), bool)
-    step = coarse
-    while step >= 2:
-        cj, ci = np.nonzero(active)
-        j0, i0 = cj * step, ci * step
-        corners = np.stack(
-            [vals[j0, i0], vals[j0, i0 + step], vals[j0 + step, i0], vals[j0 + step, i0 + step]]
-        )
-        var = np.zeros(active.shape)
-        var[cj, ci] = corners.max(0) - corners.min(0)
-        var = maximum_filter(var, size=3, mode="nearest")[cj, ci]
-        split = np.zeros(active.shape, bool)
-        split[cj, ci] = ((corners.min(0) <= 0) & (corners.max(0) >= 0)) | (
-            np.abs(corners).min(0) <= safety * var
-        )
-        split = binary_dilation(split, np.ones((3, 3), bool)) & active
-        # cells kept whole: bilinear fill of the nodes not evaluated exactly
-        fj, fi = np.nonzero(active & ~split)
-        u = np.arange(step + 1) / step
-        c00, c01 = vals[fj * step, fi * step], vals[fj * step, fi * step + step]
-        c10, c11 = vals[fj * step + step, fi * step], vals[fj * step + step, fi * step + step]
-        for a in range(step + 1):
-            for b in range(step + 1):
-                jj, ii = fj * step + a, fi * step + b
-                w = (1 - u[a]) * ((1 - u[b]) * c00 + u[b] * c01) + u[a] * (
-                    (1 - u[b]) * c10 + u[b] * c11
-                )
-                free = ~known[jj, ii]
-                vals[jj[free], ii[free]] = w[free]
-        # split cells: exact values on the half-step lattice inside them
-        sj, si = np.nonzero(split)
-        half = step // 2
-        off = np.array([0, half, step])
-        jj = (sj[:, None, None] * step + off[None, :, None] + 0 * off[None, None, :]).ravel()
-        ii = (si[:, None, None] * step + 0 * off[None, :, None] + off[None, None, :]).ravel()
-        flat = np.unique(jj * big_x + ii)
-        evaluate(flat // big_x, flat % big_x)
-        nxt = np.zeros((2 * active.shape[0], 2 * active.shape[1]), bool)
-        for a in (0, 1):
-            for b in (0, 1):
-                nxt[2 * sj + a, 2 * si + b] = True
-        active, step = nxt, half
-    return vals[:ny, :nx], count
+# --------------------------------------------------------------------------- RBF
 
 
 def rbf_measure(points, normals, *, offset, eps, smoothing, box, reference):
@@ -511,7 +384,7 @@ def markdown(runs, meta):
     lines.append(
         "RBF zero sets are measured with `jurs.levelset.analyze_grid` (what "
         "`_baselines.rbf_report` calls) on the same grid, but the grid values come from an "
-        "adaptive evaluation (`rbf_grid_values` in this script: exact wherever the zero set can "
+        "adaptive evaluation (`_baselines.rbf_grid_values`: exact wherever the zero set can "
         "pass, bilinear far from it), because the full grid costs half a minute or more per "
         "RBF. Checked against the full grid, evaluated and analysed as `rbf_report` does "
         "(`evaluate_rbf_grid`, then `analyze_grid`), on "

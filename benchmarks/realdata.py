@@ -52,9 +52,8 @@ import jurs.shapes  # noqa: E402
 
 sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 import _realdata_cases as cases  # noqa: E402
-from _baselines import rbf_fit  # noqa: E402
+from _baselines import rbf_fit, rbf_grid_values  # noqa: E402
 from _common import RESULTS, machine, rerender_beside, time_repeated, write_results  # noqa: E402
-from quality import rbf_grid_values  # noqa: E402
 
 # --------------------------------------------------------------------------- configuration
 
@@ -584,7 +583,7 @@ def markdown(payload: dict) -> str:
         f"{RBF_MAX_POINTS} points it gets an evenly strided subset of {RBF_MAX_POINTS} "
         "('RBF pts'), its dense solve being O((3m)^3). Both zero sets are extracted on the "
         "same grid over jurs's box (`jurs.levelset.analyze` / `analyze_grid`, the RBF's grid "
-        "values by `quality.rbf_grid_values`, exact wherever the zero set can pass) with "
+        "values by `_baselines.rbf_grid_values`, exact wherever the zero set can pass) with "
         f"{NODES_PER_PIXEL} nodes per image pixel along the longer side "
         f"({RESOLUTION_MIN}..{RESOLUTION_MAX}). Chamfer and Hausdorff: zero set to dense "
         f"samples of the clean outline, in % of its bounding-box diagonal. "

@@ -49,7 +49,6 @@ CHILD = textwrap.dedent(
     import jurs
     from jurs._fit import call as _fit
     from jurs._problem import problem as _problem
-    from jurs._fit.compile import COMPILER_OPTIONS
     from jurs._fit.sharding import place_fit
 
     m, grid = int(sys.argv[1]), tuple(json.loads(sys.argv[2]))
@@ -77,7 +76,7 @@ CHILD = textwrap.dedent(
     reassoc = _fit._reassociation_pays(problem, dyn)
     run = _fit._solve_reassociating if reassoc else _fit._solve
     compiled = run.lower(problem, dyn, None, False).compile(
-        COMPILER_OPTIONS if reassoc else None
+        jurs.COMPILER_OPTIONS if reassoc else None
     ).compiled
     memory = compiled.memory_analysis()
     shares = {}

@@ -122,8 +122,7 @@ FIT_ONLY = """
 import sys
 import jax
 jax.config.update("jax_enable_x64", True)
-from jurs import cli
-from jurs._fit.compile import enable_compilation_cache
+from jurs import cli, enable_compilation_cache
 args = cli.build_parser().parse_args(["fit", sys.argv[1], "-o", "unused-out", "-q"])
 enable_compilation_cache()
 job = cli.prepare_fit(args)

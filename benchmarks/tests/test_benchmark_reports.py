@@ -3,16 +3,12 @@ re-render a saved run beside its JSON, and the GPU benchmark refuses a CPU-only 
 
 import json
 import os
-import sys
 
+import gpu_speed  # pyright: ignore[reportMissingImports]  # benchmarks/ (conftest.py)
 import pytest
+import speed  # pyright: ignore[reportMissingImports]
 
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-RESULTS = os.path.join(ROOT, "benchmarks", "results")
-sys.path.insert(0, os.path.join(ROOT, "benchmarks"))
-
-import gpu_speed  # noqa: E402
-import speed  # noqa: E402
+RESULTS = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "results")
 
 
 def _cells(lines, first):

@@ -2,19 +2,12 @@
 the paper's Algorithm 1) takes the same iterates as ``jurs.IURS``, so its timings compare
 like with like."""
 
-import os
-import sys
-
+import _numpy_port as port  # pyright: ignore[reportMissingImports]  # benchmarks/ (conftest.py)
 import jax
 import numpy as np
 import pytest
 
 import jurs
-
-sys.path.insert(
-    0, os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "benchmarks")
-)
-import _numpy_port as port  # noqa: E402
 
 STEPS = 5
 GRID = (9, 9)

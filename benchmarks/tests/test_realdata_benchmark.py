@@ -1,19 +1,12 @@
 """The real-data benchmark's pieces: the ring-by-ring topology match on circles, a traced case
 (deterministic, pixel staircase kept), the variants' outliers, and the markdown renderer."""
 
-import os
-import sys
-
+import _realdata_cases as cases  # pyright: ignore[reportMissingImports]  # benchmarks/ (conftest.py)
 import numpy as np
 import pytest
+import realdata  # pyright: ignore[reportMissingImports]
 
 import jurs.shapes
-
-ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-sys.path.insert(0, os.path.join(ROOT, "benchmarks"))
-
-import _realdata_cases as cases  # noqa: E402  # pyright: ignore[reportMissingImports]
-import realdata  # noqa: E402  # pyright: ignore[reportMissingImports]
 
 
 def circle(cx=0.0, cy=0.0, r=1.0, n=400):
