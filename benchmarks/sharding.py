@@ -48,7 +48,7 @@ CHILD = textwrap.dedent(
     from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
     import jurs
     from jurs._fit import call as _fit
-    from jurs._problem import problem as _problem
+    from jurs._problem import padding as _problem
     from jurs._fit.sharding import place_fit
 
     m, grid = int(sys.argv[1]), tuple(json.loads(sys.argv[2]))

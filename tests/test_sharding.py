@@ -31,7 +31,7 @@ CHILD = textwrap.dedent(
     from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
     import jurs
     from jurs._fit import call as _fit
-    from jurs._problem import problem as _problem
+    from jurs._problem import padding as _problem
     from jurs._fit.sharding import place_fit
 
     assert len(jax.devices()) == 4 and jnp.result_type(float) == jnp.float64
