@@ -425,8 +425,8 @@ def write_outputs(out: str, write, names=OUTPUTS) -> None:
 
 
 #: Vertices of a surface mesh per node of a lattice plane (resolution^2), assumed by the
-#: checks before a 3D fit: a sphere filling its box measured 2 (333 000 vertices at
-#: resolution 400); four times that leaves room for folded surfaces.
+#: checks before a 3D fit: a sphere filling its box has about 2 (docs/surfaces.md,
+#: "Meshing a spline"); four times that leaves room for folded surfaces.
 MESH_VERTICES_PER_PLANE_NODE = 8
 #: Peak bytes per vertex of jurs.levelset.mesh (measured about 450, docs/surfaces.md), and
 #: bytes per vertex of mesh.ply (12 for the vertex, two faces of 13).
@@ -889,9 +889,9 @@ def end_process(code: int) -> None:
     """End the command's process with exit status ``code``: stdout and stderr flushed and
     the ``atexit`` handlers run (JAX's clean-up, temporary folders), then ``os._exit``,
     skipping the interpreter's teardown. That teardown frees every loaded module and
-    JAX's compiled code object by object: 0.6-0.7 s of a 3-4 s ``jurs fit`` on the 2-core
-    machine of ``benchmarks/results/startup.md``, with nothing left to write (the outputs
-    are closed, JAX's cache entries written when compiled). Where a thread other than
+    JAX's compiled code object by object, a noticeable share of a short ``jurs fit``
+    (docs/startup.md, "The command line's own process"), with nothing left to write (the
+    outputs are closed, JAX's cache entries written when compiled). Where a thread other than
     the main one is still running, this returns and the interpreter exits as usual,
     waiting for it."""
     import atexit

@@ -92,7 +92,7 @@ def estimate_noise(
     idx = tree.query(points[at], k=k)[1]
     nb = points[idx]  # (probes, k, d)
     # Plain broadcasts and sums below: NumPy's einsum runs these small contractions
-    # several times slower (it was half of auto_settings' time at 1000 points).
+    # several times slower (docs/performance.md, "Measurements behind the defaults").
     keep = ((normals[idx] * normals[at][:, None, :]).sum(axis=2) > 0.5).astype(float)
     count = keep.sum(axis=1)
     centre = (keep[:, :, None] * nb).sum(axis=1) / np.maximum(count, 1)[:, None]

@@ -52,13 +52,10 @@ K_LADDER = {2: (6, 8, 11, 16, 22, 32, 45, 64), 3: (10, 14, 20, 28, 40, 56, 80)}
 ANGLE_TARGET = 0.08
 #: Whether the choice of k reads the noise at each candidate k (corrected for the
 #: neighbourhood cutting the noise's tails off, :func:`_slab_noise`), per dimension, or
-#: on the smallest neighbourhoods. In 3D the smallest neighbourhoods read 2.5x too little
-#: noise where it is as wide as the spacing: on spheres and tori of 1e5 points with noise
-#: of 0.5 % of the diagonal k went from 28 to 80 and correct signs from 99.0-99.3 % to
-#: 99.96 % (median angle 17-19 -> 5.5-6.4 degrees). In 2D it lost more than it gained:
-#: 0.5 % noise on 2000 points then chose larger k, whose neighbourhoods reach across thin
-#: parts and close rings (nested rings 99.8 -> 33 %, coins 99.7 -> 92.6 %, horse 88.9 ->
-#: 83.8 %; blobs 92.4 -> 95.2 %).
+#: on the smallest neighbourhoods. In 3D the smallest neighbourhoods read too little
+#: noise where it is as wide as the spacing, and k came out too small; in 2D reading it
+#: at each k chose larger k, whose neighbourhoods reach across thin parts and close
+#: rings, and lost more than it gained (docs/normals.md, "Method", step 1).
 NOISE_AT_SCALE = {2: False, 3: True}
 #: Neighbours per point in the orientation graph (at most k).
 GRAPH_NEIGHBOURS = {2: 8, 3: 12}
@@ -73,8 +70,8 @@ POINTS_PER_PATCH = 15
 MIN_PATCH = 5
 #: Rounds of rejoining, per dimension. In 2D the tree is a path per curve and its heavy
 #: edges cluster at corners; in 3D the tiny pieces are leaves all over the tree, and
-#: rejoining them left too few patches to undo propagation errors (thick shell at 6000
-#: points: 400 -> 24 patches, 100 % -> 99.0 % on the inner surface).
+#: rejoining them left too few patches to undo propagation errors (docs/normals.md,
+#: "Method", step 3).
 REJOIN_ROUNDS = {2: 6, 3: 0}
 #: Patch signs are found by enumeration up to this many patches.
 EXHAUSTIVE_PATCHES = 14
@@ -87,29 +84,22 @@ NEAR_NEIGHBOURS = 48
 #: Nearest points whose field enters each point's final sign check.
 CHECK_NEIGHBOURS = {2: 96, 3: 64}
 #: A point flips only when its field rises outward by more than this (0 to 1 across a
-#: surface), per dimension. On a noisy 3D sphere (1e5 points, 0.5 %) the unguarded check
-#: flipped 1119 points for the worse (99.29 % -> 98.81 %); in 2D it helps (nested rings
-#: at 0.5 %: 98.6 % with a margin of 0.1, 99.5 % without).
+#: surface), per dimension. On noisy surfaces the unguarded check flipped correct points
+#: on the noise; on noisy curves a margin cost more correct signs than it saved
+#: (docs/performance.md, "Measurements behind the defaults").
 CHECK_MARGIN = {2: 0.0, 3: 0.1}
 #: Probes of the per-point check sit this many local noise levels from the point at least
 #: (else half a field width): probes inside the noise band read the noise, not the side.
-#: Measured at 0.5 % noise: glyph 'a' 99.45 -> 99.85 %, annulus 99.80 -> 100 %, nested
-#: rings 99.65 -> 99.80 % (2000 points); bunny at 1e4 points 99.10 / 99.43 -> 99.32 /
-#: 99.57 % (two draws). Clean clouds (noise about 0) are unchanged.
+#: Clean clouds (noise about 0) are unchanged (docs/normals.md, "Method", step 5).
 CHECK_NOISE_OFFSET = 3.0
 #: Source weight per dimension: the geometric mean of the confidence and of
 #: ``min(1, confidence / median confidence)`` (True), or the raw confidence (False). In
-#: 2D the raw confidence (0.70 on average at 0.5 % noise) shrank the field of a correctly
-#: oriented noisy annulus to 0.37 on its points instead of 1/2 (0.43 with these
-#: weights), and the sign solve then preferred patch flips that raised it (with
-#: :data:`CHECK_NOISE_OFFSET`: close discs at 0.5 % noise 93.25 -> 99.25 %, glyph 'B'
-#: 98.8 -> 99.6 %, the annulus 92.7-100 % -> 100 % over noise draws). Fully relative
-#: weights (``min(1, c / median)``) went further but lost the noisy uneven "lobes" test
-#: cloud (100 -> 97.4 % on one draw of eight; unit weights 94-97 % on four): its sparse
-#: stretches have poor normals, which the raw confidence discounts; the geometric mean
-#: kept both. In 3D, at 1e4 points and 0.5 % noise, the raw weights came out 0.03-0.1
-#: points better than the relative ones on two draws each of the bunny, sphere, torus
-#: and thick shell.
+#: 2D noise lowers the raw confidence, which shrank the field of a correctly oriented
+#: noisy cloud below 1/2 on its points, and the sign solve then preferred patch flips
+#: that raised it. Fully relative weights (``min(1, c / median)``) went further but lost
+#: a noisy, unevenly sampled cloud whose sparse stretches have poor normals, which the
+#: raw confidence discounts; the geometric mean kept both. In 3D the raw weights did
+#: slightly better (docs/normals.md, "Method", step 4, "Weights").
 NORMALISED_SOURCES = {2: True, 3: False}
 #: At most this many query-source pairs are evaluated exactly (dense path).
 DENSE_PAIRS = 1.5e7
@@ -636,7 +626,8 @@ def _point_corrections(points, normals, area, eps, offset, tree, neighbours, rou
     points enter the difference: far sources add almost the same to both sides. Repairs
     the stretches a patch's propagation got wrong, from their ends inward over the rounds.
     ``neighbours`` (each point's nearest, itself first, as the PCA's) serve where they
-    are enough (noisy 3D clouds: k + 1 = 81; a second query of 1e5 points took 0.7 s).
+    are enough (noisy 3D clouds: k + 1 = 81), which saves a second neighbour query
+    (docs/normals.md, "Measurements").
     Returns ``(normals, points flipped)``."""
     m, d = points.shape
     count = min(CHECK_NEIGHBOURS[d], m)

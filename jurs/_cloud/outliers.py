@@ -20,11 +20,10 @@ ISOLATION_RATIO = 3.0
 
 #: The sparsest sampling around a point, relative to the cloud's median spacing, that
 #: :func:`isolated_points` takes as the shape's: far from the shape, the points around
-#: an outlier are other outliers, as sparse as it is. With ratio 4 and 2 here, 1.5 %
-#: outliers uniform in the box of a 4500-point font outline stood at 4-7.6 typical
-#: reaches and 23 of 68 stayed in; with 3 and 1.5, 4 of 68. On 0.5 % noise these values
-#: set aside up to 12 of 2600 points, the most displaced ones (none on clean or unevenly
-#: sampled outlines, gaps and separate small components).
+#: an outlier are other outliers, as sparse as it is. With a larger ratio and cap, many
+#: outliers uniform in the box stayed in; with these, noisy outlines lose only their most
+#: displaced points, and clean or unevenly sampled ones, gaps and separate small
+#: components none (docs/performance.md, "Measurements behind the defaults").
 SPARSE_SPACING = 1.5
 
 
@@ -65,12 +64,13 @@ def isolated_points(
 
     Why this test: an outlier far from the shape has no neighbours at the sampling's
     spacing, while its nearest points (on the shape) do; a fit through it grows a loop
-    around it (1.5 % outliers gave 24 supplementary loops). The k-th neighbour, not the
-    first, finds outliers in pairs and threes too; comparing with the point's own
-    neighbours, not the cloud's median spacing, keeps uneven sampling (5x density
-    changes), gap ends and small separate components in: their neighbours are as sparse
-    as they are. Outliers within a few spacings of the shape are not found here (the
-    robust reweighting of :func:`jurs.fit` weighs the near ones down).
+    around it (docs/design.md section 6; docs/performance.md, "Measurements behind the
+    defaults"). The k-th neighbour, not the first, finds outliers in pairs and threes too;
+    comparing with the point's own neighbours, not the cloud's median spacing, keeps
+    uneven sampling (5x density changes), gap ends and small separate components in:
+    their neighbours are as sparse as they are. Outliers within a few spacings of the
+    shape are not found here (the robust reweighting of :func:`jurs.fit` weighs the near
+    ones down).
     """
     tree = kd_tree(points) if tree is None else tree
     m = len(points)
@@ -106,10 +106,10 @@ def stray_clusters(points, normals, dist, near, link: float) -> np.ndarray:
 
     Why: outliers uniform in the box fall in groups of four or five points a few spacings
     apart now and then; each one's third neighbour is then near, so the test of
-    :func:`isolated_points` keeps them, and the fit loops around the group (3-4 of 22-75
-    outliers stayed in on traced outlines: an extra component, Hausdorff 8-10 % of the
-    diagonal). A real small component samples its outline with outward normals; random
-    normals agree that well on 5 points one time in 2.7."""
+    :func:`isolated_points` keeps them, and the fit loops around the group (an extra
+    component on traced outlines: docs/design.md section 6). A real small component
+    samples its outline with outward normals; random normals agree that well on 5 points
+    one time in 2.7."""
     from scipy import sparse  # lazily: import jurs loads no SciPy sparse
     from scipy.sparse import csgraph
 

@@ -75,10 +75,11 @@ def enable_compilation_cache(path=None, *, min_compile_time_s: float = 0.0) -> s
         The folder in use. JAX opens its cache once, at the first compilation that reads
         it: a folder set after that is not switched to (JAX keeps the first).
 
-    JAX's cache skips XLA's compilation but not the tracing before it (about 1 s for the
-    default fit); so top-level :func:`jurs.fit` calls are also kept traced
-    (``jax.export``) in the subfolder ``jurs-exported-fits``, keyed by jurs's source, the
-    JAX version and the fit's shapes and settings, for a new process to load.
+    JAX's cache skips XLA's compilation but not the tracing before it (a good part of a
+    short run: docs/startup.md, "The persistent compilation cache"); so top-level
+    :func:`jurs.fit` calls are also kept traced (``jax.export``) in the subfolder
+    ``jurs-exported-fits``, keyed by jurs's source, the JAX version and the fit's shapes
+    and settings, for a new process to load.
 
     The cache is trusted code (JAX's entries and the exported fits alike): keep it in a
     folder only you can write to.
@@ -100,8 +101,9 @@ def enable_compilation_cache(path=None, *, min_compile_time_s: float = 0.0) -> s
 
 # --- Traced fits kept across processes -------------------------------------------------
 #
-# JAX's persistent cache skips XLA's compilation, not the tracing and lowering before it:
-# for the default fit at 96 x 96 those take about 1 s of a command-line run's 2-3 s.
+# JAX's persistent cache skips XLA's compilation, not the tracing and lowering before it,
+# which are a good part of a command-line run (docs/startup.md, "The persistent
+# compilation cache").
 # ``enable_compilation_cache`` therefore also keeps each top-level fit exported
 # (``jax.export``: traced and lowered to StableHLO) in a folder beside JAX's cache; a new
 # process that meets the same shapes and settings loads it and lets JAX's cache supply

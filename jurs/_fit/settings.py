@@ -36,7 +36,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-if TYPE_CHECKING:  # SciPy's spatial module loads on the first fit (0.3 s), not on import
+if TYPE_CHECKING:  # SciPy's spatial module loads on the first fit, not on import
     # SciPy ships no stub for its compiled cKDTree, so a type checker sees no such class;
     # KDTree, its pure-Python subclass with the same query(), stands in for it here.
     from scipy.spatial import KDTree as cKDTree
@@ -75,16 +75,16 @@ _select_lam = eqx.filter_jit(select_lam)
 #: Default largest grid (basis functions along the longer side).
 DEFAULT_MAX_GRID = 96
 #: Default largest grid of a surface (3D). The 343-point stencil of D^T D holds 2.7 KB a
-#: coefficient in float64, and the assembly's per-cell moments as much again: a 64^3 fit
-#: of a 2e4-point sphere peaked at 4.8 GB resident and took 25 s warm on a 2-core CPU
-#: (shared with other jobs), most of it the final CG's 400 steps of a 343-point stencil;
-#: 48^3 has 2.4x fewer coefficients.
+#: coefficient in float64, and the assembly's per-cell moments as much again; memory and
+#: the final CG's steps on that stencil grow with the coefficients, and 48^3 has 2.4x
+#: fewer than 64^3, whose fits were too slow and large for a default (docs/surfaces.md,
+#: "Accuracy, speed and limits"; docs/performance.md, "Measurements behind the defaults").
 DEFAULT_MAX_GRID_3D = 48
 #: Cell side in point spacings, by dimension (see :func:`choose_grid`). On a surface a
-#: cell of side ``c s`` is crossed by about ``c^2`` points against ``c`` on a curve: at 1.5
-#: spacings a 3000-point sphere got a 59^3 grid, 23 coefficients a sample, 7x those of
-#: the 31^3 grid of 3 spacings (the exact solve's cost grows with the coefficients); at
-#: 31^3 the fitted zero set lay 1.5e-4 from the unit sphere on average.
+#: cell of side ``c s`` is crossed by about ``c^2`` points against ``c`` on a curve, so 3
+#: spacings already pin its coefficients; 1.5 would give about 8x the coefficients, and
+#: the exact solve's cost grows with them, for little accuracy (docs/performance.md,
+#: "Measurements behind the defaults").
 CELL_SPACINGS = {2: 1.5, 3: 3.0}
 #: Most coefficients a curve's grid is refined to for thin features (:func:`choose_grid`):
 #: the exact solve's block Cholesky costs about ``N M^3`` (M the shorter side), 3.2x that
@@ -93,9 +93,10 @@ MAX_FEATURE_COEFFICIENTS = 128 * 128
 #: Share of the points whose feature width sets the finest cell (:func:`feature_width`):
 #: the narrowest 0.5 %, so that a short neck of a few points counts, a single odd point not.
 FEATURE_QUANTILE = 0.005
-#: A feature is resolved when it is at least this many cells wide. The clean shapes of
-#: the quality suite fit at 96 x 96 with at most 1 % of their points on features narrower
-#: than half a cell; a 100:1 ellipse (its whole length a feature 0.87 cell wide) did not.
+#: A feature is resolved when it is at least this many cells wide: the clean shapes of
+#: the quality suite fit well with few of their points on narrower features, and a 100:1
+#: ellipse, its whole length such a feature, did not (docs/design.md section 6;
+#: docs/performance.md, "Measurements behind the defaults").
 FEATURE_CELLS = 0.5
 #: Smallest automatic grid along either side.
 MIN_GRID = 8
@@ -148,14 +149,11 @@ CLEAN_SMOOTHING = 1e-6
 NOISY_SMOOTHING = 1e-3
 #: A clean surface's smoothing: lower than a curve's, since a surface's cells hold many
 #: more points (about ``c^2`` against ``c`` for a cell of ``c`` spacings) and the data pin
-#: the fit down between them. The membrane term's pull on the surface was most of the
-#: error of clean fits at 1e-6: on 1e5 exact points of a unit sphere (48^3 grid) the zero
-#: set lay 5.5e-5 from the sphere on average, 1.9e-5 at 1e-7, 7.5e-6 at 1e-8. Measured on
-#: the five shapes of benchmarks/surfaces.py (clean, 1e5 points, 2-core CPU, 2026-12-02),
-#: 1e-7 against 1e-6 lowered the Chamfer distance of the mesh to the true surface by
-#: 8-23 % (bunny 1.47 to 1.13e-4 of the diagonal) and the Hausdorff distance by 3-41 %,
-#: and the exact solve took fewer CG steps; at 5e3 and 2e4 points likewise. 1e-8 grew a
-#: bubble on the bunny and 1e-9 39 of them.
+#: the fit down between them. At 1e-6 the membrane term's pull on the surface was most of
+#: the error of clean fits; 1e-7 brought every clean shape of benchmarks/surfaces.py
+#: closer to its true surface, in fewer CG steps, while smaller values grew bubbles
+#: (docs/surfaces.md, "Accuracy, speed and limits"; docs/performance.md, "Measurements
+#: behind the defaults").
 CLEAN_SURFACE_SMOOTHING = 1e-7
 #: The dimensionless smoothings a curve's lambda is chosen among by held-out points
 #: (:func:`choose_smoothing`): decades from the clean floor to the noisy end.
@@ -213,10 +211,10 @@ def choose_grid(
     :data:`MAX_FEATURE_COEFFICIENTS` coefficients and never below one spacing or 4 sigma.
 
     Why: a cell must hold a few points along the curve for the least-squares fit to pin
-    its coefficients (1.5 spacings, on clean data the measured accuracy no longer improved
-    below), and on noisy data a few noise widths, so that each coefficient averages out the
-    noise instead of following it (4 sigma measured best against 2 and 8, in Chamfer
-    distance to the clean curve at 0.5 % noise). The cap bounds time and memory: the exact
+    its coefficients (1.5 spacings: finer cells no longer fit clean data closer), and on
+    noisy data a few noise widths, so that each coefficient averages out the noise instead
+    of following it (4 sigma fit closer than 2 or 8; docs/performance.md, "Measurements
+    behind the defaults"). The cap bounds time and memory: the exact
     solve grows with the number of coefficients, not with m. A feature narrower than about
     half a cell is cut or bridged (a neck pinched, two rings fused), whatever the number of
     points: there the data need the finer grid, and the budget in coefficients (not in
@@ -266,14 +264,14 @@ def choose_smoothing(offset: float, noise: float, ndim: int = 2) -> float | None
 
     Why held-out points and not the noise estimate: sigma measures how far points stray
     from a smooth local fit, and a pixel staircase traced from an image, polygon corners
-    or uneven spacing stray as much as noise does (traced outlines measured sigma = 12-26 %
-    of the spacing), yet they are the shape, not noise. Points held out from such a curve
-    lie on what the kept points trace, and the fit that follows it closely predicts them
-    best; points displaced by independent noise are predicted best by a fit that averages
-    the neighbours. So the choice needs no noise model, only the data. The floor stays:
-    smaller smoothings let supplementary loops grow away from the data, where no point
-    says so (``benchmarks/results/smoothing.md``); the clean shortcut saves the selection's
-    solves where it would pick the floor (it did on every clean shape measured).
+    or uneven spacing stray as much as noise does (docs/design.md section 6), yet they are
+    the shape, not noise. Points held out from such a curve lie on what the kept points
+    trace, and the fit that follows it closely predicts them best; points displaced by
+    independent noise are predicted best by a fit that averages the neighbours. So the
+    choice needs no noise model, only the data. The floor stays: smaller smoothings let
+    supplementary loops grow away from the data, where no point says so
+    (``benchmarks/results/smoothing.md``); the clean shortcut saves the selection's solves
+    where it would pick the floor (it did on every clean shape measured).
     """
     ratio = 2.0 * noise / offset if offset > 0 else 1.0
     if ratio < CLEAN_NOISE_RATIO:
@@ -295,19 +293,16 @@ def noise_smoothing(offset: float, noise: float, ndim: int = 3) -> float:
 
     Why: R (eq. 31) is a membrane energy, about ``2 int |grad g|^2``; it keeps g free of
     spurious zeros away from the data and the system well posed, but near the data it
-    pulls on the slope of g and so on the curve. On clean data smaller measured better
-    (1000 points of three shapes, 96-function grid: 1e-6 against 1e-5 lowered the Chamfer
-    distance by 2-16 % and the Hausdorff distance up to 2.8x, for 10-20 % more solve
-    time). Smaller ones fit smooth curves still closer but break other shapes, also where
-    every cell holds many points (``benchmarks/results/smoothing.md``, 10 clean shapes at
-    1000-1900 and at 5000 points: 1e-7 raised glyph B's Hausdorff distance 5x, 1e-8 grew
-    supplementary loops on glyphs, 1e-10 in 11 of 20 runs); on noisy data a
-    larger one measured better (the data no longer deserve to be followed exactly; 1e-3
-    against 1e-4 at 0.5 % noise). Between, the ramp stays low while the noise is well
-    inside the offset (it barely moves the offsets' sides): on the outlines traced from
-    images, whose pixel-scale wiggles measure as sigma = 0.15 d, the fourth power instead
-    of the square lowered the Chamfer distance to the outline by 28 % (horse) and 16 %
-    (coins); data whose noise sets d get 1e-3 either way."""
+    pulls on the slope of g and so on the curve. On clean data a smaller one fits closer,
+    for a little more solve time; still smaller ones fit smooth curves closer yet but
+    break other shapes (a glyph's Hausdorff distance, supplementary loops), also where
+    every cell holds many points (``benchmarks/results/smoothing.md``); on noisy data a
+    larger one fits better (the data no longer deserve to be followed exactly). Between,
+    the ramp stays low while the noise is well inside the offset (it barely moves the
+    offsets' sides): outlines traced from images, whose pixel-scale wiggles measure as a
+    little noise, fit closer on the fourth power than on the square; data whose noise
+    sets d get 1e-3 either way. The measurements behind these choices are in
+    docs/performance.md, "Measurements behind the defaults"."""
     ratio = min(1.0, 2.0 * noise / offset) if offset > 0 else 1.0
     clean = clean_smoothing(ndim)
     return float(clean + (NOISY_SMOOTHING - clean) * ratio**4)
@@ -516,8 +511,8 @@ def default_solver(settings) -> AbstractSolver:
     ``LeastSquares(lam=settings.lam)``; where points were set aside as standing alone
     (``settings.set_aside``), the robust reweighting ``RobustLeastSquares(lam, loss="huber")``
     of the rest, which also weighs down points that stray less far (Huber's loss is
-    convex: it never sets an inlier aside, unlike Cauchy's or Tukey's, measured to drop
-    the points of curved parts on coarse grids)."""
+    convex: it never sets an inlier aside, unlike Cauchy's or Tukey's, which dropped the
+    points of curved parts on coarse grids: docs/design.md section 6)."""
     if settings.set_aside:
         return RobustLeastSquares(
             lam=settings.lam, loss="huber", max_steps=DEFAULT_ROBUST_STEPS, rtol=DEFAULT_ROBUST_RTOL

@@ -11,9 +11,9 @@ def full_precision(fn):
     """``fn`` traced with matrix products at full precision (``"highest"``).
 
     Why: JAX's default lets a GPU run float32 products as TF32, with a 10-bit mantissa. The
-    normal equations of a fit and their block Cholesky do not survive that: Example 1 at
-    9 x 9 in float32 on an H100 ended 3.9 times above the minimum energy (the CPU: 9e-6
-    above it), and 9e-6 above it with full precision. It changes nothing in float64 or on a
+    normal equations of a fit and their block Cholesky do not survive that: with TF32 a
+    float32 fit ended far above the minimum energy, which it reaches with full precision
+    as on a CPU (docs/performance.md, "On a GPU"). It changes nothing in float64 or on a
     CPU. A caller's own ``jax.default_matmul_precision`` does not reach inside ``fn``."""
 
     @functools.wraps(fn)

@@ -21,8 +21,8 @@ def choose_bucket_size(cells: np.ndarray, count: int, small: bool = False) -> in
     samples per occupied cell (at most ``MAX_BUCKET_SIZE``), so that most buckets are full
     and padding stays below about half the slots. ``small`` (the table form of small
     problems): the largest not above half that median (at most ``SMALL_MAX_BUCKET_SIZE``),
-    where padding costs as much as extra buckets (measured on 640-point outlines at
-    15 x 15, median 51 and 25 samples a cell: 16 and 8 were fastest)."""
+    where padding costs as much as extra buckets (docs/design.md section 5, "Sample
+    layouts"; docs/performance.md, "Measurements behind the defaults")."""
     counts = np.bincount(cells, minlength=count)
     median = float(np.median(counts[counts > 0]))
     if not small:

@@ -44,8 +44,9 @@ def check_memory(
     """MemoryError-free refusal: ValueError naming ``setting`` when ``estimate`` bytes
     exceed the memory available (:func:`available_memory`, on the device or with
     ``device=False`` on the host), before anything is allocated
-    (grid=10000 otherwise asked XLA for 248 GB after 20 s, and a level-set resolution of
-    30000 ended in a MemoryError traceback)."""
+    (without it an oversized grid failed inside XLA after many seconds, and an oversized
+    level-set resolution in a MemoryError traceback: docs/robustness.md, "Memory";
+    docs/performance.md, "Measurements behind the defaults")."""
     if estimate < NEVER_REFUSED_BYTES and available is None:
         return  # nothing to ask the system (reading its memory costs more than a small fit)
     available = available_memory(device) if available is None else available
@@ -58,13 +59,10 @@ def check_memory(
 
 
 #: Peak bytes a fit holds per coefficient: the exact solve and the normal-equation form
-#: assemble the 49-point stencil of D^T D and solve with it (LeastSquares measured 0.8 GB,
-#: 3.1 KB a coefficient, at 512 x 512, peak resident memory above the process' baseline
-#: on this 2-core CPU; XLA asked for 2.5 KB a coefficient at 10000 x 10000); the
-#: per-sample iterations hold a few grids (IURS: 0.19 GB at 64 x 64 and at 256 x 256,
-#: compilation included). At 2000 x 2000 it held 10 GB (2.5 KB a coefficient) after 8
-#: minutes and was still growing: the limit is twice the largest rate measured, so that a
-#: fit it lets through does not run the machine out of memory.
+#: assemble the 49-point stencil of D^T D and solve with it; the per-sample iterations
+#: hold a few grids (:data:`BYTES_PER_COEFFICIENT_ITERATIVE`). The limit is twice the
+#: largest rate measured, so that a fit it lets through does not run the machine out of
+#: memory (docs/robustness.md, "Memory").
 BYTES_PER_COEFFICIENT = 8192
 
 
@@ -75,11 +73,10 @@ BYTES_PER_COEFFICIENT_ITERATIVE = 1024
 BYTES_PER_SAMPLE = 256
 
 
-#: The same for surfaces (3D), from peak resident sets on this 2-core CPU: the 343-point
-#: stencil, the per-cell moments it is folded from and the fold's intermediates (a 64^3 fit
-#: of 2e4 points peaked at 4.8 GB, 18 KB a coefficient), and each sample's 64 gathered
-#: coefficients and basis products (1e6 points at 48^3 peaked at 10 GB: 2.9 KB a sample
-#: after the grid's share).
+#: The same for surfaces (3D), from peak resident sets: the 343-point stencil, the
+#: per-cell moments it is folded from and the fold's intermediates, and each sample's 64
+#: gathered coefficients and basis products, each above the largest rate measured
+#: (docs/performance.md, "Measurements behind the defaults").
 BYTES_PER_COEFFICIENT_3D = 20480
 
 

@@ -176,9 +176,9 @@ def _converted_geometry(
 ):
     """``(convert, points, geometry)``: the cast to ``dtype``, the cast points, a _Geometry."""
     # Small concrete problems are laid out on the host in NumPy and transferred once at the
-    # end: nothing to compile (a first call would otherwise spend about 0.3 s compiling
-    # the geometry). Larger and traced ones take the same arithmetic jitted (at 1e6 points
-    # 0.17 s against 0.52 s in NumPy).
+    # end: nothing to compile, where compiling the geometry would cost a first call more
+    # than computing it. Larger and traced ones take the same arithmetic jitted, faster
+    # than NumPy there (docs/performance.md, "Measurements behind the defaults").
     on_host = concrete and small
     if on_host:
         convert, geometry = (lambda x: np.asarray(x, dtype)), partial(_geometry_arrays, xp=np)

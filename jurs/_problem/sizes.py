@@ -13,9 +13,8 @@ def round_size(n: int) -> int:
 
     Shapes that XLA compiles for (point counts, grid cells, occupied cells) are rounded to
     it, so that clouds of similar size share one compiled fit. Why four an octave: a new
-    shape costs a compilation, seconds against a warm fit's 0.01-1 s (automatic fits of
-    1e2-1e5 points on a 2-core CPU: 6-13 s of XLA compilation under load,
-    ``benchmarks/results/startup.md``), while a size rounded up by at most 25 % (10 % on
+    shape costs a compilation, seconds against a warm fit's fraction of a second
+    (``benchmarks/results/startup.md``), while a size rounded up by at most 25 % (10 % on
     average over sizes) costs at most that much more work; eight an octave
     would halve the waste and double the compilations. A size in ``[4, 8) * 2^k`` on it is
     divisible by 2^k (a cell count halves k times), which multigrid coarsening likes.

@@ -30,9 +30,10 @@ from .solution import RESULTS
 
 #: A fit whose stop rule was met but whose own sign is wrong at more than this fraction of
 #: the offset samples (g <= 0 outside, g >= 0 inside) is reported as
-#: ``RESULTS.inconsistent_normals``. Measured with the automatic settings: clean and noisy
-#: clouds 0-2 %, 10 % positional outliers 12.5 %, random normals 32 %, every other normal
-#: flipped 42 %.
+#: ``RESULTS.inconsistent_normals``. With the automatic settings, clean and noisy clouds
+#: stay well below it and random or alternately flipped normals mostly above it
+#: (docs/robustness.md, "Verdicts, after the fit"; docs/performance.md, "Measurements
+#: behind the defaults").
 MAX_OFFSET_SIGN_DISAGREEMENT = 0.2
 
 
@@ -73,9 +74,9 @@ def offset_sign_disagreement(problem: Problem, spline: ImplicitSpline):
 #: More than this fraction of the points with normals flipped against their neighbours
 #: (:func:`jurs._problem.problem.flipped_normal_fraction`), or with normals along the curve
 #: (:func:`jurs._problem.problem.tangential_normal_fraction`), makes a fit
-#: ``inconsistent_normals``: consistent clouds measured 0 and at most 0.03 (0.12 flipped
-#: on a horse sampled coarser than its legs); half or every other normal flipped 0.5,
-#: random normals about 0.5 along the curve.
+#: ``inconsistent_normals``: consistent clouds read near 0 (a little more where sampled
+#: coarser than their parts), half or every other normal flipped and random normals
+#: about 0.5 (docs/robustness.md, "Verdicts, after the fit").
 MAX_FLIPPED_FRACTION = 0.2
 
 
@@ -108,37 +109,35 @@ def check_orientation(sol, cloud):
 #: A fit is ``doubtful`` where more than this fraction of its points (and more than 2)
 #: sit across a thin part or a narrow gap (less than a cell wide) from a point whose side
 #: the fit gets wrong (:func:`crossed_features`): a neck pinched, two parts fused, a tip
-#: cut short. The clean shapes of the quality suite (2000 points) measured 0-5 such
-#: points (0.25 %, the wedges of glyphs' sharp inner corners, rounded off within a cell);
-#: a 100:1 ellipse 92 (its tips cut short), a 1000:1 one 260. Surfaces of 1e5 points
-#: (20000 probed; sphere, torus, bunny, airplane): 0 clean; with noise of 0.5 % of the
-#: diagonal 0 on sphere and torus, 174 on the bunny (ears) and 361 on the airplane (wings,
-#: noise 0.6x their width), of which the clean cloud's fit put 99 and 228 midpoints on
-#: the pair's side: parts the noisy fit cut.
+#: cut short. Clean shapes stay below it (their few such points are the wedges of
+#: glyphs' sharp inner corners, rounded off within a cell), while very elongated
+#: ellipses and noisy surfaces with parts thinner than the noise (the bunny's ears, the
+#: airplane's wings) go above it (docs/design.md section 6; docs/surfaces.md,
+#: "Accuracy, speed and limits").
 MAX_CROSSED_FRACTION = 0.005
 
 
 #: ... or where more than this fraction of the points (those set aside excepted) lie
-#: farther from the zero set than the fit resolves (:func:`far_point_fraction`): fits of
-#: four shapes with 1 % noise left 0-1.5 % of their points there, with 10 % of the
-#: points displaced by 0.1 of the diagonal 1-1.5 %.
+#: farther from the zero set than the fit resolves (:func:`far_point_fraction`): good fits
+#: of noisy clouds, also with displaced points, stay below it (docs/performance.md,
+#: "Measurements behind the defaults").
 MAX_FAR_FRACTION = 0.02
 
 
 #: Far points lie beyond this many times the spread of the points' distances to the zero
-#: set (:func:`far_point_fraction`): 6e-5 of Gaussian noise does; noisy clouds (1 % of
-#: the diagonal) had 1.3-2.1 % of their points beyond 2 d, d being set from an estimate
-#: of the noise below the true one.
+#: set (:func:`far_point_fraction`): 6e-5 of Gaussian noise does; 2 d alone is not enough,
+#: since d is set from an estimate of the noise below the true one and good noisy fits
+#: leave a share of their points beyond it (docs/design.md section 6).
 FAR_SPREAD = 4.0
 
 
 #: The checks evaluate the fit at point counts rounded up to a power of two (at least
 #: this), so that a new cloud reuses their compiled evaluations: with a count of its
-#: own, each new cloud of Example 1 (3000-3300 points, grid 64) spent 0.56-0.62 s
-#: compiling them, most of its 0.66-0.70 s fit. Powers of two, not the fit's own ladder
+#: own, each new cloud spent most of its fit compiling them (docs/startup.md, "Shape-stable
+#: compiled fits"). Powers of two, not the fit's own ladder
 #: (:func:`jurs._problem.sizes.round_size`, four sizes an octave): padding these evaluations
-#: costs milliseconds, a compilation about half a second, and the count of pairs across
-#: thin parts varies from cloud to cloud within one of the fit's size bands.
+#: costs far less than a compilation, and the count of pairs across thin parts varies
+#: from cloud to cloud within one of the fit's size bands.
 MIN_CHECK_BUCKET = 1024
 
 

@@ -33,8 +33,8 @@ class AbstractSolver(eqx.Module, Generic[State]):
 
     #: Whether :func:`jurs.fit` may compile this solver with :data:`jurs.COMPILER_OPTIONS`
     #: (floating-point reassociation) on large problems. True only for solvers measured to
-    #: move at rounding level with them; an outside optimiser that wanders near its minimum
-    #: can end elsewhere (see :mod:`jurs._fit.compile`).
+    #: move at rounding level with them (``benchmarks/results/solvers.md``); an outside
+    #: optimiser that wanders near its minimum can end elsewhere (see :mod:`jurs._fit.compile`).
     reassociation_safe: ClassVar[bool] = False
     #: Whether the solver works sample by sample and holds a few grids, never the
     #: normal equations' stencil (its memory estimate, :func:`jurs._problem.problem.fit_memory`).

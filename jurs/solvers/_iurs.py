@@ -21,9 +21,9 @@ from .._solution.solution import RESULTS
 from ._base import AbstractSolver
 
 #: More than this fraction of the weights at ``min_weight`` ends a run with
-#: ``RESULTS.weights_at_floor``. Measured on Examples 1, 9 and 10 (9 x 9, 200 steps, lam 0
-#: and 0.005): tau <= 1 leaves none at the floor; tau from 1e4 to 1e300 pins 14-36 % of
-#: them; tau = 10-100 (1000 times the default) 0-24 %.
+#: ``RESULTS.weights_at_floor``: sound steps (tau <= 1) leave none at the floor, far too
+#: large ones pin a good share (docs/robustness.md, "Verdicts, after the fit";
+#: docs/performance.md, "Measurements behind the defaults").
 MAX_FLOOR_FRACTION = 0.1
 
 
