@@ -3,6 +3,7 @@
     python benchmarks/startup.py              # about 3-6 minutes on 2 cores
     python benchmarks/startup.py --quick      # smoke test: 100 points, one run each, no file
     python benchmarks/startup.py --from-json  # re-render results/startup.md from its JSON
+    python benchmarks/startup.py --overhead   # host work of a warm call: results/overhead.md
 
 Every measurement is a fresh Python process with a clean environment (PATH, HOME and
 XDG_CACHE_HOME in a temporary folder, JAX on the CPU, no JAX_* variables), running a
@@ -27,6 +28,14 @@ runs do not change what is measured), with a fresh cache folder:
    recorded beside its wall time.
 
 Writes ``benchmarks/results/startup.{md,json}``.
+
+``--overhead`` measures, in this process, what a warm top-level call of ``jurs.fit`` costs
+beyond its compiled work: Example 1 (120 points, 9 x 9, ``LeastSquares``, every setting
+given) fitted inside ``jax.jit`` (the baseline: no host work at all), then at top level
+from arrays (input checks, layout, orientation check each call), from a reused
+``jurs.Cloud`` (checked, laid out and orientation-checked once) and from arrays with
+``checks=False``; medians of interleaved rounds, ratios against the baseline. Writes
+``benchmarks/results/overhead.{md,json}``.
 """
 
 from __future__ import annotations
@@ -376,8 +385,92 @@ def render(data: dict) -> str:
     return "\n".join(lines)
 
 
+OVERHEAD_ROUNDS = 15
+OVERHEAD_CALLS = 20
+
+
+def measure_overhead() -> dict:
+    """Per-call milliseconds of a warm, fully specified fit of Example 1: inside jax.jit,
+    and at top level from arrays, from a reused Cloud and with checks=False (medians over
+    interleaved rounds of OVERHEAD_CALLS calls each)."""
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+    import jax.numpy as jnp
+    import numpy as np
+
+    import jurs
+
+    points, normals = jurs.datasets.example1(120)
+    solver = jurs.LeastSquares(lam=1e-6)
+    settings = dict(grid=(9, 9), offset=0.1, eps=0.01, solver=solver)
+    jitted = jax.jit(lambda p, n: jurs.fit(p, n, **settings).spline.control)
+    device_points, device_normals = jnp.asarray(points), jnp.asarray(normals)
+    cloud = jurs.Cloud(points, normals)
+    cases = {
+        "inside jax.jit": lambda: jitted(device_points, device_normals),
+        "top level, arrays": lambda: jurs.fit(points, normals, **settings).spline.control,
+        "top level, a Cloud reused": lambda: jurs.fit(cloud, **settings).spline.control,
+        "top level, checks=False": lambda: (
+            jurs.fit(points, normals, checks=False, **settings).spline.control
+        ),
+    }
+    for case in cases.values():  # compile and warm
+        for _ in range(3):
+            jax.block_until_ready(case())
+    times = {name: [] for name in cases}
+    for _ in range(OVERHEAD_ROUNDS):
+        for name, case in cases.items():
+            start = time.perf_counter()
+            for _ in range(OVERHEAD_CALLS):
+                jax.block_until_ready(case())
+            times[name].append((time.perf_counter() - start) / OVERHEAD_CALLS * 1e3)
+    median = {name: float(np.median(t)) for name, t in times.items()}
+    base = median["inside jax.jit"]
+    return {
+        "date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
+        "machine": machine(),
+        "cores": os.cpu_count(),
+        "load": " ".join(f"{x:.1f}" for x in os.getloadavg()),
+        "cases": [
+            {"case": name, "ms": median[name], "ratio": median[name] / base} for name in cases
+        ],
+    }
+
+
+def render_overhead(data: dict) -> str:
+    lines = [
+        "# Host work of a warm fit",
+        "",
+        f"{data['date']}, {data['machine']}, {data['cores']} cores, load {data['load']}.",
+        "Example 1 (120 points), grid 9 x 9, `LeastSquares(lam=1e-6)`, every setting given;",
+        f"per call, median of {OVERHEAD_ROUNDS} interleaved rounds of {OVERHEAD_CALLS} calls"
+        " (`python benchmarks/startup.py --overhead`).",
+        "",
+        "| call | ms | x inside jax.jit |",
+        "|---|---|---|",
+    ]
+    for row in data["cases"]:
+        lines.append(f"| {row['case']} | {row['ms']:.3f} | {row['ratio']:.2f} |")
+    lines += [
+        "",
+        "Inside `jax.jit` no host work runs: the layout is traced and no check is made. A",
+        "top-level call from arrays checks the cloud, lays out its problem on the host and",
+        "checks the orientation of its normals every call; a reused `jurs.Cloud` does all",
+        "three once, and `checks=False` skips the orientation check.",
+        "",
+    ]
+    return "\n".join(lines)
+
+
 def main() -> None:
     global SIZES, REPEATS, IMPORT_REPEATS
+    if "--overhead" in sys.argv[1:]:
+        data = measure_overhead()
+        text = render_overhead(data)
+        write_results("overhead", data, text)
+        print(text)
+        return
     if "--from-json" in sys.argv[1:]:  # re-render the committed results from their JSON
         with open(os.path.join(ROOT, "benchmarks", "results", "startup.json")) as fh:
             data = json.load(fh)
