@@ -1,41 +1,170 @@
 """Running an iterative fit in chunks of steps: progress reports and iteration snapshots.
 
 ``jurs.fit`` runs a whole solve in one compiled loop. To report progress, or to look at the
-iterate after given step counts (the paper's Fig. 15), :func:`fit_in_chunks` runs the same
-solver ``chunk`` steps at a time, warm-starting each call from the previous spline. For
-I-PIA and IURS the state is a function of the spline (C, w) alone, so the chunked run
-follows the same iterates as one run (to rounding; the tests check this). Other solvers are
-run in one call.
+iterate after given step counts (the paper's Fig. 15), :func:`solve_in_chunks` drives the
+solver driver's pieces (:func:`jurs.solvers._driver.start`, ``advance`` and ``finish``) on
+one problem, a chunk of steps per call, carrying the solver's state from chunk to chunk:
+the chunked run follows the same iterates as one :func:`jurs.solve` (to rounding; the tests
+check this). :func:`fit_in_chunks` is the same for points and normals, with the settings
+and checks of :func:`jurs.fit`. Solvers other than I-PIA and IURS are run in one call.
 """
 
 from __future__ import annotations
 
 import dataclasses
-from typing import Callable
+from typing import Any, Callable
 
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 
 from .._model.spline import ImplicitSpline
-from .._problem.problem import make_problem
-from .._solution.solution import RAISED_RESULTS, RESULTS, Solution, error_message
-from ..solvers import IPIA, IURS, AbstractSolver
-from .fit import fit
+from .._problem.problem import DEFAULT_MARGIN, Problem, padded_problem
+from .._solution.solution import RAISED_RESULTS, Solution, error_message
+from ..solvers import IPIA, IURS, AbstractSolver, solve
+from ..solvers._driver import Carry, advance, finish, start
+from .compile import COMPILER_OPTIONS, call_stored
+from .fit import _as_arrays, _checked_shape, reassociates
 from .settings import auto_settings
+from .sharding import is_sharded, place_fit
 
-#: Solvers whose warm start from a spline continues the same run.
+#: Solvers run in chunks; the others run in one call (one or a few exact solves).
 CHUNKABLE = (IPIA, IURS)
 
 
 def chunk_size(steps: int, target_chunks: int = 25) -> int:
-    """A divisor of ``steps`` near ``steps / target_chunks`` (one compile for all chunks);
+    """A divisor of ``steps`` near ``steps / target_chunks`` (equal chunks);
     ``steps`` itself when none is reasonably close."""
     if steps <= target_chunks:
         return max(steps, 1)
     ideal = steps / target_chunks
     divisors = [c for c in range(1, steps + 1) if steps % c == 0 and ideal / 4 <= c <= ideal * 4]
     return min(divisors, key=lambda c: abs(np.log(c / ideal))) if divisors else steps
+
+
+# The pieces as functions of (problem, solver, ...), jit-compiled once each: a chunk's step
+# count is traced (``_advance``'s ``num_steps``), so chunks cut short by a checkpoint or by
+# max_steps reuse the compiled chunk. Every piece runs without a host callback (throw is
+# checked on the host), so JAX's persistent cache and the store of exported fits
+# (:func:`jurs._fit.compile.call_stored`) keep them.
+def _start(problem: Problem, solver: AbstractSolver, spline: ImplicitSpline | None) -> Carry:
+    return start(solver, problem, spline)
+
+
+def _advance(problem: Problem, solver: AbstractSolver, carry: Carry, num_steps, bound: int):
+    return advance(solver, problem, carry, num_steps, bound=bound)
+
+
+def _finish(problem: Problem, solver: AbstractSolver, carry: Carry) -> Solution:
+    return finish(solver, problem, carry, throw=False)
+
+
+def _whole(problem: Problem, solver: AbstractSolver, spline: ImplicitSpline | None) -> Solution:
+    return solve(solver, problem, spline, throw=False)
+
+
+def _jit(fn: Callable[..., Any], **options) -> Callable[..., Any]:
+    # (filter_jit passes jax.jit's keywords on; its stub lists none of them.)
+    return eqx.filter_jit(fn, **options)  # pyright: ignore[reportCallIssue]
+
+
+_PIECES = (_start, _advance, _finish, _whole)
+_JITTED = {fn: _jit(fn) for fn in _PIECES}
+# The same compiled with COMPILER_OPTIONS, for large problems (as jurs.fit compiles them).
+_REASSOCIATING = {fn: _jit(fn, compiler_options=COMPILER_OPTIONS) for fn in _PIECES}
+
+
+def _call(fn: Callable[..., Any], reassociate: bool, problem: Problem, *args) -> Any:
+    """``fn(problem, *args)`` compiled as :func:`jurs.fit` compiles its solve: with
+    :data:`jurs.COMPILER_OPTIONS` where they pay, else through the store of exported
+    fits (one-device problems)."""
+    if reassociate:
+        return _REASSOCIATING[fn](problem, *args)
+    if is_sharded(problem):  # the store is one-device
+        return _JITTED[fn](problem, *args)
+    return call_stored(fn, _JITTED[fn], problem, *args)
+
+
+def _checked_checkpoints(checkpoints, total: int) -> list[int]:
+    checkpoints = sorted({int(c) for c in checkpoints})
+    if any(c < 0 or c > total for c in checkpoints):
+        raise ValueError(f"checkpoints must lie in [0, max_steps = {total}], got {checkpoints}")
+    return checkpoints
+
+
+def solve_in_chunks(
+    solver: AbstractSolver,
+    problem: Problem,
+    init: ImplicitSpline | None = None,
+    *,
+    chunk: int | None = None,
+    checkpoints=(),
+    callback: Callable[[int, int], None] | None = None,
+    throw: bool = True,
+) -> tuple[Solution, dict[int, ImplicitSpline]]:
+    """:func:`jurs.solve` of ``problem`` by ``solver`` from ``init``, run ``chunk`` steps
+    per call, with a report after each call and the iterate kept at given step counts.
+
+    The solver's state is carried from chunk to chunk as it is, so the run takes the
+    steps of one :func:`jurs.solve`, stops by the same rules and returns the same
+    Solution, to rounding: ``num_steps``, the whole ``energy_history`` (``max_steps + 1``
+    entries, NaN past the end), the verdict and the metrics. The run compiles three
+    functions, each once: its start, a chunk (the step count traced: chunks cut short by
+    a checkpoint or by ``max_steps`` reuse it) and its end. Solvers other than I-PIA and
+    IURS (one or a few exact solves) are run in one compiled call.
+
+    On the host, with concrete arguments: not traceable (use :func:`jurs.solve` under
+    ``jit``, ``grad`` or ``vmap``).
+
+    Args:
+        solver: the solver; its ``max_steps`` is the total number of steps.
+        problem: from :func:`jurs.make_problem`.
+        init: the starting spline; default C = 0, w = 1.
+        chunk: steps per call at most (default :func:`chunk_size`). A chunk also ends at
+            each checkpoint.
+        checkpoints: step counts at which to keep the spline (e.g. ``(0, 10, 50, 200)``),
+            within ``[0, max_steps]``; for a solver run in one call only ``max_steps``.
+        callback: called as ``callback(steps_done, max_steps)`` after every chunk.
+        throw: raise ``equinox.EquinoxRuntimeError`` on the run's final verdict where
+            :func:`jurs.solve` would (checked on the host once the run has ended).
+
+    Returns:
+        ``(solution, snapshots)``: the :class:`jurs.Solution` and a dict ``{step: spline}``
+        for the checkpoints reached (a run that converges early stops there).
+    """
+    total = int(solver.max_steps)
+    checkpoints = _checked_checkpoints(checkpoints, total)
+    reassociate = reassociates(problem, solver, init)
+    if not isinstance(solver, CHUNKABLE):
+        if any(c != total for c in checkpoints):
+            raise ValueError(
+                f"{type(solver).__name__} runs in one call: the only checkpoint "
+                f"it can give is max_steps = {total}"
+            )
+        sol: Solution = _call(_whole, reassociate, problem, solver, init)
+        if callback:
+            callback(total, total)
+        snapshots = {c: sol.spline for c in checkpoints}
+    else:
+        chunk = max(1, min(chunk_size(total) if chunk is None else int(chunk), total))
+        carry = _call(_start, reassociate, problem, solver, init)
+        snapshots = {}
+        if 0 in checkpoints:
+            snapshots[0] = solver.to_spline(problem, carry.state)
+        done, stopped = 0, bool(carry.stopped)
+        while done < total and not stopped:
+            goal = min([done + chunk] + [c for c in checkpoints if c > done])
+            steps = jnp.asarray(goal - done, dtype=carry.step.dtype)
+            carry = _call(_advance, reassociate, problem, solver, carry, steps, chunk)
+            done, stopped = int(carry.step), bool(carry.stopped)
+            if done in checkpoints:
+                snapshots[done] = solver.to_spline(problem, carry.state)
+            if callback:
+                callback(done, total)
+        sol = _call(_finish, reassociate, problem, solver, carry)
+    if throw and sol.status in RAISED_RESULTS:
+        raise eqx.EquinoxRuntimeError(error_message(sol.status))
+    return sol, snapshots
 
 
 def fit_in_chunks(
@@ -50,113 +179,95 @@ def fit_in_chunks(
 ):
     """Run ``jurs.fit`` with ``solver`` in chunks of ``chunk`` steps.
 
+    The problem is built once, with the settings :func:`jurs.fit` would choose, and run
+    by :func:`solve_in_chunks`; the checks :func:`jurs.fit` makes after a fit (the normals'
+    orientation, and with automatic settings the doubts) are made once, on the result.
+
     Args:
         solver: the solver; its ``max_steps`` is the total number of steps.
-        chunk: steps per call (default :func:`chunk_size`, or the gcd with the checkpoints).
+        chunk: steps per call at most (default :func:`chunk_size`); a chunk also ends at
+            each checkpoint.
         checkpoints: step counts at which to keep the spline (e.g. ``(0, 10, 50, 200)``).
         callback: called as ``callback(steps_done, max_steps)`` after every chunk.
-        **fit_kwargs: passed to :func:`jurs.fit` (grid, offset, eps, domain, ...);
-            ``throw`` (default True) applies to the whole run's final verdict.
+        **fit_kwargs: as for :func:`jurs.fit` (grid, offset, eps, domain, margin, init,
+            mask, bucket_size); ``throw`` (default True) applies to the run's final
+            verdict.
 
     Returns:
         ``(solution, snapshots)``: the final :class:`jurs.Solution`, with ``num_steps`` and
         ``energy_history`` of the whole run, and a dict ``{step: spline}`` for the
         checkpoints reached (a run that converges early stops there).
     """
-    total = int(solver.max_steps)
-    checkpoints = sorted({int(c) for c in checkpoints})
-    if any(c < 0 or c > total for c in checkpoints):
-        raise ValueError(f"checkpoints must lie in [0, max_steps = {total}], got {checkpoints}")
-    if not isinstance(solver, CHUNKABLE):
-        if any(c != total for c in checkpoints):
-            raise ValueError(
-                f"{type(solver).__name__} runs in one call: the only checkpoint "
-                f"it can give is max_steps = {total}"
-            )
-        sol = fit(points, normals, solver=solver, **fit_kwargs)
-        if callback:
-            callback(total, total)
-        return sol, {c: sol.spline for c in checkpoints}
-    if chunk is None:
-        chunk = chunk_size(total)
-        for c in checkpoints:
-            chunk = int(np.gcd(chunk, c)) if c else chunk
-    chunk = max(1, int(chunk))
-    snapshots = {}
-    settings, init = _fixed_settings_and_start(points, normals, fit_kwargs)
-    # Every chunk is fitted with throw=False: a verdict on the iterate so far is not the
-    # run's; the run's own verdict is raised at the end.
     throw = fit_kwargs.pop("throw", True)
-    history = []
-    done, sol = 0, None
-    start = init
-    while done < total:
-        n = min(chunk, total - done)
-        sol = fit(
-            points,
-            normals,
-            solver=dataclasses.replace(solver, max_steps=n),
-            init=init,
-            throw=False,
-            **fit_kwargs,
-        )
-        k = int(sol.stats["num_steps"])
-        h = np.asarray(sol.stats["energy_history"])
-        history.append(h[: k + 1] if not history else h[1 : k + 1])
-        done += k
-        if 0 in checkpoints and 0 not in snapshots:
-            snapshots[0] = start
-        init = sol.spline
-        if done in checkpoints:
-            snapshots[done] = sol.spline
-        if callback:
-            callback(done, total)
-        # A chunk that ran all its steps goes on, also where the host-side checks gave a
-        # verdict on the iterate so far (normals, weights): a single fit would have gone on.
-        ran_on = (RESULTS.max_steps_reached, RESULTS.inconsistent_normals, RESULTS.weights_at_floor)
-        if k < n or not any(bool(sol.result == r) for r in ran_on):
-            break  # converged, diverged or stopped by the solver
-    if sol is None:  # max_steps = 0
-        sol = fit(points, normals, solver=solver, init=init, throw=False, **fit_kwargs)
-        history.append(np.asarray(sol.stats["energy_history"]))
-        if 0 in checkpoints:
-            snapshots[0] = sol.spline
-    full = np.full(total + 1, np.nan)
-    h = np.concatenate(history)
-    full[: len(h)] = h
-    stats = dict(sol.stats, num_steps=np.asarray(done), energy_history=full)
+    init = fit_kwargs.pop("init", None)
+    given = (points, normals, fit_kwargs.get("mask"))  # before padding, for the checks
+    settings, problem = _problem(points, normals, solver, init, **fit_kwargs)
+    # As jurs.fit: the solver's floats as arrays (new values do not compile anew); points
+    # sharded over several devices split the problem over them.
+    solver = _as_arrays(solver, problem.samples.dtype)
+    problem, solver, init = place_fit(points, normals, problem, solver, init)
+    sol, snapshots = solve_in_chunks(
+        solver,
+        problem,
+        init,
+        chunk=chunk,
+        checkpoints=checkpoints,
+        callback=callback,
+        throw=False,
+    )
+    sol = _judged(sol, *given, settings)
     if throw and sol.status in RAISED_RESULTS:
         raise eqx.EquinoxRuntimeError(error_message(sol.status))
-    return Solution(sol.spline, sol.metrics, stats, sol.result, sol.state, settings), snapshots
+    return dataclasses.replace(sol, settings=settings), snapshots
 
 
-def _fixed_settings_and_start(points, normals, fit_kwargs):
-    """``(settings, init)``: the automatic settings chosen once (None where grid, offset
-    and eps are given), written into ``fit_kwargs``, and the start popped from it (or
-    made), so that every chunk fits the same problem."""
+def _problem(
+    points,
+    normals,
+    solver,
+    init,
+    *,
+    grid=None,
+    offset=None,
+    eps=None,
+    domain=None,
+    margin: float = DEFAULT_MARGIN,
+    mask=None,
+    bucket_size: int | None = None,
+    smoothing: float | None = None,
+):
+    """``(settings, problem)``: the settings chosen where grid, offset or eps is not
+    given (None where all are), and the problem :func:`jurs.fit` would solve with
+    ``solver``, padded to its stable size, once its input checks pass."""
+    if smoothing is not None:
+        raise ValueError(
+            "smoothing sets the default solver's lambda; with a solver given, set its lam instead"
+        )
     settings = None
-    if any(fit_kwargs.get(k) is None for k in ("grid", "offset", "eps")):
-        # Choose once, so every chunk fits the same problem.
-        keys = ("grid", "offset", "eps", "domain", "margin")
+    if grid is None or offset is None or eps is None:
+        if mask is not None:
+            raise ValueError(
+                "automatic settings do not take a mask; pass grid, offset, eps "
+                "and solver explicitly for padded batches"
+            )
         settings = auto_settings(
-            points, normals, **{k: fit_kwargs[k] for k in keys if fit_kwargs.get(k) is not None}
+            points, normals, grid=grid, offset=offset, eps=eps, domain=domain, margin=margin
         )
-        fit_kwargs.update(grid=settings.grid, offset=settings.offset, eps=settings.eps)
-    init = fit_kwargs.pop("init", None)
-    if init is None:
-        # An explicit start (C = 0, w = 1, as the solvers' default) so every chunk has the
-        # same argument structure and the fit compiles once.
-        keys = ("offset", "eps", "domain", "margin", "mask")
-        problem = make_problem(
-            points,
-            normals,
-            grid=fit_kwargs["grid"],
-            **{k: fit_kwargs[k] for k in keys if k in fit_kwargs},
-        )
-        init = ImplicitSpline(
-            jnp.zeros(problem.shape, problem.lower.dtype),
-            jnp.ones(problem.shape, problem.lower.dtype),
-            problem.lower,
-            problem.upper,
-        )
-    return settings, init
+        grid, offset, eps = settings.grid, settings.offset, settings.eps
+    shape = _checked_shape(points, grid, solver, init)
+    dtype = jnp.result_type(float)
+    problem = padded_problem(
+        points, normals, mask, shape, offset, eps, domain, margin, bucket_size, dtype
+    )
+    return settings, problem
+
+
+def _judged(sol, points, normals, mask, settings):
+    """``sol`` with the verdicts :func:`jurs.fit` gives on the host after a fit: the
+    normals' orientation, and with automatic ``settings`` the doubts."""
+    from .fit import _check_doubts, _check_orientation
+
+    sol = _check_orientation(sol, points, normals, mask)
+    if settings is not None:
+        sol = _check_doubts(sol, settings, points, normals, mask, settings.offset)
+    return sol
