@@ -177,14 +177,16 @@ def test_the_final_verdict_is_raised_once(problem):
 def test_fit_in_chunks_builds_one_problem(example1_cloud, monkeypatch):
     """fit_in_chunks lays the problem out once, whatever the number of chunks, and gives
     the fit of jurs.fit."""
+    from jurs._fit import fit as fit_module
+
     built = []
-    padded_problem = progress.padded_problem
+    padded_problem = fit_module.padded_problem
 
     def counted(*args, **kwargs):
         built.append(1)
         return padded_problem(*args, **kwargs)
 
-    monkeypatch.setattr(progress, "padded_problem", counted)
+    monkeypatch.setattr(fit_module, "padded_problem", counted)
     p, n = example1_cloud
     solver = jurs.IURS(tau=1e-2, lam=0.005, max_steps=30, tol=0.0)
     calls = []

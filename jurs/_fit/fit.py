@@ -9,6 +9,7 @@ ladder), the compiled solve (:mod:`jurs._fit.call`), then the host's verdicts
 from __future__ import annotations
 
 import dataclasses
+import functools
 from collections import OrderedDict
 from typing import Callable
 
@@ -35,6 +36,7 @@ from .._solution.verdicts import judge
 from ..solvers import AbstractSolver
 from .call import as_arrays, check_start, solve_fit
 from .processes import fit_across_processes
+from .progress import chunked_run
 from .settings import Settings, choose_settings, default_solver, set_aside_mask
 from .sharding import place_fit, spans_processes
 
@@ -251,9 +253,56 @@ def fit(
     ``domain`` and ``solver`` given, and skip the checks that read the whole cloud
     (docs/sharding.md).
     """
+    run = None if callback is None else functools.partial(chunked_run, callback=callback)
+    sol, _ = _fit(
+        points,
+        normals,
+        grid=grid,
+        solver=solver,
+        offset=offset,
+        eps=eps,
+        domain=domain,
+        margin=margin,
+        init=init,
+        mask=mask,
+        bucket_size=bucket_size,
+        smoothing=smoothing,
+        settings=settings,
+        checks=checks,
+        throw=throw,
+        run=run,
+    )
+    return sol
+
+
+def _fit(
+    points,
+    normals,
+    *,
+    grid,
+    solver,
+    offset,
+    eps,
+    domain,
+    margin,
+    init,
+    mask,
+    bucket_size,
+    smoothing,
+    settings,
+    checks,
+    throw,
+    run=None,
+):
+    """:func:`fit`, its solve made by ``run(problem, solver, init, throw)`` (default the
+    compiled call, :func:`jurs._fit.call.solve_fit`) returning ``(solution, top_level,
+    extra)``; returns ``(solution, extra)``. :func:`jurs.fit_in_chunks` runs the same
+    flow with a chunked solve."""
     if spans_processes(points, normals):  # each process lays out its own part (jurs._fit.sharding)
+        if run is not None:
+            raise ValueError("a fit over several processes runs in one call: no callback")
         args = grid, solver, offset, eps, domain, margin, init, mask, bucket_size, smoothing, throw
-        return fit_across_processes(points, normals, *args)
+        return fit_across_processes(points, normals, *args), None
     if smoothing is not None and solver is not None:
         raise ValueError(
             "smoothing sets the default solver's lambda; with a solver given, set its lam instead"
@@ -262,8 +311,10 @@ def fit(
         if normals is not None or mask is not None:
             raise ValueError("fit(cloud): the cloud holds its normals and mask; pass neither")
     elif not _is_concrete(points, normals, mask):
+        if run is not None:
+            raise ValueError("a chunked run or a callback needs concrete points (on the host)")
         args = grid, solver, offset, eps, domain, margin, init, mask, bucket_size, throw
-        return _traced_fit(points, normals, *args)
+        return _traced_fit(points, normals, *args), None
     # The cloud, checked once; its measurements are kept for every fit of it.
     estimated = None
     if isinstance(points, Cloud) and points.normals is not None:
@@ -312,13 +363,10 @@ def fit(
     problem, solver, init = place_fit(
         cloud.given_points, cloud.given_normals, problem, as_arrays(solver, dtype), init
     )
-    if callback is not None:
-        from .progress import solve_in_chunks  # progress drives fit_in_chunks on top of fit
-
-        sol, _ = solve_in_chunks(solver, problem, init, callback=callback, throw=False)
-        top_level = True
+    if run is None:
+        (sol, top_level), extra = solve_fit(problem, solver, init, throw), None
     else:
-        sol, top_level = solve_fit(problem, solver, init, throw)
+        sol, top_level, extra = run(problem, solver, init, throw)
     if top_level:
         if checks:
             sol = judge(sol, cloud, settings if doubted else None, offset)
@@ -326,4 +374,4 @@ def fit(
             raise eqx.EquinoxRuntimeError(error_message(sol.status))
     if estimated is not None:
         sol = dataclasses.replace(sol, stats=dict(sol.stats, estimated_normals=estimated))
-    return sol if settings is None else dataclasses.replace(sol, settings=settings)
+    return (sol if settings is None else dataclasses.replace(sol, settings=settings)), extra

@@ -11,7 +11,7 @@ and checks of :func:`jurs.fit`. Solvers other than I-PIA and IURS are run in one
 
 from __future__ import annotations
 
-import dataclasses
+import functools
 from typing import Any, Callable
 
 import equinox as eqx
@@ -19,14 +19,14 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._model.spline import ImplicitSpline
-from .._problem.problem import DEFAULT_MARGIN, Problem, padded_problem
+from .._problem.problem import Problem
+from .._problem.sizes import DEFAULT_MARGIN
 from .._solution.solution import RAISED_RESULTS, Solution, error_message
 from ..solvers import IPIA, IURS, AbstractSolver, solve
 from ..solvers._driver import Carry, advance, finish, start
+from .call import reassociates
 from .compile import COMPILER_OPTIONS, call_stored
-from .fit import _as_arrays, _checked_shape, reassociates
-from .settings import auto_settings
-from .sharding import is_sharded, place_fit
+from .sharding import is_sharded
 
 #: Solvers run in chunks; the others run in one call (one or a few exact solves).
 CHUNKABLE = (IPIA, IURS)
@@ -179,9 +179,8 @@ def fit_in_chunks(
 ):
     """Run ``jurs.fit`` with ``solver`` in chunks of ``chunk`` steps.
 
-    The problem is built once, with the settings :func:`jurs.fit` would choose, and run
-    by :func:`solve_in_chunks`; the checks :func:`jurs.fit` makes after a fit (the normals'
-    orientation, and with automatic settings the doubts) are made once, on the result.
+    The fit :func:`jurs.fit` makes of the same arguments (one cloud, one problem, the
+    same settings, checks and verdicts), its solve run by :func:`solve_in_chunks`.
 
     Args:
         solver: the solver; its ``max_steps`` is the total number of steps.
@@ -190,84 +189,46 @@ def fit_in_chunks(
         checkpoints: step counts at which to keep the spline (e.g. ``(0, 10, 50, 200)``).
         callback: called as ``callback(steps_done, max_steps)`` after every chunk.
         **fit_kwargs: as for :func:`jurs.fit` (grid, offset, eps, domain, margin, init,
-            mask, bucket_size); ``throw`` (default True) applies to the run's final
-            verdict.
+            mask, bucket_size, settings, checks); ``throw`` (default True) applies to the
+            run's final verdict.
 
     Returns:
         ``(solution, snapshots)``: the final :class:`jurs.Solution`, with ``num_steps`` and
         ``energy_history`` of the whole run, and a dict ``{step: spline}`` for the
         checkpoints reached (a run that converges early stops there).
     """
-    throw = fit_kwargs.pop("throw", True)
-    init = fit_kwargs.pop("init", None)
-    given = (points, normals, fit_kwargs.get("mask"))  # before padding, for the checks
-    settings, problem = _problem(points, normals, solver, init, **fit_kwargs)
-    # As jurs.fit: the solver's floats as arrays (new values do not compile anew); points
-    # sharded over several devices split the problem over them.
-    solver = _as_arrays(solver, problem.samples.dtype)
-    problem, solver, init = place_fit(points, normals, problem, solver, init)
-    sol, snapshots = solve_in_chunks(
-        solver,
-        problem,
-        init,
-        chunk=chunk,
-        checkpoints=checkpoints,
-        callback=callback,
-        throw=False,
-    )
-    sol = _judged(sol, *given, settings)
-    if throw and sol.status in RAISED_RESULTS:
-        raise eqx.EquinoxRuntimeError(error_message(sol.status))
-    return dataclasses.replace(sol, settings=settings), snapshots
+    from .fit import _fit  # fit runs its callbacks through solve_in_chunks, below
+
+    unknown = set(fit_kwargs) - set(_FIT_OPTIONS)
+    if unknown:
+        raise TypeError(f"fit_in_chunks got unexpected keyword arguments {sorted(unknown)}")
+    options = {name: fit_kwargs.get(name, default) for name, default in _FIT_OPTIONS.items()}
+    run = functools.partial(chunked_run, chunk=chunk, checkpoints=checkpoints, callback=callback)
+    sol, snapshots = _fit(points, normals, solver=solver, run=run, **options)
+    return sol, snapshots
 
 
-def _problem(
-    points,
-    normals,
-    solver,
-    init,
-    *,
+#: The keywords fit_in_chunks passes on to jurs.fit, and their defaults there.
+_FIT_OPTIONS = dict(
     grid=None,
     offset=None,
     eps=None,
     domain=None,
-    margin: float = DEFAULT_MARGIN,
+    margin=DEFAULT_MARGIN,
+    init=None,
     mask=None,
-    bucket_size: int | None = None,
-    smoothing: float | None = None,
-):
-    """``(settings, problem)``: the settings chosen where grid, offset or eps is not
-    given (None where all are), and the problem :func:`jurs.fit` would solve with
-    ``solver``, padded to its stable size, once its input checks pass."""
-    if smoothing is not None:
-        raise ValueError(
-            "smoothing sets the default solver's lambda; with a solver given, set its lam instead"
-        )
-    settings = None
-    if grid is None or offset is None or eps is None:
-        if mask is not None:
-            raise ValueError(
-                "automatic settings do not take a mask; pass grid, offset, eps "
-                "and solver explicitly for padded batches"
-            )
-        settings = auto_settings(
-            points, normals, grid=grid, offset=offset, eps=eps, domain=domain, margin=margin
-        )
-        grid, offset, eps = settings.grid, settings.offset, settings.eps
-    shape = _checked_shape(points, grid, solver, init)
-    dtype = jnp.result_type(float)
-    problem = padded_problem(
-        points, normals, mask, shape, offset, eps, domain, margin, bucket_size, dtype
-    )
-    return settings, problem
+    bucket_size=None,
+    smoothing=None,
+    settings=None,
+    checks=True,
+    throw=True,
+)
 
 
-def _judged(sol, points, normals, mask, settings):
-    """``sol`` with the verdicts :func:`jurs.fit` gives on the host after a fit: the
-    normals' orientation, and with automatic ``settings`` the doubts."""
-    from .fit import _check_doubts, _check_orientation
-
-    sol = _check_orientation(sol, points, normals, mask)
-    if settings is not None:
-        sol = _check_doubts(sol, settings, points, normals, mask, settings.offset)
-    return sol
+def chunked_run(problem, solver, init, throw, **options):
+    """The solve of :func:`jurs.fit`'s flow by :func:`solve_in_chunks` (``options``: its
+    keywords), always at top level; the verdict is raised by the fit, after its checks:
+    ``(solution, True, snapshots)``."""
+    del throw
+    sol, snapshots = solve_in_chunks(solver, problem, init, throw=False, **options)
+    return sol, True, snapshots
