@@ -19,8 +19,8 @@ from conftest import PAPER  # noqa: E402
 import jurs  # noqa: E402
 from jurs import cli  # noqa: E402
 
-# 20 steps run in one chunk (see jurs._fit.progress.chunk_size), so the fit compiled here is the
-# one a direct jurs.fit with the same start and throw=False uses: the tests stay fast.
+# 20 steps run in one chunk (see jurs._fit.progress.chunk_size): the command line's chunked
+# fit compiles its start, one chunk and its end once for all the tests that share them.
 FIT_ARGS = ["--steps", "20", "--tol", "0", "-q", "--resolution", "200"]
 PAPER_ARGS = ["--solver", "iurs", "--grid", "9x9", "-d", "0.1", "--eps", "0.01"]
 
@@ -398,7 +398,7 @@ def test_output_folder_checked_before_the_fit(example1_csv, tmp_path, capsys, mo
     def no_fit(*args, **kwargs):
         raise AssertionError("the fit ran before the output folder was checked")
 
-    monkeypatch.setattr("jurs._fit.progress.fit_in_chunks", no_fit)
+    monkeypatch.setattr("jurs.fit", no_fit)
     out = tmp_path / "out"
     _old_outputs(out)
     (out / "fit.png").mkdir()
@@ -417,7 +417,7 @@ def test_output_folder_checked_before_the_fit(example1_csv, tmp_path, capsys, mo
     monkeypatch.setattr(cli.os, "access", lambda path, mode: False)
     fails("folder is not writable")
     monkeypatch.undo()
-    monkeypatch.setattr("jurs._fit.progress.fit_in_chunks", no_fit)
+    monkeypatch.setattr("jurs.fit", no_fit)
     monkeypatch.setattr(
         cli.shutil, "disk_usage", lambda path: SimpleNamespace(total=1, used=1, free=1000)
     )
