@@ -143,7 +143,7 @@ def probe_stencil(matvec, shape: tuple[int, ...], dtype) -> Array:
 
 class StencilOperator(AbstractGridOperator):
     """A symmetric positive semi-definite matrix on a coefficient grid, stored as its
-    ``grid_shape + (7,) * d`` stencil (2D or 3D grids), as a lineax operator.
+    ``grid_shape + (7,) * d`` stencil (any grid dimension d), as a lineax operator.
 
     ``mv`` is :func:`stencil_matvec` (O(grid) work), ``as_matrix`` :func:`stencil_to_dense`
     (for dense solves of small grids). The stencil must be that of a symmetric positive
