@@ -62,15 +62,15 @@ def system(n: int, m: int, lam: float, ndim: int):
 
     import jurs
     import jurs.internal
-    from jurs._linalg import normal as _normal
+    from jurs._linalg import stencil as _stencil
 
     data = jurs.datasets.example1 if ndim == 2 else jurs.datasets.torus
     points, normals = data(m)
     problem = jurs.make_problem(points, normals, grid=n)
     normal = jurs.internal.normal_equations(problem)
-    stencil = normal.regularised(lam)
-    diag = _normal.stencil_diagonal(stencil)
-    centre = (Ellipsis,) + (_normal.HALF,) * ndim
+    stencil = normal.regularised(lam).stencil
+    diag = _stencil.stencil_diagonal(stencil)
+    centre = (Ellipsis,) + (_stencil.HALF,) * ndim
     stencil = stencil.at[centre].set(jnp.where(diag <= 0, 1.0, diag))
     return stencil, jnp.where(diag <= 0, 0.0, normal.rhs), float(normal.target_norm2)
 
@@ -81,39 +81,30 @@ def multigrid_solver(patch_dtype=None):
     import lineax as lx
 
     from jurs._linalg import multigrid as _multigrid
-    from jurs._linalg import normal as _normal
+    from jurs._linalg import stencil as _stencil
 
     solver = _multigrid.Multigrid(rtol=RTOL, max_steps=MAX_STEPS, patch_dtype=patch_dtype)
-
-    def operator(stencil, rhs):
-        return lx.FunctionLinearOperator(
-            lambda c: _normal.stencil_matvec(stencil, c),
-            jax.ShapeDtypeStruct(rhs.shape, rhs.dtype),
-            lx.positive_semidefinite_tag,
-        )
-
-    def options(stencil, b2):
-        return {"stencil": stencil, "target_norm2": b2}
+    operator = _stencil.StencilOperator
 
     @jax.jit
     def setup(stencil, rhs):
-        return solver.init(operator(stencil, rhs), options(stencil, 0.0))
+        return solver.init(operator(stencil), {})
 
     @jax.jit
     def solve(stencil, rhs, state, b2):
         sol = lx.linear_solve(
-            operator(stencil, rhs),
+            operator(stencil),
             rhs,
             solver,
             state=state,
-            options=options(stencil, b2),
+            options={"target_norm2": b2},
             throw=False,
         )
         return sol.value, sol.stats["num_steps"], sol.result == lx.RESULTS.successful
 
     def whole(stencil, rhs, b2):
         return lx.linear_solve(
-            operator(stencil, rhs), rhs, solver, options=options(stencil, b2), throw=False
+            operator(stencil), rhs, solver, options={"target_norm2": b2}, throw=False
         ).value
 
     plans = {}
@@ -125,7 +116,7 @@ def multigrid_solver(patch_dtype=None):
         if shape not in plans:
             f64 = jax.numpy.float64
             args = (
-                jax.ShapeDtypeStruct(shape + (_normal.SIDE,) * ndim, f64),
+                jax.ShapeDtypeStruct(shape + (_stencil.SIDE,) * ndim, f64),
                 jax.ShapeDtypeStruct(shape, f64),
                 jax.ShapeDtypeStruct((), f64),
             )
@@ -163,7 +154,8 @@ def run_case(n, m, lam, ndim, mg):
     import jax
     import scipy.sparse.linalg as spl
 
-    from jurs._linalg import normal as _normal
+    from jurs._linalg import cholesky as _cholesky
+    from jurs._linalg import stencil as _stencil
 
     setup, solve, memory = mg
     stencil, rhs, b2 = system(n, m, lam, ndim)
@@ -184,7 +176,7 @@ def run_case(n, m, lam, ndim, mg):
         mg_bytes=memory(rhs.shape, ndim)["total_bytes"],
     )
     if ndim == 2 or n <= SUPERLU_MAX_3D:
-        a = _normal.stencil_to_scipy(stencil).tocsc()
+        a = _stencil.stencil_to_scipy(stencil).tocsc()
         b = np.asarray(rhs).ravel()
         t0 = time.perf_counter()
         exact = spl.spsolve(a, b)
@@ -194,9 +186,9 @@ def run_case(n, m, lam, ndim, mg):
         row["optimum"] = optimum
         row["gap"] = float(d @ (a @ d) - 2 * d @ (b - a @ exact)) / optimum
         row["superlu_over_mg"] = row["superlu_s"] / row["mg_s"]
-    if ndim == 2 and n**3 <= _normal.DIRECT_MAX_ENTRIES:
+    if ndim == 2 and n**3 <= _cholesky.DIRECT_MAX_ENTRIES:
         _, row["block_cholesky_s"], _ = timed(
-            jax.jit(_normal.stencil_cholesky_solve), stencil, rhs, repeats=repeats
+            jax.jit(_cholesky.stencil_cholesky_solve), stencil, rhs, repeats=repeats
         )
     return row
 

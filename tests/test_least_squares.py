@@ -9,7 +9,8 @@ import pytest
 from conftest import dense_collocation
 
 import jurs
-from jurs._linalg import normal as _normal
+from jurs._linalg import cholesky as _cholesky
+from jurs._linalg import stencil as _stencil
 from jurs.solvers._least_squares import DEFAULT_RIDGE, solve_normal_equations
 
 # Every test here takes several seconds (compiles and long iterations): make test-fast skips them.
@@ -43,7 +44,7 @@ def test_bspline_stencil_matches_dense_normal_equations(example1_problem):
     np.testing.assert_allclose(normal.to_dense(), d.T @ d, atol=1e-13)
     np.testing.assert_allclose(np.asarray(normal.rhs).ravel(), d.T @ b, atol=1e-15)
     # 49 non-zeros a row at most (cubic 2D), and exactly 49 for an interior coefficient.
-    nnz = np.diff(_normal.stencil_to_scipy(normal.stencil).indptr)
+    nnz = np.diff(_stencil.stencil_to_scipy(normal.stencil).indptr)
     assert nnz.max() == 49
     control = jax.random.normal(jax.random.PRNGKey(0), problem.shape)
     np.testing.assert_allclose(
@@ -85,9 +86,9 @@ def test_masked_samples_do_not_contribute():
 
 def test_laplacian_stencil_is_grid_laplacian():
     control = jax.random.normal(jax.random.PRNGKey(2), (6, 9))
-    lap = _normal.laplacian_stencil((6, 9))
+    lap = _stencil.laplacian_stencil((6, 9))
     np.testing.assert_allclose(
-        _normal.stencil_matvec(lap, control), jurs.internal.grid_laplacian(control), atol=1e-14
+        _stencil.stencil_matvec(lap, control), jurs.internal.grid_laplacian(control), atol=1e-14
     )
 
 
@@ -245,11 +246,11 @@ def test_block_cholesky_matches_dense_solve(shape):
     points, normals = jurs.datasets.example1(150)
     problem = jurs.make_problem(points, normals, grid=shape, offset=0.1, eps=0.01)
     normal = normal_equations(problem)
-    system = normal.regularised(1e-3)
+    system = normal.regularised(1e-3).stencil
     expected = np.linalg.solve(
-        np.asarray(_normal.stencil_to_dense(system)), np.asarray(normal.rhs).ravel()
+        np.asarray(_stencil.stencil_to_dense(system)), np.asarray(normal.rhs).ravel()
     )
-    got = np.asarray(jax.jit(_normal.stencil_cholesky_solve)(system, normal.rhs)).ravel()
+    got = np.asarray(jax.jit(_cholesky.stencil_cholesky_solve)(system, normal.rhs)).ravel()
     np.testing.assert_allclose(got, expected, rtol=1e-10, atol=1e-13 * np.abs(expected).max())
 
 
@@ -271,13 +272,13 @@ def test_large_grid_default_is_direct_and_agrees_with_cg(monkeypatch):
     # Record, at run time, whether the factorisation ran (lam is traced: both branches of
     # the choice are compiled, only one runs).
     factorised = []
-    direct_solve = jurs.solvers._least_squares.stencil_cholesky_solve
+    direct_solve = _cholesky.stencil_cholesky_solve
 
     def recording(stencil, rhs):
         jax.debug.callback(lambda: factorised.append(True))
         return direct_solve(stencil, rhs)
 
-    monkeypatch.setattr(jurs.solvers._least_squares, "stencil_cholesky_solve", recording)
+    monkeypatch.setattr(_cholesky, "stencil_cholesky_solve", recording)
     fresh_solve = eqx.filter_jit(
         lambda solver, problem, throw: jurs.solve(solver, problem, throw=throw)
     )

@@ -1,5 +1,5 @@
 """Geometric multigrid for stencil systems (jurs._linalg.multigrid): transfer, Galerkin operators,
-patch smoother, and solves against direct ones.
+patch smoother, the stencil operator type, and solves against direct ones.
 
 Systems are built in NumPy/SciPy (dense B-spline collocation of Example 1's curve and its
 offsets), so the only compilations are the solver's own; configurations that compare
@@ -16,8 +16,13 @@ import scipy.linalg as sla
 from scipy.interpolate import BSpline
 
 import jurs
+from jurs._linalg import coarsen
 from jurs._linalg import multigrid as mg
-from jurs._linalg import normal as _normal
+from jurs._linalg import patches as _patches
+from jurs._linalg import stencil as _stencil
+from jurs._linalg.cholesky import BlockCholesky
+from jurs.solvers import _cascade
+from jurs.solvers._least_squares import solve_normal_equations
 
 #: Every test here compiles solvers for seconds: the whole module is slow.
 pytestmark = pytest.mark.slow
@@ -69,7 +74,7 @@ def dense_to_stencil(a, shape):
 
 def laplacian(shape):
     """jurs' grid Laplacian (free boundary) as a dense matrix: a sum over axes of path
-    Laplacians (NumPy; jurs._linalg.normal.laplacian_stencil's matrix)."""
+    Laplacians (NumPy; jurs._linalg.stencil.laplacian_stencil's matrix)."""
     out = 0
     for axis, n in enumerate(shape):
         path = np.diag(np.r_[1.0, np.full(n - 2, 2.0), 1.0]) - np.eye(n, k=1) - np.eye(n, k=-1)
@@ -99,11 +104,11 @@ def curve_systems(n, lams, points=1500):
 def test_prolongation_is_knot_insertion(n):
     """A coarse spline (cells twice as wide, same lower end; with an odd cell count its box
     reaches one fine cell further) equals its prolongation in the fine basis on the box."""
-    nc = mg.coarse_size(n)
+    nc = coarsen.coarse_size(n)
     h = 1.0 / (n - 3)
     x = np.linspace(0.0, 1.0, 101)
     coarse = basis_1d(x, nc, 0.0, 2 * h * (nc - 3))
-    p = np.stack([np.asarray(mg.prolong(jnp.eye(nc)[i], (n,))) for i in range(nc)], axis=1)
+    p = np.stack([np.asarray(coarsen.prolong(jnp.eye(nc)[i], (n,))) for i in range(nc)], axis=1)
     np.testing.assert_allclose(basis_1d(x, n, 0.0, 1.0) @ p, coarse, atol=1e-14)
     assert np.linalg.matrix_rank(p) == nc  # no coarse function vanishes on the box
 
@@ -124,18 +129,18 @@ def random_gram(shape, seed):
 def test_galerkin_and_probe_match_dense(shape):
     """probe_stencil recovers a banded matrix exactly; galerkin is P^T A P (2D and 3D)."""
     a = random_gram(shape, 0)
-    coarse = tuple(mg.coarse_size(n) for n in shape)
+    coarse = tuple(coarsen.coarse_size(n) for n in shape)
 
     @jit
     def probe_and_coarsen(a):
-        stencil = mg.probe_stencil(lambda v: (a @ v.ravel()).reshape(shape), shape, a.dtype)
-        return stencil, _normal.stencil_to_dense(mg.galerkin(stencil, coarse))
+        stencil = _stencil.probe_stencil(lambda v: (a @ v.ravel()).reshape(shape), shape, a.dtype)
+        return stencil, _stencil.stencil_to_dense(coarsen.galerkin(stencil, coarse))
 
     stencil, got = probe_and_coarsen(a)
     np.testing.assert_allclose(stencil, dense_to_stencil(a, shape), atol=1e-13)
     p = np.ones((1, 1))
     for n, nc in zip(shape, coarse):
-        p = np.kron(p, np.stack([np.asarray(mg.prolong(e, (n,))) for e in jnp.eye(nc)], 1))
+        p = np.kron(p, np.stack([np.asarray(coarsen.prolong(e, (n,))) for e in jnp.eye(nc)], 1))
     expected = p.T @ a @ p
     np.testing.assert_allclose(got, expected, atol=1e-13 * np.abs(expected).max())
 
@@ -143,17 +148,17 @@ def test_galerkin_and_probe_match_dense(shape):
 def test_generic_kernels_in_3d():
     """stencil_matvec, laplacian_stencil and stencil_to_scipy on a 3D grid."""
     shape = (5, 6, 7)
-    lap = _normal.laplacian_stencil(shape)
+    lap = _stencil.laplacian_stencil(shape)
     x = np.random.default_rng(1).standard_normal(shape)
     padded = np.pad(x, 1, mode="edge")  # free boundary: a missing neighbour adds nothing
     expected = sum(
         x - np.roll(padded, s, axis)[1:-1, 1:-1, 1:-1] for axis in range(3) for s in (1, -1)
     )
-    np.testing.assert_allclose(_normal.stencil_matvec(lap, jnp.asarray(x)), expected, atol=1e-12)
+    np.testing.assert_allclose(_stencil.stencil_matvec(lap, jnp.asarray(x)), expected, atol=1e-12)
     np.testing.assert_allclose(
-        _normal.stencil_to_scipy(lap) @ x.ravel(), expected.ravel(), atol=1e-12
+        _stencil.stencil_to_scipy(lap) @ x.ravel(), expected.ravel(), atol=1e-12
     )
-    assert _normal.stencil_diagonal(lap).shape == shape
+    assert _stencil.stencil_diagonal(lap).shape == shape
 
 
 @pytest.mark.parametrize("shape, side, stride", [((13, 5), 8, 4), ((9, 7, 6), 4, 2)])
@@ -163,14 +168,14 @@ def test_patches_are_principal_submatrices(shape, side, stride):
     patch_inverses inverts it up to its ridge; add_patches is extract_patches' transpose."""
     d = len(shape)
     a = random_gram(shape, 1)
-    layout = mg.patch_layout(shape, side, stride)
+    layout = _patches.patch_layout(shape, side, stride)
 
     @jit
     def patches(stencil):
-        ids = mg.extract_patches(layout, jnp.arange(1.0, a.shape[0] + 1).reshape(shape))
-        cover = mg.add_patches(layout, jnp.ones(ids.shape))
-        (inverses,) = mg.patch_inverses([layout], [stencil])
-        return ids, cover, mg.patch_blocks(layout, stencil), inverses
+        ids = _patches.extract_patches(layout, jnp.arange(1.0, a.shape[0] + 1).reshape(shape))
+        cover = _patches.add_patches(layout, jnp.ones(ids.shape))
+        (inverses,) = _patches.patch_inverses([layout], [stencil])
+        return ids, cover, _patches.patch_blocks(layout, stencil), inverses
 
     ids, cover, blocks, inverses = (np.asarray(x) for x in patches(dense_to_stencil(a, shape)))
     ids = ids.astype(int) - 1  # -1: padding
@@ -208,19 +213,14 @@ def test_smoother_spectrum_within_its_bound(systems):
         return jax.vmap(lambda e: level.smooth(e.reshape(24, 24)).ravel())(jnp.eye(24 * 24))
 
     eigenvalues = sla.eigvals(np.asarray(smoother(dense_to_stencil(a, (24, 24)))) @ a).real
-    upper = mg.patch_layout((24, 24), *mg.DEFAULT_PATCH[2]).colours()
+    upper = _patches.patch_layout((24, 24), *_patches.DEFAULT_PATCH[2]).colours()
     assert 0 < eigenvalues.min() and eigenvalues.max() <= upper == 9
 
 
 def stencil_solve(stencil, rhs, solver, target_norm2):
-    """A lineax solve as LeastSquares calls it: a stencil operator, the stencil as an
-    option (no gradient)."""
-    operator = lx.FunctionLinearOperator(
-        lambda c: _normal.stencil_matvec(stencil, c),
-        jax.ShapeDtypeStruct(rhs.shape, rhs.dtype),
-        lx.positive_semidefinite_tag,
-    )
-    options = {"stencil": jax.lax.stop_gradient(stencil), "target_norm2": target_norm2}
+    """A lineax solve as LeastSquares calls it: the system as a StencilOperator."""
+    operator = _stencil.StencilOperator(stencil)
+    options = {"target_norm2": target_norm2}
     sol = lx.linear_solve(operator, rhs, solver, options=options, throw=False)
     return sol.value, sol.stats["num_steps"], sol.result
 
@@ -324,7 +324,7 @@ def test_3d_solve_matches_dense():
     def solve(stencil, b):
         hierarchy = mg.build_hierarchy(stencil, coarsest_size=COARSEST, degree=1)
         return mg.preconditioned_cg(
-            lambda x: _normal.stencil_matvec(stencil, x),
+            lambda x: _stencil.stencil_matvec(stencil, x),
             lambda r: mg.v_cycle(hierarchy, r),
             b,
             jnp.zeros_like(b),
@@ -362,6 +362,67 @@ def test_gradients_through_lineax(systems):
     )
     for got, want in zip(grads, fd):
         assert abs(float(got) - float(want)) <= 1e-5 * abs(float(want))
+
+
+def test_stencil_operator_is_recognised_by_type(systems):
+    """StencilOperator is a lineax operator whose mv and as_matrix are its stencil's matrix,
+    tagged symmetric positive semi-definite; the solvers that use the stencil itself take
+    it by type, in a lineax solve and through LeastSquares' solve_normal_equations:
+    Multigrid and BlockCholesky agree with the dense solve."""
+    a, rhs, b2 = systems[(24, 1e-4)]
+    stencil, rhs = jnp.asarray(dense_to_stencil(a, (24, 24))), jnp.asarray(rhs)
+    operator = _stencil.StencilOperator(stencil)
+    assert lx.is_symmetric(operator) and lx.is_positive_semidefinite(operator)
+    assert not (lx.is_diagonal(operator) or lx.is_negative_semidefinite(operator))
+    assert operator.transpose() is operator and lx.materialise(operator) is operator
+    assert (
+        operator.in_structure()
+        == operator.out_structure()
+        == jax.ShapeDtypeStruct((24, 24), stencil.dtype)
+    )
+    x = np.random.default_rng(5).standard_normal((24, 24))
+    np.testing.assert_allclose(operator.as_matrix(), a, rtol=0, atol=0)
+    np.testing.assert_allclose(operator.mv(jnp.asarray(x)).ravel(), a @ x.ravel(), atol=1e-12)
+    np.testing.assert_array_equal(lx.diagonal(operator), np.diag(a))
+
+    exact = sla.solve(a, np.asarray(rhs).ravel(), assume_a="pos")
+    multigrid, _, result = jitted_solve(stencil, rhs, SOLVER, b2)
+    assert result == lx.RESULTS.successful
+    direct = jit(lambda s, b: lx.linear_solve(_stencil.StencilOperator(s), b, BlockCholesky()))(
+        stencil, rhs
+    )
+    assert direct.result == lx.RESULTS.successful
+    np.testing.assert_allclose(np.asarray(direct.value).ravel(), exact, rtol=1e-10)
+    gap, error = objective_gap(a, np.asarray(rhs), b2, multigrid)
+    assert abs(gap) <= 1e-10 and error <= 1e-8
+
+    policy = jit(solve_normal_equations, static_argnums=3)
+    start = jnp.zeros_like(rhs)
+    for solver in (BlockCholesky(), SOLVER):
+        control, result = policy(operator, rhs, start, solver)
+        assert result == lx.RESULTS.successful
+        # Multigrid here stops at rtol 1e-7 of C.A C (no target_norm2): the error's scale.
+        np.testing.assert_allclose(
+            np.asarray(control).ravel(), exact, rtol=0, atol=1e-6 * np.abs(exact).max()
+        )
+    with pytest.raises(ValueError, match="StencilOperator"):
+        BlockCholesky().init(lx.MatrixLinearOperator(jnp.asarray(a)), {})
+
+
+def test_cascade_and_multigrid_coarsen_by_one_rule(monkeypatch):
+    """The multigrid's levels and the cascade's grids both come from
+    jurs._linalg.coarsen.coarsening (each caller choosing where to stop): changing the
+    rule changes both."""
+    assert mg.level_shapes((20, 20, 20), 1728) == [(20, 20, 20), (12, 12, 12)]
+    assert _cascade.cascade_shapes((20, 20, 20)) == [(12, 12, 12)]
+    rule = coarsen.coarse_size
+
+    def narrower(n, min_side=coarsen.MIN_COARSEN_SIDE):
+        return rule(n, min_side) - 1 if n >= min_side else n
+
+    monkeypatch.setattr(coarsen, "coarse_size", narrower)
+    assert mg.level_shapes((20, 20, 20), 1728) == [(20, 20, 20), (11, 11, 11)]
+    assert _cascade.cascade_shapes((20, 20, 20)) == [(11, 11, 11)]
 
 
 def test_bad_input():

@@ -11,7 +11,7 @@ import pytest
 from scipy.interpolate import BSpline
 
 import jurs
-from jurs._linalg import normal as _normal
+from jurs._linalg import stencil as _normal
 from jurs._model.spline import bspline_transpose, bspline_values, local_basis
 
 SHAPE = (6, 7, 5)
@@ -182,7 +182,7 @@ def test_cascade_reaches_the_far_field():
 def test_cascade_transfer_reproduces_quadratics():
     """The transfer between levels gives the coarse spline's values at the fine grid's
     Greville points: checked on a coarse spline that is exactly x^2 along one axis."""
-    from jurs.solvers._cascade import transfer
+    from jurs._linalg.coarsen import greville_transfer as transfer
 
     coarse_n, fine_n = 9, 15
     greville = lambda n: (np.arange(n) - 1.0) / (n - 3)  # noqa: E731 (box [0, 1])

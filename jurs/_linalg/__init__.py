@@ -1,2 +1,6 @@
-"""Linear algebra of the exact solve: the normal equations as a banded stencil, their
-direct and multigrid solves."""
+"""Linear algebra of the exact solve, one job a module: ``operator`` (the lineax operator
+type of the systems), ``stencil`` (banded stencils and :class:`StencilOperator`),
+``normal`` (the normal equations assembled from a problem), ``cholesky`` (direct
+factorisations), ``coarsen`` (coarser grids and the maps between grids), ``patches`` (the
+multigrid's Schwarz smoother) and ``multigrid`` (the multigrid-preconditioned solver).
+Nothing here imports from ``jurs.solvers`` or ``jurs._fit``."""

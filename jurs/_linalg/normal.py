@@ -17,16 +17,15 @@ stencil; its memory is independent of the number of samples:
 * rational (fixed w): the 256 products of each row ``w_ij B_ij / W`` (eq. 23), accumulated
   in blocks of ``chunk_size`` samples (``lax.scan``) so that no ``(3m, 256)`` array exists.
 
-The stencil is reusable: :func:`stencil_matvec` applies it in O(NM) (an I-PIA step in
-normal-equation form costs nothing per sample), :func:`stencil_to_dense` builds the
-``NM x NM`` matrix for a direct solve on small grids.
+The stencil is reusable (:mod:`jurs._linalg.stencil`): it applies in O(NM) (an I-PIA step
+in normal-equation form costs nothing per sample), and :meth:`NormalEquations.regularised`
+gives the system ``D^T D + 2 lam L`` as a lineax operator for the exact solve.
 """
 
 from __future__ import annotations
 
-import itertools
 from math import comb
-from typing import TYPE_CHECKING, cast
+from typing import cast
 
 import equinox as eqx
 import jax
@@ -45,15 +44,15 @@ from .._model.basis import (
 from .._model.precision import full_precision
 from .._model.spline import rational_terms
 from .._problem.problem import Problem
+from .stencil import (
+    HALF,
+    SIDE,
+    StencilOperator,
+    laplacian_stencil,
+    stencil_matvec,
+    stencil_to_dense,
+)
 
-if TYPE_CHECKING:  # SciPy loads when a stencil is converted, not on import
-    import scipy.sparse
-    from jax.typing import DTypeLike
-
-#: Half-width of the stencil: cubic basis functions ``i`` and ``i + 3`` still share a cell.
-HALF = 3
-#: Stencil side, ``2 * HALF + 1``.
-SIDE = 7
 #: Default number of samples accumulated at once on the rational path (``chunk x 256``
 #: floats: 32 MB in float64).
 DEFAULT_CHUNK = 2**14
@@ -261,8 +260,8 @@ def bspline_normal_equations(problem: Problem, chunk_size: int = DEFAULT_CHUNK):
     Coefficient ``(i, j)`` couples to ``(i + da - 3, j + db - 3)`` through every cell
     ``(i - a, j - b)`` both touch, with ``sum_pq P[a, da, p] P[b, db, q] moment[p, q]``;
     that sum factorises by axis, so the fold runs as one pass over the grid an axis
-    with 7 channels each, never a ``(cells, 16, 7, 7)`` array (which dominated the
-    assembly: 45 of 47 ms at 3000 samples on a 92 x 96 grid)."""
+    with 7 channels each, never a ``(cells, 16, 7, 7)`` array, which would dominate the
+    assembly's time (docs/multigrid.md, "Measurements behind the constants")."""
     dtype = problem.local.s.dtype
     ndim = problem.ndim
     sums = _bernstein_moments(problem, chunk_size)
@@ -307,207 +306,6 @@ def rational_normal_equations(problem: Problem, weights: Array, chunk_size: int 
     return stencil, patches_to_grid(sums[:, NUM_LOCAL * NUM_LOCAL :], problem.shape)
 
 
-def _offsets(ndim: int):
-    """All stencil offsets of a ``ndim``-dimensional grid, as index tuples into the stencil's
-    trailing ``(7,) * ndim`` axes (``HALF`` is offset 0)."""
-    return itertools.product(range(SIDE), repeat=ndim)
-
-
-def stencil_ndim(stencil: Array | np.ndarray) -> int:
-    """The grid dimension d of a ``grid_shape + (7,) * d`` stencil."""
-    d, odd = divmod(stencil.ndim, 2)
-    if odd or stencil.shape[d:] != (SIDE,) * d:
-        raise ValueError(f"stencil must be shaped grid_shape + (7,) * d, got {stencil.shape}")
-    return d
-
-
-def laplacian_stencil(shape: tuple[int, ...], dtype: DTypeLike = float) -> Array:
-    """The grid Laplacian L of :func:`jurs.internal.grid_laplacian` (free boundary) as a
-    stencil, for a grid of any dimension d: degree at the centre, -1 towards each existing
-    one of the ``2 d`` axis neighbours."""
-    d = len(shape)
-    stencil = jnp.zeros(tuple(shape) + (SIDE,) * d, dtype)
-    centre = (HALF,) * d
-    degree = jnp.zeros(shape, dtype)
-    for axis, n in enumerate(shape):
-        index = jnp.arange(n).reshape((n,) + (1,) * (d - 1 - axis))
-        for step, exists in ((-1, index > 0), (1, index < n - 1)):
-            exists = jnp.broadcast_to(exists, shape).astype(dtype)
-            offset: list[int] = list(centre)
-            offset[axis] += step
-            stencil = stencil.at[(Ellipsis, *offset)].set(-exists)
-            degree = degree + exists
-    return stencil.at[(Ellipsis, *centre)].set(degree)
-
-
-def stencil_matvec(stencil: Array, grid: Array) -> Array:
-    """Apply a ``grid_shape + (7,) * d`` stencil to a ``grid_shape`` grid (zero outside the
-    grid), for any grid dimension d (49 terms in 2D, 343 in 3D)."""
-    d = grid.ndim
-    padded = jnp.pad(grid, HALF)
-    out = jnp.zeros_like(grid)
-    for offset in _offsets(d):
-        window = tuple(slice(o, o + n) for o, n in zip(offset, grid.shape))
-        out = out + stencil[(Ellipsis, *offset)] * padded[window]
-    return out
-
-
-def stencil_diagonal(stencil: Array) -> Array:
-    """The diagonal of the matrix a stencil stands for, as a grid."""
-    return stencil[(Ellipsis,) + (HALF,) * stencil_ndim(stencil)]
-
-
-def _stencil_indices(shape: tuple[int, ...]):
-    """``(row, col, valid)`` of every stencil entry (NumPy, shaped like the stencil): the
-    matrix position of entry ``[i, 3 + di]`` is ``(flat(i), flat(i + di))``, valid where
-    ``i + di`` is on the grid (row-major flattening)."""
-    d = len(shape)
-    grids = np.meshgrid(
-        *[np.arange(n) for n in shape], *[np.arange(SIDE) - HALF] * d, indexing="ij"
-    )
-    points, steps = grids[:d], grids[d:]
-    targets = [p + s for p, s in zip(points, steps)]
-    valid = np.all([(t >= 0) & (t < n) for t, n in zip(targets, shape)], axis=0)
-    row = np.ravel_multi_index(points, shape)
-    col = np.ravel_multi_index([np.clip(t, 0, n - 1) for t, n in zip(targets, shape)], shape)
-    return row, col, valid
-
-
-def stencil_to_dense(stencil: Array) -> Array:
-    """The dense ``n x n`` matrix of a stencil (``n`` grid points, row-major flattening),
-    for direct solves on small grids: 7^d of each row's ``n`` entries are non-zero."""
-    shape = stencil.shape[: stencil_ndim(stencil)]
-    row, col, valid = _stencil_indices(shape)
-    size = int(np.prod(shape))
-    # Out-of-grid entries are 0 in the stencil; they are added (as 0) to a clipped column.
-    values = jnp.where(jnp.asarray(valid), stencil, 0.0)
-    return jnp.zeros((size, size), stencil.dtype).at[row.ravel(), col.ravel()].add(values.ravel())
-
-
-#: Largest diagonal block that :func:`_cholesky_and_inverse` hands to LAPACK. Above about
-#: 1000 entries OpenBLAS runs these kernels threaded, and next to XLA's own threads that was
-#: measured at 10-700 ms a call instead of 0.01-2 ms on a 2-core machine; the larger blocks
-#: are split recursively into matrix products, which XLA runs itself.
-_LAPACK_MAX_BLOCK = 16
-
-
-def _cholesky_and_inverse(a: Array):
-    """``(L, L^-1)`` of a symmetric positive definite matrix ``a = L L^T``, recursively:
-    ``L = [[L1, 0], [B, L2]]`` with ``L1 = chol(A11)``, ``B = A21 L1^-T`` and
-    ``L2 = chol(A22 - B B^T)``."""
-    n = a.shape[0]
-    if n <= _LAPACK_MAX_BLOCK:
-        low = jax.lax.linalg.cholesky(a, symmetrize_input=False)
-        inv = jax.lax.linalg.triangular_solve(
-            low, jnp.eye(n, dtype=a.dtype), left_side=True, lower=True
-        )
-        return low, inv
-    h = n // 2
-    l1, i1 = _cholesky_and_inverse(a[:h, :h])
-    b = a[h:, :h] @ i1.T
-    l2, i2 = _cholesky_and_inverse(a[h:, h:] - b @ b.T)
-    zero = jnp.zeros((h, n - h), a.dtype)
-    low = jnp.block([[l1, zero], [b, l2]])
-    inv = jnp.block([[i1, zero], [-(i2 @ b) @ i1, i2]])
-    return low, inv
-
-
-def _row_blocks(stencil_row: Array, row: Array) -> tuple:
-    """The blocks ``A[row i, row i - d]``, ``d = 0..3``, of a stencil's matrix from grid row
-    ``i``'s stencil ``(M, 7, 7)``; zero where ``i - d < 0``. Rows further apart do not couple
-    (``|di| <= 3``), so these and their transposes are all of A."""
-    m = stencil_row.shape[0]
-    out = []
-    for d in range(HALF + 1):
-        band = stencil_row[:, HALF - d, :]  # (M, 7): A[(i, j), (i - d, j + dj)] at 3 + dj
-        # Shear: rows of length M + 7 read back with length M + 6 shift row j right by j,
-        # putting band[j, c] at column j + c, i.e. at j + dj + 3.
-        sheared = jnp.pad(band, ((0, 0), (0, m))).reshape(m * (m + SIDE))
-        block = sheared[: m * (m + SIDE - 1)].reshape(m, m + SIDE - 1)[:, HALF : HALF + m]
-        out.append(jnp.where(row >= d, block, 0.0))
-    return tuple(out)
-
-
-#: Largest ``N * min(N, M)^2`` for which LeastSquares solves directly by
-#: :func:`stencil_cholesky_solve` (its factor takes ``32 N M^2`` bytes in float64: 1 GB at
-#: 256 x 256); above, CG.
-DIRECT_MAX_ENTRIES = 1 << 25
-
-
-@full_precision
-def stencil_cholesky_solve(stencil: Array, rhs: Array) -> Array:
-    """Solve ``stencil * C = rhs`` for a symmetric positive definite stencil by a block
-    Cholesky factorisation ``A = L L^T`` in blocks of grid lines.
-
-    Grid lines couple only to lines at most 3 apart, so L is block-banded with 3 blocks below
-    the diagonal; one pass over the lines (a scan) computes them and the inverse of each
-    diagonal block, then two passes solve with L and L^T. Blocks run along the longer axis,
-    so they are as small as possible. Work ``O(N M^3)``, memory ``O(N M^2)`` (``M`` the
-    shorter side): on a 128 x 128 grid about 2.6e9 multiply-adds as 128 x 128 matrix
-    products, against tens of thousands of Jacobi-CG steps for the ill-conditioned systems
-    of sparse data with a small lambda. A direct solve: no tolerance, residual at rounding
-    level. Non-finite output means the matrix was not numerically positive definite.
-    """
-    if rhs.shape[1] > rhs.shape[0]:  # blocks along the shorter side
-        swapped = jnp.transpose(stencil, (1, 0, 3, 2))
-        return stencil_cholesky_solve(swapped, rhs.T).T
-    n, m = rhs.shape
-    dtype = rhs.dtype
-
-    def factor(carry, x):
-        # prev[r, c] = L[i-1-r, i-1-r-(3-c)], inv[r] = L[i-1-r, i-1-r]^-1, r = 0..2.
-        prev, inv = carry
-        a0, a1, a2, a3 = _row_blocks(*x)  # A[i, i - d]
-        l3 = a3 @ inv[2].T
-        l2 = (a2 - l3 @ prev[1, 2].T) @ inv[1].T
-        l1 = (
-            a1 - jnp.concatenate([l3, l2], 1) @ jnp.concatenate([prev[0, 1], prev[0, 2]], 1).T
-        ) @ inv[0].T
-        row = jnp.stack([l3, l2, l1])
-        wide = jnp.concatenate([l3, l2, l1], 1)
-        _, inv_d = _cholesky_and_inverse(a0 - wide @ wide.T)
-        return (jnp.stack([row, prev[0], prev[1]]), jnp.stack([inv_d, inv[0], inv[1]])), (
-            row,
-            inv_d,
-        )
-
-    eye = jnp.broadcast_to(jnp.eye(m, dtype=dtype), (3, m, m))
-    carry = (jnp.zeros((3, 3, m, m), dtype), eye)
-    _, (rows, invs) = jax.lax.scan(factor, carry, (stencil, jnp.arange(n)))
-
-    def forward(ys, x):  # y_i = L_ii^-1 (b_i - sum_d L[i, i-d] y_{i-d})
-        row, inv, b = x
-        y = inv @ (b - row[0] @ ys[2] - row[1] @ ys[1] - row[2] @ ys[0])
-        return jnp.stack([y, ys[0], ys[1]]), y
-
-    zeros = jnp.zeros((3, m), dtype)
-    _, y = jax.lax.scan(forward, zeros, (rows, invs, rhs))
-
-    def backward(pending, x):
-        # x_i = L_ii^-T (y_i - sum_d L[i+d, i]^T x_{i+d}); the sums arrive in ``pending``
-        # from the lines already solved, and x_i adds its share to the three lines above.
-        row, inv, yi = x
-        xi = inv.T @ (yi - pending[0])
-        return jnp.stack(
-            [pending[1] + row[2].T @ xi, pending[2] + row[1].T @ xi, row[0].T @ xi]
-        ), xi
-
-    _, x = jax.lax.scan(backward, zeros, (rows, invs, y), reverse=True)
-    return x
-
-
-def stencil_to_scipy(stencil) -> scipy.sparse.csr_matrix:
-    """The stencil as a SciPy CSR matrix (NumPy side, for inspection or SciPy solvers)."""
-    import scipy.sparse as sp
-
-    s = np.asarray(stencil)
-    shape = s.shape[: stencil_ndim(s)]
-    row, col, valid = _stencil_indices(shape)
-    keep = valid & (s != 0)
-    size = int(np.prod(shape))
-    return sp.csr_matrix((s[keep], (row[keep], col[keep])), shape=(size, size))
-
-
 class NormalEquations(eqx.Module):
     """``D^T D`` as an ``(N, M, 7, 7)`` stencil and ``D^T b`` as an ``(N, M)`` grid.
 
@@ -528,11 +326,11 @@ class NormalEquations(eqx.Module):
         product = self.matvec(control) if product is None else product
         return jnp.vdot(control, product - 2.0 * self.rhs) + self.target_norm2
 
-    def regularised(self, lam) -> Array:
-        """The stencil of ``D^T D + 2 lam L``, the Hessian / 2 of ``E_d + lam R``
-        (docs/design.md section 3)."""
+    def regularised(self, lam) -> StencilOperator:
+        """``D^T D + 2 lam L``, the Hessian / 2 of ``E_d + lam R`` (docs/design.md section
+        3), as a lineax operator holding its stencil."""
         lap = laplacian_stencil(self.rhs.shape, self.stencil.dtype)
-        return self.stencil + 2.0 * lam * lap
+        return StencilOperator(self.stencil + 2.0 * lam * lap)
 
     def to_dense(self) -> Array:
         return stencil_to_dense(self.stencil)

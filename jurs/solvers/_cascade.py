@@ -8,14 +8,15 @@ CG's stop test to notice. Started from 0, a sphere's centre kept g = 0 exactly a
 second surface there. The cure is a start that already has the far field: the same
 least-squares problem (same samples, box and lambda) solved on a grid coarse enough for a
 dense Cholesky, then on finer grids in turn, each started from the previous one's spline
-and corrected by a few CG steps, and the finest level's CG started from there. On a
-3000-point sphere at 32^3, from the 12^3 solution, CG reached the exact minimiser's far
-field (g at the centre -0.084 against the multigrid solve's -0.0837) and a relative
-residual of 4e-11 in 400 steps; from 0 it stopped with the centre at 0.
+and corrected by a few CG steps, and the finest level's CG started from there; from that
+start CG reaches the exact minimiser's far field (docs/design.md, "Surfaces: the same code
+in 3D").
 
-Transfer between levels is by the coarse spline's values at the fine grid's Greville
-points (``lo + (i - 1) h``): a quasi-interpolant, accurate to O(h^2), which is all a start
-needs (the finest level's CG decides the answer).
+The grids are :func:`jurs._linalg.coarsen.coarsening`'s, the rule the multigrid's levels
+follow too, each spanning the problem's box. A solution reaches the next grid by its
+values at that grid's Greville points (:func:`jurs._linalg.coarsen.greville_transfer`): a
+quasi-interpolant, accurate to O(h^2), which is all a start needs (the finest level's CG
+decides the answer).
 """
 
 from __future__ import annotations
@@ -28,57 +29,36 @@ import lineax as lx
 import numpy as np
 from jax import Array
 
+from .._linalg.coarsen import coarsening, greville_transfer
 from .._linalg.normal import normal_equations
-from .._model.basis import cubic_weights
 from .._model.spline import local_basis
 from .._problem.problem import Problem
 
-#: Largest number of coefficients of the coarsest level (solved by dense Cholesky: at
-#: 12^3 = 1728 about 0.1 s on a 2-core CPU, at 16^3 = 4096 3 s).
+#: Largest number of coefficients of the coarsest level, solved by dense Cholesky, whose
+#: cost grows with the cube of this: 12^3 is a fraction of a second, 16^3 already seconds
+#: (docs/multigrid.md, "Measurements behind the constants").
 COARSEST_COEFFICIENTS = 1728
+#: Axes with fewer basis functions than this keep their size in the cascade (4: every axis
+#: that still shrinks under :func:`jurs._linalg.coarsen.coarse_size`).
+MIN_SIDE = 4
 #: CG on the intermediate levels: a loose tolerance and a step cap (a start, not a
 #: solution).
 LEVEL_RTOL = 1e-3
 LEVEL_MAX_STEPS = 100
 #: Samples a coefficient that a level of the cascade keeps at least: a level with more
 #: assembles every ``k``-th sample only (lambda scaled by the fraction kept). The coarse
-#: levels' assembly costs per sample, not per coefficient, and is a start only: on 1e5
-#: points of a sphere (3e5 samples, 48^3 grid; 2-core CPU) the 9^3 and 15^3 levels took
-#: 0.75 and 0.73 s of all samples, as long as the 26^3 one.
+#: levels' assembly costs per sample, not per coefficient, and is a start only: with every
+#: sample, the coarsest levels of a dense cloud take as long to assemble as the finer ones
+#: (docs/multigrid.md, "Measurements behind the constants").
 LEVEL_SAMPLES_PER_COEFFICIENT = 32
 
 
 def cascade_shapes(shape: tuple[int, ...]) -> list[tuple[int, ...]]:
-    """The grids of the cascade, coarsest first, ending one level below ``shape``: each
-    about half the previous one's cells (``n // 2 + 2`` functions, at least 4), until one
-    has at most :data:`COARSEST_COEFFICIENTS` coefficients."""
-    shapes = []
-    current = tuple(shape)
-    while np.prod(current) > COARSEST_COEFFICIENTS:
-        current = tuple(max(4, n // 2 + 2) for n in current)
-        shapes.append(current)
-    return shapes[::-1]
-
-
-def transfer_matrix(coarse: int, fine: int) -> np.ndarray:
-    """``(fine, coarse)``: the coarse cubic B-splines of one axis at the fine grid's Greville
-    points, on a shared box (in units of the coarse cell, the box is ``[0, coarse - 3]``)."""
-    u = (np.arange(fine) - 1.0) * (coarse - 3) / (fine - 3)
-    cell = np.clip(np.floor(u), 0, coarse - 4).astype(int)
-    values = cubic_weights(u - cell, xp=np)  # (fine, 4)
-    out = np.zeros((fine, coarse))
-    for a in range(4):
-        out[np.arange(fine), cell + a] += values[:, a]
-    return out
-
-
-def transfer(grid: Array, shape: tuple[int, ...]) -> Array:
-    """A coarse coefficient grid's spline, quasi-interpolated on the grid of ``shape`` (one
-    matrix product an axis)."""
-    for axis, n in enumerate(shape):
-        matrix = jnp.asarray(transfer_matrix(grid.shape[axis], n), grid.dtype)
-        grid = jnp.moveaxis(jnp.tensordot(matrix, grid, axes=[[1], [axis]]), 0, axis)
-    return grid
+    """The grids of the cascade, coarsest first, ending one level below ``shape``: the
+    coarser grids of :func:`jurs._linalg.coarsen.coarsening` (cells about twice as wide a
+    level; axes below :data:`MIN_SIDE` kept), until one has at most
+    :data:`COARSEST_COEFFICIENTS` coefficients."""
+    return coarsening(shape, COARSEST_COEFFICIENTS, MIN_SIDE)[1:][::-1]
 
 
 def on_grid(problem: Problem, shape: tuple[int, ...], stride: int = 1) -> Problem:
@@ -112,10 +92,10 @@ def level_lam(lam, fine: tuple[int, ...], coarse: tuple[int, ...]):
 def cascadic_start(problem: Problem, lam, solve, start: Array) -> Array:
     """A start for the exact solve of ``problem`` on its grid: the solves of
     :func:`cascade_shapes`' grids in turn, each transferred to the next; ``start`` itself
-    where the grid is already coarse enough to have no cascade. ``solve(stencil,
-    rhs, start, linear_solver)`` solves one level's regularised normal equations (as
-    :func:`jurs.solvers._least_squares.solve_normal_equations`). No gradient flows through
-    the start (it changes the path of the final solve, not its solution)."""
+    where the grid is already coarse enough to have no cascade. ``solve(system, rhs,
+    start, linear_solver)`` solves one level's regularised normal equations, a lineax
+    operator (as :func:`jurs.solvers._least_squares.solve_normal_equations`). No gradient
+    flows through the start (it changes the path of the final solve, not its solution)."""
     shapes = cascade_shapes(problem.shape)
     if not shapes:
         return start
@@ -127,16 +107,16 @@ def cascadic_start(problem: Problem, lam, solve, start: Array) -> Array:
         normal = normal_equations(level)
         # E_d sums the kept samples only: lambda scaled alike keeps the balance.
         kept = jnp.sum(level.mask) / samples
-        stencil = normal.regularised(level_lam(lam, problem.shape, shape) * kept)
+        system = normal.regularised(level_lam(lam, problem.shape, shape) * kept)
         if start is None:
             start, solver = jnp.zeros(shape, normal.rhs.dtype), lx.Cholesky()
         else:
-            start = transfer(start, shape)
+            start = greville_transfer(start, shape)
             # Absolute per-entry tolerance: see surface_linear_solver (an array atol).
             solver = lx.CG(
                 rtol=0.0,
                 atol=LEVEL_RTOL * jnp.max(jnp.abs(normal.rhs)),  # pyright: ignore[reportArgumentType]
                 max_steps=LEVEL_MAX_STEPS,
             )
-        start = solve(stencil, normal.rhs, start, solver)
-    return transfer(start, problem.shape)
+        start = solve(system, normal.rhs, start, solver)
+    return greville_transfer(start, problem.shape)

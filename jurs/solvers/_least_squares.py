@@ -11,16 +11,10 @@ import lineax as lx
 import numpy as np
 from jax import Array
 
+from .._linalg.cholesky import DIRECT_MAX_ENTRIES, BlockCholesky
 from .._linalg.multigrid import Multigrid
-from .._linalg.normal import (
-    DEFAULT_CHUNK,
-    DIRECT_MAX_ENTRIES,
-    HALF,
-    normal_equations,
-    stencil_cholesky_solve,
-    stencil_matvec,
-    stencil_to_dense,
-)
+from .._linalg.normal import DEFAULT_CHUNK, normal_equations
+from .._linalg.operator import AbstractGridOperator
 from .._model.spline import ImplicitSpline
 from .._problem.energy import objective
 from .._problem.problem import Problem, check_nonnegative
@@ -30,19 +24,16 @@ from ._cascade import cascadic_start
 
 #: Largest grid (N * M coefficients) that the default linear solver solves densely
 #: (Cholesky); above it, a block Cholesky of the stencil (lam > 0) or Jacobi-preconditioned
-#: CG (lam = 0). Measured on a 2-core CPU (benchmarks/solvers.py, Example 10): dense
-#: Cholesky 4.6 vs CG 7.7 ms at 9 x 9, 8.1 vs 9.1 ms at 16 x 16, 21.8 vs 13.6 ms at 32 x 32,
-#: 580 vs 48 ms at 64 x 64.
+#: CG (lam = 0). The dense factorisation's cubic cost overtakes CG's between 16 x 16 and
+#: 32 x 32 (benchmarks/solvers.py, Example 10; docs/multigrid.md, "Measurements behind the
+#: constants").
 DENSE_MAX_COEFFICIENTS = 256
 
 #: The default 3D solve's tolerance on every entry of the residual, relative to the largest
 #: entry of the right-hand side (:func:`surface_linear_solver`), and its cap on CG steps.
-#: On a 2e4-point sphere at 40^3, from the cascade's start: 1e-6 took 311 CG steps, 1e-4
-#: 187, with the objective 2e-9 (relative) above and the zero set's distance to the sphere
-#: unchanged in four digits; 1e-3 took 163 steps, 1e-7 above. On 1e5 points (sphere at
-#: 48^3, bunny at 48x48x43; 2-core CPU) 1e-3 against 1e-4 cut the warm fit from 11.3 to
-#: 10.5 s and from 13.7 to 10.8 s, with the mesh's Chamfer and Hausdorff distances to the
-#: true surface unchanged in three digits (3e-3: the same again).
+#: Tighter tolerances cost more CG steps without moving the zero set (the mesh's distances
+#: to the true surface stay the same to three digits), and a looser one saves little more
+#: (docs/multigrid.md, "Measurements behind the constants").
 SURFACE_RTOL = 1e-3
 SURFACE_MAX_STEPS = 1000
 
@@ -70,9 +61,9 @@ def surface_linear_solver(rhs: Array) -> lx.AbstractLinearSolver:
     Jacobi-preconditioned CG on the stencil to :data:`SURFACE_RTOL`, started from the
     cascade of coarser grids (:mod:`jurs.solvers._cascade`). No direct factorisation fits
     here (a block Cholesky of grid planes of a 64^3 grid would store 64 dense blocks of
-    64^4 entries each), and :class:`jurs._linalg.multigrid.Multigrid` measured slower and 7x
-    larger (a 24^3 sphere fit of 2e4 points on a 2-core CPU: 4.2 s and 5.6 GB against
-    2.5 s and 0.8 GB for CG).
+    64^4 entries each), and :class:`jurs._linalg.multigrid.Multigrid` takes several times
+    the memory for at most a small gain in time (docs/multigrid.md, "Measurements behind
+    the constants").
 
     The tolerance is absolute, ``SURFACE_RTOL * max |rhs|``, for every entry of the
     residual: lineax's CG tests each entry against ``atol + rtol |rhs_i|``, and the far
@@ -83,20 +74,20 @@ def surface_linear_solver(rhs: Array) -> lx.AbstractLinearSolver:
     return lx.CG(rtol=0.0, atol=SURFACE_RTOL * scale, max_steps=SURFACE_MAX_STEPS)  # pyright: ignore[reportArgumentType]
 
 
-def solve_by_default(stencil: Array, rhs: Array, start: Array, ridge=0.0):
+def solve_by_default(operator: AbstractGridOperator, rhs: Array, start: Array, ridge=0.0):
     """:func:`solve_normal_equations` with :func:`default_linear_solver`, and a second solver
     where the dense Cholesky breaks down (a system singular at rounding level). In float64
     LU: partial pivoting needs no positive definiteness, and it compiles to one more
-    factorisation (a CG fallback added about 0.9 s to the first call of a small fit). In
-    lower precision CG, whose early stop regularises: on Example 1 with 60 points at
-    14 x 14 in float32, whose Cholesky breaks down on a 2-core CPU, LU's solution had 25 %
-    more energy than the float64 minimiser, CG's 9e-5 more."""
+    factorisation (cheaper to compile than a CG fallback). In lower precision CG, whose
+    early stop regularises: LU's exact solve of the rounded system lands far above the
+    float64 minimum energy, CG's close to it (docs/multigrid.md, "Measurements behind the
+    constants")."""
     linear_solver = default_linear_solver(rhs.shape)
     if _is_matrix_free(linear_solver):
         fallback = None
     else:
         fallback = lx.LU() if rhs.dtype == jnp.float64 else stencil_cg(rhs.shape)
-    return solve_normal_equations(stencil, rhs, start, linear_solver, ridge, fallback)
+    return solve_normal_equations(operator, rhs, start, linear_solver, ridge, fallback)
 
 
 def stencil_cg(shape: tuple[int, ...]) -> lx.CG:
@@ -109,20 +100,12 @@ def _is_matrix_free(solver: lx.AbstractLinearSolver) -> bool:
     return isinstance(solver, (lx.CG, lx.BiCGStab, lx.GMRES, Multigrid))
 
 
-def _direct_stencil_solve(stencil: Array, rhs: Array) -> Array:
-    """:func:`jurs._linalg.normal.stencil_cholesky_solve`, differentiated implicitly like a lineax
-    solve (``lax.custom_linear_solve``: the adjoint system is solved by the same
-    factorisation). Non-finite where the factorisation breaks down."""
-    return jax.lax.custom_linear_solve(
-        lambda c: stencil_matvec(stencil, c),
-        rhs,
-        lambda _, b: stencil_cholesky_solve(stencil, b),
-        symmetric=True,
-    )
-
-
 def _unless_nonfinite(
-    solved: tuple, stencil: Array, rhs: Array, start: Array, fallback: lx.AbstractLinearSolver
+    solved: tuple,
+    operator: AbstractGridOperator,
+    rhs: Array,
+    start: Array,
+    fallback: lx.AbstractLinearSolver,
 ) -> tuple:
     """``solved`` (``(C, lineax result)``), or where C is not finite the solve by
     ``fallback``. A Cholesky factorisation breaks down (NaN) where the matrix is not
@@ -132,65 +115,52 @@ def _unless_nonfinite(
     return jax.lax.cond(
         jnp.all(jnp.isfinite(control)),
         lambda: (control, result),
-        lambda: solve_normal_equations(stencil, rhs, start, fallback),
+        lambda: solve_normal_equations(operator, rhs, start, fallback),
     )
 
 
 def solve_normal_equations(
-    stencil: Array,
+    operator: AbstractGridOperator,
     rhs: Array,
     start: Array,
-    linear_solver: lx.AbstractLinearSolver | None,
+    linear_solver: lx.AbstractLinearSolver,
     ridge=0.0,
     fallback: lx.AbstractLinearSolver | None = None,
 ):
-    """Solve ``stencil * C = rhs`` (a symmetric positive semi-definite stencil) with lineax.
+    """Solve ``operator C = rhs`` (a symmetric positive semi-definite system on the
+    coefficient grid, :meth:`jurs.internal.NormalEquations.regularised`) with the lineax
+    ``linear_solver``.
 
     Coefficients whose diagonal is 0 are in no sample's support and (with lam = 0)
     unconstrained: they keep their value in ``start``, which makes the rest of the system
-    positive definite whenever the data determine it. Matrix-free solvers (CG, BiCGStab,
-    GMRES) get the stencil as an operator and a Jacobi preconditioner; others the
-    assembled ``NM x NM`` matrix; ``None`` the block Cholesky of the stencil
-    (:func:`jurs._linalg.normal.stencil_cholesky_solve`, with CG if it breaks down). ``fallback``
-    solves instead where the solve's C is not finite (a factorisation that broke down).
-    Returns ``(C, lineax result)``.
+    positive definite whenever the data determine it. The solver takes the operator as it
+    is: matrix-free solvers (CG, BiCGStab, GMRES) apply it, with a Jacobi preconditioner;
+    the stencil's own solvers (:class:`jurs._linalg.multigrid.Multigrid`,
+    :class:`jurs._linalg.cholesky.BlockCholesky`) recognise its type; dense ones
+    (Cholesky, LU) assemble its ``NM x NM`` matrix. ``fallback`` solves instead where the
+    solve's C is not finite (a factorisation that broke down). Returns ``(C, lineax
+    result)``.
     """
-    centre = (Ellipsis,) + (HALF,) * rhs.ndim
-    diag = stencil[centre]
+    diag = operator.grid_diagonal()
     unseen = diag <= 0
     # A PSD matrix with a zero diagonal entry has that whole row and column zero: put 1 on
     # the diagonal and the start value on the right, and that coefficient stays put.
     # ``ridge`` (relative to the largest diagonal) bounds the condition number.
     diag = jnp.where(unseen, 1.0, diag + ridge * jnp.max(diag))
-    stencil = stencil.at[centre].set(diag)
+    operator = operator.with_grid_diagonal(diag)
     rhs = jnp.where(unseen, start, rhs)
-    tags = lx.positive_semidefinite_tag
-    if linear_solver is None:
-        return _unless_nonfinite(
-            (_direct_stencil_solve(stencil, rhs), lx.RESULTS.successful),
-            stencil,
-            rhs,
-            start,
-            stencil_cg(rhs.shape),
-        )
+    options: dict[str, Any] = {}
     if _is_matrix_free(linear_solver):
-        operator = lx.FunctionLinearOperator(lambda c: stencil_matvec(stencil, c), rhs, tags)
         # The preconditioner and initial guess change the path, not the solution: no
         # gradient through them (lineax refuses tangents in `options`).
-        if isinstance(linear_solver, Multigrid):  # builds its own preconditioner
-            options: dict[str, Any] = {"stencil": jax.lax.stop_gradient(stencil)}
-        else:
-            inv_diag = jax.lax.stop_gradient(1.0 / stencil[centre])
-            options = {
-                "preconditioner": lx.FunctionLinearOperator(lambda c: inv_diag * c, rhs, tags)
-            }
+        if not isinstance(linear_solver, Multigrid):  # which builds its own preconditioner
+            tags = lx.positive_semidefinite_tag
+            inv_diag = jax.lax.stop_gradient(1.0 / diag)
+            options["preconditioner"] = lx.FunctionLinearOperator(lambda c: inv_diag * c, rhs, tags)
         options["y0"] = jax.lax.stop_gradient(start)
-        sol = lx.linear_solve(operator, rhs, linear_solver, throw=False, options=options)
-        return sol.value, sol.result
-    operator = lx.MatrixLinearOperator(stencil_to_dense(stencil), tags)
-    sol = lx.linear_solve(operator, rhs.ravel(), linear_solver, throw=False)
-    solved = sol.value.reshape(rhs.shape), sol.result
-    return solved if fallback is None else _unless_nonfinite(solved, stencil, rhs, start, fallback)
+    sol = lx.linear_solve(operator, rhs, linear_solver, throw=False, options=options)
+    solved = sol.value, sol.result
+    return solved if fallback is None else _unless_nonfinite(solved, operator, rhs, start, fallback)
 
 
 class LeastSquares(AbstractSolver[LeastSquaresState]):
@@ -202,9 +172,10 @@ class LeastSquares(AbstractSolver[LeastSquaresState]):
     the assembled matrix for grids up to :data:`DENSE_MAX_COEFFICIENTS` coefficients (where
     it breaks down, as a numerically singular system can: LU in float64, CG in float32);
     above, a block Cholesky of the stencil in grid lines when ``lam > 0``
-    (:func:`jurs._linalg.normal.stencil_cholesky_solve`, up to
-    :data:`jurs._linalg.normal.DIRECT_MAX_ENTRIES`, 256 x 256) and Jacobi-preconditioned CG when
-    ``lam = 0`` or beyond; or the lineax ``linear_solver`` given. One driver step; the result is the
+    (:class:`jurs._linalg.cholesky.BlockCholesky`, up to
+    :data:`jurs._linalg.cholesky.DIRECT_MAX_ENTRIES`, 256 x 256) and Jacobi-preconditioned CG
+    when ``lam = 0`` or beyond; or the lineax ``linear_solver`` given, which receives the
+    system as a :class:`jurs._linalg.stencil.StencilOperator`. One driver step; the result is the
     point the paper's iterations (I-PIA, eq. 11; IURS's eq. 33 with fixed w) converge to.
 
     Args:
@@ -215,9 +186,9 @@ class LeastSquares(AbstractSolver[LeastSquaresState]):
             eq. 23.
         linear_solver: a lineax solver for the symmetric positive (semi-)definite system;
             default (None) per grid size and lam, as above. ``Multigrid()``
-            (:mod:`jurs._linalg.multigrid`: knot-insertion multigrid-preconditioned CG, 2D or 3D)
-            is never chosen by default: on a 2-core CPU it was slower than the direct
-            solves at 128 x 128 and 256 x 256 (docs/multigrid.md).
+            (:mod:`jurs._linalg.multigrid`: knot-insertion multigrid-preconditioned CG, 2D or
+            3D) is never chosen by default: it lost to the direct solves in 2D, and in 3D it
+            takes several times the memory of CG from the cascade (docs/multigrid.md).
         chunk_size: samples accumulated at once when assembling rational rows.
         ridge: a Tikhonov term ``ridge * max(diag(D^T D)) * I`` added to the system
             (default 1e-14). It only matters when the system is numerically singular
@@ -256,11 +227,11 @@ class LeastSquares(AbstractSolver[LeastSquaresState]):
         ):
             raise TypeError(f"linear_solver must be a lineax solver, got {self.linear_solver!r}")
 
-    def _level_solve(self, stencil, rhs, start, linear_solver):
+    def _level_solve(self, operator, rhs, start, linear_solver):
         """One level of the cascade: ``solve_normal_equations`` with this solver's ridge,
         and LU where a dense Cholesky breaks down."""
         fallback = lx.LU() if isinstance(linear_solver, lx.Cholesky) else None
-        return solve_normal_equations(stencil, rhs, start, linear_solver, self.ridge, fallback)[0]
+        return solve_normal_equations(operator, rhs, start, linear_solver, self.ridge, fallback)[0]
 
     def _weights(self, spline: ImplicitSpline) -> Array:
         return spline.weights if self.keep_weights else jnp.ones_like(spline.control)
@@ -293,13 +264,14 @@ class LeastSquares(AbstractSolver[LeastSquaresState]):
             and n * m * m <= DIRECT_MAX_ENTRIES
         ):
             # lam > 0: the regulariser makes the system positive definite, and a direct
-            # solve beats the tens of thousands of CG steps that sparse data need (18275
-            # on 1e6 points at 128 x 128, lam = 1e-4). lam = 0: numerically singular
-            # systems, where CG's early stop acts as a further regulariser (see ``ridge``).
+            # solve beats the tens of thousands of CG steps that sparse data need
+            # (docs/multigrid.md, "Measurements behind the constants"). lam = 0:
+            # numerically singular systems, where CG's early stop acts as a further
+            # regulariser (see ``ridge``). CG also where the factorisation breaks down.
             cg = stencil_cg(problem.shape)
             return jax.lax.cond(
                 jnp.asarray(lam) > 0,
-                lambda: solve_normal_equations(*system, None, self.ridge),
+                lambda: solve_normal_equations(*system, BlockCholesky(), self.ridge, cg),
                 lambda: solve_normal_equations(*system, cg, self.ridge),
             )
         if (

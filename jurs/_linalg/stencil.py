@@ -1,0 +1,176 @@
+"""Banded systems on coefficient grids stored as stencils, and their lineax operator type.
+
+Two cubic B-splines of a uniform grid overlap only when they are at most 3 apart along
+every axis, so the matrices of the exact solve (``D^T D``, the Laplacian L of the
+regulariser, their sums and Galerkin products) are banded: row ``p`` of the grid couples to
+``p + e`` for ``|e_k| <= 3``. Such a matrix on a grid of dimension d is stored as a
+**stencil**, an array ``grid_shape + (7,) * d`` with ``stencil[p, 3 + e] = A[p, p + e]``
+(zero towards points off the grid): 49 numbers a row in 2D, 343 in 3D. This module holds
+the stencil maths (product, diagonal, Laplacian, conversion to dense and SciPy matrices,
+probing a stencil from a matrix-vector product) and :class:`StencilOperator`, a stencil as
+a lineax operator (:class:`jurs._linalg.operator.AbstractGridOperator`).
+"""
+
+from __future__ import annotations
+
+import itertools
+from typing import TYPE_CHECKING
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import Array
+
+from .operator import AbstractGridOperator
+
+if TYPE_CHECKING:  # SciPy loads when a stencil is converted, not on import
+    import scipy.sparse
+    from jax.typing import DTypeLike
+
+#: Half-width of the stencil: cubic basis functions ``i`` and ``i + 3`` still share a cell.
+HALF = 3
+#: Stencil side, ``2 * HALF + 1``.
+SIDE = 7
+
+
+def _offsets(ndim: int):
+    """All stencil offsets of a ``ndim``-dimensional grid, as index tuples into the stencil's
+    trailing ``(7,) * ndim`` axes (``HALF`` is offset 0)."""
+    return itertools.product(range(SIDE), repeat=ndim)
+
+
+def stencil_ndim(stencil: Array | np.ndarray) -> int:
+    """The grid dimension d of a ``grid_shape + (7,) * d`` stencil."""
+    d, odd = divmod(stencil.ndim, 2)
+    if odd or stencil.shape[d:] != (SIDE,) * d:
+        raise ValueError(f"stencil must be shaped grid_shape + (7,) * d, got {stencil.shape}")
+    return d
+
+
+def laplacian_stencil(shape: tuple[int, ...], dtype: DTypeLike = float) -> Array:
+    """The grid Laplacian L of :func:`jurs.internal.grid_laplacian` (free boundary) as a
+    stencil, for a grid of any dimension d: degree at the centre, -1 towards each existing
+    one of the ``2 d`` axis neighbours."""
+    d = len(shape)
+    stencil = jnp.zeros(tuple(shape) + (SIDE,) * d, dtype)
+    centre = (HALF,) * d
+    degree = jnp.zeros(shape, dtype)
+    for axis, n in enumerate(shape):
+        index = jnp.arange(n).reshape((n,) + (1,) * (d - 1 - axis))
+        for step, exists in ((-1, index > 0), (1, index < n - 1)):
+            exists = jnp.broadcast_to(exists, shape).astype(dtype)
+            offset: list[int] = list(centre)
+            offset[axis] += step
+            stencil = stencil.at[(Ellipsis, *offset)].set(-exists)
+            degree = degree + exists
+    return stencil.at[(Ellipsis, *centre)].set(degree)
+
+
+def stencil_matvec(stencil: Array, grid: Array) -> Array:
+    """Apply a ``grid_shape + (7,) * d`` stencil to a ``grid_shape`` grid (zero outside the
+    grid), for any grid dimension d (49 terms in 2D, 343 in 3D)."""
+    d = grid.ndim
+    padded = jnp.pad(grid, HALF)
+    out = jnp.zeros_like(grid)
+    for offset in _offsets(d):
+        window = tuple(slice(o, o + n) for o, n in zip(offset, grid.shape))
+        out = out + stencil[(Ellipsis, *offset)] * padded[window]
+    return out
+
+
+def stencil_diagonal(stencil: Array) -> Array:
+    """The diagonal of the matrix a stencil stands for, as a grid."""
+    return stencil[(Ellipsis,) + (HALF,) * stencil_ndim(stencil)]
+
+
+def _stencil_indices(shape: tuple[int, ...]):
+    """``(row, col, valid)`` of every stencil entry (NumPy, shaped like the stencil): the
+    matrix position of entry ``[i, 3 + di]`` is ``(flat(i), flat(i + di))``, valid where
+    ``i + di`` is on the grid (row-major flattening)."""
+    d = len(shape)
+    grids = np.meshgrid(
+        *[np.arange(n) for n in shape], *[np.arange(SIDE) - HALF] * d, indexing="ij"
+    )
+    points, steps = grids[:d], grids[d:]
+    targets = [p + s for p, s in zip(points, steps)]
+    valid = np.all([(t >= 0) & (t < n) for t, n in zip(targets, shape)], axis=0)
+    row = np.ravel_multi_index(points, shape)
+    col = np.ravel_multi_index([np.clip(t, 0, n - 1) for t, n in zip(targets, shape)], shape)
+    return row, col, valid
+
+
+def stencil_to_dense(stencil: Array) -> Array:
+    """The dense ``n x n`` matrix of a stencil (``n`` grid points, row-major flattening),
+    for direct solves on small grids: 7^d of each row's ``n`` entries are non-zero."""
+    shape = stencil.shape[: stencil_ndim(stencil)]
+    row, col, valid = _stencil_indices(shape)
+    size = int(np.prod(shape))
+    # Out-of-grid entries are 0 in the stencil; they are added (as 0) to a clipped column.
+    values = jnp.where(jnp.asarray(valid), stencil, 0.0)
+    return jnp.zeros((size, size), stencil.dtype).at[row.ravel(), col.ravel()].add(values.ravel())
+
+
+def stencil_to_scipy(stencil) -> scipy.sparse.csr_matrix:
+    """The stencil as a SciPy CSR matrix (NumPy side, for inspection or SciPy solvers)."""
+    import scipy.sparse as sp
+
+    s = np.asarray(stencil)
+    shape = s.shape[: stencil_ndim(s)]
+    row, col, valid = _stencil_indices(shape)
+    keep = valid & (s != 0)
+    size = int(np.prod(shape))
+    return sp.csr_matrix((s[keep], (row[keep], col[keep])), shape=(size, size))
+
+
+def probe_stencil(matvec, shape: tuple[int, ...], dtype) -> Array:
+    """The stencil of a linear map on a grid that couples points at most 3 apart along
+    every axis, from ``7^d`` products with colour-class indicators: point ``q`` is in class
+    ``q mod 7``, and ``(A v_c)[p]`` is the one entry ``A[p, q]`` with ``q`` in class c."""
+    d = len(shape)
+    index = np.indices(shape)
+    classes = list(itertools.product(range(SIDE), repeat=d))
+    probes = np.stack(
+        [np.all([index[k] % SIDE == c[k] for k in range(d)], axis=0) for c in classes]
+    ).astype(dtype)
+    products = jax.lax.map(matvec, jnp.asarray(probes))  # (7^d,) + shape
+    entries = []
+    for offset in itertools.product(range(SIDE), repeat=d):
+        target = [(index[k] + offset[k] - HALF) % SIDE for k in range(d)]
+        which = np.ravel_multi_index(target, (SIDE,) * d)
+        entries.append(jnp.take_along_axis(products, jnp.asarray(which)[None], axis=0)[0])
+    return jnp.stack(entries, axis=-1).reshape(tuple(shape) + (SIDE,) * d)
+
+
+class StencilOperator(AbstractGridOperator):
+    """A symmetric positive semi-definite matrix on a coefficient grid, stored as its
+    ``grid_shape + (7,) * d`` stencil (any grid dimension d), as a lineax operator.
+
+    ``mv`` is :func:`stencil_matvec` (O(grid) work), ``as_matrix`` :func:`stencil_to_dense`
+    (for dense solves of small grids). The stencil must be that of a symmetric positive
+    semi-definite matrix (a normal-equation matrix ``D^T D + 2 lam L`` is); it is not
+    checked. Solvers that use the stencil itself recognise this type:
+    :class:`jurs._linalg.multigrid.Multigrid` and
+    :class:`jurs._linalg.cholesky.BlockCholesky`.
+    """
+
+    stencil: Array
+
+    def __check_init__(self):
+        stencil_ndim(self.stencil)
+
+    def mv(self, vector: Array) -> Array:
+        return stencil_matvec(self.stencil, vector)
+
+    def as_matrix(self) -> Array:
+        return stencil_to_dense(self.stencil)
+
+    def in_structure(self) -> jax.ShapeDtypeStruct:
+        shape = self.stencil.shape[: stencil_ndim(self.stencil)]
+        return jax.ShapeDtypeStruct(shape, self.stencil.dtype)
+
+    def grid_diagonal(self) -> Array:
+        return stencil_diagonal(self.stencil)
+
+    def with_grid_diagonal(self, diagonal: Array) -> StencilOperator:
+        centre = (Ellipsis,) + (HALF,) * stencil_ndim(self.stencil)
+        return StencilOperator(self.stencil.at[centre].set(diagonal))
