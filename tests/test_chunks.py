@@ -13,7 +13,6 @@ import pytest  # noqa: E402
 from conftest import PAPER  # noqa: E402
 
 import jurs  # noqa: E402
-from jurs._fit import progress  # noqa: E402
 from jurs._fit.progress import solve_in_chunks  # noqa: E402
 
 

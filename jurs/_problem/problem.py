@@ -25,8 +25,6 @@ from .sizes import DEFAULT_MARGIN
 from .validate import (
     _is_concrete,
     _shape,
-    check_count,  # noqa: F401 (imported from here by solvers; moves to .validate)
-    check_nonnegative,  # noqa: F401 (as above)
     check_precision,
     normalise_grid,
     unit_normals,

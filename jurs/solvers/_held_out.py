@@ -15,7 +15,8 @@ from jax.core import Tracer
 from .._linalg.normal import DEFAULT_CHUNK, NormalEquations, normal_equations
 from .._model.spline import ImplicitSpline, bspline_values
 from .._problem.energy import objective
-from .._problem.problem import Problem, check_nonnegative, values_by_point
+from .._problem.problem import Problem, values_by_point
+from .._problem.validate import check_nonnegative
 from ._base import AbstractSolver
 from ._least_squares import DEFAULT_RIDGE, LeastSquares, LeastSquaresState
 from ._robust import slot_points

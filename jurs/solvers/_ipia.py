@@ -11,7 +11,8 @@ from jax import Array
 from .._linalg.normal import NormalEquations, normal_equations
 from .._model.spline import ImplicitSpline, bspline_transpose
 from .._problem.energy import bspline_residuals, step_size
-from .._problem.problem import Problem, check_count, check_nonnegative
+from .._problem.problem import Problem
+from .._problem.validate import check_count, check_nonnegative
 from ._base import AbstractSolver
 
 

@@ -17,7 +17,8 @@ from .._linalg.normal import DEFAULT_CHUNK, normal_equations
 from .._linalg.operator import AbstractGridOperator
 from .._model.spline import ImplicitSpline
 from .._problem.energy import objective
-from .._problem.problem import Problem, check_nonnegative
+from .._problem.problem import Problem
+from .._problem.validate import check_nonnegative
 from .._solution.solution import RESULTS
 from ._base import AbstractSolver
 from ._cascade import cascadic_start

@@ -13,7 +13,8 @@ from jax import Array
 from .._linalg.normal import DEFAULT_CHUNK
 from .._model.spline import ImplicitSpline
 from .._problem.energy import bspline_residuals, regulariser
-from .._problem.problem import Problem, check_count, check_nonnegative
+from .._problem.problem import Problem
+from .._problem.validate import check_count, check_nonnegative
 from ._base import AbstractSolver
 from ._least_squares import DEFAULT_RIDGE, LeastSquares, LeastSquaresState
 

@@ -23,7 +23,8 @@ from .._linalg.normal import DEFAULT_CHUNK, chunked_segment_sum
 from .._model.basis import NUM_LOCAL, grid_to_patches, num_cells
 from .._model.spline import ImplicitSpline
 from .._problem.energy import objective, residuals, transpose_apply
-from .._problem.problem import Problem, check_nonnegative
+from .._problem.problem import Problem
+from .._problem.validate import check_nonnegative
 from . import _parameterisation as param
 from ._base import AbstractSolver
 
