@@ -27,7 +27,7 @@ def orientation_sample(points, normals, tree=None):
         p, n, tree = p[at], n[at], None
     tree = kd_tree(p) if tree is None else tree
     dist, idx = tree.query(p, k=min(ORIENTATION_NEIGHBOURS + 1, len(p)))
-    return p, n, dist, idx
+    return p, n, np.asarray(dist), np.asarray(idx)
 
 
 def flipped_normal_fraction(points, normals, sample=None) -> float:

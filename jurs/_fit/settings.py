@@ -457,9 +457,8 @@ def choose_settings(
     e = d if eps is None else float(eps)
     if domain is None:  # the box make_problem will take
         # offset_samples takes NumPy arrays with xp=np; its annotation says jax.Array only.
-        lower, upper = auto_domain(
-            offset_samples(cloud.points, cloud.normals, d, e, np)[0], margin, xp=np
-        )  # pyright: ignore[reportArgumentType]
+        samples = offset_samples(cloud.points, cloud.normals, d, e, np)[0]  # pyright: ignore[reportArgumentType]
+        lower, upper = auto_domain(samples, margin, xp=np)
     else:
         lower, upper = (np.asarray(c, float) for c in domain)
     width = None
