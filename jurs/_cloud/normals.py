@@ -39,6 +39,7 @@ import functools
 from typing import NamedTuple
 
 import numpy as np
+from jaxtyping import ArrayLike, Float
 from scipy import sparse
 from scipy.sparse import csgraph
 from scipy.sparse.linalg import eigsh
@@ -490,8 +491,13 @@ def _solve_signs(fields, weight, patch_tree, centre):
 
 
 def estimate_normals(
-    points, *, k: int | None = None, orient: bool = True, return_info: bool = False, seed: int = 0
-):
+    points: Float[ArrayLike, "m d"],
+    *,
+    k: int | None = None,
+    orient: bool = True,
+    return_info: bool = False,
+    seed: int = 0,
+) -> Float[np.ndarray, "m d"] | tuple[Float[np.ndarray, "m d"], NormalsInfo]:
     """Outward unit normals of a point cloud sampling closed curves (2D) or surfaces (3D).
 
     Local PCA over ``k`` nearest neighbours, a sign propagated along a minimum spanning tree

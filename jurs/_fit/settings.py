@@ -35,6 +35,7 @@ import dataclasses
 from typing import TYPE_CHECKING
 
 import numpy as np
+from jaxtyping import ArrayLike, Float
 
 if TYPE_CHECKING:  # SciPy's spatial module loads on the first fit, not on import
     # SciPy ships no stub for its compiled cKDTree, so a type checker sees no such class;
@@ -358,8 +359,8 @@ def _held_out_smoothing(cloud, support, shape, offset, eps, domain, unit: float)
 
 
 def auto_settings(
-    points,
-    normals=None,
+    points: Float[ArrayLike, "m d"] | Cloud,
+    normals: Float[ArrayLike, "m d"] | None = None,
     *,
     grid=None,
     offset=None,

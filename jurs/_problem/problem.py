@@ -17,6 +17,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import Array
+from jaxtyping import ArrayLike, Float
 
 from .._model.basis import flat_cell, locate, num_cells
 from .._model.spline import TABLE_MAX_SLOTS, LocalBasis, local_basis, with_table
@@ -263,8 +264,8 @@ def _laid_out_slots(geometry, shape, bucket_size, concrete, small, stable_shapes
 
 
 def make_problem(
-    points,
-    normals,
+    points: Float[ArrayLike, "m d"],
+    normals: Float[ArrayLike, "m d"],
     *,
     grid,
     offset=0.1,
