@@ -1,10 +1,13 @@
 """Built-in point clouds (the paper's analytic examples), noise, and file loading.
 
 Every generator returns ``(points, normals)`` as float64 NumPy arrays of shape ``(m, 2)``
-(the 3D ones :func:`sphere3d`, :func:`torus`, :func:`genus2` and :func:`sample_mesh`:
+(the 3D ones [`sphere3d`][jurs.datasets.sphere3d], [`torus`][jurs.datasets.torus],
+[`genus2`][jurs.datasets.genus2] and [`sample_mesh`][jurs.datasets.sample_mesh]:
 ``(m, 3)``), normals unit length and pointing out of the enclosed region. Point clouds are
-read and written by :func:`load_points` / :func:`save_points`, triangle meshes by
-:func:`load_mesh` / :func:`save_mesh` (3D files through trimesh, an optional dependency).
+read and written by [`load_points`][jurs.datasets.load_points] /
+[`save_points`][jurs.datasets.save_points], triangle meshes by
+[`load_mesh`][jurs.datasets.load_mesh] / [`save_mesh`][jurs.datasets.save_mesh] (3D files
+through trimesh, an optional dependency).
 """
 
 from __future__ import annotations
@@ -81,7 +84,7 @@ def example9(seed: int = 0, sigma: float = 0.05):
 
 def example10(seed: int = 0, sigma: float = 0.05):
     """Example 10: the ellipse 4 cos t, 5 sin t with 500 noisy points (``sigma`` as in
-    :func:`example9`; the paper gives none)."""
+    [`example9`][jurs.datasets.example9]; the paper gives none)."""
     return add_noise(*ellipse(500), sigma=sigma, seed=seed)
 
 
@@ -118,13 +121,13 @@ def load_points(path) -> tuple[np.ndarray, np.ndarray | None]:
     """Read points and normals from ``.npy`` (an (m, 4) array) or CSV/TXT (columns x, y, nx,
     ny; comma, whitespace or semicolon separated; an optional header line of names).
 
-    3D clouds (:data:`CLOUD_SUFFIXES`): ``.ply`` and ``.obj`` give their vertices, and
+    3D clouds (``CLOUD_SUFFIXES``): ``.ply`` and ``.obj`` give their vertices, and
     their vertex normals where the file has them (through trimesh, ``pip install
     "jurs[surfaces]"``); ``.xyz`` and ``.pts`` are text rows of 3 (x y z) or 6 (x y z nx
     ny nz) numbers. Points come back ``(m, 3)``, normals ``(m, 3)`` or None.
 
     A table of two columns (x, y; header ``x,y``) holds points without normals: the normals
-    come back as None (:func:`jurs.fit` then estimates them). The header, or else the first
+    come back as None ([`jurs.fit`][] then estimates them). The header, or else the first
     data row, sets the number of columns for every row.
 
     Raises ValueError naming the file and the (1-based, as in an editor) row for missing
@@ -204,7 +207,7 @@ def save_points(path, points, normals=None) -> None:
     """Write points and normals as ``.npy`` (m, 4) or CSV with an ``x,y,nx,ny`` header;
     ``normals=None`` writes the points alone ((m, 2), header ``x,y``).
 
-    3D points ``(m, 3)`` go to the suffixes of :data:`CLOUD_SUFFIXES`: ``.xyz``/``.pts``
+    3D points ``(m, 3)`` go to the suffixes of ``CLOUD_SUFFIXES``: ``.xyz``/``.pts``
     as text rows (all digits), ``.ply`` (binary, float32, through trimesh) and ``.obj``
     (``v`` and ``vn`` lines) with vertex normals when given.
     """
@@ -231,9 +234,11 @@ def save_points(path, points, normals=None) -> None:
 
 # --- 3D: surfaces, meshes and point-cloud files -------------------------------------------
 
-#: Suffixes :func:`load_points` and :func:`save_points` read and write as 3D clouds.
+#: Suffixes [`load_points`][jurs.datasets.load_points] and
+#: [`save_points`][jurs.datasets.save_points] read and write as 3D clouds.
 CLOUD_SUFFIXES = (".ply", ".obj", ".xyz", ".pts")
-#: Suffixes :func:`load_mesh` and :func:`save_mesh` handle (through trimesh).
+#: Suffixes [`load_mesh`][jurs.datasets.load_mesh] and
+#: [`save_mesh`][jurs.datasets.save_mesh] handle (through trimesh).
 MESH_SUFFIXES = (".ply", ".obj", ".stl", ".off")
 
 
@@ -297,15 +302,15 @@ def torus(m: int, major: float = 1.0, minor: float = 0.35, seed: int = 0):
     return centres + minor * normals, normals
 
 
-#: The double torus of :func:`genus2`: two tori about parallel axes through (+-GENUS2_SHIFT,
-#: 0), of radii GENUS2_MAJOR, GENUS2_MINOR, joined by a smooth minimum of blend width
-#: GENUS2_BLEND.
+#: The double torus of [`genus2`][jurs.datasets.genus2]: two tori about parallel axes
+#: through (+-GENUS2_SHIFT, 0), of radii GENUS2_MAJOR, GENUS2_MINOR, joined by a smooth
+#: minimum of blend width GENUS2_BLEND.
 GENUS2_SHIFT, GENUS2_MAJOR, GENUS2_MINOR, GENUS2_BLEND = 1.0, 1.0, 0.35, 0.1
 
 
 def genus2_function(points):
-    """The implicit double torus sampled by :func:`genus2` and its gradient at ``points
-    (n, 3)``: ``(values (n,), gradients (n, 3))``, negative inside.
+    """The implicit double torus sampled by [`genus2`][jurs.datasets.genus2] and its
+    gradient at ``points (n, 3)``: ``(values (n,), gradients (n, 3))``, negative inside.
 
     The smooth minimum ``-k log(exp(-a / k) + exp(-b / k))`` of the signed distances ``a``,
     ``b`` to two tori whose tube centre circles touch at the origin: the tubes merge there,
@@ -338,8 +343,9 @@ def genus2_function(points):
 
 
 def genus2(m: int, seed: int = 0):
-    """``m`` points on a smooth double torus (genus 2; :func:`genus2_function`), uniform by
-    area, with outward unit normals (the normalised gradient).
+    """``m`` points on a smooth double torus (genus 2;
+    [`genus2_function`][jurs.datasets.genus2_function]), uniform by area, with outward unit
+    normals (the normalised gradient).
 
     Points are drawn uniformly in a shell of half-width 0.01 about the surface (first-order
     distance ``|f| / |grad f|``) and moved onto it by Newton steps. A thin shell's volume
@@ -501,7 +507,8 @@ def _load_xyz(path: str):
 
 
 def _checked_cloud(points, normals, path, row_numbers=None):
-    """``(points, normals)`` with the checks of :func:`load_points`, 3D."""
+    """``(points, normals)`` with the checks of
+    [`load_points`][jurs.datasets.load_points], 3D."""
     if len(points) == 0:
         raise ValueError(f"{path}: no points")
     if normals is not None and normals.shape != points.shape:
@@ -522,7 +529,8 @@ def _checked_cloud(points, normals, path, row_numbers=None):
 
 
 def _save_cloud(path: str, points, normals) -> None:
-    """:func:`save_points` for the 3D suffixes."""
+    """[`save_points`][jurs.datasets.save_points]
+    for the 3D suffixes."""
     points = np.asarray(points, dtype=np.float64)
     if points.ndim != 2 or points.shape[1] != 3:
         raise ValueError(f"{path}: {_suffix(path)} files hold 3D points, got shape {points.shape}")

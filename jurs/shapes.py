@@ -8,10 +8,10 @@ fitting hard (concavities, several components, holes, thin parts):
   a rounded five-petal rose, a lopsided three-lobed curve, an annulus with an off-centre
   hole;
 * **glyph outlines** of DejaVu Sans, the font that ships with matplotlib, read with
-  :class:`matplotlib.textpath.TextPath` (the quadratic/cubic Bezier pieces are evaluated
+  ``matplotlib.textpath.TextPath`` (the quadratic/cubic Bezier pieces are evaluated
   exactly): letters with holes, i.e. several components;
 * **outlines traced from images that ship with scikit-image** (``skimage.data.horse``,
-  ``skimage.data.coins``) with :func:`skimage.measure.find_contours` after a small Gaussian
+  ``skimage.data.coins``) with ``skimage.measure.find_contours`` after a small Gaussian
   blur, which smooths the pixel staircase.
 
 Every shape is a list of closed polylines (*components*) in data units, scaled so the
@@ -21,7 +21,7 @@ Components are oriented with the filled region on their left (outer boundaries
 anticlockwise, holes clockwise; the filled region follows the even-odd rule), so the
 normal ``(t_y, -t_x)`` of the unit tangent ``t`` points **out of the filled region**: away
 from the shape on outer boundaries, into the hole on holes (the convention of
-:mod:`jurs.datasets` and docs/design.md section 1).
+[`jurs.datasets`][] and docs/design.md section 1).
 
     points, normals = jurs.shapes.get("glyph_B", 639, size=8.0)
 
@@ -123,8 +123,8 @@ def sample_outline(
     The components are laid end to end on one arc-length axis, so the spacing is the same
     on every component and each gets points in proportion to its length. Normals are
     ``(t_y, -t_x)`` of the unit chord tangent ``p(s + delta) - p(s - delta)``: outward
-    for components oriented as :func:`orient` leaves them. At a corner the chord gives the
-    bisector of the two sides, so corners get a well-defined normal.
+    for components oriented as [`orient`][jurs.shapes.orient] leaves them. At a corner the
+    chord gives the bisector of the two sides, so corners get a well-defined normal.
 
     Args:
         components: closed polylines (first vertex not repeated), filled region on the left.
@@ -230,8 +230,8 @@ def glyph_outline(text: str, family: str = "DejaVu Sans") -> list[np.ndarray]:
     """Outlines of ``text`` set in ``family`` (default DejaVu Sans, which ships with
     matplotlib), one closed polyline per contour of the glyphs.
 
-    Read with :class:`matplotlib.textpath.TextPath`; its line, quadratic and cubic Bezier
-    pieces are evaluated at :data:`_BEZIER_SAMPLES` parameters each (no flattening
+    Read with ``matplotlib.textpath.TextPath``; its line, quadratic and cubic Bezier
+    pieces are evaluated at ``_BEZIER_SAMPLES`` parameters each (no flattening
     tolerance involved).
     """
     from matplotlib.font_manager import FontProperties
@@ -265,7 +265,7 @@ def mask_outline(mask, *, blur: float = 1.5, min_area: float = 50.0) -> list[np.
 
     The mask is padded with False (so every contour closes), blurred with a Gaussian of
     ``blur`` pixels (rounds the pixel staircase) and contoured at 0.5 with
-    :func:`skimage.measure.find_contours`. Components enclosing fewer than ``min_area``
+    ``skimage.measure.find_contours``. Components enclosing fewer than ``min_area``
     square pixels are dropped. Coordinates: x = column, y = -row (image upright).
     """
     from scipy import ndimage
@@ -331,7 +331,9 @@ SOURCES = {
     "horse": horse_outline,
     "coins": coins_outline,
 }
-#: The shapes :func:`get` knows.
+#: The shapes
+#: [`get`][jurs.shapes.get]
+#: knows.
 NAMES = tuple(SOURCES)
 
 
@@ -372,9 +374,9 @@ def get(
     """``num_points`` points of shape ``name`` with outward unit normals.
 
     Sampled by arc length across all components (same spacing everywhere; see
-    :func:`sample_outline` for ``nonuniform``, ``gap`` and ``gap_at``). The shape is scaled
-    so the longest side of its bounding box is ``size`` (default 8.0) and centred on
-    ``center``.
+    [`sample_outline`][jurs.shapes.sample_outline] for ``nonuniform``, ``gap`` and
+    ``gap_at``). The shape is scaled so the longest side of its bounding box is ``size``
+    (default 8.0) and centred on ``center``.
 
     Returns:
         ``(points, normals)``, float64 arrays of shape ``(num_points, 2)``.

@@ -57,10 +57,11 @@ def check_spline_arrays(arrays: dict, where: str) -> None:
 
 def save_spline(path, spline: ImplicitSpline) -> None:
     """Write ``spline`` to exactly ``path`` (``.npz`` format, whatever the name: NumPy's
-    ``savez`` would append ``.npz`` to a name without it, and :func:`load_spline` of the
-    same name would then not find it): arrays ``control``, ``weights``, ``lower``,
-    ``upper``. Raises ValueError for a spline that cannot be evaluated (see
-    :func:`load_spline`), before anything is written."""
+    ``savez`` would append ``.npz`` to a name without it, and
+    [`load_spline`][jurs.load_spline] of the same name would then not find it): arrays
+    ``control``, ``weights``, ``lower``, ``upper``. Raises ValueError for a spline that
+    cannot be evaluated (see [`load_spline`][jurs.load_spline]), before anything is
+    written."""
     if not isinstance(spline, ImplicitSpline):
         raise TypeError(f"spline must be a jurs.ImplicitSpline, got {type(spline).__name__}")
     arrays = {k: np.asarray(getattr(spline, k)) for k in SPLINE_KEYS}
@@ -70,8 +71,9 @@ def save_spline(path, spline: ImplicitSpline) -> None:
 
 
 def load_spline(path, dtype=None) -> ImplicitSpline:
-    """Read an :class:`ImplicitSpline` written by :func:`save_spline`: a curve's (2D
-    grids, box of shape (2,)) or a surface's (3D grids, box of shape (3,)).
+    """Read an [`ImplicitSpline`][jurs.ImplicitSpline] written by
+    [`save_spline`][jurs.save_spline]: a curve's (2D grids, box of shape (2,)) or a
+    surface's (3D grids, box of shape (3,)).
 
     ``dtype`` defaults to JAX's default float (float64 with ``jax_enable_x64``).
     Raises FileNotFoundError, or ValueError naming the file for missing, ill-shaped or

@@ -5,23 +5,24 @@ every solver is built from.
 with all weights 1, ``W = 1`` (partition of unity) and g is the B-spline f of eq. 2.
 
 So g is two plain B-spline evaluations, ``F(w C) / F(w)``, where ``F`` maps a coefficient
-grid to values at the samples (:func:`bspline_values`). Its transpose ``T``
-(:func:`bspline_transpose`) gives everything else: the collocation transpose of eq. 23 is
-``D^T v = w * T(v / W)``, and the gradients of docs/design.md section 2 are ``T`` of per-sample
-scalars times a grid. No (samples x 16) array of rows is ever needed on the fast path.
+grid to values at the samples ([`bspline_values`][jurs.internal.bspline_values]). Its transpose
+``T`` ([`bspline_transpose`][jurs.internal.bspline_transpose]) gives everything else: the
+collocation transpose of eq. 23 is ``D^T v = w * T(v / W)``, and the gradients of
+docs/design.md section 2 are ``T`` of per-sample scalars times a grid. No (samples x 16) array
+of rows is ever needed on the fast path.
 
 Samples are stored in *buckets*: runs of ``bucket_size`` samples that share one cell, so a
 bucket reads its 4 x 4 coefficient patch once and its sums over samples are dense
 reductions instead of scatters. ``bucket_size = 1`` (one sample a bucket, any order) is the
 generic layout that works under any JAX transformation.
 
-Two ways to run F and T, chosen by what the :class:`LocalBasis` holds:
+Two ways to run F and T, chosen by what the [`LocalBasis`][jurs.internal.LocalBasis] holds:
 
 * *power form* (large problems): each cell's piece is taken to powers of the centred local
   coordinates once, a sample costs a Horner scheme, and T sums power moments per bucket
   (one variadic reduction) before going back to the B-spline basis per cell. Per sample
   only its two local coordinates are read.
-* *table form* (small problems, :data:`TABLE_MAX_SLOTS`): the samples keep their order (one
+* *table form* (small problems, ``TABLE_MAX_SLOTS``): the samples keep their order (one
   a slot, no padding), and a table of their own groups them into buckets of one cell: the
   16 basis products of every table position (0 at its padding), the grid corner of every
   bucket's 4 x 4 coefficient patch and the flat grid index of its 16 coefficients are
@@ -125,14 +126,15 @@ class LocalBasis(eqx.Module):
 
     def patch_index(self, shape: tuple[int, ...]) -> Array:
         """``(S, 4 ** d)``: the flat index, in the coefficient grid of ``shape``, of every
-        coefficient each sample sees, in the order of :attr:`products`."""
+        coefficient each sample sees, in the order of
+        [`products`][jurs.internal.LocalBasis.products]."""
         return patch_corner(self.cell, shape)[:, None] + jnp.asarray(patch_offsets(shape))
 
     def to_layout(self, values: Array) -> Array:
         """Per-slot ``(..., S)`` values in the layout the kernels work in (``layout=True``
-        of :func:`bspline_values` and :func:`transpose_and_sum`): the slots themselves, or
-        in the table form the table positions, 0 at its padding. Values given to the
-        kernels in this layout must be 0 at the padding."""
+        of [`bspline_values`][jurs.internal.bspline_values] and ``transpose_and_sum``):
+        the slots themselves, or in the table form the table positions, 0 at its padding.
+        Values given to the kernels in this layout must be 0 at the padding."""
         if self.terms is None:
             return values
         assert self.filled is not None  # the table fields are set together
@@ -144,7 +146,7 @@ class LocalBasis(eqx.Module):
         return s[0], s[1]
 
 
-#: Up to this many samples :func:`jurs.make_problem` builds the table form (16 stored
+#: Up to this many samples [`jurs.make_problem`][] builds the table form (16 stored
 #: products a sample, 8 MB in float64 at the limit).
 TABLE_MAX_SLOTS = 1 << 16
 
@@ -156,7 +158,7 @@ def local_basis(
     ``[lower, upper]`` at ``xy (S, d)``, in the power form (2D) or the generic form.
 
     With ``bucket_size > 1`` the caller guarantees that each run of ``bucket_size``
-    consecutive points lies in one cell (see :func:`jurs._problem.problem.bucket_layout`).
+    consecutive points lies in one cell (see [`jurs.internal.bucket_layout`][]).
     ``xp=numpy`` computes on the host (its fields are then NumPy arrays).
     """
     cell, t = locate(xy, lower, upper, shape, xp)
@@ -263,7 +265,7 @@ def gather_patches(grids: Array, corner: Array) -> Array:
 
 def power_coefficients(grids: Array) -> Array:
     """``(C, N, M)`` coefficient grids -> ``(C, cells, 16)``: each cell's bicubic piece in
-    powers of its centred local coordinates (see :func:`jurs._model.basis.patch_to_power`).
+    powers of its centred local coordinates (see ``jurs._model.basis.patch_to_power``).
 
     One 4 x 4 convolution with 16 output channels: the patch gather and the change of
     basis in a single kernel.
@@ -287,7 +289,8 @@ def bspline_values(local: LocalBasis, grids: Array, *, layout: bool = False) -> 
     the samples. Power form: each bucket's cell piece is taken to powers once, and each
     sample costs a Horner scheme (15 multiply-adds a grid); table form: 16 stored products
     a sample against the gathered patch. ``layout=True`` returns the values in the
-    kernels' layout (:meth:`LocalBasis.to_layout`) instead of per slot.
+    kernels' layout ([`LocalBasis.to_layout`][jurs.internal.LocalBasis.to_layout]) instead
+    of per slot.
     """
     ndim = local.ndim
     if ndim != 2:
@@ -323,9 +326,9 @@ GATHER_BLOCK = 1 << 16
 def _gathered_values(local: LocalBasis, grids: Array) -> Array:
     """F in the generic form (any d, one sample a slot): each sample's ``4 ** d``
     coefficients gathered from the flat grid against its basis products, a block of
-    :data:`GATHER_BLOCK` samples at a time (within each of the ``local.parts`` parts of a
+    ``GATHER_BLOCK`` samples at a time (within each of the ``local.parts`` parts of a
     split sample axis, so that no device reads another's samples). This is the path of 3D
-    grids, whose samples are not bucketed (see :func:`jurs.make_problem`)."""
+    grids, whose samples are not bucketed (see [`jurs.make_problem`][])."""
     shape = grids.shape[grids.ndim - local.ndim :]
     lead = grids.shape[: grids.ndim - local.ndim]
     flat = grids.reshape(lead + (-1,))
@@ -355,9 +358,9 @@ def _gathered_values(local: LocalBasis, grids: Array) -> Array:
 
 
 def values_apart(local: LocalBasis, grids: Array) -> Array:
-    """:func:`bspline_values` in the kernels' layout, in a kernel of its own
-    (:func:`computed_apart`), as the solver steps call it: ``(..., N, M)`` -> ``(..., P)``
-    with ``P`` the layout's length."""
+    """[`bspline_values`][jurs.internal.bspline_values] in the kernels' layout, in a
+    kernel of its own (``computed_apart``), as the solver steps call it: ``(..., N, M)``
+    -> ``(..., P)`` with ``P`` the layout's length."""
     count = local.cell.shape[0] if local.terms is None else local.terms[0].size
     shapes = jax.ShapeDtypeStruct(
         grids.shape[: grids.ndim - local.ndim] + (count,), jnp.result_type(grids, local.s)
@@ -369,9 +372,10 @@ def values_apart(local: LocalBasis, grids: Array) -> Array:
 def transpose_and_sum(
     local: LocalBasis, values: Array, shape: tuple[int, ...], extra=(), *, layout: bool = False
 ):
-    """:func:`bspline_transpose` of ``values (C, S)``, and the totals of the ``extra``
-    per-sample arrays ``(S,)`` computed in the same pass over the samples. ``layout=True``:
-    ``values`` and ``extra`` are in the kernels' layout (:meth:`LocalBasis.to_layout`)."""
+    """[`bspline_transpose`][jurs.internal.bspline_transpose] of ``values (C, S)``, and the
+    totals of the ``extra`` per-sample arrays ``(S,)`` computed in the same pass over the
+    samples. ``layout=True``: ``values`` and ``extra`` are in the kernels' layout
+    ([`LocalBasis.to_layout`][jurs.internal.LocalBasis.to_layout])."""
     k = local.bucket_size
     if local.terms is not None:
         assert local.index is not None  # the table fields are set together
@@ -430,7 +434,8 @@ def transpose_and_sum(
 
 
 def bspline_transpose(local: LocalBasis, values: Array, shape: tuple[int, ...]) -> Array:
-    """T, the transpose of :func:`bspline_values`: ``sum_k v_k B_i B_j(x_k)`` on the grid.
+    """T, the transpose of [`bspline_values`][jurs.internal.bspline_values]:
+    ``sum_k v_k B_i B_j(x_k)`` on the grid.
 
     ``values`` is ``(..., S)``; returns ``(..., N, M)``. Several value vectors share one
     pass over the samples. Power form: per bucket the power moments ``sum_k v_k sx^p sy^q``
@@ -451,7 +456,8 @@ def rational_values(local: LocalBasis, control: Array, weights: Array):
 
 def rational_terms(local: LocalBasis, control: Array, weights: Array):
     """Rational evaluation with explicit rows (eq. 14 and 23), for checks and row-based
-    algorithms; the solvers use the cheaper :func:`rational_values`.
+    algorithms; the solvers use the cheaper
+    [`rational_values`][jurs.internal.rational_values].
 
     Returns ``(wb, denom, g)``: ``wb = w_ij B_i B_j`` for the 16 local terms ``(S, 16)``
     (64 in 3D),

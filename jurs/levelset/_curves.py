@@ -1,6 +1,6 @@
 """Zero sets of curves (2D splines): extraction, supplementary components, distances.
 
-The definitions are in the docstring of :mod:`jurs.levelset`."""
+The definitions are in the docstring of [`jurs.levelset`][]."""
 
 from __future__ import annotations
 
@@ -20,13 +20,14 @@ if TYPE_CHECKING:
 
 #: Default number of grid nodes along the longer side of the box.
 DEFAULT_RESOLUTION = 512
-#: Peak bytes per grid node of :func:`analyze` (node coordinates, their stacked and padded
-#: copies, the values and contourpy's working arrays).
+#: Peak bytes per grid node of [`analyze`][jurs.levelset.analyze] (node coordinates, their
+#: stacked and padded copies, the values and contourpy's working arrays).
 #: The default supplementary threshold is at least this fraction of the fit's cell
-#: (:func:`analyze_grid`): on 1e6 points of a circle, d = 3e-6 on a grid capped at 96 a
-#: side (cells 0.024), the one accurate component lay more than 2 d from the data and
-#: was counted supplementary. An eighth of a cell stays below 2 d on the automatic
-#: settings' grids (cells at most 16 d) and on the paper's Example 1 (9 x 9, d = 0.1).
+#: ([`analyze_grid`][jurs.levelset.analyze_grid]): on 1e6 points of a circle, d = 3e-6 on
+#: a grid capped at 96 a side (cells 0.024), the one accurate component lay more than 2 d
+#: from the data and was counted supplementary. An eighth of a cell stays below 2 d on the
+#: automatic settings' grids (cells at most 16 d) and on the paper's Example 1 (9 x 9, d =
+#: 0.1).
 FIT_CELL_FRACTION = 0.125
 BYTES_PER_NODE = 128
 #: Default tiny-loop size, in grid cells of perimeter.
@@ -200,13 +201,13 @@ def project_to_zero_set(
     ``x <- x - f(x) grad f(x) / |grad f(x)|^2``; from a point near the zero set this lands
     on it near the point's foot, with the error squared every step.
 
-    ``fn`` maps ``(n, 2)`` points to ``(n,)`` values (an :class:`~jurs.ImplicitSpline`, an
-    RBF interpolator, ...). ``grad`` maps them to ``(n, 2)`` gradients; by default a
-    spline's own (``ImplicitSpline.grad``; a spline and its gradient run jitted), for other
-    functions central differences with ``step`` (default 1e-7 of the points' extent), four
-    more evaluations each. A point has converged when its
-    first-order distance ``|f| / |grad f|`` is at most ``tol`` (default 1e-11 of the
-    extent) after the steps; points with a zero or non-finite gradient stay put.
+    ``fn`` maps ``(n, 2)`` points to ``(n,)`` values (an
+    [`ImplicitSpline`][jurs.ImplicitSpline], an RBF interpolator, ...). ``grad`` maps them
+    to ``(n, 2)`` gradients; by default a spline's own (``ImplicitSpline.grad``; a spline
+    and its gradient run jitted), for other functions central differences with ``step``
+    (default 1e-7 of the points' extent), four more evaluations each. A point has converged
+    when its first-order distance ``|f| / |grad f|`` is at most ``tol`` (default 1e-11 of
+    the extent) after the steps; points with a zero or non-finite gradient stay put.
 
     Returns ``(projected (k, 2), converged (k,) bool)``.
     """
@@ -248,13 +249,15 @@ def refined_chamfer_hausdorff(
     reference_samples: int | None = None,
     steps: int = 3,
 ) -> dict:
-    """Chamfer and Hausdorff distances (as in :func:`chamfer_hausdorff`) between the zero
-    set Z of ``fn`` and a reference curve, without the floor that sampling puts under them.
+    """Chamfer and Hausdorff distances (as in
+    [`chamfer_hausdorff`][jurs.levelset.chamfer_hausdorff]) between the zero set Z of ``fn``
+    and a reference curve, without the floor that sampling puts under them.
 
     * Z -> reference: ``zero_points`` (samples of Z, e.g. resampled contour polylines) are
-      moved onto Z by :func:`project_to_zero_set` (the contouring error goes) and measured
-      to the ``reference`` polyline's segments (:func:`distance_to_polyline`; ``closed``
-      for a closed curve given without its first point repeated).
+      moved onto Z by [`project_to_zero_set`][jurs.levelset.project_to_zero_set] (the
+      contouring error goes) and measured to the ``reference`` polyline's segments
+      ([`distance_to_polyline`][jurs.levelset.distance_to_polyline]; ``closed`` for a closed
+      curve given without its first point repeated).
     * reference -> Z: ``reference_samples`` evenly spread vertices of ``reference`` (default
       all) are projected onto Z too; the distance is the smaller of the way to where they
       land and the distance to the nearest projected zero-set sample, both distances to
@@ -319,10 +322,11 @@ class Component:
 
 @dataclasses.dataclass(frozen=True)
 class LevelSetReport:
-    """What :func:`analyze` measured. ``as_dict()`` gives the numbers as plain floats/ints.
+    """What [`analyze`][jurs.levelset.analyze] measured. ``as_dict()`` gives the numbers as
+    plain floats/ints.
 
     Attributes:
-        components: every :class:`Component`, longest first.
+        components: every [`Component`][jurs.levelset.Component], longest first.
         threshold: distance above which a component is supplementary.
         cell_size: grid spacing h.
         resolution: grid nodes along the longer side.
@@ -392,8 +396,8 @@ class LevelSetReport:
 def classify(
     lines, points, *, threshold: float, cell_size: float, tiny_cells: float = DEFAULT_TINY_CELLS
 ) -> list[Component]:
-    """Turn ``(polyline, closed)`` pairs into :class:`Component` s, longest first, measuring
-    their distance to the data ``points (m, 2)`` with a KD-tree."""
+    """Turn ``(polyline, closed)`` pairs into [`Component`][jurs.levelset.Component] s,
+    longest first, measuring their distance to the data ``points (m, 2)`` with a KD-tree."""
     tree = cKDTree(np.asarray(points, float).reshape(-1, 2))
     out = []
     for poly, closed in lines:
@@ -438,9 +442,10 @@ def analyze(
     """Extract and measure the zero-level set of ``spline`` (see the module docstring).
 
     Args:
-        spline: an :class:`jurs.ImplicitSpline` (anything jit-callable on ``(n, 2)`` arrays
+        spline: an [`jurs.ImplicitSpline`][] (anything jit-callable on ``(n, 2)`` arrays
             with ``lower``/``upper`` works, given ``box``; for other functions, e.g. NumPy
-            or SciPy ones, sample them yourself and call :func:`analyze_grid`).
+            or SciPy ones, sample them yourself and call
+            [`analyze_grid`][jurs.levelset.analyze_grid]).
         points: ``(m, 2)`` data points the fit was made from.
         offset: d of the fit; the default threshold is ``2 d`` (or an eighth of a cell
             of the spline's grid, where more).
@@ -454,7 +459,7 @@ def analyze(
             ``zero_area_fraction``).
 
     Returns:
-        :class:`LevelSetReport`.
+        [`LevelSetReport`][jurs.levelset.LevelSetReport].
     """
     xs, ys, _ = sampling_grid(*_box(spline, box), resolution)
     return analyze_grid(
@@ -473,7 +478,7 @@ def analyze(
 
 def _fit_cell(spline) -> float:
     """The width of the spline's cells (its box over its knot spans), 0 for a function that
-    is not a :class:`jurs.ImplicitSpline`."""
+    is not a [`jurs.ImplicitSpline`][]."""
     return spline.cell_width if isinstance(spline, ImplicitSpline) else 0.0
 
 
@@ -490,13 +495,13 @@ def analyze_grid(
     tiny_cells: float = DEFAULT_TINY_CELLS,
     zero_tol: float = 1e-12,
 ) -> LevelSetReport:
-    """:func:`analyze` for a function already sampled on a grid: ``values[j, i]`` at
-    ``(xs[i], ys[j])``, with ``xs``/``ys`` from :func:`sampling_grid` (any implicit function
-    can be measured this way, so other methods are compared on equal terms). The cell size
-    is the spacing along the longer side; ``fit_cell``, the width of the fitted function's
-    own cells (0: none), raises the default threshold to :data:`FIT_CELL_FRACTION` of it;
-    other arguments as in
-    :func:`analyze`."""
+    """[`analyze`][jurs.levelset.analyze] for a function already sampled on a grid:
+    ``values[j, i]`` at ``(xs[i], ys[j])``, with ``xs``/``ys`` from
+    [`sampling_grid`][jurs.levelset.sampling_grid] (any implicit function can be measured
+    this way, so other methods are compared on equal terms). The cell size is the spacing
+    along the longer side; ``fit_cell``, the width of the fitted function's own cells (0:
+    none), raises the default threshold to ``FIT_CELL_FRACTION`` of it; other arguments as
+    in [`analyze`][jurs.levelset.analyze]."""
     points = np.asarray(points, float)
     if points.ndim != 2 or points.shape[1] != 2 or len(points) == 0:
         raise ValueError(f"points must have shape (m, 2) with m >= 1, got {points.shape}")

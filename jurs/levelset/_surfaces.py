@@ -1,12 +1,13 @@
 """Triangle meshes of the zero set of a 3D spline, and what to measure on them.
 
-:func:`mesh` samples g on a lattice slab by slab (:func:`jurs._model.lattice.lattice_values`),
-runs marching cubes (scikit-image) on each slab, stitches the slabs and moves the vertices
-onto {g = 0} by Newton steps. :func:`analyze_mesh` splits a mesh into connected components
-and measures each (area, closed or open, genus, distance to the data), flagging the
-supplementary ones ("bubbles" away from the data); :func:`mesh_distances` compares a mesh
-with a reference cloud (Chamfer, Hausdorff, normal consistency). Everything is host-side
-NumPy/SciPy; see docs/surfaces.md for the definitions.
+[`mesh`][jurs.levelset.mesh] samples g on a lattice slab by slab
+(``jurs._model.lattice.lattice_values``), runs marching cubes (scikit-image) on each slab,
+stitches the slabs and moves the vertices onto {g = 0} by Newton steps.
+[`analyze_mesh`][jurs.levelset.analyze_mesh] splits a mesh into connected components and
+measures each (area, closed or open, genus, distance to the data), flagging the supplementary
+ones ("bubbles" away from the data); [`mesh_distances`][jurs.levelset.mesh_distances] compares
+a mesh with a reference cloud (Chamfer, Hausdorff, normal consistency). Everything is
+host-side NumPy/SciPy; see docs/surfaces.md for the definitions.
 """
 
 from __future__ import annotations
@@ -36,11 +37,11 @@ SAMPLES_PER_CELL = 5
 #: default mesh at a few hundred thousand triangles and a couple of seconds on a laptop;
 #: pass ``resolution`` for more.
 MIN_RESOLUTION, MAX_RESOLUTION = 32, 256
-#: Default lattice nodes per slab of :func:`mesh` (8 MiB of float64 values; larger slabs
-#: were no faster: 2.6 s against 2.5 s at resolution 300).
+#: Default lattice nodes per slab of [`mesh`][jurs.levelset.mesh] (8 MiB of float64
+#: values; larger slabs were no faster: 2.6 s against 2.5 s at resolution 300).
 SLAB_NODES = 1 << 20
 #: Lattice values closer to the level than this fraction of the largest value difference
-#: along a lattice edge (estimated by :func:`_slope_bound`) are moved to that distance
+#: along a lattice edge (estimated by ``_slope_bound``) are moved to that distance
 #: above it. Marching cubes computes in float32: a node this close to the level would get
 #: the vertices of all its crossing edges on itself (a vertex ``t`` of an edge from a node
 #: at index ~1000 rounds onto it below t ~ 6e-5), and two such nodes in one cube, welded,
@@ -49,11 +50,12 @@ SLAB_NODES = 1 << 20
 #: the Newton steps take it back.
 NUDGE = 1e-3
 #: Default supplementary threshold: this many median nearest-neighbour spacings of the
-#: data, and at least :data:`THRESHOLD_DIAGONAL` of the data's bounding-box diagonal.
+#: data, and at least ``THRESHOLD_DIAGONAL`` of the data's bounding-box diagonal.
 THRESHOLD_SPACINGS = 3.0
 THRESHOLD_DIAGONAL = 0.01
-#: Default number of mesh samples of :func:`mesh_distances`: at least this many, and
-#: :data:`SAMPLES_PER_REFERENCE` per reference point, at most :data:`MAX_SAMPLES`.
+#: Default number of mesh samples of
+#: [`mesh_distances`][jurs.levelset.mesh_distances]: at least this many, and
+#: ``SAMPLES_PER_REFERENCE`` per reference point, at most ``MAX_SAMPLES``.
 MIN_SAMPLES, SAMPLES_PER_REFERENCE, MAX_SAMPLES = 10_000, 4, 1_000_000
 
 _EMPTY = (np.empty((0, 3)), np.empty((0, 3), dtype=np.int64))
@@ -80,8 +82,8 @@ def lattice_axes(lower, upper, resolution: int):
 
 
 def default_resolution(spline, lower, upper) -> int:
-    """:data:`SAMPLES_PER_CELL` lattice nodes per spline cell (the finest axis's) along the
-    longest side of the box, within [:data:`MIN_RESOLUTION`, :data:`MAX_RESOLUTION`]."""
+    """``SAMPLES_PER_CELL`` lattice nodes per spline cell (the finest axis's) along the
+    longest side of the box, within [``MIN_RESOLUTION``, ``MAX_RESOLUTION``]."""
     control, _, s_lower, s_upper = spline_fields(spline, dims=(3,))
     cell = np.min((s_upper - s_lower) / (np.asarray(control.shape) - 3.0))
     nodes = int(np.ceil(SAMPLES_PER_CELL * np.max(upper - lower) / cell)) + 1
@@ -102,7 +104,7 @@ def mesh(
     Args:
         spline: any object with fields ``control`` and ``weights`` (``(N, M, K)``, weights
             positive), ``lower`` and ``upper`` (``(3,)``), such as a 3D
-            :class:`jurs.ImplicitSpline`.
+            [`jurs.ImplicitSpline`][].
         resolution: lattice nodes along the longest side of the box (the other sides get
             the same spacing). Default: 5 per spline cell, between 32 and 256.
         box: ``(lower, upper)`` to mesh; default the spline's own box.
@@ -175,8 +177,8 @@ def _march_in_slabs(spline, axes, level: float, nudge: float, chunk: int):
 
     Consecutive slabs share one plane of nodes, evaluated once and handed on, so the
     vertices marching cubes puts on that plane come out bitwise equal in both slabs (the
-    same values on the same edges); :func:`_weld` merges them. Values within ``nudge`` of
-    the level are set to ``level + nudge`` first (see :data:`NUDGE`).
+    same values on the same edges); ``_weld`` merges them. Values within ``nudge`` of
+    the level are set to ``level + nudge`` first (see ``NUDGE``).
     """
     marching_cubes = _marching_cubes()
     xs, ys, zs = axes
@@ -212,7 +214,7 @@ def _weld(vertices, faces):
 
     Marching cubes puts one vertex on each lattice edge the level set crosses, so two
     vertices coincide as the same edge's vertex seen from two slabs, or (should the nudge
-    of :data:`NUDGE` fall short) at a node where g is at the level to float32, where every
+    of ``NUDGE`` fall short) at a node where g is at the level to float32, where every
     crossing edge has its vertex on the node and the triangles between them have no area.
     Merged, each point is one vertex.
     """
@@ -225,7 +227,8 @@ def _weld(vertices, faces):
 
 def _newton(spline, vertices, level: float, steps: int, longest: float):
     """``steps`` Newton steps onto ``{g = level}`` along the gradient, each no longer than
-    ``longest`` (see :func:`mesh`); points with a zero or non-finite gradient stay put."""
+    ``longest`` (see [`mesh`][jurs.levelset.mesh]); points with a zero or non-finite
+    gradient stay put."""
     x = vertices.copy()
     for _ in range(steps):
         value, gradient = values_and_gradients(spline, x)
@@ -275,7 +278,8 @@ def mesh_components(vertices, faces):
 
 
 def _face_components(faces, num_vertices: int):
-    """:func:`mesh_components` of checked int64 ``faces`` over ``num_vertices`` vertices."""
+    """[`mesh_components`][jurs.levelset.mesh_components] of checked int64 ``faces`` over
+    ``num_vertices`` vertices."""
     if len(faces) == 0:
         return 0, np.empty(0, dtype=np.int64)
     # Each face links its first vertex to the other two: enough to connect all three.
@@ -376,10 +380,11 @@ class MeshComponent:
 
 @dataclasses.dataclass(frozen=True)
 class MeshReport:
-    """What :func:`analyze_mesh` measured.
+    """What [`analyze_mesh`][jurs.levelset.analyze_mesh] measured.
 
     Attributes:
-        components: every :class:`MeshComponent`, largest area first.
+        components: every [`MeshComponent`][jurs.levelset.MeshComponent],
+            largest area first.
         threshold: the supplementary threshold (None without data points).
     """
 
@@ -419,8 +424,8 @@ class MeshReport:
 
 
 def default_threshold(points) -> float:
-    """:data:`THRESHOLD_SPACINGS` median nearest-neighbour spacings of ``points``, and at
-    least :data:`THRESHOLD_DIAGONAL` of their bounding-box diagonal.
+    """``THRESHOLD_SPACINGS`` median nearest-neighbour spacings of ``points``, and at
+    least ``THRESHOLD_DIAGONAL`` of their bounding-box diagonal.
 
     A surface through the data lies, at most of its area, within a fraction of the spacing
     of the nearest point; the floor on the diagonal keeps dense clouds, finer than what a
@@ -438,15 +443,15 @@ def analyze_mesh(vertices, faces, points=None, *, threshold: float | None = None
     """Components of a mesh and, given the data ``points (m, 3)``, which are supplementary.
 
     Args:
-        vertices, faces: the mesh (as from :func:`mesh`).
+        vertices, faces: the mesh (as from [`mesh`][jurs.levelset.mesh]).
         points: the data the surface was fitted to; without them no distances are measured
             and nothing is supplementary.
         threshold: distance beyond which a component is supplementary (its area-weighted
-            median distance to the data exceeds it); default :func:`default_threshold`.
+            median distance to the data exceeds it); default ``default_threshold``.
             Unused without ``points``.
 
     Returns:
-        :class:`MeshReport`.
+        [`MeshReport`][jurs.levelset.MeshReport].
     """
     vertices, faces = _check_mesh(vertices, faces)
     if points is not None:
@@ -512,7 +517,7 @@ def mesh_distances(
 
     The mesh is sampled by area (``samples`` points, default 4 per reference point, between
     10 000 and 1 000 000; reproducible by ``seed``). With ``Z`` the samples, ``Y`` the
-    reference points and ``d(a, B) = min_b |a - b|``, as :func:`jurs.levelset.chamfer_hausdorff`
+    reference points and ``d(a, B) = min_b |a - b|``, as [`jurs.levelset.chamfer_hausdorff`][]
     defines them in 2D:
 
     * ``chamfer = (mean_{z in Z} d(z, Y) + mean_{y in Y} d(y, Z)) / 2`` (mean of unsquared
