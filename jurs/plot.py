@@ -15,22 +15,33 @@ matplotlib itself loads at the first figure, not at ``import jurs.plot``.
   [`jurs.levelset.mesh`][]) from two or three directions side by side, shaded.
 """
 
+# jaxtyping's shape strings ("m 2", "*n d") are dimension names, not forward
+# references.
+# ruff: noqa: F722
+
 from __future__ import annotations
 
-from typing import Mapping, Sequence
+from typing import TYPE_CHECKING, Mapping, Sequence
 
 import numpy as np
+import numpy.typing as npt
+from jaxtyping import Float, Int
 
 from ._model.spline import ImplicitSpline
 from .levelset import evaluate_grid, sampling_grid
 from .levelset._surfaces import _check_mesh
+
+if TYPE_CHECKING:  # matplotlib loads at the first figure
+    from matplotlib.figure import Figure
 
 #: Colour of the zero curve, and of supplementary components when they are highlighted.
 ZERO_COLOUR = "k"
 SUPPLEMENTARY_COLOUR = "magenta"
 
 
-def evaluate_on_grid(spline: ImplicitSpline, resolution: int = 400, box=None):
+def evaluate_on_grid(
+    spline: ImplicitSpline, resolution: int = 400, box=None
+) -> tuple[Float[np.ndarray, " nx"], Float[np.ndarray, " ny"], Float[np.ndarray, "ny nx"]]:
     """g sampled on a regular grid over ``box`` (default the spline's box).
 
     ``resolution`` points along the longer side. Returns ``(xs, ys, values)`` with
@@ -109,16 +120,16 @@ def _finish(ax, title=None):
 
 def plot_fit(
     spline: ImplicitSpline,
-    points=None,
-    normals=None,
-    offset=None,
+    points: Float[npt.ArrayLike, "m 2"] | None = None,
+    normals: Float[npt.ArrayLike, "m 2"] | None = None,
+    offset: float | None = None,
     *,
     ax=None,
     title=None,
     resolution: int = 400,
     levelset=None,
     colorbar: bool = True,
-):
+) -> Figure:
     """The paper's view: a heatmap of g over the box with a colour bar, its zero curve, the
     data points and, given ``normals`` and ``offset``, the inner and outer offset samples.
 
@@ -161,15 +172,15 @@ def plot_fit(
 
 def plot_iterations(
     states,
-    points=None,
-    normals=None,
-    offset=None,
+    points: Float[npt.ArrayLike, "m 2"] | None = None,
+    normals: Float[npt.ArrayLike, "m 2"] | None = None,
+    offset: float | None = None,
     *,
     resolution: int = 200,
     ncols: int | None = None,
     panel_size: float = 3.6,
     title=None,
-):
+) -> Figure:
     """Several states of one run side by side on one colour scale (like the paper's Fig. 15).
 
     Args:
@@ -216,7 +227,7 @@ def plot_iterations(
     return fig
 
 
-def plot_energy_history(histories, *, ax=None, title=None):
+def plot_energy_history(histories, *, ax=None, title=None) -> Figure:
     """Energy against step on a log scale, one line per run.
 
     ``histories``: ``{label: Solution or 1-D array}``; a Solution contributes
@@ -268,7 +279,7 @@ def plot_lambda_sensitivity(
     *,
     title=None,
     lam_label: str = "lambda",
-):
+) -> Figure:
     """Metrics against the regularisation weight, one panel each (like the paper's Fig. 16).
 
     Args:
@@ -338,7 +349,14 @@ def _face_normals(vertices, faces) -> np.ndarray:
     return np.cross(b - a, c - a)
 
 
-def decimate_mesh(vertices, faces, max_faces: int, flags=None):
+def decimate_mesh(
+    vertices: Float[npt.ArrayLike, "V 3"],
+    faces: Int[npt.ArrayLike, "F 3"],
+    max_faces: int,
+    flags: npt.ArrayLike | None = None,
+) -> tuple[
+    Float[np.ndarray, "V2 3"], Int[np.ndarray, "F2 3"], np.ndarray, Float[np.ndarray, "F2 3"]
+]:
     """A coarser copy of a triangle mesh with at most ``max_faces`` faces, for drawing.
 
     Vertex clustering: vertices are binned into cubes and each cube's vertices merged into
@@ -491,8 +509,8 @@ def _draw_mesh_panel(ax, vertices, faces, colours, view):
 
 
 def plot_mesh(
-    vertices,
-    faces,
+    vertices: Float[npt.ArrayLike, "V 3"],
+    faces: Int[npt.ArrayLike, "F 3"],
     *,
     ax=None,
     views=MESH_VIEWS,
@@ -501,7 +519,7 @@ def plot_mesh(
     max_faces: int = MAX_DRAWN_FACES,
     title=None,
     panel_size: float = 4.0,
-):
+) -> Figure:
     """A triangle mesh from several directions side by side, with matplotlib's mplot3d.
 
     Faces are drawn (``Poly3DCollection``, orthographic projection, equal scales) in one

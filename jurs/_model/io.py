@@ -7,13 +7,14 @@ import os
 
 import jax.numpy as jnp
 import numpy as np
+from jaxtyping import DTypeLike
 
 from .spline import ImplicitSpline
 
 SPLINE_KEYS = ("control", "weights", "lower", "upper")
 
 
-def check_spline_arrays(arrays: dict, where: str) -> None:
+def check_spline_arrays(arrays: dict[str, np.ndarray], where: str) -> None:
     """ValueError (prefixed by ``where``) unless the arrays make a spline that can be
     evaluated: matching 2D grids of at least 4 x 4 with a box ``lower``, ``upper`` of shape
     (2,), or matching 3D grids of at least 4 x 4 x 4 with a box of shape (3,); finite
@@ -55,7 +56,7 @@ def check_spline_arrays(arrays: dict, where: str) -> None:
         )
 
 
-def save_spline(path, spline: ImplicitSpline) -> None:
+def save_spline(path: str | os.PathLike[str], spline: ImplicitSpline) -> None:
     """Write ``spline`` to exactly ``path`` (``.npz`` format, whatever the name: NumPy's
     ``savez`` would append ``.npz`` to a name without it, and
     [`load_spline`][jurs.load_spline] of the same name would then not find it): arrays
@@ -70,7 +71,7 @@ def save_spline(path, spline: ImplicitSpline) -> None:
         np.savez(fh, **arrays)  # pyright: ignore[reportArgumentType]  # keys: SPLINE_KEYS only
 
 
-def load_spline(path, dtype=None) -> ImplicitSpline:
+def load_spline(path: str | os.PathLike[str], dtype: DTypeLike | None = None) -> ImplicitSpline:
     """Read an [`ImplicitSpline`][jurs.ImplicitSpline] written by
     [`save_spline`][jurs.save_spline]: a curve's (2D grids, box of shape (2,)) or a
     surface's (3D grids, box of shape (3,)).

@@ -36,6 +36,9 @@ Two ways to run F and T, chosen by what the [`LocalBasis`][jurs.internal.LocalBa
   a loop only along contiguous memory.
 """
 
+# jaxtyping's shape strings ("S d", "*grid") are dimension names, not forward references.
+# ruff: noqa: F722
+
 from __future__ import annotations
 
 from functools import partial
@@ -46,6 +49,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import Array
+from jaxtyping import ArrayLike, Float
 
 from .basis import (
     NUM_LOCAL,
@@ -152,7 +156,12 @@ TABLE_MAX_SLOTS = 1 << 16
 
 
 def local_basis(
-    xy: Array, lower: Array, upper: Array, shape: tuple[int, ...], bucket_size: int = 1, xp=jnp
+    xy: Float[Array, "S d"],
+    lower: Float[Array, " d"],
+    upper: Float[Array, " d"],
+    shape: tuple[int, ...],
+    bucket_size: int = 1,
+    xp=jnp,
 ) -> LocalBasis:
     """The local basis of the ``shape`` grid (``(N, M)``, or ``(N, M, K)`` in 3D) on
     ``[lower, upper]`` at ``xy (S, d)``, in the power form (2D) or the generic form.
@@ -282,7 +291,12 @@ def power_coefficients(grids: Array) -> Array:
     return out.reshape(grids.shape[0], -1, NUM_LOCAL)
 
 
-def bspline_values(local: LocalBasis, grids: Array, *, layout: bool = False) -> Array:
+def bspline_values(
+    local: LocalBasis,
+    grids: Float[Array, "*batch N M"] | Float[Array, "*batch N M K"],
+    *,
+    layout: bool = False,
+) -> Float[Array, "*batch S"]:
     """F: the B-spline ``sum_ij G_ij B_i B_j`` of coefficient grid(s) at the samples.
 
     ``grids`` is ``(..., N, M)``; returns ``(..., S)``. Several grids share one pass over
@@ -433,7 +447,9 @@ def transpose_and_sum(
     return grid, tuple(jnp.sum(x) for x in sums)
 
 
-def bspline_transpose(local: LocalBasis, values: Array, shape: tuple[int, ...]) -> Array:
+def bspline_transpose(
+    local: LocalBasis, values: Float[Array, "*batch S"], shape: tuple[int, ...]
+) -> Float[Array, "*batch N M"] | Float[Array, "*batch N M K"]:
     """T, the transpose of [`bspline_values`][jurs.internal.bspline_values]:
     ``sum_k v_k B_i B_j(x_k)`` on the grid.
 
@@ -448,7 +464,9 @@ def bspline_transpose(local: LocalBasis, values: Array, shape: tuple[int, ...]) 
     return grid.reshape(lead + tuple(shape))
 
 
-def rational_values(local: LocalBasis, control: Array, weights: Array):
+def rational_values(
+    local: LocalBasis, control: Float[Array, "*grid"], weights: Float[Array, "*grid"]
+) -> tuple[Float[Array, " S"], Float[Array, " S"]]:
     """``(W, g)`` at the samples: ``W = F(w)`` and ``g = F(w C) / W`` (eq. 14)."""
     both = bspline_values(local, jnp.stack([weights, weights * control]))
     return both[0], both[1] / both[0]
@@ -487,10 +505,10 @@ class ImplicitSpline(eqx.Module):
     pieces extend.
     """
 
-    control: Array
-    weights: Array
-    lower: Array
-    upper: Array
+    control: Float[Array, "*grid"]
+    weights: Float[Array, "*grid"]
+    lower: Float[Array, " d"]
+    upper: Float[Array, " d"]
 
     def __check_init__(self):
         if self.control.ndim not in (2, 3) or self.control.shape != self.weights.shape:
@@ -527,7 +545,12 @@ class ImplicitSpline(eqx.Module):
         return float(np.max(extent / (np.asarray(self.shape) - 3)))
 
     @classmethod
-    def bspline(cls, control: Array, lower, upper) -> "ImplicitSpline":
+    def bspline(
+        cls,
+        control: Float[ArrayLike, "*grid"],
+        lower: Float[ArrayLike, " d"],
+        upper: Float[ArrayLike, " d"],
+    ) -> ImplicitSpline:
         """A polynomial B-spline (all weights 1)."""
         control = jnp.asarray(control)
         return cls(
@@ -537,16 +560,16 @@ class ImplicitSpline(eqx.Module):
             jnp.asarray(upper, control.dtype),
         )
 
-    def local_basis(self, xy: Array) -> LocalBasis:
+    def local_basis(self, xy: Float[Array, "S d"]) -> LocalBasis:
         return local_basis(xy, self.lower, self.upper, self.shape)
 
-    def __call__(self, xy: Array) -> Array:
+    def __call__(self, xy: Float[ArrayLike, "*n d"]) -> Float[Array, "*n"]:
         xy = jnp.asarray(xy)
         single = xy.ndim == 1
         _, g = rational_values(self.local_basis(jnp.atleast_2d(xy)), self.control, self.weights)
         return g[0] if single else g
 
-    def grad(self, xy: Array) -> Array:
+    def grad(self, xy: Float[ArrayLike, "*n d"]) -> Float[Array, "*n d"]:
         """Spatial gradient of g at ``xy (n, d)``; ``(n, d)`` (or ``(d,)`` for one point)."""
         xy = jnp.asarray(xy)
         point_grad = jax.grad(lambda p: self(p))

@@ -2,6 +2,10 @@
 
 The definitions are in the docstring of [`jurs.levelset`][]."""
 
+# jaxtyping's shape strings ("m 2", "*n d") are dimension names, not forward
+# references.
+# ruff: noqa: F722
+
 from __future__ import annotations
 
 import dataclasses
@@ -10,6 +14,8 @@ from typing import TYPE_CHECKING, Sequence, cast
 import contourpy
 import equinox as eqx
 import numpy as np
+import numpy.typing as npt
+from jaxtyping import Bool, Float
 from scipy.spatial import cKDTree  # pyright: ignore[reportAttributeAccessIssue]  # no stub
 
 from .._model.spline import ImplicitSpline
@@ -36,7 +42,11 @@ DEFAULT_TINY_CELLS = 4.0
 DEFAULT_THRESHOLD_FACTOR = 2.0
 
 
-def sampling_grid(lower, upper, resolution: int = DEFAULT_RESOLUTION):
+def sampling_grid(
+    lower: Float[npt.ArrayLike, " 2"],
+    upper: Float[npt.ArrayLike, " 2"],
+    resolution: int = DEFAULT_RESOLUTION,
+) -> tuple[Float[np.ndarray, " nx"], Float[np.ndarray, " ny"], float]:
     """Grid nodes over the box ``[lower, upper]``: ``resolution`` along the longer side, the
     same spacing along the shorter one (at least 2 nodes). Returns ``(xs, ys, h)`` with
     ``h`` the spacing along the longer side."""
@@ -68,7 +78,13 @@ def _gradient(spline, xy):
     return spline.grad(xy)
 
 
-def evaluate_grid(spline, xs, ys, *, chunk: int = 1 << 15) -> np.ndarray:
+def evaluate_grid(
+    spline,
+    xs: Float[npt.ArrayLike, " nx"],
+    ys: Float[npt.ArrayLike, " ny"],
+    *,
+    chunk: int = 1 << 15,
+) -> Float[np.ndarray, "ny nx"]:
     """``values[j, i] = g(xs[i], ys[j])`` as a NumPy array.
 
     Evaluated in fixed-size chunks (the last one padded) under one jit, so grids of any
@@ -92,7 +108,12 @@ def _box(spline, box):
     return np.asarray(lower, float), np.asarray(upper, float)
 
 
-def contour_lines(xs, ys, values, level: float = 0.0):
+def contour_lines(
+    xs: Float[npt.ArrayLike, " nx"],
+    ys: Float[npt.ArrayLike, " ny"],
+    values: Float[npt.ArrayLike, "ny nx"],
+    level: float = 0.0,
+) -> list[tuple[Float[np.ndarray, "k 2"], bool]]:
     """Marching-squares polylines of ``values`` (shape ``(len(ys), len(xs))``) at ``level``.
 
     Returns a list of ``(polyline (k, 2), closed)``. NaN/Inf values are masked out. Closed
@@ -110,7 +131,9 @@ def contour_lines(xs, ys, values, level: float = 0.0):
     return [(np.asarray(p, float), bool(len(c) and c[-1] == 79)) for p, c in zip(lines, codes)]
 
 
-def zero_level_set(spline, resolution: int = DEFAULT_RESOLUTION, box=None, level: float = 0.0):
+def zero_level_set(
+    spline, resolution: int = DEFAULT_RESOLUTION, box=None, level: float = 0.0
+) -> list[tuple[Float[np.ndarray, "k 2"], bool]]:
     """The zero-level set of ``spline`` over ``box`` (default the spline's box) as polylines.
 
     Returns a list of ``(polyline (k, 2), closed)`` pairs; see the module docstring.
@@ -119,13 +142,13 @@ def zero_level_set(spline, resolution: int = DEFAULT_RESOLUTION, box=None, level
     return contour_lines(xs, ys, evaluate_grid(spline, xs, ys), level)
 
 
-def polyline_length(polyline) -> float:
+def polyline_length(polyline: Float[npt.ArrayLike, "k 2"]) -> float:
     """Sum of the segment lengths of a ``(k, 2)`` polyline."""
     p = np.asarray(polyline, float)
     return float(np.sum(np.linalg.norm(np.diff(p, axis=0), axis=1))) if len(p) > 1 else 0.0
 
 
-def resample(polyline, spacing: float) -> np.ndarray:
+def resample(polyline: Float[npt.ArrayLike, "k 2"], spacing: float) -> Float[np.ndarray, "l 2"]:
     """Points along ``polyline`` at arc-length spacing at most ``spacing`` (ends included)."""
     p = np.asarray(polyline, float)
     if len(p) < 2:
@@ -137,7 +160,9 @@ def resample(polyline, spacing: float) -> np.ndarray:
     return np.stack([np.interp(t, s, p[:, 0]), np.interp(t, s, p[:, 1])], axis=1)
 
 
-def chamfer_hausdorff(a, b) -> tuple[float, float]:
+def chamfer_hausdorff(
+    a: Float[npt.ArrayLike, "k 2"], b: Float[npt.ArrayLike, "l 2"]
+) -> tuple[float, float]:
     """Symmetric Chamfer and Hausdorff distances between point sets ``a (k, 2)`` and
     ``b (l, 2)`` (see the module docstring); ``(inf, inf)`` if either is empty."""
     a = np.asarray(a, float).reshape(-1, 2)
@@ -149,7 +174,12 @@ def chamfer_hausdorff(a, b) -> tuple[float, float]:
     return float(0.5 * (d_ab.mean() + d_ba.mean())), float(max(d_ab.max(), d_ba.max()))
 
 
-def distance_to_polyline(points, polyline, *, closed: bool = False) -> np.ndarray:
+def distance_to_polyline(
+    points: Float[npt.ArrayLike, "k 2"],
+    polyline: Float[npt.ArrayLike, "l 2"],
+    *,
+    closed: bool = False,
+) -> Float[np.ndarray, " k"]:
     """Distance from each of ``points (k, 2)`` to the polyline ``(l, 2)``: to its segments,
     not only its vertices, so the polyline's spacing sets no floor (only its chords' own
     distance to the curve they sample, ``spacing^2 * curvature / 8``). ``closed`` adds the
@@ -195,8 +225,14 @@ def _central_gradient(fn, xy: np.ndarray, step: float) -> np.ndarray:
 
 
 def project_to_zero_set(
-    fn, points, *, grad=None, steps: int = 3, tol: float | None = None, step: float | None = None
-):
+    fn,
+    points: Float[npt.ArrayLike, "k 2"],
+    *,
+    grad=None,
+    steps: int = 3,
+    tol: float | None = None,
+    step: float | None = None,
+) -> tuple[Float[np.ndarray, "k 2"], Bool[np.ndarray, " k"]]:
     """Move each of ``points (k, 2)`` onto ``{fn = 0}`` by Newton steps along the gradient,
     ``x <- x - f(x) grad f(x) / |grad f(x)|^2``; from a point near the zero set this lands
     on it near the point's foot, with the error squared every step.
@@ -241,8 +277,8 @@ def project_to_zero_set(
 
 def refined_chamfer_hausdorff(
     fn,
-    zero_points,
-    reference,
+    zero_points: Float[npt.ArrayLike, "k 2"],
+    reference: Float[npt.ArrayLike, "l 2"],
     *,
     grad=None,
     closed: bool = True,
@@ -394,7 +430,12 @@ class LevelSetReport:
 
 
 def classify(
-    lines, points, *, threshold: float, cell_size: float, tiny_cells: float = DEFAULT_TINY_CELLS
+    lines,
+    points: Float[npt.ArrayLike, "m 2"],
+    *,
+    threshold: float,
+    cell_size: float,
+    tiny_cells: float = DEFAULT_TINY_CELLS,
 ) -> list[Component]:
     """Turn ``(polyline, closed)`` pairs into [`Component`][jurs.levelset.Component] s,
     longest first, measuring their distance to the data ``points (m, 2)`` with a KD-tree."""
@@ -429,11 +470,11 @@ def classify(
 
 def analyze(
     spline,
-    points,
+    points: Float[npt.ArrayLike, "m 2"],
     *,
     offset: float = 0.1,
     threshold: float | None = None,
-    reference=None,
+    reference: Float[npt.ArrayLike, "k 2"] | None = None,
     resolution: int = DEFAULT_RESOLUTION,
     box=None,
     tiny_cells: float = DEFAULT_TINY_CELLS,
@@ -483,15 +524,15 @@ def _fit_cell(spline) -> float:
 
 
 def analyze_grid(
-    xs,
-    ys,
-    values,
-    points,
+    xs: Float[npt.ArrayLike, " nx"],
+    ys: Float[npt.ArrayLike, " ny"],
+    values: Float[npt.ArrayLike, "ny nx"],
+    points: Float[npt.ArrayLike, "m 2"],
     *,
     offset: float = 0.1,
     threshold: float | None = None,
     fit_cell: float = 0.0,
-    reference=None,
+    reference: Float[npt.ArrayLike, "k 2"] | None = None,
     tiny_cells: float = DEFAULT_TINY_CELLS,
     zero_tol: float = 1e-12,
 ) -> LevelSetReport:
@@ -542,7 +583,7 @@ def analyze_grid(
     )
 
 
-def polylines_table(components: Sequence[Component]) -> np.ndarray:
+def polylines_table(components: Sequence[Component]) -> Float[np.ndarray, "rows 5"]:
     """Rows ``(component, closed, supplementary, x, y)`` for every vertex, components
     numbered from 0 in the order given (as written to the CLI's CSV)."""
     rows = [

@@ -10,11 +10,17 @@ a mesh with a reference cloud (Chamfer, Hausdorff, normal consistency). Everythi
 host-side NumPy/SciPy; see docs/surfaces.md for the definitions.
 """
 
+# jaxtyping's shape strings ("m 2", "*n d") are dimension names, not forward
+# references.
+# ruff: noqa: F722
+
 from __future__ import annotations
 
 import dataclasses
 
 import numpy as np
+import numpy.typing as npt
+from jaxtyping import Float, Int
 from scipy import sparse
 from scipy.sparse import csgraph
 from scipy.spatial import cKDTree  # pyright: ignore[reportAttributeAccessIssue]  # no stub
@@ -69,7 +75,9 @@ def _marching_cubes():
     return marching_cubes
 
 
-def lattice_axes(lower, upper, resolution: int):
+def lattice_axes(
+    lower: Float[np.ndarray, " 3"], upper: Float[np.ndarray, " 3"], resolution: int
+) -> list[Float[np.ndarray, " n"]]:
     """Lattice node coordinates over the box: ``resolution`` nodes along its longest side,
     about the same spacing along the others (at least 2 nodes). Returns three 1D arrays."""
     if isinstance(resolution, bool) or not isinstance(resolution, (int, np.integer)):
@@ -81,7 +89,9 @@ def lattice_axes(lower, upper, resolution: int):
     return [np.linspace(lo, hi, c) for lo, hi, c in zip(lower, upper, counts)]
 
 
-def default_resolution(spline, lower, upper) -> int:
+def default_resolution(
+    spline, lower: Float[np.ndarray, " 3"], upper: Float[np.ndarray, " 3"]
+) -> int:
     """``SAMPLES_PER_CELL`` lattice nodes per spline cell (the finest axis's) along the
     longest side of the box, within [``MIN_RESOLUTION``, ``MAX_RESOLUTION``]."""
     control, _, s_lower, s_upper = spline_fields(spline, dims=(3,))
@@ -98,7 +108,7 @@ def mesh(
     level: float = 0.0,
     newton_steps: int = 2,
     chunk: int = SLAB_NODES,
-):
+) -> tuple[Float[np.ndarray, "V 3"], Int[np.ndarray, "F 3"]]:
     """Triangle mesh of ``{g = level}`` of a 3D spline over ``box``.
 
     Args:
@@ -260,14 +270,18 @@ def _check_mesh(vertices, faces):
     return vertices, faces.astype(np.int64)
 
 
-def face_areas(vertices, faces) -> np.ndarray:
+def face_areas(
+    vertices: Float[npt.ArrayLike, "V 3"], faces: Int[npt.ArrayLike, "F 3"]
+) -> Float[np.ndarray, " F"]:
     """Area of each triangle; ``(F,)``."""
     vertices, faces = _check_mesh(vertices, faces)
     a, b, c = (vertices[faces[:, k]] for k in range(3))
     return 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
 
 
-def mesh_components(vertices, faces):
+def mesh_components(
+    vertices: Float[npt.ArrayLike, "V 3"], faces: Int[npt.ArrayLike, "F 3"]
+) -> tuple[int, Int[np.ndarray, " F"]]:
     """Connected components of a triangle mesh (faces sharing a vertex are connected).
 
     Returns ``(count, labels)``: ``labels (F,)`` numbers each face's component from 0, the
@@ -318,7 +332,7 @@ def _topology(faces, labels, count):
     )
 
 
-def genus(faces) -> int:
+def genus(faces: Int[npt.ArrayLike, "F 3"]) -> int:
     """Genus of a closed, connected, orientable triangle mesh from its Euler characteristic
     ``V - E + F = 2 - 2 genus`` (V counts only the vertices the faces use).
 
@@ -423,7 +437,7 @@ class MeshReport:
         }
 
 
-def default_threshold(points) -> float:
+def default_threshold(points: Float[npt.ArrayLike, "m 3"]) -> float:
     """``THRESHOLD_SPACINGS`` median nearest-neighbour spacings of ``points``, and at
     least ``THRESHOLD_DIAGONAL`` of their bounding-box diagonal.
 
@@ -439,7 +453,13 @@ def default_threshold(points) -> float:
     return float(max(THRESHOLD_SPACINGS * spacing, THRESHOLD_DIAGONAL * diagonal))
 
 
-def analyze_mesh(vertices, faces, points=None, *, threshold: float | None = None) -> MeshReport:
+def analyze_mesh(
+    vertices: Float[npt.ArrayLike, "V 3"],
+    faces: Int[npt.ArrayLike, "F 3"],
+    points: Float[npt.ArrayLike, "m 3"] | None = None,
+    *,
+    threshold: float | None = None,
+) -> MeshReport:
     """Components of a mesh and, given the data ``points (m, 3)``, which are supplementary.
 
     Args:
@@ -504,10 +524,10 @@ def _weighted_medians(values, weights, labels, totals):
 
 
 def mesh_distances(
-    vertices,
-    faces,
-    reference_points,
-    reference_normals=None,
+    vertices: Float[npt.ArrayLike, "V 3"],
+    faces: Int[npt.ArrayLike, "F 3"],
+    reference_points: Float[npt.ArrayLike, "m 3"],
+    reference_normals: Float[npt.ArrayLike, "m 3"] | None = None,
     *,
     samples: int | None = None,
     seed: int = 0,
