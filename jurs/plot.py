@@ -329,10 +329,11 @@ def plot_lambda_sensitivity(
 #: ``(elevation, azimuth)`` in degrees as matplotlib's ``view_init`` takes them: from
 #: the front and above, from the side and above, and from the top (down the z axis).
 MESH_VIEWS = ((25.0, -60.0), (25.0, 30.0), (90.0, -90.0))
-#: Faces drawn per panel at most: matplotlib draws and depth-sorts every polygon on the CPU
-#: (on a shared 2-core machine one panel of 200 000 faces took about 1.5 s to save, of
-#: 20 000 about 0.5 s); larger meshes are decimated first
-#: ([`decimate_mesh`][jurs.plot.decimate_mesh]).
+#: Faces drawn per panel at most: matplotlib draws and depth-sorts every polygon on the CPU,
+#: so a figure's time grows with its faces; larger meshes are decimated first
+#: ([`decimate_mesh`][jurs.plot.decimate_mesh]), which keeps a figure to about a second or
+#: two whatever the mesh (docs/performance.md, "Measurements behind the level-set and
+#: plotting defaults").
 MAX_DRAWN_FACES = 20_000
 MESH_COLOUR = (0.60, 0.72, 0.88)
 #: Share of the light every face gets whatever its direction, so faces turned away from the
@@ -541,8 +542,8 @@ def plot_mesh(
             so that highlighted faces inside a closed surface show through it.
         max_faces: a mesh with more faces is drawn decimated to at most this many, by
             vertex clustering ([`decimate_mesh`][jurs.plot.decimate_mesh]), so that the
-            figure stays quick to draw and save: at the default ``MAX_DRAWN_FACES``, about
-            1.5 s for three panels however large the mesh. Pass ``len(faces)`` to draw
+            figure takes no longer to draw and save than one of ``max_faces`` faces,
+            however large the mesh (docs/performance.md). Pass ``len(faces)`` to draw
             every face.
         title: the figure's title.
         panel_size: inches per panel.

@@ -27,10 +27,10 @@ Two ways to run F and T, chosen by what the [`LocalBasis`][jurs.internal.LocalBa
   16 basis products of every table position (0 at its padding), the grid corner of every
   bucket's 4 x 4 coefficient patch and the flat grid index of its 16 coefficients are
   stored, with the permutation between slots and table positions. F gathers the patches
-  from the grid (one 4 x 4 window a bucket: measured 2x faster than 16 indices) and T
-  scatters onto it directly; a step then runs as a handful of small kernels, which is what
-  counts with a few thousand samples. Table
-  position ``p`` is entry ``p % K`` of bucket ``p // K``. The products are stored twice,
+  from the grid (one 4 x 4 window a bucket, cheaper than 16 indices: docs/performance.md,
+  "Spline kernels") and T scatters onto it directly; a step then runs as a handful of
+  small kernels, which is what counts with a few thousand samples. Table position ``p``
+  is entry ``p % K`` of bucket ``p // K``. The products are stored twice,
   term-major (for F, which broadcasts a bucket's coefficient along its entries) and
   term-minor (for T, which broadcasts an entry's value along its 16 terms): XLA vectorises
   a loop only along contiguous memory.
@@ -235,8 +235,8 @@ def computed_apart(fn, *args, shapes=None):
 
     XLA fuses an elementwise producer into the kernels that consume it: into a reduction,
     where the per-sample Horner schemes run several times slower than in an elementwise
-    kernel (measured 4x on 3e6 samples), or into several consumers at once, each then
-    evaluating the spline again. A conditional is a fusion boundary (about 0.4 us). Its
+    kernel (docs/performance.md, "Spline kernels"), or into several consumers at once, each
+    then evaluating the spline again. A conditional is a fusion boundary, and a cheap one. Its
     predicate is always true but opaque to the compiler (the first integer input, a cell
     or grid index, is never negative), so the other branch, zeros, never runs; without an
     integer input both branches are ``fn``. ``shapes``: the output's shape-dtype structure
@@ -404,7 +404,8 @@ def transpose_and_sum(
             return sum(_take(terms, i, 1) * _take(v, i, 2) for i in range(terms.shape[1]))
 
         # In a kernel of its own: fused into the scatter, the sums are laid out as the
-        # scatter's (updates, 1) operand and lose vectorisation (measured 3x slower).
+        # scatter's (updates, 1) operand and lose vectorisation (docs/performance.md,
+        # "Spline kernels").
         per_bucket = computed_apart(
             lambda index, v, terms: bucket_sums(v, terms),
             local.index,

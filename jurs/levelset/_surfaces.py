@@ -33,18 +33,19 @@ from ..datasets import sample_mesh
 #: so a feature one cell wide needs two or three nodes across it to show up at all. The
 #: Newton steps afterwards put the vertices on the zero set, but the flat triangles between
 #: them cut the curved surface short by about ``kappa e^2 / 8`` (curvature kappa, edge e),
-#: which on clean fits was most of the mesh's error at 3 nodes a cell: a fit of 1e5 exact
-#: points of a unit sphere (48^3 grid) lies 1.9e-5 from the sphere on average, its mesh
-#: 5.5e-5 at 137 nodes (3 a cell; meshed in 0.34 s on a 2-core CPU), 3.3e-5 at 192
-#: (0.87 s), 2.5e-5 at 256 (1.7 s). Five a cell makes the default mesh of a 48^3 fit about
-#: 230 nodes a side.
+#: which on clean fits was most of the mesh's error at 3 nodes a cell; at 5 the mesh of a
+#: clean sphere fit is within about 1.3x of the fit's own distance to the sphere, for 5x
+#: the meshing time of 3 (docs/performance.md, "Measurements behind the level-set and
+#: plotting defaults"). Five a cell makes the default mesh of a 48^3 fit about 230 nodes a
+#: side.
 SAMPLES_PER_CELL = 5
 #: Bounds of the default resolution (nodes along the longest side of the box). 256 keeps a
-#: default mesh at a few hundred thousand triangles and a couple of seconds on a laptop;
-#: pass ``resolution`` for more.
+#: default mesh at a few hundred thousand triangles, meshed in a couple of seconds
+#: (docs/performance.md); pass ``resolution`` for more.
 MIN_RESOLUTION, MAX_RESOLUTION = 32, 256
-#: Default lattice nodes per slab of [`mesh`][jurs.levelset.mesh] (8 MiB of float64
-#: values; larger slabs were no faster: 2.6 s against 2.5 s at resolution 300).
+#: Default lattice nodes per slab of [`mesh`][jurs.levelset.mesh]: 8 MiB of float64
+#: values, which bounds the memory of a mesh; larger slabs mesh no faster
+#: (docs/performance.md).
 SLAB_NODES = 1 << 20
 #: Lattice values closer to the level than this fraction of the largest value difference
 #: along a lattice edge (estimated by ``_slope_bound``) are moved to that distance
