@@ -203,6 +203,27 @@ class Resolver:
 # --------------------------------------------------------------------------- rewriting
 
 
+#: A role broken over two lines: its start, the line break and indentation (and a comment's
+#: ``#``), and the rest up to the closing backtick and the punctuation after it.
+SPLIT_ROLE = re.compile(
+    r"(?<![\w`])(?P<head>:(?:py:)?(?:func|class|data|mod|meth|attr|obj|exc|const|any|type)"
+    r":`[^`\n]*)\n(?P<indent>[ \t]*(?:#:?[ \t]?)?)(?P<tail>[ \t]*[^`\n]*`[^\s`]*)[ \t]?"
+)
+
+
+def join_split_roles(text: str) -> str:
+    """``text`` with each role broken over two lines put back on the first one, the line
+    break moved after it (so the line count stays): ``(:func:`a.`` / ``b`) c`` becomes
+    ``(:func:`a.b`)`` / ``c``. A dotted name is joined without a space, words with one."""
+
+    def one(match: re.Match) -> str:
+        head, tail = match["head"], match["tail"].strip()
+        sep = "" if head.endswith((".", "`")) or tail.startswith(".") else " "
+        return f"{head.rstrip()}{sep}{tail}\n{match['indent']}"
+
+    return SPLIT_ROLE.sub(one, text)
+
+
 def rewrite_roles(text: str, convert, *, markdown: bool) -> str:
     """``text`` with each role replaced by ``convert(role, target, title)``'s answer."""
 
@@ -393,7 +414,7 @@ def convert_python(path: Path, source: str, resolver: Resolver, limit: int) -> s
     for tok in tokens:
         if tok.type == tokenize.STRING and tok.start in starts and ROLE.search(tok.string):
             old = tok.string.split("\n")
-            new = rewrite(tok.string, tok.start[0]).split("\n")
+            new = rewrite(join_split_roles(tok.string), tok.start[0]).split("\n")
             changed = [a != b for a, b in zip(old, new)]
             width = own_width(old, tok.start[1])
             text = "\n".join(wrap(new, changed, limit, tok.start[1], width))
@@ -406,7 +427,8 @@ def convert_python(path: Path, source: str, resolver: Resolver, limit: int) -> s
         row, col = first.start
         prefix = comment_prefix(first.string)
         old = [tok.string[len(comment_prefix(tok.string)) :] for tok in block]
-        new = [rewrite(text, tok.start[0]) for text, tok in zip(old, block)]
+        joined = join_split_roles("\n".join(old)).split("\n")
+        new = [rewrite(text, tok.start[0]) for text, tok in zip(joined, block)]
         changed = [a != b for a, b in zip(old, new)]
         room = limit - col - len(prefix)
         code_line = lines[row - 1]
@@ -428,7 +450,7 @@ def convert_python(path: Path, source: str, resolver: Resolver, limit: int) -> s
 
 def convert_markdown(source: str, resolver: Resolver) -> str:
     out, fenced = [], False
-    for line in source.splitlines(keepends=True):
+    for line in join_split_roles(source).splitlines(keepends=True):
         if FENCE.match(line):
             fenced = not fenced
         if not fenced:
