@@ -10,10 +10,6 @@ read and written by [`load_points`][jurs.datasets.load_points] /
 through trimesh, an optional dependency).
 """
 
-# jaxtyping's shape strings ("m 2", "*n d") are dimension names, not forward
-# references.
-# ruff: noqa: F722
-
 from __future__ import annotations
 
 import csv

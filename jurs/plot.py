@@ -15,10 +15,6 @@ matplotlib itself loads at the first figure, not at ``import jurs.plot``.
   [`jurs.levelset.mesh`][]) from two or three directions side by side, shaded.
 """
 
-# jaxtyping's shape strings ("m 2", "*n d") are dimension names, not forward
-# references.
-# ruff: noqa: F722
-
 from __future__ import annotations
 
 from typing import TYPE_CHECKING, Mapping, Sequence

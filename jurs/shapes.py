@@ -29,10 +29,6 @@ matplotlib and scikit-image are imported inside the functions that need them, so
 ``import jurs.shapes`` stays light. scikit-image is needed only for the image shapes.
 """
 
-# jaxtyping's shape strings ("m 2", "*n d") are dimension names, not forward
-# references.
-# ruff: noqa: F722
-
 from __future__ import annotations
 
 import functools

@@ -36,9 +36,6 @@ Two ways to run F and T, chosen by what the [`LocalBasis`][jurs.internal.LocalBa
   a loop only along contiguous memory.
 """
 
-# jaxtyping's shape strings ("S d", "*grid") are dimension names, not forward references.
-# ruff: noqa: F722
-
 from __future__ import annotations
 
 from functools import partial

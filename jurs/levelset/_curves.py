@@ -2,10 +2,6 @@
 
 The definitions are in the docstring of [`jurs.levelset`][]."""
 
-# jaxtyping's shape strings ("m 2", "*n d") are dimension names, not forward
-# references.
-# ruff: noqa: F722
-
 from __future__ import annotations
 
 import dataclasses

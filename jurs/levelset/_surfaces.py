@@ -10,10 +10,6 @@ a mesh with a reference cloud (Chamfer, Hausdorff, normal consistency). Everythi
 host-side NumPy/SciPy; see docs/surfaces.md for the definitions.
 """
 
-# jaxtyping's shape strings ("m 2", "*n d") are dimension names, not forward
-# references.
-# ruff: noqa: F722
-
 from __future__ import annotations
 
 import dataclasses
