@@ -53,7 +53,6 @@ import sys
 import tempfile
 import tokenize
 import zlib
-from dataclasses import dataclass, field
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parent.parent
@@ -111,19 +110,17 @@ def built_inventory() -> dict[str, str]:
         return read_inventory(Path(site) / "objects.inv")
 
 
-@dataclass
 class Resolver:
-    """Sphinx-like resolution of a role's target, then rendered or not."""
+    """Sphinx-like resolution of a role's target, then rendered or not: ``anchors`` maps
+    every name in the site's inventory to the identifier to write. The modules are read by
+    griffe from their source (``allow_inspection=False``: nothing is imported)."""
 
-    anchors: dict[str, str]
-    loader: object = None
-    modules: dict[str, object] = field(default_factory=dict)
-
-    def __post_init__(self):
+    def __init__(self, anchors: dict[str, str]):
         import griffe
 
-        self.griffe = griffe
+        self.anchors = anchors
         self.loader = griffe.GriffeLoader(search_paths=[ROOT], allow_inspection=False)
+        self.modules: dict[str, object] = {}
 
     def module(self, path: Path):
         """The griffe module of a file, or None."""
@@ -138,8 +135,8 @@ class Resolver:
         name = ".".join(parts)
         if name not in self.modules:
             try:
-                if folder not in self.loader.finder.search_paths:  # type: ignore[attr-defined]
-                    self.loader.finder.search_paths.append(folder)  # type: ignore[attr-defined]
+                if folder not in self.loader.finder.search_paths:
+                    self.loader.finder.search_paths.append(folder)
                 top = self.top(parts[0])
                 self.modules[name] = top[".".join(parts[1:])] if len(parts) > 1 else top
             except Exception:
@@ -148,9 +145,9 @@ class Resolver:
 
     def top(self, name: str):
         """The top-level module ``name``, loaded once."""
-        collection = self.loader.modules_collection  # type: ignore[attr-defined]
+        collection = self.loader.modules_collection
         if name not in collection.members:
-            self.loader.load(name)  # type: ignore[attr-defined]
+            self.loader.load(name)
         return collection[name]
 
     def lookup(self, dotted: str, module):
@@ -162,7 +159,7 @@ class Resolver:
                     if not ((ROOT / top / "__init__.py").exists() or (ROOT / f"{top}.py").exists()):
                         continue  # not this project's: not rendered, and slow to load
                     self.top(top)
-                    obj = self.loader.modules_collection[dotted]  # type: ignore[attr-defined]
+                    obj = self.loader.modules_collection[dotted]
                 else:
                     obj = base[dotted]
                 return obj
@@ -398,7 +395,7 @@ def comment_prefix(comment: str) -> str:
 
 def convert_python(path: Path, source: str, resolver: Resolver, limit: int) -> str:
     module = resolver.module(path)
-    module_name = module.path if module is not None else None  # type: ignore[attr-defined]
+    module_name = module.path if module is not None else None
     scopes = scopes_at(source, module_name)
     starts = docstring_tokens(source)
     lines = source.splitlines(keepends=True)
