@@ -1,10 +1,13 @@
 """Built-in point clouds (the paper's analytic examples), noise, and file loading.
 
 Every generator returns ``(points, normals)`` as float64 NumPy arrays of shape ``(m, 2)``
-(the 3D ones :func:`sphere3d`, :func:`torus`, :func:`genus2` and :func:`sample_mesh`:
+(the 3D ones [`sphere3d`][jurs.datasets.sphere3d], [`torus`][jurs.datasets.torus],
+[`genus2`][jurs.datasets.genus2] and [`sample_mesh`][jurs.datasets.sample_mesh]:
 ``(m, 3)``), normals unit length and pointing out of the enclosed region. Point clouds are
-read and written by :func:`load_points` / :func:`save_points`, triangle meshes by
-:func:`load_mesh` / :func:`save_mesh` (3D files through trimesh, an optional dependency).
+read and written by [`load_points`][jurs.datasets.load_points] /
+[`save_points`][jurs.datasets.save_points], triangle meshes by
+[`load_mesh`][jurs.datasets.load_mesh] / [`save_mesh`][jurs.datasets.save_mesh] (3D files
+through trimesh, an optional dependency).
 """
 
 from __future__ import annotations
@@ -14,6 +17,8 @@ import os
 from typing import Callable
 
 import numpy as np
+import numpy.typing as npt
+from jaxtyping import Float, Int
 
 
 def _outward(points: np.ndarray, tangents: np.ndarray) -> np.ndarray:
@@ -30,7 +35,7 @@ def parametric_curve(
     curve: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]],
     derivative: Callable[[np.ndarray], tuple[np.ndarray, np.ndarray]],
     num_points: int,
-) -> tuple[np.ndarray, np.ndarray]:
+) -> tuple[Float[np.ndarray, "m 2"], Float[np.ndarray, "m 2"]]:
     """Sample a closed curve at ``num_points`` uniform parameters t in [0, 2 pi)."""
     if num_points < 3:
         raise ValueError(f"num_points must be >= 3, got {num_points}")
@@ -39,7 +44,7 @@ def parametric_curve(
     return points, _outward(points, np.stack(derivative(t), axis=1))
 
 
-def example1(num_points: int = 120) -> tuple[np.ndarray, np.ndarray]:
+def example1(num_points: int = 120) -> tuple[Float[np.ndarray, "m 2"], Float[np.ndarray, "m 2"]]:
     """The paper's Example 1: x = 4 cos t, y = sin t (3 - 5 sin t), 120 points by default.
 
     A simple closed curve with a concave dent at the top (upper branch minus lower branch
@@ -52,7 +57,9 @@ def example1(num_points: int = 120) -> tuple[np.ndarray, np.ndarray]:
     )
 
 
-def ellipse(num_points: int = 500, a: float = 4.0, b: float = 5.0):
+def ellipse(
+    num_points: int = 500, a: float = 4.0, b: float = 5.0
+) -> tuple[Float[np.ndarray, "m 2"], Float[np.ndarray, "m 2"]]:
     """The ellipse x = a cos t, y = b sin t (Example 10's clean curve: a = 4, b = 5)."""
     return parametric_curve(
         lambda t: (a * np.cos(t), b * np.sin(t)),
@@ -61,7 +68,14 @@ def ellipse(num_points: int = 500, a: float = 4.0, b: float = 5.0):
     )
 
 
-def add_noise(points, normals, *, sigma: float, normal_sigma: float | None = None, seed: int = 0):
+def add_noise(
+    points: Float[np.ndarray, "m d"],
+    normals: Float[np.ndarray, "m d"],
+    *,
+    sigma: float,
+    normal_sigma: float | None = None,
+    seed: int = 0,
+) -> tuple[Float[np.ndarray, "m d"], Float[np.ndarray, "m d"]]:
     """Gaussian noise: ``sigma`` on point coordinates, ``normal_sigma`` (default ``sigma``
     relative to unit length) on normals, which are then re-normalised. Reproducible by seed."""
     if sigma < 0 or (normal_sigma is not None and normal_sigma < 0):
@@ -73,15 +87,19 @@ def add_noise(points, normals, *, sigma: float, normal_sigma: float | None = Non
     return noisy_points, noisy_normals / np.linalg.norm(noisy_normals, axis=1, keepdims=True)
 
 
-def example9(seed: int = 0, sigma: float = 0.05):
+def example9(
+    seed: int = 0, sigma: float = 0.05
+) -> tuple[Float[np.ndarray, "m 2"], Float[np.ndarray, "m 2"]]:
     """Example 9: Example 1's curve with 400 noisy points. The paper gives no noise level;
     ``sigma = 0.05`` (0.5 % of the bounding-box diagonal) is this library's choice."""
     return add_noise(*example1(400), sigma=sigma, seed=seed)
 
 
-def example10(seed: int = 0, sigma: float = 0.05):
+def example10(
+    seed: int = 0, sigma: float = 0.05
+) -> tuple[Float[np.ndarray, "m 2"], Float[np.ndarray, "m 2"]]:
     """Example 10: the ellipse 4 cos t, 5 sin t with 500 noisy points (``sigma`` as in
-    :func:`example9`; the paper gives none)."""
+    [`example9`][jurs.datasets.example9]; the paper gives none)."""
     return add_noise(*ellipse(500), sigma=sigma, seed=seed)
 
 
@@ -114,17 +132,19 @@ def _from_table(rows: np.ndarray, path: str, row_numbers=None):
     return rows[:, :2].copy(), rows[:, 2:].copy()
 
 
-def load_points(path) -> tuple[np.ndarray, np.ndarray | None]:
+def load_points(
+    path: str | os.PathLike[str],
+) -> tuple[Float[np.ndarray, "m d"], Float[np.ndarray, "m d"] | None]:
     """Read points and normals from ``.npy`` (an (m, 4) array) or CSV/TXT (columns x, y, nx,
     ny; comma, whitespace or semicolon separated; an optional header line of names).
 
-    3D clouds (:data:`CLOUD_SUFFIXES`): ``.ply`` and ``.obj`` give their vertices, and
+    3D clouds (``CLOUD_SUFFIXES``): ``.ply`` and ``.obj`` give their vertices, and
     their vertex normals where the file has them (through trimesh, ``pip install
     "jurs[surfaces]"``); ``.xyz`` and ``.pts`` are text rows of 3 (x y z) or 6 (x y z nx
     ny nz) numbers. Points come back ``(m, 3)``, normals ``(m, 3)`` or None.
 
     A table of two columns (x, y; header ``x,y``) holds points without normals: the normals
-    come back as None (:func:`jurs.fit` then estimates them). The header, or else the first
+    come back as None ([`jurs.fit`][] then estimates them). The header, or else the first
     data row, sets the number of columns for every row.
 
     Raises ValueError naming the file and the (1-based, as in an editor) row for missing
@@ -200,11 +220,15 @@ def _not_number(cell: str) -> bool:
     return False
 
 
-def save_points(path, points, normals=None) -> None:
+def save_points(
+    path: str | os.PathLike[str],
+    points: Float[npt.ArrayLike, "m d"],
+    normals: Float[npt.ArrayLike, "m d"] | None = None,
+) -> None:
     """Write points and normals as ``.npy`` (m, 4) or CSV with an ``x,y,nx,ny`` header;
     ``normals=None`` writes the points alone ((m, 2), header ``x,y``).
 
-    3D points ``(m, 3)`` go to the suffixes of :data:`CLOUD_SUFFIXES`: ``.xyz``/``.pts``
+    3D points ``(m, 3)`` go to the suffixes of ``CLOUD_SUFFIXES``: ``.xyz``/``.pts``
     as text rows (all digits), ``.ply`` (binary, float32, through trimesh) and ``.obj``
     (``v`` and ``vn`` lines) with vertex normals when given.
     """
@@ -231,9 +255,11 @@ def save_points(path, points, normals=None) -> None:
 
 # --- 3D: surfaces, meshes and point-cloud files -------------------------------------------
 
-#: Suffixes :func:`load_points` and :func:`save_points` read and write as 3D clouds.
+#: Suffixes [`load_points`][jurs.datasets.load_points] and
+#: [`save_points`][jurs.datasets.save_points] read and write as 3D clouds.
 CLOUD_SUFFIXES = (".ply", ".obj", ".xyz", ".pts")
-#: Suffixes :func:`load_mesh` and :func:`save_mesh` handle (through trimesh).
+#: Suffixes [`load_mesh`][jurs.datasets.load_mesh] and
+#: [`save_mesh`][jurs.datasets.save_mesh] handle (through trimesh).
 MESH_SUFFIXES = (".ply", ".obj", ".stl", ".off")
 
 
@@ -261,7 +287,9 @@ def _count(m) -> int:
     return int(m)
 
 
-def sphere3d(m: int, radius: float = 1.0, seed: int = 0):
+def sphere3d(
+    m: int, radius: float = 1.0, seed: int = 0
+) -> tuple[Float[np.ndarray, "m 3"], Float[np.ndarray, "m 3"]]:
     """``m`` points drawn uniformly (by area) on the sphere of ``radius`` about the origin,
     with their outward unit normals; ``(points (m, 3), normals (m, 3))``."""
     if not radius > 0:
@@ -272,7 +300,9 @@ def sphere3d(m: int, radius: float = 1.0, seed: int = 0):
     return radius * normals, normals
 
 
-def torus(m: int, major: float = 1.0, minor: float = 0.35, seed: int = 0):
+def torus(
+    m: int, major: float = 1.0, minor: float = 0.35, seed: int = 0
+) -> tuple[Float[np.ndarray, "m 3"], Float[np.ndarray, "m 3"]]:
     """``m`` points drawn uniformly (by area) on the torus about the z axis with tube
     centre radius ``major`` and tube radius ``minor`` (``0 < minor < major``), with outward
     unit normals.
@@ -297,15 +327,17 @@ def torus(m: int, major: float = 1.0, minor: float = 0.35, seed: int = 0):
     return centres + minor * normals, normals
 
 
-#: The double torus of :func:`genus2`: two tori about parallel axes through (+-GENUS2_SHIFT,
-#: 0), of radii GENUS2_MAJOR, GENUS2_MINOR, joined by a smooth minimum of blend width
-#: GENUS2_BLEND.
+#: The double torus of [`genus2`][jurs.datasets.genus2]: two tori about parallel axes
+#: through (+-GENUS2_SHIFT, 0), of radii GENUS2_MAJOR, GENUS2_MINOR, joined by a smooth
+#: minimum of blend width GENUS2_BLEND.
 GENUS2_SHIFT, GENUS2_MAJOR, GENUS2_MINOR, GENUS2_BLEND = 1.0, 1.0, 0.35, 0.1
 
 
-def genus2_function(points):
-    """The implicit double torus sampled by :func:`genus2` and its gradient at ``points
-    (n, 3)``: ``(values (n,), gradients (n, 3))``, negative inside.
+def genus2_function(
+    points: Float[npt.ArrayLike, "n 3"],
+) -> tuple[Float[np.ndarray, " n"], Float[np.ndarray, "n 3"]]:
+    """The implicit double torus sampled by [`genus2`][jurs.datasets.genus2] and its
+    gradient at ``points (n, 3)``: ``(values (n,), gradients (n, 3))``, negative inside.
 
     The smooth minimum ``-k log(exp(-a / k) + exp(-b / k))`` of the signed distances ``a``,
     ``b`` to two tori whose tube centre circles touch at the origin: the tubes merge there,
@@ -337,9 +369,10 @@ def genus2_function(points):
     return value, share[:, None] * gradients[0] + (1.0 - share[:, None]) * gradients[1]
 
 
-def genus2(m: int, seed: int = 0):
-    """``m`` points on a smooth double torus (genus 2; :func:`genus2_function`), uniform by
-    area, with outward unit normals (the normalised gradient).
+def genus2(m: int, seed: int = 0) -> tuple[Float[np.ndarray, "m 3"], Float[np.ndarray, "m 3"]]:
+    """``m`` points on a smooth double torus (genus 2;
+    [`genus2_function`][jurs.datasets.genus2_function]), uniform by area, with outward unit
+    normals (the normalised gradient).
 
     Points are drawn uniformly in a shell of half-width 0.01 about the surface (first-order
     distance ``|f| / |grad f|``) and moved onto it by Newton steps. A thin shell's volume
@@ -371,7 +404,9 @@ def genus2(m: int, seed: int = 0):
     return points, gradient / np.linalg.norm(gradient, axis=1, keepdims=True)
 
 
-def sample_mesh(vertices, faces, m: int, seed: int = 0):
+def sample_mesh(
+    vertices: Float[npt.ArrayLike, "V 3"], faces: Int[npt.ArrayLike, "F 3"], m: int, seed: int = 0
+) -> tuple[Float[np.ndarray, "m 3"], Float[np.ndarray, "m 3"]]:
     """``m`` points drawn uniformly by area on a triangle mesh, with the unit normal of the
     face each lies on (right-hand rule); ``(points (m, 3), normals (m, 3))``. Faces without
     area are never drawn; ValueError for a mesh without area."""
@@ -398,7 +433,9 @@ def sample_mesh(vertices, faces, m: int, seed: int = 0):
     return points, cross[face] / area[face, None]
 
 
-def load_mesh(path):
+def load_mesh(
+    path: str | os.PathLike[str],
+) -> tuple[Float[np.ndarray, "V 3"], Int[np.ndarray, "F 3"]]:
     """A triangle mesh from a PLY, OBJ, STL or OFF file (by suffix), through trimesh;
     ``(vertices (V, 3) float64, faces (F, 3) int64)``.
 
@@ -425,7 +462,11 @@ def load_mesh(path):
     return np.asarray(loaded.vertices, dtype=np.float64), np.asarray(loaded.faces, np.int64)  # pyright: ignore[reportAttributeAccessIssue]
 
 
-def save_mesh(path, vertices, faces) -> None:
+def save_mesh(
+    path: str | os.PathLike[str],
+    vertices: Float[npt.ArrayLike, "V 3"],
+    faces: Int[npt.ArrayLike, "F 3"],
+) -> None:
     """Write a triangle mesh as PLY (binary, float32 coordinates), OBJ, STL (float32) or
     OFF, by the suffix of ``path``, through trimesh."""
     path = os.fspath(path)
@@ -501,7 +542,8 @@ def _load_xyz(path: str):
 
 
 def _checked_cloud(points, normals, path, row_numbers=None):
-    """``(points, normals)`` with the checks of :func:`load_points`, 3D."""
+    """``(points, normals)`` with the checks of
+    [`load_points`][jurs.datasets.load_points], 3D."""
     if len(points) == 0:
         raise ValueError(f"{path}: no points")
     if normals is not None and normals.shape != points.shape:
@@ -522,7 +564,8 @@ def _checked_cloud(points, normals, path, row_numbers=None):
 
 
 def _save_cloud(path: str, points, normals) -> None:
-    """:func:`save_points` for the 3D suffixes."""
+    """[`save_points`][jurs.datasets.save_points]
+    for the 3D suffixes."""
     points = np.asarray(points, dtype=np.float64)
     if points.ndim != 2 or points.shape[1] != 3:
         raise ValueError(f"{path}: {_suffix(path)} files hold 3D points, got shape {points.shape}")

@@ -2,31 +2,42 @@
 (``.png`` or ``.svg``). New figures are pyplot's (``plt.show()`` and notebooks show them);
 matplotlib itself loads at the first figure, not at ``import jurs.plot``.
 
-* :func:`plot_fit` - the paper's view: heatmap of g, its zero curve, data and offset points;
-  given a :class:`jurs.levelset.LevelSetReport`, supplementary components are highlighted.
-* :func:`plot_iterations` - several iteration states of one run (like the paper's Fig. 15).
-* :func:`plot_energy_history` - energy per step, log scale, for several solvers.
-* :func:`plot_lambda_sensitivity` - metrics against the regularisation weight (Fig. 16).
-* :func:`plot_mesh` - a triangle mesh (a surface's zero set, :func:`jurs.levelset.mesh`)
-  from two or three directions side by side, shaded.
+* [`plot_fit`][jurs.plot.plot_fit] - the paper's view: heatmap of g, its zero curve, data
+  and offset points; given a [`jurs.levelset.LevelSetReport`][], supplementary components
+  are highlighted.
+* [`plot_iterations`][jurs.plot.plot_iterations] - several iteration states of one run (like
+  the paper's Fig. 15).
+* [`plot_energy_history`][jurs.plot.plot_energy_history] - energy per step, log scale, for
+  several solvers.
+* [`plot_lambda_sensitivity`][jurs.plot.plot_lambda_sensitivity] - metrics against the
+  regularisation weight (Fig. 16).
+* [`plot_mesh`][jurs.plot.plot_mesh] - a triangle mesh (a surface's zero set,
+  [`jurs.levelset.mesh`][]) from two or three directions side by side, shaded.
 """
 
 from __future__ import annotations
 
-from typing import Mapping, Sequence
+from typing import TYPE_CHECKING, Mapping, Sequence
 
 import numpy as np
+import numpy.typing as npt
+from jaxtyping import Float, Int
 
 from ._model.spline import ImplicitSpline
 from .levelset import evaluate_grid, sampling_grid
 from .levelset._surfaces import _check_mesh
+
+if TYPE_CHECKING:  # matplotlib loads at the first figure
+    from matplotlib.figure import Figure
 
 #: Colour of the zero curve, and of supplementary components when they are highlighted.
 ZERO_COLOUR = "k"
 SUPPLEMENTARY_COLOUR = "magenta"
 
 
-def evaluate_on_grid(spline: ImplicitSpline, resolution: int = 400, box=None):
+def evaluate_on_grid(
+    spline: ImplicitSpline, resolution: int = 400, box=None
+) -> tuple[Float[np.ndarray, " nx"], Float[np.ndarray, " ny"], Float[np.ndarray, "ny nx"]]:
     """g sampled on a regular grid over ``box`` (default the spline's box).
 
     ``resolution`` points along the longer side. Returns ``(xs, ys, values)`` with
@@ -105,20 +116,20 @@ def _finish(ax, title=None):
 
 def plot_fit(
     spline: ImplicitSpline,
-    points=None,
-    normals=None,
-    offset=None,
+    points: Float[npt.ArrayLike, "m 2"] | None = None,
+    normals: Float[npt.ArrayLike, "m 2"] | None = None,
+    offset: float | None = None,
     *,
     ax=None,
     title=None,
     resolution: int = 400,
     levelset=None,
     colorbar: bool = True,
-):
+) -> Figure:
     """The paper's view: a heatmap of g over the box with a colour bar, its zero curve, the
     data points and, given ``normals`` and ``offset``, the inner and outer offset samples.
 
-    ``levelset``: a :class:`jurs.levelset.LevelSetReport` of this spline; its components
+    ``levelset``: a [`jurs.levelset.LevelSetReport`][] of this spline; its components
     are drawn instead of matplotlib's own zero contour, supplementary ones in magenta and
     counted in the legend. Returns the Figure.
     """
@@ -157,20 +168,20 @@ def plot_fit(
 
 def plot_iterations(
     states,
-    points=None,
-    normals=None,
-    offset=None,
+    points: Float[npt.ArrayLike, "m 2"] | None = None,
+    normals: Float[npt.ArrayLike, "m 2"] | None = None,
+    offset: float | None = None,
     *,
     resolution: int = 200,
     ncols: int | None = None,
     panel_size: float = 3.6,
     title=None,
-):
+) -> Figure:
     """Several states of one run side by side on one colour scale (like the paper's Fig. 15).
 
     Args:
         states: ``{step: spline}`` (e.g. the snapshots of
-            :func:`jurs.fit_in_chunks`) or a sequence of ``(label, spline)``.
+            [`jurs.fit_in_chunks`][]) or a sequence of ``(label, spline)``.
         points, normals, offset: data (and offset samples) drawn on every panel.
         resolution: heatmap nodes along the longer side.
         ncols: panels per row (default all in one row, at most 4).
@@ -212,7 +223,7 @@ def plot_iterations(
     return fig
 
 
-def plot_energy_history(histories, *, ax=None, title=None):
+def plot_energy_history(histories, *, ax=None, title=None) -> Figure:
     """Energy against step on a log scale, one line per run.
 
     ``histories``: ``{label: Solution or 1-D array}``; a Solution contributes
@@ -264,7 +275,7 @@ def plot_lambda_sensitivity(
     *,
     title=None,
     lam_label: str = "lambda",
-):
+) -> Figure:
     """Metrics against the regularisation weight, one panel each (like the paper's Fig. 16).
 
     Args:
@@ -310,13 +321,15 @@ def plot_lambda_sensitivity(
     return fig
 
 
-#: Directions of :func:`plot_mesh`'s panels, ``(elevation, azimuth)`` in degrees as
-#: matplotlib's ``view_init`` takes them: from the front and above, from the side and
-#: above, and from the top (down the z axis).
+#: Directions of [`plot_mesh`][jurs.plot.plot_mesh]'s panels,
+#: ``(elevation, azimuth)`` in degrees as matplotlib's ``view_init`` takes them: from
+#: the front and above, from the side and above, and from the top (down the z axis).
 MESH_VIEWS = ((25.0, -60.0), (25.0, 30.0), (90.0, -90.0))
-#: Faces drawn per panel at most: matplotlib draws and depth-sorts every polygon on the CPU
-#: (on a shared 2-core machine one panel of 200 000 faces took about 1.5 s to save, of
-#: 20 000 about 0.5 s); larger meshes are decimated first (:func:`decimate_mesh`).
+#: Faces drawn per panel at most: matplotlib draws and depth-sorts every polygon on the CPU,
+#: so a figure's time grows with its faces; larger meshes are decimated first
+#: ([`decimate_mesh`][jurs.plot.decimate_mesh]), which keeps a figure to about a second or
+#: two whatever the mesh (docs/performance.md, "Measurements behind the level-set and
+#: plotting defaults").
 MAX_DRAWN_FACES = 20_000
 MESH_COLOUR = (0.60, 0.72, 0.88)
 #: Share of the light every face gets whatever its direction, so faces turned away from the
@@ -333,7 +346,14 @@ def _face_normals(vertices, faces) -> np.ndarray:
     return np.cross(b - a, c - a)
 
 
-def decimate_mesh(vertices, faces, max_faces: int, flags=None):
+def decimate_mesh(
+    vertices: Float[npt.ArrayLike, "V 3"],
+    faces: Int[npt.ArrayLike, "F 3"],
+    max_faces: int,
+    flags: npt.ArrayLike | None = None,
+) -> tuple[
+    Float[np.ndarray, "V2 3"], Int[np.ndarray, "F2 3"], np.ndarray, Float[np.ndarray, "F2 3"]
+]:
     """A coarser copy of a triangle mesh with at most ``max_faces`` faces, for drawing.
 
     Vertex clustering: vertices are binned into cubes and each cube's vertices merged into
@@ -415,7 +435,7 @@ def _shaded_colours(normals, flags, light) -> np.ndarray:
     ``AMBIENT + (1 - AMBIENT) |cos|`` of the angle between its unit normal and the light.
     The absolute value lights both sides: an open mesh shows its inner side through its
     boundary. Where some faces are flagged, the others are translucent
-    (:data:`SEE_THROUGH_ALPHA`), so that flagged faces inside a closed surface, such as a
+    (``SEE_THROUGH_ALPHA``), so that flagged faces inside a closed surface, such as a
     bubble within it, show."""
     from matplotlib.colors import to_rgb
 
@@ -486,8 +506,8 @@ def _draw_mesh_panel(ax, vertices, faces, colours, view):
 
 
 def plot_mesh(
-    vertices,
-    faces,
+    vertices: Float[npt.ArrayLike, "V 3"],
+    faces: Int[npt.ArrayLike, "F 3"],
     *,
     ax=None,
     views=MESH_VIEWS,
@@ -496,7 +516,7 @@ def plot_mesh(
     max_faces: int = MAX_DRAWN_FACES,
     title=None,
     panel_size: float = 4.0,
-):
+) -> Figure:
     """A triangle mesh from several directions side by side, with matplotlib's mplot3d.
 
     Faces are drawn (``Poly3DCollection``, orthographic projection, equal scales) in one
@@ -507,19 +527,20 @@ def plot_mesh(
 
     Args:
         vertices, faces: the mesh, ``(V, 3)`` and ``(F, 3)`` (as from
-            :func:`jurs.levelset.mesh`). An empty mesh gives panels saying so.
+            [`jurs.levelset.mesh`][]). An empty mesh gives panels saying so.
         ax: a 3D Axes (``projection="3d"``), or a sequence of them, to draw the first
             views into; None makes a figure with one panel per view.
         views: ``(elevation, azimuth)`` pairs in degrees, one per panel (default
-            :data:`MESH_VIEWS`: front, side, top).
+            ``MESH_VIEWS``: front, side, top).
         highlight: indices (or a boolean mask) of faces drawn in magenta, e.g. the faces
-            of supplementary components (:func:`jurs.levelset.analyze_mesh`), named
+            of supplementary components ([`jurs.levelset.analyze_mesh`][]), named
             ``highlight_label`` in the legend. The other faces are then drawn translucent,
             so that highlighted faces inside a closed surface show through it.
         max_faces: a mesh with more faces is drawn decimated to at most this many, by
-            vertex clustering (:func:`decimate_mesh`), so that the figure stays quick to
-            draw and save: at the default :data:`MAX_DRAWN_FACES`, about 1.5 s for three
-            panels however large the mesh. Pass ``len(faces)`` to draw every face.
+            vertex clustering ([`decimate_mesh`][jurs.plot.decimate_mesh]), so that the
+            figure takes no longer to draw and save than one of ``max_faces`` faces,
+            however large the mesh (docs/performance.md). Pass ``len(faces)`` to draw
+            every face.
         title: the figure's title.
         panel_size: inches per panel.
 

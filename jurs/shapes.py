@@ -8,10 +8,10 @@ fitting hard (concavities, several components, holes, thin parts):
   a rounded five-petal rose, a lopsided three-lobed curve, an annulus with an off-centre
   hole;
 * **glyph outlines** of DejaVu Sans, the font that ships with matplotlib, read with
-  :class:`matplotlib.textpath.TextPath` (the quadratic/cubic Bezier pieces are evaluated
+  ``matplotlib.textpath.TextPath`` (the quadratic/cubic Bezier pieces are evaluated
   exactly): letters with holes, i.e. several components;
 * **outlines traced from images that ship with scikit-image** (``skimage.data.horse``,
-  ``skimage.data.coins``) with :func:`skimage.measure.find_contours` after a small Gaussian
+  ``skimage.data.coins``) with ``skimage.measure.find_contours`` after a small Gaussian
   blur, which smooths the pixel staircase.
 
 Every shape is a list of closed polylines (*components*) in data units, scaled so the
@@ -21,7 +21,7 @@ Components are oriented with the filled region on their left (outer boundaries
 anticlockwise, holes clockwise; the filled region follows the even-odd rule), so the
 normal ``(t_y, -t_x)`` of the unit tangent ``t`` points **out of the filled region**: away
 from the shape on outer boundaries, into the hole on holes (the convention of
-:mod:`jurs.datasets` and docs/design.md section 1).
+[`jurs.datasets`][] and docs/design.md section 1).
 
     points, normals = jurs.shapes.get("glyph_B", 639, size=8.0)
 
@@ -32,8 +32,11 @@ matplotlib and scikit-image are imported inside the functions that need them, so
 from __future__ import annotations
 
 import functools
+from typing import Sequence
 
 import numpy as np
+import numpy.typing as npt
+from jaxtyping import Bool, Float
 
 #: Vertices per analytic curve before arc-length resampling.
 _ANALYTIC_VERTICES = 8192
@@ -44,7 +47,7 @@ _BEZIER_SAMPLES = 64
 # --------------------------------------------------------------------------- geometry
 
 
-def signed_area(polyline) -> float:
+def signed_area(polyline: Float[npt.ArrayLike, "k 2"]) -> float:
     """Shoelace area of a closed polyline (first vertex not repeated): > 0 anticlockwise."""
     x, y = np.asarray(polyline, float).T
     return 0.5 * float(np.sum(x * np.roll(y, -1) - np.roll(x, -1) * y))
@@ -63,7 +66,9 @@ def _dedupe(polyline: np.ndarray) -> np.ndarray:
     return polyline[keep]
 
 
-def contains(components, xy) -> np.ndarray:
+def contains(
+    components: Sequence[Float[npt.ArrayLike, "k 2"]], xy: Float[npt.ArrayLike, "n 2"]
+) -> Bool[np.ndarray, " n"]:
     """Whether each point of ``xy (n, 2)`` lies in the filled region of ``components``
     under the even-odd rule (inside an odd number of the closed polylines)."""
     from matplotlib.path import Path
@@ -75,7 +80,7 @@ def contains(components, xy) -> np.ndarray:
     return count % 2 == 1
 
 
-def orient(components) -> list[np.ndarray]:
+def orient(components: Sequence[Float[npt.ArrayLike, "k 2"]]) -> list[Float[np.ndarray, "k 2"]]:
     """Orient closed polylines so the even-odd filled region lies on their left.
 
     A component's nesting depth is the number of other components that contain it (tested
@@ -97,7 +102,11 @@ def orient(components) -> list[np.ndarray]:
     return out
 
 
-def normalise(components, size: float = 8.0, center=(0.0, 0.0)) -> list[np.ndarray]:
+def normalise(
+    components: Sequence[Float[np.ndarray, "k 2"]],
+    size: float = 8.0,
+    center: Float[npt.ArrayLike, " 2"] = (0.0, 0.0),
+) -> list[Float[np.ndarray, "k 2"]]:
     """Scale and translate components together so the longest side of their joint bounding
     box is ``size`` and its centre is ``center``."""
     if not size > 0:
@@ -110,21 +119,21 @@ def normalise(components, size: float = 8.0, center=(0.0, 0.0)) -> list[np.ndarr
 
 
 def sample_outline(
-    components,
+    components: Sequence[Float[npt.ArrayLike, "k 2"]],
     num_points: int,
     *,
     nonuniform: float = 0.0,
     gap: float = 0.0,
     gap_at: float = 0.0,
     tangent_window: float | None = None,
-):
+) -> tuple[Float[np.ndarray, "n 2"], Float[np.ndarray, "n 2"]]:
     """Sample closed polylines by arc length: ``(points, normals)``, each ``(num_points, 2)``.
 
     The components are laid end to end on one arc-length axis, so the spacing is the same
     on every component and each gets points in proportion to its length. Normals are
     ``(t_y, -t_x)`` of the unit chord tangent ``p(s + delta) - p(s - delta)``: outward
-    for components oriented as :func:`orient` leaves them. At a corner the chord gives the
-    bisector of the two sides, so corners get a well-defined normal.
+    for components oriented as [`orient`][jurs.shapes.orient] leaves them. At a corner the
+    chord gives the bisector of the two sides, so corners get a well-defined normal.
 
     Args:
         components: closed polylines (first vertex not repeated), filled region on the left.
@@ -195,30 +204,30 @@ def _polar(radius):
     return lambda t: (radius(t) * np.cos(t), radius(t) * np.sin(t))
 
 
-def example1_outline():
+def example1_outline() -> list[Float[np.ndarray, "k 2"]]:
     """The paper's Example 1 curve x = 4 cos t, y = sin t (3 - 5 sin t): one component with
     a concave dent at the top (analytic)."""
     return [_closed_curve(lambda t: (4.0 * np.cos(t), np.sin(t) * (3.0 - 5.0 * np.sin(t))))]
 
 
-def ellipse_outline():
+def ellipse_outline() -> list[Float[np.ndarray, "k 2"]]:
     """The ellipse x = 4 cos t, y = 5 sin t of the paper's Example 10 (analytic)."""
     return [_closed_curve(lambda t: (4.0 * np.cos(t), 5.0 * np.sin(t)))]
 
 
-def rose_outline():
+def rose_outline() -> list[Float[np.ndarray, "k 2"]]:
     """A rounded five-petal rose r(t) = 1 + 0.4 cos 5t: five concave bays (analytic; this
     library's choice, in the style of the paper's star-like figures)."""
     return [_closed_curve(_polar(lambda t: 1.0 + 0.4 * np.cos(5.0 * t)))]
 
 
-def lobes_outline():
+def lobes_outline() -> list[Float[np.ndarray, "k 2"]]:
     """A lopsided three-lobed curve r(t) = 1 + 0.35 cos 3t + 0.2 sin 2t: concavities of
     different depths, no symmetry (analytic; this library's choice)."""
     return [_closed_curve(_polar(lambda t: 1.0 + 0.35 * np.cos(3.0 * t) + 0.2 * np.sin(2.0 * t)))]
 
 
-def annulus_outline():
+def annulus_outline() -> list[Float[np.ndarray, "k 2"]]:
     """A disc of radius 1 with an off-centre elliptical hole (semi-axes 0.45, 0.3, centre
     (0.2, 0.1)): two components, the inner one a hole (analytic)."""
     outer = _closed_curve(lambda t: (np.cos(t), np.sin(t)))
@@ -226,12 +235,12 @@ def annulus_outline():
     return [outer, hole]
 
 
-def glyph_outline(text: str, family: str = "DejaVu Sans") -> list[np.ndarray]:
+def glyph_outline(text: str, family: str = "DejaVu Sans") -> list[Float[np.ndarray, "k 2"]]:
     """Outlines of ``text`` set in ``family`` (default DejaVu Sans, which ships with
     matplotlib), one closed polyline per contour of the glyphs.
 
-    Read with :class:`matplotlib.textpath.TextPath`; its line, quadratic and cubic Bezier
-    pieces are evaluated at :data:`_BEZIER_SAMPLES` parameters each (no flattening
+    Read with ``matplotlib.textpath.TextPath``; its line, quadratic and cubic Bezier
+    pieces are evaluated at ``_BEZIER_SAMPLES`` parameters each (no flattening
     tolerance involved).
     """
     from matplotlib.font_manager import FontProperties
@@ -260,12 +269,14 @@ def glyph_outline(text: str, family: str = "DejaVu Sans") -> list[np.ndarray]:
     return [c for c in components if len(c) > 2 and abs(signed_area(c)) > 1e-9]
 
 
-def mask_outline(mask, *, blur: float = 1.5, min_area: float = 50.0) -> list[np.ndarray]:
+def mask_outline(
+    mask: Bool[npt.ArrayLike, "h w"], *, blur: float = 1.5, min_area: float = 50.0
+) -> list[Float[np.ndarray, "k 2"]]:
     """Closed outlines of the True region of a 2-D boolean image (scikit-image).
 
     The mask is padded with False (so every contour closes), blurred with a Gaussian of
     ``blur`` pixels (rounds the pixel staircase) and contoured at 0.5 with
-    :func:`skimage.measure.find_contours`. Components enclosing fewer than ``min_area``
+    ``skimage.measure.find_contours``. Components enclosing fewer than ``min_area``
     square pixels are dropped. Coordinates: x = column, y = -row (image upright).
     """
     from scipy import ndimage
@@ -282,7 +293,7 @@ def mask_outline(mask, *, blur: float = 1.5, min_area: float = 50.0) -> list[np.
     return comps
 
 
-def horse_outline():
+def horse_outline() -> list[Float[np.ndarray, "k 2"]]:
     """The horse silhouette of ``skimage.data.horse()`` (a 328 x 400 binary image shipped
     with scikit-image): one component with legs, tail and ears, i.e. thin parts and deep
     concavities."""
@@ -291,7 +302,7 @@ def horse_outline():
     return mask_outline(~data.horse(), blur=1.5)  # pyright: ignore[reportOperatorIssue]  # bool
 
 
-def coins_outline():
+def coins_outline() -> list[Float[np.ndarray, "k 2"]]:
     """The 24 coins of ``skimage.data.coins()`` (a greyscale photo shipped with
     scikit-image), segmented as in scikit-image's own tutorial: Sobel edges, watershed
     from markers (grey < 30 background, > 150 coin), holes filled. 24 components."""
@@ -303,7 +314,8 @@ def coins_outline():
     markers[image < 30] = 1
     markers[image > 150] = 2
     coins = segmentation.watershed(filters.sobel(image), markers) == 2
-    return mask_outline(ndimage.binary_fill_holes(coins), blur=2.0, min_area=200.0)
+    # binary_fill_holes returns an array for an array; its stubs say "or None".
+    return mask_outline(ndimage.binary_fill_holes(coins), blur=2.0, min_area=200.0)  # pyright: ignore[reportArgumentType]
 
 
 def _glyph(char):
@@ -331,7 +343,9 @@ SOURCES = {
     "horse": horse_outline,
     "coins": coins_outline,
 }
-#: The shapes :func:`get` knows.
+#: The shapes
+#: [`get`][jurs.shapes.get]
+#: knows.
 NAMES = tuple(SOURCES)
 
 
@@ -351,7 +365,9 @@ def _raw(name: str):
     return tuple(orient(SOURCES[name]()))
 
 
-def outline(name: str, size: float = 8.0, center=(0.0, 0.0)) -> list[np.ndarray]:
+def outline(
+    name: str, size: float = 8.0, center: Float[npt.ArrayLike, " 2"] = (0.0, 0.0)
+) -> list[Float[np.ndarray, "k 2"]]:
     """The components of shape ``name`` as dense closed polylines (first vertex not
     repeated), oriented with the filled region on the left, scaled so the longest side of
     the bounding box is ``size`` and centred on ``center``."""
@@ -364,17 +380,17 @@ def get(
     num_points: int,
     size: float = 8.0,
     *,
-    center=(0.0, 0.0),
+    center: Float[npt.ArrayLike, " 2"] = (0.0, 0.0),
     nonuniform: float = 0.0,
     gap: float = 0.0,
     gap_at: float = 0.0,
-):
+) -> tuple[Float[np.ndarray, "n 2"], Float[np.ndarray, "n 2"]]:
     """``num_points`` points of shape ``name`` with outward unit normals.
 
     Sampled by arc length across all components (same spacing everywhere; see
-    :func:`sample_outline` for ``nonuniform``, ``gap`` and ``gap_at``). The shape is scaled
-    so the longest side of its bounding box is ``size`` (default 8.0) and centred on
-    ``center``.
+    [`sample_outline`][jurs.shapes.sample_outline] for ``nonuniform``, ``gap`` and
+    ``gap_at``). The shape is scaled so the longest side of its bounding box is ``size``
+    (default 8.0) and centred on ``center``.
 
     Returns:
         ``(points, normals)``, float64 arrays of shape ``(num_points, 2)``.

@@ -7,13 +7,14 @@ import os
 
 import jax.numpy as jnp
 import numpy as np
+from jaxtyping import DTypeLike
 
 from .spline import ImplicitSpline
 
 SPLINE_KEYS = ("control", "weights", "lower", "upper")
 
 
-def check_spline_arrays(arrays: dict, where: str) -> None:
+def check_spline_arrays(arrays: dict[str, np.ndarray], where: str) -> None:
     """ValueError (prefixed by ``where``) unless the arrays make a spline that can be
     evaluated: matching 2D grids of at least 4 x 4 with a box ``lower``, ``upper`` of shape
     (2,), or matching 3D grids of at least 4 x 4 x 4 with a box of shape (3,); finite
@@ -55,12 +56,13 @@ def check_spline_arrays(arrays: dict, where: str) -> None:
         )
 
 
-def save_spline(path, spline: ImplicitSpline) -> None:
+def save_spline(path: str | os.PathLike[str], spline: ImplicitSpline) -> None:
     """Write ``spline`` to exactly ``path`` (``.npz`` format, whatever the name: NumPy's
-    ``savez`` would append ``.npz`` to a name without it, and :func:`load_spline` of the
-    same name would then not find it): arrays ``control``, ``weights``, ``lower``,
-    ``upper``. Raises ValueError for a spline that cannot be evaluated (see
-    :func:`load_spline`), before anything is written."""
+    ``savez`` would append ``.npz`` to a name without it, and
+    [`load_spline`][jurs.load_spline] of the same name would then not find it): arrays
+    ``control``, ``weights``, ``lower``, ``upper``. Raises ValueError for a spline that
+    cannot be evaluated (see [`load_spline`][jurs.load_spline]), before anything is
+    written."""
     if not isinstance(spline, ImplicitSpline):
         raise TypeError(f"spline must be a jurs.ImplicitSpline, got {type(spline).__name__}")
     arrays = {k: np.asarray(getattr(spline, k)) for k in SPLINE_KEYS}
@@ -69,9 +71,10 @@ def save_spline(path, spline: ImplicitSpline) -> None:
         np.savez(fh, **arrays)  # pyright: ignore[reportArgumentType]  # keys: SPLINE_KEYS only
 
 
-def load_spline(path, dtype=None) -> ImplicitSpline:
-    """Read an :class:`ImplicitSpline` written by :func:`save_spline`: a curve's (2D
-    grids, box of shape (2,)) or a surface's (3D grids, box of shape (3,)).
+def load_spline(path: str | os.PathLike[str], dtype: DTypeLike | None = None) -> ImplicitSpline:
+    """Read an [`ImplicitSpline`][jurs.ImplicitSpline] written by
+    [`save_spline`][jurs.save_spline]: a curve's (2D grids, box of shape (2,)) or a
+    surface's (3D grids, box of shape (3,)).
 
     ``dtype`` defaults to JAX's default float (float64 with ``jax_enable_x64``).
     Raises FileNotFoundError, or ValueError naming the file for missing, ill-shaped or

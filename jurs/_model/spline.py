@@ -5,31 +5,32 @@ every solver is built from.
 with all weights 1, ``W = 1`` (partition of unity) and g is the B-spline f of eq. 2.
 
 So g is two plain B-spline evaluations, ``F(w C) / F(w)``, where ``F`` maps a coefficient
-grid to values at the samples (:func:`bspline_values`). Its transpose ``T``
-(:func:`bspline_transpose`) gives everything else: the collocation transpose of eq. 23 is
-``D^T v = w * T(v / W)``, and the gradients of docs/design.md section 2 are ``T`` of per-sample
-scalars times a grid. No (samples x 16) array of rows is ever needed on the fast path.
+grid to values at the samples ([`bspline_values`][jurs.internal.bspline_values]). Its transpose
+``T`` ([`bspline_transpose`][jurs.internal.bspline_transpose]) gives everything else: the
+collocation transpose of eq. 23 is ``D^T v = w * T(v / W)``, and the gradients of
+docs/design.md section 2 are ``T`` of per-sample scalars times a grid. No (samples x 16) array
+of rows is ever needed on the fast path.
 
 Samples are stored in *buckets*: runs of ``bucket_size`` samples that share one cell, so a
 bucket reads its 4 x 4 coefficient patch once and its sums over samples are dense
 reductions instead of scatters. ``bucket_size = 1`` (one sample a bucket, any order) is the
 generic layout that works under any JAX transformation.
 
-Two ways to run F and T, chosen by what the :class:`LocalBasis` holds:
+Two ways to run F and T, chosen by what the [`LocalBasis`][jurs.internal.LocalBasis] holds:
 
 * *power form* (large problems): each cell's piece is taken to powers of the centred local
   coordinates once, a sample costs a Horner scheme, and T sums power moments per bucket
   (one variadic reduction) before going back to the B-spline basis per cell. Per sample
   only its two local coordinates are read.
-* *table form* (small problems, :data:`TABLE_MAX_SLOTS`): the samples keep their order (one
+* *table form* (small problems, ``TABLE_MAX_SLOTS``): the samples keep their order (one
   a slot, no padding), and a table of their own groups them into buckets of one cell: the
   16 basis products of every table position (0 at its padding), the grid corner of every
   bucket's 4 x 4 coefficient patch and the flat grid index of its 16 coefficients are
   stored, with the permutation between slots and table positions. F gathers the patches
-  from the grid (one 4 x 4 window a bucket: measured 2x faster than 16 indices) and T
-  scatters onto it directly; a step then runs as a handful of small kernels, which is what
-  counts with a few thousand samples. Table
-  position ``p`` is entry ``p % K`` of bucket ``p // K``. The products are stored twice,
+  from the grid (one 4 x 4 window a bucket, cheaper than 16 indices: docs/performance.md,
+  "Spline kernels") and T scatters onto it directly; a step then runs as a handful of
+  small kernels, which is what counts with a few thousand samples. Table position ``p``
+  is entry ``p % K`` of bucket ``p // K``. The products are stored twice,
   term-major (for F, which broadcasts a bucket's coefficient along its entries) and
   term-minor (for T, which broadcasts an entry's value along its 16 terms): XLA vectorises
   a loop only along contiguous memory.
@@ -45,6 +46,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import Array
+from jaxtyping import ArrayLike, Float
 
 from .basis import (
     NUM_LOCAL,
@@ -125,14 +127,15 @@ class LocalBasis(eqx.Module):
 
     def patch_index(self, shape: tuple[int, ...]) -> Array:
         """``(S, 4 ** d)``: the flat index, in the coefficient grid of ``shape``, of every
-        coefficient each sample sees, in the order of :attr:`products`."""
+        coefficient each sample sees, in the order of
+        [`products`][jurs.internal.LocalBasis.products]."""
         return patch_corner(self.cell, shape)[:, None] + jnp.asarray(patch_offsets(shape))
 
     def to_layout(self, values: Array) -> Array:
         """Per-slot ``(..., S)`` values in the layout the kernels work in (``layout=True``
-        of :func:`bspline_values` and :func:`transpose_and_sum`): the slots themselves, or
-        in the table form the table positions, 0 at its padding. Values given to the
-        kernels in this layout must be 0 at the padding."""
+        of [`bspline_values`][jurs.internal.bspline_values] and ``transpose_and_sum``):
+        the slots themselves, or in the table form the table positions, 0 at its padding.
+        Values given to the kernels in this layout must be 0 at the padding."""
         if self.terms is None:
             return values
         assert self.filled is not None  # the table fields are set together
@@ -144,19 +147,24 @@ class LocalBasis(eqx.Module):
         return s[0], s[1]
 
 
-#: Up to this many samples :func:`jurs.make_problem` builds the table form (16 stored
+#: Up to this many samples [`jurs.make_problem`][] builds the table form (16 stored
 #: products a sample, 8 MB in float64 at the limit).
 TABLE_MAX_SLOTS = 1 << 16
 
 
 def local_basis(
-    xy: Array, lower: Array, upper: Array, shape: tuple[int, ...], bucket_size: int = 1, xp=jnp
+    xy: Float[Array, "S d"],
+    lower: Float[Array, " d"],
+    upper: Float[Array, " d"],
+    shape: tuple[int, ...],
+    bucket_size: int = 1,
+    xp=jnp,
 ) -> LocalBasis:
     """The local basis of the ``shape`` grid (``(N, M)``, or ``(N, M, K)`` in 3D) on
     ``[lower, upper]`` at ``xy (S, d)``, in the power form (2D) or the generic form.
 
     With ``bucket_size > 1`` the caller guarantees that each run of ``bucket_size``
-    consecutive points lies in one cell (see :func:`jurs._problem.problem.bucket_layout`).
+    consecutive points lies in one cell (see [`jurs.internal.bucket_layout`][]).
     ``xp=numpy`` computes on the host (its fields are then NumPy arrays).
     """
     cell, t = locate(xy, lower, upper, shape, xp)
@@ -224,8 +232,8 @@ def computed_apart(fn, *args, shapes=None):
 
     XLA fuses an elementwise producer into the kernels that consume it: into a reduction,
     where the per-sample Horner schemes run several times slower than in an elementwise
-    kernel (measured 4x on 3e6 samples), or into several consumers at once, each then
-    evaluating the spline again. A conditional is a fusion boundary (about 0.4 us). Its
+    kernel (docs/performance.md, "Spline kernels"), or into several consumers at once, each
+    then evaluating the spline again. A conditional is a fusion boundary, and a cheap one. Its
     predicate is always true but opaque to the compiler (the first integer input, a cell
     or grid index, is never negative), so the other branch, zeros, never runs; without an
     integer input both branches are ``fn``. ``shapes``: the output's shape-dtype structure
@@ -263,7 +271,7 @@ def gather_patches(grids: Array, corner: Array) -> Array:
 
 def power_coefficients(grids: Array) -> Array:
     """``(C, N, M)`` coefficient grids -> ``(C, cells, 16)``: each cell's bicubic piece in
-    powers of its centred local coordinates (see :func:`jurs._model.basis.patch_to_power`).
+    powers of its centred local coordinates (see ``jurs._model.basis.patch_to_power``).
 
     One 4 x 4 convolution with 16 output channels: the patch gather and the change of
     basis in a single kernel.
@@ -280,14 +288,20 @@ def power_coefficients(grids: Array) -> Array:
     return out.reshape(grids.shape[0], -1, NUM_LOCAL)
 
 
-def bspline_values(local: LocalBasis, grids: Array, *, layout: bool = False) -> Array:
+def bspline_values(
+    local: LocalBasis,
+    grids: Float[Array, "*batch N M"] | Float[Array, "*batch N M K"],
+    *,
+    layout: bool = False,
+) -> Float[Array, "*batch S"]:
     """F: the B-spline ``sum_ij G_ij B_i B_j`` of coefficient grid(s) at the samples.
 
     ``grids`` is ``(..., N, M)``; returns ``(..., S)``. Several grids share one pass over
     the samples. Power form: each bucket's cell piece is taken to powers once, and each
     sample costs a Horner scheme (15 multiply-adds a grid); table form: 16 stored products
     a sample against the gathered patch. ``layout=True`` returns the values in the
-    kernels' layout (:meth:`LocalBasis.to_layout`) instead of per slot.
+    kernels' layout ([`LocalBasis.to_layout`][jurs.internal.LocalBasis.to_layout]) instead
+    of per slot.
     """
     ndim = local.ndim
     if ndim != 2:
@@ -323,9 +337,9 @@ GATHER_BLOCK = 1 << 16
 def _gathered_values(local: LocalBasis, grids: Array) -> Array:
     """F in the generic form (any d, one sample a slot): each sample's ``4 ** d``
     coefficients gathered from the flat grid against its basis products, a block of
-    :data:`GATHER_BLOCK` samples at a time (within each of the ``local.parts`` parts of a
+    ``GATHER_BLOCK`` samples at a time (within each of the ``local.parts`` parts of a
     split sample axis, so that no device reads another's samples). This is the path of 3D
-    grids, whose samples are not bucketed (see :func:`jurs.make_problem`)."""
+    grids, whose samples are not bucketed (see [`jurs.make_problem`][])."""
     shape = grids.shape[grids.ndim - local.ndim :]
     lead = grids.shape[: grids.ndim - local.ndim]
     flat = grids.reshape(lead + (-1,))
@@ -355,9 +369,9 @@ def _gathered_values(local: LocalBasis, grids: Array) -> Array:
 
 
 def values_apart(local: LocalBasis, grids: Array) -> Array:
-    """:func:`bspline_values` in the kernels' layout, in a kernel of its own
-    (:func:`computed_apart`), as the solver steps call it: ``(..., N, M)`` -> ``(..., P)``
-    with ``P`` the layout's length."""
+    """[`bspline_values`][jurs.internal.bspline_values] in the kernels' layout, in a
+    kernel of its own (``computed_apart``), as the solver steps call it: ``(..., N, M)``
+    -> ``(..., P)`` with ``P`` the layout's length."""
     count = local.cell.shape[0] if local.terms is None else local.terms[0].size
     shapes = jax.ShapeDtypeStruct(
         grids.shape[: grids.ndim - local.ndim] + (count,), jnp.result_type(grids, local.s)
@@ -369,9 +383,10 @@ def values_apart(local: LocalBasis, grids: Array) -> Array:
 def transpose_and_sum(
     local: LocalBasis, values: Array, shape: tuple[int, ...], extra=(), *, layout: bool = False
 ):
-    """:func:`bspline_transpose` of ``values (C, S)``, and the totals of the ``extra``
-    per-sample arrays ``(S,)`` computed in the same pass over the samples. ``layout=True``:
-    ``values`` and ``extra`` are in the kernels' layout (:meth:`LocalBasis.to_layout`)."""
+    """[`bspline_transpose`][jurs.internal.bspline_transpose] of ``values (C, S)``, and the
+    totals of the ``extra`` per-sample arrays ``(S,)`` computed in the same pass over the
+    samples. ``layout=True``: ``values`` and ``extra`` are in the kernels' layout
+    ([`LocalBasis.to_layout`][jurs.internal.LocalBasis.to_layout])."""
     k = local.bucket_size
     if local.terms is not None:
         assert local.index is not None  # the table fields are set together
@@ -386,7 +401,8 @@ def transpose_and_sum(
             return sum(_take(terms, i, 1) * _take(v, i, 2) for i in range(terms.shape[1]))
 
         # In a kernel of its own: fused into the scatter, the sums are laid out as the
-        # scatter's (updates, 1) operand and lose vectorisation (measured 3x slower).
+        # scatter's (updates, 1) operand and lose vectorisation (docs/performance.md,
+        # "Spline kernels").
         per_bucket = computed_apart(
             lambda index, v, terms: bucket_sums(v, terms),
             local.index,
@@ -429,8 +445,11 @@ def transpose_and_sum(
     return grid, tuple(jnp.sum(x) for x in sums)
 
 
-def bspline_transpose(local: LocalBasis, values: Array, shape: tuple[int, ...]) -> Array:
-    """T, the transpose of :func:`bspline_values`: ``sum_k v_k B_i B_j(x_k)`` on the grid.
+def bspline_transpose(
+    local: LocalBasis, values: Float[Array, "*batch S"], shape: tuple[int, ...]
+) -> Float[Array, "*batch N M"] | Float[Array, "*batch N M K"]:
+    """T, the transpose of [`bspline_values`][jurs.internal.bspline_values]:
+    ``sum_k v_k B_i B_j(x_k)`` on the grid.
 
     ``values`` is ``(..., S)``; returns ``(..., N, M)``. Several value vectors share one
     pass over the samples. Power form: per bucket the power moments ``sum_k v_k sx^p sy^q``
@@ -443,7 +462,9 @@ def bspline_transpose(local: LocalBasis, values: Array, shape: tuple[int, ...]) 
     return grid.reshape(lead + tuple(shape))
 
 
-def rational_values(local: LocalBasis, control: Array, weights: Array):
+def rational_values(
+    local: LocalBasis, control: Float[Array, "*grid"], weights: Float[Array, "*grid"]
+) -> tuple[Float[Array, " S"], Float[Array, " S"]]:
     """``(W, g)`` at the samples: ``W = F(w)`` and ``g = F(w C) / W`` (eq. 14)."""
     both = bspline_values(local, jnp.stack([weights, weights * control]))
     return both[0], both[1] / both[0]
@@ -451,7 +472,8 @@ def rational_values(local: LocalBasis, control: Array, weights: Array):
 
 def rational_terms(local: LocalBasis, control: Array, weights: Array):
     """Rational evaluation with explicit rows (eq. 14 and 23), for checks and row-based
-    algorithms; the solvers use the cheaper :func:`rational_values`.
+    algorithms; the solvers use the cheaper
+    [`rational_values`][jurs.internal.rational_values].
 
     Returns ``(wb, denom, g)``: ``wb = w_ij B_i B_j`` for the 16 local terms ``(S, 16)``
     (64 in 3D),
@@ -481,10 +503,10 @@ class ImplicitSpline(eqx.Module):
     pieces extend.
     """
 
-    control: Array
-    weights: Array
-    lower: Array
-    upper: Array
+    control: Float[Array, "*grid"]
+    weights: Float[Array, "*grid"]
+    lower: Float[Array, " d"]
+    upper: Float[Array, " d"]
 
     def __check_init__(self):
         if self.control.ndim not in (2, 3) or self.control.shape != self.weights.shape:
@@ -521,7 +543,12 @@ class ImplicitSpline(eqx.Module):
         return float(np.max(extent / (np.asarray(self.shape) - 3)))
 
     @classmethod
-    def bspline(cls, control: Array, lower, upper) -> "ImplicitSpline":
+    def bspline(
+        cls,
+        control: Float[ArrayLike, "*grid"],
+        lower: Float[ArrayLike, " d"],
+        upper: Float[ArrayLike, " d"],
+    ) -> ImplicitSpline:
         """A polynomial B-spline (all weights 1)."""
         control = jnp.asarray(control)
         return cls(
@@ -531,16 +558,16 @@ class ImplicitSpline(eqx.Module):
             jnp.asarray(upper, control.dtype),
         )
 
-    def local_basis(self, xy: Array) -> LocalBasis:
+    def local_basis(self, xy: Float[Array, "S d"]) -> LocalBasis:
         return local_basis(xy, self.lower, self.upper, self.shape)
 
-    def __call__(self, xy: Array) -> Array:
+    def __call__(self, xy: Float[ArrayLike, "*n d"]) -> Float[Array, "*n"]:
         xy = jnp.asarray(xy)
         single = xy.ndim == 1
         _, g = rational_values(self.local_basis(jnp.atleast_2d(xy)), self.control, self.weights)
         return g[0] if single else g
 
-    def grad(self, xy: Array) -> Array:
+    def grad(self, xy: Float[ArrayLike, "*n d"]) -> Float[Array, "*n d"]:
         """Spatial gradient of g at ``xy (n, d)``; ``(n, d)`` (or ``(d,)`` for one point)."""
         xy = jnp.asarray(xy)
         point_grad = jax.grad(lambda p: self(p))

@@ -1,6 +1,6 @@
 """Zero sets of curves (2D splines): extraction, supplementary components, distances.
 
-The definitions are in the docstring of :mod:`jurs.levelset`."""
+The definitions are in the docstring of [`jurs.levelset`][]."""
 
 from __future__ import annotations
 
@@ -10,6 +10,8 @@ from typing import TYPE_CHECKING, Sequence, cast
 import contourpy
 import equinox as eqx
 import numpy as np
+import numpy.typing as npt
+from jaxtyping import Bool, Float
 from scipy.spatial import cKDTree  # pyright: ignore[reportAttributeAccessIssue]  # no stub
 
 from .._model.spline import ImplicitSpline
@@ -20,13 +22,14 @@ if TYPE_CHECKING:
 
 #: Default number of grid nodes along the longer side of the box.
 DEFAULT_RESOLUTION = 512
-#: Peak bytes per grid node of :func:`analyze` (node coordinates, their stacked and padded
-#: copies, the values and contourpy's working arrays).
+#: Peak bytes per grid node of [`analyze`][jurs.levelset.analyze] (node coordinates, their
+#: stacked and padded copies, the values and contourpy's working arrays).
 #: The default supplementary threshold is at least this fraction of the fit's cell
-#: (:func:`analyze_grid`): on 1e6 points of a circle, d = 3e-6 on a grid capped at 96 a
-#: side (cells 0.024), the one accurate component lay more than 2 d from the data and
-#: was counted supplementary. An eighth of a cell stays below 2 d on the automatic
-#: settings' grids (cells at most 16 d) and on the paper's Example 1 (9 x 9, d = 0.1).
+#: ([`analyze_grid`][jurs.levelset.analyze_grid]): on 1e6 points of a circle, d = 3e-6 on
+#: a grid capped at 96 a side (cells 0.024), the one accurate component lay more than 2 d
+#: from the data and was counted supplementary. An eighth of a cell stays below 2 d on the
+#: automatic settings' grids (cells at most 16 d) and on the paper's Example 1 (9 x 9, d =
+#: 0.1).
 FIT_CELL_FRACTION = 0.125
 BYTES_PER_NODE = 128
 #: Default tiny-loop size, in grid cells of perimeter.
@@ -35,7 +38,11 @@ DEFAULT_TINY_CELLS = 4.0
 DEFAULT_THRESHOLD_FACTOR = 2.0
 
 
-def sampling_grid(lower, upper, resolution: int = DEFAULT_RESOLUTION):
+def sampling_grid(
+    lower: Float[npt.ArrayLike, " 2"],
+    upper: Float[npt.ArrayLike, " 2"],
+    resolution: int = DEFAULT_RESOLUTION,
+) -> tuple[Float[np.ndarray, " nx"], Float[np.ndarray, " ny"], float]:
     """Grid nodes over the box ``[lower, upper]``: ``resolution`` along the longer side, the
     same spacing along the shorter one (at least 2 nodes). Returns ``(xs, ys, h)`` with
     ``h`` the spacing along the longer side."""
@@ -67,7 +74,13 @@ def _gradient(spline, xy):
     return spline.grad(xy)
 
 
-def evaluate_grid(spline, xs, ys, *, chunk: int = 1 << 15) -> np.ndarray:
+def evaluate_grid(
+    spline,
+    xs: Float[npt.ArrayLike, " nx"],
+    ys: Float[npt.ArrayLike, " ny"],
+    *,
+    chunk: int = 1 << 15,
+) -> Float[np.ndarray, "ny nx"]:
     """``values[j, i] = g(xs[i], ys[j])`` as a NumPy array.
 
     Evaluated in fixed-size chunks (the last one padded) under one jit, so grids of any
@@ -91,7 +104,12 @@ def _box(spline, box):
     return np.asarray(lower, float), np.asarray(upper, float)
 
 
-def contour_lines(xs, ys, values, level: float = 0.0):
+def contour_lines(
+    xs: Float[npt.ArrayLike, " nx"],
+    ys: Float[npt.ArrayLike, " ny"],
+    values: Float[npt.ArrayLike, "ny nx"],
+    level: float = 0.0,
+) -> list[tuple[Float[np.ndarray, "k 2"], bool]]:
     """Marching-squares polylines of ``values`` (shape ``(len(ys), len(xs))``) at ``level``.
 
     Returns a list of ``(polyline (k, 2), closed)``. NaN/Inf values are masked out. Closed
@@ -109,7 +127,9 @@ def contour_lines(xs, ys, values, level: float = 0.0):
     return [(np.asarray(p, float), bool(len(c) and c[-1] == 79)) for p, c in zip(lines, codes)]
 
 
-def zero_level_set(spline, resolution: int = DEFAULT_RESOLUTION, box=None, level: float = 0.0):
+def zero_level_set(
+    spline, resolution: int = DEFAULT_RESOLUTION, box=None, level: float = 0.0
+) -> list[tuple[Float[np.ndarray, "k 2"], bool]]:
     """The zero-level set of ``spline`` over ``box`` (default the spline's box) as polylines.
 
     Returns a list of ``(polyline (k, 2), closed)`` pairs; see the module docstring.
@@ -118,13 +138,13 @@ def zero_level_set(spline, resolution: int = DEFAULT_RESOLUTION, box=None, level
     return contour_lines(xs, ys, evaluate_grid(spline, xs, ys), level)
 
 
-def polyline_length(polyline) -> float:
+def polyline_length(polyline: Float[npt.ArrayLike, "k 2"]) -> float:
     """Sum of the segment lengths of a ``(k, 2)`` polyline."""
     p = np.asarray(polyline, float)
     return float(np.sum(np.linalg.norm(np.diff(p, axis=0), axis=1))) if len(p) > 1 else 0.0
 
 
-def resample(polyline, spacing: float) -> np.ndarray:
+def resample(polyline: Float[npt.ArrayLike, "k 2"], spacing: float) -> Float[np.ndarray, "l 2"]:
     """Points along ``polyline`` at arc-length spacing at most ``spacing`` (ends included)."""
     p = np.asarray(polyline, float)
     if len(p) < 2:
@@ -136,7 +156,9 @@ def resample(polyline, spacing: float) -> np.ndarray:
     return np.stack([np.interp(t, s, p[:, 0]), np.interp(t, s, p[:, 1])], axis=1)
 
 
-def chamfer_hausdorff(a, b) -> tuple[float, float]:
+def chamfer_hausdorff(
+    a: Float[npt.ArrayLike, "k 2"], b: Float[npt.ArrayLike, "l 2"]
+) -> tuple[float, float]:
     """Symmetric Chamfer and Hausdorff distances between point sets ``a (k, 2)`` and
     ``b (l, 2)`` (see the module docstring); ``(inf, inf)`` if either is empty."""
     a = np.asarray(a, float).reshape(-1, 2)
@@ -148,7 +170,12 @@ def chamfer_hausdorff(a, b) -> tuple[float, float]:
     return float(0.5 * (d_ab.mean() + d_ba.mean())), float(max(d_ab.max(), d_ba.max()))
 
 
-def distance_to_polyline(points, polyline, *, closed: bool = False) -> np.ndarray:
+def distance_to_polyline(
+    points: Float[npt.ArrayLike, "k 2"],
+    polyline: Float[npt.ArrayLike, "l 2"],
+    *,
+    closed: bool = False,
+) -> Float[np.ndarray, " k"]:
     """Distance from each of ``points (k, 2)`` to the polyline ``(l, 2)``: to its segments,
     not only its vertices, so the polyline's spacing sets no floor (only its chords' own
     distance to the curve they sample, ``spacing^2 * curvature / 8``). ``closed`` adds the
@@ -194,19 +221,25 @@ def _central_gradient(fn, xy: np.ndarray, step: float) -> np.ndarray:
 
 
 def project_to_zero_set(
-    fn, points, *, grad=None, steps: int = 3, tol: float | None = None, step: float | None = None
-):
+    fn,
+    points: Float[npt.ArrayLike, "k 2"],
+    *,
+    grad=None,
+    steps: int = 3,
+    tol: float | None = None,
+    step: float | None = None,
+) -> tuple[Float[np.ndarray, "k 2"], Bool[np.ndarray, " k"]]:
     """Move each of ``points (k, 2)`` onto ``{fn = 0}`` by Newton steps along the gradient,
     ``x <- x - f(x) grad f(x) / |grad f(x)|^2``; from a point near the zero set this lands
     on it near the point's foot, with the error squared every step.
 
-    ``fn`` maps ``(n, 2)`` points to ``(n,)`` values (an :class:`~jurs.ImplicitSpline`, an
-    RBF interpolator, ...). ``grad`` maps them to ``(n, 2)`` gradients; by default a
-    spline's own (``ImplicitSpline.grad``; a spline and its gradient run jitted), for other
-    functions central differences with ``step`` (default 1e-7 of the points' extent), four
-    more evaluations each. A point has converged when its
-    first-order distance ``|f| / |grad f|`` is at most ``tol`` (default 1e-11 of the
-    extent) after the steps; points with a zero or non-finite gradient stay put.
+    ``fn`` maps ``(n, 2)`` points to ``(n,)`` values (an
+    [`ImplicitSpline`][jurs.ImplicitSpline], an RBF interpolator, ...). ``grad`` maps them
+    to ``(n, 2)`` gradients; by default a spline's own (``ImplicitSpline.grad``; a spline
+    and its gradient run jitted), for other functions central differences with ``step``
+    (default 1e-7 of the points' extent), four more evaluations each. A point has converged
+    when its first-order distance ``|f| / |grad f|`` is at most ``tol`` (default 1e-11 of
+    the extent) after the steps; points with a zero or non-finite gradient stay put.
 
     Returns ``(projected (k, 2), converged (k,) bool)``.
     """
@@ -240,21 +273,23 @@ def project_to_zero_set(
 
 def refined_chamfer_hausdorff(
     fn,
-    zero_points,
-    reference,
+    zero_points: Float[npt.ArrayLike, "k 2"],
+    reference: Float[npt.ArrayLike, "l 2"],
     *,
     grad=None,
     closed: bool = True,
     reference_samples: int | None = None,
     steps: int = 3,
 ) -> dict:
-    """Chamfer and Hausdorff distances (as in :func:`chamfer_hausdorff`) between the zero
-    set Z of ``fn`` and a reference curve, without the floor that sampling puts under them.
+    """Chamfer and Hausdorff distances (as in
+    [`chamfer_hausdorff`][jurs.levelset.chamfer_hausdorff]) between the zero set Z of ``fn``
+    and a reference curve, without the floor that sampling puts under them.
 
     * Z -> reference: ``zero_points`` (samples of Z, e.g. resampled contour polylines) are
-      moved onto Z by :func:`project_to_zero_set` (the contouring error goes) and measured
-      to the ``reference`` polyline's segments (:func:`distance_to_polyline`; ``closed``
-      for a closed curve given without its first point repeated).
+      moved onto Z by [`project_to_zero_set`][jurs.levelset.project_to_zero_set] (the
+      contouring error goes) and measured to the ``reference`` polyline's segments
+      ([`distance_to_polyline`][jurs.levelset.distance_to_polyline]; ``closed`` for a closed
+      curve given without its first point repeated).
     * reference -> Z: ``reference_samples`` evenly spread vertices of ``reference`` (default
       all) are projected onto Z too; the distance is the smaller of the way to where they
       land and the distance to the nearest projected zero-set sample, both distances to
@@ -319,10 +354,11 @@ class Component:
 
 @dataclasses.dataclass(frozen=True)
 class LevelSetReport:
-    """What :func:`analyze` measured. ``as_dict()`` gives the numbers as plain floats/ints.
+    """What [`analyze`][jurs.levelset.analyze] measured. ``as_dict()`` gives the numbers as
+    plain floats/ints.
 
     Attributes:
-        components: every :class:`Component`, longest first.
+        components: every [`Component`][jurs.levelset.Component], longest first.
         threshold: distance above which a component is supplementary.
         cell_size: grid spacing h.
         resolution: grid nodes along the longer side.
@@ -390,10 +426,15 @@ class LevelSetReport:
 
 
 def classify(
-    lines, points, *, threshold: float, cell_size: float, tiny_cells: float = DEFAULT_TINY_CELLS
+    lines,
+    points: Float[npt.ArrayLike, "m 2"],
+    *,
+    threshold: float,
+    cell_size: float,
+    tiny_cells: float = DEFAULT_TINY_CELLS,
 ) -> list[Component]:
-    """Turn ``(polyline, closed)`` pairs into :class:`Component` s, longest first, measuring
-    their distance to the data ``points (m, 2)`` with a KD-tree."""
+    """Turn ``(polyline, closed)`` pairs into [`Component`][jurs.levelset.Component] s,
+    longest first, measuring their distance to the data ``points (m, 2)`` with a KD-tree."""
     tree = cKDTree(np.asarray(points, float).reshape(-1, 2))
     out = []
     for poly, closed in lines:
@@ -425,11 +466,11 @@ def classify(
 
 def analyze(
     spline,
-    points,
+    points: Float[npt.ArrayLike, "m 2"],
     *,
     offset: float = 0.1,
     threshold: float | None = None,
-    reference=None,
+    reference: Float[npt.ArrayLike, "k 2"] | None = None,
     resolution: int = DEFAULT_RESOLUTION,
     box=None,
     tiny_cells: float = DEFAULT_TINY_CELLS,
@@ -438,9 +479,10 @@ def analyze(
     """Extract and measure the zero-level set of ``spline`` (see the module docstring).
 
     Args:
-        spline: an :class:`jurs.ImplicitSpline` (anything jit-callable on ``(n, 2)`` arrays
+        spline: an [`jurs.ImplicitSpline`][] (anything jit-callable on ``(n, 2)`` arrays
             with ``lower``/``upper`` works, given ``box``; for other functions, e.g. NumPy
-            or SciPy ones, sample them yourself and call :func:`analyze_grid`).
+            or SciPy ones, sample them yourself and call
+            [`analyze_grid`][jurs.levelset.analyze_grid]).
         points: ``(m, 2)`` data points the fit was made from.
         offset: d of the fit; the default threshold is ``2 d`` (or an eighth of a cell
             of the spline's grid, where more).
@@ -454,7 +496,7 @@ def analyze(
             ``zero_area_fraction``).
 
     Returns:
-        :class:`LevelSetReport`.
+        [`LevelSetReport`][jurs.levelset.LevelSetReport].
     """
     xs, ys, _ = sampling_grid(*_box(spline, box), resolution)
     return analyze_grid(
@@ -473,30 +515,30 @@ def analyze(
 
 def _fit_cell(spline) -> float:
     """The width of the spline's cells (its box over its knot spans), 0 for a function that
-    is not a :class:`jurs.ImplicitSpline`."""
+    is not a [`jurs.ImplicitSpline`][]."""
     return spline.cell_width if isinstance(spline, ImplicitSpline) else 0.0
 
 
 def analyze_grid(
-    xs,
-    ys,
-    values,
-    points,
+    xs: Float[npt.ArrayLike, " nx"],
+    ys: Float[npt.ArrayLike, " ny"],
+    values: Float[npt.ArrayLike, "ny nx"],
+    points: Float[npt.ArrayLike, "m 2"],
     *,
     offset: float = 0.1,
     threshold: float | None = None,
     fit_cell: float = 0.0,
-    reference=None,
+    reference: Float[npt.ArrayLike, "k 2"] | None = None,
     tiny_cells: float = DEFAULT_TINY_CELLS,
     zero_tol: float = 1e-12,
 ) -> LevelSetReport:
-    """:func:`analyze` for a function already sampled on a grid: ``values[j, i]`` at
-    ``(xs[i], ys[j])``, with ``xs``/``ys`` from :func:`sampling_grid` (any implicit function
-    can be measured this way, so other methods are compared on equal terms). The cell size
-    is the spacing along the longer side; ``fit_cell``, the width of the fitted function's
-    own cells (0: none), raises the default threshold to :data:`FIT_CELL_FRACTION` of it;
-    other arguments as in
-    :func:`analyze`."""
+    """[`analyze`][jurs.levelset.analyze] for a function already sampled on a grid:
+    ``values[j, i]`` at ``(xs[i], ys[j])``, with ``xs``/``ys`` from
+    [`sampling_grid`][jurs.levelset.sampling_grid] (any implicit function can be measured
+    this way, so other methods are compared on equal terms). The cell size is the spacing
+    along the longer side; ``fit_cell``, the width of the fitted function's own cells (0:
+    none), raises the default threshold to ``FIT_CELL_FRACTION`` of it; other arguments as
+    in [`analyze`][jurs.levelset.analyze]."""
     points = np.asarray(points, float)
     if points.ndim != 2 or points.shape[1] != 2 or len(points) == 0:
         raise ValueError(f"points must have shape (m, 2) with m >= 1, got {points.shape}")
@@ -537,7 +579,7 @@ def analyze_grid(
     )
 
 
-def polylines_table(components: Sequence[Component]) -> np.ndarray:
+def polylines_table(components: Sequence[Component]) -> Float[np.ndarray, "rows 5"]:
     """Rows ``(component, closed, supplementary, x, y)`` for every vertex, components
     numbered from 0 in the order given (as written to the CLI's CSV)."""
     rows = [

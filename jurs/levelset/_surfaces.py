@@ -1,12 +1,13 @@
 """Triangle meshes of the zero set of a 3D spline, and what to measure on them.
 
-:func:`mesh` samples g on a lattice slab by slab (:func:`jurs._model.lattice.lattice_values`),
-runs marching cubes (scikit-image) on each slab, stitches the slabs and moves the vertices
-onto {g = 0} by Newton steps. :func:`analyze_mesh` splits a mesh into connected components
-and measures each (area, closed or open, genus, distance to the data), flagging the
-supplementary ones ("bubbles" away from the data); :func:`mesh_distances` compares a mesh
-with a reference cloud (Chamfer, Hausdorff, normal consistency). Everything is host-side
-NumPy/SciPy; see docs/surfaces.md for the definitions.
+[`mesh`][jurs.levelset.mesh] samples g on a lattice slab by slab
+(``jurs._model.lattice.lattice_values``), runs marching cubes (scikit-image) on each slab,
+stitches the slabs and moves the vertices onto {g = 0} by Newton steps.
+[`analyze_mesh`][jurs.levelset.analyze_mesh] splits a mesh into connected components and
+measures each (area, closed or open, genus, distance to the data), flagging the supplementary
+ones ("bubbles" away from the data); [`mesh_distances`][jurs.levelset.mesh_distances] compares
+a mesh with a reference cloud (Chamfer, Hausdorff, normal consistency). Everything is
+host-side NumPy/SciPy; see docs/surfaces.md for the definitions.
 """
 
 from __future__ import annotations
@@ -14,6 +15,8 @@ from __future__ import annotations
 import dataclasses
 
 import numpy as np
+import numpy.typing as npt
+from jaxtyping import Float, Int
 from scipy import sparse
 from scipy.sparse import csgraph
 from scipy.spatial import cKDTree  # pyright: ignore[reportAttributeAccessIssue]  # no stub
@@ -26,21 +29,22 @@ from ..datasets import sample_mesh
 #: so a feature one cell wide needs two or three nodes across it to show up at all. The
 #: Newton steps afterwards put the vertices on the zero set, but the flat triangles between
 #: them cut the curved surface short by about ``kappa e^2 / 8`` (curvature kappa, edge e),
-#: which on clean fits was most of the mesh's error at 3 nodes a cell: a fit of 1e5 exact
-#: points of a unit sphere (48^3 grid) lies 1.9e-5 from the sphere on average, its mesh
-#: 5.5e-5 at 137 nodes (3 a cell; meshed in 0.34 s on a 2-core CPU), 3.3e-5 at 192
-#: (0.87 s), 2.5e-5 at 256 (1.7 s). Five a cell makes the default mesh of a 48^3 fit about
-#: 230 nodes a side.
+#: which on clean fits was most of the mesh's error at 3 nodes a cell; at 5 the mesh of a
+#: clean sphere fit is within about 1.3x of the fit's own distance to the sphere, for 5x
+#: the meshing time of 3 (docs/performance.md, "Measurements behind the level-set and
+#: plotting defaults"). Five a cell makes the default mesh of a 48^3 fit about 230 nodes a
+#: side.
 SAMPLES_PER_CELL = 5
 #: Bounds of the default resolution (nodes along the longest side of the box). 256 keeps a
-#: default mesh at a few hundred thousand triangles and a couple of seconds on a laptop;
-#: pass ``resolution`` for more.
+#: default mesh at a few hundred thousand triangles, meshed in a couple of seconds
+#: (docs/performance.md); pass ``resolution`` for more.
 MIN_RESOLUTION, MAX_RESOLUTION = 32, 256
-#: Default lattice nodes per slab of :func:`mesh` (8 MiB of float64 values; larger slabs
-#: were no faster: 2.6 s against 2.5 s at resolution 300).
+#: Default lattice nodes per slab of [`mesh`][jurs.levelset.mesh]: 8 MiB of float64
+#: values, which bounds the memory of a mesh; larger slabs mesh no faster
+#: (docs/performance.md).
 SLAB_NODES = 1 << 20
 #: Lattice values closer to the level than this fraction of the largest value difference
-#: along a lattice edge (estimated by :func:`_slope_bound`) are moved to that distance
+#: along a lattice edge (estimated by ``_slope_bound``) are moved to that distance
 #: above it. Marching cubes computes in float32: a node this close to the level would get
 #: the vertices of all its crossing edges on itself (a vertex ``t`` of an edge from a node
 #: at index ~1000 rounds onto it below t ~ 6e-5), and two such nodes in one cube, welded,
@@ -49,11 +53,12 @@ SLAB_NODES = 1 << 20
 #: the Newton steps take it back.
 NUDGE = 1e-3
 #: Default supplementary threshold: this many median nearest-neighbour spacings of the
-#: data, and at least :data:`THRESHOLD_DIAGONAL` of the data's bounding-box diagonal.
+#: data, and at least ``THRESHOLD_DIAGONAL`` of the data's bounding-box diagonal.
 THRESHOLD_SPACINGS = 3.0
 THRESHOLD_DIAGONAL = 0.01
-#: Default number of mesh samples of :func:`mesh_distances`: at least this many, and
-#: :data:`SAMPLES_PER_REFERENCE` per reference point, at most :data:`MAX_SAMPLES`.
+#: Default number of mesh samples of
+#: [`mesh_distances`][jurs.levelset.mesh_distances]: at least this many, and
+#: ``SAMPLES_PER_REFERENCE`` per reference point, at most ``MAX_SAMPLES``.
 MIN_SAMPLES, SAMPLES_PER_REFERENCE, MAX_SAMPLES = 10_000, 4, 1_000_000
 
 _EMPTY = (np.empty((0, 3)), np.empty((0, 3), dtype=np.int64))
@@ -67,7 +72,9 @@ def _marching_cubes():
     return marching_cubes
 
 
-def lattice_axes(lower, upper, resolution: int):
+def lattice_axes(
+    lower: Float[np.ndarray, " 3"], upper: Float[np.ndarray, " 3"], resolution: int
+) -> list[Float[np.ndarray, " n"]]:
     """Lattice node coordinates over the box: ``resolution`` nodes along its longest side,
     about the same spacing along the others (at least 2 nodes). Returns three 1D arrays."""
     if isinstance(resolution, bool) or not isinstance(resolution, (int, np.integer)):
@@ -79,9 +86,11 @@ def lattice_axes(lower, upper, resolution: int):
     return [np.linspace(lo, hi, c) for lo, hi, c in zip(lower, upper, counts)]
 
 
-def default_resolution(spline, lower, upper) -> int:
-    """:data:`SAMPLES_PER_CELL` lattice nodes per spline cell (the finest axis's) along the
-    longest side of the box, within [:data:`MIN_RESOLUTION`, :data:`MAX_RESOLUTION`]."""
+def default_resolution(
+    spline, lower: Float[np.ndarray, " 3"], upper: Float[np.ndarray, " 3"]
+) -> int:
+    """``SAMPLES_PER_CELL`` lattice nodes per spline cell (the finest axis's) along the
+    longest side of the box, within [``MIN_RESOLUTION``, ``MAX_RESOLUTION``]."""
     control, _, s_lower, s_upper = spline_fields(spline, dims=(3,))
     cell = np.min((s_upper - s_lower) / (np.asarray(control.shape) - 3.0))
     nodes = int(np.ceil(SAMPLES_PER_CELL * np.max(upper - lower) / cell)) + 1
@@ -96,13 +105,13 @@ def mesh(
     level: float = 0.0,
     newton_steps: int = 2,
     chunk: int = SLAB_NODES,
-):
+) -> tuple[Float[np.ndarray, "V 3"], Int[np.ndarray, "F 3"]]:
     """Triangle mesh of ``{g = level}`` of a 3D spline over ``box``.
 
     Args:
         spline: any object with fields ``control`` and ``weights`` (``(N, M, K)``, weights
             positive), ``lower`` and ``upper`` (``(3,)``), such as a 3D
-            :class:`jurs.ImplicitSpline`.
+            [`jurs.ImplicitSpline`][].
         resolution: lattice nodes along the longest side of the box (the other sides get
             the same spacing). Default: 5 per spline cell, between 32 and 256.
         box: ``(lower, upper)`` to mesh; default the spline's own box.
@@ -175,8 +184,8 @@ def _march_in_slabs(spline, axes, level: float, nudge: float, chunk: int):
 
     Consecutive slabs share one plane of nodes, evaluated once and handed on, so the
     vertices marching cubes puts on that plane come out bitwise equal in both slabs (the
-    same values on the same edges); :func:`_weld` merges them. Values within ``nudge`` of
-    the level are set to ``level + nudge`` first (see :data:`NUDGE`).
+    same values on the same edges); ``_weld`` merges them. Values within ``nudge`` of
+    the level are set to ``level + nudge`` first (see ``NUDGE``).
     """
     marching_cubes = _marching_cubes()
     xs, ys, zs = axes
@@ -212,7 +221,7 @@ def _weld(vertices, faces):
 
     Marching cubes puts one vertex on each lattice edge the level set crosses, so two
     vertices coincide as the same edge's vertex seen from two slabs, or (should the nudge
-    of :data:`NUDGE` fall short) at a node where g is at the level to float32, where every
+    of ``NUDGE`` fall short) at a node where g is at the level to float32, where every
     crossing edge has its vertex on the node and the triangles between them have no area.
     Merged, each point is one vertex.
     """
@@ -225,7 +234,8 @@ def _weld(vertices, faces):
 
 def _newton(spline, vertices, level: float, steps: int, longest: float):
     """``steps`` Newton steps onto ``{g = level}`` along the gradient, each no longer than
-    ``longest`` (see :func:`mesh`); points with a zero or non-finite gradient stay put."""
+    ``longest`` (see [`mesh`][jurs.levelset.mesh]); points with a zero or non-finite
+    gradient stay put."""
     x = vertices.copy()
     for _ in range(steps):
         value, gradient = values_and_gradients(spline, x)
@@ -257,14 +267,18 @@ def _check_mesh(vertices, faces):
     return vertices, faces.astype(np.int64)
 
 
-def face_areas(vertices, faces) -> np.ndarray:
+def face_areas(
+    vertices: Float[npt.ArrayLike, "V 3"], faces: Int[npt.ArrayLike, "F 3"]
+) -> Float[np.ndarray, " F"]:
     """Area of each triangle; ``(F,)``."""
     vertices, faces = _check_mesh(vertices, faces)
     a, b, c = (vertices[faces[:, k]] for k in range(3))
     return 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
 
 
-def mesh_components(vertices, faces):
+def mesh_components(
+    vertices: Float[npt.ArrayLike, "V 3"], faces: Int[npt.ArrayLike, "F 3"]
+) -> tuple[int, Int[np.ndarray, " F"]]:
     """Connected components of a triangle mesh (faces sharing a vertex are connected).
 
     Returns ``(count, labels)``: ``labels (F,)`` numbers each face's component from 0, the
@@ -275,7 +289,8 @@ def mesh_components(vertices, faces):
 
 
 def _face_components(faces, num_vertices: int):
-    """:func:`mesh_components` of checked int64 ``faces`` over ``num_vertices`` vertices."""
+    """[`mesh_components`][jurs.levelset.mesh_components] of checked int64 ``faces`` over
+    ``num_vertices`` vertices."""
     if len(faces) == 0:
         return 0, np.empty(0, dtype=np.int64)
     # Each face links its first vertex to the other two: enough to connect all three.
@@ -314,7 +329,7 @@ def _topology(faces, labels, count):
     )
 
 
-def genus(faces) -> int:
+def genus(faces: Int[npt.ArrayLike, "F 3"]) -> int:
     """Genus of a closed, connected, orientable triangle mesh from its Euler characteristic
     ``V - E + F = 2 - 2 genus`` (V counts only the vertices the faces use).
 
@@ -376,10 +391,11 @@ class MeshComponent:
 
 @dataclasses.dataclass(frozen=True)
 class MeshReport:
-    """What :func:`analyze_mesh` measured.
+    """What [`analyze_mesh`][jurs.levelset.analyze_mesh] measured.
 
     Attributes:
-        components: every :class:`MeshComponent`, largest area first.
+        components: every [`MeshComponent`][jurs.levelset.MeshComponent],
+            largest area first.
         threshold: the supplementary threshold (None without data points).
     """
 
@@ -418,9 +434,9 @@ class MeshReport:
         }
 
 
-def default_threshold(points) -> float:
-    """:data:`THRESHOLD_SPACINGS` median nearest-neighbour spacings of ``points``, and at
-    least :data:`THRESHOLD_DIAGONAL` of their bounding-box diagonal.
+def default_threshold(points: Float[npt.ArrayLike, "m 3"]) -> float:
+    """``THRESHOLD_SPACINGS`` median nearest-neighbour spacings of ``points``, and at
+    least ``THRESHOLD_DIAGONAL`` of their bounding-box diagonal.
 
     A surface through the data lies, at most of its area, within a fraction of the spacing
     of the nearest point; the floor on the diagonal keeps dense clouds, finer than what a
@@ -434,19 +450,25 @@ def default_threshold(points) -> float:
     return float(max(THRESHOLD_SPACINGS * spacing, THRESHOLD_DIAGONAL * diagonal))
 
 
-def analyze_mesh(vertices, faces, points=None, *, threshold: float | None = None) -> MeshReport:
+def analyze_mesh(
+    vertices: Float[npt.ArrayLike, "V 3"],
+    faces: Int[npt.ArrayLike, "F 3"],
+    points: Float[npt.ArrayLike, "m 3"] | None = None,
+    *,
+    threshold: float | None = None,
+) -> MeshReport:
     """Components of a mesh and, given the data ``points (m, 3)``, which are supplementary.
 
     Args:
-        vertices, faces: the mesh (as from :func:`mesh`).
+        vertices, faces: the mesh (as from [`mesh`][jurs.levelset.mesh]).
         points: the data the surface was fitted to; without them no distances are measured
             and nothing is supplementary.
         threshold: distance beyond which a component is supplementary (its area-weighted
-            median distance to the data exceeds it); default :func:`default_threshold`.
+            median distance to the data exceeds it); default ``default_threshold``.
             Unused without ``points``.
 
     Returns:
-        :class:`MeshReport`.
+        [`MeshReport`][jurs.levelset.MeshReport].
     """
     vertices, faces = _check_mesh(vertices, faces)
     if points is not None:
@@ -499,10 +521,10 @@ def _weighted_medians(values, weights, labels, totals):
 
 
 def mesh_distances(
-    vertices,
-    faces,
-    reference_points,
-    reference_normals=None,
+    vertices: Float[npt.ArrayLike, "V 3"],
+    faces: Int[npt.ArrayLike, "F 3"],
+    reference_points: Float[npt.ArrayLike, "m 3"],
+    reference_normals: Float[npt.ArrayLike, "m 3"] | None = None,
     *,
     samples: int | None = None,
     seed: int = 0,
@@ -512,7 +534,7 @@ def mesh_distances(
 
     The mesh is sampled by area (``samples`` points, default 4 per reference point, between
     10 000 and 1 000 000; reproducible by ``seed``). With ``Z`` the samples, ``Y`` the
-    reference points and ``d(a, B) = min_b |a - b|``, as :func:`jurs.levelset.chamfer_hausdorff`
+    reference points and ``d(a, B) = min_b |a - b|``, as [`jurs.levelset.chamfer_hausdorff`][]
     defines them in 2D:
 
     * ``chamfer = (mean_{z in Z} d(z, Y) + mean_{y in Y} d(y, Z)) / 2`` (mean of unsquared
