@@ -57,7 +57,7 @@ def evaluate_rbf(rbf, xy, chunk: int = 4096) -> np.ndarray:
 
 
 def evaluate_rbf_grid(rbf, xs, ys, chunk: int = 4096) -> np.ndarray:
-    """``values[j, i] = rbf(xs[i], ys[j])`` (:func:`evaluate_rbf` on the grid's nodes)."""
+    """``values[j, i] = rbf(xs[i], ys[j])`` (``evaluate_rbf`` on the grid's nodes)."""
     gx, gy = np.meshgrid(xs, ys)
     return evaluate_rbf(rbf, np.stack([gx.ravel(), gy.ravel()], axis=1), chunk).reshape(gx.shape)
 
@@ -75,7 +75,7 @@ def rbf_grid_values(fn, xs, ys, coarse: int = 8, safety: float = 1.0, chunk: int
     of one sign and far from 0 relative to the local variation; their inner nodes get the
     bilinear interpolant of their corners (same sign, so no zero crossing is lost). Every
     grid cell the zero set crosses therefore has exact corner values, and the contour is the
-    one :func:`rbf_report` draws from the full grid: ``benchmarks/quality.py`` checks this on
+    one ``rbf_report`` draws from the full grid: ``benchmarks/quality.py`` checks this on
     the runs in its ``CHECKS_*`` (signs at every grid node, component counts, Chamfer and
     Hausdorff distances).
 
@@ -163,7 +163,7 @@ def rbf_report(
     reference=None,
     resolution: int = jurs.levelset.DEFAULT_RESOLUTION,
 ):
-    """:func:`jurs.levelset.analyze_grid` of the RBF on ``box`` (use the jurs fit's box)."""
+    """[`jurs.levelset.analyze_grid`][] of the RBF on ``box`` (use the jurs fit's box)."""
     xs, ys, _ = jurs.levelset.sampling_grid(*box, resolution)
     values = evaluate_rbf_grid(rbf, xs, ys)
     return jurs.levelset.analyze_grid(xs, ys, values, points, offset=offset, reference=reference)

@@ -39,7 +39,7 @@ def import_open3d() -> Any:
 
 
 def optional(name):
-    """The module ``name`` (``open3d`` through :func:`import_open3d`), or None when it
+    """The module ``name`` (``open3d`` through ``import_open3d``), or None when it
     cannot be imported."""
     try:
         return import_open3d() if name == "open3d" else importlib.import_module(name)

@@ -10,10 +10,10 @@ rebuilds the dense collocation matrix ``D`` of eq. 23 from the current weights:
 4. ``C <- C + mu D^T (b - D C) - lam nabla_C R(C)``                     (eq. 33, 34)
 5. ``E = ||D C - b||^2 + lam R(C)`` and ``nabla_w E`` at the new (C, w)  (eq. 35, 19)
 
-This is the same order of operations as :class:`jurs.IURS` (the weight gradient used by a
-step is the one computed at the end of the previous step, or by :func:`init`), so the
+This is the same order of operations as [`jurs.IURS`][] (the weight gradient used by a
+step is the one computed at the end of the previous step, or by ``init``), so the
 iterates agree with jurs to rounding; ``benchmarks/tests/test_numpy_port.py`` checks it. Memory is
-O(m N M): it only runs where the dense matrices fit (see :func:`dense_bytes`).
+O(m N M): it only runs where the dense matrices fit (see ``dense_bytes``).
 """
 
 from __future__ import annotations

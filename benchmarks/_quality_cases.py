@@ -40,7 +40,7 @@ RESOLUTION = jurs.levelset.DEFAULT_RESOLUTION
 
 def clean_outline(shape: str):
     """Components, reference samples, bounding-box diagonal and total length of the clean
-    outline of ``shape`` (as :func:`jurs.shapes.get` samples it)."""
+    outline of ``shape`` (as [`jurs.shapes.get`][] samples it)."""
     comps = jurs.shapes.outline(shape)
     allp = np.concatenate(comps)
     diag = float(np.linalg.norm(allp.max(axis=0) - allp.min(axis=0)))

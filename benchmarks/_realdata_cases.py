@@ -4,15 +4,15 @@ with installed packages (scikit-image, matplotlib), or set in fonts that matplot
 Every image case is segmented with a plain threshold (Otsu, a local threshold, a colour
 range or a fixed level, after at most a crop or a 2x downscale of the image), keeps its
 largest few connected regions, fills holes smaller than a few pixels, and is traced the way
-a new user would trace it: :func:`skimage.measure.find_contours` at 0.5 on the padded 0/1
-mask, **without** the Gaussian blur that :func:`jurs.shapes.mask_outline` applies. The
+a new user would trace it: ``skimage.measure.find_contours`` at 0.5 on the padded 0/1
+mask, **without** the Gaussian blur that [`jurs.shapes.mask_outline`][] applies. The
 outline therefore runs along pixel edges: its vertices lie on half-pixel positions and it
 carries the pixel staircase. Font cases are exact glyph outlines
-(:func:`jurs.shapes.glyph_outline`). None of these data are in the project's suite
+([`jurs.shapes.glyph_outline`][]). None of these data are in the project's suite
 (``jurs.shapes`` uses ``horse``, ``coins`` and DejaVu Sans).
 
-Each case is oriented (:func:`jurs.shapes.orient`), scaled to size 8
-(:func:`jurs.shapes.normalise`) and given a point count m: ``clip(round(POINTS_PER_PIXEL *
+Each case is oriented ([`jurs.shapes.orient`][]), scaled to size 8
+([`jurs.shapes.normalise`][]) and given a point count m: ``clip(round(POINTS_PER_PIXEL *
 L, -2), M_MIN, M_MAX)`` with L the outline's length in pixels (fonts: in units of
 1/``FONT_PIXELS`` of the longest side, as if set that many pixels wide), so the spacing is
 finer than a pixel; the multi-ring ``page`` case has m = ``MULTI_RING_M``. Everything is
@@ -36,7 +36,7 @@ MULTI_RING_M = 20000
 FONT_PIXELS = 400
 #: Regions (and holes) below this many square pixels are dropped (filled).
 MIN_AREA = 20
-#: Longest side after :func:`jurs.shapes.normalise`.
+#: Longest side after [`jurs.shapes.normalise`][].
 SIZE = 8.0
 
 
@@ -45,7 +45,7 @@ SIZE = 8.0
 
 def trace(mask, min_area: float = MIN_AREA) -> list[np.ndarray]:
     """Closed outlines of the True pixels of ``mask`` in pixel units (x = column, y = -row),
-    by plain marching squares (:func:`skimage.measure.find_contours` at 0.5 on the 0/1 mask
+    by plain marching squares (``skimage.measure.find_contours`` at 0.5 on the 0/1 mask
     padded with False, no blur): vertices on half-pixel positions, the pixel staircase kept.
     Outlines enclosing less than ``min_area`` square pixels are dropped."""
     from skimage import measure
@@ -265,7 +265,7 @@ class Case:
     """One real outline, ready to sample.
 
     Attributes:
-        name: key of :data:`CASES`.
+        name: key of ``CASES``.
         source: where it comes from and how it was segmented (the source's docstring).
         traced: True for outlines traced from a pixel mask (staircase), False for fonts.
         raw: the oriented components in pixel units (fonts: their own units).
@@ -300,7 +300,7 @@ def outline_length(components) -> float:
 
 @functools.lru_cache(maxsize=None)
 def build(name: str) -> Case:
-    """The :class:`Case` ``name`` (deterministic; cached)."""
+    """The ``Case`` ``name`` (deterministic; cached)."""
     if name not in CASES:
         raise ValueError(f"unknown case {name!r}; known: {', '.join(CASES)}")
     fn = CASES[name][0]

@@ -161,7 +161,7 @@ def _memory(base: int) -> dict:
 
 
 def _timing(t: dict, prefix: str = "") -> dict:
-    """The numbers of :func:`time_repeated`, keys prefixed, without the output."""
+    """The numbers of ``time_repeated``, keys prefixed, without the output."""
     return {prefix + k: v for k, v in t.items() if k != "output"}
 
 
@@ -405,9 +405,9 @@ def pass_times(jax, problem, repeats: int = PASS_REPEATS) -> dict:
 def refined_distances(xs, ys, values, reference, fn) -> dict:
     """Chamfer / Hausdorff of the zero set of ``fn`` (sampled as ``values`` on ``xs, ys``)
     to the reference curve, refined: no sampling floor (see
-    :func:`jurs.levelset.refined_chamfer_hausdorff`).
+    [`jurs.levelset.refined_chamfer_hausdorff`][]).
 
-    :func:`jurs.levelset.analyze_grid` resamples the marching-squares zero set at half a
+    [`jurs.levelset.analyze_grid`][] resamples the marching-squares zero set at half a
     grid cell (0.01 at resolution 512 here), so its Chamfer distance cannot fall below about
     an eighth of a cell whatever the fit; contour points resampled densely still carry
     marching squares' own error (about 1e-5 here), under which accurate fits tie. Here the
@@ -632,13 +632,13 @@ def run_example4(log, runs: int = EXAMPLE4_RUNS) -> list[dict]:
 
 def step_passes_s(ex4) -> float | None:
     """Seconds of one IURS step's passes over the samples, each timed alone
-    (:func:`pass_times`): one F2, one F1 and two T2."""
+    (``pass_times``): one F2, one F1 and two T2."""
     p = ex4.get("passes")
     return p["F2_s"] + p["F1_s"] + 2 * p["T2_s"] if p else None
 
 
 def passes_floor_s(ex4) -> float | None:
-    """The fit's steps times :func:`step_passes_s`: what jurs's kernels for the passes
+    """The fit's steps times ``step_passes_s``: what jurs's kernels for the passes
     alone take over the fit, with no bookkeeping, dispatch or metrics."""
     step = step_passes_s(ex4)
     return step * ex4["num_steps"] if step is not None and "num_steps" in ex4 else None

@@ -123,7 +123,7 @@ def mesh_path(name: str):
 
 
 def make_truth(name: str) -> Truth | None:
-    """The :class:`Truth` of a case; None when its mesh is not available."""
+    """The ``Truth`` of a case; None when its mesh is not available."""
     import jurs.datasets as data
     from jurs.levelset import analyze_mesh
 

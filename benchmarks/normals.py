@@ -5,10 +5,10 @@ One command measures everything, prints the tables and writes the dated results
 ``benchmarks/results/normals.{json,md}``:
 
 * **2D cases.** Outlines traced from scikit-image images with
-  :func:`skimage.measure.find_contours` (``horse``, ``coins``, ``text``, ``binary_blobs``,
-  through :func:`jurs.shapes.mask_outline`), DejaVu glyphs, and planted hard cases (nested
+  ``skimage.measure.find_contours`` (``horse``, ``coins``, ``text``, ``binary_blobs``,
+  through [`jurs.shapes.mask_outline`][]), DejaVu glyphs, and planted hard cases (nested
   rings, a thin band, two close discs); sampled by arc length (true normals from
-  :func:`jurs.shapes.sample_outline`), clean, with 0.5 % noise, with uneven density
+  [`jurs.shapes.sample_outline`][]), clean, with 0.5 % noise, with uneven density
   (``nonuniform=0.6``) and with 2 % outliers (scored on the inliers).
 * **3D cases.** Area-uniform samples of the bunny and the cow from pymeshlab's sample meshes
   (``pip install pymeshlab trimesh``; face normals as truth), a sphere, a torus and a thick
@@ -121,7 +121,7 @@ VARIANTS_2D = ("clean", "noise", "uneven", "outliers")
 
 def cloud_2d(name, variant, m=None, seed=0):
     """``(points, truth, inlier mask, clean outline)`` of a 2D case (``m`` points: by
-    default :data:`M_CASE`'s or :data:`M_2D`)."""
+    default ``M_CASE``'s or ``M_2D``)."""
     m = M_CASE.get(name, M_2D) if m is None else m
     comps = OUTLINES_2D[name]()
     points, truth = jurs.shapes.sample_outline(

@@ -9,7 +9,7 @@ Writes ``paper.md``, ``paper.json`` and the figures ``paper/*.png`` under ``--ou
 run never overwrites the committed results.
 
 What is reproduced, and how (the paper's "figure" shapes are not published; ours come from
-:mod:`jurs.shapes`, scaled so the longest side is 8 data units like Example 1's 8 x 8.45):
+[`jurs.shapes`][], scaled so the longest side is 8 data units like Example 1's 8 x 8.45):
 
 * Table 1: Example 1 (120 points, 9 x 9) and Example 2 (193 points of ``lobes``, 10 x 10 and
   15 x 15), I-PIA (B-spline) against IURS (uniform rational, tau = 1e-2, no regulariser),

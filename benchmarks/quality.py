@@ -5,7 +5,7 @@ One command measures everything, prints the tables and writes the dated results
 figure ``benchmarks/results/quality/overview.png`` (``--quick``: a few cases in a few minutes,
 written to the same files and marked as a quick subset):
 
-* **Cases.** Closed outlines of :mod:`jurs.shapes` (analytic curves, glyphs of DejaVu Sans,
+* **Cases.** Closed outlines of [`jurs.shapes`][] (analytic curves, glyphs of DejaVu Sans,
   silhouettes traced from scikit-image images), uniformly sampled, non-uniformly sampled
   (``nonuniform=0.6``) or with a gap (``gap=0.08``); each at several noise levels.
 * **jurs.** ``jurs.fit(points, normals)`` with nothing else: grid, offset, eps, lambda and
@@ -14,7 +14,7 @@ written to the same files and marked as a quick subset):
 * **Baseline.** ``_baselines.rbf_fit``: SciPy's thin-plate ``RBFInterpolator`` on the same
   offset samples (jurs's chosen d and eps), without smoothing and, on noisy cases, with a
   ladder of smoothing values; measured with the same level-set analysis on the same box
-  and grid (see :func:`_baselines.rbf_grid_values` for how the grid is evaluated).
+  and grid (see ``_baselines.rbf_grid_values`` for how the grid is evaluated).
 * **Ratios.** jurs's Chamfer over the reference RBF's (the unsmoothed one on clean cases,
   the best smoothed one on noisy cases) and the RBF's fit time over jurs's, per run.
 
@@ -65,7 +65,7 @@ QUICK_NOISE_LEVELS = (0.0, 0.005)
 
 #: Warm fits timed after the first call (median reported).
 WARM_REPEATS = 3
-#: RBF smoothing ladder (noisy cases), searched from the top down; see :func:`smoothing_search`.
+#: RBF smoothing ladder (noisy cases), searched from the top down; see ``smoothing_search``.
 SMOOTHING_LADDER = (1e-3, 1e-2, 1e-1, 1.0, 10.0)
 #: Tried above the ladder while its top value is still the best.
 SMOOTHING_EXTENSION = (100.0, 1000.0)

@@ -6,7 +6,7 @@ staircases), with noise, uneven density or outliers, many rings, thin parts. One
 measures it and writes the dated results ``benchmarks/results/realdata.{json,md}`` and the
 figure ``benchmarks/results/realdata/worst.png``:
 
-* **Cases** (:mod:`_realdata_cases`): 14 outlines from data that ship with scikit-image and
+* **Cases** (``_realdata_cases``): 14 outlines from data that ship with scikit-image and
   matplotlib (photos, a medical slice, a terrain model, binary blobs, text) or set in
   DejaVu Serif / Sans Mono; none is in the project's suite. Sampled finer than a pixel.
 * **Variants** of each: ``clean``; ``noisy`` (positions + N(0, (0.5 % diag)^2) per
@@ -14,14 +14,14 @@ figure ``benchmarks/results/realdata/worst.png``:
   outline); ``outlier`` (1.5 % of the points moved uniformly into the enlarged box, at
   least 5 % of diag from the outline, with random normals). Fixed seeds per run.
 * **jurs**: ``jurs.fit(points, normals, throw=False)``, nothing else; warm time
-  (:func:`_common.time_repeated`); status, settings and scalar stats recorded.
+  (``_common.time_repeated``); status, settings and scalar stats recorded.
 * **RBF**: ``_baselines.rbf_fit`` (SciPy's thin-plate ``RBFInterpolator``) on the same offset
   samples with jurs's d and eps, smoothing 0, no outlier handling (what a user has today);
   on at most ``RBF_MAX_POINTS`` evenly strided points (its dense solve is O((3m)^3)).
 * **Measures**, both methods on the same box and grid (``jurs.levelset.analyze`` /
   ``analyze_grid``): Chamfer and Hausdorff distances of the zero set to the clean outline
   (fractions of its bounding-box diagonal), and a ring-by-ring topology match
-  (:func:`match_rings`): a count of components can be right while one ring splits and two
+  (``match_rings``): a count of components can be right while one ring splits and two
   others merge, so every true ring is checked for the one component that follows it.
 
     python benchmarks/realdata.py [--quick] [--cases a,b] [--variants clean,noisy]
@@ -80,7 +80,7 @@ MATCH_TOL = 0.01
 #: Issue 23's targets: Hausdorff (fraction of diag) clean / other variants; warm time at
 #: m <= TIME_MAX_M.
 HAUSDORFF_CLEAN, HAUSDORFF_OTHER, TIME_TARGET_S, TIME_MAX_M = 0.005, 0.01, 0.150, 5000
-#: Runs shown in the figure (see :func:`worst_runs`).
+#: Runs shown in the figure (see ``worst_runs``).
 WORST = 8
 
 FIGURE_DIR = os.path.join(RESULTS, "realdata")
@@ -198,7 +198,7 @@ def match_rings(
 
 
 def compact(t: dict) -> dict:
-    """:func:`match_rings`'s result for the JSON: the counts, and the indices of the rings
+    """``match_rings``'s result for the JSON: the counts, and the indices of the rings
     not matched by status (not the per-ring and per-component lists)."""
     out = {k: v for k, v in t.items() if k not in ("ring_status", "component_rings")}
     out["not_matched"] = {}
@@ -240,7 +240,7 @@ def resolution_of(case) -> int:
 
 def cloud(case, variant: str, reference: np.ndarray):
     """``(points, normals, outlier indices)`` of ``case`` in ``variant`` (seeded by
-    :func:`seed_of`)."""
+    ``seed_of``)."""
     rng = np.random.default_rng(seed_of(case.name, variant))
     comps, m, diag = list(case.components), case.m, case.diag
     nonuniform = UNEVEN if variant == "uneven" else 0.0

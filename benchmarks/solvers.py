@@ -4,7 +4,7 @@
 
 Writes ``benchmarks/results/solvers.{md,json}``. Each row is one ``jurs.fit`` call (input
 checks, jit dispatch, problem assembly and the solve): ``compile`` is the first call minus
-the warm median. The exact solve (:class:`jurs.LeastSquares`) is the reference line of every
+the warm median. The exact solve ([`jurs.LeastSquares`][]) is the reference line of every
 block; ``E / E_exact`` and ``E_ave / E_ave(exact)`` are measured against it in the same run.
 
 Two objectives per case:

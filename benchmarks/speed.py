@@ -769,7 +769,7 @@ def _fit_steps_table(fit_steps) -> list[str]:
 
 def rerender(path: str) -> None:
     """The markdown again from saved measurements (no measuring), rewritten beside ``path``
-    (:func:`_common.rerender_beside`). Verdicts an older run saved (``targets``,
+    (``_common.rerender_beside``). Verdicts an older run saved (``targets``,
     ``bounds``) are dropped: the report shows measurements and their ratios only."""
 
     def render(data):

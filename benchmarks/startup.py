@@ -12,7 +12,7 @@ runs do not change what is measured), with a fresh cache folder:
 
 1. import time: ``import jax`` against ``import jurs`` (interleaved, median of 5);
 2. first fit and new-cloud fit in one process, at 100, 1e3, 1e4 and 1e5 points: a cloud A
-   of a similar size in the same size band (:func:`jurs._problem.sizes.padded_count`) is fitted
+   of a similar size in the same size band (``jurs._problem.sizes.padded_count``) is fitted
    first (compiling), then a new cloud B (Example 1 at the target size): its first fit
    against its warm fit (median of 3), all with automatic settings (``jurs.fit(p, n)``);
 3. the command line ``jurs fit cloud.csv -o out`` on a 1000-point cloud: the first run

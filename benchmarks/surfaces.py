@@ -6,7 +6,7 @@ One command measures everything, prints the ratio table and writes the dated res
 ``benchmarks/results/surfaces.{json,md,png}`` (the figure drawn by the run):
 
 * **Cases.** A unit sphere, a torus (R 1, r 0.35), the smooth double torus of
-  :func:`jurs.datasets.genus2`, and the bunny and the airplane of pymeshlab's sample meshes
+  [`jurs.datasets.genus2`][], and the bunny and the airplane of pymeshlab's sample meshes
   (``pip install -e '.[bench]'``); area-uniform samples with exact normals (face normals on
   the meshes); 1e5 points (1e6 with ``--million``); clean, and with Gaussian noise of 0.5 %
   of the bounding-box diagonal on each coordinate of the positions (normals kept exact).

@@ -9,7 +9,7 @@ solver interface beside exact and general-purpose solvers.
 ``levelset``, ``plot`` and ``shapes`` (matplotlib, contourpy, SciPy's KD-tree) and the
 optimistix and jaxopt wrappers load on first use (``jurs.levelset.analyze(...)``,
 ``jurs.OptimistixMinimiser(...)``), through the module ``__getattr__`` below (PEP 562).
-The kernels, energies and gradients under the solvers are in :mod:`jurs.internal`.
+The kernels, energies and gradients under the solvers are in [`jurs.internal`][].
 """
 
 import importlib

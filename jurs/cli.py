@@ -68,7 +68,7 @@ class InputError(Exception):
 
 def _grid(text: str) -> tuple:
     """``--grid``: one, two or three numbers >= 4 (``N``, ``NxM``, ``NxMxK``), as given;
-    :func:`grid_for` matches them to the cloud's dimension once the file is read."""
+    ``grid_for`` matches them to the cloud's dimension once the file is read."""
     try:
         parts = tuple(int(p) for p in text.lower().replace("*", "x").split("x"))
     except ValueError:
@@ -248,7 +248,7 @@ def printable(text) -> str:
 
 
 def read_input(path: str):
-    """Points and normals from ``path``; every problem raises :class:`InputError` with a
+    """Points and normals from ``path``; every problem raises ``InputError`` with a
     one-line message naming the file (and the row where there is one). A UTF-8 byte-order
     mark before a text file's header is skipped."""
     import numpy as np
@@ -284,7 +284,7 @@ def _one_line(exc) -> str:
 
 def make_solver(name: str, *, lam: float | None, tau: float, steps: int, tol: float, chosen=None):
     """The solver named on the command line; None for ``auto`` without ``--lam`` where
-    settings were ``chosen``: :func:`jurs.fit` then takes the solver of those settings."""
+    settings were ``chosen``: [`jurs.fit`][] then takes the solver of those settings."""
     import jurs
 
     if steps < 0:
@@ -517,7 +517,7 @@ def _surface_libraries() -> None:
 def _output_bytes(job: FitJob) -> int:
     """Bytes the outputs take: the spline (two grids of float64 in the .npz), the figure
     and the metrics, and in 2D the polylines (at most about resolution^2 / 2 vertices of
-    ~40 bytes as text), in 3D the mesh (:data:`MESH_VERTICES_PER_PLANE_NODE`)."""
+    ~40 bytes as text), in 3D the mesh (``MESH_VERTICES_PER_PLANE_NODE``)."""
     from .levelset._surfaces import MAX_RESOLUTION
 
     spline = 16 * math.prod(job.grid)
@@ -532,7 +532,7 @@ def _output_bytes(job: FitJob) -> int:
 def prepare_fit(args) -> FitJob:
     """Read the cloud and check everything that can be checked before the fit (options
     against the cloud's dimension, normals, settings, solver, output folder and its free
-    space); every problem raises :class:`InputError`."""
+    space); every problem raises ``InputError``."""
     import jurs
 
     from . import levelset as ls
@@ -667,12 +667,12 @@ def _write_record_and_spline(folder: str, record: dict, spline) -> None:
 
 def _save_figure(fig, path: str, dpi: int) -> None:
     """Save ``fig``, a standalone figure on matplotlib's Agg canvas (``pyplot=False`` in
-    :mod:`jurs.plot`: pyplot and its backends never load, and nothing needs closing)."""
+    [`jurs.plot`][]: pyplot and its backends never load, and nothing needs closing)."""
     fig.savefig(path, dpi=dpi)
 
 
 def curve_outputs(job: FitJob, args, sol, seconds: float):
-    """A curve's outputs (:data:`OUTPUTS`): ``(write, summary line)``, ``write(folder)``
+    """A curve's outputs (``OUTPUTS``): ``(write, summary line)``, ``write(folder)``
     writing them all. The level set is analysed here, before anything is written."""
     import numpy as np
 
@@ -759,7 +759,7 @@ def _mesh_counts(report) -> str:
 
 
 def surface_outputs(job: FitJob, args, sol, seconds: float):
-    """A surface's outputs (:data:`OUTPUTS_3D`): ``(write, summary line)``. The zero set is
+    """A surface's outputs (``OUTPUTS_3D``): ``(write, summary line)``. The zero set is
     meshed and measured here (components, genus, supplementary ones; Chamfer and Hausdorff
     distances against the data points, normal consistency against their normals), before
     anything is written."""
@@ -855,8 +855,8 @@ def main(argv=None) -> int:
 
 
 def command() -> None:
-    """The ``jurs`` console script: :func:`main` on ``sys.argv``, then the process ends
-    (:func:`end_process`) without the interpreter's teardown."""
+    """The ``jurs`` console script: ``main`` on ``sys.argv``, then the process ends
+    (``end_process``) without the interpreter's teardown."""
     code = main()
     end_process(code)
     sys.exit(code)

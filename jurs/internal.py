@@ -1,6 +1,6 @@
 """Building blocks under the public API: the model's kernels, energies and gradients.
 
-What :func:`jurs.fit` and the solvers are made of, for tests, benchmarks and users who
+What [`jurs.fit`][] and the solvers are made of, for tests, benchmarks and users who
 build their own solvers or losses (the optimistix pattern): the cubic B-spline basis and
 its sample layouts, the rational function and its transposes (eq. 14, 22-23), the energies
 and their hand-derived gradients (eq. 16-19, 31-33; docs/design.md section 2), the metrics

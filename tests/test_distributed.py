@@ -5,7 +5,7 @@ Two child processes on localhost, two CPU devices each, joined by
 ``jax.distributed.initialize`` (cross-process collectives by gloo). Each holds half of the
 cloud (a global ``jax.Array`` made by ``jax.make_array_from_process_local_data``), lays out
 its own samples and fits with explicit settings; process 0 then fits the whole cloud alone
-and compares. The children are started and stopped here, within :data:`TIMEOUT` seconds.
+and compares. The children are started and stopped here, within ``TIMEOUT`` seconds.
 
 Surfaces take the same path with one sample a slot; a 3D case here would double the
 time (one more compiled solve in each child), so it is not in the suite (docs/sharding.md
@@ -126,7 +126,7 @@ def _free_port() -> int:
 
 
 def _run_processes() -> list[dict]:
-    """Both children's JSON reports; each is killed past :data:`TIMEOUT`, and a failure
+    """Both children's JSON reports; each is killed past ``TIMEOUT``, and a failure
     shows their errors."""
     env = dict(
         os.environ,

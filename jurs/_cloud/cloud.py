@@ -1,4 +1,4 @@
-"""The :class:`Cloud`: a point cloud checked once, with what the host measures on it kept
+"""The ``Cloud``: a point cloud checked once, with what the host measures on it kept
 for every fit that reads it."""
 
 from __future__ import annotations
@@ -29,7 +29,7 @@ class Cloud:
     Args:
         points: ``(m, 2)`` points of a curve or ``(m, 3)`` of a surface, m >= 3.
         normals: outward normals shaped like ``points`` (scaled to unit length here), or
-            None for a cloud whose normals are to be estimated (:func:`jurs.fit` does).
+            None for a cloud whose normals are to be estimated ([`jurs.fit`][] does).
         mask: optional ``(m,)`` booleans, False marking padding points that take no part.
 
     Raises:
@@ -79,15 +79,15 @@ class Cloud:
 
     @functools.cached_property
     def probes(self) -> np.ndarray | None:
-        """Indices (into the points that take part) of at most :data:`PROBES` of them,
+        """Indices (into the points that take part) of at most ``PROBES`` of them,
         evenly strided; None where all are measured."""
         return strided_probes(len(self.kept), PROBES)
 
     @functools.cached_property
     def orientation(self) -> tuple[float, float]:
         """``(flipped, tangential)``: the fractions of the normals flipped against their
-        neighbours (:func:`jurs._cloud.orientation.flipped_normal_fraction`) and lying
-        along the curve or surface (:func:`tangential_normal_fraction`), measured once
+        neighbours (``jurs._cloud.orientation.flipped_normal_fraction``) and lying
+        along the curve or surface (``tangential_normal_fraction``), measured once
         per cloud."""
         if self.normals is None:
             raise ValueError("the cloud has no normals to check")

@@ -1,6 +1,6 @@
 """Measurements of a point cloud on the host, in data units: the spacing of its points, the
 noise about a smooth curve or surface, which side of the tangent the offsets land, and the
-width of thin parts and narrow gaps. :func:`jurs.auto_settings` chooses from them."""
+width of thin parts and narrow gaps. [`jurs.auto_settings`][] chooses from them."""
 
 from __future__ import annotations
 

@@ -1,6 +1,6 @@
 """Normals for clouds given without them: local PCA, then a globally consistent outward sign.
 
-:func:`estimate_normals` runs on the host (NumPy and SciPy), before a fit:
+[`estimate_normals`][jurs.estimate_normals] runs on the host (NumPy and SciPy), before a fit:
 
 1. **Unsigned normals** by principal component analysis of each point's ``k`` nearest
    neighbours (``scipy.spatial.cKDTree``). ``k`` is chosen from the data: the smallest ``k``
@@ -52,7 +52,7 @@ K_LADDER = {2: (6, 8, 11, 16, 22, 32, 45, 64), 3: (10, 14, 20, 28, 40, 56, 80)}
 #: Target for the median expected normal angle error (radians) that picks k.
 ANGLE_TARGET = 0.08
 #: Whether the choice of k reads the noise at each candidate k (corrected for the
-#: neighbourhood cutting the noise's tails off, :func:`_slab_noise`), per dimension, or
+#: neighbourhood cutting the noise's tails off, ``_slab_noise``), per dimension, or
 #: on the smallest neighbourhoods. In 3D the smallest neighbourhoods read too little
 #: noise where it is as wide as the spacing, and k came out too small; in 2D reading it
 #: at each k chose larger k, whose neighbourhoods reach across thin parts and close
@@ -107,7 +107,8 @@ DENSE_PAIRS = 1.5e7
 
 
 class NormalsInfo(NamedTuple):
-    """What :func:`estimate_normals` decided, for ``sol.stats`` and diagnostics.
+    """What [`estimate_normals`][jurs.estimate_normals] decided, for ``sol.stats`` and
+    diagnostics.
 
     Attributes:
         k: neighbours per PCA fit.
@@ -196,12 +197,12 @@ def _slab_noise(residual2: np.ndarray, radius: np.ndarray, k: int, d: int) -> np
 
 
 def _choose_k(points: np.ndarray, tree: cKDTree, rng: np.random.Generator) -> int:
-    """The smallest ``k`` of :data:`K_LADDER` whose median expected angle error is at most
-    :data:`ANGLE_TARGET` (if none is, the one of least error), measured on a subsample.
+    """The smallest ``k`` of ``K_LADDER`` whose median expected angle error is at most
+    ``ANGLE_TARGET`` (if none is, the one of least error), measured on a subsample.
 
-    The noise in the error is, per :data:`NOISE_AT_SCALE`, the one measured at each ``k``
-    (:func:`_slab_noise` of the residual over those ``k`` neighbours) or the residual over
-    the ladder's smallest ``k`` (:func:`_local_noise`), where the other side of a thin part
+    The noise in the error is, per ``NOISE_AT_SCALE``, the one measured at each ``k``
+    (``_slab_noise`` of the residual over those ``k`` neighbours) or the residual over
+    the ladder's smallest ``k`` (``_local_noise``), where the other side of a thin part
     is rarely inside. Where a second sheet enters a neighbourhood its residual jumps, and
     so does the error: the least-error fallback does not reach across."""
     m, d = points.shape
@@ -238,7 +239,7 @@ def _local_noise(points: np.ndarray, neighbours: np.ndarray) -> np.ndarray:
 def _tangential_graph(points, normals, noise, neighbours) -> sparse.csr_matrix:
     """Symmetric neighbour graph with edge weight ``1 - |n_i . n_j| + lean``; ``lean`` is
     how far the displacement leans out of the two tangent planes (sine). Edges leaning more
-    than :data:`MAX_NORMAL_LEAN` beyond what the local noise explains are dropped: they join
+    than ``MAX_NORMAL_LEAN`` beyond what the local noise explains are dropped: they join
     the two sides of a thin part, or two close components, whose normals are parallel but
     opposed."""
     m, kg = neighbours.shape
@@ -260,7 +261,7 @@ def _tangential_graph(points, normals, noise, neighbours) -> sparse.csr_matrix:
 
 
 def _rejoin_tiny(forest, keep, patch) -> bool:
-    """Restore, for every piece of fewer than :data:`MIN_PATCH` points, its lightest cut
+    """Restore, for every piece of fewer than ``MIN_PATCH`` points, its lightest cut
     edge (in place in ``keep``): heavy edges cluster at corners, and the one-point pieces
     between them give the field no grip. One edge per tiny piece and none for the others,
     so two large pieces are never joined through a chain of tiny ones. Returns whether
@@ -281,8 +282,8 @@ def _rejoin_tiny(forest, keep, patch) -> bool:
 
 def _spanning_patches(graph: sparse.csr_matrix, m: int, d: int):
     """Minimum spanning forest of ``graph``, cut at its heaviest edges into about
-    ``m / POINTS_PER_PATCH`` patches (at most :data:`MAX_PATCHES`), tiny pieces rejoined
-    as :data:`REJOIN_ROUNDS` says for dimension ``d``. Returns ``(forest,
+    ``m / POINTS_PER_PATCH`` patches (at most ``MAX_PATCHES``), tiny pieces rejoined
+    as ``REJOIN_ROUNDS`` says for dimension ``d``. Returns ``(forest,
     component (m,), patch (m,), patch_tree)``: labels, and the forest the cut edges make
     between patches."""
     forest = csgraph.minimum_spanning_tree(graph).tocoo()
@@ -324,7 +325,7 @@ def _dipole_kernel(queries, sources, dipoles, eps):
 
 
 def _dipole_matrix(queries, sources, dipoles, eps):
-    """:func:`_dipole_kernel` for every query-source pair, ``(Q, S)``, written with matrix
+    """``_dipole_kernel`` for every query-source pair, ``(Q, S)``, written with matrix
     products (``D . (p - x) = D . p - D . x``, ``|p - x|^2 = |p|^2 + |x|^2 - 2 p . x``)
     so that no ``(Q, S, d)`` temporary is built."""
     d = queries.shape[1]
@@ -357,7 +358,7 @@ def _patch_fields_dense(queries, points, dipoles, eps, patch, n_patches):
 
 def _patch_fields_clustered(queries, points, dipoles, eps, patch, n_patches, tree):
     """Field of every patch at every query: exact over each query's
-    :data:`NEAR_NEIGHBOURS` nearest points, the rest from clusters (a voxel of half the
+    ``NEAR_NEIGHBOURS`` nearest points, the rest from clusters (a voxel of half the
     near radius, within one patch) summed into one dipole at their centroid."""
     m, d = points.shape
     dist, near = tree.query(queries, k=NEAR_NEIGHBOURS, workers=-1)
@@ -447,13 +448,13 @@ def _solve_signs(fields, weight, patch_tree, centre):
     """Patch signs ``s`` (+1/-1) minimising ``sum_q weight_q (fields_q . s - 1/2)^2``.
 
     A binary quadratic problem, solved exactly by enumeration up to
-    :data:`EXHAUSTIVE_PATCHES` patches (greedy moves end in local minima where the facing
+    ``EXHAUSTIVE_PATCHES`` patches (greedy moves end in local minima where the facing
     sides of a B's bar and a patch at its notch must flip together). Above that, two
     starts: the propagated signs (all +1) and the spectral relaxation (the lowest
     eigenvector of the problem homogenised with one extra sign, rounded). Each descends by
-    greedy moves of each set of :func:`_subtree_moves` (a subtree of the patch forest,
+    greedy moves of each set of ``_subtree_moves`` (a subtree of the patch forest,
     which undoes one propagation error or flips a whole component, or a single patch; the
-    fine set adds :func:`_pair_moves` of patches near each other, ``centre`` their
+    fine set adds ``_pair_moves`` of patches near each other, ``centre`` their
     centroids) and by phases of component moves then single moves; the lowest objective
     of the six wins."""
     wf = fields * np.sqrt(weight)[:, None]
@@ -511,7 +512,7 @@ def estimate_normals(
         k: neighbours per PCA fit (default: chosen from the data's noise, 6-64 in 2D,
             10-80 in 3D). Must be at least ``d`` and below the number of distinct points.
         orient: ``False`` returns the unsigned PCA normals (arbitrary sign per point).
-        return_info: also return a :class:`NormalsInfo`.
+        return_info: also return a ``NormalsInfo``.
         seed: seed of the subsampling (choice of k; field query points above 2000 points).
 
     Returns:
@@ -555,7 +556,7 @@ def estimate_normals(
 
 
 def _source_weight(confidence: np.ndarray, d: int) -> np.ndarray:
-    """Weight of each point's dipole in the field (:data:`NORMALISED_SOURCES`): in 2D
+    """Weight of each point's dipole in the field (``NORMALISED_SOURCES``): in 2D
     ``sqrt(confidence min(1, confidence / median confidence))``, which discounts points
     less planar than the cloud's typical one but shrinks the field of a noisy cloud much
     less than the confidence itself; in 3D the confidence."""
@@ -569,7 +570,7 @@ def _orient(points, normals, values, noise, neighbours, tree, rng, confidence):
     """Steps 2-5 of the module docstring: ``(outward normals, stats for NormalsInfo)``.
 
     Weights: a query counts by its ``confidence`` (planarity), a source by
-    :func:`_source_weight`."""
+    ``_source_weight``."""
     m, d = points.shape
     graph_k = min(GRAPH_NEIGHBOURS[d], neighbours.shape[1] - 1)
     graph = _tangential_graph(points, normals, noise, neighbours[:, : graph_k + 1])
@@ -627,8 +628,8 @@ def _orient(points, normals, values, noise, neighbours, tree, rng, confidence):
 def _point_corrections(points, normals, area, eps, offset, tree, neighbours, rounds: int = 6):
     """Per-point sign check against the field (as WNNC iterates): the winding number (width
     ``eps``) must fall outward, ``w(p + delta n) < w(p - delta n)`` with delta = ``offset``
-    (half the field width, or :data:`CHECK_NOISE_OFFSET` local noise levels where that is
-    more); points where it rises are flipped. Only the nearest :data:`CHECK_NEIGHBOURS`
+    (half the field width, or ``CHECK_NOISE_OFFSET`` local noise levels where that is
+    more); points where it rises are flipped. Only the nearest ``CHECK_NEIGHBOURS``
     points enter the difference: far sources add almost the same to both sides. Repairs
     the stretches a patch's propagation got wrong, from their ends inward over the rounds.
     ``neighbours`` (each point's nearest, itself first, as the PCA's) serve where they

@@ -9,15 +9,15 @@ from .._problem.validate import unit_normals
 from .measure import PROBES, kd_tree, strided_probes
 from .signs import forest_signs
 
-#: Neighbours per point in :func:`flipped_normal_fraction`'s graph.
+#: Neighbours per point in ``flipped_normal_fraction``'s graph.
 ORIENTATION_NEIGHBOURS = 8
 
 
 def orientation_sample(points, normals, tree=None):
-    """``(p, n, dist, idx)`` that :func:`flipped_normal_fraction` and
-    :func:`tangential_normal_fraction` read: the points (at most
-    :data:`jurs._cloud.measure.PROBES`, evenly strided), their unit normals, and each
-    point's :data:`ORIENTATION_NEIGHBOURS` + 1 nearest (itself first) from one KD-tree
+    """``(p, n, dist, idx)`` that ``flipped_normal_fraction`` and
+    ``tangential_normal_fraction`` read: the points (at most
+    ``jurs._cloud.measure.PROBES``, evenly strided), their unit normals, and each
+    point's ``ORIENTATION_NEIGHBOURS`` + 1 nearest (itself first) from one KD-tree
     query, so a caller of both builds the tree once. ``tree``: a KD-tree of ``points``
     already built (used where no subsample is taken)."""
     p = np.asarray(points, float)
@@ -80,10 +80,10 @@ def flipped_normal_fraction(points, normals, sample=None) -> float:
 def tangential_normal_fraction(points, normals, sample=None) -> float:
     """Fraction of the points whose normal lies within 45 degrees of the curve's tangent
     (of a surface's tangent plane), spanned by the principal directions of the point and
-    its :data:`ORIENTATION_NEIGHBOURS` nearest neighbours (counted only where the direction
+    its ``ORIENTATION_NEIGHBOURS`` nearest neighbours (counted only where the direction
     across is clear, the variance along each tangent direction at least 4 times its: not
     at corners, not in clouds sampled coarser than their features).
-    About 1/2 for random normals, which :func:`flipped_normal_fraction` cannot see (its
+    About 1/2 for random normals, which ``flipped_normal_fraction`` cannot see (its
     graph falls apart) and a fine grid fits "successfully"; near 0 on the consistent
     clouds listed there (docs/robustness.md, "Verdicts, after the fit";
     docs/performance.md, "Measurements behind the defaults"). Host side."""

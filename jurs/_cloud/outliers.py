@@ -1,5 +1,5 @@
 """Points that stand alone: outliers away from the curve or surface the others sample, and
-small stray groups of them, which :func:`jurs.fit` sets aside."""
+small stray groups of them, which [`jurs.fit`][] sets aside."""
 
 from __future__ import annotations
 
@@ -13,13 +13,13 @@ if TYPE_CHECKING:
     from scipy.spatial import KDTree as cKDTree
 
 
-#: A point stands alone (:func:`isolated_points`) when its :data:`ISOLATION_RANK`-th
+#: A point stands alone (``isolated_points``) when its ``ISOLATION_RANK``-th
 #: nearest other point is farther than this many times the same distance typical around it.
 ISOLATION_RATIO = 3.0
 
 
 #: The sparsest sampling around a point, relative to the cloud's median spacing, that
-#: :func:`isolated_points` takes as the shape's: far from the shape, the points around
+#: ``isolated_points`` takes as the shape's: far from the shape, the points around
 #: an outlier are other outliers, as sparse as it is. With a larger ratio and cap, many
 #: outliers uniform in the box stayed in; with these, noisy outlines lose only their most
 #: displaced points, and clean or unevenly sampled ones, gaps and separate small
@@ -41,7 +41,7 @@ ISOLATION_RANK = 3
 ISOLATION_NEIGHBOURS = 8
 
 
-#: A group of at most this many points apart from the rest (:func:`stray_clusters`) is
+#: A group of at most this many points apart from the rest (``stray_clusters``) is
 #: set aside unless its normals agree on a side of it: a closed outline sampled by more
 #: points is left to the fit (a small far ring of 12 points is kept).
 STRAY_CLUSTER = 8
@@ -56,11 +56,11 @@ def isolated_points(
     points: np.ndarray, tree: cKDTree | None = None, normals: np.ndarray | None = None
 ) -> np.ndarray:
     """``(m,)`` booleans: the points that stand alone, away from the curve or surface the
-    others sample. Point i stands alone when its :data:`ISOLATION_RANK`-th nearest other
-    point is more than :data:`ISOLATION_RATIO` times farther than is typical around it: the
-    median of the same distance over its :data:`ISOLATION_NEIGHBOURS` nearest points,
-    taken as at most :data:`SPARSE_SPACING` times the cloud's median. With ``normals``, so
-    do the points of a small stray cluster (:func:`stray_clusters`).
+    others sample. Point i stands alone when its ``ISOLATION_RANK``-th nearest other
+    point is more than ``ISOLATION_RATIO`` times farther than is typical around it: the
+    median of the same distance over its ``ISOLATION_NEIGHBOURS`` nearest points,
+    taken as at most ``SPARSE_SPACING`` times the cloud's median. With ``normals``, so
+    do the points of a small stray cluster (``stray_clusters``).
 
     Why this test: an outlier far from the shape has no neighbours at the sampling's
     spacing, while its nearest points (on the shape) do; a fit through it grows a loop
@@ -69,7 +69,7 @@ def isolated_points(
     comparing with the point's own neighbours, not the cloud's median spacing, keeps
     uneven sampling (5x density changes), gap ends and small separate components in:
     their neighbours are as sparse as they are. Outliers within a few spacings of the
-    shape are not found here (the robust reweighting of :func:`jurs.fit` weighs the near
+    shape are not found here (the robust reweighting of [`jurs.fit`][] weighs the near
     ones down).
     """
     tree = kd_tree(points) if tree is None else tree
@@ -99,14 +99,14 @@ def stray_clusters(points, normals, dist, near, link: float) -> np.ndarray:
 
     The groups are the connected components of the nearest-neighbour graph (``near``,
     ``dist``: each point's nearest points, itself first) cut at ``link`` (the farthest
-    spacing :func:`isolated_points` takes as the shape's). A component of at most
-    :data:`STRAY_CLUSTER` points is stray unless its normals agree on a side of it: at
-    least :data:`RING_AGREEMENT` of them pointing away from its centroid (a small ring or
+    spacing ``isolated_points`` takes as the shape's). A component of at most
+    ``STRAY_CLUSTER`` points is stray unless its normals agree on a side of it: at
+    least ``RING_AGREEMENT`` of them pointing away from its centroid (a small ring or
     shell of its own) or towards it (a small hole).
 
     Why: outliers uniform in the box fall in groups of four or five points a few spacings
     apart now and then; each one's third neighbour is then near, so the test of
-    :func:`isolated_points` keeps them, and the fit loops around the group (an extra
+    ``isolated_points`` keeps them, and the fit loops around the group (an extra
     component on traced outlines: docs/design.md section 6). A real small component
     samples its outline with outward normals; random normals agree that well on 5 points
     one time in 2.7."""

@@ -1,6 +1,6 @@
 """Carrying a normal's sign along a spanning forest: the one routine behind the orientation
-of estimated normals (:mod:`jurs._cloud.normals`) and the check of given ones
-(:mod:`jurs._cloud.orientation`)."""
+of estimated normals (``jurs._cloud.normals``) and the check of given ones
+(``jurs._cloud.orientation``)."""
 
 from __future__ import annotations
 

@@ -1,5 +1,5 @@
 """The compiled solve of a fit, and how it is called: at top level with
-:data:`jurs.COMPILER_OPTIONS` where they pay and through the store of exported fits, or
+[`jurs.COMPILER_OPTIONS`][] where they pay and through the store of exported fits, or
 staged into a caller's jit, grad or vmap as it is."""
 
 from __future__ import annotations
@@ -119,7 +119,7 @@ def at_top_level(tree) -> bool:
 
 
 def _reassociation_pays(problem, solver) -> bool:
-    """For solvers that declare themselves safe with :data:`jurs.COMPILER_OPTIONS`
+    """For solvers that declare themselves safe with [`jurs.COMPILER_OPTIONS`][]
     (``reassociation_safe``) on problems in the bucketed power form (the large ones, where
     the per-bucket sums are and where the options were measured to pay)."""
     local = problem.local
@@ -127,8 +127,8 @@ def _reassociation_pays(problem, solver) -> bool:
 
 
 def reassociates(problem, solver, init=None) -> bool:
-    """Whether :func:`jurs.fit` compiles this solve with :data:`jurs.COMPILER_OPTIONS`:
-    where they pay (:func:`_reassociation_pays`), when called at top level."""
+    """Whether [`jurs.fit`][] compiles this solve with [`jurs.COMPILER_OPTIONS`][]:
+    where they pay (``_reassociation_pays``), when called at top level."""
     return _reassociation_pays(problem, solver) and at_top_level((problem, solver, init))
 
 

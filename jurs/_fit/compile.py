@@ -9,16 +9,16 @@ import os
 #:
 #: What they do: allow floating-point reassociation, so that LLVM vectorises sums that
 #: XLA's CPU backend otherwise runs as scalar accumulator chains: the per-bucket moment
-#: sums of the power form (:func:`jurs._model.basis.power_moments`). NaN and Inf, division and
+#: sums of the power form (``jurs._model.basis.power_moments``). NaN and Inf, division and
 #: library functions keep their IEEE semantics (the ``honor`` options), so the non-finite
 #: checks of the solver driver still work. Measured effect in
 #: ``benchmarks/results/speed.md`` (1e6 points, 128 x 128).
 #:
-#: Who uses them: :func:`jurs.fit` compiles with them the solvers that declare
+#: Who uses them: [`jurs.fit`][] compiles with them the solvers that declare
 #: ``reassociation_safe`` (IURS, IPIA, NormalIPIA, LeastSquares) on problems in the bucketed
 #: power form (the large ones), when no JAX transformation is tracing: XLA takes compiler
 #: options only on an outermost jit. For your own jit of a solver's step or of
-#: :func:`jurs.solve`, pass them to the outermost ``jax.jit``.
+#: [`jurs.solve`][], pass them to the outermost ``jax.jit``.
 #:
 #: Why not everywhere: sums round differently. jurs's own solvers move at the level of the
 #: last digits, but an optimiser that wanders near its minimum can end elsewhere (optax's
@@ -48,7 +48,7 @@ def default_cache_dir() -> str:
 
 
 def cache_disabled_by_environment() -> bool:
-    """Whether :data:`NO_CACHE_VARIABLE` asks for no compilation cache (any value but
+    """Whether ``NO_CACHE_VARIABLE`` asks for no compilation cache (any value but
     empty, ``0``, ``false`` or ``no``)."""
     value = os.environ.get(NO_CACHE_VARIABLE, "").strip().lower()
     return value not in ("", "0", "false", "no")
@@ -66,7 +66,7 @@ def enable_compilation_cache(path=None, *, min_compile_time_s: float = 0.0) -> s
     Args:
         path: the cache folder (created if missing). None: the folder JAX already uses
             if one is configured (``JAX_COMPILATION_CACHE_DIR``), else
-            :func:`default_cache_dir` (``$XDG_CACHE_HOME/jurs`` or ``~/.cache/jurs``).
+            ``default_cache_dir`` (``$XDG_CACHE_HOME/jurs`` or ``~/.cache/jurs``).
         min_compile_time_s: store only compilations that took at least this long. JAX's
             own default (1 s) would skip most of a fit's kernels, which each compile in
             well under a second but add up; 0 stores all.
@@ -77,7 +77,7 @@ def enable_compilation_cache(path=None, *, min_compile_time_s: float = 0.0) -> s
 
     JAX's cache skips XLA's compilation but not the tracing before it (a good part of a
     short run: docs/startup.md, "The persistent compilation cache"); so top-level
-    :func:`jurs.fit` calls are also kept traced (``jax.export``) in the subfolder
+    [`jurs.fit`][] calls are also kept traced (``jax.export``) in the subfolder
     ``jurs-exported-fits``, keyed by jurs's source, the JAX version and the fit's shapes
     and settings, for a new process to load.
 
@@ -218,8 +218,9 @@ def _load_or_export(fn, args, key: str, dynamic_tree, static):
 
 def call_stored(fn, jitted, *args):
     """``jitted(*args)`` (``jitted`` is ``fn`` jit-compiled), through the exported copy of
-    ``fn`` for these arguments when :func:`enable_compilation_cache` has turned the store
-    on: loaded if an earlier process exported it, else exported and written. Falls back to
+    ``fn`` for these arguments when
+    [`enable_compilation_cache`][jurs.enable_compilation_cache] has turned the store on:
+    loaded if an earlier process exported it, else exported and written. Falls back to
     ``jitted`` wherever exporting fails. For concrete arguments at top level only."""
     if _export_dir is None:
         return jitted(*args)

@@ -1,10 +1,10 @@
 """``jurs.fit``: points and normals in, a fitted implicit spline out.
 
-The flow, each step once: the cloud checked and measured (:class:`jurs.Cloud`), normals
+The flow, each step once: the cloud checked and measured (``jurs.Cloud``), normals
 estimated where none are given, the settings chosen where not given
-(:func:`jurs._fit.settings.choose_settings`), the problem laid out (padded to the size
-ladder), the compiled solve (:mod:`jurs._fit.call`), then the host's verdicts
-(:func:`jurs._solution.verdicts.judge`)."""
+(``jurs._fit.settings.choose_settings``), the problem laid out (padded to the size
+ladder), the compiled solve (``jurs._fit.call``), then the host's verdicts
+(``jurs._solution.verdicts.judge``)."""
 
 from __future__ import annotations
 
@@ -40,14 +40,14 @@ from .progress import chunked_run
 from .settings import Settings, choose_settings, default_solver, set_aside_mask
 from .sharding import place_fit, spans_processes
 
-#: Problems a :class:`jurs.Cloud` keeps, the latest first, for fits that repeat settings.
+#: Problems a ``jurs.Cloud`` keeps, the latest first, for fits that repeat settings.
 KEPT_PROBLEMS = 4
 
 
 def _estimated(points, mask) -> tuple[Cloud, dict]:
-    """``(cloud, info)`` for :func:`fit` called without normals: the cloud with outward
-    normals from :func:`jurs.estimate_normals`, and what the estimation found (a dict,
-    without the per-point confidence)."""
+    """``(cloud, info)`` for [`fit`][jurs.fit] called without normals: the cloud with
+    outward normals from [`jurs.estimate_normals`][], and what the estimation found (a
+    dict, without the per-point confidence)."""
     if mask is not None:
         raise ValueError(
             "normals=None estimates normals from the whole cloud: it takes no "
@@ -63,7 +63,7 @@ def _estimated(points, mask) -> tuple[Cloud, dict]:
 def _problem_of(cloud: Cloud, shape, offset, eps, domain, margin, bucket_size, dtype, settings):
     """The cloud's problem, padded to the size ladder (points set aside by ``settings``
     masked out), built on the host once per set of settings and kept on the cloud
-    (:data:`KEPT_PROBLEMS`): a fit that repeats its settings lays nothing out again."""
+    (``KEPT_PROBLEMS``): a fit that repeats its settings lays nothing out again."""
     support = set_aside_mask(cloud.points, settings)
     if support is not None:  # the box that holds the points set aside too
         domain = settings.domain
@@ -107,8 +107,8 @@ def _problem_of(cloud: Cloud, shape, offset, eps, domain, margin, bucket_size, d
 def _traced_fit(
     points, normals, grid, solver, offset, eps, domain, margin, init, mask, bucket_size, throw
 ):
-    """:func:`fit` of traced points (under the caller's jit, grad or vmap): every setting
-    given, the problem traced with them, no host checks."""
+    """[`fit`][jurs.fit] of traced points (under the caller's jit, grad or vmap): every
+    setting given, the problem traced with them, no host checks."""
     if grid is None or offset is None or eps is None or solver is None:
         raise ValueError(
             "automatic settings need concrete points (they are chosen on the host); inside "
@@ -170,8 +170,8 @@ def fit(
     """Fit an implicit spline whose zero set passes through ``points``.
 
     With nothing but points and normals, the grid, the offset d, eps and the solver are
-    chosen from the data (:func:`jurs.auto_settings`: cells a few point spacings or noise
-    widths wide, d from the spacing and noise, the exact solve :class:`jurs.LeastSquares`
+    chosen from the data ([`jurs.auto_settings`][]: cells a few point spacings or noise
+    widths wide, d from the spacing and noise, the exact solve [`jurs.LeastSquares`][]
     with a scale-free lambda, chosen by held-out points on noisy curves); ``sol.settings``
     records the choices. Points that stand alone, away from the shape, are then set aside
     (``sol.settings.set_aside``) and the rest fitted by ``RobustLeastSquares`` (Huber), and
@@ -182,11 +182,11 @@ def fit(
 
     Args:
         points: ``(m, 2)`` data points of a curve, or ``(m, 3)`` of a surface (then
-            ``sol.spline`` is a trivariate g(x, y, z); see :func:`jurs.levelset.mesh`);
-            or a :class:`jurs.Cloud`, checked and measured once for all its fits (then
+            ``sol.spline`` is a trivariate g(x, y, z); see [`jurs.levelset.mesh`][]);
+            or a ``jurs.Cloud``, checked and measured once for all its fits (then
             ``normals`` and ``mask`` come from it).
         normals: outward normals shaped like ``points`` (normalised here); None estimates
-            and orients them first (:func:`jurs.estimate_normals`, on the host: concrete
+            and orients them first ([`jurs.estimate_normals`][], on the host: concrete
             points only, no ``mask``), and ``sol.stats["estimated_normals"]`` then holds
             what the estimation found (``k``, ``components``, ``patches``, ...).
         grid: ``N`` or ``(N, M)`` basis functions along x and y (>= 4; ``(N, M, K)`` in
@@ -200,21 +200,21 @@ def fit(
         init: starting spline on the same box and grid; default C = 0, w = 1.
         mask: optional ``(m,)`` booleans, False marking padding points that take no part
             (for ``jax.vmap`` over clouds padded to one size).
-        bucket_size: sample layout, see :func:`jurs.make_problem` (None chooses).
+        bucket_size: sample layout, see [`jurs.make_problem`][] (None chooses).
         smoothing: the dimensionless strength of the default solver's lambda
-            (:func:`jurs.auto_settings`); None chooses. Only with ``solver=None``: a solver
+            ([`jurs.auto_settings`][]); None chooses. Only with ``solver=None``: a solver
             given keeps its own lambda.
-        settings: automatic settings chosen before (:func:`jurs.auto_settings` of the same
+        settings: automatic settings chosen before ([`jurs.auto_settings`][] of the same
             cloud): the fit takes its grid, offset and eps from them (where not given) and,
             with ``solver=None``, their solver, points set aside and doubt checks, as if it
             had chosen them, without choosing again.
         checks: judge the fit against its cloud on the host (top-level calls only): the
             orientation of the normals (``inconsistent_normals``) and, with automatic
             settings, the doubts (``doubtful``). False skips them, for a caller who knows
-            the data; a :class:`jurs.Cloud` passed again makes the orientation check once.
+            the data; a ``jurs.Cloud`` passed again makes the orientation check once.
         callback: called as ``callback(steps_done, max_steps)`` while the fit runs: an
             iterative solver (IPIA, IURS) then runs in chunks of steps on the one problem
-            (:func:`jurs._fit.progress.solve_in_chunks`, the same result), others in one
+            (``jurs._fit.progress.solve_in_chunks``, the same result), others in one
             call, reported when done. Top-level calls only.
         throw: raise ``equinox.EquinoxRuntimeError`` when the verdict says the fit is not
             a reconstruction (``failed``, ``nonfinite``, ``inconsistent_normals``,
@@ -225,24 +225,24 @@ def fit(
             for it.
 
     Returns:
-        :class:`jurs.Solution`. Jit-compiled inside; traceable, so ``jax.grad`` and
+        [`jurs.Solution`][]. Jit-compiled inside; traceable, so ``jax.grad`` and
         ``jax.vmap`` go through it once ``grid``, ``offset``, ``eps`` and ``solver`` are
         given (automatic choices need concrete points; input checks run only on concrete
         inputs).
 
-    Large problems (more than :data:`jurs._model.spline.TABLE_MAX_SLOTS` samples, or
+    Large problems (more than ``jurs._model.spline.TABLE_MAX_SLOTS`` samples, or
     ``bucket_size > 1`` given) fitted by jurs's own solvers outside any JAX transformation
-    are compiled with :data:`jurs.COMPILER_OPTIONS`, which vectorise their per-bucket sums
+    are compiled with [`jurs.COMPILER_OPTIONS`][], which vectorise their per-bucket sums
     (``benchmarks/results/speed.md`` times the IURS step at 1e6 points with and without
     them). The result then differs from the same fit under a caller's ``jit`` at rounding
     level.
 
     Shape-stable: a concrete cloud without a ``mask`` is padded to one of four sizes an
-    octave (:func:`jurs._problem.sizes.padded_count`: ..., 896, 1024, 1280, 1536, ...) with
+    octave (``jurs._problem.sizes.padded_count``: ..., 896, 1024, 1280, 1536, ...) with
     masked-out points, and its sample layout sized from that, so that a new cloud of a
     similar size reuses the compiled fit instead of compiling again; automatic grids are
-    rounded up likewise (:func:`jurs._fit.settings.choose_grid`). The padding changes the result
-    only at rounding level. With :func:`jurs.enable_compilation_cache`, new processes load
+    rounded up likewise (``jurs._fit.settings.choose_grid``). The padding changes the result
+    only at rounding level. With [`jurs.enable_compilation_cache`][], new processes load
     compiled (and traced) fits from the cache folder.
 
     Several devices: points (or normals) split along the point axis by a ``NamedSharding``
@@ -294,10 +294,10 @@ def _fit(
     throw,
     run=None,
 ):
-    """:func:`fit`, its solve made by ``run(problem, solver, init, throw)`` (default the
-    compiled call, :func:`jurs._fit.call.solve_fit`) returning ``(solution, top_level,
-    extra)``; returns ``(solution, extra)``. :func:`jurs.fit_in_chunks` runs the same
-    flow with a chunked solve."""
+    """[`fit`][jurs.fit], its solve made by ``run(problem, solver, init, throw)``
+    (default the compiled call, ``jurs._fit.call.solve_fit``) returning ``(solution,
+    top_level, extra)``; returns ``(solution, extra)``. [`jurs.fit_in_chunks`][] runs
+    the same flow with a chunked solve."""
     if spans_processes(points, normals):  # each process lays out its own part (jurs._fit.sharding)
         if run is not None:
             raise ValueError("a fit over several processes runs in one call: no callback")

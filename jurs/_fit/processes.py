@@ -33,10 +33,10 @@ def fit_across_processes(
     smoothing,
     throw,
 ):
-    """:func:`jurs.fit` of points and normals held by several processes (global
-    ``jax.Array`` s split along the point axis, :func:`jurs._fit.sharding.spans_processes`);
+    """[`jurs.fit`][] of points and normals held by several processes (global
+    ``jax.Array`` s split along the point axis, ``jurs._fit.sharding.spans_processes``);
     every process calls it with the same settings. The sample layout is built per process
-    (:func:`jurs._fit.sharding.process_problem`), the solve is the one jitted function over
+    (``jurs._fit.sharding.process_problem``), the solve is the one jitted function over
     all devices, and the fitted spline is replicated on every device. What reads the whole
     cloud on a host is not run: the automatic settings (ValueError unless ``grid``,
     ``offset``, ``eps``, ``domain`` and ``solver`` are given), the estimation of normals,

@@ -1,12 +1,13 @@
 """Running an iterative fit in chunks of steps: progress reports and iteration snapshots.
 
 ``jurs.fit`` runs a whole solve in one compiled loop. To report progress, or to look at the
-iterate after given step counts (the paper's Fig. 15), :func:`solve_in_chunks` drives the
-solver driver's pieces (:func:`jurs.solvers._driver.start`, ``advance`` and ``finish``) on
+iterate after given step counts (the paper's Fig. 15), ``solve_in_chunks`` drives the
+solver driver's pieces (``jurs.solvers._driver.start``, ``advance`` and ``finish``) on
 one problem, a chunk of steps per call, carrying the solver's state from chunk to chunk:
-the chunked run follows the same iterates as one :func:`jurs.solve` (to rounding; the tests
-check this). :func:`fit_in_chunks` is the same for points and normals, with the settings
-and checks of :func:`jurs.fit`. Solvers other than I-PIA and IURS are run in one call.
+the chunked run follows the same iterates as one [`jurs.solve`][] (to rounding; the tests
+check this). [`fit_in_chunks`][jurs.fit_in_chunks] is the same for points and normals, with
+the settings and checks of [`jurs.fit`][]. Solvers other than I-PIA and IURS are run in one
+call.
 """
 
 from __future__ import annotations
@@ -46,7 +47,7 @@ def chunk_size(steps: int, target_chunks: int = 25) -> int:
 # count is traced (``_advance``'s ``num_steps``), so chunks cut short by a checkpoint or by
 # max_steps reuse the compiled chunk. Every piece runs without a host callback (throw is
 # checked on the host), so JAX's persistent cache and the store of exported fits
-# (:func:`jurs._fit.compile.call_stored`) keep them.
+# (``jurs._fit.compile.call_stored``) keep them.
 def _start(problem: Problem, solver: AbstractSolver, spline: ImplicitSpline | None) -> Carry:
     return start(solver, problem, spline)
 
@@ -75,8 +76,8 @@ _REASSOCIATING = {fn: _jit(fn, compiler_options=COMPILER_OPTIONS) for fn in _PIE
 
 
 def _call(fn: Callable[..., Any], reassociate: bool, problem: Problem, *args) -> Any:
-    """``fn(problem, *args)`` compiled as :func:`jurs.fit` compiles its solve: with
-    :data:`jurs.COMPILER_OPTIONS` where they pay, else through the store of exported
+    """``fn(problem, *args)`` compiled as [`jurs.fit`][] compiles its solve: with
+    [`jurs.COMPILER_OPTIONS`][] where they pay, else through the store of exported
     fits (one-device problems)."""
     if reassociate:
         return _REASSOCIATING[fn](problem, *args)
@@ -102,34 +103,34 @@ def solve_in_chunks(
     callback: Callable[[int, int], None] | None = None,
     throw: bool = True,
 ) -> tuple[Solution, dict[int, ImplicitSpline]]:
-    """:func:`jurs.solve` of ``problem`` by ``solver`` from ``init``, run ``chunk`` steps
+    """[`jurs.solve`][] of ``problem`` by ``solver`` from ``init``, run ``chunk`` steps
     per call, with a report after each call and the iterate kept at given step counts.
 
     The solver's state is carried from chunk to chunk as it is, so the run takes the
-    steps of one :func:`jurs.solve`, stops by the same rules and returns the same
+    steps of one [`jurs.solve`][], stops by the same rules and returns the same
     Solution, to rounding: ``num_steps``, the whole ``energy_history`` (``max_steps + 1``
     entries, NaN past the end), the verdict and the metrics. The run compiles three
     functions, each once: its start, a chunk (the step count traced: chunks cut short by
     a checkpoint or by ``max_steps`` reuse it) and its end. Solvers other than I-PIA and
     IURS (one or a few exact solves) are run in one compiled call.
 
-    On the host, with concrete arguments: not traceable (use :func:`jurs.solve` under
+    On the host, with concrete arguments: not traceable (use [`jurs.solve`][] under
     ``jit``, ``grad`` or ``vmap``).
 
     Args:
         solver: the solver; its ``max_steps`` is the total number of steps.
-        problem: from :func:`jurs.make_problem`.
+        problem: from [`jurs.make_problem`][].
         init: the starting spline; default C = 0, w = 1.
-        chunk: steps per call at most (default :func:`chunk_size`). A chunk also ends at
+        chunk: steps per call at most (default ``chunk_size``). A chunk also ends at
             each checkpoint.
         checkpoints: step counts at which to keep the spline (e.g. ``(0, 10, 50, 200)``),
             within ``[0, max_steps]``; for a solver run in one call only ``max_steps``.
         callback: called as ``callback(steps_done, max_steps)`` after every chunk.
         throw: raise ``equinox.EquinoxRuntimeError`` on the run's final verdict where
-            :func:`jurs.solve` would (checked on the host once the run has ended).
+            [`jurs.solve`][] would (checked on the host once the run has ended).
 
     Returns:
-        ``(solution, snapshots)``: the :class:`jurs.Solution` and a dict ``{step: spline}``
+        ``(solution, snapshots)``: the [`jurs.Solution`][] and a dict ``{step: spline}``
         for the checkpoints reached (a run that converges early stops there).
     """
     total = int(solver.max_steps)
@@ -179,21 +180,21 @@ def fit_in_chunks(
 ):
     """Run ``jurs.fit`` with ``solver`` in chunks of ``chunk`` steps.
 
-    The fit :func:`jurs.fit` makes of the same arguments (one cloud, one problem, the
-    same settings, checks and verdicts), its solve run by :func:`solve_in_chunks`.
+    The fit [`jurs.fit`][] makes of the same arguments (one cloud, one problem, the
+    same settings, checks and verdicts), its solve run by ``solve_in_chunks``.
 
     Args:
         solver: the solver; its ``max_steps`` is the total number of steps.
-        chunk: steps per call at most (default :func:`chunk_size`); a chunk also ends at
+        chunk: steps per call at most (default ``chunk_size``); a chunk also ends at
             each checkpoint.
         checkpoints: step counts at which to keep the spline (e.g. ``(0, 10, 50, 200)``).
         callback: called as ``callback(steps_done, max_steps)`` after every chunk.
-        **fit_kwargs: as for :func:`jurs.fit` (grid, offset, eps, domain, margin, init,
+        **fit_kwargs: as for [`jurs.fit`][] (grid, offset, eps, domain, margin, init,
             mask, bucket_size, settings, checks); ``throw`` (default True) applies to the
             run's final verdict.
 
     Returns:
-        ``(solution, snapshots)``: the final :class:`jurs.Solution`, with ``num_steps`` and
+        ``(solution, snapshots)``: the final [`jurs.Solution`][], with ``num_steps`` and
         ``energy_history`` of the whole run, and a dict ``{step: spline}`` for the
         checkpoints reached (a run that converges early stops there).
     """
@@ -226,7 +227,7 @@ _FIT_OPTIONS = dict(
 
 
 def chunked_run(problem, solver, init, throw, **options):
-    """The solve of :func:`jurs.fit`'s flow by :func:`solve_in_chunks` (``options``: its
+    """The solve of [`jurs.fit`][]'s flow by ``solve_in_chunks`` (``options``: its
     keywords), always at top level; the verdict is raised by the fit, after its checks:
     ``(solution, True, snapshots)``."""
     del throw

@@ -1,31 +1,31 @@
 """Automatic fit settings from the point cloud: grid, offset d, eps and lambda.
 
 A user with a point cloud does not know which grid, offset or lambda to pick; the paper
-tunes them per example. :func:`auto_settings` reads them off the data with a KD-tree, in
-NumPy on the host (the choices are discrete: a grid size cannot be traced). Every choice is
-*equivariant*: translating, rotating or uniformly scaling the cloud moves the settings with
-it (lengths scale, counts and the scale-free smoothing do not change), so the zero set moves
-with the data.
+tunes them per example. [`auto_settings`][jurs.auto_settings] reads them off the data with a
+KD-tree, in NumPy on the host (the choices are discrete: a grid size cannot be traced).
+Every choice is *equivariant*: translating, rotating or uniformly scaling the cloud moves
+the settings with it (lengths scale, counts and the scale-free smoothing do not change), so
+the zero set moves with the data.
 
 Measured quantities (all from the data, in data units):
 
 * ``spacing`` s: the median distance from a point to its nearest neighbour.
 * ``noise`` sigma: the median, over points, of the RMS residual of a quadratic fitted to
-  the point's same-facing neighbours in their principal frame (see :func:`estimate_noise`);
+  the point's same-facing neighbours in their principal frame (see ``estimate_noise``);
   about 0 on clean samples of a smooth curve, the positional noise otherwise.
 
 Choices (the reasoning is in each function's docstring):
 
-* ``offset`` d (:func:`choose_offset`): half a spacing, or two noise widths, shrunk where
+* ``offset`` d (``choose_offset``): half a spacing, or two noise widths, shrunk where
   it would cross thin parts; ``eps = d``, so g is close to a signed distance near the data.
   (The fit is linear in the targets, so eps only scales g; it changes neither the zero set
   nor lambda.)
-* ``grid`` (:func:`choose_grid`): cells a few spacings or noise widths wide, at most
+* ``grid`` (``choose_grid``): cells a few spacings or noise widths wide, at most
   ``max_grid`` basis functions along the longer side.
-* ``lam`` (:func:`scale_free_lam`): the objective's lambda of ``E_d + lam R`` from a
-  dimensionless ``smoothing`` (:func:`choose_smoothing`).
+* ``lam`` (``scale_free_lam``): the objective's lambda of ``E_d + lam R`` from a
+  dimensionless ``smoothing`` (``choose_smoothing``).
 
-The default solver for these settings is the exact solve, :class:`jurs.LeastSquares`: one
+The default solver for these settings is the exact solve, [`jurs.LeastSquares`][]: one
 linear solve reaches the minimum that the paper's iterations approach step by step.
 """
 
@@ -81,17 +81,17 @@ DEFAULT_MAX_GRID = 96
 #: fewer than 64^3, whose fits were too slow and large for a default (docs/surfaces.md,
 #: "Accuracy, speed and limits"; docs/performance.md, "Measurements behind the defaults").
 DEFAULT_MAX_GRID_3D = 48
-#: Cell side in point spacings, by dimension (see :func:`choose_grid`). On a surface a
+#: Cell side in point spacings, by dimension (see ``choose_grid``). On a surface a
 #: cell of side ``c s`` is crossed by about ``c^2`` points against ``c`` on a curve, so 3
 #: spacings already pin its coefficients; 1.5 would give about 8x the coefficients, and
 #: the exact solve's cost grows with them, for little accuracy (docs/performance.md,
 #: "Measurements behind the defaults").
 CELL_SPACINGS = {2: 1.5, 3: 3.0}
-#: Most coefficients a curve's grid is refined to for thin features (:func:`choose_grid`):
+#: Most coefficients a curve's grid is refined to for thin features (``choose_grid``):
 #: the exact solve's block Cholesky costs about ``N M^3`` (M the shorter side), 3.2x that
 #: of 96 x 96 at 128 x 128.
 MAX_FEATURE_COEFFICIENTS = 128 * 128
-#: Share of the points whose feature width sets the finest cell (:func:`feature_width`):
+#: Share of the points whose feature width sets the finest cell (``feature_width``):
 #: the narrowest 0.5 %, so that a short neck of a few points counts, a single odd point not.
 FEATURE_QUANTILE = 0.005
 #: A feature is resolved when it is at least this many cells wide: the clean shapes of
@@ -105,26 +105,27 @@ MIN_GRID = 8
 
 @dataclasses.dataclass(frozen=True)
 class Settings:
-    """What :func:`auto_settings` chose, and the measurements it chose from.
+    """What [`auto_settings`][jurs.auto_settings] chose, and the measurements it chose
+    from.
 
     Attributes:
         grid: ``(N, M)`` basis functions along x and y (``(N, M, K)`` for a surface).
         offset: d, distance of the offset samples (eq. 4).
         eps: target value at the offsets (eq. 5); equal to ``offset``.
-        lam: the objective's lambda in ``E_d + lam R`` (for :class:`jurs.LeastSquares`).
+        lam: the objective's lambda in ``E_d + lam R`` (for [`jurs.LeastSquares`][]).
         smoothing: the dimensionless strength ``lam`` was made from.
         domain: ``((x_min, y_min), (x_max, y_max))``, the box the grid covers (with z for a
             surface).
         spacing, noise: the measurements (see the module docstring).
         held_out: where the smoothing was chosen by held-out points
-            (:func:`choose_smoothing`), ``((smoothing, score), ...)`` for every candidate
+            (``choose_smoothing``), ``((smoothing, score), ...)`` for every candidate
             tried (from the smallest up, until the score rises), the score being the
             held-out points' mean squared distance to the candidate's zero set; None
             otherwise.
-        set_aside: indices of the points that stand alone (:func:`isolated_points`): they
-            took no part in the measurements, and :func:`jurs.fit` fits without them.
+        set_aside: indices of the points that stand alone (``isolated_points``): they
+            took no part in the measurements, and [`jurs.fit`][] fits without them.
         thin_fraction: the fraction of the points on features (thin parts, narrow gaps:
-            :func:`feature_width`) narrower than :data:`FEATURE_CELLS` cells of ``grid``;
+            ``feature_width``) narrower than ``FEATURE_CELLS`` cells of ``grid``;
             0 for a surface (not measured).
     """
 
@@ -145,7 +146,7 @@ class Settings:
 
 
 #: Dimensionless smoothing on clean clouds, and the most a noisy surface gets (see
-#: :func:`noise_smoothing`).
+#: ``noise_smoothing``).
 CLEAN_SMOOTHING = 1e-6
 NOISY_SMOOTHING = 1e-3
 #: A clean surface's smoothing: lower than a curve's, since a surface's cells hold many
@@ -157,11 +158,11 @@ NOISY_SMOOTHING = 1e-3
 #: behind the defaults").
 CLEAN_SURFACE_SMOOTHING = 1e-7
 #: The dimensionless smoothings a curve's lambda is chosen among by held-out points
-#: (:func:`choose_smoothing`): decades from the clean floor to the noisy end.
+#: (``choose_smoothing``): decades from the clean floor to the noisy end.
 SMOOTHING_CANDIDATES = (1e-6, 1e-5, 1e-4, 1e-3)
 #: Below this ratio ``2 sigma / d`` the cloud is clean at the scale of its offsets and
-#: gets :data:`CLEAN_SMOOTHING` without a held-out selection (which would choose it too:
-#: see :func:`choose_smoothing`).
+#: gets ``CLEAN_SMOOTHING`` without a held-out selection (which would choose it too:
+#: see ``choose_smoothing``).
 CLEAN_NOISE_RATIO = 0.1
 
 
@@ -181,7 +182,7 @@ def choose_offset(
     inner and outer samples of neighbouring points interleave, hence ``2 sigma``.
 
     Thin parts: offsets that cross a thin part of the shape, or the gap between two parts,
-    land on the wrong side of the data nearest to them (:func:`offset_agreement`). Among
+    land on the wrong side of the data nearest to them (``offset_agreement``). Among
     ``d0, 0.7 d0, 0.7^2 d0, ...`` the largest is taken whose agreement is within 1 % of the
     best on that ladder: on clean smooth data d0 itself (agreement 1), and on noisy data too
     (smaller offsets only agree less, noise being closer), but less than d0 where d0 crosses.
@@ -204,12 +205,12 @@ def choose_grid(
     feature: float = np.inf,
 ) -> tuple[int, ...]:
     """Basis functions along each axis (x and y, and z for a surface): cells of side ``h =
-    max(1.5 s, 4 sigma)`` (``3 s`` on a surface, :data:`CELL_SPACINGS`), the same along
+    max(1.5 s, 4 sigma)`` (``3 s`` on a surface, ``CELL_SPACINGS``), the same along
     every axis, with at most ``max_grid`` functions along the longest side and at least
-    :data:`MIN_GRID` along each; then, on a curve whose narrowest ``feature`` (thin parts,
-    narrow gaps: :func:`feature_width`) is under :data:`FEATURE_CELLS` cells wide, finer
+    ``MIN_GRID`` along each; then, on a curve whose narrowest ``feature`` (thin parts,
+    narrow gaps: ``feature_width``) is under ``FEATURE_CELLS`` cells wide, finer
     cells down to that width, beyond ``max_grid`` but within
-    :data:`MAX_FEATURE_COEFFICIENTS` coefficients and never below one spacing or 4 sigma.
+    ``MAX_FEATURE_COEFFICIENTS`` coefficients and never below one spacing or 4 sigma.
 
     Why: a cell must hold a few points along the curve for the least-squares fit to pin
     its coefficients (1.5 spacings: finer cells no longer fit clean data closer), and on
@@ -221,7 +222,7 @@ def choose_grid(
     points: there the data need the finer grid, and the budget in coefficients (not in
     functions a side) lets elongated shapes have it cheaply.
 
-    The cell counts are then rounded up to :func:`jurs._problem.sizes.round_size` (four sizes an
+    The cell counts are then rounded up to ``jurs._problem.sizes.round_size`` (four sizes an
     octave), so that clouds of similar size and extent get the same grid and share one
     compiled fit: cells up to 25 % narrower than chosen, never wider.
     """
@@ -239,8 +240,8 @@ def choose_grid(
 
 def _budget_cell(extent: np.ndarray) -> float:
     """The narrowest square cell whose grid over ``extent`` (with its 3 extra functions a
-    side, and :func:`jurs._problem.sizes.round_size`'s rounding up of at most 25 %) stays within
-    :data:`MAX_FEATURE_COEFFICIENTS`."""
+    side, and ``jurs._problem.sizes.round_size``'s rounding up of at most 25 %) stays within
+    ``MAX_FEATURE_COEFFICIENTS``."""
     budget = MAX_FEATURE_COEFFICIENTS / 1.25**extent.size
 
     def count(h):
@@ -256,11 +257,11 @@ def _budget_cell(extent: np.ndarray) -> float:
 def choose_smoothing(offset: float, noise: float, ndim: int = 2) -> float | None:
     """Dimensionless smoothing from the measurements, or None where the data must choose.
 
-    * Clean clouds (``2 sigma / d`` below :data:`CLEAN_NOISE_RATIO`): :func:`clean_smoothing`.
-    * Other curves: None. :func:`auto_settings` then chooses among
-      :data:`SMOOTHING_CANDIDATES` the one whose fit of 80 % of the points passes nearest
-      the other 20 % (:func:`jurs.solvers._held_out.select_lam`).
-    * Other surfaces: :func:`noise_smoothing` (a held-out selection would cost four more of
+    * Clean clouds (``2 sigma / d`` below ``CLEAN_NOISE_RATIO``): ``clean_smoothing``.
+    * Other curves: None. [`auto_settings`][jurs.auto_settings] then chooses among
+      ``SMOOTHING_CANDIDATES`` the one whose fit of 80 % of the points passes nearest
+      the other 20 % (``jurs.solvers._held_out.select_lam``).
+    * Other surfaces: ``noise_smoothing`` (a held-out selection would cost four more of
       their iterative solves).
 
     Why held-out points and not the noise estimate: sigma measures how far points stray
@@ -281,15 +282,15 @@ def choose_smoothing(offset: float, noise: float, ndim: int = 2) -> float | None
 
 
 def clean_smoothing(ndim: int) -> float:
-    """The smoothing of clean clouds: :data:`CLEAN_SMOOTHING` for curves,
-    :data:`CLEAN_SURFACE_SMOOTHING` for surfaces."""
+    """The smoothing of clean clouds: ``CLEAN_SMOOTHING`` for curves,
+    ``CLEAN_SURFACE_SMOOTHING`` for surfaces."""
     return CLEAN_SMOOTHING if ndim == 2 else CLEAN_SURFACE_SMOOTHING
 
 
 def noise_smoothing(offset: float, noise: float, ndim: int = 3) -> float:
     """A surface's dimensionless smoothing (curves choose theirs by held-out points,
-    :func:`choose_smoothing`): from :func:`clean_smoothing` on clean clouds to
-    :data:`NOISY_SMOOTHING` where noise sets the offset (``2 sigma >= d``), on the fourth
+    ``choose_smoothing``): from ``clean_smoothing`` on clean clouds to
+    ``NOISY_SMOOTHING`` where noise sets the offset (``2 sigma >= d``), on the fourth
     power of ``2 sigma / d`` between.
 
     Why: R (eq. 31) is a membrane energy, about ``2 int |grad g|^2``; it keeps g free of
@@ -341,9 +342,9 @@ def scale_free_lam(
 
 
 def _held_out_smoothing(cloud, support, shape, offset, eps, domain, unit: float):
-    """``(smoothing, record)``: the :data:`SMOOTHING_CANDIDATES` entry chosen by held-out
-    points (:func:`jurs.solvers._held_out.select_lam`) on the fit's own problem (padded
-    as :func:`jurs.fit` pads it, so clouds of similar size share the compiled selection),
+    """``(smoothing, record)``: the ``SMOOTHING_CANDIDATES`` entry chosen by held-out
+    points (``jurs.solvers._held_out.select_lam``) on the fit's own problem (padded
+    as [`jurs.fit`][] pads it, so clouds of similar size share the compiled selection),
     and ``((smoothing, score), ...)`` for the candidates tried (from the smallest up, until
     the score rises)."""
     dtype = jnp.result_type(float)
@@ -371,7 +372,7 @@ def auto_settings(
     max_grid: int | None = None,
 ) -> Settings:
     """Choose the grid, offset d, eps and lambda for ``points`` and ``normals``, ``(m, 2)``
-    for a curve or ``(m, 3)`` for a surface, or for a :class:`jurs.Cloud` (then
+    for a curve or ``(m, 3)`` for a surface, or for a ``jurs.Cloud`` (then
     ``normals`` is None: the cloud holds them, and its measurements are kept for the fit).
 
     Any of ``grid``, ``offset``, ``eps``, ``domain`` and ``smoothing`` given is kept and the
@@ -380,10 +381,10 @@ def auto_settings(
     ``jax.grad`` or ``jax.vmap`` call this once outside and pass the settings in.
 
     ``max_grid``: the largest automatic grid along the longest side; None takes
-    :data:`DEFAULT_MAX_GRID` in 2D, :data:`DEFAULT_MAX_GRID_3D` in 3D.
+    ``DEFAULT_MAX_GRID`` in 2D, ``DEFAULT_MAX_GRID_3D`` in 3D.
 
     Returns:
-        :class:`Settings`.
+        [`Settings`][jurs.Settings].
     """
     if not _is_concrete(points, normals):
         raise ValueError(
@@ -419,10 +420,10 @@ def choose_settings(
     max_grid: int | None = None,
     solver=None,
 ) -> Settings:
-    """:func:`auto_settings` of a :class:`jurs.Cloud` whose settings given were checked
-    (:func:`jurs._problem.validate.check_values`, a normalised ``shape``). The memory the
-    fit will take on the chosen grid, with ``solver`` (None: the default), is checked
-    here, once, before the first solve on it (the held-out choice of lambda)."""
+    """[`auto_settings`][jurs.auto_settings] of a ``jurs.Cloud`` whose settings given
+    were checked (``jurs._problem.validate.check_values``, a normalised ``shape``). The
+    memory the fit will take on the chosen grid, with ``solver`` (None: the default), is
+    checked here, once, before the first solve on it (the held-out choice of lambda)."""
     if cloud.mask is not None:
         raise ValueError(
             "automatic settings do not take a mask; pass grid, offset, eps "
@@ -497,7 +498,7 @@ def choose_settings(
     )
 
 
-#: Reweighted solves at most in the default robust fit (:func:`default_solver`): each is
+#: Reweighted solves at most in the default robust fit (``default_solver``): each is
 #: one exact solve.
 DEFAULT_ROBUST_STEPS = 8
 
@@ -507,7 +508,7 @@ DEFAULT_ROBUST_RTOL = 1e-3
 
 
 def default_solver(settings) -> AbstractSolver:
-    """The solver :func:`fit` uses with the automatic ``settings``: the exact solve
+    """The solver ``fit`` uses with the automatic ``settings``: the exact solve
     ``LeastSquares(lam=settings.lam)``; where points were set aside as standing alone
     (``settings.set_aside``), the robust reweighting ``RobustLeastSquares(lam, loss="huber")``
     of the rest, which also weighs down points that stray less far (Huber's loss is
@@ -523,7 +524,7 @@ def default_solver(settings) -> AbstractSolver:
 def set_aside_mask(points, settings):
     """``(m,)`` weights, 0 at the points ``settings`` set aside, or None where none were: the
     ``mask`` that fits without them (also for a caller that passes the automatic settings
-    to :func:`fit` explicitly)."""
+    to ``fit`` explicitly)."""
     if settings is None or not settings.set_aside:
         return None
     support = np.ones(len(points))

@@ -1,8 +1,8 @@
 """Fits of clouds sharded over several devices: the Problem placed where the points are.
 
-:func:`jurs.fit` given points (or normals) as a ``jax.Array`` sharded along the point axis
-by a :class:`jax.sharding.NamedSharding` over more than one device builds its
-:class:`jurs.Problem` as for any concrete cloud, then places it on the same mesh: every
+[`jurs.fit`][] given points (or normals) as a ``jax.Array`` sharded along the point axis
+by a ``jax.sharding.NamedSharding`` over more than one device builds its
+[`jurs.Problem`][] as for any concrete cloud, then places it on the same mesh: every
 per-slot array (samples, targets, masks, local basis; the table form's per-bucket and
 per-position arrays) sharded along its slot axis, the box and the scalars replicated. The
 solve is then the same jitted function, and JAX's GSPMD partitioner splits it: the passes
@@ -10,15 +10,15 @@ over the samples (F, T, the moments of the normal equations) run on each device'
 slots, and their sums onto the grid become local sums and an all-reduce of grid-sized
 arrays. Nothing here partitions by hand (docs/sharding.md).
 
-In one process the sample layout (:func:`jurs.make_problem`: the offset samples, the sort
+In one process the sample layout ([`jurs.make_problem`][]: the offset samples, the sort
 into buckets, the table form) is built from the whole cloud gathered on the host, and the
 automatic settings and the orientation check read it there too: a sharded fit spreads the
 solve's memory and work over the devices, not the host's.
 
 Over several processes (``jax.distributed``: points and normals global arrays that are not
-fully addressable, :func:`spans_processes`) :func:`jurs.fit` hands over to
+fully addressable, ``spans_processes``) [`jurs.fit`][] hands over to
 ``jurs._fit.fit.fit_across_processes``: each process builds the layout of its own rows only
-(:func:`process_problem`, the bucketed layout for curves, one sample a slot for
+(``process_problem``, the bucketed layout for curves, one sample a slot for
 surfaces), the processes agree on the bucket size and on the slot count (two small
 all-gathers), pad to it, and the per-slot arrays are assembled with
 ``jax.make_array_from_process_local_data``; ``sample_index`` counts in the global point
@@ -27,7 +27,7 @@ the automatic settings (grid, offset, eps, domain and solver must be given), the
 estimation of normals, the orientation and doubt checks, the padding to stable sizes.
 
 The slot count is padded to a whole number of buckets a device with masked-out copies of
-the last bucket (the padding convention of :func:`jurs._problem.problem.bucket_layout`), which the
+the last bucket (the padding convention of [`jurs.internal.bucket_layout`][]), which the
 solvers leave out of every sum; a sharded fit therefore equals the one-device fit up to
 the order of the sums (rounding). Each device's cells stay sorted (its part of one
 process's layout, sorted by cell), as the per-device sums onto the grid declare
@@ -75,7 +75,7 @@ def _point_sharding(x) -> NamedSharding | None:
 
 
 def input_sharding(points, normals) -> NamedSharding | None:
-    """The NamedSharding that :func:`jurs.fit` places its problem by: that of ``points``
+    """The NamedSharding that [`jurs.fit`][] places its problem by: that of ``points``
     (else of ``normals``) where it splits the point axis over more than one device, else
     None (a one-device fit, unchanged). ValueError where points and normals are split over
     different meshes or axes."""
@@ -211,9 +211,9 @@ def is_sharded(problem) -> bool:
 
 
 def place_fit(points, normals, problem: Problem, solver, init):
-    """``(problem, solver, init)`` for :func:`jurs.fit`: unchanged for a one-device cloud;
+    """``(problem, solver, init)`` for [`jurs.fit`][]: unchanged for a one-device cloud;
     for points (or normals) sharded along the point axis over several devices
-    (:func:`input_sharding`), the problem split over their mesh (:func:`shard_problem`)
+    (``input_sharding``), the problem split over their mesh (``shard_problem``)
     and the solver's arrays and ``init`` replicated on it."""
     sharding = input_sharding(points, normals)
     if sharding is None or not isinstance(problem.samples, jax.Array):
@@ -294,7 +294,7 @@ def _in_process(error: Exception) -> Exception:
 
 
 def _local_bucket_size(points, normals, offset, shape, domain) -> int:
-    """The automatic bucket size (:func:`jurs._problem.problem.choose_bucket_size`) of this
+    """The automatic bucket size (``jurs._problem.problem.choose_bucket_size``) of this
     process's samples."""
     n = unit_normals(np.asarray(normals, float))
     p = np.asarray(points, float)
@@ -307,16 +307,17 @@ def _local_bucket_size(points, normals, offset, shape, domain) -> int:
 def process_problem(
     points, normals, shape, offset, eps, domain, margin, bucket_size, dtype, solver=None
 ) -> Problem:
-    """The :class:`Problem` of a cloud held by several processes, each building the sample
-    layout of its own points only (their addressable rows): :func:`jurs.make_problem` of
-    those, in the bucketed layout (one sample a slot for surfaces), with every process's
-    slot count padded to the largest (masked copies of its last bucket) and the per-slot
-    arrays assembled into global ones split along the points' mesh axis
-    (``jax.make_array_from_process_local_data``); ``sample_index`` counts in the global
-    point order, so per-point sums see one cloud. Box, offset and eps replicated. Every
-    process calls this (it runs two small all-gathers: the bucket size, the slot count);
-    an input error in one process is raised in all. ``solver``: checks the memory of
-    this process's share of the fit (:func:`jurs._problem.problem.fit_memory`)."""
+    """The [`Problem`][jurs.Problem] of a cloud held by several processes, each building
+    the sample layout of its own points only (their addressable rows):
+    [`jurs.make_problem`][] of those, in the bucketed layout (one sample a slot for
+    surfaces), with every process's slot count padded to the largest (masked copies of its
+    last bucket) and the per-slot arrays assembled into global ones split along the
+    points' mesh axis (``jax.make_array_from_process_local_data``); ``sample_index``
+    counts in the global point order, so per-point sums see one cloud. Box, offset and eps
+    replicated. Every process calls this (it runs two small all-gathers: the bucket size,
+    the slot count); an input error in one process is raised in all. ``solver``: checks
+    the memory of this process's share of the fit
+    (``jurs._problem.problem.fit_memory``)."""
     sharding = input_sharding(points, normals)
     assert sharding is not None
     shards = _axis_size(sharding)

@@ -1,5 +1,5 @@
 """Linear algebra of the exact solve, one job a module: ``operator`` (the lineax operator
-type of the systems), ``stencil`` (banded stencils and :class:`StencilOperator`),
+type of the systems), ``stencil`` (banded stencils and ``StencilOperator``),
 ``normal`` (the normal equations assembled from a problem), ``cholesky`` (direct
 factorisations), ``coarsen`` (coarser grids and the maps between grids), ``patches`` (the
 multigrid's Schwarz smoother) and ``multigrid`` (the multigrid-preconditioned solver).

@@ -1,6 +1,6 @@
 """Cholesky factorisations of the exact solve: the block Cholesky of a 2D stencil system
-(:class:`BlockCholesky`, a lineax solver) and batched inverses of small symmetric positive
-definite blocks (:func:`spd_inverse`, for the multigrid's patches and coarsest level)."""
+(``BlockCholesky``, a lineax solver) and batched inverses of small symmetric positive
+definite blocks (``spd_inverse``, for the multigrid's patches and coarsest level)."""
 
 from __future__ import annotations
 
@@ -14,7 +14,7 @@ from jax import Array
 from .._model.precision import full_precision
 from .stencil import HALF, SIDE, StencilOperator
 
-#: Largest diagonal block that :func:`_cholesky_and_inverse` hands to LAPACK. Larger blocks
+#: Largest diagonal block that ``_cholesky_and_inverse`` hands to LAPACK. Larger blocks
 #: run OpenBLAS's kernels threaded, and those threads compete with XLA's own (slower by
 #: orders of magnitude: docs/multigrid.md, "Measurements behind the constants"); they are
 #: split recursively into matrix products, which XLA runs itself.
@@ -59,7 +59,7 @@ def _row_blocks(stencil_row: Array, row: Array) -> tuple:
 
 
 #: Largest ``N * min(N, M)^2`` for which LeastSquares solves directly by
-#: :class:`BlockCholesky` (its factor takes ``32 N M^2`` bytes in float64: 1 GB at
+#: ``BlockCholesky`` (its factor takes ``32 N M^2`` bytes in float64: 1 GB at
 #: 256 x 256); above, CG.
 DIRECT_MAX_ENTRIES = 1 << 25
 
@@ -126,7 +126,7 @@ def stencil_cholesky_solve(stencil: Array, rhs: Array) -> Array:
     return x
 
 
-#: Largest block that :func:`spd_inverse` factorises column by column (a loop); larger ones
+#: Largest block that ``spd_inverse`` factorises column by column (a loop); larger ones
 #: are split in halves joined by matrix products. No LAPACK: XLA runs independent kernels
 #: concurrently, and concurrent batched LAPACK calls inside a threaded OpenBLAS can
 #: deadlock; splitting down to 1 x 1 instead makes the compilation long (docs/multigrid.md,
@@ -193,8 +193,8 @@ def spd_inverse(blocks: Array, ridge: float) -> Array:
 
 
 class BlockCholesky(lx.AbstractLinearSolver):
-    """The direct solve of a :class:`jurs._linalg.stencil.StencilOperator` on a 2D grid by
-    :func:`stencil_cholesky_solve`, as a lineax solver.
+    """The direct solve of a ``jurs._linalg.stencil.StencilOperator`` on a 2D grid by
+    ``stencil_cholesky_solve``, as a lineax solver.
 
     No tolerance: the residual is at rounding level. The matrix must be numerically
     positive definite; where it is not, the factorisation breaks down, the solution is

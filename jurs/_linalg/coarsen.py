@@ -1,10 +1,10 @@
 """Coarser grids of a cubic B-spline coefficient grid, and the maps between grids.
 
 One rule makes every coarser grid of the package, the multigrid's levels
-(:mod:`jurs._linalg.multigrid`) and the cascadic start's
-(:mod:`jurs.solvers._cascade`): an axis of ``n`` basis functions (``n - 3`` cells) becomes
-``n // 2 + 2`` functions, cells twice as wide (:func:`coarse_size`), and a sequence of
-grids coarsens every axis at once until one is small enough (:func:`coarsening`). The two
+(``jurs._linalg.multigrid``) and the cascadic start's
+(``jurs.solvers._cascade``): an axis of ``n`` basis functions (``n - 3`` cells) becomes
+``n // 2 + 2`` functions, cells twice as wide (``coarse_size``), and a sequence of
+grids coarsens every axis at once until one is small enough (``coarsening``). The two
 users differ in where they stop and in how the coarse grid sits on the box, hence in the
 transfer:
 
@@ -13,17 +13,17 @@ transfer:
   past the fine one. The coarse spline space then lies inside the fine one (knot
   insertion), and the subdivision mask ``(1, 4, 6, 4, 1) / 8`` writes coarse function
   ``I`` in the fine ones: ``B^c_I = sum_a mask[a] B_{2I - 3 + a}``. That matrix P is the
-  exact prolongation (:func:`prolong`), its transpose the restriction (:func:`restrict`),
-  and ``P^T A P`` the Galerkin coarse operator (:func:`galerkin`). No coarse function
+  exact prolongation (``prolong``), its transpose the restriction (``restrict``),
+  and ``P^T A P`` the Galerkin coarse operator (``galerkin``). No coarse function
   vanishes on the fine box, so P keeps full column rank and every axis coarsens whatever
   its parity.
 * **Re-fitted grids (cascade).** Each coarse grid spans the same box as the fine one (the
   same fit, solved again on fewer functions), so the spaces are not nested; a coarse
   solution reaches the next grid by its values at the fine grid's Greville points
-  (:func:`greville_transfer`, a quasi-interpolant accurate to O(h^2)).
+  (``greville_transfer``, a quasi-interpolant accurate to O(h^2)).
 
 Every map works axis by axis, for grids of any dimension d; stencils are the
-``grid_shape + (7,) * d`` arrays of :mod:`jurs._linalg.stencil`.
+``grid_shape + (7,) * d`` arrays of ``jurs._linalg.stencil``.
 """
 
 from __future__ import annotations
@@ -55,7 +55,7 @@ def coarse_size(n: int, min_side: int = MIN_COARSEN_SIDE) -> int:
 
 def coarsening(shape: tuple[int, ...], max_size: int, min_side: int = MIN_COARSEN_SIDE) -> list:
     """The grid shapes from ``shape`` down, finest first (``shape`` itself included): every
-    axis coarsened by :func:`coarse_size` at once, until a grid has at most ``max_size``
+    axis coarsened by ``coarse_size`` at once, until a grid has at most ``max_size``
     coefficients or no axis shrinks."""
     shapes = [tuple(int(n) for n in shape)]
     while np.prod(shapes[-1]) > max_size:
@@ -92,7 +92,7 @@ def restrict(grid: Array, coarse_shape: tuple[int, ...]) -> Array:
 
 def prolong(coarse: Array, fine_shape: tuple[int, ...]) -> Array:
     """``P coarse``: the nested coarse spline's coefficients in the fine basis (knot
-    insertion); the transpose of :func:`restrict`."""
+    insertion); the transpose of ``restrict``."""
     fine = jax.ShapeDtypeStruct(tuple(fine_shape), coarse.dtype)
     (out,) = jax.linear_transpose(lambda g: restrict(g, coarse.shape), fine)(coarse)
     return out
@@ -158,7 +158,7 @@ def greville_matrix(coarse: int, fine: int) -> np.ndarray:
 
 def greville_transfer(grid: Array, shape: tuple[int, ...]) -> Array:
     """A coefficient grid's spline, quasi-interpolated on the grid of ``shape`` over the same
-    box (one matrix product an axis, :func:`greville_matrix`)."""
+    box (one matrix product an axis, ``greville_matrix``)."""
     for axis, n in enumerate(shape):
         matrix = jnp.asarray(greville_matrix(grid.shape[axis], n), grid.dtype)
         grid = jnp.moveaxis(jnp.tensordot(matrix, grid, axes=[[1], [axis]]), 0, axis)

@@ -1,17 +1,17 @@
 """Geometric multigrid for stencil systems: the normal equations ``(D^T D + 2 lam L) C = D^T b``.
 
 One code path for grids of any dimension d (2D curves, 3D surfaces): a system is a
-:class:`jurs._linalg.stencil.StencilOperator`, a stencil ``grid_shape + (7,) * d``, and
+``jurs._linalg.stencil.StencilOperator``, a stencil ``grid_shape + (7,) * d``, and
 every operation works axis by axis. Design and measurements: ``docs/multigrid.md``.
 
-* **Levels** are the nested coarser grids of :mod:`jurs._linalg.coarsen`: cells twice as
+* **Levels** are the nested coarser grids of ``jurs._linalg.coarsen``: cells twice as
   wide, the exact prolongation by knot insertion, its transpose the restriction.
 * **Coarse operators** are Galerkin products ``P^T A P``
-  (:func:`jurs._linalg.coarsen.galerkin`): the minimiser over the coarse space of the same
+  (``jurs._linalg.coarsen.galerkin``): the minimiser over the coarse space of the same
   quadratic energy, so each level's correction is its best possible one in the energy
   norm.
 * **Smoother**: Chebyshev polynomials in ``M^-1 A``, M the additive Schwarz operator of
-  overlapping box patches, each solved exactly (:mod:`jurs._linalg.patches`); the top of
+  overlapping box patches, each solved exactly (``jurs._linalg.patches``); the top of
   ``M^-1 A``'s spectrum is bounded a priori by a colouring of the patches (no power
   iterations).
 * **Coarsest level**: a dense inverse once it has at most ``coarsest_size`` unknowns.
@@ -19,7 +19,7 @@ every operation works axis by axis. Design and measurements: ``docs/multigrid.md
   multigrid pass, stopped on an estimate of the objective's gap to its minimum.
 
 The hierarchy (coarse operators, patch inverses, coarsest inverse) is the lineax state of
-:class:`Multigrid`: ``Multigrid.init`` builds it once (most of a solve's cost), and
+``Multigrid``: ``Multigrid.init`` builds it once (most of a solve's cost), and
 ``lineax.linear_solve(..., state=...)`` reuses it for further right-hand sides.
 """
 
@@ -54,7 +54,7 @@ CHEBYSHEV_RATIO = 30.0
 
 
 def level_shapes(shape: tuple[int, ...], coarsest_size: int = DEFAULT_COARSEST_SIZE) -> list:
-    """The grid shapes of the hierarchy, finest first: :func:`jurs._linalg.coarsen.coarsening`
+    """The grid shapes of the hierarchy, finest first: ``jurs._linalg.coarsen.coarsening``
     until a level has at most ``coarsest_size`` unknowns or no axis shrinks."""
     return coarsening(shape, coarsest_size)
 
@@ -109,12 +109,12 @@ def build_hierarchy(
 
     Args:
         degree: Chebyshev steps before and after each coarse correction.
-        patch: ``(side, stride)`` of the Schwarz patches; default :data:`DEFAULT_PATCH` for
+        patch: ``(side, stride)`` of the Schwarz patches; default ``DEFAULT_PATCH`` for
             the grid's dimension.
         patch_dtype: storage of the patch inverses, the largest arrays of the hierarchy;
             default the stencil's dtype. Float32 halves them and the smoother's memory
             traffic, but is only safe for well-conditioned patches (see
-            :class:`Multigrid`).
+            ``Multigrid``).
         cycle_dtype: dtype of the V-cycle (level stencils, coarsest inverse); default the
             stencil's. The same caveat.
     """
@@ -218,7 +218,7 @@ def preconditioned_cg(
     energy norm of the error ``e . A e``).
 
     The gap is estimated by the larger of ``r . M r`` (the gap itself for ``M = A^-1``) and
-    the sum of the objective's last :data:`ESTIMATE_WINDOW` drops. CG stops once the
+    the sum of the objective's last ``ESTIMATE_WINDOW`` drops. CG stops once the
     estimate is at most ``rtol^2`` times the reference plus ``atol^2``: the reference is
     ``x . A x`` or, given ``target_norm2 = b . b`` of the least-squares problem whose
     normal equations these are, the objective ``b . b - 2 x . rhs + x . A x`` itself. It
@@ -283,9 +283,9 @@ class Multigrid(lx.AbstractLinearSolver):
 
     The operator must act on one ``grid_shape`` array, couple points at most 3 apart per axis
     (a cubic B-spline normal matrix) and be tagged positive (semi-)definite. A
-    :class:`jurs._linalg.stencil.StencilOperator` (as LeastSquares passes) gives its stencil
+    ``jurs._linalg.stencil.StencilOperator`` (as LeastSquares passes) gives its stencil
     directly; of any other operator the stencil is probed with ``7^d`` products
-    (:func:`jurs._linalg.stencil.probe_stencil`). Coefficients are prolonged by B-spline
+    (``jurs._linalg.stencil.probe_stencil``). Coefficients are prolonged by B-spline
     knot insertion and coarse operators are Galerkin products (see the module docstring).
     Differentiable like any lineax solve (implicit differentiation: the adjoint system is
     solved by the same method; the hierarchy carries no gradient).
@@ -304,7 +304,7 @@ class Multigrid(lx.AbstractLinearSolver):
         max_steps: CG steps (one V-cycle each) before giving up with ``max_steps_reached``.
         degree: Chebyshev smoothing steps before and after each coarse correction.
         patch: ``(side, stride)`` of the overlapping Schwarz patches; default by dimension
-            (:data:`DEFAULT_PATCH`).
+            (``DEFAULT_PATCH``).
         coarsest_size: largest level solved by a dense inverse.
         full_multigrid: start from a full multigrid pass (True) or from ``options["y0"]``
             (else zero).

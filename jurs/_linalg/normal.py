@@ -17,9 +17,10 @@ stencil; its memory is independent of the number of samples:
 * rational (fixed w): the 256 products of each row ``w_ij B_ij / W`` (eq. 23), accumulated
   in blocks of ``chunk_size`` samples (``lax.scan``) so that no ``(3m, 256)`` array exists.
 
-The stencil is reusable (:mod:`jurs._linalg.stencil`): it applies in O(NM) (an I-PIA step
-in normal-equation form costs nothing per sample), and :meth:`NormalEquations.regularised`
-gives the system ``D^T D + 2 lam L`` as a lineax operator for the exact solve.
+The stencil is reusable (``jurs._linalg.stencil``): it applies in O(NM) (an I-PIA step
+in normal-equation form costs nothing per sample), and
+[`NormalEquations.regularised`][jurs.internal.NormalEquations.regularised] gives the system
+``D^T D + 2 lam L`` as a lineax operator for the exact solve.
 """
 
 from __future__ import annotations
@@ -60,7 +61,7 @@ DEFAULT_CHUNK = 2**14
 
 def _cubic_bernstein() -> np.ndarray:
     """Coefficients of the four uniform cubic B-spline pieces
-    (:func:`jurs.internal.cubic_weights`) in the cubic Bernstein basis
+    ([`jurs.internal.cubic_weights`][]) in the cubic Bernstein basis
     ``comb(3, p) t^p (1 - t)^(3 - p)``; ``(4, 4)``."""
     return np.array([[1, 0, 0, 0], [4, 4, 2, 1], [1, 2, 4, 4], [0, 0, 0, 1]], float) / 6.0
 
@@ -119,7 +120,7 @@ def chunked_segment_sum(
     samples.
 
     ``parts``: the leading axis is taken as that many equal parts (the devices of a sharded
-    fit, :attr:`jurs.LocalBasis.parts`), each summed a chunk at a time on its own, then
+    fit, ``jurs.LocalBasis.parts``), each summed a chunk at a time on its own, then
     the parts' sums added. Why: a scan over chunks of an axis split over devices walks
     across the devices, and the partitioner gathers every chunk to every device; chunks
     taken within each part stay where they are, and only the grid-sized sums are reduced.
@@ -158,7 +159,7 @@ def _cells_to_stencil(blocks: Array, shape: tuple[int, ...]) -> Array:
     ``blocks`` is ``(cells, 16, 7, 7)``: for local term ``(a, b)`` of a cell, its coupling
     to the term at offset ``(da, db)`` (stored at ``[3 + da, 3 + db]``). Term ``(a, b)`` of
     cell ``(cx, cy)`` is coefficient ``(cx + a, cy + b)``, so this is the adjoint of the
-    patch gather (:func:`jurs._model.basis.patches_to_grid`) with 49 channels.
+    patch gather (``jurs._model.basis.patches_to_grid``) with 49 channels.
     """
     n, m = shape[0] - 3, shape[1] - 3
     per_cell = blocks.reshape(n, m, NUM_LOCAL, SIDE, SIDE)
@@ -309,8 +310,9 @@ def rational_normal_equations(problem: Problem, weights: Array, chunk_size: int 
 class NormalEquations(eqx.Module):
     """``D^T D`` as an ``(N, M, 7, 7)`` stencil and ``D^T b`` as an ``(N, M)`` grid.
 
-    Build with :func:`normal_equations`. ``matvec`` applies ``D^T D``; ``E_d(C)`` equals
-    ``C.(D^T D) C - 2 C.(D^T b) + b.b`` (``b.b`` in ``target_norm2``).
+    Build with [`normal_equations`][jurs.internal.normal_equations]. ``matvec`` applies
+    ``D^T D``; ``E_d(C)`` equals ``C.(D^T D) C - 2 C.(D^T b) + b.b`` (``b.b`` in
+    ``target_norm2``).
     """
 
     stencil: Array

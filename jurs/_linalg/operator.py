@@ -1,11 +1,11 @@
 """The lineax operator type of the exact solve's systems, whatever their storage.
 
 The exact solve's matrix ``D^T D + 2 lam L`` is symmetric positive semi-definite and acts
-on one coefficient grid. :class:`AbstractGridOperator` states that contract once, with the
+on one coefficient grid. ``AbstractGridOperator`` states that contract once, with the
 lineax tags it implies, so that each storage of the matrix is an operator type of its own
-(:class:`jurs._linalg.stencil.StencilOperator`: the banded stencil of a uniform grid) and
-solvers that need a storage recognise it by type (:class:`jurs._linalg.multigrid.Multigrid`,
-:class:`jurs._linalg.cholesky.BlockCholesky`), the pattern of lineax's own operators. Any
+(``jurs._linalg.stencil.StencilOperator``: the banded stencil of a uniform grid) and
+solvers that need a storage recognise it by type (``jurs._linalg.multigrid.Multigrid``,
+``jurs._linalg.cholesky.BlockCholesky``), the pattern of lineax's own operators. Any
 other lineax solver reaches the matrix through ``mv`` (CG and the other iterative ones) or
 ``as_matrix`` (the dense factorisations).
 
@@ -29,8 +29,8 @@ class AbstractGridOperator(lx.AbstractLinearOperator):
     ``grid_shape`` array in, one out): a normal-equation matrix in some storage.
 
     Subclasses implement ``mv``, ``as_matrix`` (the ``n x n`` matrix of the row-major
-    flattened grid), :meth:`in_structure`, :meth:`grid_diagonal` and
-    :meth:`with_grid_diagonal`. The transpose is the operator itself; lineax sees it tagged
+    flattened grid), ``in_structure``, ``grid_diagonal`` and
+    ``with_grid_diagonal``. The transpose is the operator itself; lineax sees it tagged
     symmetric and positive semi-definite.
     """
 

@@ -1,14 +1,14 @@
 """The multigrid's smoother: overlapping box patches of a grid and their exact inverses.
 
 A patch is a box of ``side`` points per axis, one starting every ``stride`` points
-(:class:`PatchLayout`). The additive Schwarz smoother of :mod:`jurs._linalg.multigrid`
+(``PatchLayout``). The additive Schwarz smoother of ``jurs._linalg.multigrid``
 solves every patch's principal submatrix exactly: point smoothers (Jacobi) leave the data
 term's local near-null modes (splines small on the samples but not smooth) to neither the
 smoother nor the coarse grid. Patches are cut from the grid by pads, reshapes and slices
 (no gathers), each patch's submatrix built from the stencil rows by a shear, and the
-inverses computed by :func:`jurs._linalg.cholesky.spd_inverse` (matrix products, no LAPACK)
+inverses computed by ``jurs._linalg.cholesky.spd_inverse`` (matrix products, no LAPACK)
 and stored. The top of the smoother's spectrum is bounded a priori by a colouring of the
-patches (:meth:`PatchLayout.colours`; docs/multigrid.md, "Spectrum bound by colouring").
+patches (``PatchLayout.colours``; docs/multigrid.md, "Spectrum bound by colouring").
 """
 
 from __future__ import annotations
@@ -61,7 +61,7 @@ class PatchLayout(eqx.Module):
 
 
 def patch_layout(shape: tuple[int, ...], side: int, stride: int) -> PatchLayout:
-    """The :class:`PatchLayout` of ``side``-point patches every ``stride`` points (``1 <=
+    """The ``PatchLayout`` of ``side``-point patches every ``stride`` points (``1 <=
     stride <= side``), both capped by the grid's extent along each axis."""
     if not 1 <= stride <= side:
         raise ValueError(f"patch stride must be in [1, side], got side {side}, stride {stride}")
@@ -105,7 +105,7 @@ def extract_patches(layout: PatchLayout, grid: Array) -> Array:
 
 
 def add_patches(layout: PatchLayout, values: Array) -> Array:
-    """The transpose of :func:`extract_patches` for a grid without channels: every patch's
+    """The transpose of ``extract_patches`` for a grid without channels: every patch's
     ``(patch points,)`` values added back onto the grid."""
     grid = jax.ShapeDtypeStruct(layout.shape, values.dtype)
     (out,) = jax.linear_transpose(lambda g: extract_patches(layout, g), grid)(values)
@@ -139,7 +139,7 @@ def patch_blocks(layout: PatchLayout, stencil: Array) -> Array:
 
 
 #: Bytes of stencil rows cut into patches (or of patch blocks inverted) at once in the setup
-#: (:func:`_slab_map` works through the grid in slabs of patches): every patch point
+#: (``_slab_map`` works through the grid in slabs of patches): every patch point
 #: carries its whole stencil row there (343 entries in 3D), so the setup in one piece
 #: would hold many times the stencil (docs/multigrid.md, "Measurements behind the
 #: constants").
@@ -157,7 +157,7 @@ SHARED_INVERSION_BYTES = 1 << 28
 
 def _slab_map(layout: PatchLayout, stencil: Array, fn) -> Array:
     """``fn(patch_blocks)`` over the patches of ``layout``, a slab of patches (one patch along
-    the first axis) at a time, several slabs a batch, about :data:`SETUP_CHUNK_BYTES` of
+    the first axis) at a time, several slabs a batch, about ``SETUP_CHUNK_BYTES`` of
     patch rows each; ``(patches, ...)``."""
     side, stride, count = layout.sides[0], layout.strides[0], layout.counts[0]
     slab = PatchLayout(
@@ -183,10 +183,10 @@ def _slab_map(layout: PatchLayout, stencil: Array, fn) -> Array:
 def patch_inverses(layouts: list, stencils: list, dtype=None) -> list:
     """``B_p^-1`` for every patch of every level, ``(patches, k, k)`` each in ``dtype``
     (default the stencils'), ``B_p = A_p + ridge diag(A_p)`` with the ridge
-    :data:`PATCH_RIDGE` ``k`` epsilons: at least the factorisation's rounding, so that the
-    computed ``B_p^-1`` stays below ``A_p^-1`` and :meth:`PatchLayout.colours` bounds
+    ``PATCH_RIDGE`` ``k`` epsilons: at least the factorisation's rounding, so that the
+    computed ``B_p^-1`` stays below ``A_p^-1`` and ``PatchLayout.colours`` bounds
     ``M^-1 A``'s spectrum. Levels whose patches have the same size are inverted as one
-    batch while that is small (:data:`SHARED_INVERSION_BYTES`), else level by level."""
+    batch while that is small (``SHARED_INVERSION_BYTES``), else level by level."""
 
     def ridge(size, dtype_):
         return PATCH_RIDGE * size * float(jnp.finfo(dtype_).eps)

@@ -7,8 +7,8 @@ regulariser, their sums and Galerkin products) are banded: row ``p`` of the grid
 **stencil**, an array ``grid_shape + (7,) * d`` with ``stencil[p, 3 + e] = A[p, p + e]``
 (zero towards points off the grid): 49 numbers a row in 2D, 343 in 3D. This module holds
 the stencil maths (product, diagonal, Laplacian, conversion to dense and SciPy matrices,
-probing a stencil from a matrix-vector product) and :class:`StencilOperator`, a stencil as
-a lineax operator (:class:`jurs._linalg.operator.AbstractGridOperator`).
+probing a stencil from a matrix-vector product) and ``StencilOperator``, a stencil as
+a lineax operator (``jurs._linalg.operator.AbstractGridOperator``).
 """
 
 from __future__ import annotations
@@ -48,7 +48,7 @@ def stencil_ndim(stencil: Array | np.ndarray) -> int:
 
 
 def laplacian_stencil(shape: tuple[int, ...], dtype: DTypeLike = float) -> Array:
-    """The grid Laplacian L of :func:`jurs.internal.grid_laplacian` (free boundary) as a
+    """The grid Laplacian L of [`jurs.internal.grid_laplacian`][] (free boundary) as a
     stencil, for a grid of any dimension d: degree at the centre, -1 towards each existing
     one of the ``2 d`` axis neighbours."""
     d = len(shape)
@@ -145,12 +145,12 @@ class StencilOperator(AbstractGridOperator):
     """A symmetric positive semi-definite matrix on a coefficient grid, stored as its
     ``grid_shape + (7,) * d`` stencil (any grid dimension d), as a lineax operator.
 
-    ``mv`` is :func:`stencil_matvec` (O(grid) work), ``as_matrix`` :func:`stencil_to_dense`
+    ``mv`` is ``stencil_matvec`` (O(grid) work), ``as_matrix`` ``stencil_to_dense``
     (for dense solves of small grids). The stencil must be that of a symmetric positive
     semi-definite matrix (a normal-equation matrix ``D^T D + 2 lam L`` is); it is not
     checked. Solvers that use the stencil itself recognise this type:
-    :class:`jurs._linalg.multigrid.Multigrid` and
-    :class:`jurs._linalg.cholesky.BlockCholesky`.
+    ``jurs._linalg.multigrid.Multigrid`` and
+    ``jurs._linalg.cholesky.BlockCholesky``.
     """
 
     stencil: Array

@@ -25,11 +25,11 @@ from jax import Array, lax
 #: Local terms per 2D sample: 4 x 4 tensor products.
 NUM_LOCAL = 16
 
-#: The four cubic pieces of :func:`cubic_weights` in powers of the centred local coordinate
-#: ``s = t - 1/2``: ``B_a(t) = sum_p CENTRED_POWER[a, p] s^p``. On a cell ``|s| <= 1/2`` and
-#: ``sum_p |CENTRED_POWER[a, p]| |s|^p <= 1``, so sums in this basis lose no more to rounding
-#: than sums in the B-spline basis, while a value costs a Horner scheme instead of the four
-#: pieces (the speed of every solver step rests on this).
+#: The four cubic pieces of [`cubic_weights`][jurs.internal.cubic_weights] in powers of the
+#: centred local coordinate ``s = t - 1/2``: ``B_a(t) = sum_p CENTRED_POWER[a, p] s^p``. On a
+#: cell ``|s| <= 1/2`` and ``sum_p |CENTRED_POWER[a, p]| |s|^p <= 1``, so sums in this basis
+#: lose no more to rounding than sums in the B-spline basis, while a value costs a Horner
+#: scheme instead of the four pieces (the speed of every solver step rests on this).
 CENTRED_POWER = (
     np.array([[1, -6, 12, -8], [23, -30, -12, 24], [23, 30, -12, -24], [1, 6, 12, 8]], dtype=float)
     / 48.0
@@ -56,7 +56,8 @@ def cubic_weights(t: Array | np.ndarray, xp=jnp) -> Array:
 
 
 def cubic_derivatives(t: Array) -> Array:
-    """d/dt of :func:`cubic_weights`; ``(..., 4)``. Divide by the cell width for d/dx."""
+    """d/dt of [`cubic_weights`][jurs.internal.cubic_weights]; ``(..., 4)``. Divide by
+    the cell width for d/dx."""
     s = 1.0 - t
     t2 = t * t
     return jnp.stack([-0.5 * s * s, 1.5 * t2 - 2.0 * t, -1.5 * t2 + t + 0.5, 0.5 * t2], axis=-1)
@@ -89,7 +90,7 @@ def cell_shape(shape: tuple[int, ...]) -> tuple[int, ...]:
 
 
 def flat_cell(cell: Array, shape: tuple[int, ...]) -> Array:
-    """Row-major index of a cell (``(..., d)``) in the cell grid :func:`cell_shape`."""
+    """Row-major index of a cell (``(..., d)``) in the cell grid ``cell_shape``."""
     cells = cell_shape(shape)
     index = cell[..., 0]
     for axis in range(1, len(cells)):
@@ -109,7 +110,7 @@ def num_local(ndim: int) -> int:
 def patch_offsets(shape: tuple[int, ...]) -> np.ndarray:
     """``(4 ** d,)`` offsets, in the row-major flattened coefficient grid of ``shape``, of
     the ``4 x ... x 4`` patch a cell sees from its first coefficient, in the order of
-    :func:`tensor_basis`."""
+    ``tensor_basis``."""
     strides = np.cumprod((1,) + tuple(shape[:0:-1]))[::-1]
     steps = np.stack(np.meshgrid(*[np.arange(4)] * len(shape), indexing="ij"), -1)
     return (steps.reshape(-1, len(shape)) @ strides).astype(np.int32)
@@ -117,7 +118,7 @@ def patch_offsets(shape: tuple[int, ...]) -> np.ndarray:
 
 def patch_corner(cell: Array, shape: tuple[int, ...]) -> Array:
     """The flat grid index of the first coefficient of the patch of each flat ``cell``
-    index (:func:`flat_cell`): the same multi-index, raveled in the coefficient grid."""
+    index (``flat_cell``): the same multi-index, raveled in the coefficient grid."""
     cells = cell_shape(shape)
     corner = 0
     rest = cell
@@ -155,7 +156,7 @@ def grid_to_patches(grid: Array, ndim: int = 2) -> Array:
 
 
 def patches_to_grid(patches: Array, shape: tuple[int, ...]) -> Array:
-    """Adjoint of :func:`grid_to_patches`: add each cell's ``4 ** d`` values back onto the
+    """Adjoint of ``grid_to_patches``: add each cell's ``4 ** d`` values back onto the
     grid of ``shape``; ``(..., cells, 4 ** d)`` -> ``(..., *shape)``.
     """
     ndim = len(shape)

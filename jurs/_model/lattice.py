@@ -1,7 +1,7 @@
 """Host-side evaluation of g on tensor lattices and at scattered points, for any dimension.
 
 g is a tensor-product rational spline, ``g = F(w C) / F(w)`` with ``F`` a plain B-spline
-evaluation (see :mod:`jurs._model.spline`). On a lattice ``xs x ys (x zs)`` every axis sees its
+evaluation (see ``jurs._model.spline``). On a lattice ``xs x ys (x zs)`` every axis sees its
 own ``(len(xs), N)`` matrix of basis values (four non-zero entries a row), so ``F`` is one
 contraction per axis: ``(N, M, K) -> (M, K, X) -> (K, X, Y) -> (X, Y, Z)``. That costs
 ``N M K X + M K X Y + K X Y Z`` multiply-adds instead of ``64 X Y Z`` for per-point
@@ -56,7 +56,7 @@ def locate_axis(coords, lower: float, upper: float, n: int):
     Returns ``(cell, t, h)``: ``cell`` int64 in ``[0, n - 4]`` (coordinates outside the box
     are clamped to the border cell, so ``t`` leaves ``[0, 1]`` there and the border
     polynomial pieces extend the spline), ``t`` float64, ``h`` the cell width. The same
-    arithmetic as :func:`jurs._model.basis.locate`.
+    arithmetic as ``jurs._model.basis.locate``.
     """
     if n < 4:
         raise ValueError(f"a cubic spline needs at least 4 basis functions, got {n}")
@@ -68,7 +68,7 @@ def locate_axis(coords, lower: float, upper: float, n: int):
 
 
 def cubic_slopes(t) -> np.ndarray:
-    """d/dt of the four pieces of :func:`jurs._model.basis.cubic_weights`, in NumPy float64;
+    """d/dt of the four pieces of [`jurs.internal.cubic_weights`][], in NumPy float64;
     ``(..., 4)``. Differentiates the pieces' centred power form (``CENTRED_POWER``), so it
     follows the basis module's own definition of the pieces."""
     s = np.asarray(t, dtype=np.float64)[..., None] - 0.5
@@ -98,7 +98,7 @@ def lattice_values(spline, axes, *, xp=np):
 
     For a 2D or 3D spline; ``len(axes)`` must match its dimension. Numerator ``F(w C)`` and
     denominator ``F(w)`` are each contracted with one band matrix per axis
-    (:func:`axis_basis`), then divided. ``xp=numpy`` (default) computes in float64;
+    (``axis_basis``), then divided. ``xp=numpy`` (default) computes in float64;
     ``xp=jax.numpy`` runs the same contractions in JAX (float64 when x64 is enabled).
     Memory: the lattice values and the intermediates of the contractions, at most about
     ``16 * max(N M K, M K X, K X Y, X Y Z)`` bytes for an ``(N, M, K)`` grid.

@@ -1,6 +1,6 @@
 """Energies, metrics, the PIA step size and the hand-derived gradients.
 
-Everything is written with the two linear maps of :mod:`jurs._model.spline`: ``F`` (coefficient
+Everything is written with the two linear maps of ``jurs._model.spline``: ``F`` (coefficient
 grid -> values at the samples) and its transpose ``T``. With ``W = F(w)``:
 
 * ``g = F(w C) / W`` (eq. 14) and the collocation transpose ``D^T v = w * T(v / W)``;
@@ -8,7 +8,7 @@ grid -> values at the samples) and its transpose ``T``. With ``W = F(w)``:
   (docs/design.md section 2).
 
 D (3m x NM) is never formed, nor any (samples x 16) array of its rows. Arrays indexed by
-sample are in the problem's slot order (see :class:`jurs.Problem`).
+sample are in the problem's slot order (see [`jurs.Problem`][]).
 """
 
 from __future__ import annotations
@@ -46,10 +46,11 @@ def layout_residuals(
     weights: Array,
     inv_denom: Array | None = None,
 ):
-    """``(r, mask / W, g)`` in the kernels' layout (:meth:`LocalBasis.to_layout`, in which
-    ``mask`` and ``targets`` are given): W and F(w C) in one pass apart, then eq. 14 and 18;
-    F(w C) alone where ``inv_denom`` (``mask / W`` for these weights) is known. What a
-    solver step and the metrics use; 0 at padding."""
+    """``(r, mask / W, g)`` in the kernels' layout
+    ([`LocalBasis.to_layout`][jurs.internal.LocalBasis.to_layout], in which ``mask`` and
+    ``targets`` are given): W and F(w C) in one pass apart, then eq. 14 and 18; F(w C) alone
+    where ``inv_denom`` (``mask / W`` for these weights) is known. What a solver step and
+    the metrics use; 0 at padding."""
     if inv_denom is None:
         both = values_apart(local, jnp.stack([weights, weights * control]))
         inv_denom, numerator = mask / both[0], both[1]
@@ -147,15 +148,15 @@ def step_size(problem: Problem, weights: Array) -> Array:
 
 def step_size_from_column_sums(column_sums: Array) -> Array:
     """mu = 2 / ||D^T D||_inf (eq. 13 and 25) from D's column sums, whose largest is that
-    norm (see :func:`collocation_column_sums`); for callers that have them from a shared
-    pass over the samples."""
+    norm (see [`collocation_column_sums`][jurs.internal.collocation_column_sums]); for
+    callers that have them from a shared pass over the samples."""
     return 2.0 / jnp.max(column_sums)
 
 
 def residuals(problem: Problem, control: Array, weights: Array):
     """Residuals with the explicit collocation rows of eq. 23, for row-based algorithms
     and checks: ``(r, wb, denom, g)`` with row ``k`` of D equal to ``wb[k] / denom[k]``
-    (see :func:`jurs._model.spline.rational_terms`). ``r`` is 0 at padding slots."""
+    (see ``jurs._model.spline.rational_terms``). ``r`` is 0 at padding slots."""
     wb, denom, g = rational_terms(problem.local, control, weights)
     return problem.mask * (g - problem.targets), wb, denom, g
 
@@ -165,7 +166,8 @@ def transpose_apply(problem: Problem, rows: Array) -> Array:
     coefficient of term j; with ``rows = D_k v_k`` this is ``D^T v``.
 
     ``rows`` is ``(S, 16)`` -> ``(N, M)``, or ``(S, c, 16)`` -> ``(c, N, M)``. The solvers use
-    the cheaper :func:`collocation_transpose`; this is for row-based algorithms.
+    the cheaper [`collocation_transpose`][jurs.internal.collocation_transpose]; this is for
+    row-based algorithms.
     """
     per_cell = jax.ops.segment_sum(rows, problem.local.cell, num_segments=num_cells(problem.shape))
     return patches_to_grid(jnp.moveaxis(per_cell, 0, -2), problem.shape)

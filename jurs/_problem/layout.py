@@ -81,13 +81,13 @@ def stable_layout(
     bucket_size: int | None = None,
     small: bool = False,
 ):
-    """:func:`bucket_layout` of the real samples (``sample_mask`` > 0), sized from the
-    number of slots (padding included) and the occupied cells rounded up by
-    :func:`jurs._problem.sizes.round_size`, not from the exact counts: clouds padded to one size
-    (:func:`jurs.fit`) whose samples occupy about as many cells get the same shapes, so one
+    """[`bucket_layout`][jurs.internal.bucket_layout] of the real samples (``sample_mask`` > 0),
+    sized from the number of slots (padding included) and the occupied cells rounded up by
+    ``jurs._problem.sizes.round_size``, not from the exact counts: clouds padded to one size
+    ([`jurs.fit`][]) whose samples occupy about as many cells get the same shapes, so one
     compiled fit. Padding samples take no bucket.
 
-    The bucket size (None chooses) is the power of two :func:`choose_bucket_size` would take
+    The bucket size (None chooses) is the power of two ``choose_bucket_size`` would take
     with the mean count per rounded occupied cell in place of the median. The number of
     buckets, ``ceil(S / K) + occupied``, bounds ``sum_cells ceil(count / K)`` for any
     placement of the real samples. Returns ``(slot_sample, valid, bucket_size)``.

@@ -42,7 +42,7 @@ def check_memory(
     setting: str, estimate: float, available: int | None = None, device: bool = True
 ) -> None:
     """MemoryError-free refusal: ValueError naming ``setting`` when ``estimate`` bytes
-    exceed the memory available (:func:`available_memory`, on the device or with
+    exceed the memory available (``available_memory``, on the device or with
     ``device=False`` on the host), before anything is allocated
     (without it an oversized grid failed inside XLA after many seconds, and an oversized
     level-set resolution in a MemoryError traceback: docs/robustness.md, "Memory";
@@ -60,7 +60,7 @@ def check_memory(
 
 #: Peak bytes a fit holds per coefficient: the exact solve and the normal-equation form
 #: assemble the 49-point stencil of D^T D and solve with it; the per-sample iterations
-#: hold a few grids (:data:`BYTES_PER_COEFFICIENT_ITERATIVE`). The limit is twice the
+#: hold a few grids (``BYTES_PER_COEFFICIENT_ITERATIVE``). The limit is twice the
 #: largest rate measured, so that a fit it lets through does not run the machine out of
 #: memory (docs/robustness.md, "Memory").
 BYTES_PER_COEFFICIENT = 8192
@@ -85,7 +85,7 @@ BYTES_PER_SAMPLE_3D = 3072
 
 def fit_memory(shape, num_samples: int, solver) -> float:
     """Estimated peak bytes of a fit on an ``(N, M)`` (or ``(N, M, K)``) grid with
-    ``num_samples`` samples (:data:`BYTES_PER_COEFFICIENT`, :data:`BYTES_PER_SAMPLE` and
+    ``num_samples`` samples (``BYTES_PER_COEFFICIENT``, ``BYTES_PER_SAMPLE`` and
     their 3D counterparts)."""
     surface = len(shape) == 3
     if getattr(solver, "per_sample_iterations", False):

@@ -1,4 +1,4 @@
-"""Clouds padded to the size ladder (:mod:`jurs._problem.sizes`) with masked-out points, so
+"""Clouds padded to the size ladder (``jurs._problem.sizes``) with masked-out points, so
 that clouds of similar size share one compiled fit."""
 
 from __future__ import annotations
@@ -11,7 +11,7 @@ from .validate import _is_concrete
 
 
 def padded_cloud(points, normals):
-    """``(points, normals, mask)`` padded to :func:`jurs._problem.sizes.padded_count` points with
+    """``(points, normals, mask)`` padded to ``jurs._problem.sizes.padded_count`` points with
     masked-out copies of the first point (inside any box the cloud fits in), or None where
     the inputs are traced or malformed (make_problem then reports them as given).
 
@@ -41,11 +41,11 @@ def padded_cloud(points, normals):
 def padded_problem(
     points, normals, mask, shape, offset, eps, domain, margin, bucket_size, dtype, support=None
 ):
-    """The problem of a checked cloud (:func:`jurs._problem.problem.build_problem`) on the
-    normalised grid ``shape``, padded (:func:`padded_cloud`) when it has no mask.
+    """The problem of a checked cloud (``jurs._problem.problem.build_problem``) on the
+    normalised grid ``shape``, padded (``padded_cloud``) when it has no mask.
 
     ``support``: optional ``(m,)`` weights of the caller's points (0 sets a point aside,
-    :func:`jurs._fit.settings.isolated_points`), multiplied into the mask."""
+    ``jurs._fit.settings.isolated_points``), multiplied into the mask."""
     # The problem is built outside the solver's jit: its sample layout is chosen on the
     # host from concrete data (see make_problem); under a caller's jit/grad/vmap it is traced.
     padded = padded_cloud(points, normals) if mask is None else None

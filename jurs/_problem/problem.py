@@ -36,11 +36,11 @@ from .validate import (
 class Problem(eqx.Module):
     """A fitting problem: samples, targets, the box and the grid, and their local basis.
 
-    Build it with :func:`make_problem`. Every per-sample array (``samples``, ``targets``,
-    ``mask``, ``is_data``, ``local``) is indexed the same way, by *slot*: the 3m samples of
-    eq. 4 regrouped into buckets that share a cell (see :mod:`jurs._model.spline`), plus padding
-    slots with ``mask`` 0. ``sample_index`` maps each slot to the paper's order (eq. 9: the
-    m data points, then the outer, then the inner offsets). With ``bucket_size`` 1 the slots
+    Build it with [`make_problem`][jurs.make_problem]. Every per-sample array (``samples``,
+    ``targets``, ``mask``, ``is_data``, ``local``) is indexed the same way, by *slot*: the 3m
+    samples of eq. 4 regrouped into buckets that share a cell (see ``jurs._model.spline``), plus
+    padding slots with ``mask`` 0. ``sample_index`` maps each slot to the paper's order (eq. 9:
+    the m data points, then the outer, then the inner offsets). With ``bucket_size`` 1 the slots
     are exactly the paper's order. ``shape`` is static; all other fields are arrays, so a
     Problem can be traced, differentiated and batched.
     """
@@ -122,7 +122,7 @@ def _slot_arrays(
 def _geometry_arrays(points, normals, offset, eps, domain, margin, mask, shape, with_slots, xp=jnp):
     """Samples, targets, mask, box and the flat cell of every sample, and with
     ``with_slots`` the arrays of the one-sample-a-slot layout. ``xp=numpy``: on the host,
-    for concrete inputs (compiles nothing); jitted as :func:`_geometry` otherwise."""
+    for concrete inputs (compiles nothing); jitted as ``_geometry`` otherwise."""
     dtype = points.dtype
     normals = unit_normals(normals, xp)
     samples, targets = offset_samples(points, normals, offset, eps, xp)
@@ -166,7 +166,7 @@ def _surface_bucket_size(bucket_size) -> int:
     return 1
 
 
-#: The results of :func:`_geometry_arrays`, by name.
+#: The results of ``_geometry_arrays``, by name.
 _Geometry = namedtuple("_Geometry", "normals samples targets sample_mask lower upper cells slots")
 
 
@@ -233,7 +233,8 @@ def _choose_layout(cells, sample_mask, count, bucket_size, concrete, small, stab
 
 
 def _laid_out_slots(geometry, shape, bucket_size, concrete, small, stable_shapes) -> dict[str, Any]:
-    """The :class:`Problem` fields of the slots: the samples laid out, their basis and masks."""
+    """The [`Problem`][jurs.Problem] fields of the slots: the samples laid out, their basis and
+    masks."""
     _, samples, targets, sample_mask, lower, upper, cells, slots = geometry
     table, layout, bucket_size = _choose_layout(
         cells, sample_mask, num_cells(shape), bucket_size, concrete, small, stable_shapes
@@ -277,7 +278,7 @@ def make_problem(
     dtype=None,
     stable_shapes: bool = False,
 ) -> Problem:
-    """Build the fitting :class:`Problem` of eq. 4-5 and 9.
+    """Build the fitting [`Problem`][jurs.Problem] of eq. 4-5 and 9.
 
     Args:
         points: ``(m, 2)`` data points of a curve, or ``(m, 3)`` of a surface; m >= 3.
@@ -294,17 +295,17 @@ def make_problem(
             the fit, the box or the metrics. Lets clouds of different sizes share one shape
             so that a fit can be ``jax.vmap``-ed over a padded batch.
         bucket_size: samples per bucket of the slot layout. ``None`` chooses: up to
-            :data:`jurs._model.spline.TABLE_MAX_SLOTS` samples the paper's order, one sample a
-            slot, with the table form of :mod:`jurs._model.spline` (its own buckets, built on the
-            host); above, buckets of :func:`choose_bucket_size`. 1 keeps the paper's order
+            ``jurs._model.spline.TABLE_MAX_SLOTS`` samples the paper's order, one sample a
+            slot, with the table form of ``jurs._model.spline`` (its own buckets, built on the
+            host); above, buckets of ``choose_bucket_size``. 1 keeps the paper's order
             (with the table form when small and concrete). Sizes above 1 need concrete
             (untraced) inputs: the layout is computed on the host. 3D problems always
-            take one sample a slot (the generic form of :mod:`jurs._model.spline`).
+            take one sample a slot (the generic form of ``jurs._model.spline``).
         dtype: floating dtype; default float64 when ``jax_enable_x64`` is on, else float32.
         stable_shapes: size a concrete problem's sample layout from the number of points
-            and the rounded number of occupied cells (:func:`stable_layout`), so that
+            and the rounded number of occupied cells (``stable_layout``), so that
             clouds padded to one size share one compiled fit; masked samples then take no
-            bucket. :func:`jurs.fit` sets it for the clouds it pads.
+            bucket. [`jurs.fit`][] sets it for the clouds it pads.
 
     Raises:
         ValueError: for NaN/Inf, wrong shapes, zero normals, fewer than 3 points (or a mask
@@ -337,9 +338,9 @@ def build_problem(
     dtype=None,
     stable_shapes: bool = False,
 ) -> Problem:
-    """:func:`make_problem` of inputs already checked (:func:`jurs._problem.validate.
-    validate_inputs`) on a normalised grid ``shape``: what :func:`jurs.fit` calls, having
-    checked its cloud once."""
+    """[`make_problem`][jurs.make_problem] of inputs already checked
+    (``jurs._problem.validate.validate_inputs``) on a normalised grid ``shape``: what
+    [`jurs.fit`][] calls, having checked its cloud once."""
     ndim = len(shape)
     if bucket_size is not None and (int(bucket_size) != bucket_size or bucket_size < 1):
         raise ValueError(f"bucket_size must be a positive int, got {bucket_size!r}")

@@ -28,9 +28,9 @@ def round_size(n: int) -> int:
 
 
 def padded_count(num_points: int) -> int:
-    """The number of points :func:`jurs.fit` pads a cloud of ``num_points`` to (with
-    masked-out copies of its first point): :func:`round_size`, at least
-    :data:`MIN_PADDED_POINTS`."""
+    """The number of points [`jurs.fit`][] pads a cloud of ``num_points`` to (with
+    masked-out copies of its first point): ``round_size``, at least
+    ``MIN_PADDED_POINTS``."""
     return max(MIN_PADDED_POINTS, round_size(num_points))
 
 

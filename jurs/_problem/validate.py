@@ -228,11 +228,11 @@ def check_precision(points, offset, dtype, domain=None, eps=None) -> None:
 def validate_inputs(
     points, normals, *, offset, eps, domain=None, margin=DEFAULT_MARGIN, mask=None
 ) -> None:
-    """All input checks of :func:`jurs.make_problem`, on concrete values (traced ones are
-    skipped): :func:`validate_points`, then :func:`validate_settings`.
+    """All input checks of [`jurs.make_problem`][], on concrete values (traced ones are
+    skipped): ``validate_points``, then ``validate_settings``.
 
     Raises ValueError (TypeError for non-numbers) naming the problem; see
-    :func:`jurs.make_problem`. ``offset`` or ``eps`` None (to be chosen from the data)
+    [`jurs.make_problem`][]. ``offset`` or ``eps`` None (to be chosen from the data)
     skips their checks.
     """
     check_values(offset=offset, eps=eps, margin=margin, domain=domain)
@@ -257,7 +257,7 @@ def check_values(*, offset, eps, margin, domain) -> None:
 
 def validate_settings(points, normals, mask, *, offset, domain) -> None:
     """The checks of the settings against points already validated
-    (:func:`validate_points`): the offset within the cloud's extent, the samples inside a
+    (``validate_points``): the offset within the cloud's extent, the samples inside a
     given domain. ``offset`` None (to be chosen) skips them."""
     if offset is None:
         return

@@ -56,7 +56,8 @@ class RESULTS(eqx.Enumeration):
     )
 
 
-#: The short names of the :class:`RESULTS` items, in their order (``Solution.status``).
+#: The short names of the [`RESULTS`][jurs.RESULTS] items, in their order
+#: (``Solution.status``).
 RESULT_NAMES = (
     "successful",
     "max_steps_reached",
@@ -68,19 +69,20 @@ RESULT_NAMES = (
 )
 
 
-#: The short name of each :class:`RESULTS` item's index.
+#: The short name of each [`RESULTS`][jurs.RESULTS]
+#: item's index.
 _NAME_OF_INDEX = {int(np.asarray(getattr(RESULTS, n)._value)): n for n in RESULT_NAMES}
 
 #: The verdicts that ``throw=True`` raises (as ``equinox.EquinoxRuntimeError``): the fit is
 #: not a reconstruction. ``max_steps_reached`` is not one: Algorithm 1 stops there by design
 #: (the paper's fixed-step runs) and its iterate is usable; nor is ``doubtful``, a usable fit
-#: that :func:`jurs.fit` also warns about.
+#: that [`jurs.fit`][] also warns about.
 RAISED_RESULTS = ("failed", "nonfinite", "inconsistent_normals", "weights_at_floor")
 
 
 def unusable(result) -> Any:
     """A boolean (traceable) that is True where ``result`` is one of
-    :data:`RAISED_RESULTS`, and the index of that verdict in it."""
+    ``RAISED_RESULTS``, and the index of that verdict in it."""
     hits = jnp.stack([result == getattr(RESULTS, name) for name in RAISED_RESULTS])
     return jnp.any(hits), jnp.argmax(hits)
 
@@ -94,17 +96,18 @@ def error_message(name: str) -> str:
 
 
 class Solution(eqx.Module):
-    """Result of :func:`jurs.fit` or :func:`jurs.solve`.
+    """Result of [`jurs.fit`][] or [`jurs.solve`][].
 
     Attributes:
-        spline: the fitted :class:`ImplicitSpline` (call it on (n, 2) points).
+        spline: the fitted [`ImplicitSpline`][jurs.ImplicitSpline] (call it on (n, 2)
+            points).
         metrics: ``E``, ``E_d``, ``R``, ``E_ave``, ``E_max``, ``mu`` (eq. 35-37; see
-            :func:`jurs.internal.metrics`) and ``lam``, the lambda that ``E`` uses.
+            [`jurs.internal.metrics`][]) and ``lam``, the lambda that ``E`` uses.
         stats: ``num_steps`` and ``energy_history`` (``max_steps + 1`` entries: the energy
             before the first step and after each step, NaN past ``num_steps``).
-        result: a :class:`RESULTS` item; ``sol.message`` reads it.
+        result: a [`RESULTS`][jurs.RESULTS] item; ``sol.message`` reads it.
         state: the solver's final state (for warm starts and inspection).
-        settings: the :class:`jurs.Settings` that :func:`jurs.fit` chose automatically, or
+        settings: the [`jurs.Settings`][] that [`jurs.fit`][] chose automatically, or
             None when every setting was given.
     """
 
@@ -121,7 +124,7 @@ class Solution(eqx.Module):
 
     @property
     def status(self) -> str:
-        """The verdict's short name, one of :data:`RESULT_NAMES` (``"successful"``,
+        """The verdict's short name, one of ``RESULT_NAMES`` (``"successful"``,
         ``"max_steps_reached"``, ...): what scripts and the command line print. Needs a
         concrete result (not inside ``jax.jit``)."""
         # One read of the item's index (a comparison per name dispatches a JAX op each).

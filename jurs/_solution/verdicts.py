@@ -1,13 +1,13 @@
 """Every verdict a fit can get beyond the solver's own, and its thresholds, in one place.
 
-The driver's loop (:func:`jurs.solve`) sets ``successful``, ``max_steps_reached``,
+The driver's loop ([`jurs.solve`][]) sets ``successful``, ``max_steps_reached``,
 ``failed``, ``nonfinite`` and ``weights_at_floor`` from the run, and
 ``inconsistent_normals`` where the fit reads its offsets the wrong way round
-(:func:`offset_sign_disagreement`, traced with the fit). :func:`jurs.fit` then judges a
-fit made at top level against its cloud on the host (:func:`judge`): normals flipped or
-lying along the shape make it ``inconsistent_normals`` (:func:`check_orientation`); with
+(``offset_sign_disagreement``, traced with the fit). [`jurs.fit`][] then judges a
+fit made at top level against its cloud on the host (``judge``): normals flipped or
+lying along the shape make it ``inconsistent_normals`` (``check_orientation``); with
 automatic settings, parts cut, gaps bridged or points left far from the zero set make it
-``doubtful`` (:func:`check_doubts`). The reasoning behind each threshold is in
+``doubtful`` (``check_doubts``). The reasoning behind each threshold is in
 docs/robustness.md; the measurements in ``benchmarks/results/quality.md`` and
 ``benchmarks/results/surfaces.md``.
 """
@@ -52,7 +52,7 @@ def offset_sign_disagreement(problem: Problem, spline: ImplicitSpline):
     much wider than d (a dense cloud on a capped grid) the zero set lies farther than d
     from the data, so an offset can sit on the wrong side of it while the fit still
     rises outward through the point (1e6 points of a circle: a third of the offsets on the
-    wrong side of an accurate fit). Above :data:`SIGN_CHECK_POINTS` points, an evenly
+    wrong side of an accurate fit). Above ``SIGN_CHECK_POINTS`` points, an evenly
     strided subset of them is read."""
     local = problem.local
     mask, targets = local.to_layout(problem.mask), local.to_layout(problem.targets)
@@ -72,8 +72,8 @@ def offset_sign_disagreement(problem: Problem, spline: ImplicitSpline):
 
 
 #: More than this fraction of the points with normals flipped against their neighbours
-#: (:func:`jurs._problem.problem.flipped_normal_fraction`), or with normals along the curve
-#: (:func:`jurs._problem.problem.tangential_normal_fraction`), makes a fit
+#: (``jurs._problem.problem.flipped_normal_fraction``), or with normals along the curve
+#: (``jurs._problem.problem.tangential_normal_fraction``), makes a fit
 #: ``inconsistent_normals``: consistent clouds read near 0 (a little more where sampled
 #: coarser than their parts), half or every other normal flipped and random normals
 #: about 0.5 (docs/robustness.md, "Verdicts, after the fit").
@@ -86,13 +86,13 @@ MAX_TANGENTIAL_FRACTION = 0.2
 def check_orientation(sol, cloud):
     """``sol`` with ``metrics["flipped_normal_fraction"]`` and
     ``metrics["tangential_normal_fraction"]`` (measured once per ``cloud``,
-    :attr:`jurs._cloud.cloud.Cloud.orientation`) and, where more than
-    :data:`MAX_FLIPPED_FRACTION` of the normals are flipped against their neighbours or
-    more than :data:`MAX_TANGENTIAL_FRACTION` lie along the curve, the verdict
+    ``jurs._cloud.cloud.Cloud.orientation``) and, where more than
+    ``MAX_FLIPPED_FRACTION`` of the normals are flipped against their neighbours or
+    more than ``MAX_TANGENTIAL_FRACTION`` lie along the curve, the verdict
     ``RESULTS.inconsistent_normals`` in place of success or max_steps (half-flipped or
     random normals fitted "successfully" into 2 or 20 loops). Host side. Unlike an input
     error this is a verdict, as optimistix reports a failed solve in ``sol.result``: the
-    fit ran; :func:`jurs.fit` raises it with ``throw=True`` and returns it otherwise."""
+    fit ran; [`jurs.fit`][] raises it with ``throw=True`` and returns it otherwise."""
     flipped, along = cloud.orientation
     metrics = dict(
         sol.metrics,
@@ -108,7 +108,7 @@ def check_orientation(sol, cloud):
 
 #: A fit is ``doubtful`` where more than this fraction of its points (and more than 2)
 #: sit across a thin part or a narrow gap (less than a cell wide) from a point whose side
-#: the fit gets wrong (:func:`crossed_features`): a neck pinched, two parts fused, a tip
+#: the fit gets wrong (``crossed_features``): a neck pinched, two parts fused, a tip
 #: cut short. Clean shapes stay below it (their few such points are the wedges of
 #: glyphs' sharp inner corners, rounded off within a cell), while very elongated
 #: ellipses and noisy surfaces with parts thinner than the noise (the bunny's ears, the
@@ -118,14 +118,14 @@ MAX_CROSSED_FRACTION = 0.005
 
 
 #: ... or where more than this fraction of the points (those set aside excepted) lie
-#: farther from the zero set than the fit resolves (:func:`far_point_fraction`): good fits
+#: farther from the zero set than the fit resolves (``far_point_fraction``): good fits
 #: of noisy clouds, also with displaced points, stay below it (docs/performance.md,
 #: "Measurements behind the defaults").
 MAX_FAR_FRACTION = 0.02
 
 
 #: Far points lie beyond this many times the spread of the points' distances to the zero
-#: set (:func:`far_point_fraction`): 6e-5 of Gaussian noise does; 2 d alone is not enough,
+#: set (``far_point_fraction``): 6e-5 of Gaussian noise does; 2 d alone is not enough,
 #: since d is set from an estimate of the noise below the true one and good noisy fits
 #: leave a share of their points beyond it (docs/design.md section 6).
 FAR_SPREAD = 4.0
@@ -135,7 +135,7 @@ FAR_SPREAD = 4.0
 #: this), so that a new cloud reuses their compiled evaluations: with a count of its
 #: own, each new cloud spent most of its fit compiling them (docs/startup.md, "Shape-stable
 #: compiled fits"). Powers of two, not the fit's own ladder
-#: (:func:`jurs._problem.sizes.round_size`, four sizes an octave): padding these evaluations
+#: (``jurs._problem.sizes.round_size``, four sizes an octave): padding these evaluations
 #: costs far less than a compilation, and the count of pairs across thin parts varies
 #: from cloud to cloud within one of the fit's size bands.
 MIN_CHECK_BUCKET = 1024
@@ -160,7 +160,7 @@ def _spline_values(spline: ImplicitSpline, points: jax.Array) -> jax.Array:
 def evaluate_bucketed(fn, spline: ImplicitSpline, points) -> np.ndarray:
     """``fn(spline, points)`` (a jitted per-point evaluation) on the host's ``(n, d)``
     ``points``, padded with copies of the first to a power of two of at least
-    :data:`MIN_CHECK_BUCKET` rows and cut back to ``n``: clouds of different sizes share
+    ``MIN_CHECK_BUCKET`` rows and cut back to ``n``: clouds of different sizes share
     one compiled evaluation."""
     points = np.asarray(points, float)
     n = len(points)
@@ -172,9 +172,9 @@ def evaluate_bucketed(fn, spline: ImplicitSpline, points) -> np.ndarray:
 
 
 def far_point_fraction(spline: ImplicitSpline, points, offset: float) -> tuple[float, float]:
-    """``(fraction, threshold)``: the fraction of ``points`` (at most :data:`PROBES`,
-    evenly strided) whose :func:`zero_set_distance` exceeds the largest of 2 d, half a
-    cell, and :data:`FAR_SPREAD` times the distances' own robust spread (1.4826 times their
+    """``(fraction, threshold)``: the fraction of ``points`` (at most ``PROBES``,
+    evenly strided) whose ``zero_set_distance`` exceeds the largest of 2 d, half a
+    cell, and ``FAR_SPREAD`` times the distances' own robust spread (1.4826 times their
     median): the distance within which a fit's zero set lies of its data where it follows
     them (the offsets reach d; a grid's cell bounds what its zero set can follow; noisy
     points scatter about it by their noise, which d may underestimate)."""
@@ -189,9 +189,9 @@ def far_point_fraction(spline: ImplicitSpline, points, offset: float) -> tuple[f
 
 
 def crossed_features(spline: ImplicitSpline, points, normals, spacing: float) -> int:
-    """How many of ``points`` (at most :data:`PROBES`, evenly strided) face a point
+    """How many of ``points`` (at most ``PROBES``, evenly strided) face a point
     less than a cell away across a thin part or a narrow gap
-    (:func:`jurs._fit.settings.feature_width`) while the fit puts the midpoint between the two
+    (``jurs._fit.settings.feature_width``) while the fit puts the midpoint between the two
     on the wrong side: outside for a thin part (normals pointing away from each other),
     inside for a gap. Each such pair is a part cut or a gap bridged by the zero set."""
     p, n = np.asarray(points, float), unit_normals(np.asarray(normals, float), np)
@@ -254,7 +254,7 @@ def check_doubts(sol, cloud, settings, offset):
 
 def judge(sol, cloud, settings, offset):
     """The host's verdicts on a fit of ``cloud`` made at top level: the orientation of the
-    normals (:func:`check_orientation`) and, where the settings were chosen automatically
-    (the data were not looked at by a person), the doubts (:func:`check_doubts`)."""
+    normals (``check_orientation``) and, where the settings were chosen automatically
+    (the data were not looked at by a person), the doubts (``check_doubts``)."""
     sol = check_orientation(sol, cloud)
     return sol if settings is None else check_doubts(sol, cloud, settings, offset)

@@ -35,10 +35,11 @@ Definitions (all lengths in data units):
   reference curve (dense samples) or, when none is given, the data points. Against sparse
   data points the Z -> Y half includes the gaps between points (up to half the spacing).
   With an empty zero set both are ``inf``.
-* **Refined distances** (:func:`refined_chamfer_hausdorff`): the same two distances with
-  the sampling floor removed, for comparing accurate fits. The floor above is about
-  ``h / 8`` whatever the fit (marching squares' own error and the resampling), so two fits
-  whose zero sets lie far closer to the curve than that measure alike. Here zero-set
+* **Refined distances**
+  ([`refined_chamfer_hausdorff`][jurs.levelset.refined_chamfer_hausdorff]): the same two
+  distances with the sampling floor removed, for comparing accurate fits. The floor above is
+  about ``h / 8`` whatever the fit (marching squares' own error and the resampling), so two
+  fits whose zero sets lie far closer to the curve than that measure alike. Here zero-set
   samples are moved onto the zero set by Newton steps and measured to the reference
   polyline's segments, and reference points are projected onto the zero set the same way.
 * **Zero-area fraction**: the fraction of grid nodes where ``|g| <= zero_tol * max|g|``
@@ -51,7 +52,8 @@ Definitions (all lengths in data units):
   spacing is below ``8 d``. Pass ``threshold`` for sparser data.
 
 For 3D splines the same questions are asked of a triangle mesh of the zero set:
-:func:`mesh`, :func:`analyze_mesh`, :func:`mesh_distances` and friends (from
+[`mesh`][jurs.levelset.mesh], [`analyze_mesh`][jurs.levelset.analyze_mesh],
+[`mesh_distances`][jurs.levelset.mesh_distances] and friends (from
 ``jurs/levelset/_surfaces.py``; see docs/surfaces.md).
 """
 

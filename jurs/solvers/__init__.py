@@ -1,4 +1,5 @@
-"""Solvers: one interface (:class:`AbstractSolver`), one driver (:func:`solve`).
+"""Solvers: one interface ([`AbstractSolver`][jurs.AbstractSolver]), one driver
+([`solve`][jurs.solve]).
 
 The paper's iterations (I-PIA, IURS), the exact solve for fixed weights and its
 outlier-robust reweighting, a sparse joint Levenberg-Marquardt, and optimistix and jaxopt

@@ -19,9 +19,11 @@ State = TypeVar("State")
 class AbstractSolver(eqx.Module, Generic[State]):
     """An immutable solver: hyperparameters as fields, the iterate in an explicit state.
 
-    The driver (:func:`jurs.solve`) owns the loop: it calls :meth:`init` once, then
-    :meth:`step` until ``|E_new - E_old| < tol`` (eq. 38), :meth:`terminate` says so, the
-    energy stops being finite, or ``max_steps`` steps have run.
+    The driver ([`jurs.solve`][]) owns the loop: it calls
+    [`init`][jurs.AbstractSolver.init] once, then [`step`][jurs.AbstractSolver.step]
+    until ``|E_new - E_old| < tol`` (eq. 38),
+    [`terminate`][jurs.AbstractSolver.terminate] says so, the energy stops being finite,
+    or ``max_steps`` steps have run.
 
     Subclasses define the fields ``max_steps`` (static int), ``tol`` and ``lam`` (the
     lambda that the reported energy ``E = E_d + lam R`` uses).
@@ -31,13 +33,13 @@ class AbstractSolver(eqx.Module, Generic[State]):
     tol: eqx.AbstractVar[Any]
     lam: eqx.AbstractVar[Any]
 
-    #: Whether :func:`jurs.fit` may compile this solver with :data:`jurs.COMPILER_OPTIONS`
+    #: Whether [`jurs.fit`][] may compile this solver with [`jurs.COMPILER_OPTIONS`][]
     #: (floating-point reassociation) on large problems. True only for solvers measured to
     #: move at rounding level with them (``benchmarks/results/solvers.md``); an outside
-    #: optimiser that wanders near its minimum can end elsewhere (see :mod:`jurs._fit.compile`).
+    #: optimiser that wanders near its minimum can end elsewhere (see ``jurs._fit.compile``).
     reassociation_safe: ClassVar[bool] = False
     #: Whether the solver works sample by sample and holds a few grids, never the
-    #: normal equations' stencil (its memory estimate, :func:`jurs._problem.problem.fit_memory`).
+    #: normal equations' stencil (its memory estimate, ``jurs._problem.problem.fit_memory``).
     per_sample_iterations: ClassVar[bool] = False
 
     @abc.abstractmethod

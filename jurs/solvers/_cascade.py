@@ -12,9 +12,9 @@ and corrected by a few CG steps, and the finest level's CG started from there; f
 start CG reaches the exact minimiser's far field (docs/design.md, "Surfaces: the same code
 in 3D").
 
-The grids are :func:`jurs._linalg.coarsen.coarsening`'s, the rule the multigrid's levels
+The grids are ``jurs._linalg.coarsen.coarsening``'s, the rule the multigrid's levels
 follow too, each spanning the problem's box. A solution reaches the next grid by its
-values at that grid's Greville points (:func:`jurs._linalg.coarsen.greville_transfer`): a
+values at that grid's Greville points (``jurs._linalg.coarsen.greville_transfer``): a
 quasi-interpolant, accurate to O(h^2), which is all a start needs (the finest level's CG
 decides the answer).
 """
@@ -39,7 +39,7 @@ from .._problem.problem import Problem
 #: (docs/multigrid.md, "Measurements behind the constants").
 COARSEST_COEFFICIENTS = 1728
 #: Axes with fewer basis functions than this keep their size in the cascade (4: every axis
-#: that still shrinks under :func:`jurs._linalg.coarsen.coarse_size`).
+#: that still shrinks under ``jurs._linalg.coarsen.coarse_size``).
 MIN_SIDE = 4
 #: CG on the intermediate levels: a loose tolerance and a step cap (a start, not a
 #: solution).
@@ -55,9 +55,9 @@ LEVEL_SAMPLES_PER_COEFFICIENT = 32
 
 def cascade_shapes(shape: tuple[int, ...]) -> list[tuple[int, ...]]:
     """The grids of the cascade, coarsest first, ending one level below ``shape``: the
-    coarser grids of :func:`jurs._linalg.coarsen.coarsening` (cells about twice as wide a
-    level; axes below :data:`MIN_SIDE` kept), until one has at most
-    :data:`COARSEST_COEFFICIENTS` coefficients."""
+    coarser grids of ``jurs._linalg.coarsen.coarsening`` (cells about twice as wide a
+    level; axes below ``MIN_SIDE`` kept), until one has at most
+    ``COARSEST_COEFFICIENTS`` coefficients."""
     return coarsening(shape, COARSEST_COEFFICIENTS, MIN_SIDE)[1:][::-1]
 
 
@@ -73,7 +73,7 @@ def on_grid(problem: Problem, shape: tuple[int, ...], stride: int = 1) -> Proble
 
 def level_stride(problem: Problem, shape: tuple[int, ...]) -> int:
     """The sample stride of the cascade's level ``shape``: at least
-    :data:`LEVEL_SAMPLES_PER_COEFFICIENT` samples a coefficient kept. 1 on a problem split
+    ``LEVEL_SAMPLES_PER_COEFFICIENT`` samples a coefficient kept. 1 on a problem split
     over devices (a strided slice of its samples would move them between devices)."""
     if problem.local.parts > 1:
         return 1
@@ -84,17 +84,17 @@ def level_stride(problem: Problem, shape: tuple[int, ...]) -> int:
 def level_lam(lam, fine: tuple[int, ...], coarse: tuple[int, ...]):
     """The lambda that weighs the regulariser on the ``coarse`` grid as ``lam`` does on the
     ``fine`` one: R of a fixed g grows as ``h^(2 - d)``
-    (:func:`jurs._fit.settings.scale_free_lam`)."""
+    (``jurs._fit.settings.scale_free_lam``)."""
     ratio = (fine[0] - 3) / (coarse[0] - 3)  # h_coarse / h_fine
     return lam * ratio ** (len(fine) - 2)
 
 
 def cascadic_start(problem: Problem, lam, solve, start: Array) -> Array:
     """A start for the exact solve of ``problem`` on its grid: the solves of
-    :func:`cascade_shapes`' grids in turn, each transferred to the next; ``start`` itself
+    ``cascade_shapes``' grids in turn, each transferred to the next; ``start`` itself
     where the grid is already coarse enough to have no cascade. ``solve(system, rhs,
     start, linear_solver)`` solves one level's regularised normal equations, a lineax
-    operator (as :func:`jurs.solvers._least_squares.solve_normal_equations`). No gradient
+    operator (as ``jurs.solvers._least_squares.solve_normal_equations``). No gradient
     flows through the start (it changes the path of the final solve, not its solution)."""
     shapes = cascade_shapes(problem.shape)
     if not shapes:

@@ -1,12 +1,12 @@
 """The one loop every solver runs in.
 
-:func:`solve` runs it whole. It is composed of three pieces that a caller who wants to
-stop between steps reuses (:func:`jurs._fit.progress.solve_in_chunks`, the progress bar's
-chunked run): :func:`start` (the solver's ``init``, the energy and the history buffer),
-:func:`advance` (at most a given number of further steps, under the same stop rules) and
-:func:`finish` (the verdict, the metrics, the offset-sign check and ``throw``). Run in
+[`solve`][jurs.solve] runs it whole. It is composed of three pieces that a caller who
+wants to stop between steps reuses (``jurs._fit.progress.solve_in_chunks``, the progress
+bar's chunked run): ``start`` (the solver's ``init``, the energy and the history buffer),
+``advance`` (at most a given number of further steps, under the same stop rules) and
+``finish`` (the verdict, the metrics, the offset-sign check and ``throw``). Run in
 pieces, the state is carried exactly, so the pieces follow the same iterates as one
-:func:`solve`.
+[`solve`][jurs.solve].
 """
 
 from __future__ import annotations
@@ -29,7 +29,7 @@ from ._base import AbstractSolver
 
 
 class Carry(eqx.Module):
-    """Where a run stands between :func:`start`, :func:`advance` and :func:`finish`.
+    """Where a run stands between ``start``, ``advance`` and ``finish``.
 
     Attributes:
         step: steps taken so far.
@@ -52,7 +52,7 @@ class Carry(eqx.Module):
 @full_precision
 def start(solver: AbstractSolver, problem: Problem, spline: ImplicitSpline | None = None) -> Carry:
     """The run of ``solver`` on ``problem`` before its first step, from ``spline``
-    (default: C = 0, w = 1, as Algorithm 1): the solver's :meth:`init`, its energy as the
+    (default: C = 0, w = 1, as Algorithm 1): the solver's ``init``, its energy as the
     history's first entry, and the solver's own stop rule read on it. Traceable."""
     if spline is None:
         dtype = problem.samples.dtype
@@ -86,7 +86,7 @@ def advance(
 ) -> Carry:
     """``carry`` after at most ``num_steps`` more steps: fewer where the run reaches
     ``solver.max_steps`` or stops (``|E_new - E_old| < solver.tol``, eq. 38; the solver's
-    :meth:`terminate`; a NaN/Inf energy, whose step is not accepted). A stopped ``carry``
+    ``terminate``; a NaN/Inf energy, whose step is not accepted). A stopped ``carry``
     is returned as it is. Traceable.
 
     ``num_steps`` may be traced (one compiled chunk for every count); the loop is then
@@ -134,9 +134,9 @@ def advance(
 
 @full_precision
 def finish(solver: AbstractSolver, problem: Problem, carry: Carry, throw: bool = True) -> Solution:
-    """The :class:`jurs.Solution` of a run that has reached ``carry``: its verdict, its
-    metrics and the offset-sign check of :func:`solve` (which see for ``throw``).
-    Traceable."""
+    """The [`jurs.Solution`][] of a run that has reached ``carry``: its verdict, its
+    metrics and the offset-sign check of [`solve`][jurs.solve] (which see for
+    ``throw``). Traceable."""
     state = carry.state
     _, solver_result = solver.terminate(problem, state)
     # The solver's own verdict on its state, when it is not success, stands whether or not
@@ -184,7 +184,7 @@ def solve(
     """Run ``solver`` on ``problem`` from ``spline`` (default: C = 0, w = 1, as Algorithm 1).
 
     The loop is a ``jax.lax.while_loop``: it stops when ``|E_new - E_old| < solver.tol``
-    (eq. 38), when the solver's :meth:`terminate` says so, after ``solver.max_steps`` steps,
+    (eq. 38), when the solver's ``terminate`` says so, after ``solver.max_steps`` steps,
     or when the energy is NaN/Inf. A non-finite step is not accepted: the solution keeps the
     last finite iterate. ``throw=True`` raises ``equinox.EquinoxRuntimeError`` on every
     verdict that is not a reconstruction (failed, nonfinite, inconsistent_normals,
@@ -194,9 +194,9 @@ def solve(
     ``throw=True`` compiles a host callback into the solve, which JAX's persistent
     compilation cache does not store: under your own ``jax.jit``, pass ``throw=False``
     and check ``sol.result`` if new processes should load the solve from that cache
-    (:func:`jurs.fit` at top level does so by itself).
+    ([`jurs.fit`][] at top level does so by itself).
 
-    It is :func:`start`, :func:`advance` by ``solver.max_steps`` and :func:`finish`, one
+    It is ``start``, ``advance`` by ``solver.max_steps`` and ``finish``, one
     after the other.
     """
     carry = start(solver, problem, spline)

@@ -32,7 +32,8 @@ DEFAULT_HOLDOUT = 0.2
 
 
 def held_out_points(num_points: int, holdout, xp=jnp) -> Array:
-    """``(num_points,)`` booleans: the points :class:`HeldOutLeastSquares` holds out."""
+    """``(num_points,)`` booleans: the points
+    [`HeldOutLeastSquares`][jurs.HeldOutLeastSquares] holds out."""
     return xp.mod((xp.arange(num_points) + 1) * PHI, 1.0) < holdout
 
 
@@ -69,9 +70,9 @@ def select_lam(
     early_stop: bool = True,
 ) -> tuple[Array, Array]:
     """``(lam, scores)``: the candidate (objective's lambda, w = 1) whose fit of the kept
-    points puts the held-out points (:func:`held_out_points`) nearest its zero set, and
-    every candidate's :func:`held_out_distance` (NaN for candidates not tried). See
-    :class:`HeldOutLeastSquares`, whose ``early_stop`` this is.
+    points puts the held-out points (``held_out_points``) nearest its zero set, and
+    every candidate's ``held_out_distance`` (NaN for candidates not tried). See
+    [`HeldOutLeastSquares`][jurs.HeldOutLeastSquares], whose ``early_stop`` this is.
 
     ``exact`` solves each candidate (default ``LeastSquares()``'s linear solvers) from
     ``start`` (default 0)."""
@@ -79,7 +80,7 @@ def select_lam(
 
 
 def _selected(problem: Problem, candidates, holdout, exact, start, early_stop: bool):
-    """:func:`select_lam`'s ``(lam, scores)`` and the normal equations of all the points
+    """``select_lam``'s ``(lam, scores)`` and the normal equations of all the points
     (assembled there in two parts; the final fit needs no new pass)."""
     exact = LeastSquares() if exact is None else exact
     dtype = problem.samples.dtype
@@ -149,14 +150,14 @@ def _union(normal_a: NormalEquations, normal_b: NormalEquations) -> NormalEquati
 
 
 class HeldOutLeastSquares(AbstractSolver[HeldOutLeastSquaresState]):
-    """The exact solve of :class:`LeastSquares`, with lambda chosen among the candidates
-    ``lam`` by the data: the one whose fit best predicts points it was not given (hold-out
-    validation).
+    """The exact solve of [`LeastSquares`][jurs.LeastSquares], with lambda chosen among
+    the candidates ``lam`` by the data: the one whose fit best predicts points it was not
+    given (hold-out validation).
 
     A fraction ``holdout`` of the points (with their two offset samples) is set aside,
-    spread evenly over the point order (:func:`held_out_points`). For every candidate the
+    spread evenly over the point order (``held_out_points``). For every candidate the
     remaining points are fitted and scored by the held-out points' mean squared distance
-    to the fit's zero set (:func:`held_out_distance`; not by their residuals of eq. 16,
+    to the fit's zero set (``held_out_distance``; not by their residuals of eq. 16,
     which a flatter g lowers: scored that way, noisy clouds chose the smallest lambda).
     The candidate with the lowest score is refitted on all points, and that fit is the
     result (``sol.state.lam``, ``sol.metrics["lam"]``; ``sol.state.scores`` holds every
@@ -177,16 +178,17 @@ class HeldOutLeastSquares(AbstractSolver[HeldOutLeastSquaresState]):
 
     The kept points' lambda is the candidate scaled by their share of the points, so that
     the mean squared residual and the regulariser keep the balance the candidate gives the
-    whole cloud (the scale-free lambda of :func:`jurs.auto_settings` grows with the number
+    whole cloud (the scale-free lambda of [`jurs.auto_settings`][] grows with the number
     of samples).
 
     Args:
         lam: the candidate lambdas of the objective (``E_d + lam R``, as
-            :class:`LeastSquares`), a 1-D array; the chosen one is ``sol.state.lam``.
+            [`LeastSquares`][jurs.LeastSquares]), a 1-D array; the chosen one is
+            ``sol.state.lam``.
         holdout: fraction of the points held out, in (0, 0.5].
         early_stop: stop at the first candidate scoring worse than the one before (the
             candidates must then ascend); False tries every candidate.
-        chunk_size, ridge, linear_solver: as :class:`LeastSquares`.
+        chunk_size, ridge, linear_solver: as [`LeastSquares`][jurs.LeastSquares].
 
     Polynomial B-splines (w = 1); one driver step. The choice is discrete: gradients flow
     through the final solve at the chosen lambda, not through the choice.

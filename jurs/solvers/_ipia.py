@@ -82,16 +82,17 @@ class NormalIPIAState(eqx.Module):
 class NormalIPIA(_AbstractPIA[NormalIPIAState]):
     """I-PIA (eq. 11-13) in normal-equation form: ``C <- C - mu (D^T D C - D^T b)``.
 
-    The same iterates as :class:`IPIA` (to rounding), but ``D^T D`` (a 49-point stencil)
-    and ``D^T b`` are assembled once in :meth:`init`, so each step costs O(49 N M)
+    The same iterates as [`IPIA`][jurs.IPIA] (to rounding), but ``D^T D`` (a 49-point stencil)
+    and ``D^T b`` are assembled once in ``init``, so each step costs O(49 N M)
     whatever the number of points, and E_d comes from ``C.(D^T D) C - 2 C.(D^T b) + b.b``.
     That last form cancels: in float32 the energy (and so the ``tol`` test) is only good to
-    about ``1e-7 b.b``. Use it for large clouds; :class:`IPIA` for the paper's per-sample form.
+    about ``1e-7 b.b``. Use it for large clouds; [`IPIA`][jurs.IPIA] for the paper's per-sample
+    form.
 
     One stencil product a step: ``D^T D C`` at the new C serves both that energy and the
     next step's update, so the state carries it. The state also carries the assembled
     ``D^T D`` (6.4 MB at 128 x 128): a jitted ``step`` called on its own returns it in a
-    new buffer each call, which costs more than the step itself; :func:`jurs.solve` runs
+    new buffer each call, which costs more than the step itself; [`jurs.solve`][] runs
     the steps in one compiled loop, which updates the state in place.
     """
 

@@ -50,11 +50,11 @@ class IURS(AbstractSolver[IURSState]):
     **Which lambda.** ``lam`` is the paper's lambda of eq. 33, and the reported
     ``E = E_d + lam R`` is eq. 35 with it. For fixed weights the fixed point of eq. 33
     minimises ``E_d + (2 lam / mu) R``: the objective's lambda is ``2 lam / mu`` (see
-    :func:`jurs.objective_lam`). The step is stable only while ``mu ||D^T D|| +
+    [`jurs.objective_lam`][]). The step is stable only while ``mu ||D^T D|| +
     4 lam ||L|| < 2`` with ``||L|| <= 8``, so ``lam`` must stay well below 1/16; larger values
     diverge and end with ``RESULTS.nonfinite``.
 
-    ``tau = 0, lam = 0`` is exactly I-PIA (:class:`IPIA`) on the B-spline.
+    ``tau = 0, lam = 0`` is exactly I-PIA (``IPIA``) on the B-spline.
     """
 
     per_sample_iterations: ClassVar[bool] = True

@@ -122,7 +122,7 @@ class _AbstractJaxopt(AbstractSolver[JaxoptState]):
 
 class JaxoptLBFGS(_AbstractJaxopt):
     """``jaxopt.LBFGS`` on the scalar ``E_d + lam R`` (eq. 32), over C or (C, log w).
-    See :class:`_AbstractJaxopt` for the fields."""
+    See ``_AbstractJaxopt`` for the fields."""
 
     least_squares: ClassVar[bool] = False
     jaxopt_name: ClassVar[str] = "LBFGS"

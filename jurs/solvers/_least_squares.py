@@ -31,7 +31,7 @@ from ._cascade import cascadic_start
 DENSE_MAX_COEFFICIENTS = 256
 
 #: The default 3D solve's tolerance on every entry of the residual, relative to the largest
-#: entry of the right-hand side (:func:`surface_linear_solver`), and its cap on CG steps.
+#: entry of the right-hand side (``surface_linear_solver``), and its cap on CG steps.
 #: Tighter tolerances cost more CG steps without moving the zero set (the mesh's distances
 #: to the true surface stay the same to three digits), and a looser one saves little more
 #: (docs/multigrid.md, "Measurements behind the constants").
@@ -51,7 +51,7 @@ class LeastSquaresState(eqx.Module):
 
 def default_linear_solver(shape: tuple[int, ...]) -> lx.AbstractLinearSolver:
     """Cholesky on the assembled matrix for small grids, CG on the stencil above
-    :data:`DENSE_MAX_COEFFICIENTS` coefficients."""
+    ``DENSE_MAX_COEFFICIENTS`` coefficients."""
     if np.prod(shape) <= DENSE_MAX_COEFFICIENTS:
         return lx.Cholesky()
     return stencil_cg(shape)
@@ -59,10 +59,10 @@ def default_linear_solver(shape: tuple[int, ...]) -> lx.AbstractLinearSolver:
 
 def surface_linear_solver(rhs: Array) -> lx.AbstractLinearSolver:
     """The final solve of 3D (343-point stencil) systems above the dense size:
-    Jacobi-preconditioned CG on the stencil to :data:`SURFACE_RTOL`, started from the
-    cascade of coarser grids (:mod:`jurs.solvers._cascade`). No direct factorisation fits
+    Jacobi-preconditioned CG on the stencil to ``SURFACE_RTOL``, started from the
+    cascade of coarser grids (``jurs.solvers._cascade``). No direct factorisation fits
     here (a block Cholesky of grid planes of a 64^3 grid would store 64 dense blocks of
-    64^4 entries each), and :class:`jurs._linalg.multigrid.Multigrid` takes several times
+    64^4 entries each), and ``jurs._linalg.multigrid.Multigrid`` takes several times
     the memory for at most a small gain in time (docs/multigrid.md, "Measurements behind
     the constants").
 
@@ -76,7 +76,7 @@ def surface_linear_solver(rhs: Array) -> lx.AbstractLinearSolver:
 
 
 def solve_by_default(operator: AbstractGridOperator, rhs: Array, start: Array, ridge=0.0):
-    """:func:`solve_normal_equations` with :func:`default_linear_solver`, and a second solver
+    """``solve_normal_equations`` with ``default_linear_solver``, and a second solver
     where the dense Cholesky breaks down (a system singular at rounding level). In float64
     LU: partial pivoting needs no positive definiteness, and it compiles to one more
     factorisation (cheaper to compile than a CG fallback). In lower precision CG, whose
@@ -129,15 +129,15 @@ def solve_normal_equations(
     fallback: lx.AbstractLinearSolver | None = None,
 ):
     """Solve ``operator C = rhs`` (a symmetric positive semi-definite system on the
-    coefficient grid, :meth:`jurs.internal.NormalEquations.regularised`) with the lineax
+    coefficient grid, [`jurs.internal.NormalEquations.regularised`][]) with the lineax
     ``linear_solver``.
 
     Coefficients whose diagonal is 0 are in no sample's support and (with lam = 0)
     unconstrained: they keep their value in ``start``, which makes the rest of the system
     positive definite whenever the data determine it. The solver takes the operator as it
     is: matrix-free solvers (CG, BiCGStab, GMRES) apply it, with a Jacobi preconditioner;
-    the stencil's own solvers (:class:`jurs._linalg.multigrid.Multigrid`,
-    :class:`jurs._linalg.cholesky.BlockCholesky`) recognise its type; dense ones
+    the stencil's own solvers (``jurs._linalg.multigrid.Multigrid``,
+    ``jurs._linalg.cholesky.BlockCholesky``) recognise its type; dense ones
     (Cholesky, LU) assemble its ``NM x NM`` matrix. ``fallback`` solves instead where the
     solve's C is not finite (a factorisation that broke down). Returns ``(C, lineax
     result)``.
@@ -169,25 +169,25 @@ class LeastSquares(AbstractSolver[LeastSquaresState]):
 
     Solves the normal equations ``(D^T D + 2 lam L) C = D^T b`` once: ``D^T D`` is
     assembled as a 49-point stencil in one pass over the samples
-    (:func:`jurs.internal.normal_equations`, never the dense collocation), then solved: Cholesky on
-    the assembled matrix for grids up to :data:`DENSE_MAX_COEFFICIENTS` coefficients (where
+    ([`jurs.internal.normal_equations`][], never the dense collocation), then solved: Cholesky on
+    the assembled matrix for grids up to ``DENSE_MAX_COEFFICIENTS`` coefficients (where
     it breaks down, as a numerically singular system can: LU in float64, CG in float32);
     above, a block Cholesky of the stencil in grid lines when ``lam > 0``
-    (:class:`jurs._linalg.cholesky.BlockCholesky`, up to
-    :data:`jurs._linalg.cholesky.DIRECT_MAX_ENTRIES`, 256 x 256) and Jacobi-preconditioned CG
+    (``jurs._linalg.cholesky.BlockCholesky``, up to
+    ``jurs._linalg.cholesky.DIRECT_MAX_ENTRIES``, 256 x 256) and Jacobi-preconditioned CG
     when ``lam = 0`` or beyond; or the lineax ``linear_solver`` given, which receives the
-    system as a :class:`jurs._linalg.stencil.StencilOperator`. One driver step; the result is the
+    system as a ``jurs._linalg.stencil.StencilOperator``. One driver step; the result is the
     point the paper's iterations (I-PIA, eq. 11; IURS's eq. 33 with fixed w) converge to.
 
     Args:
         lam: the objective's lambda (``E = E_d + lam R``, eq. 32), not the paper's eq. 33
-            lambda; convert with :func:`jurs.objective_lam`.
+            lambda; convert with [`jurs.objective_lam`][].
         keep_weights: False (default) fits a polynomial B-spline (w = 1; eq. 6); True keeps
             the start spline's weights fixed and solves for C with the rational rows of
             eq. 23.
         linear_solver: a lineax solver for the symmetric positive (semi-)definite system;
             default (None) per grid size and lam, as above. ``Multigrid()``
-            (:mod:`jurs._linalg.multigrid`: knot-insertion multigrid-preconditioned CG, 2D or
+            (``jurs._linalg.multigrid``: knot-insertion multigrid-preconditioned CG, 2D or
             3D) is never chosen by default: it lost to the direct solves in 2D, and in 3D it
             takes several times the memory of CG from the cascade (docs/multigrid.md).
         chunk_size: samples accumulated at once when assembling rational rows.
@@ -254,7 +254,7 @@ class LeastSquares(AbstractSolver[LeastSquaresState]):
 
     def solve_assembled(self, problem: Problem, normal, lam, start: Array):
         """``(C, lineax result)``: the minimiser of ``E_d + lam R`` from the assembled
-        ``normal`` equations (:class:`jurs.internal.NormalEquations` of ``problem``), by
+        ``normal`` equations ([`jurs.internal.NormalEquations`][] of ``problem``), by
         this solver's linear solver (see the class docstring), started from ``start``."""
         system = (normal.regularised(lam), normal.rhs, start)
         n, m = sorted(problem.shape, reverse=True)[:2]

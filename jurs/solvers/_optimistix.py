@@ -107,7 +107,7 @@ class OptimistixLeastSquares(_AbstractOptimistix):
     control difference of eq. 31 (``R = 2 sum_edges (C_a - C_b)^2``), over C alone
     (``joint=False``: a B-spline, w = 1) or over ``(C, log w)`` jointly (``joint=True``: a
     rational spline, weights positive by construction; see
-    :mod:`jurs.solvers._parameterisation` for the scale gauge ``mean(log w) = 0``).
+    ``jurs.solvers._parameterisation`` for the scale gauge ``mean(log w) = 0``).
 
     Example::
 
@@ -124,9 +124,9 @@ class OptimistixLeastSquares(_AbstractOptimistix):
         lam: the objective's lambda (``E = E_d + lam R``).
         joint: optimise the weights too.
         max_steps: passed to ``optx.least_squares`` (default 256; 1024 for
-            :class:`OptimistixMinimiser`); the jurs driver runs one step that
-            contains the whole optimistix solve (``sol.state.num_steps`` counts its
-            steps, ``sol.state.result`` its verdict).
+            [`OptimistixMinimiser`][jurs.OptimistixMinimiser]); the jurs driver runs one
+            step that contains the whole optimistix solve (``sol.state.num_steps`` counts
+            its steps, ``sol.state.result`` its verdict).
         warm_start: joint fits only: start from the exact best C for the start weights.
         adjoint: how gradients flow through the solve; the default implicit adjoint
             differentiates the optimality condition, not the iterations.
@@ -150,8 +150,8 @@ class OptimistixMinimiser(_AbstractOptimistix):
     """Any optimistix minimiser (BFGS, NonlinearCG, ``optx.OptaxMinimiser``, ...) on the
     scalar ``E_d + lam R`` (eq. 32), over C or jointly over ``(C, log w)``.
 
-    Same arguments as :class:`OptimistixLeastSquares`; ``solver`` is an
-    ``optx.AbstractMinimiser``. Example::
+    Same arguments as [`OptimistixLeastSquares`][jurs.OptimistixLeastSquares];
+    ``solver`` is an ``optx.AbstractMinimiser``. Example::
 
         jurs.OptimistixMinimiser(optx.BFGS(rtol=1e-10, atol=1e-12), lam=1e-4)
         jurs.OptimistixMinimiser(optx.OptaxMinimiser(optax.adam(1e-2), rtol=1e-8,

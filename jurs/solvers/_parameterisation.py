@@ -57,7 +57,7 @@ def initial_parameters(
     mean 0, and, with ``warm_start``, C replaced by the exact minimiser for those fixed
     weights (one normal-equation solve): the joint search then starts at the best C for
     the start weights (the B-spline optimum for the default w = 1), with
-    :class:`LeastSquares`' default ridge, which keeps the solve finite where ``lam = 0``
+    ``LeastSquares``' default ridge, which keeps the solve finite where ``lam = 0``
     leaves the system numerically singular (Example 1, 120 points, 15 x 15)."""
     if not joint:
         return spline.control

@@ -83,11 +83,11 @@ class RobustLeastSquares(AbstractSolver[RobustLeastSquaresState]):
       ``|t| < c``, ``c^2 / 3`` beyond; weight ``(1 - t^2 / c^2)^2``, 0 beyond c.
 
     ``rho(t) = t^2`` near 0, so on clean data ``E_rob`` is ``E_d + lam R``. Each driver step
-    is one exact weighted solve (:class:`LeastSquares`) with the weights ``w_i =
-    rho'(t_i) / (2 t_i)`` of the previous fit: each sample's row enters ``D^T D`` and
-    ``D^T b`` multiplied by its point's ``w_i``, i.e. the solve minimises
+    is one exact weighted solve ([`LeastSquares`][jurs.LeastSquares]) with the weights
+    ``w_i = rho'(t_i) / (2 t_i)`` of the previous fit: each sample's row enters ``D^T D``
+    and ``D^T b`` multiplied by its point's ``w_i``, i.e. the solve minimises
     ``sum_k w_k r_k^2 + lam R``. The weights are passed as the problem's float ``mask``,
-    which the B-spline assembly (:func:`jurs.internal.normal_equations` with w = 1) takes
+    which the B-spline assembly ([`jurs.internal.normal_equations`][] with w = 1) takes
     linearly (``sum_k mask_k B_k B_k^T``, ``sum_k mask_k b_k B_k``); the first step has all
     weights 1 (the plain least-squares fit). The energy reported to the driver is
     ``E_rob`` at the new fit, so ``tol`` (absolute, as every solver's) stops the loop
@@ -95,22 +95,22 @@ class RobustLeastSquares(AbstractSolver[RobustLeastSquaresState]):
 
     The final weights are ``sol.state.point_weights``, one per point of the problem in its
     point order, computed from the final fit (those of its last solve, once converged),
-    0 for padding. :func:`jurs.fit` pads a cloud with masked copies after the caller's
+    0 for padding. [`jurs.fit`][] pads a cloud with masked copies after the caller's
     points: ``sol.state.point_weights[:len(points)]`` are the caller's. Weights near 0
     mark the points set aside (Tukey: exactly 0 beyond ``c s``; Cauchy: below 0.1 beyond
     ``3 c s``); Huber's stay above ``c s / e_i``.
 
     Args:
-        lam: the objective's lambda, as :class:`LeastSquares`.
+        lam: the objective's lambda, as [`LeastSquares`][jurs.LeastSquares].
         loss: ``"huber"``, ``"cauchy"`` or ``"tukey"``.
         scale: the residual scale s; None (default) estimates it at every step from the
             current fit: ``1.4826 median_i e_i`` over the real points (robust to up to
-            half of them being outliers), at least :data:`SCALE_FLOOR` eps (clean data
+            half of them being outliers), at least ``SCALE_FLOOR`` eps (clean data
             leave residuals far below eps, where a tiny unit would set curved parts aside).
         max_steps: reweighted solves at most (the first is the plain fit).
         tol: stop when ``E_rob`` changes by less than this (absolute) between steps.
         rtol: stop, too, when it changes by at most ``rtol |E_rob|`` (0: off).
-        linear_solver, chunk_size, ridge: as :class:`LeastSquares`.
+        linear_solver, chunk_size, ridge: as [`LeastSquares`][jurs.LeastSquares].
 
     Curves and surfaces; polynomial B-splines only (a float mask is a row weight only in
     the B-spline assembly). Hard losses (Tukey, Cauchy) are not convex: the fit is a local

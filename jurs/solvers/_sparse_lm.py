@@ -81,7 +81,7 @@ class JointLevenbergMarquardt(AbstractSolver[JointLMState]):
 
     By default (``warm_start``) the search starts from the exact best C for the start
     weights (the B-spline least-squares fit for the default w = 1), so the result is never
-    worse than :class:`LeastSquares`. Dense in 2NM unknowns: meant for grids up to ~30 x 30.
+    worse than ``LeastSquares``. Dense in 2NM unknowns: meant for grids up to ~30 x 30.
     """
 
     lam: float = 0.0
