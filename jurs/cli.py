@@ -504,7 +504,7 @@ def _check_options(resolution, dim: int, out: str, names) -> None:
 def _surface_libraries() -> None:
     """InputError unless the libraries a surface's outputs need are installed
     (scikit-image meshes, trimesh writes mesh.ply): found out before the fit, not after."""
-    from .datasets import _trimesh
+    from .datasets._files import _trimesh
     from .levelset._surfaces import _marching_cubes
 
     try:
