@@ -505,7 +505,7 @@ def _surface_libraries() -> None:
     """InputError unless the libraries a surface's outputs need are installed
     (scikit-image meshes, trimesh writes mesh.ply): found out before the fit, not after."""
     from .datasets._files import _trimesh
-    from .levelset._surfaces import _marching_cubes
+    from .levelset._meshing import _marching_cubes
 
     try:
         _marching_cubes()
@@ -518,7 +518,7 @@ def _output_bytes(job: FitJob) -> int:
     """Bytes the outputs take: the spline (two grids of float64 in the .npz), the figure
     and the metrics, and in 2D the polylines (at most about resolution^2 / 2 vertices of
     ~40 bytes as text), in 3D the mesh (``MESH_VERTICES_PER_PLANE_NODE``)."""
-    from .levelset._surfaces import MAX_RESOLUTION
+    from .levelset._meshing import MAX_RESOLUTION
 
     spline = 16 * math.prod(job.grid)
     if job.dim == 2:
@@ -767,7 +767,7 @@ def surface_outputs(job: FitJob, args, sol, seconds: float):
 
     from . import datasets, plot
     from . import levelset as ls
-    from .levelset._surfaces import default_resolution
+    from .levelset._meshing import default_resolution
 
     spline = sol.spline
     resolution = job.resolution or default_resolution(
