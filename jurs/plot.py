@@ -25,7 +25,7 @@ from jaxtyping import Float, Int
 
 from ._model.spline import ImplicitSpline
 from .levelset import evaluate_grid, sampling_grid
-from .levelset._surfaces import _check_mesh
+from .levelset._mesh_analysis import _check_mesh
 
 if TYPE_CHECKING:  # matplotlib loads at the first figure
     from matplotlib.figure import Figure

@@ -17,8 +17,8 @@ from scipy.spatial import cKDTree
 
 import jurs
 from jurs import datasets
+from jurs import levelset as _mesh  # levelset._meshing and levelset._mesh_analysis
 from jurs._model import lattice as _lattice
-from jurs.levelset import _surfaces as _mesh
 
 pytest.importorskip("skimage")
 pytest.importorskip("trimesh")

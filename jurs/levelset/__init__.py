@@ -53,11 +53,13 @@ Definitions (all lengths in data units):
 
 For 3D splines the same questions are asked of a triangle mesh of the zero set:
 [`mesh`][jurs.levelset.mesh], [`analyze_mesh`][jurs.levelset.analyze_mesh],
-[`mesh_distances`][jurs.levelset.mesh_distances] and friends (from
-``jurs/levelset/_surfaces.py``; see docs/surfaces.md).
+[`mesh_distances`][jurs.levelset.mesh_distances] and friends (meshing in
+``jurs/levelset/_meshing.py``, measuring in ``jurs/levelset/_mesh_analysis.py``; see
+docs/surfaces.md).
 """
 
-# Curves (2D) in _curves, surfaces (3D) in _surfaces; one public namespace.
+# Curves (2D) in _curves; surfaces (3D) meshed in _meshing and measured in _mesh_analysis;
+# one public namespace.
 from ._curves import (
     BYTES_PER_NODE,
     DEFAULT_RESOLUTION,
@@ -81,16 +83,16 @@ from ._curves import (
     sampling_grid,
     zero_level_set,
 )
-from ._surfaces import (
+from ._mesh_analysis import (
     MeshComponent,
     MeshReport,
     analyze_mesh,
     face_areas,
     genus,
-    mesh,
     mesh_components,
     mesh_distances,
 )
+from ._meshing import mesh
 
 __all__ = [
     "DEFAULT_RESOLUTION",

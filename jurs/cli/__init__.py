@@ -29,89 +29,93 @@ energy), or outputs that fail to write after all, exit with code 1; the output f
 keeps its whole previous set of outputs. A fit that ends with another verdict than success
 or max_steps (inconsistent normals, weights at their floor) is written, with a warning on
 stderr.
+
+This package holds the parser and the run (``main``, ``prepare_fit``, the fit); reading the
+input is in ``_inputs``, the output folder's checks and the atomic write in ``_outputs``,
+and what a curve fit and a surface fit write in ``_results``.
 """
 
 from __future__ import annotations
 
 import argparse
 import dataclasses
-import json
-import math
 import os
-import shutil
+import shutil  # noqa: F401  (cli.shutil: the tests patch cli.shutil.disk_usage)
 import sys
-import tempfile
 import time
 import warnings
 from typing import TYPE_CHECKING, cast
 
-from ._fit.compile import cache_disabled_by_environment, enable_compilation_cache
+from .._fit.compile import cache_disabled_by_environment, enable_compilation_cache
+from ._inputs import (
+    InputError,
+    _grid,
+    _nonneg,
+    _one_line,
+    _positive,
+    grid_for,
+    printable,
+    read_input,
+)
+from ._outputs import (
+    MESH_BYTES_PER_VERTEX,
+    MESH_VERTICES_PER_PLANE_NODE,
+    OUTPUT_OVERHEAD,
+    OUTPUTS,
+    OUTPUTS_3D,
+    PLY_BYTES_PER_VERTEX,
+    _output_bytes,
+    check_output_folder,
+    outputs_for,
+    write_outputs,
+)
+from ._results import (
+    curve_outputs,
+    fit_record,
+    mesh_record,
+    surface_outputs,
+)
+
+__all__ = [
+    "main",
+    "command",
+    "end_process",
+    "build_parser",
+    "run_fit",
+    "prepare_fit",
+    "FitJob",
+    "make_solver",
+    "ProgressBar",
+    "InputError",
+    "EXIT_BAD_INPUT",
+    "EXIT_FIT_FAILED",
+    "OUTPUTS",
+    "OUTPUTS_3D",
+    "OUTPUT_OVERHEAD",
+    "MESH_VERTICES_PER_PLANE_NODE",
+    "MESH_BYTES_PER_VERTEX",
+    "PLY_BYTES_PER_VERTEX",
+    "grid_for",
+    "printable",
+    "read_input",
+    "check_output_folder",
+    "write_outputs",
+    "outputs_for",
+    "fit_record",
+    "curve_outputs",
+    "mesh_record",
+    "surface_outputs",
+]
 
 if TYPE_CHECKING:  # the command line imports NumPy and jurs's modules when it runs them
     import numpy as np
 
-    from ._cloud.cloud import Cloud
-    from ._fit.settings import Settings
-    from .solvers import AbstractSolver
+    from .._cloud.cloud import Cloud
+    from .._fit.settings import Settings
+    from ..solvers import AbstractSolver
 
 EXIT_BAD_INPUT = 2
 EXIT_FIT_FAILED = 1
-#: The outputs of a curve fit (a 2D cloud) ...
-OUTPUTS = ("metrics.json", "spline.npz", "fit.png", "zero_level.csv")
-#: ... and of a surface fit (a 3D cloud).
-OUTPUTS_3D = ("metrics.json", "spline.npz", "mesh.ply", "preview.png")
-
-
-class InputError(Exception):
-    """A problem with the user's input file or options: one line, exit code 2."""
-
-
-def _grid(text: str) -> tuple:
-    """``--grid``: one, two or three numbers >= 4 (``N``, ``NxM``, ``NxMxK``), as given;
-    ``grid_for`` matches them to the cloud's dimension once the file is read."""
-    try:
-        parts = tuple(int(p) for p in text.lower().replace("*", "x").split("x"))
-    except ValueError:
-        raise argparse.ArgumentTypeError(
-            f"grid must be N, NxM (2D) or NxMxK (3D), got {text!r}"
-        ) from None
-    if len(parts) > 3 or min(parts) < 4:
-        raise argparse.ArgumentTypeError(
-            f"grid must be N, NxM (2D) or NxMxK (3D) with every number >= 4, got {text!r}"
-        )
-    return parts
-
-
-def grid_for(parts, dim: int, shown: str):
-    """``--grid``'s numbers for the ``dim``-D cloud of the file ``shown``: None (chosen from
-    the data), one number for every axis, or one per axis; InputError for a 2D grid on a
-    3D cloud and the reverse."""
-    if parts is None or len(parts) == dim:
-        return parts
-    if len(parts) == 1:
-        return parts * dim
-    given = "x".join(map(str, parts))
-    wanted = "N or NxM" if dim == 2 else "N or NxMxK"
-    raise InputError(
-        f"{shown}: --grid {given} is for a {len(parts)}D cloud; this cloud is {dim}D: give {wanted}"
-    )
-
-
-def _nonneg(text: str) -> float:
-    try:
-        v = float(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"not a number: {text!r}") from None
-    if not math.isfinite(v) or v < 0:
-        raise argparse.ArgumentTypeError(f"must be a finite number >= 0, got {text!r}")
-    return v
-
-
-def _positive(text: str) -> float:
-    v = _nonneg(text)
-    if v == 0:
-        raise argparse.ArgumentTypeError(f"must be > 0, got {text!r}")
-    return v
 
 
 def _solver_names():
@@ -240,48 +244,6 @@ def _fit_parser(sub) -> argparse.ArgumentParser:
     return f
 
 
-def printable(text) -> str:
-    """``text`` safe to print and to draw: a file name that is not UTF-8 reaches Python with
-    its bytes as lone surrogates, which stdout, JSON and the figure's title cannot encode;
-    each such byte becomes U+FFFD."""
-    return os.fsencode(text).decode("utf-8", "replace") if isinstance(text, str) else str(text)
-
-
-def read_input(path: str):
-    """Points and normals from ``path``; every problem raises ``InputError`` with a
-    one-line message naming the file (and the row where there is one). A UTF-8 byte-order
-    mark before a text file's header is skipped."""
-    import numpy as np
-
-    from . import datasets
-
-    shown = printable(path)
-    if os.path.isdir(path):
-        raise InputError(f"{shown}: is a folder, not a file")
-    if path.lower().endswith(".npy") and os.path.exists(path):
-        try:
-            arr = np.load(path, allow_pickle=False, mmap_mode="r")
-        except Exception as exc:
-            raise InputError(f"{shown}: not a readable .npy array ({_one_line(exc)})") from None
-        if arr.ndim != 2 or arr.shape[1] not in (2, 4):
-            raise InputError(
-                f"{shown}: expected an (m, 4) array of rows x, y, nx, ny "
-                f"(or (m, 2): x, y), got shape {arr.shape}"
-            )
-    try:
-        points, normals = datasets.load_points(path)
-    except (ValueError, OSError) as exc:
-        msg = printable(_one_line(exc))
-        raise InputError(msg if msg.startswith(shown) else f"{shown}: {msg}") from None
-    if len(points) < 3:
-        raise InputError(f"{shown}: need at least 3 data rows, got {len(points)}")
-    return points, normals
-
-
-def _one_line(exc) -> str:
-    return " ".join(str(exc).split())
-
-
 def make_solver(name: str, *, lam: float | None, tau: float, steps: int, tol: float, chosen=None):
     """The solver named on the command line; None for ``auto`` without ``--lam`` where
     settings were ``chosen``: [`jurs.fit`][] then takes the solver of those settings."""
@@ -338,101 +300,6 @@ class ProgressBar:
             self.stream.flush()
 
 
-def _json_safe(value):
-    """Floats for 0-d arrays; non-finite numbers as null (strict JSON has no NaN/Inf)."""
-    import numpy as np
-
-    if isinstance(value, dict):
-        return {k: _json_safe(v) for k, v in value.items()}
-    if isinstance(value, (list, tuple)):
-        return [_json_safe(v) for v in value]
-    if isinstance(value, (str, bool)) or value is None:
-        return value
-    arr = np.asarray(value)
-    if arr.ndim == 0:
-        if np.issubdtype(arr.dtype, np.integer):
-            return int(arr)
-        v = float(arr)
-        return v if math.isfinite(v) else None
-    return [_json_safe(v) for v in arr.tolist()]
-
-
-#: Bytes the outputs take beyond the spline and the polylines (the figure, the metrics).
-OUTPUT_OVERHEAD = 8 << 20
-
-
-def check_output_folder(out: str, need: int = OUTPUT_OVERHEAD, names=OUTPUTS) -> None:
-    """Before the fit: InputError unless ``out`` is (or can be made) a folder we can write
-    ``need`` bytes into, whose output ``names`` are free or plain files. A fit of minutes
-    should not end in a traceback about permissions or a full disk."""
-    shown = printable(out)
-    if os.path.exists(out) and not os.path.isdir(out):
-        raise InputError(f"{shown}: exists and is not a folder")
-    for name in names:
-        target = os.path.join(out, name)
-        if os.path.lexists(target) and not os.path.isfile(target):
-            raise InputError(f"{printable(target)}: exists and is not a file; move it away")
-    existing = out
-    while not os.path.isdir(existing):  # the folder that the output folder will be made in
-        parent = os.path.dirname(existing)
-        if parent == existing:
-            break
-        existing = parent
-    if not os.access(existing, os.W_OK | os.X_OK):
-        raise InputError(f"{printable(existing)}: folder is not writable")
-    free = shutil.disk_usage(existing).free
-    if free < need:
-        raise InputError(
-            f"{printable(existing)}: only {free / 2**20:.1f} MiB free, the "
-            f"outputs need about {need / 2**20:.1f} MiB"
-        )
-
-
-def write_outputs(out: str, write, names=OUTPUTS) -> None:
-    """Write the whole set of output ``names`` into ``out``, or none: ``write(folder)``
-    writes them all into a temporary folder made inside ``out`` (the same file system, so
-    no parent folder need be writable, ``-o .`` included), then each is renamed into
-    place, the old file set aside first. Any failure renames back what was already
-    replaced, so ``out`` keeps its whole old set. A folder ``out`` made here is removed
-    again on failure. Files and the folder take the user's umask."""
-    made = not os.path.isdir(out)
-    os.makedirs(out, exist_ok=True)
-    tmp = tempfile.mkdtemp(prefix=".jurs-", dir=out)
-    moved = []  # (name, had an old file), in the order replaced
-    done = False
-    try:
-        write(tmp)
-        for name in names:
-            target, old = os.path.join(out, name), os.path.join(tmp, name + ".old")
-            had_old = os.path.lexists(target)
-            if had_old:
-                os.replace(target, old)
-            moved.append((name, had_old))
-            os.replace(os.path.join(tmp, name), target)
-        done = True
-    except BaseException:
-        for name, had_old in reversed(moved):
-            target, old = os.path.join(out, name), os.path.join(tmp, name + ".old")
-            if not os.path.exists(os.path.join(tmp, name)) and os.path.lexists(target):
-                os.remove(target)  # the new file had been moved in
-            if had_old:
-                os.replace(old, target)
-        raise
-    finally:
-        shutil.rmtree(tmp, ignore_errors=True)
-        if made and not done and not os.listdir(out):
-            os.rmdir(out)
-
-
-#: Vertices of a surface mesh per node of a lattice plane (resolution^2), assumed by the
-#: checks before a 3D fit: a sphere filling its box has about 2 (docs/surfaces.md,
-#: "Meshing a spline"); four times that leaves room for folded surfaces.
-MESH_VERTICES_PER_PLANE_NODE = 8
-#: Peak bytes per vertex of jurs.levelset.mesh (measured about 450, docs/surfaces.md), and
-#: bytes per vertex of mesh.ply (12 for the vertex, two faces of 13).
-MESH_BYTES_PER_VERTEX, PLY_BYTES_PER_VERTEX = 450, 38
-
-
 @dataclasses.dataclass(frozen=True)
 class FitJob:
     """What ``jurs fit`` has read and checked before the fit: the cloud (``(m, 2)`` or
@@ -473,16 +340,11 @@ class FitJob:
         return outputs_for(self.dim)
 
 
-def outputs_for(dim: int) -> tuple:
-    """The output names of a fit to a ``dim``-D cloud."""
-    return OUTPUTS if dim == 2 else OUTPUTS_3D
-
-
 def _check_options(resolution, dim: int, out: str, names) -> None:
     """The options checked before anything is computed: the level-set (2D) or
     marching-cubes (3D) resolution, also against memory, and the output folder."""
-    from . import levelset as ls
-    from ._problem.memory import check_memory
+    from .. import levelset as ls
+    from .._problem.memory import check_memory
 
     if resolution is not None:
         if resolution < 16:
@@ -504,8 +366,8 @@ def _check_options(resolution, dim: int, out: str, names) -> None:
 def _surface_libraries() -> None:
     """InputError unless the libraries a surface's outputs need are installed
     (scikit-image meshes, trimesh writes mesh.ply): found out before the fit, not after."""
-    from .datasets import _trimesh
-    from .levelset._surfaces import _marching_cubes
+    from ..datasets._files import _trimesh
+    from ..levelset._meshing import _marching_cubes
 
     try:
         _marching_cubes()
@@ -514,28 +376,13 @@ def _surface_libraries() -> None:
         raise InputError(f"a 3D cloud needs the surface extras: {_one_line(exc)}") from None
 
 
-def _output_bytes(job: FitJob) -> int:
-    """Bytes the outputs take: the spline (two grids of float64 in the .npz), the figure
-    and the metrics, and in 2D the polylines (at most about resolution^2 / 2 vertices of
-    ~40 bytes as text), in 3D the mesh (``MESH_VERTICES_PER_PLANE_NODE``)."""
-    from .levelset._surfaces import MAX_RESOLUTION
-
-    spline = 16 * math.prod(job.grid)
-    if job.dim == 2:
-        r = job.resolution
-        assert r is not None  # prepare_fit gives a 2D job the level-set default
-        return OUTPUT_OVERHEAD + spline + 20 * min(r**2, 10 * r * len(job.points))
-    r = job.resolution or MAX_RESOLUTION
-    return OUTPUT_OVERHEAD + spline + PLY_BYTES_PER_VERTEX * MESH_VERTICES_PER_PLANE_NODE * r**2
-
-
 def prepare_fit(args) -> FitJob:
     """Read the cloud and check everything that can be checked before the fit (options
     against the cloud's dimension, normals, settings, solver, output folder and its free
     space); every problem raises ``InputError``."""
     import jurs
 
-    from . import levelset as ls
+    from .. import levelset as ls
 
     path = args.file
     shown = printable(path)
@@ -616,205 +463,6 @@ def _solve(job: FitJob, args):
     return sol, seconds
 
 
-def fit_record(job: FitJob, args, sol, seconds: float) -> dict:
-    """The part of metrics.json that curves and surfaces share: input, settings and the
-    fit's own metrics (the level-set or mesh measures are added to ``metrics``)."""
-    metrics = {k: v for k, v in sol.metrics.items()}
-    metrics.update(
-        num_steps=int(sol.stats["num_steps"]),
-        status=sol.status,
-        result=sol.message,
-        converged=bool(sol.succeeded),
-        time_s=seconds,
-    )
-    return {
-        "input": printable(os.path.abspath(job.path)),
-        "num_points": int(len(job.points)),
-        "normals": "estimated" if job.estimated else "given",
-        "settings": {
-            "solver": args.solver,
-            "grid": list(job.grid),
-            "lam": job.lam,
-            "tau": args.tau if args.solver == "iurs" else None,
-            "offset": job.chosen.offset,
-            "eps": job.chosen.eps,
-            "steps": args.steps,
-            "tol": args.tol,
-            "chosen_from_data": job.chosen.as_dict(),
-        },
-        "metrics": metrics,
-    }
-
-
-def _fit_title(job: FitJob, args, sol) -> str:
-    """First lines of the figures' titles: file, solver, grid, lambda, E_ave."""
-    return (
-        f"{printable(os.path.basename(job.path))}: {args.solver}, grid "
-        f"{'x'.join(map(str, job.grid))}, lam = {job.lam:.3g}\nE_ave = "
-        f"{float(sol.metrics['E_ave']):.3e}, "
-    )
-
-
-def _write_record_and_spline(folder: str, record: dict, spline) -> None:
-    """metrics.json and spline.npz into ``folder``: the outputs every fit writes."""
-    import jurs
-
-    with open(os.path.join(folder, "metrics.json"), "w", encoding="utf-8") as fh:
-        json.dump(_json_safe(record), fh, indent=2, allow_nan=False)
-        fh.write("\n")
-    jurs.save_spline(os.path.join(folder, "spline.npz"), spline)
-
-
-def _save_figure(fig, path: str, dpi: int) -> None:
-    """Save ``fig``, a standalone figure on matplotlib's Agg canvas (``pyplot=False`` in
-    [`jurs.plot`][]: pyplot and its backends never load, and nothing needs closing)."""
-    fig.savefig(path, dpi=dpi)
-
-
-def curve_outputs(job: FitJob, args, sol, seconds: float):
-    """A curve's outputs (``OUTPUTS``): ``(write, summary line)``, ``write(folder)``
-    writing them all. The level set is analysed here, before anything is written."""
-    import numpy as np
-
-    from . import levelset as ls
-    from . import plot
-
-    assert job.resolution is not None  # prepare_fit gives a 2D job the level-set default
-    report = ls.analyze(
-        sol.spline,
-        job.points,
-        offset=job.chosen.offset,
-        threshold=args.threshold,
-        resolution=job.resolution,
-    )
-    record = fit_record(job, args, sol, seconds)
-    record["metrics"].update(report.as_dict())
-    title = (
-        _fit_title(job, args, sol) + f"{report.num_components} component(s), "
-        f"{report.num_supplementary} supplementary"
-    )
-
-    def write(folder):
-        _write_record_and_spline(folder, record, sol.spline)
-        np.savetxt(
-            os.path.join(folder, "zero_level.csv"),
-            ls.polylines_table(report.components),
-            delimiter=",",
-            header="component,closed,supplementary,x,y",
-            comments="",
-            fmt=["%d", "%d", "%d", "%.10g", "%.10g"],
-        )
-        fig, ax = plot._new_axes(None, pyplot=False)
-        plot.plot_fit(
-            sol.spline,
-            job.points,
-            job.normals,
-            job.chosen.offset,
-            ax=ax,
-            levelset=report,
-            title=title,
-        )
-        _save_figure(fig, os.path.join(folder, "fit.png"), dpi=130)
-
-    summary = (
-        f"  E_ave = {float(sol.metrics['E_ave']):.4e}, E_max = "
-        f"{float(sol.metrics['E_max']):.4e}, zero set: {report.num_components} "
-        f"component(s), {report.num_supplementary} supplementary, chamfer = "
-        f"{report.chamfer:.3g}"
-    )
-    return write, summary
-
-
-def mesh_record(vertices, faces, report, distances, resolution: int) -> dict:
-    """metrics.json's ``mesh`` entry: size, lattice resolution and every component."""
-    components = [
-        {
-            "num_faces": c.num_faces,
-            "area": c.area,
-            "closed": c.closed,
-            "genus": c.genus,
-            "median_distance": c.median_distance,
-            "supplementary": c.supplementary,
-        }
-        for c in report.components
-    ]
-    return {
-        "num_vertices": int(len(vertices)),
-        "num_faces": int(len(faces)),
-        "resolution": int(resolution),
-        "samples": distances["samples"],
-        "components": components,
-    }
-
-
-def _mesh_counts(report) -> str:
-    """The mesh's components in words, e.g. "1 component(s), 1 closed, genus 0, 0
-    supplementary" (an open component's genus reads "open")."""
-    closed = sum(c.closed for c in report.components)
-    genera = ", ".join("open" if c.genus is None else str(c.genus) for c in report.components)
-    return (
-        f"{report.num_components} component(s), {closed} closed, genus {genera or '-'}, "
-        f"{len(report.supplementary)} supplementary"
-    )
-
-
-def surface_outputs(job: FitJob, args, sol, seconds: float):
-    """A surface's outputs (``OUTPUTS_3D``): ``(write, summary line)``. The zero set is
-    meshed and measured here (components, genus, supplementary ones; Chamfer and Hausdorff
-    distances against the data points, normal consistency against their normals), before
-    anything is written."""
-    import numpy as np
-
-    from . import datasets, plot
-    from . import levelset as ls
-    from .levelset._surfaces import default_resolution
-
-    spline = sol.spline
-    resolution = job.resolution or default_resolution(
-        spline, np.asarray(spline.lower, np.float64), np.asarray(spline.upper, np.float64)
-    )
-    t0 = time.perf_counter()
-    vertices, faces = ls.mesh(spline, resolution)
-    t1 = time.perf_counter()
-    report = ls.analyze_mesh(vertices, faces, job.points, threshold=args.threshold)
-    distances = ls.mesh_distances(vertices, faces, job.points, job.normals)
-    t2 = time.perf_counter()
-    record = fit_record(job, args, sol, seconds)
-    record["metrics"].update(
-        report.as_dict(),
-        chamfer=distances["chamfer"],
-        hausdorff=distances["hausdorff"],
-        normal_consistency=distances["normal_consistency"],
-    )
-    record["mesh"] = mesh_record(vertices, faces, report, distances, resolution)
-    record["timings"] = {"fit_s": seconds, "mesh_s": t1 - t0, "analysis_s": t2 - t1}
-    counts = _mesh_counts(report)
-    highlight = (
-        np.concatenate([c.faces for c in report.supplementary]) if report.supplementary else None
-    )
-
-    def write(folder):
-        _write_record_and_spline(folder, record, spline)
-        datasets.save_mesh(os.path.join(folder, "mesh.ply"), vertices, faces)
-        fig, axes = plot._mesh_axes(None, pyplot=False)
-        plot.plot_mesh(
-            vertices,
-            faces,
-            ax=axes,
-            highlight=highlight,
-            highlight_label="supplementary",
-            title=_fit_title(job, args, sol) + counts,
-        )
-        _save_figure(fig, os.path.join(folder, "preview.png"), dpi=110)
-
-    summary = (
-        f"  E_ave = {float(sol.metrics['E_ave']):.4e}, E_max = "
-        f"{float(sol.metrics['E_max']):.4e}, surface: {len(faces)} faces, {counts}, "
-        f"chamfer = {distances['chamfer']:.3g}"
-    )
-    return write, summary
-
-
 def run_fit(args) -> int:
     """``jurs fit``: read and check, fit, analyse (a 2D cloud's zero-level curves or a 3D
     cloud's meshed surface), then write all outputs at once (or none)."""
@@ -871,7 +519,7 @@ def _run(argv) -> int:
         except OSError as exc:
             print(f"jurs: warning: no compilation cache ({_one_line(exc)})", file=sys.stderr)
     if args.command == "demo":
-        from .demo import run
+        from ..demo import run
 
         run(args.output)
         return 0
@@ -911,7 +559,3 @@ def end_process(code: int) -> None:
         except (OSError, ValueError):
             pass
     os._exit(code)
-
-
-if __name__ == "__main__":
-    command()

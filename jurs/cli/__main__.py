@@ -1,0 +1,5 @@
+"""``python -m jurs.cli``: the ``jurs`` console script (``jurs.cli.command``)."""
+
+from . import command
+
+command()

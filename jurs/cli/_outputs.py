@@ -1,0 +1,158 @@
+"""Where ``jurs fit`` writes: the output folder's checks and the atomic write.
+
+The output names (``OUTPUTS``, ``OUTPUTS_3D``), the bytes they take (checked against the
+free space before the fit), ``check_output_folder``, ``write_outputs`` (the whole set of
+outputs or none), and the files every fit writes: metrics.json (strict JSON) and spline.npz,
+and the figures.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import os
+import shutil
+import tempfile
+from typing import TYPE_CHECKING
+
+from ._inputs import InputError, printable
+
+if TYPE_CHECKING:
+    from . import FitJob
+
+
+#: The outputs of a curve fit (a 2D cloud) ...
+OUTPUTS = ("metrics.json", "spline.npz", "fit.png", "zero_level.csv")
+#: ... and of a surface fit (a 3D cloud).
+OUTPUTS_3D = ("metrics.json", "spline.npz", "mesh.ply", "preview.png")
+
+
+def _json_safe(value):
+    """Floats for 0-d arrays; non-finite numbers as null (strict JSON has no NaN/Inf)."""
+    import numpy as np
+
+    if isinstance(value, dict):
+        return {k: _json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [_json_safe(v) for v in value]
+    if isinstance(value, (str, bool)) or value is None:
+        return value
+    arr = np.asarray(value)
+    if arr.ndim == 0:
+        if np.issubdtype(arr.dtype, np.integer):
+            return int(arr)
+        v = float(arr)
+        return v if math.isfinite(v) else None
+    return [_json_safe(v) for v in arr.tolist()]
+
+
+#: Bytes the outputs take beyond the spline and the polylines (the figure, the metrics).
+OUTPUT_OVERHEAD = 8 << 20
+
+
+def check_output_folder(out: str, need: int = OUTPUT_OVERHEAD, names=OUTPUTS) -> None:
+    """Before the fit: InputError unless ``out`` is (or can be made) a folder we can write
+    ``need`` bytes into, whose output ``names`` are free or plain files. A fit of minutes
+    should not end in a traceback about permissions or a full disk."""
+    shown = printable(out)
+    if os.path.exists(out) and not os.path.isdir(out):
+        raise InputError(f"{shown}: exists and is not a folder")
+    for name in names:
+        target = os.path.join(out, name)
+        if os.path.lexists(target) and not os.path.isfile(target):
+            raise InputError(f"{printable(target)}: exists and is not a file; move it away")
+    existing = out
+    while not os.path.isdir(existing):  # the folder that the output folder will be made in
+        parent = os.path.dirname(existing)
+        if parent == existing:
+            break
+        existing = parent
+    if not os.access(existing, os.W_OK | os.X_OK):
+        raise InputError(f"{printable(existing)}: folder is not writable")
+    free = shutil.disk_usage(existing).free
+    if free < need:
+        raise InputError(
+            f"{printable(existing)}: only {free / 2**20:.1f} MiB free, the "
+            f"outputs need about {need / 2**20:.1f} MiB"
+        )
+
+
+def write_outputs(out: str, write, names=OUTPUTS) -> None:
+    """Write the whole set of output ``names`` into ``out``, or none: ``write(folder)``
+    writes them all into a temporary folder made inside ``out`` (the same file system, so
+    no parent folder need be writable, ``-o .`` included), then each is renamed into
+    place, the old file set aside first. Any failure renames back what was already
+    replaced, so ``out`` keeps its whole old set. A folder ``out`` made here is removed
+    again on failure. Files and the folder take the user's umask."""
+    made = not os.path.isdir(out)
+    os.makedirs(out, exist_ok=True)
+    tmp = tempfile.mkdtemp(prefix=".jurs-", dir=out)
+    moved = []  # (name, had an old file), in the order replaced
+    done = False
+    try:
+        write(tmp)
+        for name in names:
+            target, old = os.path.join(out, name), os.path.join(tmp, name + ".old")
+            had_old = os.path.lexists(target)
+            if had_old:
+                os.replace(target, old)
+            moved.append((name, had_old))
+            os.replace(os.path.join(tmp, name), target)
+        done = True
+    except BaseException:
+        for name, had_old in reversed(moved):
+            target, old = os.path.join(out, name), os.path.join(tmp, name + ".old")
+            if not os.path.exists(os.path.join(tmp, name)) and os.path.lexists(target):
+                os.remove(target)  # the new file had been moved in
+            if had_old:
+                os.replace(old, target)
+        raise
+    finally:
+        shutil.rmtree(tmp, ignore_errors=True)
+        if made and not done and not os.listdir(out):
+            os.rmdir(out)
+
+
+def outputs_for(dim: int) -> tuple:
+    """The output names of a fit to a ``dim``-D cloud."""
+    return OUTPUTS if dim == 2 else OUTPUTS_3D
+
+
+#: Vertices of a surface mesh per node of a lattice plane (resolution^2), assumed by the
+#: checks before a 3D fit: a sphere filling its box has about 2 (docs/surfaces.md,
+#: "Meshing a spline"); four times that leaves room for folded surfaces.
+MESH_VERTICES_PER_PLANE_NODE = 8
+#: Peak bytes per vertex of jurs.levelset.mesh (measured about 450, docs/surfaces.md), and
+#: bytes per vertex of mesh.ply (12 for the vertex, two faces of 13).
+MESH_BYTES_PER_VERTEX, PLY_BYTES_PER_VERTEX = 450, 38
+
+
+def _output_bytes(job: FitJob) -> int:
+    """Bytes the outputs take: the spline (two grids of float64 in the .npz), the figure
+    and the metrics, and in 2D the polylines (at most about resolution^2 / 2 vertices of
+    ~40 bytes as text), in 3D the mesh (``MESH_VERTICES_PER_PLANE_NODE``)."""
+    from ..levelset._meshing import MAX_RESOLUTION
+
+    spline = 16 * math.prod(job.grid)
+    if job.dim == 2:
+        r = job.resolution
+        assert r is not None  # prepare_fit gives a 2D job the level-set default
+        return OUTPUT_OVERHEAD + spline + 20 * min(r**2, 10 * r * len(job.points))
+    r = job.resolution or MAX_RESOLUTION
+    return OUTPUT_OVERHEAD + spline + PLY_BYTES_PER_VERTEX * MESH_VERTICES_PER_PLANE_NODE * r**2
+
+
+def _write_record_and_spline(folder: str, record: dict, spline) -> None:
+    """metrics.json and spline.npz into ``folder``: the outputs every fit writes."""
+    import jurs
+
+    with open(os.path.join(folder, "metrics.json"), "w", encoding="utf-8") as fh:
+        json.dump(_json_safe(record), fh, indent=2, allow_nan=False)
+        fh.write("\n")
+    jurs.save_spline(os.path.join(folder, "spline.npz"), spline)
+
+
+def _save_figure(fig, path: str, dpi: int) -> None:
+    """Save ``fig``, a standalone figure on matplotlib's Agg canvas (``pyplot=False`` in
+    [`jurs.plot`][]: pyplot and its backends never load, and nothing needs closing)."""
+    fig.savefig(path, dpi=dpi)

@@ -1,0 +1,201 @@
+"""What a curve fit and a surface fit write: records, figures and summaries.
+
+``curve_outputs`` analyses a 2D fit's zero-level curves, ``surface_outputs`` meshes and
+measures a 3D fit's zero set; each returns the function that writes the outputs and the
+summary line. ``fit_record`` is the part of metrics.json they share.
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from typing import TYPE_CHECKING
+
+from ._inputs import printable
+from ._outputs import _save_figure, _write_record_and_spline
+
+if TYPE_CHECKING:
+    from . import FitJob
+
+
+def fit_record(job: FitJob, args, sol, seconds: float) -> dict:
+    """The part of metrics.json that curves and surfaces share: input, settings and the
+    fit's own metrics (the level-set or mesh measures are added to ``metrics``)."""
+    metrics = {k: v for k, v in sol.metrics.items()}
+    metrics.update(
+        num_steps=int(sol.stats["num_steps"]),
+        status=sol.status,
+        result=sol.message,
+        converged=bool(sol.succeeded),
+        time_s=seconds,
+    )
+    return {
+        "input": printable(os.path.abspath(job.path)),
+        "num_points": int(len(job.points)),
+        "normals": "estimated" if job.estimated else "given",
+        "settings": {
+            "solver": args.solver,
+            "grid": list(job.grid),
+            "lam": job.lam,
+            "tau": args.tau if args.solver == "iurs" else None,
+            "offset": job.chosen.offset,
+            "eps": job.chosen.eps,
+            "steps": args.steps,
+            "tol": args.tol,
+            "chosen_from_data": job.chosen.as_dict(),
+        },
+        "metrics": metrics,
+    }
+
+
+def _fit_title(job: FitJob, args, sol) -> str:
+    """First lines of the figures' titles: file, solver, grid, lambda, E_ave."""
+    return (
+        f"{printable(os.path.basename(job.path))}: {args.solver}, grid "
+        f"{'x'.join(map(str, job.grid))}, lam = {job.lam:.3g}\nE_ave = "
+        f"{float(sol.metrics['E_ave']):.3e}, "
+    )
+
+
+def curve_outputs(job: FitJob, args, sol, seconds: float):
+    """A curve's outputs (``OUTPUTS``): ``(write, summary line)``, ``write(folder)``
+    writing them all. The level set is analysed here, before anything is written."""
+    import numpy as np
+
+    from .. import levelset as ls
+    from .. import plot
+
+    assert job.resolution is not None  # prepare_fit gives a 2D job the level-set default
+    report = ls.analyze(
+        sol.spline,
+        job.points,
+        offset=job.chosen.offset,
+        threshold=args.threshold,
+        resolution=job.resolution,
+    )
+    record = fit_record(job, args, sol, seconds)
+    record["metrics"].update(report.as_dict())
+    title = (
+        _fit_title(job, args, sol) + f"{report.num_components} component(s), "
+        f"{report.num_supplementary} supplementary"
+    )
+
+    def write(folder):
+        _write_record_and_spline(folder, record, sol.spline)
+        np.savetxt(
+            os.path.join(folder, "zero_level.csv"),
+            ls.polylines_table(report.components),
+            delimiter=",",
+            header="component,closed,supplementary,x,y",
+            comments="",
+            fmt=["%d", "%d", "%d", "%.10g", "%.10g"],
+        )
+        fig, ax = plot._new_axes(None, pyplot=False)
+        plot.plot_fit(
+            sol.spline,
+            job.points,
+            job.normals,
+            job.chosen.offset,
+            ax=ax,
+            levelset=report,
+            title=title,
+        )
+        _save_figure(fig, os.path.join(folder, "fit.png"), dpi=130)
+
+    summary = (
+        f"  E_ave = {float(sol.metrics['E_ave']):.4e}, E_max = "
+        f"{float(sol.metrics['E_max']):.4e}, zero set: {report.num_components} "
+        f"component(s), {report.num_supplementary} supplementary, chamfer = "
+        f"{report.chamfer:.3g}"
+    )
+    return write, summary
+
+
+def mesh_record(vertices, faces, report, distances, resolution: int) -> dict:
+    """metrics.json's ``mesh`` entry: size, lattice resolution and every component."""
+    components = [
+        {
+            "num_faces": c.num_faces,
+            "area": c.area,
+            "closed": c.closed,
+            "genus": c.genus,
+            "median_distance": c.median_distance,
+            "supplementary": c.supplementary,
+        }
+        for c in report.components
+    ]
+    return {
+        "num_vertices": int(len(vertices)),
+        "num_faces": int(len(faces)),
+        "resolution": int(resolution),
+        "samples": distances["samples"],
+        "components": components,
+    }
+
+
+def _mesh_counts(report) -> str:
+    """The mesh's components in words, e.g. "1 component(s), 1 closed, genus 0, 0
+    supplementary" (an open component's genus reads "open")."""
+    closed = sum(c.closed for c in report.components)
+    genera = ", ".join("open" if c.genus is None else str(c.genus) for c in report.components)
+    return (
+        f"{report.num_components} component(s), {closed} closed, genus {genera or '-'}, "
+        f"{len(report.supplementary)} supplementary"
+    )
+
+
+def surface_outputs(job: FitJob, args, sol, seconds: float):
+    """A surface's outputs (``OUTPUTS_3D``): ``(write, summary line)``. The zero set is
+    meshed and measured here (components, genus, supplementary ones; Chamfer and Hausdorff
+    distances against the data points, normal consistency against their normals), before
+    anything is written."""
+    import numpy as np
+
+    from .. import datasets, plot
+    from .. import levelset as ls
+    from ..levelset._meshing import default_resolution
+
+    spline = sol.spline
+    resolution = job.resolution or default_resolution(
+        spline, np.asarray(spline.lower, np.float64), np.asarray(spline.upper, np.float64)
+    )
+    t0 = time.perf_counter()
+    vertices, faces = ls.mesh(spline, resolution)
+    t1 = time.perf_counter()
+    report = ls.analyze_mesh(vertices, faces, job.points, threshold=args.threshold)
+    distances = ls.mesh_distances(vertices, faces, job.points, job.normals)
+    t2 = time.perf_counter()
+    record = fit_record(job, args, sol, seconds)
+    record["metrics"].update(
+        report.as_dict(),
+        chamfer=distances["chamfer"],
+        hausdorff=distances["hausdorff"],
+        normal_consistency=distances["normal_consistency"],
+    )
+    record["mesh"] = mesh_record(vertices, faces, report, distances, resolution)
+    record["timings"] = {"fit_s": seconds, "mesh_s": t1 - t0, "analysis_s": t2 - t1}
+    counts = _mesh_counts(report)
+    highlight = (
+        np.concatenate([c.faces for c in report.supplementary]) if report.supplementary else None
+    )
+
+    def write(folder):
+        _write_record_and_spline(folder, record, spline)
+        datasets.save_mesh(os.path.join(folder, "mesh.ply"), vertices, faces)
+        fig, axes = plot._mesh_axes(None, pyplot=False)
+        plot.plot_mesh(
+            vertices,
+            faces,
+            ax=axes,
+            highlight=highlight,
+            highlight_label="supplementary",
+            title=_fit_title(job, args, sol) + counts,
+        )
+        _save_figure(fig, os.path.join(folder, "preview.png"), dpi=110)
+
+    summary = (
+        f"  E_ave = {float(sol.metrics['E_ave']):.4e}, E_max = "
+        f"{float(sol.metrics['E_max']):.4e}, surface: {len(faces)} faces, {counts}, "
+        f"chamfer = {distances['chamfer']:.3g}"
+    )
+    return write, summary

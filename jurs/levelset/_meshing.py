@@ -1,0 +1,229 @@
+"""Triangle meshes of the zero set of a 3D spline.
+
+[`mesh`][jurs.levelset.mesh] samples g on a lattice slab by slab
+(``jurs._model.lattice.lattice_values``), runs marching cubes (scikit-image) on each slab,
+stitches the slabs and moves the vertices onto {g = 0} by Newton steps. What to measure on
+a mesh (components, genus, distances) is in ``jurs/levelset/_mesh_analysis.py``. Everything
+is host-side NumPy/SciPy; see docs/surfaces.md for the definitions.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from jaxtyping import Float, Int
+
+from .._model.lattice import lattice_values, spline_fields, values_and_gradients
+
+#: Lattice nodes per spline cell along the finest axis for the default resolution: g is a
+#: cubic in each cell, and marching cubes sees at most one zero crossing per lattice edge,
+#: so a feature one cell wide needs two or three nodes across it to show up at all. The
+#: Newton steps afterwards put the vertices on the zero set, but the flat triangles between
+#: them cut the curved surface short by about ``kappa e^2 / 8`` (curvature kappa, edge e),
+#: which on clean fits was most of the mesh's error at 3 nodes a cell; at 5 the mesh of a
+#: clean sphere fit is within about 1.3x of the fit's own distance to the sphere, for 5x
+#: the meshing time of 3 (docs/performance.md, "Measurements behind the level-set and
+#: plotting defaults"). Five a cell makes the default mesh of a 48^3 fit about 230 nodes a
+#: side.
+SAMPLES_PER_CELL = 5
+#: Bounds of the default resolution (nodes along the longest side of the box). 256 keeps a
+#: default mesh at a few hundred thousand triangles, meshed in a couple of seconds
+#: (docs/performance.md); pass ``resolution`` for more.
+MIN_RESOLUTION, MAX_RESOLUTION = 32, 256
+#: Default lattice nodes per slab of [`mesh`][jurs.levelset.mesh]: 8 MiB of float64
+#: values, which bounds the memory of a mesh; larger slabs mesh no faster
+#: (docs/performance.md).
+SLAB_NODES = 1 << 20
+#: Lattice values closer to the level than this fraction of the largest value difference
+#: along a lattice edge (estimated by ``_slope_bound``) are moved to that distance
+#: above it. Marching cubes computes in float32: a node this close to the level would get
+#: the vertices of all its crossing edges on itself (a vertex ``t`` of an edge from a node
+#: at index ~1000 rounds onto it below t ~ 6e-5), and two such nodes in one cube, welded,
+#: leave an edge shared by four faces (seen on spheres through lattice nodes). The shift
+#: moves the surface by at most this fraction of a lattice spacing where g is steepest, and
+#: the Newton steps take it back.
+NUDGE = 1e-3
+
+_EMPTY = (np.empty((0, 3)), np.empty((0, 3), dtype=np.int64))
+
+
+def _marching_cubes():
+    try:
+        from skimage.measure import marching_cubes
+    except ImportError:
+        raise ImportError('meshing needs scikit-image: pip install "jurs[surfaces]"') from None
+    return marching_cubes
+
+
+def lattice_axes(
+    lower: Float[np.ndarray, " 3"], upper: Float[np.ndarray, " 3"], resolution: int
+) -> list[Float[np.ndarray, " n"]]:
+    """Lattice node coordinates over the box: ``resolution`` nodes along its longest side,
+    about the same spacing along the others (at least 2 nodes). Returns three 1D arrays."""
+    if isinstance(resolution, bool) or not isinstance(resolution, (int, np.integer)):
+        raise TypeError(f"resolution must be an int, got {resolution!r}")
+    if int(resolution) < 2:
+        raise ValueError(f"resolution must be >= 2, got {resolution}")
+    extent = upper - lower
+    counts = np.maximum(2, np.round((int(resolution) - 1) * extent / extent.max()).astype(int) + 1)
+    return [np.linspace(lo, hi, c) for lo, hi, c in zip(lower, upper, counts)]
+
+
+def default_resolution(
+    spline, lower: Float[np.ndarray, " 3"], upper: Float[np.ndarray, " 3"]
+) -> int:
+    """``SAMPLES_PER_CELL`` lattice nodes per spline cell (the finest axis's) along the
+    longest side of the box, within [``MIN_RESOLUTION``, ``MAX_RESOLUTION``]."""
+    control, _, s_lower, s_upper = spline_fields(spline, dims=(3,))
+    cell = np.min((s_upper - s_lower) / (np.asarray(control.shape) - 3.0))
+    nodes = int(np.ceil(SAMPLES_PER_CELL * np.max(upper - lower) / cell)) + 1
+    return int(np.clip(nodes, MIN_RESOLUTION, MAX_RESOLUTION))
+
+
+def mesh(
+    spline,
+    resolution: int | None = None,
+    *,
+    box=None,
+    level: float = 0.0,
+    newton_steps: int = 2,
+    chunk: int = SLAB_NODES,
+) -> tuple[Float[np.ndarray, "V 3"], Int[np.ndarray, "F 3"]]:
+    """Triangle mesh of ``{g = level}`` of a 3D spline over ``box``.
+
+    Args:
+        spline: any object with fields ``control`` and ``weights`` (``(N, M, K)``, weights
+            positive), ``lower`` and ``upper`` (``(3,)``), such as a 3D
+            [`jurs.ImplicitSpline`][].
+        resolution: lattice nodes along the longest side of the box (the other sides get
+            the same spacing). Default: 5 per spline cell, between 32 and 256.
+        box: ``(lower, upper)`` to mesh; default the spline's own box.
+        level: the level set to mesh.
+        newton_steps: Newton steps ``x <- x - (g - level) grad g / |grad g|^2`` per vertex
+            after marching cubes. A step longer than one lattice spacing is not taken
+            (near a critical point of g the linearisation says nothing; the vertex keeps
+            its marching-cubes position).
+        chunk: lattice nodes per slab (at least two planes of the first axis per slab).
+
+    Returns:
+        ``(vertices (V, 3) float64, faces (F, 3) int64)``; every face's normal (right-hand
+        rule) points towards ``g > level``, outward for a spline negative inside. Empty
+        arrays when the level set misses the box. Where the surface leaves the box the mesh
+        is open.
+
+    Memory: g is never held on the whole lattice. One slab of at most
+    ``max(chunk, 2 * ny * nz)`` nodes is evaluated, meshed and dropped at a time. Measured
+    peak (tracemalloc): about 16 bytes per node of a slab (its values and the contraction
+    intermediates) plus about 450 bytes per vertex of the mesh (the result itself takes 72:
+    a vertex and about two faces; the rest is the slabs' marching-cubes output and the
+    sort that welds it); at resolution 400 with 333 000 vertices, 140 MiB where the values
+    of the whole lattice alone would take 490 MiB.
+    """
+    lower, upper = _box(spline, box)
+    if resolution is None:
+        resolution = default_resolution(spline, lower, upper)
+    if int(newton_steps) < 0:
+        raise ValueError(f"newton_steps must be >= 0, got {newton_steps}")
+    if int(chunk) < 1:
+        raise ValueError(f"chunk must be >= 1, got {chunk}")
+    axes = lattice_axes(lower, upper, resolution)
+    spacing = np.array([(a[-1] - a[0]) / (len(a) - 1) for a in axes])
+    nudge = NUDGE * float(np.max(spacing * _slope_bound(spline)))
+    vertices, faces = _march_in_slabs(spline, axes, float(level), nudge, int(chunk))
+    if len(faces) == 0:
+        return _EMPTY
+    vertices = lower + vertices * spacing
+    return _newton(spline, vertices, float(level), int(newton_steps), spacing.max()), faces
+
+
+def _box(spline, box):
+    """``(lower, upper)`` of the box to mesh as float64 ``(3,)`` arrays, checked."""
+    _, _, s_lower, s_upper = spline_fields(spline, dims=(3,))
+    if box is None:
+        return s_lower, s_upper
+    lower, upper = (np.asarray(b, dtype=np.float64) for b in box)
+    if lower.shape != (3,) or upper.shape != (3,):
+        raise ValueError(
+            f"box must be (lower, upper) with 3 coordinates each, got shapes "
+            f"{lower.shape} and {upper.shape}"
+        )
+    if not (np.isfinite(lower).all() and np.isfinite(upper).all() and (upper > lower).all()):
+        raise ValueError(f"box must be finite with lower < upper, got {lower}, {upper}")
+    return lower, upper
+
+
+def _slope_bound(spline) -> np.ndarray:
+    """A scale of ``|dg/dx_a|`` per axis: ``(max w / min w) max |C_(i+1) - C_i| / h_a``
+    (for weights 1 a bound: the derivative is a quadratic spline with those coefficients)."""
+    control, weights, lower, upper = spline_fields(spline, dims=(3,))
+    h = (upper - lower) / (np.asarray(control.shape) - 3.0)
+    steps = np.array([np.abs(np.diff(control, axis=a)).max() for a in range(3)])
+    return weights.max() / weights.min() * steps / h
+
+
+def _march_in_slabs(spline, axes, level: float, nudge: float, chunk: int):
+    """Marching cubes over the lattice, slab by slab along the first axis; vertices in
+    lattice index units.
+
+    Consecutive slabs share one plane of nodes, evaluated once and handed on, so the
+    vertices marching cubes puts on that plane come out bitwise equal in both slabs (the
+    same values on the same edges); ``_weld`` merges them. Values within ``nudge`` of
+    the level are set to ``level + nudge`` first (see ``NUDGE``).
+    """
+    marching_cubes = _marching_cubes()
+    xs, ys, zs = axes
+    planes = max(2, chunk // (len(ys) * len(zs)))
+    vertex_parts, face_parts = [], []
+    count = 0
+    carried = None  # previous slab's last plane of values
+    for start in range(0, len(xs) - 1, planes - 1):
+        stop = min(start + planes, len(xs))  # nodes start .. stop - 1
+        fresh = lattice_values(spline, (xs[start + (carried is not None) : stop], ys, zs))
+        near = np.abs(fresh - level) < nudge
+        fresh[near] = level + nudge
+        values = fresh if carried is None else np.concatenate([carried, fresh])
+        carried = values[-1:]
+        if not values.min() <= level <= values.max():
+            continue
+        # "descent": scikit-image's default orientation, whose faces (right-hand rule) face
+        # the larger values, i.e. g > level. It computes in float32.
+        verts, tris, _, _ = marching_cubes(values, level, gradient_direction="descent")
+        verts = verts.astype(np.float64)
+        verts[:, 0] += start
+        vertex_parts.append(verts)
+        face_parts.append(tris.astype(np.int64) + count)
+        count += len(verts)
+    if not face_parts:
+        return _EMPTY
+    return _weld(np.concatenate(vertex_parts), np.concatenate(face_parts))
+
+
+def _weld(vertices, faces):
+    """Merge vertices at bitwise equal positions, drop the faces that collapse, and the
+    vertices no face uses any more.
+
+    Marching cubes puts one vertex on each lattice edge the level set crosses, so two
+    vertices coincide as the same edge's vertex seen from two slabs, or (should the nudge
+    of ``NUDGE`` fall short) at a node where g is at the level to float32, where every
+    crossing edge has its vertex on the node and the triangles between them have no area.
+    Merged, each point is one vertex.
+    """
+    vertices, inverse = np.unique(vertices, axis=0, return_inverse=True)
+    faces = inverse.reshape(-1)[faces]
+    faces = faces[(faces != np.roll(faces, 1, axis=1)).all(axis=1)]
+    used, faces = np.unique(faces, return_inverse=True)
+    return vertices[used], faces.reshape(-1, 3)
+
+
+def _newton(spline, vertices, level: float, steps: int, longest: float):
+    """``steps`` Newton steps onto ``{g = level}`` along the gradient, each no longer than
+    ``longest`` (see [`mesh`][jurs.levelset.mesh]); points with a zero or non-finite
+    gradient stay put."""
+    x = vertices.copy()
+    for _ in range(steps):
+        value, gradient = values_and_gradients(spline, x)
+        norm2 = np.sum(gradient * gradient, axis=1)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            move = -((value - level) / norm2)[:, None] * gradient
+        ok = np.isfinite(move).all(axis=1) & (np.sum(move * move, axis=1) <= longest**2)
+        x[ok] += move[ok]
+    return x
