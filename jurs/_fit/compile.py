@@ -34,10 +34,6 @@ COMPILER_OPTIONS = {
 }
 
 
-#: Environment variable that turns the command line's compilation cache off ("1", "true").
-NO_CACHE_VARIABLE = "JURS_NO_COMPILATION_CACHE"
-
-
 def default_cache_dir() -> str:
     """The user's cache folder for jurs (XDG convention): ``$XDG_CACHE_HOME/jurs``, or
     ``~/.cache/jurs`` when ``XDG_CACHE_HOME`` is unset or not absolute."""
@@ -45,13 +41,6 @@ def default_cache_dir() -> str:
     if not os.path.isabs(base):
         base = os.path.join(os.path.expanduser("~"), ".cache")
     return os.path.join(base, "jurs")
-
-
-def cache_disabled_by_environment() -> bool:
-    """Whether ``NO_CACHE_VARIABLE`` asks for no compilation cache (any value but
-    empty, ``0``, ``false`` or ``no``)."""
-    value = os.environ.get(NO_CACHE_VARIABLE, "").strip().lower()
-    return value not in ("", "0", "false", "no")
 
 
 def enable_compilation_cache(path=None, *, min_compile_time_s: float = 0.0) -> str:

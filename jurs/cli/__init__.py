@@ -46,7 +46,6 @@ import time
 import warnings
 from typing import TYPE_CHECKING, cast
 
-from .._fit.compile import cache_disabled_by_environment, enable_compilation_cache
 from ._inputs import (
     InputError,
     _grid,
@@ -110,12 +109,21 @@ __all__ = [
 if TYPE_CHECKING:  # the command line imports NumPy and jurs's modules when it runs them
     import numpy as np
 
-    from .._cloud.cloud import Cloud
-    from .._fit.settings import Settings
-    from ..solvers import AbstractSolver
+    from .. import AbstractSolver, Cloud, Settings
 
 EXIT_BAD_INPUT = 2
 EXIT_FIT_FAILED = 1
+
+
+#: Environment variable that turns the command line's compilation cache off ("1", "true").
+NO_CACHE_VARIABLE = "JURS_NO_COMPILATION_CACHE"
+
+
+def cache_disabled_by_environment() -> bool:
+    """Whether ``NO_CACHE_VARIABLE`` asks for no compilation cache (any value but
+    empty, ``0``, ``false`` or ``no``)."""
+    value = os.environ.get(NO_CACHE_VARIABLE, "").strip().lower()
+    return value not in ("", "0", "false", "no")
 
 
 def _solver_names():
@@ -514,6 +522,8 @@ def _run(argv) -> int:
     parser = build_parser()
     args = parser.parse_args(argv)
     if not (args.no_compilation_cache or cache_disabled_by_environment()):
+        from .. import enable_compilation_cache
+
         try:  # later runs load the compiled fit instead of compiling it (seconds)
             enable_compilation_cache()
         except OSError as exc:
