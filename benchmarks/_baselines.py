@@ -27,6 +27,7 @@ from scipy.spatial import cKDTree  # pyright: ignore[reportAttributeAccessIssue]
 
 import jurs
 import jurs.levelset
+from jurs._cloud.signs import forest_signs  # the library's one sign routine
 
 
 def offset_samples(points, normals, offset: float, eps: float):
@@ -169,41 +170,11 @@ def rbf_report(
     return jurs.levelset.analyze_grid(xs, ys, values, points, offset=offset, reference=reference)
 
 
-def _check_points(points) -> np.ndarray:
-    """``points`` as a finite float64 (m, 2) or (m, 3) array (the checks of
-    ``jurs.estimate_normals``)."""
-    try:
-        array = np.asarray(points, dtype=np.float64)
-    except (TypeError, ValueError) as err:
-        raise TypeError(f"points must be a numeric (m, d) array: {err}") from None
-    if array.ndim != 2 or array.shape[1] not in (2, 3):
-        raise ValueError(f"points must have shape (m, 2) or (m, 3), got {array.shape}")
-    if not np.all(np.isfinite(array)):
-        raise ValueError("points contain NaN or infinite coordinates")
-    return array
-
-
-def _tree_signs(tree: sparse.csr_matrix, normals: np.ndarray) -> np.ndarray:
-    """Signs (+1/-1) making normals consistent along every edge of a forest, relative to an
-    arbitrary sign per tree. Each tree edge says "same" or "opposite" (the sign of n_i . n_j);
-    a doubled graph (nodes i+ and i-, joined straight or crosswise) has two components per
-    tree, and a node is + when its i+ copy lies in the lower-labelled one."""
-    m = len(normals)
-    coo = tree.tocoo()
-    i, j = coo.row, coo.col
-    same = np.sum(normals[i] * normals[j], axis=1) >= 0
-    rows = np.concatenate([i, i + m])
-    cols = np.concatenate([np.where(same, j, j + m), np.where(same, j + m, j)])
-    doubled = sparse.coo_matrix((np.ones(len(rows)), (rows, cols)), shape=(2 * m, 2 * m))
-    _, labels = csgraph.connected_components(doubled, directed=False)
-    return np.where(labels[:m] < labels[m:], 1.0, -1.0)
-
-
 def orient_mst(points, normals, k: int = 15) -> np.ndarray:
     """Baseline: Hoppe et al. (1992) orientation. Minimum spanning tree of the symmetric
     ``k``-nearest-neighbour graph with weight ``1 - |n_i . n_j|``, signs propagated along
     it, each tree's topmost point (largest last coordinate) made to point up."""
-    points = _check_points(points)
+    points = np.asarray(points, dtype=np.float64)  # checked by jurs.estimate_normals before
     normals = np.asarray(normals, float)
     m = len(points)
     _, neighbours = cKDTree(points).query(points, k=min(k + 1, m))
@@ -214,7 +185,7 @@ def orient_mst(points, normals, k: int = 15) -> np.ndarray:
     weight = 1.0 - np.abs(np.sum(normals[i] * normals[j], axis=1)) + 1e-9
     graph = sparse.coo_matrix((weight, (i, j)), shape=(m, m)).tocsr()
     forest = csgraph.minimum_spanning_tree(graph.maximum(graph.T))
-    signed = normals * _tree_signs(forest, normals)[:, None]
+    signed = normals * forest_signs(forest, normals)[:, None]
     _, component = csgraph.connected_components(forest, directed=False)
     top = np.zeros(component.max() + 1, np.int64)
     order = np.argsort(points[:, -1])  # ascending: the last write per component is its top
