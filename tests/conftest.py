@@ -71,3 +71,61 @@ def example1_cloud():
     import jurs
 
     return jurs.datasets.example1(120)
+
+
+def _module_fixture_users(path):
+    """Names of the test functions in the file at ``path`` that take, directly or through
+    another fixture of the file, a fixture of module scope defined there."""
+    import ast
+
+    fixtures, module_scoped, tests = {}, set(), {}
+    for node in ast.parse(path.read_text(encoding="utf-8")).body:
+        if not isinstance(node, ast.FunctionDef):
+            continue
+        args = {a.arg for a in node.args.args}
+        for dec in node.decorator_list:
+            call = dec if isinstance(dec, ast.Call) else None
+            target = call.func if call else dec
+            if ast.unparse(target) in ("pytest.fixture", "fixture"):
+                fixtures[node.name] = args
+                scope = [k.value for k in call.keywords if k.arg == "scope"] if call else []
+                if scope and isinstance(scope[0], ast.Constant) and scope[0].value == "module":
+                    module_scoped.add(node.name)
+                break
+        else:
+            if node.name.startswith("test"):
+                tests[node.name] = args
+    bound = set(module_scoped)
+    while True:  # fixtures that use a module-scoped one wait for it too
+        more = {name for name, args in fixtures.items() if args & bound} - bound
+        if not more:
+            break
+        bound |= more
+    return {name for name, args in tests.items() if args & bound}
+
+
+@pytest.hookimpl(optionalhook=True, tryfirst=True)
+def pytest_xdist_make_scheduler(config, log):
+    """With several workers (make test: -n 2), xdist's default "load" hands out tests one
+    by one: the tests of one module-scoped fixture landed on both workers and each built it
+    (the solvers' fits, the sharded child process: a minute or more each), and a worker
+    that ran another module in between built it again. Here the tests that take such a
+    fixture go to one worker together, in their order; all others are handed out one by
+    one as before. (xdist's own ``--dist loadgroup`` marks groups by renaming test ids,
+    which this pytest's nodes no longer allow.)"""
+    if config.getoption("dist") != "load":
+        return None
+    from xdist.scheduler import LoadScopeScheduling
+
+    users = {}
+
+    class ModuleFixtureScheduling(LoadScopeScheduling):
+        def _split_scope(self, nodeid):
+            module, _, rest = nodeid.partition("::")
+            if module.endswith(".py") and module not in users:
+                path = config.rootpath / module
+                users[module] = _module_fixture_users(path) if path.is_file() else set()
+            name = rest.split("::")[0].split("[")[0]
+            return module if name in users.get(module, ()) else nodeid
+
+    return ModuleFixtureScheduling(config, log)
