@@ -273,6 +273,7 @@ def test_python_lists_take_no_deprecated_path(cloud):
     assert np.isfinite(float(sol.metrics["E"]))
 
 
+@pytest.mark.slow
 def test_sparse_cloud_with_an_automatic_bucket_size():
     """A concrete cloud too large for the table layout and sparser than 2 samples an
     occupied cell (automatic bucket size 1) raised a TypeError from make_problem."""

@@ -100,6 +100,7 @@ def test_inconsistent_normals_by_iurs_and_by_the_sign_check(cloud):
         eqx.filter_jit(lambda pr: jurs.solve(jurs.LeastSquares(lam=1e-4), pr).spline)(problem)
 
 
+@pytest.mark.slow
 def test_offset_sign_check_reads_a_strided_subset_of_large_clouds(monkeypatch):
     """Above SIGN_CHECK_POINTS points the sign check reads every k-th point (its per-point
     sums stay bounded); the fraction it gives is that of the points read."""
@@ -117,6 +118,7 @@ def test_offset_sign_check_reads_a_strided_subset_of_large_clouds(monkeypatch):
     assert strided == pytest.approx(flipped[::4].mean()) and strided != exact
 
 
+@pytest.mark.slow
 def test_absurd_tau_has_its_own_verdict():
     """13: tau of 1e6 to 1e300 ended max_steps_reached, like a healthy run."""
     p, n = jurs.datasets.example1(120)
@@ -130,6 +132,7 @@ def test_absurd_tau_has_its_own_verdict():
     assert healthy.result == jurs.RESULTS.max_steps_reached
 
 
+@pytest.mark.slow
 def test_chunked_fit_raises_its_final_verdict_only():
     """fit_in_chunks fits its chunks with throw=False (a verdict on the iterate so far is
     not the run's) and raises the run's final verdict with throw=True."""
