@@ -136,6 +136,7 @@ def test_check_grads_spline_evaluation(rng):
     check_grads(evaluate, args, order=2, modes=("fwd", "rev"), eps=1e-6)
 
 
+@pytest.mark.slow
 def test_spatial_gradient(rng):
     shape = (8, 8)
     xy, lower, upper = random_points(rng, 10)

@@ -116,6 +116,7 @@ def test_overrides_are_kept(lobes):
     )
 
 
+@pytest.mark.slow
 def test_fit_takes_the_smoothing_of_its_default_solver(lobes):
     p, n = lobes
     chosen = jurs.auto_settings(p, n, grid=12, smoothing=1e-4)

@@ -1,13 +1,24 @@
-"""Bad inputs raise ValueError naming the problem, and nothing the caller passed is changed."""
+"""Bad inputs raise ValueError/TypeError naming the problem, and nothing the caller passed
+is changed. The later tests reproduce defects of the outside probe (issue 20) on a small
+cloud; numbers in their docstrings are the defects' numbers in the issue. (Generated bad
+inputs: tests/test_properties.py; verdicts on bad data: tests/test_verdicts.py.)"""
 
+import warnings
+
+import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
 import jurs
+from jurs._problem import memory as _memory
+
+CHEAP = dict(grid=(6, 6), offset=0.1, eps=0.01, solver=jurs.IPIA(max_steps=2))
 
 
-@pytest.fixture
+@pytest.fixture(scope="module")
 def cloud():
+    """Example 1 at 30 points (shared: the tests copy before they change it)."""
     return jurs.datasets.example1(30)
 
 
@@ -117,3 +128,168 @@ def test_bucket_size(cloud):
     slots = problem.samples.shape[0]
     assert slots % 4 == 0 and slots > 90, "30 points give 90 samples, padded into full buckets"
     assert float(problem.mask.sum()) == 90.0
+
+
+@pytest.fixture(scope="module")
+def circle():
+    return jurs.datasets.ellipse(200, 1.0, 1.0)
+
+
+def test_float32_far_from_origin_is_refused(circle, cloud):
+    """2: in float32 a circle translated by 1e7 lost its zero set and reported success."""
+    p, n = circle
+    with jax.enable_x64(False):
+        with pytest.raises(ValueError, match=r"float32 resolves only steps of 1.*offset"):
+            jurs.fit(p + 1e7, n)
+        near = jurs.fit(cloud[0] + 100.0, cloud[1], **CHEAP)  # resolvable: fitted
+    assert near.spline.control.dtype == jnp.float32
+    assert np.isfinite(np.asarray(near.spline.control)).all()
+    # float64 resolves the same cloud (make_problem is where the check lives).
+    jurs.make_problem(p + 1e7, n, grid=8, offset=0.0157)
+    with pytest.raises(ValueError, match="float32"):
+        jurs.make_problem(p + 1e7, n, grid=8, offset=0.0157, dtype=jnp.float32)
+
+
+@pytest.mark.parametrize("scale", [1e200, 1e-200])
+def test_normals_of_extreme_length(cloud, scale):
+    """3: normals longer than 1e154 overflowed when normalised (garbage, "success")."""
+    p, n = cloud
+    unit = jurs.fit(p, n, **CHEAP)
+    scaled = jurs.fit(p, scale * n, **CHEAP)
+    np.testing.assert_allclose(
+        np.asarray(scaled.spline.control), np.asarray(unit.spline.control), rtol=1e-12, atol=0
+    )
+    with jax.enable_x64(False):  # cast to float32 after normalising, not before
+        sol = jurs.fit(p, scale * n, **CHEAP)
+    assert np.isfinite(np.asarray(sol.spline.control)).all()
+
+
+@pytest.mark.parametrize(
+    "kwargs, error, needle",
+    [
+        (dict(margin=-0.1), ValueError, "margin must be non-negative"),
+        (dict(margin=-0.6), ValueError, "margin must be non-negative"),
+        (dict(margin=float("nan")), ValueError, "margin must be finite"),
+        (dict(domain=((float("nan"), 0.0), (1.0, 1.0))), ValueError, "domain must be finite"),
+        (dict(margin="wide"), TypeError, "margin must be a number"),
+    ],
+)
+def test_margin_and_domain(cloud, kwargs, error, needle):
+    """5: margin unchecked, a NaN domain reported as "lam must be finite"."""
+    for settings in ({}, CHEAP):  # the automatic path and the explicit one
+        with pytest.raises(error, match=needle):
+            jurs.fit(*cloud, **settings, **kwargs)
+    with pytest.raises(error, match=needle):
+        jurs.auto_settings(*cloud, **kwargs)
+
+
+def test_mask_and_non_numeric_points(cloud):
+    """5: an all-False mask gave an IURS hint under LeastSquares; strings a raw TypeError."""
+    p, n = cloud
+    for solver in (jurs.LeastSquares(lam=1e-6), jurs.IPIA(max_steps=2)):
+        with pytest.raises(ValueError, match="mask must select at least 3 points"):
+            jurs.fit(p, n, grid=6, offset=0.1, eps=0.01, solver=solver, mask=np.zeros(30, bool))
+    with pytest.raises(TypeError, match="points must be an array of numbers"):
+        jurs.fit(p.astype(str), n, **CHEAP)
+    with pytest.raises(TypeError, match="normals must be an array of numbers"):
+        jurs.auto_settings(p, n.astype(object))
+    with pytest.raises(ValueError, match="points must be an array of numbers"):
+        jurs.make_problem([[0.0, 1.0], [1.0]], n, grid=6)
+
+
+def test_identical_points_refused_on_both_paths():
+    """6: identical points were refused only on the automatic path."""
+    p = np.ones((30, 2))
+    n = np.tile([1.0, 0.0], (30, 1))
+    for settings in ({}, CHEAP):
+        with pytest.raises(ValueError, match="all points coincide"):
+            jurs.fit(p, n, **settings)
+    with pytest.raises(ValueError, match="all points coincide"):
+        jurs.make_problem(p, n, grid=6)
+
+
+def test_absurd_offset(cloud):
+    """7: offset=1e6 ran for a minute into 203 loops, unremarked."""
+    with pytest.raises(ValueError, match=r"offset d = 1e\+06 exceeds the cloud's extent"):
+        jurs.fit(*cloud, offset=1e6)
+    with pytest.raises(ValueError, match="offset"):
+        jurs.make_problem(*cloud, grid=6, offset=1e6)
+
+
+def test_memory_refused_up_front(cloud, monkeypatch):
+    """8: grid=10000 asked XLA for 248 GB after 20 s; resolution 30000 a MemoryError."""
+    monkeypatch.setattr(_memory, "available_memory", lambda device=True: 2 << 30)
+    with pytest.raises(ValueError, match=r"grid=10000x10000 needs about .* GiB .* 2 GiB"):
+        jurs.fit(*cloud, grid=10000)
+    with pytest.raises(ValueError, match=r"grid=2000x2000 needs about"):
+        jurs.fit(*cloud, grid=2000, offset=0.1, eps=0.1, solver=jurs.IURS())
+    sol = jurs.fit(*cloud, **CHEAP)
+    with pytest.raises(ValueError, match=r"resolution=30000 needs about .* GiB"):
+        jurs.levelset.analyze(sol.spline, cloud[0], resolution=30000)
+    # The estimate of a default fit is far below (the limit is not in the way).
+    assert jurs._problem.memory.fit_memory((96, 96), 3000, jurs.LeastSquares()) < 128 << 20
+
+
+def test_load_spline_checks_values(tmp_path):
+    """9: load_spline accepted all-zero weights (g NaN everywhere) and lower > upper."""
+    good = dict(
+        control=np.zeros((6, 6)), weights=np.ones((6, 6)), lower=np.zeros(2), upper=np.ones(2)
+    )
+    for change, needle in (
+        (dict(weights=np.zeros((6, 6))), "weights must all be positive"),
+        (dict(lower=np.array([2.0, 0.0])), "lower must be below upper"),
+        (dict(control=np.full((6, 6), np.nan)), "control contain NaN"),
+        (dict(control=np.zeros((3, 3)), weights=np.ones((3, 3))), "at least 4 x 4"),
+    ):
+        path = tmp_path / "bad.npz"
+        np.savez(path, **{**good, **change})
+        with pytest.raises(ValueError, match=needle) as info:
+            jurs.load_spline(path)
+        assert str(path) in str(info.value)
+    with pytest.raises(ValueError, match="weights must all be positive"):
+        jurs.save_spline(
+            tmp_path / "x.npz",
+            jurs.ImplicitSpline(jnp.zeros((6, 6)), jnp.zeros((6, 6)), jnp.zeros(2), jnp.ones(2)),
+        )
+
+
+def test_save_spline_writes_the_name_given(cloud, tmp_path, monkeypatch):
+    """11: save_spline('x') wrote x.npz, then load_spline('x') was FileNotFoundError."""
+    monkeypatch.chdir(tmp_path)
+    spline = jurs.fit(*cloud, **CHEAP).spline
+    jurs.save_spline("x", spline)
+    assert (tmp_path / "x").is_file() and not (tmp_path / "x.npz").exists()
+    back = jurs.load_spline("x")
+    np.testing.assert_array_equal(np.asarray(back.control), np.asarray(spline.control))
+
+
+def test_python_lists_take_no_deprecated_path(cloud):
+    """14: lists went through jnp.shape(list), which JAX deprecates."""
+    p, n = (a.tolist() for a in cloud)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", DeprecationWarning)
+        sol = jurs.fit(p, n, **CHEAP)
+        jurs.make_problem(p, n, grid=6, mask=[True] * 30)
+    assert np.isfinite(float(sol.metrics["E"]))
+
+
+@pytest.mark.slow
+def test_sparse_cloud_with_an_automatic_bucket_size():
+    """A concrete cloud too large for the table layout and sparser than 2 samples an
+    occupied cell (automatic bucket size 1) raised a TypeError from make_problem."""
+    rng = np.random.default_rng(0)
+    m = jurs._problem.problem.TABLE_MAX_SLOTS // 3 + 1000
+    points = rng.uniform(-10.0, 10.0, (m, 2))
+    normals = rng.normal(size=points.shape)
+    normals /= np.linalg.norm(normals, axis=1)[:, None]
+    # Offsets of several cells: each sample alone in its cell (median count 1).
+    settings = dict(grid=4 * int(np.sqrt(m)), offset=0.2, eps=0.01)
+    auto = jurs.make_problem(points, normals, **settings)
+    ones = jurs.make_problem(points, normals, bucket_size=1, **settings)
+    control = jnp.asarray(rng.normal(size=auto.shape))
+    weights = jnp.ones(auto.shape)
+    np.testing.assert_allclose(
+        float(jurs.internal.data_energy(auto, control, weights)),
+        float(jurs.internal.data_energy(ones, control, weights)),
+        rtol=1e-12,
+    )

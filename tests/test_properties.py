@@ -215,6 +215,7 @@ def test_bad_margin(margin, automatic):
     )
 
 
+@pytest.mark.slow
 @FAST
 @given(
     domain=st.one_of(

@@ -229,6 +229,7 @@ def test_thin_features_refine_the_grid_within_budget():
 # --------------------------------------------------------------------------- doubt
 
 
+@pytest.mark.slow
 def test_crossed_features_counts_fused_rings():
     """Two rings 0.05 apart fused by a coarse fit: the points facing each other across
     the gap are counted; well apart, none."""
@@ -251,6 +252,7 @@ def test_elongated_shape_is_doubtful_with_a_reason():
     assert sol.result == jurs.RESULTS.doubtful and "doubt" in sol.message
 
 
+@pytest.mark.slow
 def test_clean_fit_has_no_doubt():
     p, n = _circle(400)
     with warnings.catch_warnings():

@@ -97,6 +97,7 @@ def test_losses_are_consistent():
         np.testing.assert_allclose(robust_loss(loss, jnp.array(1e-3)), 1e-6, rtol=1e-3)
 
 
+@pytest.mark.slow
 def test_small_problem_runs_and_weights_follow_points():
     p, n = jurs.datasets.example1(40)
     problem = jurs.make_problem(p, n, grid=10, offset=0.1, eps=0.1)
