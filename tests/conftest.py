@@ -116,7 +116,7 @@ def pytest_xdist_make_scheduler(config, log):
     workers and each built it (the ten solver fits of test_solvers_extra: 128 s and 101 s
     of setup in one run), and a worker that ran another module in between built it again.
     Here the tests that take such a fixture go to one worker together, in their order;
-    the others go in runs of :data:`XDIST_CHUNK` neighbours of one file (they often compile
+    the others go in runs of ``XDIST_CHUNK`` neighbours of one file (they often compile
     the same fits). xdist sends the larger units first. (xdist's own ``--dist loadgroup``
     marks groups by renaming test ids, which this pytest's nodes no longer allow.)"""
     if config.getoption("dist") != "load":
