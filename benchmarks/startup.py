@@ -442,7 +442,7 @@ def render_overhead(data: dict) -> str:
     lines = [
         "# Host work of a warm fit",
         "",
-        f"{data['date']}, {data['machine']}, {data['cores']} cores, load {data['load']}.",
+        f"{data['date']}, {data['machine']}, load {data['load']}.",
         "Example 1 (120 points), grid 9 x 9, `LeastSquares(lam=1e-6)`, every setting given;",
         f"per call, median of {OVERHEAD_ROUNDS} interleaved rounds of {OVERHEAD_CALLS} calls"
         " (`python benchmarks/startup.py --overhead`).",
