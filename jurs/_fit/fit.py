@@ -319,8 +319,9 @@ def _fit(
     estimated = None
     if isinstance(points, Cloud) and points.normals is not None:
         cloud = points
-    elif normals is None:
-        cloud, estimated = _estimated(points, mask)
+    elif normals is None:  # a Cloud without normals keeps its mask: refused there
+        given_mask = points.given_mask if isinstance(points, Cloud) else mask
+        cloud, estimated = _estimated(points, given_mask)
     else:
         cloud = Cloud(points, normals, mask)
     check_values(offset=offset, eps=eps, margin=margin, domain=domain)
