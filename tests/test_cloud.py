@@ -106,3 +106,14 @@ def test_cloud_refuses_bad_input_and_traced_points():
         jurs.fit(cloud, normals, **PAPER)
     with pytest.raises(ValueError, match="holds its normals"):
         jurs.auto_settings(cloud, normals)
+
+
+def test_a_cloud_without_normals_is_fitted_as_points_alone():
+    points, _ = jurs.datasets.example1(150)
+    from_cloud = jurs.fit(jurs.Cloud(points), **PAPER, solver=jurs.LeastSquares(lam=1e-6))
+    from_points = jurs.fit(points, **PAPER, solver=jurs.LeastSquares(lam=1e-6))
+    assert "estimated_normals" in from_cloud.stats
+    np.testing.assert_allclose(from_cloud.spline.control, from_points.spline.control, rtol=1e-12)
+    masked = jurs.Cloud(points, mask=np.arange(150) < 140)
+    with pytest.raises(ValueError, match="takes no mask"):
+        jurs.fit(masked, **PAPER, solver=jurs.LeastSquares(lam=1e-6))
