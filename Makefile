@@ -35,7 +35,7 @@ test: $(STAMP)
 	$(VENV)/bin/ruff format --check --quiet .
 	$(VENV)/bin/basedpyright --project . --level error
 	$(MKDOCS) build --strict --quiet
-	XLA_PYTHON_CLIENT_PREALLOCATE=false $(PY) -m pytest -q -n 2 --nbmake tests benchmarks/tests notebooks
+	XLA_PYTHON_CLIENT_PREALLOCATE=false $(PY) -m pytest -q -n 2 --durations=25 --nbmake tests benchmarks/tests notebooks
 
 test-fast: $(STAMP)
 	XLA_PYTHON_CLIENT_PREALLOCATE=false $(PY) -m pytest -q -n 2 -m "not slow" tests benchmarks/tests

@@ -82,6 +82,8 @@ class _FlatJit:
             kept[:] = [(out_tree, out_static)]
             return out_leaves
 
+        # Named as the function it runs: JAX's cache files and compile events say ``_run``.
+        flat.__name__ = flat.__qualname__ = getattr(self.fn, "__name__", "flat")
         jitted = jax.jit(flat)
         return lambda leaves: (jitted(leaves), kept[0])
 
