@@ -117,3 +117,17 @@ def test_a_cloud_without_normals_is_fitted_as_points_alone():
     masked = jurs.Cloud(points, mask=np.arange(150) < 140)
     with pytest.raises(ValueError, match="takes no mask"):
         jurs.fit(masked, **PAPER, solver=jurs.LeastSquares(lam=1e-6))
+
+
+def test_a_cloud_keeps_its_own_copy():
+    """Editing the arrays after building the Cloud changes neither its measurements nor
+    its fits."""
+    points, normals = jurs.datasets.example1(120)
+    points, normals = points.copy(), normals.copy()
+    cloud = jurs.Cloud(points, normals)
+    before = jurs.fit(cloud, solver=jurs.LeastSquares(lam=1e-6), **PAPER)
+    points += 5.0
+    normals *= -1.0
+    after = jurs.fit(cloud, solver=jurs.LeastSquares(lam=1e-6), **PAPER)
+    np.testing.assert_array_equal(before.spline.control, after.spline.control)
+    assert after.status == "successful"

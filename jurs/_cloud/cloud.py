@@ -6,10 +6,11 @@ from __future__ import annotations
 import functools
 from typing import TYPE_CHECKING, Any
 
+import jax
 import numpy as np
 from jaxtyping import Float
 
-from .._problem.validate import _is_concrete, _shape, unit_normals, validate_points
+from .._problem.validate import _is_concrete, unit_normals, validate_points
 from .measure import PROBES, kd_tree, strided_probes
 from .orientation import flipped_normal_fraction, orientation_sample, tangential_normal_fraction
 
@@ -45,9 +46,12 @@ class Cloud:
                 "grad or vmap pass the arrays to jurs.fit with every setting given"
             )
         validate_points(points, points if normals is None else normals, mask)
-        #: the arrays as given (their dtype and device are kept for the fit)
-        self.given_points, self.given_normals, self.given_mask = points, normals, mask
-        self.points: Float[np.ndarray, "m d"] = np.asarray(points, float)
+        # JAX arrays as given, for their devices (a sharded cloud is solved where it lies);
+        # host arrays as copies, so that a caller's later edit changes no kept measurement.
+        self.given_points: Any = _kept(points)
+        self.given_normals: Any = None if normals is None else _kept(normals)
+        self.given_mask: Any = None if mask is None else _kept(mask)
+        self.points: Float[np.ndarray, "m d"] = np.array(points, float)
         self.normals: Float[np.ndarray, "m d"] | None = (
             None if normals is None else unit_normals(np.asarray(normals, float))
         )
@@ -95,11 +99,7 @@ class Cloud:
         sample = orientation_sample(p, n, self.tree if self.probes is None else None)
         return flipped_normal_fraction(p, n, sample), tangential_normal_fraction(p, n, sample)
 
-    def with_normals(self, normals) -> Cloud:
-        """The same points with ``normals`` (estimated ones), checked as given ones are."""
-        return Cloud(self.given_points, normals, self.given_mask)
 
-
-def cloud_shape(points) -> tuple:
-    """The shape of ``points`` (a Cloud, an array or nested lists) without converting it."""
-    return (len(points), points.ndim) if isinstance(points, Cloud) else _shape(points)
+def _kept(x):
+    """A JAX array as it is (immutable, on its devices), anything else as a NumPy copy."""
+    return x if isinstance(x, jax.Array) else np.array(x)
