@@ -262,7 +262,8 @@ def test_noise_shrinks_the_field_less():
     (geometric mean of the planarity and the planarity relative to its median) bring it
     to about 0.43, unit weights to 0.53. Field of dipoles (true length per point, PCA
     normals signed by the truth)."""
-    from jurs._cloud.normals import _dipole_matrix, _source_weight
+    from jurs._cloud.normals import _source_weight
+    from jurs._cloud.winding import _dipole_matrix
 
     points, truth = jurs.shapes.get("annulus", 2000)
     length = np.sum(np.linalg.norm(points - np.roll(points, 1, axis=0), axis=1)) / len(points)

@@ -20,7 +20,7 @@ from jaxtyping import ArrayLike, Float
 
 from .._cloud.cloud import Cloud
 from .._model.spline import ImplicitSpline
-from .._problem.memory import check_memory, fit_memory
+from .._problem.memory import check_fit_memory
 from .._problem.padding import padded_problem
 from .._problem.problem import make_problem
 from .._problem.sizes import DEFAULT_MARGIN
@@ -122,7 +122,7 @@ def _traced_fit(
         )
     shape = normalise_grid(grid, _point_dimension(points))
     check_start(shape, solver, init)
-    check_memory("grid=" + "x".join(map(str, shape)), fit_memory(shape, 3 * len(points), solver))
+    check_fit_memory(shape, len(points), solver)
     dtype = jnp.result_type(float)
     problem = make_problem(
         points,
@@ -335,7 +335,7 @@ def _fit(
         offset = settings.offset if offset is None else offset
         eps = settings.eps if eps is None else eps
         solver = default_solver(settings) if solver is None else solver
-        check_memory("grid=" + "x".join(map(str, shape)), fit_memory(shape, 3 * len(cloud), solver))
+        check_fit_memory(shape, len(cloud), solver)
     elif shape is None or offset is None or eps is None or solver is None:
         # The memory on the chosen grid is checked there, before its first solve.
         settings = choose_settings(
@@ -344,7 +344,7 @@ def _fit(
         shape, offset, eps = settings.grid, settings.offset, settings.eps
         solver = default_solver(settings) if solver is None else solver
     else:
-        check_memory("grid=" + "x".join(map(str, shape)), fit_memory(shape, 3 * len(cloud), solver))
+        check_fit_memory(shape, len(cloud), solver)
     if domain is not None and offset_given is None:  # the chosen offset, in the box given
         validate_settings(cloud.points, cloud.normals, cloud.mask, offset=offset, domain=domain)
     check_start(shape, solver, init)

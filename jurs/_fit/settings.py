@@ -56,7 +56,7 @@ from .._cloud.measure import (
     strided_probes,
 )
 from .._cloud.outliers import MAX_SET_ASIDE, isolated_points
-from .._problem.memory import check_memory, fit_memory
+from .._problem.memory import check_fit_memory
 from .._problem.padding import padded_problem
 from .._problem.problem import auto_domain, offset_samples
 from .._problem.sizes import DEFAULT_MARGIN, round_size
@@ -392,18 +392,17 @@ def auto_settings(
             "jit/grad/vmap pass grid, offset and eps explicitly, e.g. from "
             "jurs.auto_settings(points, normals) called outside"
         )
+    # The same checks as make_problem's, before anything is computed from the inputs
+    # (a NaN domain was reported as "lam must be finite").
+    check_values(offset=offset, eps=eps, margin=margin, domain=domain)
     if isinstance(points, Cloud):
         cloud = points
         if normals is not None:
             raise ValueError("auto_settings(cloud): the cloud holds its normals; pass none")
     else:
-        # The same checks as make_problem's, before anything is computed from the inputs
-        # (a NaN domain was reported as "lam must be finite").
-        check_values(offset=offset, eps=eps, margin=margin, domain=domain)
         cloud = Cloud(points, normals)
     if cloud.normals is None:
         raise ValueError("auto_settings needs outward normals (jurs.estimate_normals)")
-    check_values(offset=offset, eps=eps, margin=margin, domain=domain)
     validate_settings(cloud.points, cloud.normals, None, offset=offset, domain=domain)
     shape = None if grid is None else normalise_grid(grid, cloud.ndim)
     return choose_settings(cloud, shape, offset, eps, domain, margin, smoothing, max_grid)
@@ -471,7 +470,7 @@ def choose_settings(
     if shape is None:
         shape = choose_grid(lower, upper, spacing, noise, max_grid, feature)
     # Once per fit, before the first solve on the grid (the held-out choice below).
-    check_memory("grid=" + "x".join(map(str, shape)), fit_memory(shape, 3 * len(cloud), solver))
+    check_fit_memory(shape, len(cloud), solver)
     diagonal = float(np.linalg.norm(p.max(axis=0) - p.min(axis=0)))
     cell = float(np.max((upper - lower) / (np.asarray(shape) - 3)))
     thin = 0.0 if width is None else float(np.mean(width < FEATURE_CELLS * cell))

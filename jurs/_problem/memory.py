@@ -94,3 +94,9 @@ def fit_memory(shape, num_samples: int, solver) -> float:
         per_coefficient = BYTES_PER_COEFFICIENT_3D if surface else BYTES_PER_COEFFICIENT
     per_sample = BYTES_PER_SAMPLE_3D if surface else BYTES_PER_SAMPLE
     return float(per_coefficient * np.prod(shape) + per_sample * num_samples)
+
+
+def check_fit_memory(shape, num_points: int, solver) -> None:
+    """``check_memory`` of a fit of ``num_points`` points (3 samples each) on the grid
+    ``shape`` by ``solver`` (None: the default exact solve), naming the grid."""
+    check_memory("grid=" + "x".join(map(str, shape)), fit_memory(shape, 3 * num_points, solver))
