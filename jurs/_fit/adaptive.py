@@ -8,12 +8,13 @@ sigma)`` (``3 s`` on a surface) as ``choose_grid`` would pick without a cap, and
 levels above it are coarse everywhere but near the samples. The solve is conjugate
 gradients on the normal equations, preconditioned by their exact diagonal: on the
 hierarchical basis that keeps the step count nearly flat as levels are added
-(docs/design.md section 11).
+(docs/design.md section 8).
 """
 
 from __future__ import annotations
 
 import math
+from typing import cast
 
 import equinox as eqx
 import jax.numpy as jnp
@@ -147,7 +148,7 @@ def fit_adaptive(
     if normals is None:
         from .._cloud.normals import estimate_normals
 
-        normals = estimate_normals(points)
+        normals = cast(np.ndarray, estimate_normals(points))
     if settings is None:
         settings = auto_settings(points, normals, offset=offset, eps=eps, domain=domain)
     points_np = np.asarray(points, float)

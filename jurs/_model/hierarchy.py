@@ -13,7 +13,7 @@ finest cell that holds it; the leaves partition the box.
 there, its terms on functions whose support lies in ``Omega_{l+1}`` are dropped. The
 truncated basis is non-negative, linearly independent, a partition of unity, and spans the
 same space as the plain hierarchical basis; a spline of a coarse level is represented
-exactly (docs/design.md section 11).
+exactly (docs/design.md section 8).
 
 **Evaluation without a dense finest grid.** By linearity a THB spline ``sum c_tau tau`` is,
 on the leaves of level ``l``, the level-``l`` B-spline with *cascaded* coefficients

@@ -87,7 +87,8 @@ def make_adaptive_problem(
     dtype = dtype or jnp.result_type(float)
     points_np = np.asarray(points, dtype=float)
     normals_np = np.asarray(normals, dtype=float)
-    samples_np, _ = offset_samples(points_np, normals_np, offset, eps, xp=np)
+    # Host arrays through the same function (xp=np), for the structure only.
+    samples_np, _ = offset_samples(points_np, normals_np, offset, eps, xp=np)  # pyright: ignore[reportArgumentType]
     refine = refine_near(lower, upper, base, levels, samples_np, band)
     hierarchy = build_hierarchy(lower, upper, base, refine, dtype=dtype)
     samples, targets = offset_samples(
