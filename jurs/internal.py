@@ -16,6 +16,7 @@ from ._model.hierarchy import (
     Hierarchy,
     build_hierarchy,
     cascade,
+    cascade_matrix,
     hierarchy_gradient,
     hierarchy_regulariser,
     hierarchy_values,
@@ -32,7 +33,6 @@ from ._model.spline import (
 )
 from ._problem.adaptive import (
     AdaptiveProblem,
-    adaptive_diagonal,
     adaptive_objective,
     adaptive_values,
     make_adaptive_problem,
@@ -60,11 +60,11 @@ from ._problem.problem import auto_domain, offset_samples
 __all__ = [
     "AdaptiveProblem",
     "Hierarchy",
-    "adaptive_diagonal",
     "adaptive_objective",
     "adaptive_values",
     "build_hierarchy",
     "cascade",
+    "cascade_matrix",
     "hierarchy_gradient",
     "hierarchy_regulariser",
     "hierarchy_values",

@@ -373,6 +373,41 @@ def cascade(hierarchy: Hierarchy, coeffs: Float[Array, "*lead n"]) -> Float[Arra
     return jnp.concatenate(out, axis=-1)
 
 
+def cascade_matrix(hierarchy: Hierarchy):
+    """The cascade as a SciPy sparse matrix (host): rows the concatenated relevant
+    functions of every level, columns the active functions; ``cascade(c) = M @ c``. Rows
+    hold the truncated functions' coefficients, so its size follows the active band
+    (a truncated function keeps terms only near the border of the finer domain)."""
+    from scipy import sparse
+
+    n = hierarchy.num_active
+    blocks = []
+    start = 0
+    previous = None
+    for level in range(hierarchy.num_levels):
+        size, count = hierarchy.level_sizes[level], hierarchy.active_counts[level]
+        rows = np.asarray(hierarchy.active[level])
+        placed = sparse.csr_matrix(
+            (np.ones(count), (rows, start + np.arange(count))), shape=(size, n)
+        )
+        start += count
+        if previous is None:
+            current = placed
+        else:
+            parents = np.asarray(hierarchy.parents[level])
+            weights = np.asarray(hierarchy.parent_weights[level], float)
+            weights = weights * np.asarray(hierarchy.keep[level], float)[:, None]
+            refine = sparse.csr_matrix(
+                (weights.ravel(), (np.repeat(np.arange(size), parents.shape[1]), parents.ravel())),
+                shape=(size, previous.shape[0]),
+            )
+            current = (refine @ previous + placed).tocsr()
+            current.eliminate_zeros()
+        blocks.append(current)
+        previous = current
+    return sparse.vstack(blocks).tocsr()
+
+
 def locate_leaves(
     hierarchy: Hierarchy, x: Float[Array, "n d"]
 ) -> tuple[Int[Array, " n"], Int[Array, "n d"]]:

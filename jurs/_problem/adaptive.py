@@ -19,9 +19,9 @@ from jaxtyping import ArrayLike, Float
 
 from .._model.hierarchy import (
     Hierarchy,
-    _unravel,
     build_hierarchy,
     cascade,
+    cascade_matrix,
     hierarchy_basis,
     hierarchy_regulariser,
     leaf_terms,
@@ -36,9 +36,10 @@ class AdaptiveProblem(eqx.Module):
 
     ``samples (S, d)`` and ``targets (S,)`` are eq. 4-5's (``[P, P + d n, P - d n]``);
     ``positions (S, 4^d)`` index the cascaded coefficients over each sample's leaf and
-    ``cell (S, d)``, ``level (S,)`` name the leaf; ``colours (n,)`` group the active
-    functions into sets with pairwise disjoint supports (see
-    [`adaptive_diagonal`][jurs.internal.adaptive_diagonal]), ``num_colours`` static.
+    ``cell (S, d)``, ``level (S,)`` name the leaf; ``data_diagonal`` and
+    ``regulariser_diagonal`` ``(n,)`` are the diagonals of ``D^T D`` and of ``2 G^T W
+    G`` (the normal matrix is ``D^T D + lam 2 G^T W G``) for the samples the problem was
+    made with: a preconditioner, not differentiated.
     """
 
     hierarchy: Hierarchy
@@ -47,25 +48,47 @@ class AdaptiveProblem(eqx.Module):
     level: Array
     cell: Array
     positions: Array
-    colours: Array
+    data_diagonal: Array
+    regulariser_diagonal: Array
     offset: Array
     eps: Array
-    num_colours: int = eqx.field(static=True)
 
 
-def _colours(hierarchy: Hierarchy) -> tuple[np.ndarray, int]:
-    """A colour per active function: its level and its index mod 4 along each axis. Two
-    functions of one level whose indices differ by 4 or more along an axis have disjoint
-    supports (a cubic spans 4 cells), truncation only shrinks supports, and levels get
-    their own colours, so functions of one colour never overlap."""
-    ndim = hierarchy.ndim
-    out = []
+def normal_matrices(hierarchy: Hierarchy, positions: np.ndarray, basis: np.ndarray):
+    """``(D, 2 G^T W G)`` as SciPy sparse matrices over the active functions, on the host:
+    ``D = B M`` (rows the samples, ``B`` their ``4^d`` basis values at ``positions``,
+    ``M`` the cascade matrix) and the regulariser's part of the normal matrix per unit
+    lambda, so that ``D^T D + lam 2 G^T W G`` is the matrix of the normal equations."""
+    from scipy import sparse
+
+    cascaded = cascade_matrix(hierarchy)
+    total = cascaded.shape[0]
+    count, local = positions.shape
+    rows = np.repeat(np.arange(count), local)
+    collocation = (
+        sparse.csr_matrix((basis.ravel(), (rows, positions.ravel())), shape=(count, total))
+        @ cascaded
+    ).tocsr()
+    pairs, weights, start = [], [], 0
     for level in range(hierarchy.num_levels):
-        keys = np.asarray(hierarchy.function_keys[level])[np.asarray(hierarchy.active[level])]
-        multi = _unravel(keys, hierarchy.functions(level)) % 4
-        colour = level * 4**ndim + (multi * (4 ** np.arange(ndim))).sum(-1)
-        out.append(colour)
-    return np.concatenate(out).astype(np.int32), hierarchy.num_levels * 4**ndim
+        pairs.append(np.asarray(hierarchy.edges[level]) + start)
+        weights.append(np.asarray(hierarchy.edge_weights[level], float))
+        start += hierarchy.level_sizes[level]
+    pairs, weights = np.concatenate(pairs), np.concatenate(weights)
+    edges = len(pairs)
+    difference = (
+        sparse.csr_matrix(
+            (
+                np.stack([np.ones(edges), -np.ones(edges)], 1).ravel(),
+                (np.repeat(np.arange(edges), 2), pairs.ravel()),
+            ),
+            shape=(edges, total),
+        )
+        @ cascaded
+    ).tocsr()
+    # R = 2 sum w (G a)^2: lam R adds lam * 2 G^T W G to the normal matrix.
+    regulariser = (2.0 * difference.T @ sparse.diags(weights) @ difference).tocsr()
+    return collocation, regulariser
 
 
 def make_adaptive_problem(
@@ -95,8 +118,12 @@ def make_adaptive_problem(
         jnp.asarray(points, dtype), jnp.asarray(normals, dtype), offset, eps
     )
     level, cell = locate_leaves(hierarchy, jnp.asarray(samples_np, dtype))
-    positions, _ = leaf_terms(hierarchy, samples, level, cell)
-    colours, count = _colours(hierarchy)
+    positions, local = leaf_terms(hierarchy, samples, level, cell)
+    collocation, regulariser = normal_matrices(
+        hierarchy, np.asarray(positions), np.asarray(hierarchy_basis(local))
+    )
+    data_diagonal = np.asarray(collocation.multiply(collocation).sum(axis=0)).ravel()
+    regulariser_diagonal = regulariser.diagonal()
     return AdaptiveProblem(
         hierarchy=hierarchy,
         samples=samples,
@@ -104,10 +131,10 @@ def make_adaptive_problem(
         level=level,
         cell=cell,
         positions=positions,
-        colours=jnp.asarray(colours),
+        data_diagonal=jnp.asarray(data_diagonal, dtype),
+        regulariser_diagonal=jnp.asarray(regulariser_diagonal, dtype),
         offset=jnp.asarray(offset, dtype),
         eps=jnp.asarray(eps, dtype),
-        num_colours=count,
     )
 
 
@@ -165,14 +192,3 @@ def normal_rhs(problem: AdaptiveProblem, basis=None) -> Array:
     zero = jnp.zeros((n,), problem.targets.dtype)
     _, transpose = jax.vjp(lambda c: adaptive_values(problem, c, basis), zero)
     return transpose(problem.targets)[0]
-
-
-def adaptive_diagonal(problem: AdaptiveProblem, matvec) -> Float[Array, " n"]:
-    """The exact diagonal of the normal matrix by probing: for each colour (functions with
-    pairwise disjoint supports), ``A 1_colour`` equals ``A_tt`` at every function ``t`` of
-    the colour, since ``A_ts = 0`` when supports do not overlap. ``num_colours`` matrix
-    products (``levels * 4^d``), run as one batched product."""
-    colours = jnp.arange(problem.num_colours)
-    probes = (problem.colours[None, :] == colours[:, None]).astype(problem.targets.dtype)
-    products = jax.vmap(matvec)(probes)
-    return jnp.sum(products * probes, axis=0)
