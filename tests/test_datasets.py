@@ -1,5 +1,7 @@
 """Built-in curves, noise, and reading points from files."""
 
+import pathlib
+
 import numpy as np
 import pytest
 from matplotlib.path import Path
@@ -109,3 +111,58 @@ def test_two_column_csv_checks_every_row(tmp_path):
     path.write_text("0 0\n1 nan\n2 2\n")
     with pytest.raises(ValueError, match=r"row 2 has NaN or Inf"):
         datasets.load_points(path)
+
+
+# --- spline files: a format version -------------------------------------------------------
+
+DATA = pathlib.Path(__file__).resolve().parent / "data"
+
+
+def test_spline_files_carry_a_version(tmp_path):
+    """save_spline writes ``format_version``; load_spline reads it back."""
+    import jurs
+    from jurs._model.io import FORMAT_VERSION, VERSION_KEY
+
+    spline = jurs.load_spline(DATA / "spline_unversioned.npz")
+    jurs.save_spline(tmp_path / "s.npz", spline)
+    with np.load(tmp_path / "s.npz") as data:
+        assert int(data[VERSION_KEY]) == FORMAT_VERSION
+    back = jurs.load_spline(tmp_path / "s.npz")
+    np.testing.assert_array_equal(np.asarray(back.control), np.asarray(spline.control))
+
+
+def test_unversioned_spline_files_still_load():
+    """A file written by save_spline before the format had a version (tests/data, made by
+    that code: the four arrays alone) loads as it did."""
+    import jurs
+
+    with np.load(DATA / "spline_unversioned.npz") as data:
+        assert sorted(data.files) == ["control", "lower", "upper", "weights"]
+        control = data["control"]
+    spline = jurs.load_spline(DATA / "spline_unversioned.npz")
+    np.testing.assert_array_equal(np.asarray(spline.control), control)
+    assert np.isfinite(float(spline(np.zeros(2))))
+
+
+@pytest.mark.parametrize(
+    "extra, needle",
+    [
+        ({"format_version": np.int64(99)}, r"format version 99; this jurs reads versions 0, 1"),
+        ({"format_version": np.float64(1.0)}, "format_version must be one integer"),
+        ({"format_version": np.arange(2)}, "format_version must be one integer"),
+        ({"format_version": np.int64(1), "offsets": np.ones(3)}, "unexpected arrays"),
+        ({"mask": np.ones((6, 6))}, r"unexpected arrays \['mask'\]"),
+    ],
+)
+def test_spline_files_of_other_versions_or_layouts_are_refused(tmp_path, extra, needle):
+    """A file of a newer format, or with arrays the format does not have, is refused
+    naming the file (it was read as a spline when its four arrays happened to fit)."""
+    import jurs
+
+    with np.load(DATA / "spline_unversioned.npz") as data:
+        arrays = {k: data[k] for k in data.files}
+    path = tmp_path / "other.npz"
+    np.savez(path, **arrays, **extra)
+    with pytest.raises(ValueError, match=needle) as info:
+        jurs.load_spline(path)
+    assert str(path) in str(info.value)
