@@ -236,7 +236,8 @@ def _trimesh():
         import trimesh.exchange.stl
     except ImportError:
         raise ImportError(
-            '3D point-cloud and mesh files need trimesh: pip install "jurs[surfaces]"'
+            "3D point-cloud and mesh files need trimesh: from a clone of jurs, "
+            'pip install ".[surfaces]"'
         ) from None
     return trimesh
 
