@@ -4,6 +4,9 @@ import pathlib
 
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, assume, given, settings
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
 from matplotlib.path import Path
 
 from jurs import datasets
@@ -184,6 +187,11 @@ def _on_faces(points, vertices, faces, tol):
     """Whether each point lies on one of the triangles (within ``tol``): in its plane
     and inside its edges (barycentric coordinates >= -tol)."""
     a, b, c = (vertices[faces[:, k]] for k in range(3))
+    with np.errstate(divide="ignore", invalid="ignore"):  # faces without area: never inside
+        return _on_faces_of(points, a, b, c, tol)
+
+
+def _on_faces_of(points, a, b, c, tol):
     e1, e2, d = b - a, c - a, points[:, None, :] - a[None]
     n = np.cross(e1, e2)
     area2 = np.linalg.norm(n, axis=1)
@@ -348,3 +356,51 @@ def test_meshes_and_clouds_far_from_the_origin_keep_float64(tmp_path):
         datasets.save_mesh(tmp_path / f"far{suffix}", vertices, sphere.faces)
         back = datasets.load_mesh(tmp_path / f"far{suffix}")[0]
         np.testing.assert_allclose(back, vertices, rtol=1e-15, atol=1e-12)
+
+
+# --- property-based: any small mesh file reads as points on its faces ---------------------
+
+
+@st.composite
+def small_meshes(draw):
+    """1-6 triangles on 3-8 vertices in [-1, 1]^3, with some area (degenerate faces
+    allowed beside others)."""
+    count = draw(st.integers(3, 8))
+    coordinate = st.floats(-1.0, 1.0, allow_nan=False, width=32)
+    vertices = draw(arrays(np.float64, (count, 3), elements=coordinate))
+    corners = st.lists(st.integers(0, count - 1), min_size=3, max_size=3, unique=True)
+    faces = np.array(draw(st.lists(corners, min_size=1, max_size=6)))
+    a, b, c = (vertices[faces[:, k]] for k in range(3))
+    area = np.linalg.norm(np.cross(b - a, c - a), axis=1).sum() / 2
+    assume(area > 0.05)
+    return vertices, faces
+
+
+@settings(
+    max_examples=25,
+    deadline=None,
+    database=None,
+    derandomize=True,
+    suppress_health_check=[HealthCheck.too_slow],
+)
+@given(mesh=small_meshes(), kind=st.sampled_from(["ply", "ply_ascii", "obj", "stl", "off"]))
+def test_any_small_mesh_file_reads_as_points_on_its_faces(tmp_path_factory, mesh, kind):
+    """Written by trimesh in any of its formats, read back: every point lies on a face of
+    the mesh, with a unit normal perpendicular to that face."""
+    vertices, faces = mesh
+    path = tmp_path_factory.mktemp("meshes") / f"mesh.{kind.split('_')[0]}"
+    options = {"encoding": "ascii"} if kind == "ply_ascii" else {}
+    trimesh.Trimesh(vertices, faces, process=False).export(
+        path, file_type=kind.split("_")[0], **options
+    )
+    with pytest.warns(UserWarning, match="drawn uniformly by area"):
+        points, normals = datasets.load_points(path, mesh_samples=40)
+    assert points.shape == normals.shape == (40, 3)
+    np.testing.assert_allclose(np.linalg.norm(normals, axis=1), 1.0, rtol=1e-12)
+    assert _on_faces(points, vertices, faces, 1e-5).all()
+    # Each normal is perpendicular to a face the point lies on.
+    a, b, c = (vertices[faces[:, k]] for k in range(3))
+    plane = np.cross(b - a, c - a)
+    plane /= np.maximum(np.linalg.norm(plane, axis=1, keepdims=True), 1e-300)
+    parallel = np.abs(normals @ plane.T) > 1 - 1e-5
+    assert parallel.any(axis=1).all()
