@@ -214,10 +214,11 @@ CLOUD_SUFFIXES = (".ply", ".obj", ".xyz", ".pts")
 MESH_SUFFIXES = (".ply", ".obj", ".stl", ".off")
 _3D_SUFFIXES = tuple(dict.fromkeys(CLOUD_SUFFIXES + MESH_SUFFIXES))
 #: Points [`load_points`][jurs.datasets.load_points] draws on a triangle mesh's faces
-#: at least (more where the mesh has more vertices). With 20 000 points on a closed
-#: surface the automatic settings choose a grid of about 30 cells along its longest side
-#: (cells of 3 point spacings), a fit of seconds that holds its shape; a mesh made finer
-#: than that gets a point per vertex, as the same surface given as a cloud would.
+#: at least (more where the mesh has more vertices). 20 000 points drawn on a sphere or a
+#: torus give the automatic settings (cells of 3 point spacings) their largest default
+#: grid, 48 a side (``DEFAULT_MAX_GRID_3D``): fewer would coarsen the fit, more would cost
+#: time for the same grid. A mesh with more vertices gets a point per vertex, as the same
+#: surface given as a cloud would.
 MESH_SAMPLES = 20_000
 #: Float32 coordinates are refused where their rounding (the float32 spacing at the
 #: largest coordinate) exceeds this share of the cloud's bounding-box diagonal: a fit's
