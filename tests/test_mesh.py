@@ -328,12 +328,17 @@ def test_mesh_round_trip(tmp_path, suffix):
 
 
 def test_points_of_a_mesh_file(tmp_path):
+    """A mesh file gives points drawn on its faces, with outward face normals (not its
+    vertices, without normals), and says so."""
     vertices, faces = _mesh.mesh(exact_sphere(), 16)
     path = tmp_path / "surface.ply"
     datasets.save_mesh(path, vertices, faces)
-    points, normals = datasets.load_points(path)
-    assert normals is None
-    np.testing.assert_allclose(points, vertices, atol=1e-6)
+    with pytest.warns(UserWarning, match="drawn uniformly by area"):
+        points, normals = datasets.load_points(path)
+    assert normals is not None and len(points) == datasets.MESH_SAMPLES
+    radius = np.linalg.norm(vertices, axis=1).mean()
+    np.testing.assert_allclose(np.linalg.norm(points, axis=1), radius, rtol=0.05)
+    assert (np.einsum("ij,ij->i", normals, points) > 0).all()
 
 
 @pytest.mark.parametrize(
