@@ -252,7 +252,7 @@ def test_mesh_refuses_a_lattice_too_large_unless_lifted(monkeypatch):
     with pytest.raises(ValueError, match="max_nodes=1000.*larger max_nodes"):
         _mesh.mesh(sphere, 16, max_nodes=1000)
     with pytest.raises(TypeError, match="max_nodes"):
-        _mesh.mesh(sphere, 16, max_nodes=1e6)
+        _mesh.mesh(sphere, 16, max_nodes=1e6)  # pyright: ignore[reportArgumentType]
     lifted = _mesh.mesh(sphere, 16, max_nodes=16**3)
     assert len(lifted[1]) and len(_mesh.mesh(sphere, 16, max_nodes=None)[1]) == len(lifted[1])
     # The memory estimate is checked against the host's memory, and cannot be lifted.
