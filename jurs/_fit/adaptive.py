@@ -3,12 +3,14 @@ THB hierarchy whose finest cells lie only in a band around the data.
 
 Settings come from the same measurements as [`jurs.auto_settings`][] (offset d, eps, the
 smoothing, the box); what changes is the resolution. A uniform grid is capped by the box
-(``DEFAULT_MAX_GRID``); here the finest cell follows the data alone, ``max(1.5 s, 4
-sigma)`` (``3 s`` on a surface) as ``choose_grid`` would pick without a cap, and the
-levels above it are coarse everywhere but near the samples. The solve is conjugate
-gradients on the normal equations, preconditioned by their exact diagonal: on the
-hierarchical basis that keeps the step count nearly flat as levels are added
-(docs/design.md section 8).
+(``DEFAULT_MAX_GRID``); here the finest cell follows the data alone, ``max(k s, 4 sigma)``
+with ``k = CELL_SPACINGS`` (one spacing on a curve, where a uniform grid takes 1.5; three
+on a surface), and the levels above it are coarse everywhere but near the samples.
+
+A curve's normal equations are assembled on the host and factorised (SciPy's SuperLU); a
+surface's are solved by conjugate gradients in JAX, preconditioned by their exact
+diagonal, which on the hierarchical basis keeps the step count nearly flat as levels are
+added (docs/design.md section 8).
 """
 
 from __future__ import annotations
@@ -35,7 +37,7 @@ from .._problem.adaptive import (
     sample_basis,
 )
 from .._solution.solution import RESULTS, Solution
-from .settings import CELL_SPACINGS, Settings, auto_settings, scale_free_lam
+from .settings import Settings, auto_settings, scale_free_lam
 
 #: Cells of the coarsest level along the longest side, at least: it fixes the sign of g far
 #: from the data, where a few cells suffice.
@@ -45,6 +47,12 @@ BASE_CELLS = 8
 MAX_FINEST = {2: 4096, 3: 1024}
 #: The band, in cells of each level, around the cells that hold samples.
 DEFAULT_BAND = 2
+#: The finest cell in point spacings (curve, surface). A curve's adaptive fit takes
+#: cells of one spacing, where the uniform grid takes 1.5: on two traced outlines
+#: (benchmarks/_realdata_cases.py camera and text, clean), Chamfer fell 8 % and 18 % from
+#: 1.5 to 1.0 and 2-4 % more at 0.75, for 50 % more active functions. A surface keeps the
+#: uniform grid's 3 (not yet measured on the hierarchy).
+CELL_SPACINGS = {2: 1.0, 3: 3.0}
 #: CG stops at this residual, relative to ``|D^T b|``.
 DEFAULT_RTOL = 1e-10
 #: A direct solve whose relative residual exceeds this met a singular matrix.
@@ -161,8 +169,8 @@ def fit_adaptive(
         points, normals: ``(m, 2)`` or ``(m, 3)``; normals outward (estimated with
             [`jurs.estimate_normals`][] when None).
         finest: cells of the finest level along the box's longest side; None chooses the
-            cell from the data (``max(1.5 s, 4 sigma)``, ``3 s`` on a surface, as
-            [`jurs.auto_settings`][] does before its grid cap), at most ``MAX_FINEST``.
+            cell from the data, ``max(s, 4 sigma)`` (``3 s`` on a surface;
+            ``CELL_SPACINGS``), at most ``MAX_FINEST`` cells.
         band: cells of each level kept fine around the cells that hold samples (at least
             1).
         offset, eps, domain, smoothing: as in [`jurs.auto_settings`][]; chosen from the
