@@ -157,3 +157,27 @@ def test_gradient_through_an_adaptive_fit_matches_finite_differences():
         e = jnp.zeros_like(p0).at[i, a].set(step)
         fd = (loss(p0 + e) - loss(p0 - e)) / (2 * step)
         np.testing.assert_allclose(grad[i, a], fd, rtol=1e-5, atol=1e-9)
+
+
+def test_adaptive_spline_file_round_trip(tmp_path):
+    hierarchy = _hierarchy(2)
+    rng = np.random.default_rng(4)
+    spline = jurs.AdaptiveSpline(
+        hierarchy,
+        jnp.asarray(rng.normal(size=hierarchy.num_active)),
+        jnp.asarray(rng.uniform(0.5, 2.0, hierarchy.num_active)),
+    )
+    path = tmp_path / "adaptive.npz"
+    jurs.save_spline(path, spline)
+    loaded = jurs.load_spline(path)
+    assert isinstance(loaded, jurs.AdaptiveSpline)
+    assert loaded.hierarchy.active_counts == hierarchy.active_counts
+    x = _random_points(hierarchy, 200)
+    np.testing.assert_array_equal(loaded(x), spline(x))
+    # A file whose arrays do not match its hierarchy is refused, naming the file.
+    with np.load(path) as data:
+        arrays = dict(data)
+    arrays["control"] = arrays["control"][:-1]
+    np.savez(tmp_path / "bad.npz", **arrays)
+    with pytest.raises(ValueError, match="bad.npz"):
+        jurs.load_spline(tmp_path / "bad.npz")

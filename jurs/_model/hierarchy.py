@@ -317,6 +317,24 @@ def build_hierarchy(
     )
 
 
+def refined_cells(hierarchy: Hierarchy) -> list[np.ndarray]:
+    """The ``refine`` list that [`build_hierarchy`][jurs.internal.build_hierarchy] turns
+    back into this hierarchy: at each level but the finest, the cells above a finer leaf
+    (sorted flat keys, host)."""
+    ndim = hierarchy.ndim
+    out = []
+    for level in range(hierarchy.num_levels - 1):
+        cells = hierarchy.cells(level)
+        above = [
+            _unravel(np.asarray(hierarchy.leaf_keys[finer]), hierarchy.cells(finer))
+            >> (finer - level)
+            for finer in range(level + 1, hierarchy.num_levels)
+        ]
+        keys = _ravel(np.concatenate(above).reshape(-1, ndim), cells)
+        out.append(np.unique(keys))
+    return out
+
+
 def refine_near(
     lower: Float[ArrayLike, " d"],
     upper: Float[ArrayLike, " d"],
@@ -399,9 +417,9 @@ def cascade_matrix(hierarchy: Hierarchy):
             weights = weights * np.asarray(hierarchy.keep[level], float)[:, None]
             refine = sparse.csr_matrix(
                 (weights.ravel(), (np.repeat(np.arange(size), parents.shape[1]), parents.ravel())),
-                shape=(size, previous.shape[0]),
+                shape=(size, hierarchy.level_sizes[level - 1]),
             )
-            current = (refine @ previous + placed).tocsr()
+            current = sparse.csr_matrix(refine @ previous + placed)
             current.eliminate_zeros()
         blocks.append(current)
         previous = current

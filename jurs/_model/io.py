@@ -3,7 +3,10 @@
 
 A file holds the arrays ``SPLINE_KEYS`` and ``format_version`` (``FORMAT_VERSION``, a
 0-d integer). Files written before the format had a version hold the same four arrays
-without it and read as version 0; their layout is the same.
+without it and read as version 0; their layout is the same. An adaptive spline
+([`jurs.AdaptiveSpline`][]) is format version 2 (``ADAPTIVE_VERSION``): ``control`` and
+``weights`` are the active functions' vectors, and ``base`` with ``refined_0``,
+``refined_1``, ... (the cells split at each level) rebuild its hierarchy.
 """
 
 from __future__ import annotations
@@ -14,6 +17,8 @@ import jax.numpy as jnp
 import numpy as np
 from jaxtyping import DTypeLike
 
+from .adaptive import AdaptiveSpline
+from .hierarchy import build_hierarchy, refined_cells
 from .spline import ImplicitSpline
 
 SPLINE_KEYS = ("control", "weights", "lower", "upper")
@@ -21,8 +26,10 @@ SPLINE_KEYS = ("control", "weights", "lower", "upper")
 #: [`save_spline`][jurs.save_spline] writes. Version 0 (no key: files written before the
 #: format had a version) and version 1 hold the same arrays, ``SPLINE_KEYS``.
 VERSION_KEY, FORMAT_VERSION = "format_version", 1
+#: The format version of an adaptive spline's file.
+ADAPTIVE_VERSION = 2
 #: The versions [`load_spline`][jurs.load_spline] reads.
-KNOWN_VERSIONS = (0, 1)
+KNOWN_VERSIONS = (0, 1, ADAPTIVE_VERSION)
 
 
 def check_spline_arrays(arrays: dict[str, np.ndarray], where: str) -> None:
@@ -67,26 +74,86 @@ def check_spline_arrays(arrays: dict[str, np.ndarray], where: str) -> None:
         )
 
 
-def save_spline(path: str | os.PathLike[str], spline: ImplicitSpline) -> None:
-    """Write ``spline`` to exactly ``path`` (``.npz`` format, whatever the name: NumPy's
-    ``savez`` would append ``.npz`` to a name without it, and
+def save_spline(path: str | os.PathLike[str], spline: ImplicitSpline | AdaptiveSpline) -> None:
+    """Write ``spline`` (an [`ImplicitSpline`][jurs.ImplicitSpline], or an
+    [`AdaptiveSpline`][jurs.AdaptiveSpline] as format version 2) to exactly ``path``
+    (``.npz`` format, whatever the name: NumPy's ``savez`` would append ``.npz`` to a name
+    without it, and
     [`load_spline`][jurs.load_spline] of the same name would then not find it): arrays
     ``control``, ``weights``, ``lower``, ``upper``, and ``format_version`` (``FORMAT_VERSION``,
     which [`load_spline`][jurs.load_spline] checks). Raises ValueError for a spline that
     cannot be evaluated (see [`load_spline`][jurs.load_spline]), before anything is
     written."""
+    if isinstance(spline, AdaptiveSpline):
+        _save_adaptive(path, spline)
+        return
     if not isinstance(spline, ImplicitSpline):
-        raise TypeError(f"spline must be a jurs.ImplicitSpline, got {type(spline).__name__}")
+        raise TypeError(
+            f"spline must be a jurs.ImplicitSpline or jurs.AdaptiveSpline, got "
+            f"{type(spline).__name__}"
+        )
     arrays = {k: np.asarray(getattr(spline, k)) for k in SPLINE_KEYS}
     check_spline_arrays(arrays, "spline: ")
     with open(os.fspath(path), "wb") as fh:
         np.savez(fh, **arrays, **{VERSION_KEY: np.int64(FORMAT_VERSION)})  # pyright: ignore[reportArgumentType]
 
 
-def load_spline(path: str | os.PathLike[str], dtype: DTypeLike | None = None) -> ImplicitSpline:
+def _save_adaptive(path, spline: AdaptiveSpline) -> None:
+    arrays = {k: np.asarray(getattr(spline, k)) for k in SPLINE_KEYS}
+    for k in ("control", "weights"):
+        if not np.isfinite(arrays[k]).all():
+            raise ValueError(f"spline: {k} contain NaN or Inf")
+    if not (arrays["weights"] > 0).all():
+        raise ValueError("spline: weights must all be positive (a zero weight makes g undefined)")
+    refined = {f"refined_{i}": r for i, r in enumerate(refined_cells(spline.hierarchy))}
+    arrays |= refined | {
+        "base": np.asarray(spline.hierarchy.base, np.int64),
+        VERSION_KEY: np.asarray(ADAPTIVE_VERSION, np.int64),
+    }
+    with open(os.fspath(path), "wb") as fh:
+        np.savez(fh, **arrays)  # pyright: ignore[reportArgumentType]
+
+
+def _load_adaptive(path: str, data, dtype) -> AdaptiveSpline:
+    """The adaptive spline of a version-2 file; ValueError naming the file for arrays that
+    do not make one."""
+    names = set(data.files)
+    levels = sum(1 for k in names if k.startswith("refined_"))
+    expected = set(SPLINE_KEYS) | {"base", VERSION_KEY} | {f"refined_{i}" for i in range(levels)}
+    if names != expected:
+        raise ValueError(
+            f"{path}: an adaptive spline file holds {sorted(expected)}, got {sorted(names)}"
+        )
+    base = np.asarray(data["base"])
+    lower, upper = np.asarray(data["lower"], float), np.asarray(data["upper"], float)
+    if base.dtype.kind not in "iu" or base.ndim != 1 or base.size not in (2, 3) or (base < 1).any():
+        raise ValueError(f"{path}: base must be 2 or 3 positive cell counts, got {base.tolist()}")
+    if lower.shape != base.shape or upper.shape != base.shape or not (lower < upper).all():
+        raise ValueError(f"{path}: lower and upper must bound a box of {base.size} axes")
+    try:
+        hierarchy = build_hierarchy(
+            lower,
+            upper,
+            tuple(int(n) for n in base),
+            [np.asarray(data[f"refined_{i}"], np.int64) for i in range(levels)],
+            dtype=dtype,
+        )
+        return AdaptiveSpline(
+            hierarchy,
+            jnp.asarray(np.asarray(data["control"]), dtype),
+            jnp.asarray(np.asarray(data["weights"]), dtype),
+        )
+    except (ValueError, IndexError) as exc:
+        raise ValueError(f"{path}: not a valid adaptive spline ({exc})") from None
+
+
+def load_spline(
+    path: str | os.PathLike[str], dtype: DTypeLike | None = None
+) -> ImplicitSpline | AdaptiveSpline:
     """Read an [`ImplicitSpline`][jurs.ImplicitSpline] written by
     [`save_spline`][jurs.save_spline]: a curve's (2D grids, box of shape (2,)) or a
-    surface's (3D grids, box of shape (3,)).
+    surface's (3D grids, box of shape (3,)); or an [`AdaptiveSpline`][jurs.AdaptiveSpline]
+    (format version 2).
 
     ``dtype`` defaults to JAX's default float (float64 with ``jax_enable_x64``). Files
     written before the format had a version (no ``format_version``) read as version 0.
@@ -98,11 +165,18 @@ def load_spline(path: str | os.PathLike[str], dtype: DTypeLike | None = None) ->
     path = os.fspath(path)
     if not os.path.exists(path):
         raise FileNotFoundError(f"{path}: no such file")
+    dtype = dtype or jnp.result_type(float)
     try:
         with np.load(path, allow_pickle=False) as data:
             names = list(data.files)
             arrays = {k: np.asarray(data[k]) for k in SPLINE_KEYS if k in names}
             version = np.asarray(data[VERSION_KEY]) if VERSION_KEY in names else np.int64(0)
+            if version.shape == () and int(version) == ADAPTIVE_VERSION:
+                return _load_adaptive(path, data, dtype)
+    except ValueError as exc:
+        if str(exc).startswith(f"{path}:"):
+            raise
+        raise ValueError(f"{path}: not a readable .npz file ({exc})") from None
     except Exception as exc:
         raise ValueError(f"{path}: not a readable .npz file ({exc})") from None
     if version.shape != () or version.dtype.kind not in "iu":
@@ -125,5 +199,4 @@ def load_spline(path: str | os.PathLike[str], dtype: DTypeLike | None = None) ->
     if missing:
         raise ValueError(f"{path}: missing arrays {missing} (expected {list(SPLINE_KEYS)})")
     check_spline_arrays(arrays, f"{path}: ")
-    dtype = dtype or jnp.result_type(float)
     return ImplicitSpline(*(jnp.asarray(arrays[k], dtype) for k in SPLINE_KEYS))

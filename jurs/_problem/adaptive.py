@@ -62,13 +62,13 @@ def normal_matrices(hierarchy: Hierarchy, positions: np.ndarray, basis: np.ndarr
     from scipy import sparse
 
     cascaded = cascade_matrix(hierarchy)
-    total = cascaded.shape[0]
+    total = sum(hierarchy.level_sizes)
     count, local = positions.shape
     rows = np.repeat(np.arange(count), local)
-    collocation = (
+    collocation = sparse.csr_matrix(
         sparse.csr_matrix((basis.ravel(), (rows, positions.ravel())), shape=(count, total))
         @ cascaded
-    ).tocsr()
+    )
     pairs, weights, start = [], [], 0
     for level in range(hierarchy.num_levels):
         pairs.append(np.asarray(hierarchy.edges[level]) + start)
@@ -76,7 +76,7 @@ def normal_matrices(hierarchy: Hierarchy, positions: np.ndarray, basis: np.ndarr
         start += hierarchy.level_sizes[level]
     pairs, weights = np.concatenate(pairs), np.concatenate(weights)
     edges = len(pairs)
-    difference = (
+    difference = sparse.csr_matrix(
         sparse.csr_matrix(
             (
                 np.stack([np.ones(edges), -np.ones(edges)], 1).ravel(),
@@ -85,9 +85,9 @@ def normal_matrices(hierarchy: Hierarchy, positions: np.ndarray, basis: np.ndarr
             shape=(edges, total),
         )
         @ cascaded
-    ).tocsr()
+    )
     # R = 2 sum w (G a)^2: lam R adds lam * 2 G^T W G to the normal matrix.
-    regulariser = (2.0 * difference.T @ sparse.diags(weights) @ difference).tocsr()
+    regulariser = sparse.csr_matrix(2.0 * difference.T @ sparse.diags(weights) @ difference)
     return collocation, regulariser
 
 
