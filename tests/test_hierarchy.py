@@ -181,3 +181,15 @@ def test_adaptive_spline_file_round_trip(tmp_path):
     np.savez(tmp_path / "bad.npz", **arrays)
     with pytest.raises(ValueError, match="bad.npz"):
         jurs.load_spline(tmp_path / "bad.npz")
+
+
+@pytest.mark.slow
+def test_adaptive_surface_fit_meshes_a_sphere():
+    points, normals = jurs.datasets.sphere3d(1500)
+    sol = jurs.fit_adaptive(points, normals)
+    assert sol.status == "successful" and sol.stats["method"] == "cg"
+    vertices, faces = jurs.levelset.mesh(sol.spline, resolution=40)
+    report = jurs.levelset.analyze_mesh(vertices, faces, points)
+    assert report.num_components == 1 and report.components[0].genus == 0
+    radius = float(np.mean(np.linalg.norm(np.asarray(points), axis=1)))
+    assert np.abs(np.linalg.norm(vertices, axis=1) - radius).max() < 0.02 * radius

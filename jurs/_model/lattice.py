@@ -9,14 +9,55 @@ evaluation, and needs no array of per-point patches.
 
 Everything here reads only the fields ``control``, ``weights``, ``lower`` and ``upper`` of
 the spline it is given (any object with them works) and computes in float64 NumPy, so
-meshing and mesh metrics run without compiling anything.
+meshing and mesh metrics run without compiling anything. An adaptive spline
+([`jurs.AdaptiveSpline`][]) has no tensor grid: it is evaluated point by point through its
+own jitted evaluation (``adaptive_lattice_values``), in chunks of one size.
 """
 
 from __future__ import annotations
 
 import numpy as np
 
+from .adaptive import AdaptiveSpline
 from .basis import CENTRED_POWER, cubic_weights
+
+#: Points per call of an adaptive spline's jitted evaluation (the last chunk padded, so
+#: one compiled program serves every lattice).
+ADAPTIVE_CHUNK = 1 << 15
+
+
+def _adaptive_evaluate(spline: AdaptiveSpline, points: np.ndarray, gradient: bool = False):
+    import equinox as eqx
+    import jax.numpy as jnp
+
+    @eqx.filter_jit
+    def values(s, x):
+        return (s(x), s.grad(x)) if gradient else s(x)
+
+    dtype = np.asarray(spline.control).dtype
+    n = len(points)
+    padded = np.concatenate([points, np.repeat(points[-1:], -n % ADAPTIVE_CHUNK, axis=0)])
+    parts = [
+        values(spline, jnp.asarray(padded[k : k + ADAPTIVE_CHUNK], dtype))
+        for k in range(0, len(padded), ADAPTIVE_CHUNK)
+    ]
+    if gradient:
+        g = np.concatenate([np.asarray(v, np.float64) for v, _ in parts])[:n]
+        grad = np.concatenate([np.asarray(d, np.float64) for _, d in parts])[:n]
+        return g, grad
+    return np.concatenate([np.asarray(v, np.float64) for v in parts])[:n]
+
+
+def adaptive_lattice_values(spline: AdaptiveSpline, axes) -> np.ndarray:
+    """[`lattice_values`][jurs._model.lattice.lattice_values] of an adaptive spline: g at
+    every node, ``(len(xs), len(ys)(, len(zs)))``."""
+    if len(axes) != spline.ndim:
+        raise ValueError(
+            f"a {spline.ndim}D spline needs {spline.ndim} lattice axes, got {len(axes)}"
+        )
+    grids = np.meshgrid(*[np.asarray(a, np.float64) for a in axes], indexing="ij")
+    points = np.stack([g.ravel() for g in grids], axis=1)
+    return _adaptive_evaluate(spline, points).reshape(grids[0].shape)
 
 
 def spline_fields(spline, dims=(2, 3)):
@@ -103,6 +144,9 @@ def lattice_values(spline, axes, *, xp=np):
     Memory: the lattice values and the intermediates of the contractions, at most about
     ``16 * max(N M K, M K X, K X Y, X Y Z)`` bytes for an ``(N, M, K)`` grid.
     """
+    if isinstance(spline, AdaptiveSpline):
+        values = adaptive_lattice_values(spline, axes)
+        return values if xp is np else xp.asarray(values)
     control, weights, lower, upper = spline_fields(spline)
     d = control.ndim
     if len(axes) != d:
@@ -130,6 +174,13 @@ def values_and_gradients(spline, points, *, chunk: int = 1 << 14):
     (peak memory about ``chunk * 4^d * 48`` bytes: 50 MB in 3D at the default). By the
     quotient rule ``grad g = (grad F(w C) - g grad F(w)) / F(w)``.
     """
+    if isinstance(spline, AdaptiveSpline):
+        points = np.asarray(points, dtype=np.float64)
+        if points.ndim != 2 or points.shape[1] != spline.ndim:
+            raise ValueError(f"points must have shape (n, {spline.ndim}), got {points.shape}")
+        if len(points) == 0:
+            return np.empty(0), np.empty((0, spline.ndim))
+        return _adaptive_evaluate(spline, points, gradient=True)
     control, weights, lower, upper = spline_fields(spline)
     d = control.ndim
     points = np.asarray(points, dtype=np.float64)

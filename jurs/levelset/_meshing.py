@@ -12,6 +12,7 @@ from __future__ import annotations
 import numpy as np
 from jaxtyping import Float, Int
 
+from .._model.adaptive import AdaptiveSpline
 from .._model.lattice import lattice_values, spline_fields, values_and_gradients
 from .._problem.memory import check_memory
 
@@ -89,8 +90,7 @@ def default_resolution(
 ) -> int:
     """``SAMPLES_PER_CELL`` lattice nodes per spline cell (the finest axis's) along the
     longest side of the box, within [``MIN_RESOLUTION``, ``MAX_RESOLUTION``]."""
-    control, _, s_lower, s_upper = spline_fields(spline, dims=(3,))
-    cell = np.min((s_upper - s_lower) / (np.asarray(control.shape) - 3.0))
+    cell = float(np.min(_cell_widths(spline)))
     nodes = int(np.ceil(SAMPLES_PER_CELL * np.max(upper - lower) / cell)) + 1
     return int(np.clip(nodes, MIN_RESOLUTION, MAX_RESOLUTION))
 
@@ -172,7 +172,7 @@ def _check_values(spline, level: float) -> None:
 
     Without it a NaN spline gave an empty mesh (read as "the level set misses the box") and
     a zero spline scikit-image's "No surface found"."""
-    control, weights, _, _ = spline_fields(spline, dims=(3,))
+    control, weights = _coefficients(spline)
     if not np.isfinite(level):
         raise ValueError(f"level must be finite, got {level}")
     for name, values in (("control points", control), ("weights", weights)):
@@ -233,7 +233,13 @@ def _duration(seconds: float) -> str:
 
 def _box(spline, box):
     """``(lower, upper)`` of the box to mesh as float64 ``(3,)`` arrays, checked."""
-    _, _, s_lower, s_upper = spline_fields(spline, dims=(3,))
+    if isinstance(spline, AdaptiveSpline):
+        if spline.ndim != 3:
+            raise ValueError(f"expected a 3D spline, got an adaptive spline in {spline.ndim}D")
+        s_lower = np.asarray(spline.lower, np.float64)
+        s_upper = np.asarray(spline.upper, np.float64)
+    else:
+        _, _, s_lower, s_upper = spline_fields(spline, dims=(3,))
     if box is None:
         return s_lower, s_upper
     lower, upper = (np.asarray(b, dtype=np.float64) for b in box)
@@ -247,9 +253,32 @@ def _box(spline, box):
     return lower, upper
 
 
+def _coefficients(spline):
+    """``(control, weights)`` as float64 arrays: grids, or an adaptive spline's vectors."""
+    if isinstance(spline, AdaptiveSpline):
+        return np.asarray(spline.control, np.float64), np.asarray(spline.weights, np.float64)
+    control, weights, _, _ = spline_fields(spline, dims=(3,))
+    return control, weights
+
+
+def _cell_widths(spline) -> np.ndarray:
+    """The spline's cell widths per axis (an adaptive spline's finest level's)."""
+    if isinstance(spline, AdaptiveSpline):
+        finest = spline.hierarchy.num_levels - 1
+        return np.asarray(spline.hierarchy.cell_width(finest), np.float64)
+    control, _, lower, upper = spline_fields(spline, dims=(3,))
+    return (upper - lower) / (np.asarray(control.shape) - 3.0)
+
+
 def _slope_bound(spline) -> np.ndarray:
     """A scale of ``|dg/dx_a|`` per axis: ``(max w / min w) max |C_(i+1) - C_i| / h_a``
-    (for weights 1 a bound: the derivative is a quadratic spline with those coefficients)."""
+    (for weights 1 a bound: the derivative is a quadratic spline with those coefficients).
+    An adaptive spline's scale is its coefficients' range over its finest cell (larger
+    than the slope, which only widens the nudge that Newton steps undo)."""
+    if isinstance(spline, AdaptiveSpline):
+        control, weights = _coefficients(spline)
+        spread = float(control.max() - control.min())
+        return weights.max() / weights.min() * spread / _cell_widths(spline)
     control, weights, lower, upper = spline_fields(spline, dims=(3,))
     h = (upper - lower) / (np.asarray(control.shape) - 3.0)
     steps = np.array([np.abs(np.diff(control, axis=a)).max() for a in range(3)])
