@@ -142,47 +142,47 @@ MIN_CHECK_BUCKET = 1024
 
 
 @jax.jit
-def zero_set_distance(spline: ImplicitSpline, points: jax.Array) -> jax.Array:
-    """First-order distance ``|g(p)| / |grad g(p)|`` from each point to the zero set."""
+def values_and_distances(spline: ImplicitSpline, points: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """``(g(p), |g(p)| / |grad g(p)|)`` at each point: the value and the first-order
+    distance to the zero set. One compiled program serves both checks of a fit (the
+    distances of ``far_point_fraction``, the signs of ``crossed_features``): two
+    programs of their own cost a second compilation for a gradient that is cheap."""
 
     def one(p):
         value, gradient = jax.value_and_grad(lambda x: spline(x[None])[0])(p)
-        return jnp.abs(value) / jnp.maximum(jnp.linalg.norm(gradient), 1e-300)
+        return value, jnp.abs(value) / jnp.maximum(jnp.linalg.norm(gradient), 1e-300)
 
     return jax.vmap(one)(points)
 
 
-@jax.jit
-def _spline_values(spline: ImplicitSpline, points: jax.Array) -> jax.Array:
-    return spline(points)
-
-
-def evaluate_bucketed(fn, spline: ImplicitSpline, points) -> np.ndarray:
-    """``fn(spline, points)`` (a jitted per-point evaluation) on the host's ``(n, d)``
-    ``points``, padded with copies of the first to a power of two of at least
-    ``MIN_CHECK_BUCKET`` rows and cut back to ``n``: clouds of different sizes share
-    one compiled evaluation."""
+def evaluate_bucketed(spline: ImplicitSpline, points) -> tuple[np.ndarray, np.ndarray]:
+    """``values_and_distances(spline, points)`` on the host's ``(n, d)`` ``points``,
+    padded with copies of the first to a power of two of at least ``MIN_CHECK_BUCKET``
+    rows and cut back to ``n``: clouds of different sizes share one compiled
+    evaluation (for one grid)."""
     points = np.asarray(points, float)
     n = len(points)
     if n == 0:
-        return np.empty(0)
+        return np.empty(0), np.empty(0)
     size = max(MIN_CHECK_BUCKET, 1 << (n - 1).bit_length())
     padded = np.concatenate([points, np.repeat(points[:1], size - n, axis=0)])
-    return np.asarray(fn(spline, jnp.asarray(padded, spline.control.dtype)))[:n]
+    value, distance = values_and_distances(spline, jnp.asarray(padded, spline.control.dtype))
+    return np.asarray(value)[:n], np.asarray(distance)[:n]
 
 
 def far_point_fraction(spline: ImplicitSpline, points, offset: float) -> tuple[float, float]:
     """``(fraction, threshold)``: the fraction of ``points`` (at most ``PROBES``,
-    evenly strided) whose ``zero_set_distance`` exceeds the largest of 2 d, half a
-    cell, and ``FAR_SPREAD`` times the distances' own robust spread (1.4826 times their
-    median): the distance within which a fit's zero set lies of its data where it follows
-    them (the offsets reach d; a grid's cell bounds what its zero set can follow; noisy
-    points scatter about it by their noise, which d may underestimate)."""
+    evenly strided) whose distance to the zero set (``values_and_distances``) exceeds
+    the largest of 2 d, half a cell, and ``FAR_SPREAD`` times the distances' own robust
+    spread (1.4826 times their median): the distance within which a fit's zero set lies
+    of its data where it follows them (the offsets reach d; a grid's cell bounds what its
+    zero set can follow; noisy points scatter about it by their noise, which d may
+    underestimate)."""
     p = np.asarray(points, float)
     at = strided_probes(len(p), PROBES)
     p = p if at is None else p[at]
     cell = spline.cell_width
-    distance = evaluate_bucketed(zero_set_distance, spline, p)
+    _, distance = evaluate_bucketed(spline, p)
     spread = 1.4826 * float(np.nanmedian(distance)) if np.isfinite(distance).any() else 0.0
     threshold = max(2.0 * float(offset), 0.5 * cell, FAR_SPREAD * spread)
     return float(np.mean(~(distance <= threshold))), threshold
@@ -203,7 +203,7 @@ def crossed_features(spline: ImplicitSpline, points, normals, spacing: float) ->
         return 0
     a, b = p[own[paired]], p[partner[paired]]
     inside = np.sum((b - a) * n[own[paired]], axis=1) < 0  # a thin part, not a gap
-    value = evaluate_bucketed(_spline_values, spline, 0.5 * (a + b))
+    value, _ = evaluate_bucketed(spline, 0.5 * (a + b))
     return int(np.sum(np.where(inside, value > 0, value < 0)))
 
 
@@ -241,8 +241,12 @@ def check_doubts(sol, cloud, settings, offset):
             "the fit does not follow the data there (features too fine for the grid, "
             "outliers or inconsistent normals)"
         )
+    # device_put, not jnp.asarray: a Python number through jnp.asarray compiles a small
+    # program of its own in each new process.
     metrics = dict(
-        sol.metrics, far_point_fraction=jnp.asarray(far), crossed_features=jnp.asarray(crossed)
+        sol.metrics,
+        far_point_fraction=jax.device_put(np.asarray(far)),
+        crossed_features=jax.device_put(np.asarray(crossed)),
     )
     stats = dict(sol.stats, doubts=tuple(doubts))
     result = sol.result
