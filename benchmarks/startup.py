@@ -301,11 +301,16 @@ def measure_batch(py, env, cwd, log) -> dict:
     with open(os.path.join(cwd, "scipy_rbf.py"), "w") as fh:
         fh.write(SCIPY_SCRIPT)
     files = sorted(os.listdir(folder))
-    # The cache filled by one run on the first file (as later runs of the command find it).
+    # A cache folder of its own (the command line's first run below needs a fresh one),
+    # filled by one run on the first file, as later runs of the command find it.
+    filled_env = dict(env, XDG_CACHE_HOME=os.path.join(cwd, "batch-cache"))
     first_file = os.path.join(folder, files[0])
-    wall([py, "-m", "jurs.cli", "fit", first_file, "-o", "warm", "-q"], env, cwd)
+    wall([py, "-m", "jurs.cli", "fit", first_file, "-o", "warm", "-q"], filled_env, cwd)
     batch, _, batch_cpu = wall(
-        [py, "-m", "jurs.cli", "fit", folder, "-o", "batch-out", "-q"], env, cwd, timeout=1800
+        [py, "-m", "jurs.cli", "fit", folder, "-o", "batch-out", "-q"],
+        filled_env,
+        cwd,
+        timeout=1800,
     )
     written = sorted(os.listdir(os.path.join(cwd, "batch-out")))
     assert len(written) == BATCH_FILES, written

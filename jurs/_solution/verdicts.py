@@ -134,10 +134,9 @@ FAR_SPREAD = 4.0
 #: The checks evaluate the fit at point counts rounded up to a power of two (at least
 #: this), so that a new cloud reuses their compiled evaluations: with a count of its
 #: own, each new cloud spent most of its fit compiling them (docs/startup.md, "Shape-stable
-#: compiled fits"). Powers of two, not the fit's own ladder
-#: (``jurs._problem.sizes.round_size``, four sizes an octave): padding these evaluations
-#: costs far less than a compilation, and the count of pairs across thin parts varies
-#: from cloud to cloud within one of the fit's size bands.
+#: compiled fits"). Powers of two, as the fit's own point counts
+#: (``jurs._problem.sizes.padded_count``): padding these evaluations costs far less than
+#: a compilation, and the count of pairs across thin parts varies from cloud to cloud.
 MIN_CHECK_BUCKET = 1024
 
 
