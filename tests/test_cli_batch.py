@@ -74,3 +74,38 @@ def test_a_folder_without_clouds_fails(tmp_path, capsys):
     err = capsys.readouterr().err
     assert str(empty) in err and "no cloud files" in err
     assert not out.exists()
+
+
+def test_progress_lines_on_a_terminal_and_the_worst_status(tmp_path, capsys, monkeypatch):
+    """Each file gets a progress line on a terminal (none with --quiet); a fit that
+    raises goes on to the next file; the exit status is the worst of the files'."""
+    from jurs.cli import _batch
+
+    for name in ("a.csv", "b.csv", "c.csv"):
+        (tmp_path / name).write_text("")
+    codes = {"a.csv": 0, "b.csv": 1, "c.csv": "raise"}
+    seen = []
+
+    def run_one(args):
+        name = os.path.basename(args.file)
+        seen.append((name, os.path.basename(args.output), args.files))
+        if codes[name] == "raise":
+            raise cli.InputError(f"{args.file}: malformed")
+        return codes[name]
+
+    monkeypatch.setattr(_batch.sys.stderr, "isatty", lambda: True, raising=False)
+    args = cli.build_parser().parse_args(["fit", str(tmp_path), "-o", str(tmp_path / "out")])
+    assert _batch.run_batch(args, run_one) == 2
+    assert [s[:2] for s in seen] == [("a.csv", "a"), ("b.csv", "b"), ("c.csv", "c")]
+    assert all(len(files) == 1 for _, _, files in seen)  # each run sees a single file
+    err = capsys.readouterr().err
+    assert [line.split("] ")[0] for line in err.splitlines() if "] " in line] == [
+        "jurs: [1/3",
+        "jurs: [2/3",
+        "jurs: [3/3",
+    ]
+    assert "malformed" in err and "fitted 1 of 3" in err
+    quiet = cli.build_parser().parse_args(["fit", str(tmp_path), "-o", "o", "-q"])
+    codes["c.csv"] = 0
+    assert _batch.run_batch(quiet, run_one) == 1
+    assert "[1/3]" not in capsys.readouterr().err
