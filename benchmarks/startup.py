@@ -1,7 +1,7 @@
 """Start-up benchmark: what a new user meets first, as whole processes.
 
     python benchmarks/startup.py              # about 3-6 minutes on 2 cores
-    python benchmarks/startup.py --quick      # smoke test: 100 points, one run each, no file
+    python benchmarks/startup.py --quick      # smoke test: small clouds, one run each, no file
     python benchmarks/startup.py --from-json  # re-render results/startup.md from its JSON
     python benchmarks/startup.py --overhead   # host work of a warm call: results/overhead.md
 
@@ -695,7 +695,7 @@ def render_overhead(data: dict) -> str:
 
 
 def main() -> None:
-    global SIZES, REPEATS, IMPORT_REPEATS
+    global SIZES, REPEATS, IMPORT_REPEATS, LADDER, SECOND_SHAPE, BATCH_FILES
     if "--overhead" in sys.argv[1:]:
         data = measure_overhead()
         text = render_overhead(data)
@@ -716,6 +716,7 @@ def main() -> None:
     quick = "--quick" in sys.argv[1:]  # a smoke test: 100 points, one of each, not written
     if quick:
         SIZES, REPEATS, IMPORT_REPEATS = (100,), 1, 1
+        LADDER, SECOND_SHAPE, BATCH_FILES = (100, 120), ("ellipse 5 x 2.5", 150), 2
     log = elapsed_log()
     py = sys.executable
     load_before = " ".join(f"{x:.1f}" for x in os.getloadavg())

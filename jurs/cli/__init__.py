@@ -235,7 +235,12 @@ def _fit_parser(sub) -> argparse.ArgumentParser:
         default=1e-7,
         help="stop when |E_new - E_old| < tol (eq. 38); 0 runs all steps",
     )
-    f.add_argument("-o", "--output", default="jurs-output", help="output folder")
+    f.add_argument(
+        "-o",
+        "--output",
+        default="jurs-output",
+        help="output folder (several clouds: one sub-folder each inside it)",
+    )
     f.add_argument(
         "--resolution",
         type=int,
