@@ -1,7 +1,7 @@
 """Start-up benchmark: what a new user meets first, as whole processes.
 
     python benchmarks/startup.py              # about 3-6 minutes on 2 cores
-    python benchmarks/startup.py --quick      # smoke test: 100 points, one run each, no file
+    python benchmarks/startup.py --quick      # smoke test: small clouds, one run each, no file
     python benchmarks/startup.py --from-json  # re-render results/startup.md from its JSON
     python benchmarks/startup.py --overhead   # host work of a warm call: results/overhead.md
 
@@ -15,7 +15,15 @@ runs do not change what is measured), with a fresh cache folder:
    of a similar size in the same size band (``jurs._problem.sizes.padded_count``) is fitted
    first (compiling), then a new cloud B (Example 1 at the target size): its first fit
    against its warm fit (median of 3), all with automatic settings (``jurs.fit(p, n)``);
-3. the command line ``jurs fit cloud.csv -o out`` on a 1000-point cloud: the first run
+3. a ladder of new clouds in one process (Example 1 at 1000, 1050, 1130, 1300, 1600 and
+   2000 points, then an ellipse of another aspect at 1700 points): before the first cloud
+   of each octave (``padded_count``) and shape, one cloud of another size in that octave is
+   fitted (compiling); each ladder cloud's first fit is reported against its own warm fit
+   (median of 3), with the XLA compilations it triggered;
+4. many files in one process: ``jurs fit folder -o out`` on 20 files of 1000 points
+   (Example 1, scaled and moved), the cache filled, against 20 runs of the SciPy script
+   below (their sum);
+5. the command line ``jurs fit cloud.csv -o out`` on a 1000-point cloud: the first run
    (fresh cache folder), later runs (the cache filled), and a run with
    ``--no-compilation-cache``, against a SciPy script that loads the same CSV, fits a
    thin-plate RBF (``scipy.interpolate.RBFInterpolator``) to the 3000 offset samples,
@@ -27,7 +35,9 @@ runs do not change what is measured), with a fresh cache folder:
    the cache filled, and ``import jax`` alone. Each run's CPU time (user + system) is
    recorded beside its wall time.
 
-Writes ``benchmarks/results/startup.{md,json}``.
+Writes ``benchmarks/results/startup.{md,json}``. ``--parts ladder,batch,cli`` runs only the
+parts named (``imports``, ``fits``, ``ladder``, ``batch``, ``cli``); the report says which
+were skipped.
 
 ``--overhead`` measures, in this process, what a warm top-level call of ``jurs.fit`` costs
 beyond its compiled work: Example 1 (120 points, 9 x 9, ``LeastSquares``, every setting
@@ -124,6 +134,59 @@ print(json.dumps(dict(
 """
 
 
+PARTS = ("imports", "fits", "ladder", "batch", "cli")
+LADDER = (1000, 1050, 1130, 1300, 1600, 2000)
+SECOND_SHAPE = ("ellipse 5 x 2.5", 1700)
+BATCH_FILES = 20
+
+LADDER_FITS = """
+import json, sys, time
+import jax
+jax.config.update("jax_enable_x64", True)
+import numpy as np
+import jurs
+from jurs._problem.sizes import padded_count
+
+compiles = []
+jax.monitoring.register_event_duration_secs_listener(
+    lambda event, secs, **kw: compiles.append((str(kw.get("fun_name")), secs))
+    if event == "/jax/core/compile/backend_compile_duration" else None)
+
+def timed(points, normals):
+    t = time.perf_counter()
+    sol = jurs.fit(points, normals)
+    jax.block_until_ready(sol.spline)
+    return time.perf_counter() - t, sol
+
+shapes = {
+    "example 1": jurs.datasets.example1,
+    "ellipse 5 x 2.5": lambda n: jurs.datasets.ellipse(n, a=5.0, b=2.5),
+}
+cases = [("example 1", n) for n in json.loads(sys.argv[1])] + [tuple(json.loads(sys.argv[2]))]
+primed, rows = set(), []
+for shape, n in cases:
+    band = padded_count(n)
+    row = dict(shape=shape, n=n, band=band)
+    if (shape, band) not in primed:  # one fit in the same octave first: the compiling one
+        size_a = next(s for s in (round(0.93 * n), round(1.07 * n), n) if padded_count(s) == band)
+        points_a, normals_a = shapes[shape](size_a)
+        before = len(compiles)
+        row["first_a_s"] = timed(1.3 * points_a + np.array([2.0, -1.0]), normals_a)[0]
+        row["size_a"], row["compiles_a"] = size_a, len(compiles) - before
+        primed.add((shape, band))
+    points, normals = shapes[shape](n)
+    before = len(compiles)
+    first, sol = timed(points, normals)
+    row["compiled"] = [name for name, _ in compiles[before:]]
+    row["compile_s"] = sum(secs for _, secs in compiles[before:])
+    warm = [timed(points, normals)[0] for _ in range(3)]
+    row.update(first_s=first, warm_s=float(np.median(warm)), grid=list(sol.settings.grid))
+    row["ratio"] = first / row["warm_s"]
+    rows.append(row)
+    print(json.dumps(row), flush=True)
+"""
+
+
 # The command line's work up to the end of the fit, writing nothing, and its way out of the
 # process (cli.end_process): what no change to its outputs (figure, level-set analysis,
 # files) can go below.
@@ -205,6 +268,84 @@ def measure_fits(py, env, cwd, log) -> list:
     return rows
 
 
+def measure_ladder(py, env, cwd, log) -> list:
+    out = wall(
+        [py, "-c", LADDER_FITS, json.dumps(list(LADDER)), json.dumps(list(SECOND_SHAPE))],
+        env,
+        cwd,
+        timeout=1800,
+    )[1]
+    rows = [json.loads(line) for line in out.splitlines() if line.startswith("{")]
+    for r in rows:
+        log(
+            f"ladder {r['shape']} {r['n']}: first {r['first_s']:.3f} s, warm {r['warm_s']:.3f} "
+            f"s, ratio {r['ratio']:.2f}, compiled {r['compiled']}"
+        )
+    return rows
+
+
+def measure_batch(py, env, cwd, log) -> dict:
+    """20 files of CLI_POINTS points through one ``jurs fit folder -o out`` (the cache
+    filled first by a run on one of them), against 20 runs of the SciPy script."""
+    folder = os.path.join(cwd, "batch")
+    make = (
+        "import os, sys, numpy as np, jurs\n"
+        f"p, n = jurs.datasets.example1({CLI_POINTS})\n"
+        f"for i in range({BATCH_FILES}):\n"
+        "    s = 0.8 + 0.02 * i\n"
+        "    jurs.datasets.save_points(os.path.join(sys.argv[1], f'cloud{i:02d}.csv'),\n"
+        "                              s * p + np.array([0.1 * i, -0.05 * i]), n)\n"
+    )
+    os.makedirs(folder, exist_ok=True)
+    wall([py, "-c", make, folder], env, cwd)
+    with open(os.path.join(cwd, "scipy_rbf.py"), "w") as fh:
+        fh.write(SCIPY_SCRIPT)
+    files = sorted(os.listdir(folder))
+    # A cache folder of its own (the command line's first run below needs a fresh one),
+    # filled by one run on the first file, as later runs of the command find it.
+    filled_env = dict(env, XDG_CACHE_HOME=os.path.join(cwd, "batch-cache"))
+    first_file = os.path.join(folder, files[0])
+    wall([py, "-m", "jurs.cli", "fit", first_file, "-o", "warm", "-q"], filled_env, cwd)
+    batch, _, batch_cpu = wall(
+        [py, "-m", "jurs.cli", "fit", folder, "-o", "batch-out", "-q"],
+        filled_env,
+        cwd,
+        timeout=1800,
+    )
+    written = sorted(os.listdir(os.path.join(cwd, "batch-out")))
+    assert len(written) == BATCH_FILES, written
+    scipy, scipy_cpu = [], 0.0
+    for name in files:
+        seconds, _, cpu_s = wall([py, "scipy_rbf.py", os.path.join(folder, name)], env, cwd)
+        scipy.append(seconds)
+        scipy_cpu += cpu_s
+    fresh_env = dict(env, XDG_CACHE_HOME=os.path.join(cwd, "batch-fresh-cache"))
+    fresh, _, fresh_cpu = wall(
+        [py, "-m", "jurs.cli", "fit", folder, "-o", "batch-fresh", "-q"],
+        fresh_env,
+        cwd,
+        timeout=1800,
+    )
+    result = {
+        "files": BATCH_FILES,
+        "points": CLI_POINTS,
+        "batch_s": batch,
+        "batch_cpu_s": batch_cpu,
+        "batch_fresh_s": fresh,
+        "batch_fresh_cpu_s": fresh_cpu,
+        "scipy_s": scipy,
+        "scipy_total_s": sum(scipy),
+        "scipy_cpu_s": scipy_cpu,
+    }
+    result["ratio"] = batch / result["scipy_total_s"]
+    result["fresh_ratio"] = fresh / result["scipy_total_s"]
+    log(
+        f"batch of {BATCH_FILES}: {batch:.2f} s (fresh cache {fresh:.2f} s) against "
+        f"{result['scipy_total_s']:.2f} s of SciPy runs: {result['ratio']:.2f}x"
+    )
+    return result
+
+
 def measure_cli(py, env, cwd, log) -> dict:
     snapshot_jurs = [py, "-c", "import jurs, sys; print(jurs.__file__)"]
     log(f"jurs from {wall(snapshot_jurs, env, cwd)[1].strip()}")
@@ -272,16 +413,46 @@ def measure_cli(py, env, cwd, log) -> dict:
 
 
 def render(data: dict) -> str:
-    imp, cli = data["imports"], data["cli"]
-    cpu = cli["cpu_median_s"]
-    extra = imp["jurs"]["median_s"] - imp["jax"]["median_s"]
     lines = [
-        "# Start-up: import, first fits, the command line",
+        "# Start-up: import, first fits, new clouds, many files, the command line",
         "",
         f"Run {data['date']} on {data['machine']} (load average {data['load_before']} before, "
         f"{data['load_after']} after, over 1, 5 and 15 minutes). `python "
         "benchmarks/startup.py`; whole processes, clean environment, fresh cache folder.",
         "",
+    ]
+    skipped = [part for part in PARTS if part not in data]
+    if skipped:
+        lines += [
+            f"Parts skipped in this run (`--parts`): {', '.join(skipped)}.",
+            "",
+        ]
+    loads = [float(data[k].split()[0]) for k in ("load_before", "load_after")]
+    if max(loads) > data.get("cores", os.cpu_count() or 1):
+        lines += [
+            "Caution: other jobs kept the machine's cores busy during this run (load average "
+            "above the core count). Absolute times are inflated; the ratios below are "
+            "measured within one run (a fit against its own warm fit in the same process; "
+            "jurs against the SciPy script in the same minutes), and even these move with "
+            "the load (the SciPy script's multithreaded linear algebra loses more to it).",
+            "",
+        ]
+    if "imports" in data:
+        lines += _render_imports(data["imports"])
+    if "fits" in data:
+        lines += _render_fits(data["fits"])
+    if "ladder" in data:
+        lines += _render_ladder(data["ladder"])
+    if "batch" in data:
+        lines += _render_batch(data["batch"])
+    if "cli" in data:
+        lines += _render_cli(data["cli"], data.get("fits", []))
+    return "\n".join(lines)
+
+
+def _render_imports(imp: dict) -> list:
+    extra = imp["jurs"]["median_s"] - imp["jax"]["median_s"]
+    lines = [
         "## Import (median of 5 processes)",
         "",
         "| process | median s | min s |",
@@ -293,11 +464,16 @@ def render(data: dict) -> str:
         ("jurs", "`import jurs`"),
     ):
         lines.append(f"| {label} | {imp[name]['median_s']:.2f} | {imp[name]['min_s']:.2f} |")
-    lines += [
+    return lines + [
         "",
         f"`import jurs` - `import jax` = {extra:+.2f} s (median; min "
         f"{imp['jurs']['min_s'] - imp['jax']['min_s']:+.2f} s).",
         "",
+    ]
+
+
+def _render_fits(fits: list) -> list:
+    lines = [
         "## A new cloud in a process that has fitted one of a similar size",
         "",
         "Automatic settings (`jurs.fit(points, normals)`). A: Example 1 at `size A` points, "
@@ -309,56 +485,112 @@ def render(data: dict) -> str:
         "| warm B s | ratio | compilations A / B |",
         "|---|---|---|---|---|---|---|---|---|---|",
     ]
-    for r in data["fits"]:
+    for r in fits:
         lines.append(
             f"| {r['n']} | {r['band']} | {r['size_a']} | {tuple(r['grid_a'])} | "
             f"{tuple(r['grid_b'])} | {r['first_a_s']:.2f} ({r['compile_a_s']:.2f}) | "
             f"{r['new_cloud_s']:.3f} | "
             f"{r['warm_s']:.3f} | {r['ratio']:.2f} | {r['compiles_a']} / {r['compiles_b']} |"
         )
-    worst = max(r["ratio"] for r in data["fits"])
+    worst = max(r["ratio"] for r in fits)
     lines += [
         "",
         f"Worst ratio {worst:.2f}. (Without padded shapes: 35x at 1000 -> 1100 points, a "
         "full recompilation.)",
         "",
+    ]
+    regridded = [str(r["n"]) for r in fits if list(r["grid_a"]) != list(r["grid_b"])]
+    if regridded:
+        lines += [
+            f"At n = {', '.join(regridded)}, A and B got different automatic grids (cell "
+            "counts round to four sizes an octave, below the grid cap): B compiles a fit "
+            "of its own grid, whatever its point count.",
+            "",
+        ]
+    return lines
+
+
+def _render_ladder(rows: list) -> list:
+    lines = [
+        "## A ladder of new clouds in one process",
+        "",
+        "Automatic settings. Before the first cloud of each octave (`band`, the padded point "
+        "count) and shape, one cloud of another size in that octave (`size A`, scaled 1.3x "
+        "and moved) is fitted: its first fit compiles. Then each cloud of the ladder, new to "
+        "the process: its first fit, the XLA programs it compiled, and the ratio to its own "
+        "warm fit (median of 3) in the same process.",
+        "",
+        "| shape | n | band | grid | fitted first (size A: s, compilations) | new cloud s "
+        "| warm s | ratio | compiled |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        first = (
+            f"{r['size_a']}: {r['first_a_s']:.2f} s, {r['compiles_a']}" if "size_a" in r else "-"
+        )
+        compiled = ", ".join(r["compiled"]) or "nothing"
+        lines.append(
+            f"| {r['shape']} | {r['n']} | {r['band']} | {tuple(r['grid'])} | {first} | "
+            f"{r['first_s']:.3f} | {r['warm_s']:.3f} | {r['ratio']:.2f} | {compiled} |"
+        )
+    worst = max(r["ratio"] for r in rows)
+    return lines + ["", f"Worst ratio {worst:.2f} (target: at most 3).", ""]
+
+
+def _render_batch(b: dict) -> list:
+    return [
+        f"## {b['files']} files of {b['points']} points in one process",
+        "",
+        f"`jurs fit folder -o out -q` on {b['files']} files (Example 1, scaled and moved: "
+        "one grid, one octave), each into its own sub-folder, against "
+        f"{b['files']} runs of the SciPy script (their sum).",
+        "",
+        "| run | wall s | / SciPy | CPU s | CPU / SciPy's |",
+        "|---|---|---|---|---|",
+        f"| {b['files']} SciPy runs (sum) | {b['scipy_total_s']:.2f} | 1.00 | "
+        f"{b['scipy_cpu_s']:.2f} | 1.00 |",
+        f"| one `jurs fit folder`, cache filled | {b['batch_s']:.2f} | {b['ratio']:.2f} | "
+        f"{b['batch_cpu_s']:.2f} | {b['batch_cpu_s'] / b['scipy_cpu_s']:.2f} |",
+        f"| one `jurs fit folder`, fresh cache | {b['batch_fresh_s']:.2f} | "
+        f"{b['fresh_ratio']:.2f} | {b['batch_fresh_cpu_s']:.2f} | "
+        f"{b['batch_fresh_cpu_s'] / b['scipy_cpu_s']:.2f} |",
+        "",
+        "Target: at most 0.3x.",
+        "",
+    ]
+
+
+def _render_cli(cli: dict, fits: list) -> list:
+    cpu = cli["cpu_median_s"]
+    lines = [
         f"## The command line on {CLI_POINTS} points against the SciPy script",
         "",
         "CPU s: user + system seconds of the process, all its threads (medians): less "
         "sensitive to other jobs on the machine than wall time. The SciPy script's linear "
         "algebra runs on every core, jurs's start-up mostly on one.",
         "",
-        "| run | wall s | / SciPy | CPU s |",
-        "|---|---|---|---|",
+        "| run | wall s | / SciPy | CPU s | CPU / SciPy's |",
+        "|---|---|---|---|---|",
         f"| SciPy RBF script (median of 3) | {cli['scipy_median_s']:.2f} | 1.00 | "
-        f"{cpu['scipy']:.2f} |",
+        f"{cpu['scipy']:.2f} | 1.00 |",
         f"| `jurs fit`, first run, fresh cache | {cli['first_s']:.2f} | {cli['first_ratio']:.2f} "
-        f"| {cpu['first']:.2f} |",
+        f"| {cpu['first']:.2f} | {cpu['first'] / cpu['scipy']:.2f} |",
         f"| `jurs fit`, later runs (median of 3) | {cli['later_median_s']:.2f} | "
-        f"{cli['later_ratio']:.2f} | {cpu['later']:.2f} |",
+        f"{cli['later_ratio']:.2f} | {cpu['later']:.2f} | {cpu['later'] / cpu['scipy']:.2f} |",
         f"| `jurs fit --no-compilation-cache` | {cli['no_cache_s']:.2f} | "
-        f"{cli['no_cache_ratio']:.2f} | {cpu['no_cache']:.2f} |",
-        "| *bounds, in the same run:* | | | |",
+        f"{cli['no_cache_ratio']:.2f} | {cpu['no_cache']:.2f} | "
+        f"{cpu['no_cache'] / cpu['scipy']:.2f} |",
+        "| *bounds, in the same run:* | | | | |",
         f"| the command line's work to the end of the fit, no outputs, fresh cache | "
         f"{cli['fit_only_first_s']:.2f} | {cli['fit_only_first_ratio']:.2f} | "
-        f"{cpu['fit_only_first']:.2f} |",
+        f"{cpu['fit_only_first']:.2f} | {cpu['fit_only_first'] / cpu['scipy']:.2f} |",
         f"| the same, cache filled (median of 3) | {cli['fit_only_later_median_s']:.2f} | "
-        f"{cli['fit_only_later_ratio']:.2f} | {cpu['fit_only_later']:.2f} |",
+        f"{cli['fit_only_later_ratio']:.2f} | {cpu['fit_only_later']:.2f} | "
+        f"{cpu['fit_only_later'] / cpu['scipy']:.2f} |",
         f"| `import jax` alone (median of 3) | {cli['jax_import_median_s']:.2f} | "
-        f"{cli['jax_import_ratio']:.2f} | {cpu['jax_import']:.2f} |",
+        f"{cli['jax_import_ratio']:.2f} | {cpu['jax_import']:.2f} | "
+        f"{cpu['jax_import'] / cpu['scipy']:.2f} |",
         "",
-        "",
-    ]
-    loads = [float(data[k].split()[0]) for k in ("load_before", "load_after")]
-    if max(loads) > data.get("cores", os.cpu_count() or 1):
-        lines += [
-            "Caution: other jobs kept the machine's cores busy during this run (load average "
-            "above the core count); the ratios move with the load (the SciPy script's "
-            "multithreaded linear algebra loses more to it), so these verdicts are not "
-            "representative.",
-            "",
-        ]
-    lines += [
         f"What bounds later runs: the process that stops after the fit took "
         f"{cli['fit_only_later_median_s']:.2f} s ({cli['fit_only_later_ratio']:.2f}x the SciPy "
         f"script), `import jax` alone {cli['jax_import_median_s']:.2f} s "
@@ -367,7 +599,7 @@ def render(data: dict) -> str:
         f"({cpu['later'] - cpu['fit_only_later']:.2f} CPU s).",
         "",
     ]
-    same = [r for r in data["fits"] if r["n"] == CLI_POINTS]
+    same = [r for r in fits if r["n"] == CLI_POINTS]
     compiled = ""
     if same:  # compiling the fit, measured above at this size
         compile_s = same[0]["compile_a_s"]
@@ -376,13 +608,12 @@ def render(data: dict) -> str:
             f"the first-fit row above, {compile_s / cli['scipy_median_s']:.2f}x the SciPy "
             "script's whole run."
         )
-    lines += [
+    return lines + [
         f"What bounds the first run: the process that stops after the fit took "
         f"{cli['fit_only_first_s']:.2f} s with a fresh cache "
         f"({cli['fit_only_first_ratio']:.2f}x the SciPy script).{compiled}",
         "",
     ]
-    return "\n".join(lines)
 
 
 OVERHEAD_ROUNDS = 15
@@ -464,7 +695,7 @@ def render_overhead(data: dict) -> str:
 
 
 def main() -> None:
-    global SIZES, REPEATS, IMPORT_REPEATS
+    global SIZES, REPEATS, IMPORT_REPEATS, LADDER, SECOND_SHAPE, BATCH_FILES
     if "--overhead" in sys.argv[1:]:
         data = measure_overhead()
         text = render_overhead(data)
@@ -476,9 +707,16 @@ def main() -> None:
             data = json.load(fh)
         write_results("startup", data, render(data))
         return
+    parts = PARTS
+    if "--parts" in sys.argv[1:]:
+        parts = tuple(sys.argv[sys.argv.index("--parts") + 1].split(","))
+        unknown = set(parts) - set(PARTS)
+        if unknown:
+            raise SystemExit(f"--parts: unknown {sorted(unknown)}; the parts are {PARTS}")
     quick = "--quick" in sys.argv[1:]  # a smoke test: 100 points, one of each, not written
     if quick:
         SIZES, REPEATS, IMPORT_REPEATS = (100,), 1, 1
+        LADDER, SECOND_SHAPE, BATCH_FILES = (100, 120), ("ellipse 5 x 2.5", 150), 2
     log = elapsed_log()
     py = sys.executable
     load_before = " ".join(f"{x:.1f}" for x in os.getloadavg())
@@ -501,9 +739,16 @@ def main() -> None:
             "cores": os.cpu_count(),
             "load_before": load_before,
         }
-        data["imports"] = measure_imports(py, env, work, log)
-        data["fits"] = measure_fits(py, env, work, log)
-        data["cli"] = measure_cli(py, env, work, log)
+        measures = {
+            "imports": measure_imports,
+            "fits": measure_fits,
+            "ladder": measure_ladder,
+            "batch": measure_batch,
+            "cli": measure_cli,
+        }
+        for part in PARTS:
+            if part in parts:
+                data[part] = measures[part](py, env, work, log)
     data["load_after"] = " ".join(f"{x:.1f}" for x in os.getloadavg())
     text = render(data)
     if not quick:

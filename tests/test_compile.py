@@ -146,8 +146,8 @@ def test_a_fit_is_kept_by_the_persistent_compilation_cache(tmp_path):
 # --- Shape-stable fits: padding, rounded layouts and grids ------------------------------
 
 
-def test_size_ladder_rounds_up_by_at_most_a_quarter_with_four_sizes_an_octave():
-    from jurs._problem.sizes import padded_count, round_size
+def test_size_ladders_round_up_with_four_sizes_and_one_size_an_octave():
+    from jurs._problem.sizes import OCTAVE_PADDING_MAX, padded_count, round_octave, round_size
 
     sizes = np.arange(1, 5000)
     rounded = np.array([round_size(n) for n in sizes])
@@ -157,7 +157,14 @@ def test_size_ladder_rounds_up_by_at_most_a_quarter_with_four_sizes_an_octave():
     assert all(round_size(r) == r for r in rounded)  # a rung rounds to itself
     octave = [r for r in set(rounded) if 1024 < r <= 2048]
     assert sorted(octave) == [1280, 1536, 1792, 2048]
-    assert padded_count(3) == 32 and padded_count(1000) == 1024 and padded_count(1100) == 1280
+    # Point counts: one size an octave, a power of two, at most twice the count.
+    padded = np.array([padded_count(int(n)) for n in sizes])
+    assert (padded >= sizes).all() and (padded < np.maximum(2 * sizes, 33)).all()
+    assert sorted({int(r) for r in padded if 1024 < r <= 2048}) == [2048]
+    assert all(round_octave(int(r)) == r for r in padded)
+    assert padded_count(3) == 32 and padded_count(1000) == 1024 and padded_count(1100) == 2048
+    big = OCTAVE_PADDING_MAX + 1  # above it, four sizes an octave again
+    assert padded_count(big) == round_size(big) < 1.25 * big
 
 
 def _fit_problem(points, normals, **settings):
@@ -170,7 +177,7 @@ def _fit_problem(points, normals, **settings):
 
 def test_clouds_in_one_band_get_problems_of_one_shape():
     """Every array of the problem (table included) has the same shape for 200 and 215
-    points (both padded to 224), in the table form and in the bucketed power form; the
+    points (both padded to 256), in the table form and in the bucketed power form; the
     layout holds every real sample once and no padding sample."""
     shapes = []
     for m in (200, 215):
@@ -182,7 +189,7 @@ def test_clouds_in_one_band_get_problems_of_one_shape():
             real = np.asarray(problem.mask) > 0
             assert np.array_equal(
                 np.sort(np.asarray(problem.sample_index)[real]),
-                np.arange(3 * m) // m * 224 + np.arange(3 * m) % m,
+                np.arange(3 * m) // m * 256 + np.arange(3 * m) % m,
             )
             if bucket_size is None:  # table: the real slots, each at one filled position
                 filled = np.asarray(problem.local.filled) > 0
@@ -195,7 +202,7 @@ def test_clouds_in_one_band_get_problems_of_one_shape():
 
 
 def _assert_padded_fit_agrees_with_the_unpadded_fit(solver):
-    """jurs.fit pads 150 points to 160 and lays out the samples for the band; the result is
+    """jurs.fit pads 150 points to 256 and lays out the samples for the band; the result is
     the unpadded solve's to rounding (float64)."""
     points, normals = jurs.datasets.example1(150)
     settings = dict(grid=(10, 12), offset=0.1, eps=0.01)
@@ -254,12 +261,43 @@ def test_two_clouds_in_one_band_compile_once():
         jurs.datasets.example1(330),
         jurs.datasets.example1(370),
         jurs.datasets.add_noise(*jurs.datasets.example1(350), sigma=0.01),
-        jurs.datasets.example1(400),
+        jurs.datasets.example1(520),
     ):
         with _CompileCounter() as counter:
             jax.block_until_ready(jurs.fit(points, normals, **settings).spline)
         counts.append(counter.count)
     assert counts == [1, 0, 0, 1]
+
+
+LADDER = (1000, 1050, 1130, 1300, 1600, 2000)
+
+
+def test_a_ladder_of_cloud_sizes_gets_one_problem_shape_an_octave():
+    """The problems jurs.fit builds for clouds of 1000 to 2000 points on one grid: one
+    shape for 1000 points (padded to 1024), one for the five of the next octave."""
+    shapes = []
+    for m in LADDER:
+        points, normals = jurs.datasets.example1(m)
+        problem = _fit_problem(points, normals, grid=12, offset=0.1, eps=0.01)
+        shapes.append(jax.tree.map(jnp.shape, problem))
+    assert shapes[0] != shapes[1] and all(s == shapes[1] for s in shapes[2:])
+
+
+@pytest.mark.slow  # two compilations of the exact solve; the shapes' test above is fast
+def test_a_ladder_of_cloud_sizes_compiles_once_an_octave():
+    """Clouds of 1000 to 2000 points fitted in one process (one grid, every setting given,
+    the exact solve): one compilation of the fit for 1000 points (padded to 1024) and one
+    for the five clouds of the next octave (padded to 2048), with occupied cells rounded
+    to the same ladder."""
+    solver = jurs.LeastSquares(lam=1e-4)
+    counts = []
+    for m in LADDER:
+        points, normals = jurs.datasets.example1(m)
+        with _CompileCounter() as counter:
+            sol = jurs.fit(points, normals, grid=12, offset=0.1, eps=0.01, solver=solver)
+            jax.block_until_ready(sol.spline)
+        counts.append(counter.count)
+    assert counts == [1, 1, 0, 0, 0, 0]
 
 
 @pytest.mark.slow

@@ -237,11 +237,12 @@ def fit(
     them). The result then differs from the same fit under a caller's ``jit`` at rounding
     level.
 
-    Shape-stable: a concrete cloud without a ``mask`` is padded to one of four sizes an
-    octave (``jurs._problem.sizes.padded_count``: ..., 896, 1024, 1280, 1536, ...) with
-    masked-out points, and its sample layout sized from that, so that a new cloud of a
-    similar size reuses the compiled fit instead of compiling again; automatic grids are
-    rounded up likewise (``jurs._fit.settings.choose_grid``). The padding changes the result
+    Shape-stable: a concrete cloud without a ``mask`` is padded to a power of two
+    (``jurs._problem.sizes.padded_count``: ..., 512, 1024, 2048, ...; four sizes an octave
+    above 2^18 points) with masked-out points, and its sample layout sized from that, so
+    that a new cloud in the same octave reuses the compiled fit instead of compiling
+    again; automatic grids are rounded up to four sizes an octave
+    (``jurs._fit.settings.choose_grid``). The padding changes the result
     only at rounding level. With [`jurs.enable_compilation_cache`][], new processes load
     compiled (and traced) fits from the cache folder.
 

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .sizes import round_size
+from .sizes import round_octave
 
 #: Largest automatic bucket size.
 MAX_BUCKET_SIZE = 64
@@ -83,7 +83,7 @@ def stable_layout(
 ):
     """[`bucket_layout`][jurs.internal.bucket_layout] of the real samples (``sample_mask`` > 0),
     sized from the number of slots (padding included) and the occupied cells rounded up by
-    ``jurs._problem.sizes.round_size``, not from the exact counts: clouds padded to one size
+    ``jurs._problem.sizes.round_octave``, not from the exact counts: clouds padded to one size
     ([`jurs.fit`][]) whose samples occupy about as many cells get the same shapes, so one
     compiled fit. Padding samples take no bucket.
 
@@ -96,7 +96,7 @@ def stable_layout(
     cells = np.asarray(cells)
     num_slots = cells.shape[0]
     occupied = min(
-        count, round_size(int(np.count_nonzero(np.bincount(cells[real], minlength=count))))
+        count, round_octave(int(np.count_nonzero(np.bincount(cells[real], minlength=count))))
     )
     if bucket_size is None:
         cap, per_cell = (

@@ -1,23 +1,27 @@
-"""Sizes: the margin of the automatic box, and the ladder that compiled shapes are rounded
-to so that similar clouds share one compiled fit."""
+"""Sizes: the margin of the automatic box, and the ladders that compiled shapes are rounded
+to so that clouds of different sizes share one compiled fit (docs/design.md section 5,
+"Compiled shapes")."""
 
 from __future__ import annotations
 
 #: Fewest points a fit is padded to (smaller clouds all share the size 32).
 MIN_PADDED_POINTS = 32
 
+#: Point counts up to this are padded to a power of two (one size an octave); larger
+#: clouds to ``round_size``'s four sizes an octave, where the padded work of a warm fit
+#: (up to twice the samples) would cost more than a compilation.
+OCTAVE_PADDING_MAX = 1 << 18
+
 
 def round_size(n: int) -> int:
     """``n`` rounded up to the size ladder 1, 2, ..., 8, then 4, 5, 6, 7 times a power of
     two (10, 12, 14, 16, 20, 24, 28, 32, 40, ...): four sizes an octave.
 
-    Shapes that XLA compiles for (point counts, grid cells, occupied cells) are rounded to
-    it, so that clouds of similar size share one compiled fit. Why four an octave: a new
-    shape costs a compilation, seconds against a warm fit's fraction of a second
-    (``benchmarks/results/startup.md``), while a size rounded up by at most 25 % (10 % on
-    average over sizes) costs at most that much more work; eight an octave
-    would halve the waste and double the compilations. A size in ``[4, 8) * 2^k`` on it is
-    divisible by 2^k (a cell count halves k times), which multigrid coarsening likes.
+    Automatic grids' cell counts are rounded to it (``jurs._fit.settings.choose_grid``):
+    cells at most 25 % narrower than chosen, where a power of two would make them up to
+    half as wide and change the fit itself; and point counts above
+    ``OCTAVE_PADDING_MAX``. A size in ``[4, 8) * 2^k`` on it is divisible by 2^k (a cell
+    count halves k times), which multigrid coarsening likes.
     """
     n = int(n)
     if n <= 8:
@@ -27,11 +31,26 @@ def round_size(n: int) -> int:
     return -(-n // step) * step
 
 
+def round_octave(n: int) -> int:
+    """``n`` rounded up to a power of two (1, 2, 4, 8, ...): one size an octave.
+
+    Point counts and occupied cells, the counts a compiled fit's sample arrays are sized
+    from, are rounded to it: a new shape costs a compilation, seconds (3-10 s for the
+    default fit on a 2-core CPU) against a warm fit's 0.1-0.2 s at 1000 points, while
+    padding to a power of two costs at most twice the per-sample work (2 ln 2 = 1.39
+    times on average over sizes), which in a default fit is a small share of the solve on
+    its grid (docs/startup.md, "Shape-stable compiled fits")."""
+    n = int(n)
+    return 1 if n <= 1 else 1 << (n - 1).bit_length()
+
+
 def padded_count(num_points: int) -> int:
     """The number of points [`jurs.fit`][] pads a cloud of ``num_points`` to (with
-    masked-out copies of its first point): ``round_size``, at least
-    ``MIN_PADDED_POINTS``."""
-    return max(MIN_PADDED_POINTS, round_size(num_points))
+    masked-out copies of its first point): ``round_octave`` (``round_size`` above
+    ``OCTAVE_PADDING_MAX``), at least ``MIN_PADDED_POINTS``."""
+    if num_points > OCTAVE_PADDING_MAX:
+        return round_size(num_points)
+    return max(MIN_PADDED_POINTS, round_octave(num_points))
 
 
 #: Default margin added around the samples' bounding box, as a fraction of its longest side.

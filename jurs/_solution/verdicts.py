@@ -135,55 +135,54 @@ FAR_SPREAD = 4.0
 #: The checks evaluate the fit at point counts rounded up to a power of two (at least
 #: this), so that a new cloud reuses their compiled evaluations: with a count of its
 #: own, each new cloud spent most of its fit compiling them (docs/startup.md, "Shape-stable
-#: compiled fits"). Powers of two, not the fit's own ladder
-#: (``jurs._problem.sizes.round_size``, four sizes an octave): padding these evaluations
-#: costs far less than a compilation, and the count of pairs across thin parts varies
-#: from cloud to cloud within one of the fit's size bands.
+#: compiled fits"). Powers of two, as the fit's own point counts
+#: (``jurs._problem.sizes.padded_count``): padding these evaluations costs far less than
+#: a compilation, and the count of pairs across thin parts varies from cloud to cloud.
 MIN_CHECK_BUCKET = 1024
 
 
 @jax.jit
-def zero_set_distance(spline: ImplicitSpline, points: jax.Array) -> jax.Array:
-    """First-order distance ``|g(p)| / |grad g(p)|`` from each point to the zero set."""
+def values_and_distances(spline: ImplicitSpline, points: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """``(g(p), |g(p)| / |grad g(p)|)`` at each point: the value and the first-order
+    distance to the zero set. One compiled program serves both checks of a fit (the
+    distances of ``far_point_fraction``, the signs of ``crossed_features``): two
+    programs of their own cost a second compilation for a gradient that is cheap."""
 
     def one(p):
         value, gradient = jax.value_and_grad(lambda x: spline(x[None])[0])(p)
-        return jnp.abs(value) / jnp.maximum(jnp.linalg.norm(gradient), 1e-300)
+        return value, jnp.abs(value) / jnp.maximum(jnp.linalg.norm(gradient), 1e-300)
 
     return jax.vmap(one)(points)
 
 
-@jax.jit
-def _spline_values(spline: ImplicitSpline, points: jax.Array) -> jax.Array:
-    return spline(points)
-
-
-def evaluate_bucketed(fn, spline: ImplicitSpline, points) -> np.ndarray:
-    """``fn(spline, points)`` (a jitted per-point evaluation) on the host's ``(n, d)``
-    ``points``, padded with copies of the first to a power of two of at least
-    ``MIN_CHECK_BUCKET`` rows and cut back to ``n``: clouds of different sizes share
-    one compiled evaluation."""
+def evaluate_bucketed(spline: ImplicitSpline, points) -> tuple[np.ndarray, np.ndarray]:
+    """``values_and_distances(spline, points)`` on the host's ``(n, d)`` ``points``,
+    padded with copies of the first to a power of two of at least ``MIN_CHECK_BUCKET``
+    rows and cut back to ``n``: clouds of different sizes share one compiled
+    evaluation (for one grid)."""
     points = np.asarray(points, float)
     n = len(points)
     if n == 0:
-        return np.empty(0)
+        return np.empty(0), np.empty(0)
     size = max(MIN_CHECK_BUCKET, 1 << (n - 1).bit_length())
     padded = np.concatenate([points, np.repeat(points[:1], size - n, axis=0)])
-    return np.asarray(fn(spline, jnp.asarray(padded, spline.control.dtype)))[:n]
+    value, distance = values_and_distances(spline, jnp.asarray(padded, spline.control.dtype))
+    return np.asarray(value)[:n], np.asarray(distance)[:n]
 
 
 def far_point_fraction(spline: ImplicitSpline, points, offset: float) -> tuple[float, float]:
     """``(fraction, threshold)``: the fraction of ``points`` (at most ``PROBES``,
-    evenly strided) whose ``zero_set_distance`` exceeds the largest of 2 d, half a
-    cell, and ``FAR_SPREAD`` times the distances' own robust spread (1.4826 times their
-    median): the distance within which a fit's zero set lies of its data where it follows
-    them (the offsets reach d; a grid's cell bounds what its zero set can follow; noisy
-    points scatter about it by their noise, which d may underestimate)."""
+    evenly strided) whose distance to the zero set (``values_and_distances``) exceeds
+    the largest of 2 d, half a cell, and ``FAR_SPREAD`` times the distances' own robust
+    spread (1.4826 times their median): the distance within which a fit's zero set lies
+    of its data where it follows them (the offsets reach d; a grid's cell bounds what its
+    zero set can follow; noisy points scatter about it by their noise, which d may
+    underestimate)."""
     p = np.asarray(points, float)
     at = strided_probes(len(p), PROBES)
     p = p if at is None else p[at]
     cell = spline.cell_width
-    distance = evaluate_bucketed(zero_set_distance, spline, p)
+    _, distance = evaluate_bucketed(spline, p)
     spread = 1.4826 * float(np.nanmedian(distance)) if np.isfinite(distance).any() else 0.0
     threshold = max(2.0 * float(offset), 0.5 * cell, FAR_SPREAD * spread)
     return float(np.mean(~(distance <= threshold))), threshold
@@ -233,7 +232,7 @@ def crossed_pairs(
     a, b, normal = p[own[paired]], p[partner[paired]], n[own[paired]]
     offset = np.sum((b - a) * normal, axis=1)
     inside = offset < 0  # a thin part, not a gap
-    value = evaluate_bucketed(_spline_values, spline, 0.5 * (a + b))
+    value, _ = evaluate_bucketed(spline, 0.5 * (a + b))
     wrong = np.where(inside, value > 0, value < 0)
     along = np.abs(offset) < ALONG_COSINE * np.linalg.norm(b - a, axis=1)
     across = width[paired][~along]
@@ -410,19 +409,24 @@ def check_doubts(sol, cloud, settings, offset):
     tree = kd_tree(p[keep]) if aside else cloud.tree  # cloud.tree: the points kept
     extra = extra_components(sol.spline, tree, threshold)
     doubts.extend(_describe_extra(c) for c in extra)
+    # device_put, not jnp.asarray: a Python number through jnp.asarray compiles a small
+    # program of its own in each new process.
     metrics = dict(
         sol.metrics,
-        far_point_fraction=jnp.asarray(far),
-        crossed_features=jnp.asarray(crossed + along),
-        flipped_pairs=jnp.asarray(along),
+        far_point_fraction=jax.device_put(np.asarray(far)),
+        crossed_features=jax.device_put(np.asarray(crossed + along)),
+        flipped_pairs=jax.device_put(np.asarray(along)),
     )
     stats = dict(sol.stats, doubts=tuple(doubts), extra_components=tuple(extra))
     result = sol.result
-    usable = bool((result == RESULTS.successful) | (result == RESULTS.max_steps_reached))
+    # Compared by name on the host: comparing the result's items dispatches (and, in a
+    # new process, compiles) a JAX program for each comparison.
+    status = sol.status
+    usable = status in ("successful", "max_steps_reached")
     if flipped and usable:
         # The cause has its own verdict (raised with throw=True, as check_orientation's).
         result = RESULTS.inconsistent_normals
-    elif doubts and bool(result == RESULTS.successful):
+    elif doubts and status == "successful":
         result = RESULTS.doubtful
         warnings.warn("jurs.fit: doubtful fit: " + "; ".join(doubts), stacklevel=4)
     return dataclasses.replace(sol, metrics=metrics, stats=stats, result=result)

@@ -49,6 +49,7 @@ import time
 import warnings
 from typing import TYPE_CHECKING, cast
 
+from ._batch import FilesAction, is_batch, run_batch
 from ._inputs import (
     InputError,
     _grid,
@@ -176,9 +177,12 @@ def _fit_parser(sub) -> argparse.ArgumentParser:
     )
     f.add_argument(
         "file",
+        nargs="+",
+        action=FilesAction,
         help="CSV/TXT (columns x, y, nx, ny; optional header) or NPY (m, 4); "
         "3D: PLY or OBJ (vertices, vertex normals) or XYZ/PTS (rows "
-        "x y z [nx ny nz])",
+        "x y z [nx ny nz]). Several files, a folder or a glob pattern: each "
+        "cloud is fitted into its own sub-folder of --output, named from its file",
     )
     f.add_argument(
         "--grid",
@@ -235,7 +239,12 @@ def _fit_parser(sub) -> argparse.ArgumentParser:
         default=1e-7,
         help="stop when |E_new - E_old| < tol (eq. 38); 0 runs all steps",
     )
-    f.add_argument("-o", "--output", default="jurs-output", help="output folder")
+    f.add_argument(
+        "-o",
+        "--output",
+        default="jurs-output",
+        help="output folder (several clouds: one sub-folder each inside it)",
+    )
     f.add_argument(
         "--resolution",
         type=int,
@@ -482,8 +491,12 @@ def _solve(job: FitJob, args):
 
 def run_fit(args) -> int:
     """``jurs fit``: read and check, fit, analyse (a 2D cloud's zero-level curves or a 3D
-    cloud's meshed surface), then write all outputs at once (or none)."""
+    cloud's meshed surface), then write all outputs at once (or none). Several clouds
+    (``jurs.cli._batch``): each so, into its own sub-folder of ``--output``."""
     import jax
+
+    if is_batch(args):
+        return run_batch(args, run_fit)
 
     jax.config.update("jax_enable_x64", True)
     job = prepare_fit(args)
