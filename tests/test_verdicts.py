@@ -164,10 +164,11 @@ def test_singular_solve_is_reported():
     """LeastSquares(lam=0) with the ridge off solved a singular system (coefficients of
     1e8, signs as wrong as right) and reported success."""
     p, n = jurs.datasets.example1(300)
-    settings = dict(grid=20, offset=0.05, eps=0.05)
-    sol = jurs.fit(p, n, solver=jurs.LeastSquares(lam=0.0, ridge=0.0), throw=False, **settings)
+    singular = jurs.LeastSquares(lam=0.0, ridge=0.0)
+    sol = jurs.fit(p, n, grid=20, offset=0.05, eps=0.05, solver=singular, throw=False)
     assert sol.status == "failed"
-    sound = jurs.fit(p, n, solver=jurs.LeastSquares(lam=1e-6, ridge=0.0), **settings)
+    sound = jurs.LeastSquares(lam=1e-6, ridge=0.0)
+    sound = jurs.fit(p, n, grid=20, offset=0.05, eps=0.05, solver=sound)
     assert sound.status == "successful"
 
 
