@@ -218,7 +218,7 @@ def fit(
             call, reported when done. Top-level calls only.
         throw: raise ``equinox.EquinoxRuntimeError`` when the verdict says the fit is not
             a reconstruction (``failed``, ``nonfinite``, ``inconsistent_normals``,
-            ``weights_at_floor``; never for ``max_steps_reached``). With ``throw=False``
+            ``weights_at_floor``, ``weights_at_ceiling``; never for ``max_steps_reached``). With ``throw=False``
             the Solution is returned and ``sol.result`` / ``sol.status`` say what
             happened (a non-finite run keeps its last finite iterate). Called outside any JAX
             transformation, the fit is checked once it has run, so this call then waits
