@@ -16,10 +16,12 @@ import importlib
 from typing import TYPE_CHECKING
 
 from ._cloud.cloud import Cloud
+from ._fit.adaptive import fit_adaptive
 from ._fit.compile import COMPILER_OPTIONS, enable_compilation_cache
 from ._fit.fit import fit
 from ._fit.progress import fit_in_chunks
 from ._fit.settings import Settings, auto_settings
+from ._model.adaptive import AdaptiveSpline
 from ._model.io import load_spline, save_spline
 from ._model.spline import ImplicitSpline
 from ._problem.energy import objective
@@ -55,6 +57,7 @@ __version__ = "0.1.0"
 __all__ = [
     # fitting
     "fit",
+    "fit_adaptive",
     "Cloud",
     "fit_in_chunks",
     "estimate_normals",
@@ -63,6 +66,7 @@ __all__ = [
     "Solution",
     "RESULTS",
     "ImplicitSpline",
+    "AdaptiveSpline",
     "save_spline",
     "load_spline",
     # solvers, one interface and one driver

@@ -12,12 +12,30 @@ surface. Importing this module costs nothing beyond ``import jurs``.
 
 from ._linalg.normal import NormalEquations, normal_equations
 from ._model.basis import cubic_derivatives, cubic_weights
+from ._model.hierarchy import (
+    Hierarchy,
+    build_hierarchy,
+    cascade,
+    cascade_matrix,
+    hierarchy_gradient,
+    hierarchy_regulariser,
+    hierarchy_values,
+    leaf_terms,
+    locate_leaves,
+    refine_near,
+)
 from ._model.spline import (
     LocalBasis,
     bspline_transpose,
     bspline_values,
     local_basis,
     rational_values,
+)
+from ._problem.adaptive import (
+    AdaptiveProblem,
+    adaptive_objective,
+    adaptive_values,
+    make_adaptive_problem,
 )
 from ._problem.energy import (
     collocation_column_sums,
@@ -40,6 +58,20 @@ from ._problem.layout import bucket_layout
 from ._problem.problem import auto_domain, offset_samples
 
 __all__ = [
+    "AdaptiveProblem",
+    "Hierarchy",
+    "adaptive_objective",
+    "adaptive_values",
+    "build_hierarchy",
+    "cascade",
+    "cascade_matrix",
+    "hierarchy_gradient",
+    "hierarchy_regulariser",
+    "hierarchy_values",
+    "leaf_terms",
+    "locate_leaves",
+    "make_adaptive_problem",
+    "refine_near",
     "LocalBasis",
     "NormalEquations",
     "auto_domain",

@@ -505,3 +505,126 @@ def test_points_without_normals(tmp_path):
     assert record["metrics"]["num_supplementary"] == 0
     spline = jurs.load_spline(out / "spline.npz")
     assert float(spline(np.array([[0.0, -4.0]]))[0]) < 0  # inside: the normals point out
+
+
+# --- outputs of another kind of run, and Ctrl-C ----------------------------------------------
+
+
+def _surface_outputs_from_jurs(out, record=None):
+    """A folder as a surface fit leaves it: metrics.json with jurs's record (``mesh``
+    included) and the other outputs."""
+    out.mkdir()
+    record = (
+        {"input": "s.ply", "settings": {}, "metrics": {}, "mesh": {}} if record is None else record
+    )
+    (out / "metrics.json").write_text(json.dumps(record))
+    for name in cli.OUTPUTS_3D[1:]:
+        (out / name).write_text("old")
+
+
+def test_curve_fit_removes_a_surface_fits_outputs(example1_csv, tmp_path, capsys):
+    """A fit into a folder of another kind of run left its files (mesh.ply, preview.png)
+    beside the new ones; jurs's own are removed, files the user put there are kept."""
+    out = tmp_path / "out"
+    _surface_outputs_from_jurs(out)
+    args = ["fit", str(example1_csv), *PAPER_ARGS, *FIT_ARGS]
+    assert cli.main([*args, "-o", str(out)]) == 0
+    assert sorted(os.listdir(out)) == sorted(cli.OUTPUTS)
+    # Not jurs's metrics.json: mesh.ply and preview.png may be the user's.
+    mine = tmp_path / "mine"
+    _surface_outputs_from_jurs(mine, record={"mine": True})
+    assert cli.main([*args, "-o", str(mine)]) == 0
+    assert sorted(os.listdir(mine)) == sorted(set(cli.OUTPUTS) | set(cli.OUTPUTS_3D))
+    assert (mine / "mesh.ply").read_text() == "old"
+
+
+def test_failed_write_puts_back_the_other_kinds_outputs(example1_csv, tmp_path, monkeypatch):
+    """The removal of the other kind's files is part of the one atomic write: a failure
+    after it puts them back with the old set."""
+    out = tmp_path / "out"
+    _surface_outputs_from_jurs(out)
+    before = {n: (out / n).read_text() for n in os.listdir(out)}
+    real_replace = os.replace
+
+    def replace(src, dst):
+        if str(src).endswith("preview.png") and ".jurs-" in str(dst):
+            raise OSError(28, "No space left on device")
+        return real_replace(src, dst)
+
+    monkeypatch.setattr(cli.os, "replace", replace)
+    assert cli.main(["fit", str(example1_csv), *PAPER_ARGS, *FIT_ARGS, "-o", str(out)]) == 1
+    assert {n: (out / n).read_text() for n in os.listdir(out)} == before
+
+
+def test_ctrl_c_mid_fit_is_one_line_and_exit_130(example1_csv, tmp_path, capsys, monkeypatch):
+    """Ctrl-C printed a 70-line traceback; now one line, exit status 130, old outputs
+    untouched."""
+    out = tmp_path / "out"
+    _old_outputs(out)
+
+    def interrupted(*args, **kwargs):
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(jurs, "fit", interrupted)
+    rc = cli.main(["fit", str(example1_csv), *PAPER_ARGS, *FIT_ARGS, "-o", str(out)])
+    assert rc == cli.EXIT_INTERRUPTED == 130
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("jurs: interrupted"), err
+    assert "previous outputs" in err[0]
+    assert all((out / n).read_text() == "old" for n in os.listdir(out))
+    assert not [p for p in os.listdir(out) if p.startswith(".jurs-")]
+
+
+def test_ctrl_c_while_writing_puts_the_old_set_back(example1_csv, tmp_path, capsys, monkeypatch):
+    out = tmp_path / "out"
+    _old_outputs(out)
+    real_replace, pressed = os.replace, []
+
+    def replace(src, dst):  # Ctrl-C once, as the new zero_level.csv is moved in
+        if str(dst).endswith("zero_level.csv") and ".jurs-" not in str(dst) and not pressed:
+            pressed.append(True)
+            raise KeyboardInterrupt
+        return real_replace(src, dst)
+
+    monkeypatch.setattr(cli.os, "replace", replace)
+    rc = cli.main(["fit", str(example1_csv), *PAPER_ARGS, *FIT_ARGS, "-o", str(out)])
+    assert rc == 130
+    assert len(capsys.readouterr().err.strip().splitlines()) == 1
+    assert sorted(os.listdir(out)) == sorted(set(cli.OUTPUTS) - {"fit.png"})
+    assert all((out / n).read_text() == "old" for n in os.listdir(out))
+
+
+@pytest.mark.slow
+def test_ctrl_c_to_the_process(tmp_path):
+    """A real SIGINT to ``python -m jurs.cli`` mid-fit (the only test of the signal
+    itself, through ``cli.command`` and ``end_process``): one line on stderr after the
+    progress bar's, exit status 130, the old outputs kept."""
+    import signal
+    import time
+
+    path = tmp_path / "cloud.csv"
+    jurs.datasets.save_points(path, *jurs.datasets.example1(120))
+    out = tmp_path / "out"
+    _old_outputs(out)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "jurs.cli", "fit", str(path), "-o", str(out), *PAPER_ARGS]
+        + ["--steps", "1000000", "--tol", "0", "--no-compilation-cache"],
+        stderr=subprocess.PIPE,
+        stdout=subprocess.PIPE,
+    )
+    assert proc.stderr is not None
+    seen = b""
+    while b"steps" not in seen:  # the progress bar: the fit is running
+        chunk = proc.stderr.read1(4096)  # pyright: ignore[reportAttributeAccessIssue]
+        assert chunk, seen
+        seen += chunk
+    time.sleep(0.5)
+    proc.send_signal(signal.SIGINT)
+    rest, _ = proc.communicate(timeout=120)[::-1]
+    err = (seen + rest).decode()
+    assert proc.returncode == 130, err
+    # The bar redraws its one line with carriage returns, then ends it; then one line.
+    lines = [line for line in err.split("\n") if line.strip()]
+    assert lines[-1].startswith("jurs: interrupted"), err
+    assert all("steps" in line for line in lines[:-1]), err
+    assert all((out / n).read_text() == "old" for n in os.listdir(out))

@@ -72,7 +72,7 @@ def test_surface_from_ply_with_normals(sphere, sphere_files, tmp_path):
     assert (out / "preview.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
     # spline.npz holds the fit jurs.fit gives with the same settings, as a 3D spline (of
-    # the cloud as read: PLY stores float32 coordinates).
+    # the cloud as read).
     spline = jurs.load_spline(out / "spline.npz")
     assert isinstance(spline, jurs.ImplicitSpline) and spline.shape == (12, 12, 12)
     direct = jurs.fit(*jurs.datasets.load_points(sphere_files[0]), grid=12).spline
@@ -197,3 +197,44 @@ def test_plot_mesh_decimates_and_highlights():
     with pytest.raises(ValueError, match="3D Axes"):
         plot.plot_mesh(vertices, faces, ax=plt.figure().add_subplot())
     plt.close("all")
+
+
+def test_surface_far_from_the_origin_into_a_curve_fits_folder(sphere, tmp_path, capsys):
+    """A sphere 1e7 from the origin: mesh.ply was float32, off by the float32 spacing
+    there (about 1, half the sphere) while metrics.json said the fit was close. And a
+    surface fit into a folder that held a curve fit left fit.png and zero_level.csv."""
+    centre = np.array([1e7, -2e7, 3e7])
+    path = tmp_path / "far.xyz"
+    jurs.datasets.save_points(path, sphere[0] + centre, sphere[1])
+    out = tmp_path / "out"
+    out.mkdir()
+    (out / "metrics.json").write_text(json.dumps({"input": "c.csv", "settings": {}, "metrics": {}}))
+    for name in ("spline.npz", "fit.png", "zero_level.csv"):
+        (out / name).write_text("old")
+    assert cli.main(["fit", str(path), "-o", str(out), *FIT_ARGS]) == 0
+    assert sorted(os.listdir(out)) == sorted(cli.OUTPUTS_3D)
+    record = json.loads((out / "metrics.json").read_text())
+    vertices, _ = jurs.datasets.load_mesh(out / "mesh.ply")
+    off = np.abs(np.linalg.norm(vertices - centre, axis=1) - 1.0)
+    # The mesh file is as close to the data as metrics.json says the mesh is.
+    assert off.max() < max(2 * record["metrics"]["hausdorff"], 0.05)
+
+
+def test_mesh_file_input_notes_the_sampling(tmp_path, capsys):
+    """A mesh file given to ``jurs fit`` is read as points drawn on its faces, said in a
+    ``jurs: note:`` line; a binary STL died on a UTF-8 decode error."""
+    trimesh = pytest.importorskip("trimesh")
+    path = tmp_path / "ball.stl"
+    trimesh.creation.icosphere(2).export(path)
+    points, normals = cli.read_input(str(path))
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith(f"jurs: note: {path}: a triangle mesh"), err
+    assert len(points) == jurs.datasets.MESH_SAMPLES and normals is not None
+    np.testing.assert_allclose(np.linalg.norm(points, axis=1), 1.0, atol=0.05)
+    bad = tmp_path / "bad.ply"
+    bad.write_text(
+        "ply\nformat ascii 1.0\nelement vertex 4\nproperty float x\n"
+        "property float y\nproperty float z\nend_header\n0 0 0\n1 0 0\n0 1 0\n"
+    )
+    out = tmp_path / "o"
+    _refused(capsys, ["fit", str(bad), "-o", str(out)], out, "declares 4 rows")

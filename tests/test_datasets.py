@@ -1,7 +1,12 @@
 """Built-in curves, noise, and reading points from files."""
 
+import pathlib
+
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, assume, given, settings
+from hypothesis import strategies as st
+from hypothesis.extra.numpy import arrays
 from matplotlib.path import Path
 
 from jurs import datasets
@@ -109,3 +114,293 @@ def test_two_column_csv_checks_every_row(tmp_path):
     path.write_text("0 0\n1 nan\n2 2\n")
     with pytest.raises(ValueError, match=r"row 2 has NaN or Inf"):
         datasets.load_points(path)
+
+
+# --- spline files: a format version -------------------------------------------------------
+
+DATA = pathlib.Path(__file__).resolve().parent / "data"
+
+
+def test_spline_files_carry_a_version(tmp_path):
+    """save_spline writes ``format_version``; load_spline reads it back."""
+    import jurs
+    from jurs._model.io import FORMAT_VERSION, VERSION_KEY
+
+    spline = jurs.load_spline(DATA / "spline_unversioned.npz")
+    jurs.save_spline(tmp_path / "s.npz", spline)
+    with np.load(tmp_path / "s.npz") as data:
+        assert int(data[VERSION_KEY]) == FORMAT_VERSION
+    back = jurs.load_spline(tmp_path / "s.npz")
+    np.testing.assert_array_equal(np.asarray(back.control), np.asarray(spline.control))
+
+
+def test_unversioned_spline_files_still_load():
+    """A file written by save_spline before the format had a version (tests/data, made by
+    that code: the four arrays alone) loads as it did."""
+    import jurs
+
+    with np.load(DATA / "spline_unversioned.npz") as data:
+        assert sorted(data.files) == ["control", "lower", "upper", "weights"]
+        control = data["control"]
+    spline = jurs.load_spline(DATA / "spline_unversioned.npz")
+    np.testing.assert_array_equal(np.asarray(spline.control), control)
+    assert np.isfinite(float(spline(np.zeros(2))))
+
+
+@pytest.mark.parametrize(
+    "extra, needle",
+    [
+        ({"format_version": np.int64(99)}, r"format version 99; this jurs reads versions 0, 1"),
+        ({"format_version": np.float64(1.0)}, "format_version must be one integer"),
+        ({"format_version": np.arange(2)}, "format_version must be one integer"),
+        ({"format_version": np.int64(1), "offsets": np.ones(3)}, "unexpected arrays"),
+        ({"mask": np.ones((6, 6))}, r"unexpected arrays \['mask'\]"),
+    ],
+)
+def test_spline_files_of_other_versions_or_layouts_are_refused(tmp_path, extra, needle):
+    """A file of a newer format, or with arrays the format does not have, is refused
+    naming the file (it was read as a spline when its four arrays happened to fit)."""
+    import jurs
+
+    with np.load(DATA / "spline_unversioned.npz") as data:
+        arrays = {k: data[k] for k in data.files}
+    path = tmp_path / "other.npz"
+    np.savez(path, **arrays, **extra)
+    with pytest.raises(ValueError, match=needle) as info:
+        jurs.load_spline(path)
+    assert str(path) in str(info.value)
+
+
+# --- 3D files: meshes read as meshes ------------------------------------------------------
+
+trimesh = pytest.importorskip("trimesh")
+
+
+def _box(inward=False):
+    """A closed box from trimesh (outward winding), or wound inward."""
+    box = trimesh.creation.box(extents=(2.0, 1.0, 0.5))
+    faces = box.faces[:, ::-1] if inward else box.faces
+    return np.asarray(box.vertices, float), np.asarray(faces)
+
+
+def _on_faces(points, vertices, faces, tol):
+    """Whether each point lies on one of the triangles (within ``tol``): in its plane
+    and inside its edges (barycentric coordinates >= -tol)."""
+    a, b, c = (vertices[faces[:, k]] for k in range(3))
+    with np.errstate(divide="ignore", invalid="ignore"):  # faces without area: never inside
+        return _on_faces_of(points, a, b, c, tol)
+
+
+def _on_faces_of(points, a, b, c, tol):
+    e1, e2, d = b - a, c - a, points[:, None, :] - a[None]
+    n = np.cross(e1, e2)
+    area2 = np.linalg.norm(n, axis=1)
+    height = np.abs(np.einsum("pfk,fk->pf", d, n)) / area2
+    # Barycentric coordinates from the Gram system of the two edges.
+    g11, g12, g22 = (e1 * e1).sum(1), (e1 * e2).sum(1), (e2 * e2).sum(1)
+    r1, r2 = np.einsum("pfk,fk->pf", d, e1), np.einsum("pfk,fk->pf", d, e2)
+    det = g11 * g22 - g12**2
+    s, t = (g22 * r1 - g12 * r2) / det, (g11 * r2 - g12 * r1) / det
+    scale = np.sqrt(area2)
+    inside = (s >= -tol / scale) & (t >= -tol / scale) & (s + t <= 1 + tol / scale)
+    return ((height <= tol) & inside).any(axis=1)
+
+
+@pytest.mark.parametrize("kind", ["ply", "ply_ascii", "obj", "stl", "stl_ascii", "off"])
+def test_mesh_files_are_read_as_meshes(tmp_path, kind):
+    """A mesh file's points are drawn on its faces (not its 8 vertices: a box read as its
+    corners fits no box), with the faces' outward normals, seeded, and a note says so."""
+    vertices, faces = _box()
+    path = tmp_path / f"box.{kind.split('_')[0]}"
+    encoding = {"encoding": "ascii"} if kind == "ply_ascii" else {}
+    file_type = "stl_ascii" if kind == "stl_ascii" else kind.split("_")[0]
+    trimesh.Trimesh(vertices, faces, process=False).export(path, file_type=file_type, **encoding)
+    with pytest.warns(UserWarning, match=r"8 vertices, 12 faces.*500 points drawn") as notes:
+        points, normals = datasets.load_points(path, mesh_samples=500)
+    assert str(path) in str(notes[0].message)
+    assert points.shape == normals.shape == (500, 3)
+    assert _on_faces(points, vertices, faces, 1e-6).all()
+    # Every face gets points (by area: the box's largest faces the most).
+    assert np.unique(np.round(normals, 6), axis=0).shape == (6, 3)
+    # Outward: each normal points away from the box's centre along its own axis.
+    assert (np.einsum("ij,ij->i", normals, points) > 0).all()
+    with pytest.warns(UserWarning):
+        again, _ = datasets.load_points(path, mesh_samples=500)
+    np.testing.assert_array_equal(again, points)
+
+
+def test_mesh_sample_count(tmp_path):
+    """By default a mesh gets MESH_SAMPLES points, or one per vertex where it has more."""
+    path = tmp_path / "box.obj"
+    datasets.save_mesh(path, *_box())
+    with pytest.warns(UserWarning, match=f"{datasets.MESH_SAMPLES} points"):
+        points, _ = datasets.load_points(path)
+    assert len(points) == datasets.MESH_SAMPLES
+    fine = trimesh.creation.icosphere(subdivisions=6)  # 40962 vertices
+    datasets.save_mesh(path, fine.vertices, fine.faces)
+    with pytest.warns(UserWarning, match="40962 vertices"):
+        points, _ = datasets.load_points(path)
+    assert len(points) == len(fine.vertices) > datasets.MESH_SAMPLES
+    with pytest.raises(ValueError, match="mesh_samples must be a positive int"):
+        datasets.load_points(path, mesh_samples=0)
+
+
+def test_closed_mesh_wound_inward_gets_outward_normals(tmp_path):
+    path = tmp_path / "inward.ply"
+    datasets.save_mesh(path, *_box(inward=True))
+    with pytest.warns(UserWarning, match="outward"):
+        points, normals = datasets.load_points(path, mesh_samples=200)
+    assert (np.einsum("ij,ij->i", normals, points) > 0).all()
+
+
+def test_open_mesh_says_its_normals_follow_the_winding(tmp_path):
+    vertices, faces = _box()
+    path = tmp_path / "open.obj"
+    datasets.save_mesh(path, vertices, faces[2:])
+    with pytest.warns(UserWarning, match="not closed"):
+        datasets.load_points(path, mesh_samples=50)
+
+
+def _ascii_ply(vertices, faces=None):
+    header = ["ply", "format ascii 1.0", f"element vertex {len(vertices)}"]
+    header += [f"property float {a}" for a in "xyz"]
+    body = [" ".join(map(str, v)) for v in vertices]
+    if faces is not None:
+        header += [f"element face {len(faces)}", "property list uchar int vertex_indices"]
+        body += ["3 " + " ".join(map(str, f)) for f in faces]
+    return "\n".join(header + ["end_header"] + body) + "\n"
+
+
+@pytest.mark.parametrize("mesh", [False, True])
+@pytest.mark.parametrize("drop, said", [(2, "cut short"), (-1, "longer than its header")])
+def test_ascii_ply_body_must_match_its_header(tmp_path, mesh, drop, said):
+    """An ASCII PLY with fewer rows than its header declares was read without a word
+    (trimesh reads what is there)."""
+    vertices, faces = _box()
+    text = _ascii_ply(vertices, faces if mesh else None)
+    lines = text.splitlines()
+    lines = lines[:-drop] if drop > 0 else lines + lines[-1:]
+    path = tmp_path / "cut.ply"
+    path.write_text("\n".join(lines) + "\n")
+    declared = 20 if mesh else 8
+    rows = declared - drop
+    with pytest.raises(ValueError, match=f"declares {declared} rows .*the body has {rows}.*{said}"):
+        datasets.load_points(path)
+
+
+def test_binary_stl_and_binary_text_files(tmp_path):
+    """A binary STL was read as CSV text and died on a UTF-8 decode error; a binary file
+    under a text suffix is refused naming the file."""
+    path = tmp_path / "part.stl"
+    trimesh.Trimesh(*_box(), process=False).export(path)
+    with pytest.raises(UnicodeDecodeError):  # what the text reader met before
+        path.read_text(encoding="utf-8")
+    with pytest.warns(UserWarning, match="triangle mesh"):
+        points, normals = datasets.load_points(path, mesh_samples=100)
+    assert points.shape == normals.shape == (100, 3)
+    for name in ("part.csv", "part.xyz"):
+        (tmp_path / name).write_bytes(b"\x80\x81binary\xff" * 10)
+        with pytest.raises(ValueError, match="not a text file") as info:
+            datasets.load_points(tmp_path / name)
+        assert name in str(info.value)
+
+
+@pytest.mark.parametrize("mesh", [False, True])
+def test_float32_far_from_the_origin_is_refused_naming_the_precision(tmp_path, mesh):
+    """Float32 coordinates 1e7 from the origin collapse a unit sphere onto a few points;
+    the error blamed coincident points (later, in the fit), not the file's precision."""
+    points, normals = datasets.sphere3d(300)
+    far = points + 1e7
+    path = tmp_path / "far.ply"
+    if mesh:
+        sphere = trimesh.creation.icosphere(2)
+        data = trimesh.exchange.ply.export_ply(
+            trimesh.Trimesh(sphere.vertices + 1e7, sphere.faces, process=False)
+        )
+    else:
+        data = trimesh.exchange.ply.export_ply(
+            trimesh.Trimesh(far, np.empty((0, 3), int), vertex_normals=normals, process=False),
+            vertex_normal=True,
+        )
+    path.write_bytes(data)  # trimesh writes float32
+    with pytest.raises(ValueError, match="float32") as info:
+        datasets.load_points(path)
+    assert str(path) in str(info.value) and "distinct" in str(info.value)
+    # The same cloud near the origin, and far off in float64, are read as given.
+    datasets.save_points(path, far, normals)
+    np.testing.assert_array_equal(datasets.load_points(path)[0], far)
+
+
+def test_a_file_that_is_neither_cloud_nor_mesh(tmp_path):
+    path = tmp_path / "empty.ply"
+    path.write_text(_ascii_ply(np.empty((0, 3))))
+    with pytest.raises(ValueError, match="neither a point cloud nor a triangle mesh") as info:
+        datasets.load_points(path)
+    assert str(path) in str(info.value)
+    path = tmp_path / "flat.obj"
+    path.write_text("v 0 0 0\nv 1 0 0\nv 2 0 0\nf 1 2 3\n")
+    with pytest.raises(ValueError, match="faces have no area"):
+        datasets.load_points(path)
+
+
+def test_meshes_and_clouds_far_from_the_origin_keep_float64(tmp_path):
+    """mesh.ply and cloud PLY files were float32: a sphere 1e7 from the origin came back
+    off by the float32 spacing there (about 1)."""
+    sphere = trimesh.creation.icosphere(2)
+    vertices = np.asarray(sphere.vertices) + [1e7, -3e7, 0.5]
+    datasets.save_mesh(tmp_path / "far.ply", vertices, sphere.faces)
+    back, faces = datasets.load_mesh(tmp_path / "far.ply")
+    np.testing.assert_array_equal(back, vertices)
+    np.testing.assert_array_equal(faces, sphere.faces)
+    for suffix in (".ply", ".obj", ".off"):
+        datasets.save_mesh(tmp_path / f"far{suffix}", vertices, sphere.faces)
+        back = datasets.load_mesh(tmp_path / f"far{suffix}")[0]
+        np.testing.assert_allclose(back, vertices, rtol=1e-15, atol=1e-12)
+
+
+# --- property-based: any small mesh file reads as points on its faces ---------------------
+
+
+@st.composite
+def small_meshes(draw):
+    """1-6 triangles on 3-8 vertices in [-1, 1]^3, with some area (degenerate faces
+    allowed beside others)."""
+    count = draw(st.integers(3, 8))
+    coordinate = st.floats(-1.0, 1.0, allow_nan=False, width=32)
+    vertices = draw(arrays(np.float64, (count, 3), elements=coordinate))
+    corners = st.lists(st.integers(0, count - 1), min_size=3, max_size=3, unique=True)
+    faces = np.array(draw(st.lists(corners, min_size=1, max_size=6)))
+    a, b, c = (vertices[faces[:, k]] for k in range(3))
+    area = np.linalg.norm(np.cross(b - a, c - a), axis=1).sum() / 2
+    assume(area > 0.05)
+    return vertices, faces
+
+
+@settings(
+    max_examples=25,
+    deadline=None,
+    database=None,
+    derandomize=True,
+    suppress_health_check=[HealthCheck.too_slow],
+)
+@given(mesh=small_meshes(), kind=st.sampled_from(["ply", "ply_ascii", "obj", "stl", "off"]))
+def test_any_small_mesh_file_reads_as_points_on_its_faces(tmp_path_factory, mesh, kind):
+    """Written by trimesh in any of its formats, read back: every point lies on a face of
+    the mesh, with a unit normal perpendicular to that face."""
+    vertices, faces = mesh
+    path = tmp_path_factory.mktemp("meshes") / f"mesh.{kind.split('_')[0]}"
+    options = {"encoding": "ascii"} if kind == "ply_ascii" else {}
+    trimesh.Trimesh(vertices, faces, process=False).export(
+        path, file_type=kind.split("_")[0], **options
+    )
+    with pytest.warns(UserWarning, match="drawn uniformly by area"):
+        points, normals = datasets.load_points(path, mesh_samples=40)
+    assert points.shape == normals.shape == (40, 3)
+    np.testing.assert_allclose(np.linalg.norm(normals, axis=1), 1.0, rtol=1e-12)
+    assert _on_faces(points, vertices, faces, 1e-5).all()
+    # Each normal is perpendicular to a face the point lies on.
+    a, b, c = (vertices[faces[:, k]] for k in range(3))
+    plane = np.cross(b - a, c - a)
+    plane /= np.maximum(np.linalg.norm(plane, axis=1, keepdims=True), 1e-300)
+    parallel = np.abs(normals @ plane.T) > 1 - 1e-5
+    assert parallel.any(axis=1).all()

@@ -1,6 +1,7 @@
 """Autodiff of E + lambda R against the hand-derived gradients (docs/design.md section 2), and the
 energies, regulariser and step size against dense definitions."""
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -26,21 +27,46 @@ def data():
     return jurs.datasets.example1(60)
 
 
-@pytest.mark.parametrize("shape", GRIDS)
-@pytest.mark.parametrize("lam", [0.0, 0.3])
-@pytest.mark.slow
-def test_autodiff_matches_hand_derived(data, rng, shape, lam):
-    problem = jurs.make_problem(*data, grid=shape)
-    control, weights = random_state(rng, shape)
-    auto_c, auto_w = jax.grad(jurs.objective, argnums=(1, 2))(problem, control, weights, lam)
+# Both sides compiled whole, once a grid (lambda is an array argument: both lambdas of a
+# grid share the compilation). Run op by op, each side took seconds a grid in dispatch.
+auto_gradients = eqx.filter_jit(jax.grad(jurs.objective, argnums=(1, 2)))
+
+
+@eqx.filter_jit
+def hand_gradients(problem, control, weights, lam):
     hand_c = jurs.internal.data_energy_grad_control(
         problem, control, weights
     ) + lam * jurs.internal.regulariser_grad(control)
     hand_w = jurs.internal.data_energy_grad_weights(
         problem, control, weights
     )  # R does not depend on w
+    return hand_c, hand_w
+
+
+@pytest.mark.parametrize("shape", GRIDS)
+@pytest.mark.parametrize("lam", [0.0, 0.3])
+@pytest.mark.slow
+def test_autodiff_matches_hand_derived(data, rng, shape, lam):
+    problem = jurs.make_problem(*data, grid=shape)
+    control, weights = random_state(rng, shape)
+    lam = jnp.asarray(lam)
+    auto_c, auto_w = auto_gradients(problem, control, weights, lam)
+    hand_c, hand_w = hand_gradients(problem, control, weights, lam)
     assert relative_error(auto_c, hand_c) <= 1e-10
     assert relative_error(auto_w, hand_w) <= 1e-10
+
+
+@eqx.filter_jit
+def kernels(problem, control, weights):
+    """E_d, its two hand-derived gradients and the explicit-row path's D^T r, compiled
+    as one program."""
+    rr, wb, denom, _ = jurs.internal.residuals(problem, control, weights)
+    return (
+        jurs.internal.data_energy(problem, control, weights),
+        jurs.internal.data_energy_grad_control(problem, control, weights),
+        jurs.internal.data_energy_grad_weights(problem, control, weights),
+        jurs.internal.transpose_apply(problem, wb * (rr / denom)[:, None]),
+    )
 
 
 @pytest.mark.parametrize("shape", GRIDS[:2])
@@ -48,14 +74,13 @@ def test_autodiff_matches_hand_derived(data, rng, shape, lam):
 def test_hand_derived_matches_dense_formulas(data, rng, shape):
     problem = jurs.make_problem(*data, grid=shape)
     control, weights = random_state(rng, shape)
+    energy, grad_control, grad_weights, via_rows = kernels(problem, control, weights)
     d = dense_collocation(problem, weights)
     b = np.asarray(problem.targets)
     c = np.asarray(control).ravel()
     r = d @ c - b
-    np.testing.assert_allclose(
-        float(jurs.internal.data_energy(problem, control, weights)), r @ r, rtol=1e-12
-    )
-    grad_c = np.asarray(jurs.internal.data_energy_grad_control(problem, control, weights)).ravel()
+    np.testing.assert_allclose(float(energy), r @ r, rtol=1e-12)
+    grad_c = np.asarray(grad_control).ravel()
     np.testing.assert_allclose(grad_c, 2 * d.T @ r, rtol=1e-10, atol=1e-14)
     # nabla_w by the quotient rule on dense basis rows: dg_k/dw_ij = B_ij (C_ij - g_k) / W_k.
     basis = dense_basis(
@@ -66,14 +91,12 @@ def test_hand_derived_matches_dense_formulas(data, rng, shape):
     g = basis @ (w * c) / denom
     grad_w = 2 * ((r / denom)[:, None] * basis * (c[None, :] - g[:, None])).sum(axis=0)
     np.testing.assert_allclose(
-        np.asarray(jurs.internal.data_energy_grad_weights(problem, control, weights)).ravel(),
+        np.asarray(grad_weights).ravel(),
         grad_w,
         rtol=1e-10,
         atol=1e-14,
     )
     # Explicit-row path agrees with the fast path.
-    rr, wb, denom2, _ = jurs.internal.residuals(problem, control, weights)
-    via_rows = jurs.internal.transpose_apply(problem, wb * (rr / denom2)[:, None])
     np.testing.assert_allclose(
         2 * np.asarray(via_rows).ravel(), 2 * d.T @ r, rtol=1e-10, atol=1e-14
     )
@@ -105,6 +128,9 @@ def test_regulariser_and_its_gradient(rng, shape):
     assert float(jurs.internal.regulariser(jnp.full(shape, 3.0))) == 0.0
 
 
+step_size = eqx.filter_jit(jurs.internal.step_size)  # compiled whole, once a layout
+
+
 @pytest.mark.parametrize("uniform", [True, False])
 @pytest.mark.slow
 def test_step_size_equals_dense_norm(data, rng, uniform):
@@ -113,9 +139,7 @@ def test_step_size_equals_dense_norm(data, rng, uniform):
     weights = jnp.ones(shape) if uniform else random_state(rng, shape)[1]
     d = dense_collocation(problem, weights)
     dense_mu = 2.0 / np.abs(d.T @ d).sum(axis=1).max()  # 2 / ||D^T D||_inf, eq. 13 / 25
-    np.testing.assert_allclose(
-        float(jurs.internal.step_size(problem, weights)), dense_mu, rtol=1e-12
-    )
+    np.testing.assert_allclose(float(step_size(problem, weights)), dense_mu, rtol=1e-12)
 
 
 @pytest.mark.slow
@@ -131,6 +155,7 @@ def test_bucketed_layout_gives_same_energy_and_gradients(rng):
         jurs.internal.data_energy_grad_control,
         jurs.internal.data_energy_grad_weights,
     ):
+        fn = eqx.filter_jit(fn)  # compiled whole: op by op, dispatch took seconds
         np.testing.assert_allclose(
             np.asarray(fn(bucketed, control, weights)),
             np.asarray(fn(flat, control, weights)),
@@ -138,8 +163,8 @@ def test_bucketed_layout_gives_same_energy_and_gradients(rng):
             atol=1e-15,
         )
     np.testing.assert_allclose(
-        float(jurs.internal.step_size(bucketed, weights)),
-        float(jurs.internal.step_size(flat, weights)),
+        float(step_size(bucketed, weights)),
+        float(step_size(flat, weights)),
         rtol=1e-13,
     )
 
@@ -158,10 +183,11 @@ def test_iurs_steps_agree_across_layouts(rng):
     spline = jurs.ImplicitSpline(control, weights, table.lower, table.upper)
     solver = jurs.IURS(tau=0.05, lam=0.01)
     results = []
+    init, step = eqx.filter_jit(solver.init), eqx.filter_jit(solver.step)  # compiled whole
     for problem in (table, power, bucketed):
-        state, _ = solver.init(problem, spline)
+        state, _ = init(problem, spline)
         for _ in range(3):
-            state, energy = solver.step(problem, state)
+            state, energy = step(problem, state)
         results.append((state, energy))
     (ref, e_ref), others = results[0], results[1:]
     for state, energy in others:
@@ -190,7 +216,7 @@ def test_metrics_match_their_definitions(rng, layout):
     assert (problem.local.terms is not None) == (layout == "table")
     control, weights = random_state(rng, shape)
     spline = jurs.ImplicitSpline(control, weights, problem.lower, problem.upper)
-    got = jurs.internal.metrics(problem, spline, lam)
+    got = eqx.filter_jit(jurs.internal.metrics)(problem, spline, lam)  # compiled whole
     on_points = np.asarray(spline(jnp.asarray(points)))
     d = dense_collocation(problem, weights)[np.asarray(problem.mask) > 0]  # padding: no row
     e_d = float(jurs.internal.data_energy(problem, control, weights))

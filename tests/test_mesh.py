@@ -220,7 +220,90 @@ def test_box_cuts_the_surface_open():
         _mesh.genus(faces)
 
 
+def test_mesh_refuses_splines_without_a_surface():
+    sphere = exact_sphere(radius=1.0, n=8)
+    nan_control = sphere.control.copy()
+    nan_control[2, 3, 4] = np.nan
+    inf_weights = sphere.weights.copy()
+    inf_weights[0, 0, 0] = np.inf
+    cases = [
+        (sphere._replace(control=nan_control), "control points are not all finite"),
+        (sphere._replace(weights=inf_weights), "weights are not all finite"),
+        (sphere._replace(weights=np.zeros_like(sphere.weights)), "weights must be positive"),
+        (sphere._replace(weights=-sphere.weights), "weights must be positive"),
+        (sphere._replace(control=np.zeros_like(sphere.control)), "whole box, not a surface"),
+    ]
+    for spline, message in cases:
+        with pytest.raises(ValueError, match=message):
+            _mesh.mesh(spline, 16)
+    # A constant spline away from the level has an honest empty mesh; at it, none.
+    constant = sphere._replace(control=np.full_like(sphere.control, 2.0))
+    assert len(_mesh.mesh(constant, 16)[1]) == 0
+    with pytest.raises(ValueError, match="equals the level 2"):
+        _mesh.mesh(constant, 16, level=2.0)
+    with pytest.raises(ValueError, match="level must be finite"):
+        _mesh.mesh(sphere, 16, level=np.nan)
+
+
+def test_mesh_refuses_a_lattice_too_large_unless_lifted(monkeypatch):
+    sphere = exact_sphere(radius=1.0, n=8)
+    with pytest.raises(ValueError, match=r"resolution=1200 samples g at 1\.73e\+09 .*minutes"):
+        _mesh.mesh(sphere, 1200)
+    with pytest.raises(ValueError, match="max_nodes=1000.*larger max_nodes"):
+        _mesh.mesh(sphere, 16, max_nodes=1000)
+    with pytest.raises(TypeError, match="max_nodes"):
+        _mesh.mesh(sphere, 16, max_nodes=1e6)  # pyright: ignore[reportArgumentType]
+    lifted = _mesh.mesh(sphere, 16, max_nodes=16**3)
+    assert len(lifted[1]) and len(_mesh.mesh(sphere, 16, max_nodes=None)[1]) == len(lifted[1])
+    # The memory estimate is checked against the host's memory, and cannot be lifted.
+    from jurs._problem import memory
+
+    monkeypatch.setattr(memory, "available_memory", lambda device=True: 1 << 20)
+    with pytest.raises(ValueError, match="resolution=200 needs about .* GiB of memory"):
+        _mesh.mesh(sphere, 200, max_nodes=None)
+
+
 # --- mesh analysis and distances ------------------------------------------------------------
+
+
+def test_analyze_mesh_drops_duplicated_and_degenerate_faces():
+    vertices, faces = _mesh.mesh(exact_sphere(radius=1.0, n=8), 16)
+    clean = _mesh.analyze_mesh(vertices, faces)
+    assert clean.notes == () and clean.components[0].genus == 0
+    flipped = faces[:, ::-1]  # the same triangles, the other way round
+    degenerate = np.array([[0, 0, 1], [2, 3, 3]])
+    messy = np.concatenate([faces, faces, flipped, degenerate])
+    report = _mesh.analyze_mesh(vertices, messy)
+    (component,) = report.components
+    assert component.closed and component.genus == 0
+    assert component.area == pytest.approx(clean.components[0].area, rel=1e-12)
+    np.testing.assert_array_equal(np.sort(component.faces), np.arange(len(faces)))
+    assert report.notes == (
+        "dropped 2 degenerate faces (a vertex named twice)",
+        f"dropped {2 * len(faces)} duplicated faces (a repeat of a face)",
+    )
+    assert _mesh.genus(messy) == 0
+    distances = _mesh.mesh_distances(vertices, messy, vertices, vertices, samples=2000)
+    assert distances == _mesh.mesh_distances(vertices, faces, vertices, vertices, samples=2000)
+
+
+def test_mesh_analysis_refuses_non_finite_input():
+    vertices, faces = _mesh.mesh(exact_sphere(radius=1.0, n=8), 16)
+    bad = vertices.copy()
+    bad[5] = np.nan
+    for fn in (_mesh.analyze_mesh, _mesh.face_areas, _mesh.mesh_components):
+        with pytest.raises(ValueError, match="vertices must be finite; 1 of .* vertex 5"):
+            fn(bad, faces)
+    points = vertices[:50].copy()
+    points[7, 1] = np.inf
+    with pytest.raises(ValueError, match="points must be finite; 1 of 50 .* row 7"):
+        _mesh.analyze_mesh(vertices, faces, points)
+    with pytest.raises(ValueError, match="reference_points must be finite"):
+        _mesh.mesh_distances(vertices, faces, points)
+    with pytest.raises(ValueError, match="reference_normals must be finite"):
+        _mesh.mesh_distances(vertices, faces, vertices[:50], np.full((50, 3), np.nan))
+    with pytest.raises(ValueError, match="faces index vertices"):
+        _mesh.analyze_mesh(vertices, faces - 1)
 
 
 def test_far_small_bubble_is_supplementary():
@@ -328,12 +411,17 @@ def test_mesh_round_trip(tmp_path, suffix):
 
 
 def test_points_of_a_mesh_file(tmp_path):
+    """A mesh file gives points drawn on its faces, with outward face normals (not its
+    vertices, without normals), and says so."""
     vertices, faces = _mesh.mesh(exact_sphere(), 16)
     path = tmp_path / "surface.ply"
     datasets.save_mesh(path, vertices, faces)
-    points, normals = datasets.load_points(path)
-    assert normals is None
-    np.testing.assert_allclose(points, vertices, atol=1e-6)
+    with pytest.warns(UserWarning, match="drawn uniformly by area"):
+        points, normals = datasets.load_points(path)
+    assert normals is not None and len(points) == datasets.MESH_SAMPLES
+    radius = np.linalg.norm(vertices, axis=1).mean()
+    np.testing.assert_allclose(np.linalg.norm(points, axis=1), radius, rtol=0.05)
+    assert (np.einsum("ij,ij->i", normals, points) > 0).all()
 
 
 @pytest.mark.parametrize(
@@ -366,3 +454,98 @@ def test_bad_mesh_files(tmp_path):
         datasets.load_mesh(tmp_path / "missing.obj")
     with pytest.raises(ValueError, match=r"3D points go to"):
         datasets.save_points(tmp_path / "cloud.csv", np.zeros((4, 3)))
+
+
+# --- properties of the mesh analysis (hypothesis) -------------------------------------------
+
+from hypothesis import HealthCheck, given, settings  # noqa: E402
+from hypothesis import strategies as st  # noqa: E402
+
+# derandomize: the same examples every run (see tests/test_properties.py).
+PROPERTY = settings(
+    max_examples=25,
+    deadline=None,
+    database=None,
+    derandomize=True,
+    suppress_health_check=[HealthCheck.function_scoped_fixture, HealthCheck.too_slow],
+)
+_SPHERE_MESH = _mesh.mesh(exact_sphere(radius=1.0, n=8), 12)
+_TORUS_MESH = _mesh.mesh(
+    sampled_spline(torus_distance, [-1.6, -1.6, -0.6], [1.6, 1.6, 0.6], (12, 12, 7)), 20
+)
+
+
+def _summary(report):
+    return sorted((c.num_faces, c.closed, c.genus, round(c.area, 9)) for c in report.components)
+
+
+@PROPERTY
+@given(
+    which=st.sampled_from([0, 1, 2]),
+    seed=st.integers(0, 2**32 - 1),
+    repeats=st.integers(0, 3),
+    degenerate=st.integers(0, 5),
+)
+def test_components_and_genus_survive_shuffles_repeats_and_degenerate_faces(
+    which, seed, repeats, degenerate
+):
+    """Renumbering the vertices, reordering the faces (and their corners, orientation kept),
+    repeating faces in either orientation and adding degenerate ones change no component,
+    genus or area."""
+    if which == 2:  # both shapes in one mesh: two components
+        v0, f0 = _SPHERE_MESH
+        v1, f1 = _TORUS_MESH
+        vertices, faces = np.concatenate([v0, v1 + 5.0]), np.concatenate([f0, f1 + len(v0)])
+    else:
+        vertices, faces = (_SPHERE_MESH, _TORUS_MESH)[which]
+    expected = _summary(_mesh.analyze_mesh(vertices, faces))
+    rng = np.random.default_rng(seed)
+    renumber = rng.permutation(len(vertices))
+    moved = np.empty_like(vertices)
+    moved[renumber] = vertices
+    shuffled = renumber[faces][rng.permutation(len(faces))]
+    shuffled = np.roll(shuffled, rng.integers(3), axis=1)  # a rotation keeps the orientation
+    extra = shuffled[rng.integers(0, len(shuffled), repeats * 50)]
+    flip = rng.random(len(extra)) < 0.5
+    extra[flip] = extra[flip][:, ::-1]
+    bad = shuffled[rng.integers(0, len(shuffled), degenerate)]  # collapsed faces
+    bad[:, 1] = bad[:, 0]
+    messy = np.concatenate([shuffled, extra, bad])
+    messy = messy[rng.permutation(len(messy))]
+    report = _mesh.analyze_mesh(moved, messy)
+    assert _summary(report) == expected
+    assert len(report.notes) == bool(len(extra)) + bool(degenerate)
+    count, labels = _mesh.mesh_components(moved, messy)
+    assert count == len(expected) and labels.shape == (len(messy),)
+    if which < 2:
+        assert _mesh.genus(messy) == (0, 1)[which]
+
+
+@PROPERTY
+@given(
+    num_vertices=st.integers(1, 30),
+    faces=st.lists(st.tuples(*[st.integers(-3, 33)] * 3), max_size=60),
+    coordinate=st.sampled_from([0.0, 1e-300, 1e300, np.nan, np.inf, -np.inf]),
+    seed=st.integers(0, 2**32 - 1),
+)
+def test_random_meshes_are_analysed_or_refused_by_name(num_vertices, faces, coordinate, seed):
+    """Any (V, 3) vertices and (F, 3) indices: a report whose components cover every
+    proper face once, or a ValueError naming the vertices or the faces."""
+    rng = np.random.default_rng(seed)
+    vertices = rng.normal(size=(num_vertices, 3))
+    vertices[rng.integers(num_vertices)] = coordinate
+    faces = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    try:
+        report = _mesh.analyze_mesh(vertices, faces, vertices + 0.1)
+    except ValueError as exc:
+        assert "vertices" in str(exc) or "faces" in str(exc) or "points" in str(exc)
+        return
+    assert np.isfinite(vertices).all() and (faces.size == 0 or faces.min() >= 0)
+    covered = np.sort(np.concatenate([c.faces for c in report.components] + [np.arange(0)]))
+    assert len(np.unique(covered)) == len(covered)
+    proper = faces[
+        (faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 0] != faces[:, 2])
+    ]
+    assert len(covered) == len(np.unique(np.sort(proper, axis=1), axis=0))
+    for c in report.components:
+        assert c.area >= 0 and (c.genus is None or c.closed)

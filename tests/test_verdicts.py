@@ -145,6 +145,155 @@ def test_chunked_fit_raises_its_final_verdict_only():
         jurs.fit_in_chunks(p, n, solver=solver, chunk=5, **PAPER)
 
 
+# --- doubts about the zero set: extra components, sheet pairs, flipped halves ---------------
+
+
+def _greville_spline(fn, half, n, d=3):
+    """The spline whose coefficients are ``fn`` at the Greville points of a uniform cubic
+    basis on ``[-half, half]^d`` (``n`` functions a side): close to ``fn`` where it is
+    smooth on the cells' scale."""
+    h = 2.0 * half / (n - 3)
+    axis = -half + (np.arange(n) - 1.0) * h
+    sites = np.stack(np.meshgrid(*[axis] * d, indexing="ij"), axis=-1).reshape(-1, d)
+    control = fn(sites).reshape((n,) * d)
+    return jurs.ImplicitSpline(control, np.ones_like(control), -np.full(d, half), np.full(d, half))
+
+
+@pytest.fixture(scope="module")
+def judged():
+    """``judge(spline, points, normals)``: the doubt checks of a fit of ``points`` with
+    automatic settings whose spline is ``spline`` (a 2D fit's Solution with the spline
+    swapped in: the checks read only the spline, the cloud and the settings' spacing)."""
+    import dataclasses
+    import warnings
+    from types import SimpleNamespace
+
+    from jurs._cloud.measure import point_spacing
+    from jurs._solution.verdicts import check_doubts
+
+    base = jurs.fit(*jurs.datasets.example1(30), **CHEAP)
+
+    def judge(spline, points, normals, set_aside=()):
+        sol = dataclasses.replace(base, spline=spline, result=jurs.RESULTS.successful)
+        settings = SimpleNamespace(
+            set_aside=tuple(set_aside), spacing=point_spacing(points), thin_fraction=0.0
+        )
+        with warnings.catch_warnings():  # the doubt's warning, where there is one
+            warnings.simplefilter("ignore")
+            return check_doubts(sol, jurs.Cloud(points, normals), settings, 0.02)
+
+    return judge
+
+
+def _radius(p):
+    return np.linalg.norm(p, axis=1)
+
+
+def test_a_clean_sphere_has_no_doubt(judged):
+    points, normals = jurs.datasets.sphere3d(1500, seed=1)
+    sphere = _greville_spline(lambda p: np.sum(p * p, axis=1) - 1.0, 1.4, 16)
+    sol = judged(sphere, points, normals)
+    assert sol.result == jurs.RESULTS.successful, sol.stats["doubts"]
+    assert sol.stats["doubts"] == () and sol.stats["extra_components"] == ()
+    assert float(sol.metrics["flipped_pairs"]) == 0
+
+
+def test_nested_shells_and_stray_bubbles_are_extra_components(judged):
+    """A shell between two nested spheres (both normals outward) and a bubble where set-
+    aside points were are closed components away from the data: `doubtful`, each one
+    named with where it is; the spheres themselves are not."""
+    outer, n_outer = jurs.datasets.sphere3d(1500, seed=1)
+    inner, n_inner = jurs.datasets.sphere3d(500, radius=0.3, seed=2)
+    points, normals = np.concatenate([outer, inner]), np.concatenate([n_outer, n_inner])
+    # The sign the data ask for, with the shell between them at r = 0.65.
+    nested = _greville_spline(
+        lambda p: (_radius(p) - 0.3) * (_radius(p) - 0.65) * (_radius(p) - 1.0), 1.4, 24
+    )
+    sol = judged(nested, points, normals)
+    assert sol.result == jurs.RESULTS.doubtful
+    (shell,) = sol.stats["extra_components"]
+    np.testing.assert_allclose(shell["centre"], 0.0, atol=0.05)
+    np.testing.assert_allclose(shell["upper"], 0.65, atol=0.1)
+    np.testing.assert_allclose(shell["lower"], -0.65, atol=0.1)
+    # Areas 1, 0.65^2 and 0.3^2: the shell holds about 28 % of the zero set.
+    assert shell["area_share"] == pytest.approx(0.65**2 / (1 + 0.65**2 + 0.3**2), abs=0.03)
+    assert shell["distance"] == pytest.approx(0.35, abs=0.03)
+    (doubt,) = sol.stats["doubts"]
+    assert "closed zero-set component away from the data" in doubt and "centred at" in doubt
+    # A bubble around points set aside: away from the data kept.
+    stray = np.array([0.9, 0.9, 0.9]) + 0.1 * jurs.datasets.sphere3d(40, seed=3)[0]
+    with_stray = np.concatenate([outer, stray])
+    bubble = _greville_spline(
+        lambda p: np.minimum(_radius(p) - 1.0, _radius(p - [0.9, 0.9, 0.9]) - 0.1), 1.4, 40
+    )
+    normals = np.concatenate([n_outer, jurs.datasets.sphere3d(40, seed=3)[1]])
+    kept = judged(bubble, with_stray, normals)
+    assert kept.result == jurs.RESULTS.successful, kept.stats["doubts"]  # the bubble is data
+    aside = judged(bubble, with_stray, normals, set_aside=range(1500, 1540))
+    (found,) = aside.stats["extra_components"]
+    np.testing.assert_allclose(found["centre"], 0.9, atol=0.05)
+    assert found["area_share"] < 0.02 and aside.result == jurs.RESULTS.doubtful
+
+
+def test_extra_components_take_one_path_in_2d():
+    """The same lattice, regions and interfaces find an extra loop of a curve; a zero set
+    that leaves the box is open and not counted."""
+    from jurs._cloud.measure import kd_tree
+    from jurs._solution.verdicts import extra_components
+
+    t = np.linspace(0, 2 * np.pi, 400, endpoint=False)
+    circle = np.stack([np.cos(t), np.sin(t)], axis=1)
+    two = _greville_spline(
+        lambda p: np.minimum(_radius(p) - 1.0, _radius(p - [1.1, -1.1]) - 0.2), 1.5, 40, d=2
+    )
+    (loop,) = extra_components(two, kd_tree(circle), 0.05)
+    np.testing.assert_allclose(loop["centre"], [1.1, -1.1], atol=0.03)
+    np.testing.assert_allclose(loop["upper"], [1.3, -0.9], atol=0.1)
+    line = _greville_spline(lambda p: np.minimum(_radius(p) - 1.0, 1.3 - p[:, 0]), 1.5, 40, d=2)
+    assert extra_components(line, kd_tree(circle), 0.05) == []
+
+
+def test_a_thin_plate_is_a_sheet_pair_doubt(judged):
+    """Two sheets 1.5 spacings apart, fitted as one slab with every midpoint inside: the
+    crossed-pairs count sees nothing, and the fit was `successful`."""
+    rng = np.random.default_rng(0)
+    xy = rng.uniform(-1, 1, (1000, 2))
+    spacing = jurs._cloud.measure.point_spacing(np.c_[xy, np.zeros(1000)])
+    half = 0.75 * spacing
+    points = np.concatenate([np.c_[xy, np.full(1000, half)], np.c_[xy, np.full(1000, -half)]])
+    normals = np.repeat([[0.0, 0, 1], [0, 0, -1]], 1000, axis=0)
+    h = 2.8 / 13  # the cell; z^2 has coefficients tau^2 - h^2 / 3 (Marsden's identity)
+    slab = _greville_spline(lambda p: p[:, 2] ** 2 - h**2 / 3 - half**2, 1.4, 16)
+    sol = judged(slab, points, normals)
+    assert int(sol.metrics["crossed_features"]) == 0
+    assert sol.result == jurs.RESULTS.doubtful
+    (doubt,) = sol.stats["doubts"]
+    assert "face another sheet less than a cell" in doubt and "thin" in doubt
+    assert f"{2 * half:.3g} apart" in doubt
+
+
+@pytest.mark.slow
+def test_half_flipped_normals_in_3d_are_named_as_such():
+    """Slow (two 3D fits with automatic settings, one compiled grid): a sphere with one
+    half's normals flipped was `doubtful` with the thin-part message; it is
+    `inconsistent_normals`, its doubt naming the flipped neighbours. Nested spheres, both
+    normals outward, were `successful`."""
+    points, normals = jurs.datasets.sphere3d(600, seed=1)
+    half = np.where(points[:, 2:] > 0, -normals, normals)
+    sol = jurs.fit(points, half, grid=14, throw=False)
+    assert sol.result == jurs.RESULTS.inconsistent_normals
+    assert any("normal points the other way" in d for d in sol.stats["doubts"])
+    assert not any("thin part" in d for d in sol.stats["doubts"])
+    with pytest.raises(eqx.EquinoxRuntimeError, match="inconsistent_normals"):
+        jurs.fit(points, half, grid=14)
+    inner, n_inner = jurs.datasets.sphere3d(300, radius=0.45, seed=2)
+    sol = jurs.fit(
+        np.concatenate([points, inner]), np.concatenate([normals, n_inner]), grid=14, throw=False
+    )
+    assert sol.result == jurs.RESULTS.doubtful
+    assert len(sol.stats["extra_components"]) == 1
+
+
 def test_weights_past_the_ceiling_have_their_own_verdict():
     """An absurd tau drove the weights to 1e294 and the run read as successful where few
     of them reached the floor: weights past a million times the start's are named."""

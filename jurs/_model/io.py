@@ -1,5 +1,10 @@
 """Saving and loading fitted splines, curves' (2D grids) and surfaces' (3D grids), as
-``.npz`` files."""
+``.npz`` files.
+
+A file holds the arrays ``SPLINE_KEYS`` and ``format_version`` (``FORMAT_VERSION``, a
+0-d integer). Files written before the format had a version hold the same four arrays
+without it and read as version 0; their layout is the same.
+"""
 
 from __future__ import annotations
 
@@ -12,6 +17,12 @@ from jaxtyping import DTypeLike
 from .spline import ImplicitSpline
 
 SPLINE_KEYS = ("control", "weights", "lower", "upper")
+#: The key of the format version in a spline file, and the version
+#: [`save_spline`][jurs.save_spline] writes. Version 0 (no key: files written before the
+#: format had a version) and version 1 hold the same arrays, ``SPLINE_KEYS``.
+VERSION_KEY, FORMAT_VERSION = "format_version", 1
+#: The versions [`load_spline`][jurs.load_spline] reads.
+KNOWN_VERSIONS = (0, 1)
 
 
 def check_spline_arrays(arrays: dict[str, np.ndarray], where: str) -> None:
@@ -60,7 +71,8 @@ def save_spline(path: str | os.PathLike[str], spline: ImplicitSpline) -> None:
     """Write ``spline`` to exactly ``path`` (``.npz`` format, whatever the name: NumPy's
     ``savez`` would append ``.npz`` to a name without it, and
     [`load_spline`][jurs.load_spline] of the same name would then not find it): arrays
-    ``control``, ``weights``, ``lower``, ``upper``. Raises ValueError for a spline that
+    ``control``, ``weights``, ``lower``, ``upper``, and ``format_version`` (``FORMAT_VERSION``,
+    which [`load_spline`][jurs.load_spline] checks). Raises ValueError for a spline that
     cannot be evaluated (see [`load_spline`][jurs.load_spline]), before anything is
     written."""
     if not isinstance(spline, ImplicitSpline):
@@ -68,7 +80,7 @@ def save_spline(path: str | os.PathLike[str], spline: ImplicitSpline) -> None:
     arrays = {k: np.asarray(getattr(spline, k)) for k in SPLINE_KEYS}
     check_spline_arrays(arrays, "spline: ")
     with open(os.fspath(path), "wb") as fh:
-        np.savez(fh, **arrays)  # pyright: ignore[reportArgumentType]  # keys: SPLINE_KEYS only
+        np.savez(fh, **arrays, **{VERSION_KEY: np.int64(FORMAT_VERSION)})  # pyright: ignore[reportArgumentType]
 
 
 def load_spline(path: str | os.PathLike[str], dtype: DTypeLike | None = None) -> ImplicitSpline:
@@ -76,18 +88,39 @@ def load_spline(path: str | os.PathLike[str], dtype: DTypeLike | None = None) ->
     [`save_spline`][jurs.save_spline]: a curve's (2D grids, box of shape (2,)) or a
     surface's (3D grids, box of shape (3,)).
 
-    ``dtype`` defaults to JAX's default float (float64 with ``jax_enable_x64``).
-    Raises FileNotFoundError, or ValueError naming the file for missing, ill-shaped or
-    non-finite arrays, weights that are not all positive, or lower >= upper.
+    ``dtype`` defaults to JAX's default float (float64 with ``jax_enable_x64``). Files
+    written before the format had a version (no ``format_version``) read as version 0.
+    Raises FileNotFoundError, or ValueError naming the file for a format version this
+    jurs does not know (a file from a newer jurs), arrays other than the format's,
+    missing, ill-shaped or non-finite arrays, weights that are not all positive, or
+    lower >= upper.
     """
     path = os.fspath(path)
     if not os.path.exists(path):
         raise FileNotFoundError(f"{path}: no such file")
     try:
         with np.load(path, allow_pickle=False) as data:
-            arrays = {k: np.asarray(data[k]) for k in SPLINE_KEYS if k in data.files}
+            names = list(data.files)
+            arrays = {k: np.asarray(data[k]) for k in SPLINE_KEYS if k in names}
+            version = np.asarray(data[VERSION_KEY]) if VERSION_KEY in names else np.int64(0)
     except Exception as exc:
         raise ValueError(f"{path}: not a readable .npz file ({exc})") from None
+    if version.shape != () or version.dtype.kind not in "iu":
+        raise ValueError(
+            f"{path}: {VERSION_KEY} must be one integer, got dtype {version.dtype} and "
+            f"shape {version.shape}"
+        )
+    if int(version) not in KNOWN_VERSIONS:
+        raise ValueError(
+            f"{path}: spline file format version {int(version)}; this jurs reads versions "
+            f"{', '.join(map(str, KNOWN_VERSIONS))} (a newer jurs wrote it? upgrade jurs)"
+        )
+    extra = sorted(set(names) - set(SPLINE_KEYS) - {VERSION_KEY})
+    if extra:
+        raise ValueError(
+            f"{path}: not a jurs spline file: unexpected arrays {extra} (expected "
+            f"{list(SPLINE_KEYS)} and {VERSION_KEY})"
+        )
     missing = [k for k in SPLINE_KEYS if k not in arrays]
     if missing:
         raise ValueError(f"{path}: missing arrays {missing} (expected {list(SPLINE_KEYS)})")

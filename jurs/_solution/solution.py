@@ -9,6 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
+from .._model.adaptive import AdaptiveSpline
 from .._model.spline import ImplicitSpline
 
 
@@ -50,8 +51,9 @@ class RESULTS(eqx.Enumeration):
     )
     doubtful = (
         "the solve succeeded, but checks of the data and of the fit doubt the zero set in "
-        "places (features narrower than the grid resolves, or data points left far from "
-        "the zero set); sol.stats['doubts'] says which and what to change. The fit is "
+        "places (features narrower than the grid resolves, data points left far from the "
+        "zero set, or closed parts of the zero set away from the data); sol.stats['doubts'] "
+        "says which and where, and what to change. The fit is "
         "returned as it is"
     )
     weights_at_ceiling = (
@@ -113,7 +115,8 @@ class Solution(eqx.Module):
 
     Attributes:
         spline: the fitted [`ImplicitSpline`][jurs.ImplicitSpline] (call it on (n, 2)
-            points).
+            points), or [`AdaptiveSpline`][jurs.AdaptiveSpline] from
+            [`jurs.fit_adaptive`][].
         metrics: ``E``, ``E_d``, ``R``, ``E_ave``, ``E_max``, ``mu`` (eq. 35-37; see
             [`jurs.internal.metrics`][]) and ``lam``, the lambda that ``E`` uses.
         stats: ``num_steps`` and ``energy_history`` (``max_steps + 1`` entries: the energy
@@ -124,7 +127,7 @@ class Solution(eqx.Module):
             None when every setting was given.
     """
 
-    spline: ImplicitSpline
+    spline: ImplicitSpline | AdaptiveSpline
     metrics: dict[str, Any]
     stats: dict[str, Any]
     result: RESULTS

@@ -16,12 +16,13 @@ from __future__ import annotations
 
 import dataclasses
 import warnings
+from typing import cast
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._cloud.measure import PROBES, feature_width, strided_probes
+from .._cloud.measure import PROBES, feature_width, kd_tree, strided_probes
 from .._model.spline import ImplicitSpline
 from .._problem.energy import layout_residuals
 from .._problem.problem import Problem, values_by_point
@@ -188,29 +189,173 @@ def far_point_fraction(spline: ImplicitSpline, points, offset: float) -> tuple[f
     return float(np.mean(~(distance <= threshold))), threshold
 
 
-def crossed_features(spline: ImplicitSpline, points, normals, spacing: float) -> int:
-    """How many of ``points`` (at most ``PROBES``, evenly strided) face a point
-    less than a cell away across a thin part or a narrow gap
-    (``jurs._fit.settings.feature_width``) while the fit puts the midpoint between the two
-    on the wrong side: outside for a thin part (normals pointing away from each other),
-    inside for a gap. Each such pair is a part cut or a gap bridged by the zero set."""
+#: A pair of points whose normals face away from each other counts as lying *along* the
+#: surface (flipped neighbours, not the two sides of a thin part or a gap) where the line
+#: between them makes more than 60 degrees with the first's normal: across a thin part or
+#: a gap it runs along the normals (at a wedge's tip up to its half-angle away).
+ALONG_COSINE = 0.5
+
+
+#: A surface's fit is ``doubtful`` where more than this fraction of its points face
+#: another sheet (the far side of a thin part or of a gap) less than a cell away
+#: (``crossed_pairs``' ``sheets``). A surface's grid is never refined for such features
+#: (a curve's is, down to ``jurs._fit.settings.FEATURE_CELLS`` cells), and its cells are
+#: three spacings wide: a plate whose two sheets lie 1-2 spacings apart was fitted with
+#: its midpoints inside but stray sheets between and beside the two, so the crossed-pairs
+#: count saw nothing wrong and the fit was ``successful``. A sphere, torus or double torus
+#: has no such points (docs/robustness.md, "Verdicts, after the fit").
+MAX_SHEET_FRACTION = 0.02
+
+
+def crossed_pairs(
+    spline: ImplicitSpline, points, normals, spacing: float
+) -> tuple[int, int, float, float]:
+    """``(across, along, sheets, width)``: how many of ``points`` (at most ``PROBES``,
+    evenly strided) face a point less than a cell away whose normal points the other way
+    (``jurs._cloud.measure.feature_width``) while the fit puts the midpoint between the
+    two on the wrong side: outside where the normals point away from each other (a thin
+    part), inside where they point towards each other (a gap). ``across`` counts the pairs
+    that lie across the part or gap (the line between the two within 60 degrees of the
+    normal, ``ALONG_COSINE``): a part cut or a gap bridged by the zero set. ``along``
+    counts those that lie side by side along the surface: neighbours with opposite
+    normals, a cloud whose normals are flipped in part (a sphere with one half's normals
+    flipped read as thin parts along the seam). ``sheets`` is the fraction of the points
+    read that face a point across (not along) less than a cell away, whatever the fit
+    does there: two sheets of a thin part or the two sides of a gap closer than a cell,
+    and ``width`` the median distance across (NaN where there is none)."""
     p, n = np.asarray(points, float), unit_normals(np.asarray(normals, float), np)
     at = strided_probes(len(p), PROBES)
     own = np.arange(len(p)) if at is None else at
-    _, partner = feature_width(p, n, spline.cell_width, spacing, own)
+    width, partner = feature_width(p, n, spline.cell_width, spacing, own)
     paired = partner >= 0
     if not paired.any():
-        return 0
-    a, b = p[own[paired]], p[partner[paired]]
-    inside = np.sum((b - a) * n[own[paired]], axis=1) < 0  # a thin part, not a gap
+        return 0, 0, 0.0, float("nan")
+    a, b, normal = p[own[paired]], p[partner[paired]], n[own[paired]]
+    offset = np.sum((b - a) * normal, axis=1)
+    inside = offset < 0  # a thin part, not a gap
     value = evaluate_bucketed(_spline_values, spline, 0.5 * (a + b))
-    return int(np.sum(np.where(inside, value > 0, value < 0)))
+    wrong = np.where(inside, value > 0, value < 0)
+    along = np.abs(offset) < ALONG_COSINE * np.linalg.norm(b - a, axis=1)
+    across = width[paired][~along]
+    sheets = float(len(across)) / len(own)
+    middle = float(np.median(across)) if len(across) else float("nan")
+    return int(np.sum(wrong & ~along)), int(np.sum(wrong & along)), sheets, middle
+
+
+def crossed_features(spline: ImplicitSpline, points, normals, spacing: float) -> int:
+    """How many of ``points`` (at most ``PROBES``, evenly strided) face a point less than
+    a cell away across a thin part or a narrow gap while the fit puts the midpoint between
+    the two on the wrong side, or side by side with the opposite normal: the sum of
+    ``crossed_pairs``."""
+    return sum(crossed_pairs(spline, points, normals, spacing)[:2])
+
+
+#: The zero-set check samples g on a lattice of half-cells (two lattice steps a knot span),
+#: at most this many nodes (coarser beyond): under a second on the host, small beside a fit
+#: of a grid that large (docs/robustness.md, "Verdicts, after the fit").
+EXTRA_CHECK_NODES = 1 << 20
+
+
+def extra_components(spline: ImplicitSpline, tree, threshold: float) -> list[dict]:
+    """The closed components of the zero set away from the data: each a dict with its
+    ``centre``, bounding box (``lower``, ``upper``), ``area_share`` and ``distance``.
+
+    g is sampled on a lattice of half-cells over the spline's box (at most
+    ``EXTRA_CHECK_NODES`` nodes, ``jurs._model.lattice.lattice_values``). The nodes of
+    one sign that touch make a region (across faces where g > 0, across faces, edges and
+    corners where g <= 0, so that the two never cross each other), and the lattice edges
+    from one region to another hold that interface's piece of the zero set: each pair of
+    regions that meet is one component. (Labelling the cells the zero set crosses
+    instead merged nested shells a few cells apart into one.) A component is *closed*
+    when none of its edges lies on the box's border, and *away from the data* when the
+    median distance from its edges' midpoints to the nearest point of ``tree`` (the data
+    the fit keeps) exceeds ``threshold`` (``far_point_fraction``'s: at least half a knot
+    span) plus half a lattice step (how far a midpoint sits from the zero set at most).
+    ``area_share`` is the component's share of all the zero set's lattice edges (about its
+    share of the area, or of the length in 2D); ``distance`` is that median. One path
+    for curves and surfaces: the same lattice, regions and interfaces in 2D and 3D."""
+    from scipy import ndimage
+
+    from .._model.lattice import lattice_values
+
+    lower, upper = np.asarray(spline.lower, float), np.asarray(spline.upper, float)
+    spans = np.asarray(spline.shape) - 3.0
+    d = len(spans)
+    steps = 2.0 * spans
+    scale = (EXTRA_CHECK_NODES / float(np.prod(steps + 1))) ** (1.0 / d)
+    if scale < 1.0:
+        steps = np.maximum(2.0, np.floor(steps * scale))
+    axes = [np.linspace(lo, hi, int(n) + 1) for lo, hi, n in zip(lower, upper, steps)]
+    with np.errstate(invalid="ignore", divide="ignore"):
+        positive = lattice_values(spline, axes) > 0
+    if positive.all() or not positive.any():
+        return []
+    faces_only = ndimage.generate_binary_structure(d, 1)
+    # (SciPy's stub types label's result as an int too: it is a tuple without output=.)
+    region, count = cast("tuple[np.ndarray, int]", ndimage.label(positive, structure=faces_only))
+    negative = cast(
+        "tuple[np.ndarray, int]", ndimage.label(~positive, structure=np.ones((3,) * d, bool))
+    )[0]
+    region = np.where(positive, region, negative + count).astype(np.int64)
+    shape = np.asarray(positive.shape)
+    keys, where, on_border = [], [], []
+    for axis in range(d):
+        head = tuple(slice(0, -1) if a == axis else slice(None) for a in range(d))
+        tail = tuple(slice(1, None) if a == axis else slice(None) for a in range(d))
+        index = np.nonzero(positive[head] != positive[tail])
+        a, b = region[head][index], region[tail][index]
+        keys.append(np.minimum(a, b) * (int(region.max()) + 1) + np.maximum(a, b))
+        at = np.stack(index, axis=1).astype(float)
+        at[:, axis] += 0.5
+        where.append(at)
+        others = [k for k in range(d) if k != axis]
+        edge = at[:, others]
+        on_border.append(((edge == 0) | (edge == shape[others] - 1)).any(axis=1))
+    key, at, border = np.concatenate(keys), np.concatenate(where), np.concatenate(on_border)
+    step = (upper - lower) / steps
+    points = lower + at * step
+    distance = tree.query(points)[0]
+    pairs, group, sizes = np.unique(key, return_inverse=True, return_counts=True)
+    group = group.reshape(-1)
+    open_ = np.bincount(group, weights=border, minlength=len(pairs)) > 0
+    order = np.lexsort((distance, group))
+    first = np.cumsum(sizes) - sizes
+    median = distance[order][first + sizes // 2]
+    limit = threshold + 0.5 * float(np.linalg.norm(step))
+    found = []
+    for k in np.flatnonzero(~open_ & (median > limit)):
+        mine = points[order[first[k] : first[k] + sizes[k]]]
+        found.append(
+            {
+                "centre": mine.mean(axis=0).tolist(),
+                "lower": (mine.min(axis=0) - 0.5 * step).tolist(),
+                "upper": (mine.max(axis=0) + 0.5 * step).tolist(),
+                "area_share": float(sizes[k]) / len(key),
+                "distance": float(median[k]),
+            }
+        )
+    return sorted(found, key=lambda c: -c["area_share"])
+
+
+def _describe_extra(component: dict) -> str:
+    centre = ", ".join(f"{x:.3g}" for x in component["centre"])
+    lower = ", ".join(f"{x:.3g}" for x in component["lower"])
+    upper = ", ".join(f"{x:.3g}" for x in component["upper"])
+    return (
+        f"a closed zero-set component away from the data, centred at ({centre}) within "
+        f"({lower}) .. ({upper}), {component['area_share']:.1%} of the zero set, its median "
+        f"distance to the points kept {component['distance']:.3g}: a shape the data do not "
+        "have (points set aside or with inconsistent normals leave such shells; "
+        "jurs.levelset marks them supplementary)"
+    )
 
 
 def check_doubts(sol, cloud, settings, offset):
     """``sol`` with ``metrics["far_point_fraction"]``, ``metrics["crossed_features"]``,
-    ``stats["doubts"]`` (the reasons to doubt the zero set, in words) and, where there is
-    one, the verdict ``RESULTS.doubtful`` in place of success, and a warning. Host side;
+    ``stats["doubts"]`` (the reasons to doubt the zero set, in words; one for each closed
+    component away from the data, saying where it is), ``stats["extra_components"]``
+    (those components, ``extra_components``) and, where there is a doubt, the verdict
+    ``RESULTS.doubtful`` in place of success, and a warning. Host side;
     ``settings`` (None: a fit with settings given) says which points were set aside and
     the cloud's spacing, without which the thin-part check is not made."""
     keep = np.zeros(len(cloud), bool)
@@ -219,11 +364,31 @@ def check_doubts(sol, cloud, settings, offset):
         keep[list(settings.set_aside)] = False
     p = cloud.points
     far, threshold = far_point_fraction(sol.spline, p[keep], offset)
-    crossed, thin = 0, 0.0 if settings is None else settings.thin_fraction
+    crossed, along, thin = 0, 0, 0.0 if settings is None else settings.thin_fraction
+    sheets, width = 0.0, float("nan")
     if settings is not None:
-        crossed = crossed_features(sol.spline, p[keep], cloud.normals[keep], settings.spacing)
+        crossed, along, sheets, width = crossed_pairs(
+            sol.spline, p[keep], cloud.normals[keep], settings.spacing
+        )
     doubts = []
-    if crossed > max(2, MAX_CROSSED_FRACTION * min(int(keep.sum()), PROBES)):
+    if cloud.ndim == 3 and sheets > MAX_SHEET_FRACTION:
+        doubts.append(
+            f"{sheets:.1%} of the points face another sheet less than a cell "
+            f"({sol.spline.cell_width:.3g}) away, {width:.3g} apart at the median: a thin "
+            "plate or shell, or a narrow gap, that this grid cannot place both sides of "
+            "(the zero set there is a rough slab). A finer grid= (cells about as wide as "
+            "the sheets are apart) resolves it"
+        )
+    most = max(2, MAX_CROSSED_FRACTION * min(int(keep.sum()), PROBES))
+    flipped = along > most and along > crossed
+    if flipped:
+        doubts.append(
+            f"{along} points sit beside a neighbour (less than a cell away, along the "
+            "surface) whose normal points the other way, and the zero set follows the "
+            "flipped ones: the normals are not consistently oriented there (part of the "
+            "cloud flipped). Orient them all outward (jurs.estimate_normals) and fit again"
+        )
+    if crossed > most:
         doubts.append(
             f"{crossed} points sit across a thin part or a narrow gap (less than a cell "
             "wide) from a point the zero set puts on the wrong side: parts are cut or "
@@ -241,12 +406,23 @@ def check_doubts(sol, cloud, settings, offset):
             "the fit does not follow the data there (features too fine for the grid, "
             "outliers or inconsistent normals)"
         )
+    aside = settings is not None and bool(settings.set_aside)
+    tree = kd_tree(p[keep]) if aside else cloud.tree  # cloud.tree: the points kept
+    extra = extra_components(sol.spline, tree, threshold)
+    doubts.extend(_describe_extra(c) for c in extra)
     metrics = dict(
-        sol.metrics, far_point_fraction=jnp.asarray(far), crossed_features=jnp.asarray(crossed)
+        sol.metrics,
+        far_point_fraction=jnp.asarray(far),
+        crossed_features=jnp.asarray(crossed + along),
+        flipped_pairs=jnp.asarray(along),
     )
-    stats = dict(sol.stats, doubts=tuple(doubts))
+    stats = dict(sol.stats, doubts=tuple(doubts), extra_components=tuple(extra))
     result = sol.result
-    if doubts and bool(result == RESULTS.successful):
+    usable = bool((result == RESULTS.successful) | (result == RESULTS.max_steps_reached))
+    if flipped and usable:
+        # The cause has its own verdict (raised with throw=True, as check_orientation's).
+        result = RESULTS.inconsistent_normals
+    elif doubts and bool(result == RESULTS.successful):
         result = RESULTS.doubtful
         warnings.warn("jurs.fit: doubtful fit: " + "; ".join(doubts), stacklevel=4)
     return dataclasses.replace(sol, metrics=metrics, stats=stats, result=result)

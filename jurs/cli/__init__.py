@@ -28,7 +28,10 @@ exit code 2, and write nothing; these are checked before the fit. A fit that div
 energy), or outputs that fail to write after all, exit with code 1; the output folder then
 keeps its whole previous set of outputs. A fit that ends with another verdict than success
 or max_steps (inconsistent normals, weights at their floor) is written, with a warning on
-stderr.
+stderr. A curve fit into a folder that holds a surface fit's outputs from jurs (told by its
+metrics.json), or the reverse, removes those outputs of the other kind with the same
+atomic write: the folder never mixes the files of two runs. Ctrl-C ends the command with
+one line on stderr and exit code 130; the output folder keeps its previous outputs.
 
 This package holds the parser and the run (``main``, ``prepare_fit``, the fit); reading the
 input is in ``_inputs``, the output folder's checks and the atomic write in ``_outputs``,
@@ -88,6 +91,7 @@ __all__ = [
     "InputError",
     "EXIT_BAD_INPUT",
     "EXIT_FIT_FAILED",
+    "EXIT_INTERRUPTED",
     "OUTPUTS",
     "OUTPUTS_3D",
     "OUTPUT_OVERHEAD",
@@ -303,9 +307,11 @@ class ProgressBar:
         self.drawn = True
 
     def close(self) -> None:
+        """End the bar's line (once), so that what follows starts a line of its own."""
         if self.drawn:
             self.stream.write("\n")
             self.stream.flush()
+            self.drawn = False
 
 
 @dataclasses.dataclass(frozen=True)
@@ -451,6 +457,9 @@ def _solve(job: FitJob, args):
     except (ValueError, TypeError) as exc:
         bar.close()
         raise InputError(f"{job.shown}: {_one_line(exc)}") from None
+    except KeyboardInterrupt:
+        bar.close()  # Ctrl-C's line on a line of its own
+        raise
     jax.block_until_ready(sol.spline)
     seconds = time.perf_counter() - t0
     bar.close()
@@ -518,9 +527,28 @@ def command() -> None:
     sys.exit(code)
 
 
+#: Exit code after Ctrl-C: 128 + SIGINT, as shells report a command ended by it.
+EXIT_INTERRUPTED = 130
+
+
 def _run(argv) -> int:
+    """Parse ``argv`` and run the command; Ctrl-C (KeyboardInterrupt) anywhere ends it with
+    one line on stderr and ``EXIT_INTERRUPTED``, not a traceback. The outputs are renamed
+    into place only once all are written (``write_outputs``, which puts the old set back
+    when interrupted), so the folder keeps its previous outputs."""
     parser = build_parser()
     args = parser.parse_args(argv)
+    try:
+        return _run_command(args)
+    except KeyboardInterrupt:
+        # A fit writes its outputs at once (or none); the demo writes as it goes.
+        where = args.output if args.command == "fit" else None
+        kept = f"; {printable(where)} keeps its previous outputs" if where else ""
+        print(f"jurs: interrupted{kept}", file=sys.stderr)
+        return EXIT_INTERRUPTED
+
+
+def _run_command(args) -> int:
     if not (args.no_compilation_cache or cache_disabled_by_environment()):
         from .. import enable_compilation_cache
 

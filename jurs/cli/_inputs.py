@@ -11,6 +11,7 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import sys
 
 
 class InputError(Exception):
@@ -75,7 +76,10 @@ def printable(text) -> str:
 def read_input(path: str):
     """Points and normals from ``path``; every problem raises ``InputError`` with a
     one-line message naming the file (and the row where there is one). A UTF-8 byte-order
-    mark before a text file's header is skipped."""
+    mark before a text file's header is skipped. What the reader notes (a triangle mesh
+    read as points drawn on its faces) is printed on stderr as ``jurs: note: ...``."""
+    import warnings
+
     import numpy as np
 
     from .. import datasets
@@ -94,10 +98,14 @@ def read_input(path: str):
                 f"(or (m, 2): x, y), got shape {arr.shape}"
             )
     try:
-        points, normals = datasets.load_points(path)
+        with warnings.catch_warnings(record=True) as notes:
+            warnings.simplefilter("always", UserWarning)
+            points, normals = datasets.load_points(path)
     except (ValueError, OSError) as exc:
         msg = printable(_one_line(exc))
         raise InputError(msg if msg.startswith(shown) else f"{shown}: {msg}") from None
+    for note in notes:
+        print(f"jurs: note: {printable(_one_line(note.message))}", file=sys.stderr)
     if len(points) < 3:
         raise InputError(f"{shown}: need at least 3 data rows, got {len(points)}")
     return points, normals

@@ -2,17 +2,21 @@
 
 The output names (``OUTPUTS``, ``OUTPUTS_3D``), the bytes they take (checked against the
 free space before the fit), ``check_output_folder``, ``write_outputs`` (the whole set of
-outputs or none), and the files every fit writes: metrics.json (strict JSON) and spline.npz,
+outputs or none, and no outputs of the other kind of run left beside them), and the files
+every fit writes: metrics.json (strict JSON) and spline.npz,
 and the figures.
 """
 
 from __future__ import annotations
 
+import contextlib
 import json
 import math
 import os
 import shutil
+import signal
 import tempfile
+import threading
 from typing import TYPE_CHECKING
 
 from ._inputs import InputError, printable
@@ -77,35 +81,85 @@ def check_output_folder(out: str, need: int = OUTPUT_OVERHEAD, names=OUTPUTS) ->
         )
 
 
+def previous_run_kind(out: str) -> int | None:
+    """The dimension (2 or 3) of the fit whose outputs ``out`` holds, read from its
+    metrics.json where jurs wrote that (a record with ``input``, ``settings`` and
+    ``metrics``; a surface's also has ``mesh``); None where there is none or it is not
+    jurs's."""
+    try:
+        with open(os.path.join(out, "metrics.json"), encoding="utf-8") as fh:
+            record = json.load(fh)
+    except (OSError, ValueError):
+        return None
+    if not isinstance(record, dict) or not {"input", "settings", "metrics"} <= set(record):
+        return None
+    return 3 if "mesh" in record else 2
+
+
+def stale_outputs(out: str, names) -> tuple:
+    """The outputs of the other kind of run that ``out`` holds from jurs: a surface fit
+    into a folder of a curve fit would leave fit.png and zero_level.csv beside its new
+    files (and a curve fit mesh.ply and preview.png), which then read as this run's.
+    Only files jurs wrote are named, told by the folder's metrics.json
+    (``previous_run_kind``); files of those names without it are the user's, and kept."""
+    kind = previous_run_kind(out)
+    if kind is None:
+        return ()
+    theirs = outputs_for(kind)
+    return tuple(n for n in theirs if n not in names and os.path.isfile(os.path.join(out, n)))
+
+
+@contextlib.contextmanager
+def _no_interrupts():
+    """Ctrl-C held off while the old outputs are put back (in the main thread, where
+    signal handlers live): a second Ctrl-C then cannot leave the folder half restored."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
 def write_outputs(out: str, write, names=OUTPUTS) -> None:
     """Write the whole set of output ``names`` into ``out``, or none: ``write(folder)``
     writes them all into a temporary folder made inside ``out`` (the same file system, so
     no parent folder need be writable, ``-o .`` included), then each is renamed into
-    place, the old file set aside first. Any failure renames back what was already
-    replaced, so ``out`` keeps its whole old set. A folder ``out`` made here is removed
-    again on failure. Files and the folder take the user's umask."""
+    place, the old file set aside first. The outputs of the other kind of run that jurs
+    wrote there before (``stale_outputs``) are set aside too, and go with the temporary
+    folder: the folder then holds this run's outputs alone. Any failure, Ctrl-C included,
+    renames back what was already replaced or set aside, so ``out`` keeps its whole old
+    set. A folder ``out`` made here is removed again on failure. Files and the folder
+    take the user's umask."""
     made = not os.path.isdir(out)
     os.makedirs(out, exist_ok=True)
     tmp = tempfile.mkdtemp(prefix=".jurs-", dir=out)
-    moved = []  # (name, had an old file), in the order replaced
+    moved = []  # (name, had an old file, is a new output), in the order replaced
     done = False
     try:
+        stale = stale_outputs(out, names)
         write(tmp)
         for name in names:
             target, old = os.path.join(out, name), os.path.join(tmp, name + ".old")
             had_old = os.path.lexists(target)
             if had_old:
                 os.replace(target, old)
-            moved.append((name, had_old))
+            moved.append((name, had_old, True))
             os.replace(os.path.join(tmp, name), target)
+        for name in stale:
+            os.replace(os.path.join(out, name), os.path.join(tmp, name + ".old"))
+            moved.append((name, True, False))
         done = True
     except BaseException:
-        for name, had_old in reversed(moved):
-            target, old = os.path.join(out, name), os.path.join(tmp, name + ".old")
-            if not os.path.exists(os.path.join(tmp, name)) and os.path.lexists(target):
-                os.remove(target)  # the new file had been moved in
-            if had_old:
-                os.replace(old, target)
+        with _no_interrupts():
+            for name, had_old, new in reversed(moved):
+                target, old = os.path.join(out, name), os.path.join(tmp, name + ".old")
+                if new and not os.path.exists(os.path.join(tmp, name)) and os.path.lexists(target):
+                    os.remove(target)  # the new file had been moved in
+                if had_old:
+                    os.replace(old, target)
         raise
     finally:
         shutil.rmtree(tmp, ignore_errors=True)
@@ -123,8 +177,8 @@ def outputs_for(dim: int) -> tuple:
 #: "Meshing a spline"); four times that leaves room for folded surfaces.
 MESH_VERTICES_PER_PLANE_NODE = 8
 #: Peak bytes per vertex of jurs.levelset.mesh (measured about 450, docs/surfaces.md), and
-#: bytes per vertex of mesh.ply (12 for the vertex, two faces of 13).
-MESH_BYTES_PER_VERTEX, PLY_BYTES_PER_VERTEX = 450, 38
+#: bytes per vertex of mesh.ply (24 for the vertex in float64, two faces of 13).
+MESH_BYTES_PER_VERTEX, PLY_BYTES_PER_VERTEX = 450, 50
 
 
 def _output_bytes(job: FitJob) -> int:

@@ -160,7 +160,8 @@ def surface_outputs(job: FitJob, args, sol, seconds: float):
         spline, np.asarray(spline.lower, np.float64), np.asarray(spline.upper, np.float64)
     )
     t0 = time.perf_counter()
-    vertices, faces = ls.mesh(spline, resolution)
+    # The user chose --resolution, its memory checked before the fit: no node limit.
+    vertices, faces = ls.mesh(spline, resolution, max_nodes=None)
     t1 = time.perf_counter()
     report = ls.analyze_mesh(vertices, faces, job.points, threshold=args.threshold)
     distances = ls.mesh_distances(vertices, faces, job.points, job.normals)

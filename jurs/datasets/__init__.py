@@ -31,6 +31,8 @@ from ._examples import (
 from ._files import (
     CLOUD_SUFFIXES,
     COLUMNS,
+    FLOAT32_RESOLUTION,
+    MESH_SAMPLES,
     MESH_SUFFIXES,
     load_mesh,
     load_points,
@@ -50,6 +52,8 @@ __all__ = [
     "save_points",
     "CLOUD_SUFFIXES",
     "MESH_SUFFIXES",
+    "MESH_SAMPLES",
+    "FLOAT32_RESOLUTION",
     "sphere3d",
     "torus",
     "GENUS2_SHIFT",

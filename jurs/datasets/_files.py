@@ -48,28 +48,47 @@ def _from_table(rows: np.ndarray, path: str, row_numbers=None):
 
 def load_points(
     path: str | os.PathLike[str],
+    *,
+    mesh_samples: int | None = None,
 ) -> tuple[Float[np.ndarray, "m d"], Float[np.ndarray, "m d"] | None]:
     """Read points and normals from ``.npy`` (an (m, 4) array) or CSV/TXT (columns x, y, nx,
     ny; comma, whitespace or semicolon separated; an optional header line of names).
 
-    3D clouds (``CLOUD_SUFFIXES``): ``.ply`` and ``.obj`` give their vertices, and
-    their vertex normals where the file has them (through trimesh, ``pip install
-    "jurs[surfaces]"``); ``.xyz`` and ``.pts`` are text rows of 3 (x y z) or 6 (x y z nx
-    ny nz) numbers. Points come back ``(m, 3)``, normals ``(m, 3)`` or None.
+    3D clouds (``CLOUD_SUFFIXES``): ``.ply`` and ``.obj`` without faces give their
+    vertices, and their vertex normals where the file has them (through trimesh, ``pip
+    install ".[surfaces]"``); ``.xyz`` and ``.pts`` are text rows of 3 (x y z) or 6 (x y z
+    nx ny nz) numbers. Points come back ``(m, 3)``, normals ``(m, 3)`` or None.
+
+    Triangle meshes: a ``.ply``, ``.obj``, ``.stl`` or ``.off`` file with faces is read as
+    the surface it describes, not as its vertices (which crowd where the mesh is fine and
+    leave large faces empty): ``mesh_samples`` points are drawn uniformly by area on its
+    faces, each with its face's unit normal (seed 0: the same file gives the same points),
+    and a UserWarning says so. ``mesh_samples`` None takes the number of distinct vertices
+    or ``MESH_SAMPLES``, whichever is larger. A closed mesh wound inward (negative volume)
+    has its normals turned outward; an open one's follow its winding.
+
+    Coordinates stored as float32 (PLY ``float``, binary STL) must resolve the cloud:
+    ValueError, naming float32 precision, where their rounding at the cloud's distance
+    from the origin exceeds ``FLOAT32_RESOLUTION`` of its bounding-box diagonal (points
+    far from the origin collapse onto a few).
 
     A table of two columns (x, y; header ``x,y``) holds points without normals: the normals
     come back as None ([`jurs.fit`][] then estimates them). The header, or else the first
     data row, sets the number of columns for every row.
 
     Raises ValueError naming the file and the (1-based, as in an editor) row for missing
-    columns, non-numbers, NaN/Inf, zero normals or an empty table; FileNotFoundError if
-    the file is missing.
+    columns, non-numbers, NaN/Inf, zero normals or an empty table, for an ASCII PLY whose
+    body has other than the rows its header declares, for a file that is neither a point
+    cloud nor a triangle mesh, and for a text file that is not UTF-8 text;
+    FileNotFoundError if the file is missing.
     """
     path = os.fspath(path)
     if not os.path.exists(path):
         raise FileNotFoundError(f"{path}: no such file")
-    if _suffix(path) in CLOUD_SUFFIXES:
-        return _load_cloud(path)
+    if mesh_samples is not None:
+        _positive_count(mesh_samples, "mesh_samples")
+    if _suffix(path) in CLOUD_SUFFIXES + MESH_SUFFIXES:
+        return _load_cloud(path, mesh_samples)
     if path.lower().endswith(".npy"):
         try:
             rows = np.load(path, allow_pickle=False)
@@ -79,10 +98,7 @@ def load_points(
             raise ValueError(f"{path}: array dtype {rows.dtype} is not numeric")
         return _from_table(np.asarray(rows, dtype=float), path)
 
-    # utf-8-sig: a byte-order mark before the header (spreadsheet programs write one) is
-    # skipped, not read as part of the first column's name.
-    with open(path, newline="", encoding="utf-8-sig") as fh:
-        text = fh.read()
+    text = _read_text(path)
     lines = [
         (i + 1, line)
         for i, line in enumerate(text.splitlines())
@@ -126,6 +142,27 @@ def load_points(
     return _from_table(values, path, [lineno for lineno, _ in lines])
 
 
+def _read_text(path: str) -> str:
+    """The text of ``path``, newlines kept as written; ValueError naming the file for bytes
+    that are not UTF-8 (a binary file under a text suffix)."""
+    # utf-8-sig: a byte-order mark before the header (spreadsheet programs write one) is
+    # skipped, not read as part of the first column's name.
+    try:
+        with open(path, newline="", encoding="utf-8-sig") as fh:
+            return fh.read()
+    except UnicodeDecodeError as exc:
+        raise ValueError(
+            f"{path}: not a text file (byte {exc.start} is not UTF-8); points are read from "
+            f"CSV, TXT, NPY, {', '.join(s[1:].upper() for s in _3D_SUFFIXES)} files"
+        ) from None
+
+
+def _positive_count(value, name: str) -> int:
+    if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < 1:
+        raise ValueError(f"{name} must be a positive int, got {value!r}")
+    return int(value)
+
+
 def _not_number(cell: str) -> bool:
     try:
         float(cell)
@@ -143,8 +180,8 @@ def save_points(
     ``normals=None`` writes the points alone ((m, 2), header ``x,y``).
 
     3D points ``(m, 3)`` go to the suffixes of ``CLOUD_SUFFIXES``: ``.xyz``/``.pts``
-    as text rows (all digits), ``.ply`` (binary, float32, through trimesh) and ``.obj``
-    (``v`` and ``vn`` lines) with vertex normals when given.
+    as text rows (all digits), ``.ply`` (binary, float64) and ``.obj`` (``v`` and ``vn``
+    lines, all digits, through trimesh) with vertex normals when given.
     """
     path = os.fspath(path)
     if _suffix(path) in CLOUD_SUFFIXES:
@@ -175,6 +212,18 @@ CLOUD_SUFFIXES = (".ply", ".obj", ".xyz", ".pts")
 #: Suffixes [`load_mesh`][jurs.datasets.load_mesh] and
 #: [`save_mesh`][jurs.datasets.save_mesh] handle (through trimesh).
 MESH_SUFFIXES = (".ply", ".obj", ".stl", ".off")
+_3D_SUFFIXES = tuple(dict.fromkeys(CLOUD_SUFFIXES + MESH_SUFFIXES))
+#: Points [`load_points`][jurs.datasets.load_points] draws on a triangle mesh's faces
+#: at least (more where the mesh has more vertices). 20 000 points drawn on a sphere or a
+#: torus give the automatic settings (cells of 3 point spacings) their largest default
+#: grid, 48 a side (``DEFAULT_MAX_GRID_3D``): fewer would coarsen the fit, more would cost
+#: time for the same grid. A mesh with more vertices gets a point per vertex, as the same
+#: surface given as a cloud would.
+MESH_SAMPLES = 20_000
+#: Float32 coordinates are refused where their rounding (the float32 spacing at the
+#: largest coordinate) exceeds this share of the cloud's bounding-box diagonal: a fit's
+#: cells are a few hundredths of the diagonal, and a 1e-4 rounding is far below them.
+FLOAT32_RESOLUTION = 1e-4
 
 
 def _trimesh():
@@ -183,10 +232,13 @@ def _trimesh():
         # ``import trimesh`` loads its exchange modules; named here for a type checker.
         import trimesh
         import trimesh.exchange.obj
+        import trimesh.exchange.off
         import trimesh.exchange.ply
+        import trimesh.exchange.stl
     except ImportError:
         raise ImportError(
-            '3D point-cloud and mesh files need trimesh: pip install "jurs[surfaces]"'
+            "3D point-cloud and mesh files need trimesh: from a clone of jurs, "
+            'pip install ".[surfaces]"'
         ) from None
     return trimesh
 
@@ -229,8 +281,10 @@ def save_mesh(
     vertices: Float[npt.ArrayLike, "V 3"],
     faces: Int[npt.ArrayLike, "F 3"],
 ) -> None:
-    """Write a triangle mesh as PLY (binary, float32 coordinates), OBJ, STL (float32) or
-    OFF, by the suffix of ``path``, through trimesh."""
+    """Write a triangle mesh as PLY (binary, float64 coordinates), OBJ or OFF (text, all
+    17 digits) or STL (float32 by the format), by the suffix of ``path``, through trimesh
+    but for PLY. PLY, OBJ and OFF keep every coordinate as given, however far from the
+    origin; STL rounds them to float32 (about 1e-7 of their distance from the origin)."""
     path = os.fspath(path)
     suffix = _suffix(path)
     if suffix not in MESH_SUFFIXES:
@@ -242,48 +296,235 @@ def save_mesh(
             f"vertices and faces must have shapes (V, 3) and (F, 3), got "
             f"{vertices.shape} and {faces.shape}"
         )
+    if suffix == ".ply":
+        _write_ply(path, vertices, faces=np.asarray(faces, dtype=np.int64))
+        return
     trimesh = _trimesh()
-    # OBJ is text: all digits (trimesh's default keeps 8 decimals).
-    options = {"digits": 17} if suffix == ".obj" else {}
+    # OBJ and OFF are text: all digits (trimesh's defaults keep 8 and 10).
+    options = {"digits": 17} if suffix in (".obj", ".off") else {}
     trimesh.Trimesh(vertices, faces, process=False).export(path, file_type=suffix[1:], **options)
 
 
-def _load_cloud(path: str):
-    """``(points (m, 3), normals (m, 3) or None)`` of a ``.ply``/``.obj`` (through trimesh:
-    vertices, and vertex normals where the file has them) or ``.xyz``/``.pts`` file."""
+def _write_ply(path: str, vertices, faces=None, normals=None) -> None:
+    """A binary little-endian PLY of float64 (``double``) vertices, with vertex normals
+    where given and triangle faces (``uchar`` count, ``int`` indices) where given. Written
+    here, not by trimesh, whose PLY writer rounds every coordinate to float32: a mesh far
+    from the origin would come back off by the float32 spacing there."""
+    fields = [("x", "<f8"), ("y", "<f8"), ("z", "<f8")]
+    if normals is not None:
+        fields += [("nx", "<f8"), ("ny", "<f8"), ("nz", "<f8")]
+    body = np.empty(len(vertices), dtype=fields)
+    for k, axis in enumerate("xyz"):
+        body[axis] = vertices[:, k]
+        if normals is not None:
+            body["n" + axis] = normals[:, k]
+    header = ["ply", "format binary_little_endian 1.0", "comment written by jurs"]
+    header += [f"element vertex {len(vertices)}"]
+    header += [f"property double {name}" for name, _ in fields]
+    if faces is not None:
+        if len(faces) and (faces.min() < 0 or faces.max() >= len(vertices)):
+            raise ValueError(f"faces must index the {len(vertices)} vertices")
+        header += [f"element face {len(faces)}", "property list uchar int vertex_indices"]
+        rows = np.empty(len(faces), dtype=[("n", "u1"), ("v", "<i4", (3,))])
+        rows["n"], rows["v"] = 3, faces
+    with open(path, "wb") as fh:
+        fh.write(("\n".join(header + ["end_header"]) + "\n").encode("ascii"))
+        fh.write(body.tobytes())
+        if faces is not None:
+            fh.write(rows.tobytes())
+
+
+def _load_cloud(path: str, mesh_samples: int | None = None):
+    """``(points (m, 3), normals (m, 3) or None)`` of a 3D file: ``.xyz``/``.pts`` rows, or
+    through trimesh a ``.ply``/``.obj`` cloud (vertices, and vertex normals where the file
+    has them) or a ``.ply``/``.obj``/``.stl``/``.off`` mesh (points drawn on its faces,
+    [`load_points`][jurs.datasets.load_points])."""
     if _suffix(path) in (".xyz", ".pts"):
         return _load_xyz(path)
+    if _suffix(path) == ".ply":
+        _check_ply_rows(path)
+    vertices, faces, normals = _read_vertices_and_faces(path)
+    if len(vertices) == 0:
+        raise ValueError(f"{path}: neither a point cloud nor a triangle mesh (no vertices)")
+    if len(faces):
+        return _points_on_faces(path, vertices, faces, mesh_samples)
+    if _suffix(path) not in CLOUD_SUFFIXES:  # .stl, .off: meshes only
+        raise ValueError(f"{path}: a {_suffix(path)[1:].upper()} file without faces")
+    points, normals = _checked_cloud(vertices.astype(np.float64), normals, path)
+    _check_float32(path, vertices, points)
+    return points, normals
+
+
+def _read_vertices_and_faces(path: str):
+    """``(vertices (V, 3) in the file's float type, faces (F, 3) int64 (F may be 0),
+    vertex normals (V, 3) float64 or None)`` of a PLY, OBJ, STL or OFF file, through
+    trimesh's readers (an OBJ's groups joined); ValueError naming the file where trimesh
+    cannot read it."""
     trimesh = _trimesh()
+    readers = {
+        ".ply": trimesh.exchange.ply.load_ply,
+        ".obj": lambda fh: trimesh.exchange.obj.load_obj(fh, maintain_order=True),
+        ".stl": trimesh.exchange.stl.load_stl,
+        ".off": trimesh.exchange.off.load_off,
+    }
     try:
         with open(path, "rb") as fh:
-            if _suffix(path) == ".ply":
-                data = trimesh.exchange.ply.load_ply(fh)
-            else:
-                data = trimesh.exchange.obj.load_obj(fh, maintain_order=True)
+            data = readers[_suffix(path)](fh)
     except Exception as exc:  # trimesh raises many kinds for malformed files
         raise ValueError(
-            f"{path}: not a readable {_suffix(path)[1:].upper()} file ({exc})"
+            f"{path}: not a readable {_suffix(path)[1:].upper()} file ({_one_line(exc)})"
         ) from None
     # An OBJ with faces comes back as named geometries; a cloud of "v" lines as one.
     parts = list(data["geometry"].values()) if "geometry" in data else [data]
-    points = [np.asarray(p.get("vertices", np.empty((0, 3))), dtype=np.float64) for p in parts]
-    normals = [p.get("vertex_normals") for p in parts]
-    points = np.concatenate(points) if points else np.empty((0, 3))
-    if any(n is None for n in normals) or not normals:
-        return _checked_cloud(points, None, path)
-    # No None left in normals (returned above); the checker cannot see that in a list.
-    return _checked_cloud(points, np.concatenate(normals).astype(np.float64), path)  # pyright: ignore[reportCallIssue, reportArgumentType]
+    vertices, faces, normals, offset = [], [], [], 0
+    for part in parts:
+        v = np.asarray(part.get("vertices", np.empty((0, 3))))
+        f = part.get("faces")
+        f = np.empty((0, 3), np.int64) if f is None else np.asarray(f, dtype=np.int64)
+        if v.ndim != 2 or v.shape[1] != 3 or f.ndim != 2 or (len(f) and f.shape[1] != 3):
+            raise ValueError(
+                f"{path}: not a point cloud or a triangle mesh (vertices of shape {v.shape}, "
+                f"faces of shape {f.shape})"
+            )
+        vertices.append(v)
+        faces.append(f.reshape(-1, 3) + offset)
+        normals.append(part.get("vertex_normals"))
+        offset += len(v)
+    if not vertices:
+        return np.empty((0, 3)), np.empty((0, 3), np.int64), None
+    vertices = np.concatenate(vertices)
+    if any(n is None for n in normals):
+        return vertices, np.concatenate(faces), None
+    # No None left in normals (checked above); the checker cannot see that in a list.
+    normals = np.concatenate(normals).astype(np.float64)  # pyright: ignore[reportCallIssue, reportArgumentType]
+    return vertices, np.concatenate(faces), normals
+
+
+def _one_line(exc) -> str:
+    return " ".join(str(exc).split())
+
+
+def _check_ply_rows(path: str) -> None:
+    """ValueError naming the file unless an ASCII PLY's body has the rows its header
+    declares (one row per element; trimesh reads a body cut short without a word).
+    Binary PLY is left to trimesh, which refuses a body of the wrong length."""
+    with open(path, "rb") as fh:
+        head = fh.read(1 << 16)
+        marker = head.find(b"end_header")
+        if not head.startswith(b"ply") or marker < 0:
+            return  # not a PLY header trimesh can read either: trimesh's error names it
+        lines = head[:marker].decode("ascii", "replace").splitlines()
+        if not any(line.split()[:2] == ["format", "ascii"] for line in lines):
+            return
+        fh.seek(marker)
+        fh.readline()  # the rest of the end_header line
+        rows = sum(1 for line in fh if line.strip())
+    elements = [line.split() for line in lines if line.split()[:1] == ["element"]]
+    try:
+        counts = [(e[1], int(e[2])) for e in elements]
+    except (IndexError, ValueError):
+        return  # a malformed element line: trimesh's error names it
+    declared = sum(n for _, n in counts)
+    if rows != declared:
+        said = ", ".join(f"{n} {name}" for name, n in counts)
+        short = "cut short" if rows < declared else "longer than its header says"
+        raise ValueError(
+            f"{path}: the header declares {declared} rows ({said}), the body has {rows}: "
+            f"the file is {short}"
+        )
+
+
+def _check_float32(path: str, stored, points) -> None:
+    """ValueError naming float32 precision where ``stored`` (the file's coordinates) are
+    float32 whose rounding at the cloud's distance from the origin exceeds
+    ``FLOAT32_RESOLUTION`` of the bounding-box diagonal of ``points`` (the same, float64):
+    far from the origin float32 collapses a cloud onto a few points, which no later check
+    could tell from coincident data."""
+    if np.asarray(stored).dtype != np.float32 or len(points) == 0:
+        return
+    far = float(np.abs(points).max())
+    rounding = float(np.spacing(np.float32(far)))
+    diagonal = float(np.linalg.norm(points.max(axis=0) - points.min(axis=0)))
+    if rounding > FLOAT32_RESOLUTION * diagonal:
+        distinct = len(np.unique(points, axis=0))
+        raise ValueError(
+            f"{path}: coordinates stored in float32 (single precision) are rounded to steps "
+            f"of {rounding:.3g} at {far:.3g} from the origin, against a cloud "
+            f"{diagonal:.3g} across ({distinct} distinct of {len(points)} points): float32 "
+            f"cannot hold this cloud; write the file in float64 (PLY double) or move the "
+            f"data near the origin"
+        )
+
+
+def _points_on_faces(path: str, vertices, faces, mesh_samples: int | None):
+    """Points drawn uniformly by area on a mesh file's faces, with the faces' unit normals
+    (outward where the mesh is closed), and a UserWarning saying so; ValueError naming the
+    file for non-finite vertices, face indices out of range or no area."""
+    import warnings
+
+    from ._examples import sample_mesh
+
+    bad = ~np.isfinite(vertices).all(axis=1)
+    if bad.any():
+        raise ValueError(f"{path}: vertex {int(np.argmax(bad)) + 1} has NaN or Inf")
+    outside = (faces < 0) | (faces >= len(vertices))
+    if outside.any():
+        raise ValueError(
+            f"{path}: face {int(np.argmax(outside.any(axis=1))) + 1} refers to vertex "
+            f"index {int(faces[outside][0])}, the file has {len(vertices)} vertices"
+        )
+    float64 = vertices.astype(np.float64)
+    _check_float32(path, vertices, float64)
+    # Corners at the same place are one vertex (STL stores each triangle's apart): the
+    # count of distinct vertices, and the edges that tell a closed mesh.
+    unique, inverse = np.unique(float64, axis=0, return_inverse=True)
+    faces = inverse.reshape(-1)[faces]
+    count = max(len(unique), MESH_SAMPLES) if mesh_samples is None else mesh_samples
+    try:
+        points, normals = sample_mesh(unique, faces, count, seed=0)
+    except ValueError:
+        raise ValueError(f"{path}: a triangle mesh whose faces have no area") from None
+    closed, volume = _closed_volume(unique, faces)
+    if closed and volume < 0:
+        normals = -normals  # wound inward: the faces' normals point into the solid
+    orientation = (
+        "outward (the mesh is closed)"
+        if closed
+        else "as its faces are wound (the mesh is not closed: check that they point out)"
+    )
+    warnings.warn(
+        f"{path}: a triangle mesh ({len(unique)} vertices, {len(faces)} faces), read as "
+        f"{count} points drawn uniformly by area on its faces (seed 0), with the faces' "
+        f"normals, {orientation}",
+        UserWarning,
+        stacklevel=4,
+    )
+    return points, normals
+
+
+def _closed_volume(vertices, faces) -> tuple[bool, float]:
+    """``(closed, signed volume)`` of a mesh: closed when every directed edge appears once
+    and its reverse once (a consistently wound surface without border); the volume is
+    positive for outward winding."""
+    a, b, c = (vertices[faces[:, k]] for k in range(3))
+    volume = float(np.einsum("ij,ij->i", a, np.cross(b, c)).sum() / 6.0)
+    edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    edges = edges[edges[:, 0] != edges[:, 1]]
+    forward = np.unique(edges, axis=0)
+    if len(forward) != len(edges) or len(edges) == 0:
+        return False, volume
+    backward = np.unique(edges[:, ::-1], axis=0)
+    return bool(np.array_equal(forward, backward)), volume
 
 
 def _load_xyz(path: str):
     """Whitespace (or comma) separated rows ``x y z`` or ``x y z nx ny nz``; ``#`` starts
     a comment line. Errors name the file's 1-based row."""
-    with open(path, encoding="utf-8-sig") as fh:
-        lines = [
-            (i + 1, line.replace(",", " ").split())
-            for i, line in enumerate(fh)
-            if line.strip() and not line.lstrip().startswith("#")
-        ]
+    lines = [
+        (i + 1, line.replace(",", " ").split())
+        for i, line in enumerate(_read_text(path).splitlines())
+        if line.strip() and not line.lstrip().startswith("#")
+    ]
     if not lines:
         raise ValueError(f"{path}: no data rows")
     width = len(lines[0][1])
@@ -341,15 +582,15 @@ def _save_cloud(path: str, points, normals) -> None:
         table = points if normals is None else np.concatenate([points, normals], axis=1)
         np.savetxt(path, table, fmt="%.17g")
         return
+    if _suffix(path) == ".ply":
+        _write_ply(path, points, normals=normals)
+        return
     trimesh = _trimesh()
     cloud = trimesh.Trimesh(
         points, np.empty((0, 3), dtype=np.int64), vertex_normals=normals, process=False
     )
-    if _suffix(path) == ".ply":
-        data = trimesh.exchange.ply.export_ply(cloud, vertex_normal=normals is not None)
-    else:
-        data = trimesh.exchange.obj.export_obj(
-            cloud, include_normals=normals is not None, digits=17
-        ).encode()
+    data = trimesh.exchange.obj.export_obj(
+        cloud, include_normals=normals is not None, digits=17
+    ).encode()
     with open(path, "wb") as fh:
         fh.write(data)

@@ -32,6 +32,8 @@ MIN_SAMPLES, SAMPLES_PER_REFERENCE, MAX_SAMPLES = 10_000, 4, 1_000_000
 
 
 def _check_mesh(vertices, faces):
+    """``(vertices float64 (V, 3), faces int64 (F, 3))``, checked: shapes, finite vertices,
+    face indices in range. ValueError naming the input otherwise."""
     vertices = np.asarray(vertices, dtype=np.float64)
     faces = np.asarray(faces)
     if vertices.ndim != 2 or vertices.shape[1] != 3:
@@ -48,7 +50,51 @@ def _check_mesh(vertices, faces):
         raise ValueError(
             f"faces index vertices 0..{len(vertices) - 1}, got indices {faces.min()}..{faces.max()}"
         )
+    bad = ~np.isfinite(vertices).all(axis=1)
+    if bad.any():
+        raise ValueError(
+            f"vertices must be finite; {int(bad.sum())} of {len(vertices)} hold NaN or "
+            f"infinite coordinates (the first is vertex {int(np.flatnonzero(bad)[0])})"
+        )
     return vertices, faces.astype(np.int64)
+
+
+def _check_points(points, name: str, minimum: int = 1) -> np.ndarray:
+    """``points`` as float64 ``(m, 3)``, m >= ``minimum``, finite; ValueError naming ``name``."""
+    points = np.asarray(points, dtype=np.float64)
+    if points.ndim != 2 or points.shape[1] != 3 or len(points) < minimum:
+        raise ValueError(f"{name} must have shape (m, 3) with m >= {minimum}, got {points.shape}")
+    bad = ~np.isfinite(points).all(axis=1)
+    if bad.any():
+        raise ValueError(
+            f"{name} must be finite; {int(bad.sum())} of {len(points)} hold NaN or infinite "
+            f"coordinates (the first is row {int(np.flatnonzero(bad)[0])})"
+        )
+    return points
+
+
+def clean_faces(faces: Int[np.ndarray, "F 3"]) -> tuple[Int[np.ndarray, " K"], tuple[str, ...]]:
+    """``(kept, notes)``: the indices of the faces that make a mesh's surface, ascending,
+    and a note for each kind dropped. Dropped are faces that name one vertex twice (no
+    triangle: an edge or a point) and every repeat of a face already seen, in either
+    orientation (the same three vertices). Either kind counts its edges and its face again
+    in the Euler characteristic, so left in it gives a false genus (a sphere's faces given
+    twice read as genus -n) and false boundary or non-manifold edges."""
+    faces = np.asarray(faces, dtype=np.int64)
+    if len(faces) == 0:
+        return np.arange(0), ()
+    proper = (
+        (faces[:, 0] != faces[:, 1]) & (faces[:, 1] != faces[:, 2]) & (faces[:, 0] != faces[:, 2])
+    )
+    notes = []
+    if not proper.all():
+        notes.append(f"dropped {int(np.sum(~proper))} degenerate faces (a vertex named twice)")
+    candidates = np.flatnonzero(proper)
+    _, first = np.unique(np.sort(faces[candidates], axis=1), axis=0, return_index=True)
+    kept = np.sort(candidates[first])
+    if len(kept) < len(candidates):
+        notes.append(f"dropped {len(candidates) - len(kept)} duplicated faces (a repeat of a face)")
+    return kept, tuple(notes)
 
 
 def face_areas(
@@ -117,8 +163,9 @@ def genus(faces: Int[npt.ArrayLike, "F 3"]) -> int:
     """Genus of a closed, connected, orientable triangle mesh from its Euler characteristic
     ``V - E + F = 2 - 2 genus`` (V counts only the vertices the faces use).
 
-    Raises ValueError for a mesh with boundary edges (open), more than one component, or
-    an odd Euler characteristic (not an orientable closed surface).
+    Degenerate and duplicated faces are left out first (``clean_faces``). Raises
+    ValueError for a mesh with boundary edges (open), more than one component, or an odd
+    Euler characteristic (not an orientable closed surface).
     """
     faces = np.asarray(faces)
     if (
@@ -133,6 +180,9 @@ def genus(faces: Int[npt.ArrayLike, "F 3"]) -> int:
             f"shape {faces.shape} {faces.dtype}"
         )
     faces = faces.astype(np.int64)
+    faces = faces[clean_faces(faces)[0]]
+    if len(faces) == 0:
+        raise ValueError("faces holds no proper triangle (every face names a vertex twice)")
     count, labels = _face_components(faces, int(faces.max()) + 1)
     if count != 1:
         raise ValueError(f"genus needs one connected component, got {count}")
@@ -181,10 +231,13 @@ class MeshReport:
         components: every [`MeshComponent`][jurs.levelset.MeshComponent],
             largest area first.
         threshold: the supplementary threshold (None without data points).
+        notes: what was dropped from the input before measuring (degenerate and
+            duplicated faces, ``clean_faces``), in words; empty for a clean mesh.
     """
 
     components: tuple
     threshold: float | None
+    notes: tuple = ()
 
     @property
     def num_components(self) -> int:
@@ -206,7 +259,7 @@ class MeshReport:
     def as_dict(self) -> dict:
         """The summary numbers (JSON-ready): ``num_components``, ``num_closed``,
         ``num_supplementary``, ``total_area``, ``supplementary_area``, ``genera`` (per
-        component, None for open ones) and ``threshold``."""
+        component, None for open ones), ``threshold`` and ``notes``."""
         return {
             "num_components": self.num_components,
             "num_closed": sum(c.closed for c in self.components),
@@ -215,6 +268,7 @@ class MeshReport:
             "supplementary_area": self.supplementary_area,
             "genera": [c.genus for c in self.components],
             "threshold": self.threshold,
+            "notes": list(self.notes),
         }
 
 
@@ -252,18 +306,25 @@ def analyze_mesh(
             Unused without ``points``.
 
     Returns:
-        [`MeshReport`][jurs.levelset.MeshReport].
+        [`MeshReport`][jurs.levelset.MeshReport]. Each component's ``faces`` index the
+        ``faces`` given.
+
+    Input: vertices must be finite and faces must index them (ValueError otherwise, as
+    for non-finite ``points``). Faces that name a vertex twice and repeats of a face (the
+    same three vertices, in either orientation) are dropped before anything is measured,
+    and ``MeshReport.notes`` says how many: they add no surface, and counted they made
+    the genus false (a mesh with every face given twice read as genus -n).
     """
     vertices, faces = _check_mesh(vertices, faces)
     if points is not None:
-        points = np.asarray(points, dtype=np.float64)
-        if points.ndim != 2 or points.shape[1] != 3 or len(points) == 0:
-            raise ValueError(f"points must have shape (m, 3) with m >= 1, got {points.shape}")
+        points = _check_points(points, "points")
         threshold = default_threshold(points) if threshold is None else float(threshold)
         if not threshold > 0:
             raise ValueError(f"threshold must be positive, got {threshold}")
+    kept, notes = clean_faces(faces)
+    faces = faces[kept]
     if len(faces) == 0:
-        return MeshReport((), threshold if points is not None else None)
+        return MeshReport((), threshold if points is not None else None, notes)
     count, labels = _face_components(faces, len(vertices))
     num_v, num_e, num_f, boundary = _topology(faces, labels, count)
     area = face_areas(vertices, faces)
@@ -278,7 +339,7 @@ def analyze_mesh(
     split = np.split(face_order, np.cumsum(num_f)[:-1])
     components = tuple(
         MeshComponent(
-            faces=split[c],
+            faces=kept[split[c]],
             area=float(component_area[c]),
             closed=bool(boundary[c] == 0),
             genus=int((2 - euler[c]) // 2) if boundary[c] == 0 and euler[c] % 2 == 0 else None,
@@ -287,7 +348,7 @@ def analyze_mesh(
         )
         for c in order
     )
-    return MeshReport(components, threshold if points is not None else None)
+    return MeshReport(components, threshold if points is not None else None, notes)
 
 
 def _weighted_medians(values, weights, labels, totals):
@@ -330,17 +391,16 @@ def mesh_distances(
 
     Both distances have a floor of about half the spacing of the sparser of ``Z`` and ``Y``
     (point sets, not surfaces, are compared). An empty mesh (or one without area) gives
-    ``inf`` distances and NaN consistency.
+    ``inf`` distances and NaN consistency. The input is checked as by
+    [`analyze_mesh`][jurs.levelset.analyze_mesh] (degenerate and repeated faces are left
+    out: a face given twice would be sampled twice as often).
 
     Returns:
         ``{"chamfer", "hausdorff", "normal_consistency", "samples"}``.
     """
     vertices, faces = _check_mesh(vertices, faces)
-    reference = np.asarray(reference_points, dtype=np.float64)
-    if reference.ndim != 2 or reference.shape[1] != 3 or len(reference) == 0:
-        raise ValueError(
-            f"reference_points must have shape (m, 3) with m >= 1, got {reference.shape}"
-        )
+    faces = faces[clean_faces(faces)[0]]  # a repeated face would be sampled twice as often
+    reference = _check_points(reference_points, "reference_points")
     if reference_normals is not None:
         reference_normals = np.asarray(reference_normals, dtype=np.float64)
         if reference_normals.shape != reference.shape:
@@ -348,6 +408,8 @@ def mesh_distances(
                 f"reference_normals must have the shape of reference_points "
                 f"{reference.shape}, got {reference_normals.shape}"
             )
+        if not np.isfinite(reference_normals).all():
+            raise ValueError("reference_normals must be finite")
     if samples is None:
         samples = int(np.clip(SAMPLES_PER_REFERENCE * len(reference), MIN_SAMPLES, MAX_SAMPLES))
     if int(samples) < 1:

@@ -13,6 +13,7 @@ import numpy as np
 from jaxtyping import Float, Int
 
 from .._model.lattice import lattice_values, spline_fields, values_and_gradients
+from .._problem.memory import check_memory
 
 #: Lattice nodes per spline cell along the finest axis for the default resolution: g is a
 #: cubic in each cell, and marching cubes sees at most one zero crossing per lattice edge,
@@ -42,6 +43,21 @@ SLAB_NODES = 1 << 20
 #: moves the surface by at most this fraction of a lattice spacing where g is steepest, and
 #: the Newton steps take it back.
 NUDGE = 1e-3
+#: Lattice nodes a mesh samples at most unless ``max_nodes`` says otherwise: 2^27, a
+#: lattice of 512^3, about 15 s of meshing at ``NODES_PER_SECOND``. The time grows with the
+#: cube of the resolution while the memory (bounded by the slabs) grows with its square, so
+#: a resolution of 1200-2000 fits in memory and runs for many minutes; it is refused in
+#: milliseconds instead (docs/robustness.md, "Meshing").
+MAX_NODES = 1 << 27
+#: Lattice nodes meshed a second, for the estimate in the refusal's message: 256^3 nodes in
+#: 1.7 s (docs/performance.md, "Mesh lattice density").
+NODES_PER_SECOND = 1e7
+#: Peak bytes per lattice node of a slab, and per vertex of the mesh (measured about 16
+#: and 450: see [`mesh`][jurs.levelset.mesh], *Memory*), and the vertices a mesh has per
+#: node of a lattice plane (resolution^2) assumed by the memory estimate: a sphere filling
+#: its box has about 2 (docs/surfaces.md, "Meshing a spline"); four times that leaves room
+#: for folded surfaces.
+BYTES_PER_SLAB_NODE, BYTES_PER_VERTEX, VERTICES_PER_PLANE_NODE = 16, 450, 8
 
 _EMPTY = (np.empty((0, 3)), np.empty((0, 3), dtype=np.int64))
 
@@ -87,6 +103,7 @@ def mesh(
     level: float = 0.0,
     newton_steps: int = 2,
     chunk: int = SLAB_NODES,
+    max_nodes: int | None = MAX_NODES,
 ) -> tuple[Float[np.ndarray, "V 3"], Int[np.ndarray, "F 3"]]:
     """Triangle mesh of ``{g = level}`` of a 3D spline over ``box``.
 
@@ -103,6 +120,18 @@ def mesh(
             (near a critical point of g the linearisation says nothing; the vertex keeps
             its marching-cubes position).
         chunk: lattice nodes per slab (at least two planes of the first axis per slab).
+        max_nodes: lattice nodes above which the mesh is refused before any is sampled
+            (default ``MAX_NODES``, 2^27: a 512^3 lattice, about 15 s); None, or a larger
+            number, meshes anyway. The memory is checked too, against the host's
+            available memory, and that check cannot be lifted.
+
+    Raises:
+        ValueError: a spline with non-finite control points or weights, a weight <= 0
+            (g = sum w C B / sum w B is then undefined or changes meaning where the
+            denominator vanishes), or one whose control points all equal ``level`` (g is
+            that level everywhere: its level set is the whole box, not a surface); a
+            lattice of more than ``max_nodes`` nodes (the message gives the estimated time
+            and memory) or one whose estimated memory exceeds what is available.
 
     Returns:
         ``(vertices (V, 3) float64, faces (F, 3) int64)``; every face's normal (right-hand
@@ -119,6 +148,7 @@ def mesh(
     of the whole lattice alone would take 490 MiB.
     """
     lower, upper = _box(spline, box)
+    _check_values(spline, float(level))
     if resolution is None:
         resolution = default_resolution(spline, lower, upper)
     if int(newton_steps) < 0:
@@ -126,6 +156,7 @@ def mesh(
     if int(chunk) < 1:
         raise ValueError(f"chunk must be >= 1, got {chunk}")
     axes = lattice_axes(lower, upper, resolution)
+    check_lattice_size([len(a) for a in axes], int(resolution), int(chunk), max_nodes)
     spacing = np.array([(a[-1] - a[0]) / (len(a) - 1) for a in axes])
     nudge = NUDGE * float(np.max(spacing * _slope_bound(spline)))
     vertices, faces = _march_in_slabs(spline, axes, float(level), nudge, int(chunk))
@@ -133,6 +164,71 @@ def mesh(
         return _EMPTY
     vertices = lower + vertices * spacing
     return _newton(spline, vertices, float(level), int(newton_steps), spacing.max()), faces
+
+
+def _check_values(spline, level: float) -> None:
+    """ValueError, in jurs's words, for a spline whose level set is no surface: non-finite
+    control points or weights, a weight <= 0, or every control point at ``level``.
+
+    Without it a NaN spline gave an empty mesh (read as "the level set misses the box") and
+    a zero spline scikit-image's "No surface found"."""
+    control, weights, _, _ = spline_fields(spline, dims=(3,))
+    if not np.isfinite(level):
+        raise ValueError(f"level must be finite, got {level}")
+    for name, values in (("control points", control), ("weights", weights)):
+        bad = ~np.isfinite(values)
+        if bad.any():
+            raise ValueError(
+                f"the spline's {name} are not all finite ({int(bad.sum())} of {values.size} "
+                "are NaN or infinite): it has no level set to mesh"
+            )
+    if not (weights > 0).all():
+        raise ValueError(
+            f"the spline's weights must be positive; {int(np.sum(weights <= 0))} of "
+            f"{weights.size} are <= 0 (smallest {weights.min():.3g}), where "
+            "g = sum w C B / sum w B is undefined"
+        )
+    if (control == level).all():
+        raise ValueError(
+            f"every control point of the spline equals the level {level:g}: g is that level "
+            "everywhere in the box, so its level set is the whole box, not a surface"
+        )
+
+
+def check_lattice_size(
+    counts, resolution: int, chunk: int = SLAB_NODES, max_nodes: int | None = MAX_NODES
+) -> None:
+    """ValueError before meshing a lattice of ``counts`` nodes a side when it has more than
+    ``max_nodes`` nodes (None: no limit; the message estimates the time at
+    ``NODES_PER_SECOND``) or when its estimated peak memory (``BYTES_PER_SLAB_NODE`` a
+    node of a slab, ``BYTES_PER_VERTEX`` a vertex, ``VERTICES_PER_PLANE_NODE`` vertices
+    a node of a plane) exceeds the host's available memory
+    (``jurs._problem.memory.check_memory``, named ``resolution=...`` as in 2D)."""
+    nodes = float(np.prod(np.asarray(counts, dtype=np.float64)))
+    plane = nodes / max(counts)
+    memory = BYTES_PER_SLAB_NODE * max(chunk, 2 * plane) + (
+        BYTES_PER_VERTEX * VERTICES_PER_PLANE_NODE * plane
+    )
+    if max_nodes is not None:
+        if isinstance(max_nodes, bool) or not isinstance(max_nodes, (int, np.integer)):
+            raise TypeError(f"max_nodes must be an int or None, got {max_nodes!r}")
+        if nodes > max_nodes:
+            seconds = nodes / NODES_PER_SECOND
+            raise ValueError(
+                f"resolution={resolution} samples g at {nodes:.3g} lattice nodes, more than "
+                f"max_nodes={int(max_nodes)}: about {_duration(seconds)} of meshing and up "
+                f"to {memory / 2**30:.2g} GiB; pass a larger max_nodes (or None) to mesh "
+                "anyway, or choose a smaller resolution"
+            )
+    check_memory(f"resolution={resolution}", memory, device=False)
+
+
+def _duration(seconds: float) -> str:
+    if seconds < 120:
+        return f"{seconds:.0f} s"
+    if seconds < 7200:
+        return f"{seconds / 60:.0f} minutes"
+    return f"{seconds / 3600:.1f} hours"
 
 
 def _box(spline, box):

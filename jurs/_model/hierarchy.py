@@ -1,0 +1,519 @@
+"""Truncated hierarchical cubic B-splines (THB) on a box: fine cells only where asked.
+
+Level 0 is the uniform cubic basis of ``jurs._model.basis`` on ``base`` cells along each
+axis; level ``l`` halves the cells of level ``l - 1``. The domain ``Omega_0`` is the whole
+box; ``Omega_{l+1}`` is the union of the level-``l`` cells chosen for refinement (each
+split into ``2^d`` level-``l+1`` cells), nested by construction. A point's *leaf* is the
+finest cell that holds it; the leaves partition the box.
+
+**Active functions** (Kraft's selection). A level-``l`` B-spline is active when its support
+(within the box) lies in ``Omega_l`` and not in ``Omega_{l+1}``. **Truncation**
+(Giannelli, Juettler and Speleers 2012): an active function is refined to each finer level
+(cubic subdivision, ``B^l_i = sum_k (1, 4, 6, 4, 1)_k / 8 B^{l+1}_{2i-3+k}`` per axis) and,
+there, its terms on functions whose support lies in ``Omega_{l+1}`` are dropped. The
+truncated basis is non-negative, linearly independent, a partition of unity, and spans the
+same space as the plain hierarchical basis; a spline of a coarse level is represented
+exactly (docs/design.md section 8).
+
+**Evaluation without a dense finest grid.** By linearity a THB spline ``sum c_tau tau`` is,
+on the leaves of level ``l``, the level-``l`` B-spline with *cascaded* coefficients
+
+    a^0 = c^0,   a^{l+1} = keep_{l+1} * (R_l a^l) + c^{l+1},
+
+``R_l`` the subdivision, ``keep`` zero on the functions whose support lies in
+``Omega_{l+1}``. Each level keeps ``a^l`` only on its *relevant* functions (those whose
+support meets ``Omega_l``), looked up by a sorted search of integer keys; nothing is ever
+sized by the finest level's full grid.
+
+The structure (which cells, which functions) is built on the host from concrete data, like
+the sample layout of a uniform fit; the values (coefficients, basis values at points) are
+JAX arrays, so a fit through it can be jitted and differentiated.
+"""
+
+from __future__ import annotations
+
+import itertools
+
+import equinox as eqx
+import jax.numpy as jnp
+import numpy as np
+from jax import Array
+from jaxtyping import ArrayLike, Float, Int
+
+from .basis import cubic_derivatives, cubic_weights, tensor_basis
+
+#: Cubic B-spline subdivision mask: ``B^l_i = sum_k SUBDIVISION[k] B^{l+1}_{2i-3+k}``.
+SUBDIVISION = np.array([1.0, 4.0, 6.0, 4.0, 1.0]) / 8.0
+
+#: Largest flat key held in int32 (JAX without x64 has no int64).
+_MAX_KEY = 2**31 - 1
+
+
+def _offsets(ndim: int, count: int) -> np.ndarray:
+    """All ``count ** ndim`` integer offsets in ``[0, count)^d``, row-major; ``(k, d)``."""
+    return np.array(list(itertools.product(range(count), repeat=ndim)), dtype=np.int64).reshape(
+        -1, ndim
+    )
+
+
+def _ravel(index: np.ndarray, extent: tuple[int, ...]) -> np.ndarray:
+    """Row-major flat keys of multi-indices ``(..., d)`` inside ``extent``."""
+    key = np.zeros(index.shape[:-1], dtype=np.int64)
+    for axis, n in enumerate(extent):
+        key = key * n + index[..., axis]
+    return key
+
+
+def _unravel(key: np.ndarray, extent: tuple[int, ...]) -> np.ndarray:
+    return np.stack(np.unravel_index(key, extent), axis=-1).astype(np.int64)
+
+
+def _member(keys: np.ndarray, sorted_set: np.ndarray) -> np.ndarray:
+    """Whether each key is in the sorted unique array ``sorted_set``."""
+    if sorted_set.size == 0:
+        return np.zeros(keys.shape, dtype=bool)
+    at = np.clip(np.searchsorted(sorted_set, keys), 0, sorted_set.size - 1)
+    return sorted_set[at] == keys
+
+
+def _position(keys: np.ndarray, sorted_set: np.ndarray) -> np.ndarray:
+    """Index of each key in ``sorted_set``; every key must be present."""
+    at = np.searchsorted(sorted_set, keys)
+    if np.any(at >= sorted_set.size) or np.any(
+        sorted_set[np.minimum(at, sorted_set.size - 1)] != keys
+    ):
+        raise AssertionError("hierarchy: a function's key is missing from its level")
+    return at
+
+
+class Hierarchy(eqx.Module):
+    """The structure of a THB basis: levels, leaves, active functions and the cascade.
+
+    Build it with [`build_hierarchy`][jurs.internal.build_hierarchy]. Per level ``l`` (all
+    arrays ``int32`` or float, tuples indexed by level):
+
+    * ``function_keys[l]``: sorted flat keys (row-major in the ``(n_l + 3)^d`` function
+      grid) of the relevant functions, those whose support meets ``Omega_l``;
+    * ``leaf_keys[l]``: sorted flat keys (in the ``n_l^d`` cell grid) of the leaves;
+    * ``active[l]``: positions, in ``function_keys[l]``, of the active functions; the
+      coefficient vector of a spline is the active functions of level 0, then 1, ...;
+    * ``parents[l]``, ``parent_weights[l]`` (``l >= 1``): for each relevant function, the
+      ``3^d`` level-``l - 1`` positions and subdivision weights it is refined from (weight
+      0 pads where an axis has two parents);
+    * ``keep[l]``: 1 where the refined coefficient survives truncation, 0 where the
+      function's support lies in ``Omega_l``;
+    * ``edges[l]``, ``edge_weights[l]``: the regulariser's neighbour pairs of level ``l``
+      (positions in ``function_keys[l]``), those that sit on the level's leaves, and their
+      weight ``(h_l / h_finest)^(d - 2)`` (see
+      [`hierarchy_regulariser`][jurs.internal.hierarchy_regulariser]).
+
+    ``lower``, ``upper`` are the box; ``base`` the level-0 cells per axis (static).
+    """
+
+    lower: Array
+    upper: Array
+    function_keys: tuple[Array, ...]
+    leaf_keys: tuple[Array, ...]
+    active: tuple[Array, ...]
+    parents: tuple[Array, ...]
+    parent_weights: tuple[Array, ...]
+    keep: tuple[Array, ...]
+    edges: tuple[Array, ...]
+    edge_weights: tuple[Array, ...]
+    base: tuple[int, ...] = eqx.field(static=True)
+
+    @property
+    def ndim(self) -> int:
+        return len(self.base)
+
+    @property
+    def num_levels(self) -> int:
+        return len(self.function_keys)
+
+    def cells(self, level: int) -> tuple[int, ...]:
+        """Cells along each axis of the box at ``level``."""
+        return tuple(n << level for n in self.base)
+
+    def functions(self, level: int) -> tuple[int, ...]:
+        """The extent of the level's full function grid (``n_l + 3`` per axis)."""
+        return tuple(n + 3 for n in self.cells(level))
+
+    def cell_width(self, level: int) -> Array:
+        return (self.upper - self.lower) / jnp.asarray(self.cells(level), self.lower.dtype)
+
+    @property
+    def num_active(self) -> int:
+        """Active functions over all levels: the length of a coefficient vector."""
+        return sum(int(a.shape[0]) for a in self.active)
+
+    @property
+    def level_sizes(self) -> tuple[int, ...]:
+        """Relevant functions per level (the length of each cascaded ``a^l``)."""
+        return tuple(int(k.shape[0]) for k in self.function_keys)
+
+    @property
+    def active_counts(self) -> tuple[int, ...]:
+        return tuple(int(a.shape[0]) for a in self.active)
+
+
+def _support_inside(
+    functions: np.ndarray, cells: tuple[int, ...], region: np.ndarray
+) -> np.ndarray:
+    """Whether each function's support within the box lies in ``region`` (sorted flat keys
+    of cells at the same level); ``functions (k, d)`` multi-indices."""
+    ndim = functions.shape[1]
+    inside = np.ones(functions.shape[0], dtype=bool)
+    top = np.asarray(cells)
+    for offset in _offsets(ndim, 4):
+        cell = functions - 3 + offset
+        in_box = np.all((cell >= 0) & (cell < top), axis=1)
+        key = _ravel(np.clip(cell, 0, top - 1), cells)
+        inside &= ~in_box | _member(key, region)
+    return inside
+
+
+def _parents(functions: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The ``3^d`` coarser functions each function is refined from, and the weights:
+    child ``j = 2 i - 3 + k`` of parent ``i`` takes ``SUBDIVISION[k]``. ``((k, 3^d, d),
+    (k, 3^d))``; an axis with two parents repeats one with weight 0."""
+    per_axis_index = []
+    per_axis_weight = []
+    for axis in range(functions.shape[1]):
+        j = functions[:, axis]
+        odd = (j + 3) % 2 == 1
+        # j + 3 even: k = 0, 2, 4; odd: k = 1, 3 (and a dummy copy of k = 1).
+        ks = np.where(odd[:, None], np.array([1, 3, 1]), np.array([0, 2, 4]))
+        index = (j[:, None] + 3 - ks) // 2
+        weight = SUBDIVISION[ks] * np.where(odd[:, None], np.array([1.0, 1.0, 0.0]), 1.0)
+        per_axis_index.append(index)
+        per_axis_weight.append(weight)
+    combos = _offsets(functions.shape[1], 3)
+    index = np.stack([per_axis_index[a][:, combos[:, a]] for a in range(functions.shape[1])], -1)
+    weight = np.prod(
+        np.stack([per_axis_weight[a][:, combos[:, a]] for a in range(functions.shape[1])], -1), -1
+    )
+    return index, weight
+
+
+def build_hierarchy(
+    lower: Float[ArrayLike, " d"],
+    upper: Float[ArrayLike, " d"],
+    base: tuple[int, ...],
+    refine: list[np.ndarray],
+    dtype=None,
+) -> Hierarchy:
+    """The THB structure on the box ``[lower, upper]`` with ``base`` level-0 cells per axis.
+
+    ``refine[l]`` holds the level-``l`` cells to split (flat row-major keys in the level's
+    cell grid, or ``(k, d)`` multi-indices); cells outside ``Omega_l`` are ignored, so the
+    domains nest whatever is asked. ``len(refine)`` levels of refinement follow level 0
+    (fewer where a level refines nothing). Host work, on concrete data.
+    """
+    ndim = len(base)
+    base = tuple(int(n) for n in base)
+    if any(n < 1 for n in base):
+        raise ValueError(f"base cells must be at least 1 per axis, got {base}")
+    lower_np = np.asarray(lower, dtype=float)
+    upper_np = np.asarray(upper, dtype=float)
+    dtype = dtype or jnp.result_type(float)
+
+    def cells_at(level):
+        return tuple(n << level for n in base)
+
+    # Domains as sorted flat keys of their cells at their own level.
+    omega = [np.arange(int(np.prod(base)), dtype=np.int64)]
+    refined = []
+    for level, asked in enumerate(refine):
+        asked = np.asarray(asked, dtype=np.int64)
+        if asked.ndim == 2:
+            asked = _ravel(asked, cells_at(level))
+        split = np.intersect1d(np.unique(asked), omega[level], assume_unique=True)
+        if split.size == 0:
+            break
+        refined.append(split)
+        children = (
+            _unravel(split, cells_at(level))[:, None, :] * 2 + _offsets(ndim, 2)[None]
+        ).reshape(-1, ndim)
+        omega.append(np.unique(_ravel(children, cells_at(level + 1))))
+    levels = len(omega)
+    refined.append(np.zeros(0, dtype=np.int64))
+    finest = levels - 1
+    if (max(cells_at(finest)) + 3) ** ndim > _MAX_KEY:
+        raise ValueError(
+            f"a hierarchy of {levels} levels on {base} base cells needs keys beyond int32; "
+            "use fewer levels or fewer base cells"
+        )
+
+    function_keys, leaf_keys, active, parents, weights, keep, edges, edge_weights = (
+        [] for _ in range(8)
+    )
+    for level in range(levels):
+        cells = cells_at(level)
+        extent = tuple(n + 3 for n in cells)
+        region = _unravel(omega[level], cells)
+        funcs = np.unique(
+            _ravel((region[:, None, :] + _offsets(ndim, 4)[None]).reshape(-1, ndim), extent)
+        )
+        multi = _unravel(funcs, extent)
+        in_level = (
+            _support_inside(multi, cells, omega[level]) if level else np.ones(funcs.size, bool)
+        )
+        in_finer = _support_inside(multi, cells, refined[level])
+        function_keys.append(funcs)
+        leaves = np.setdiff1d(omega[level], refined[level], assume_unique=True)
+        leaf_keys.append(leaves)
+        active.append(np.flatnonzero(in_level & ~in_finer))
+        keep.append((~in_level).astype(float))
+        if level:
+            index, weight = _parents(multi)
+            coarse_extent = tuple(n + 3 for n in cells_at(level - 1))
+            flat = _ravel(index, coarse_extent)
+            # Padding entries (weight 0) may name a function the coarser level does not
+            # keep: point them at a real one.
+            flat = np.where(weight > 0, flat, flat[:, :1])
+            parents.append(_position(flat, function_keys[level - 1]))
+            weights.append(weight)
+        else:
+            parents.append(np.zeros((funcs.size, 0), dtype=np.int64))
+            weights.append(np.zeros((funcs.size, 0)))
+        pairs, pair_weight = [], []
+        scale = 2.0 ** ((finest - level) * (ndim - 2))  # (h_l / h_finest)^(d - 2)
+        for axis in range(ndim):
+            step = np.zeros(ndim, dtype=np.int64)
+            step[axis] = 1
+            neighbour = multi + step
+            ok = neighbour[:, axis] < extent[axis]
+            nkey = _ravel(np.minimum(neighbour, np.asarray(extent) - 1), extent)
+            ok &= _member(nkey, funcs)
+            # The pair sits between the two functions' centres (node i - 1 in cell units):
+            # at the cell i_axis - 1 along the axis, the cell i - 1 across it (clamped
+            # into the box). It belongs to the level whose leaf holds that cell.
+            where = np.clip(multi - 1, 0, np.asarray(cells) - 1)
+            ok &= _member(_ravel(where, cells), leaves)
+            first = np.flatnonzero(ok)
+            pairs.append(np.stack([first, _position(nkey[first], funcs)], -1))
+            pair_weight.append(np.full(first.size, scale))
+        edges.append(np.concatenate(pairs))
+        edge_weights.append(np.concatenate(pair_weight))
+
+    def ints(arrays):
+        return tuple(jnp.asarray(a, dtype=jnp.int32) for a in arrays)
+
+    def floats(arrays):
+        return tuple(jnp.asarray(a, dtype=dtype) for a in arrays)
+
+    return Hierarchy(
+        lower=jnp.asarray(lower_np, dtype=dtype),
+        upper=jnp.asarray(upper_np, dtype=dtype),
+        function_keys=ints(function_keys),
+        leaf_keys=ints(leaf_keys),
+        active=ints(active),
+        parents=ints(parents),
+        parent_weights=floats(weights),
+        keep=floats(keep),
+        edges=ints(edges),
+        edge_weights=floats(edge_weights),
+        base=base,
+    )
+
+
+def refine_near(
+    lower: Float[ArrayLike, " d"],
+    upper: Float[ArrayLike, " d"],
+    base: tuple[int, ...],
+    levels: int,
+    samples: Float[ArrayLike, "n d"],
+    band: int = 2,
+) -> list[np.ndarray]:
+    """The cells to split for a band around ``samples``: at each level ``l < levels``, the
+    level-``l`` cells within ``band`` cells (Chebyshev distance, in that level's cells) of a
+    cell holding a sample. The band narrows in absolute terms as the cells shrink, so the
+    finest level covers about ``2 band + 1`` of its cells across the data and the active
+    set grows with the data's boundary, not with the box."""
+    samples = np.asarray(samples, dtype=float)
+    lower = np.asarray(lower, dtype=float)
+    upper = np.asarray(upper, dtype=float)
+    ndim = samples.shape[1]
+    around = _offsets(ndim, 2 * band + 1) - band
+    out = []
+    for level in range(levels):
+        cells = np.asarray([n << level for n in base])
+        hit = np.clip(np.floor((samples - lower) / (upper - lower) * cells), 0, cells - 1)
+        hit = np.unique(_ravel(hit.astype(np.int64), tuple(cells)))
+        near = (_unravel(hit, tuple(cells))[:, None, :] + around[None]).reshape(-1, ndim)
+        near = near[np.all((near >= 0) & (near < cells), axis=1)]
+        out.append(np.unique(_ravel(near, tuple(cells))))
+    return out
+
+
+def cascade(hierarchy: Hierarchy, coeffs: Float[Array, "*lead n"]) -> Float[Array, "*lead s"]:
+    """The cascaded coefficients ``a^0, ..., a^L`` of a THB spline, concatenated level by
+    level over each level's relevant functions (module docstring). ``coeffs`` is the
+    active functions' vector (leading axes carry several splines at once). Linear in
+    ``coeffs``: its transpose (by JAX) spreads values back to the active functions."""
+    lead = coeffs.shape[:-1]
+    out = []
+    start = 0
+    previous = None
+    for level in range(hierarchy.num_levels):
+        count = hierarchy.active_counts[level]
+        mine = coeffs[..., start : start + count]
+        start += count
+        size = hierarchy.level_sizes[level]
+        placed = jnp.zeros(lead + (size,), coeffs.dtype).at[..., hierarchy.active[level]].add(mine)
+        if previous is None:
+            current = placed
+        else:
+            refined = jnp.sum(
+                previous[..., hierarchy.parents[level]] * hierarchy.parent_weights[level], axis=-1
+            )
+            current = hierarchy.keep[level] * refined + placed
+        out.append(current)
+        previous = current
+    return jnp.concatenate(out, axis=-1)
+
+
+def cascade_matrix(hierarchy: Hierarchy):
+    """The cascade as a SciPy sparse matrix (host): rows the concatenated relevant
+    functions of every level, columns the active functions; ``cascade(c) = M @ c``. Rows
+    hold the truncated functions' coefficients, so its size follows the active band
+    (a truncated function keeps terms only near the border of the finer domain)."""
+    from scipy import sparse
+
+    n = hierarchy.num_active
+    blocks = []
+    start = 0
+    previous = None
+    for level in range(hierarchy.num_levels):
+        size, count = hierarchy.level_sizes[level], hierarchy.active_counts[level]
+        rows = np.asarray(hierarchy.active[level])
+        placed = sparse.csr_matrix(
+            (np.ones(count), (rows, start + np.arange(count))), shape=(size, n)
+        )
+        start += count
+        if previous is None:
+            current = placed
+        else:
+            parents = np.asarray(hierarchy.parents[level])
+            weights = np.asarray(hierarchy.parent_weights[level], float)
+            weights = weights * np.asarray(hierarchy.keep[level], float)[:, None]
+            refine = sparse.csr_matrix(
+                (weights.ravel(), (np.repeat(np.arange(size), parents.shape[1]), parents.ravel())),
+                shape=(size, previous.shape[0]),
+            )
+            current = (refine @ previous + placed).tocsr()
+            current.eliminate_zeros()
+        blocks.append(current)
+        previous = current
+    return sparse.vstack(blocks).tocsr()
+
+
+def locate_leaves(
+    hierarchy: Hierarchy, x: Float[Array, "n d"]
+) -> tuple[Int[Array, " n"], Int[Array, "n d"]]:
+    """The level of each point's leaf and the leaf's cell (multi-index at that level).
+    Points outside the box take the border leaf (the basis extrapolates there, as the
+    uniform basis does). A sorted search per level; no finest-level array."""
+    level = jnp.zeros(x.shape[0], jnp.int32)
+    cell = jnp.zeros(x.shape, jnp.int32)
+    unit = (x - hierarchy.lower) / (hierarchy.upper - hierarchy.lower)
+    for lev in range(hierarchy.num_levels):
+        cells = hierarchy.cells(lev)
+        top = jnp.asarray(cells, jnp.int32) - 1
+        here = jnp.clip(jnp.floor(unit * jnp.asarray(cells, unit.dtype)), 0, top).astype(jnp.int32)
+        key = _jnp_ravel(here, cells)
+        keys = hierarchy.leaf_keys[lev]
+        if keys.shape[0] == 0:
+            continue
+        at = jnp.clip(jnp.searchsorted(keys, key), 0, keys.shape[0] - 1)
+        found = keys[at] == key
+        level = jnp.where(found, lev, level)
+        cell = jnp.where(found[:, None], here, cell)
+    return level, cell
+
+
+def _jnp_ravel(index: Array, extent: tuple[int, ...]) -> Array:
+    key = index[..., 0]
+    for axis in range(1, len(extent)):
+        key = key * extent[axis] + index[..., axis]
+    return key
+
+
+def leaf_terms(
+    hierarchy: Hierarchy, x: Float[Array, "n d"], level: Int[Array, " n"], cell: Int[Array, "n d"]
+) -> tuple[Int[Array, "n k"], Array]:
+    """For points in the given leaves: the positions, in the cascaded vector of
+    [`cascade`][jurs.internal.cascade], of the ``4^d`` functions over each leaf, and the
+    local coordinates ``t (n, d)`` in the leaf. Differentiable in ``x`` through ``t``."""
+    ndim = hierarchy.ndim
+    offsets = jnp.asarray(_offsets(ndim, 4), jnp.int32)
+    positions = jnp.zeros((x.shape[0], 4**ndim), jnp.int32)
+    t = jnp.zeros_like(x)
+    start = 0
+    unit = (x - hierarchy.lower) / (hierarchy.upper - hierarchy.lower)
+    for lev in range(hierarchy.num_levels):
+        extent = hierarchy.functions(lev)
+        keys = hierarchy.function_keys[lev]
+        here = level == lev
+        key = _jnp_ravel(cell[:, None, :] + offsets[None], extent)
+        at = jnp.clip(jnp.searchsorted(keys, key), 0, keys.shape[0] - 1) + start
+        positions = jnp.where(here[:, None], at, positions)
+        local = unit * jnp.asarray(hierarchy.cells(lev), unit.dtype) - cell.astype(unit.dtype)
+        t = jnp.where(here[:, None], local, t)
+        start += hierarchy.level_sizes[lev]
+    return positions, t
+
+
+def hierarchy_basis(t: Float[Array, "n d"]) -> Float[Array, "n k"]:
+    """The ``4^d`` tensor-product cubic values at local coordinates ``t``, in the order of
+    [`leaf_terms`][jurs.internal.leaf_terms]'s positions."""
+    return tensor_basis(*(cubic_weights(t[:, a]) for a in range(t.shape[1])))
+
+
+def hierarchy_values(
+    hierarchy: Hierarchy, coeffs: Float[Array, "*lead n"], x: Float[Array, "m d"]
+) -> Float[Array, "*lead m"]:
+    """The THB spline ``sum_tau coeffs_tau tau(x)`` at points ``x``; pure JAX, jittable.
+    Leading axes of ``coeffs`` evaluate several splines at once."""
+    level, cell = locate_leaves(hierarchy, x)
+    positions, t = leaf_terms(hierarchy, x, level, cell)
+    a = cascade(hierarchy, coeffs)
+    return jnp.sum(a[..., positions] * hierarchy_basis(t), axis=-1)
+
+
+def hierarchy_gradient(
+    hierarchy: Hierarchy, coeffs: Float[Array, " n"], x: Float[Array, "m d"]
+) -> Float[Array, "m d"]:
+    """The gradient of the THB spline at ``x``, ``(m, d)``, from the leaves' local
+    pieces (the spline is C^2, so the side of a leaf boundary does not matter)."""
+    level, cell = locate_leaves(hierarchy, x)
+    positions, t = leaf_terms(hierarchy, x, level, cell)
+    a = cascade(hierarchy, coeffs)[positions]
+    ndim = hierarchy.ndim
+    values = [cubic_weights(t[:, k]) for k in range(ndim)]
+    slopes = [cubic_derivatives(t[:, k]) for k in range(ndim)]
+    widths = jnp.stack([hierarchy.cell_width(lev) for lev in range(hierarchy.num_levels)])[level]
+    out = []
+    for k in range(ndim):
+        axes = [slopes[j] if j == k else values[j] for j in range(ndim)]
+        out.append(jnp.sum(a * tensor_basis(*axes), axis=-1) / widths[:, k])
+    return jnp.stack(out, axis=-1)
+
+
+def hierarchy_regulariser(hierarchy: Hierarchy, coeffs: Float[Array, " n"]) -> Array:
+    """The paper's R(C) (eq. 31) carried to the hierarchy: ``2 sum_l (h_l / h_L)^(d-2)
+    sum (a^l_i - a^l_j)^2`` over each level's neighbour pairs that sit on its leaves.
+
+    On a hierarchy refined everywhere to one level (or not refined at all) it is exactly
+    eq. 31 on that level's grid; elsewhere each leaf region contributes the grid Laplacian
+    of its own level, ``(h_l / h_L)^(d-2)`` keeping the sum about ``2 int |grad g|^2 /
+    h_L^(d-2)`` as the uniform R is (see ``jurs._fit.settings.scale_free_lam``)."""
+    a = cascade(hierarchy, coeffs)
+    total = jnp.zeros((), a.dtype)
+    start = 0
+    for lev in range(hierarchy.num_levels):
+        pairs = hierarchy.edges[lev] + start
+        diff = a[pairs[:, 0]] - a[pairs[:, 1]]
+        total = total + jnp.sum(hierarchy.edge_weights[lev] * diff * diff)
+        start += hierarchy.level_sizes[lev]
+    return 2.0 * total

@@ -1,0 +1,194 @@
+"""A fitting problem on a THB hierarchy (``jurs._model.hierarchy``): the samples of eq. 4-5,
+their leaves, and the energy ``E_d + lam R`` (eq. 16, 31) over the active functions.
+
+The data term reads ``g(x_k) = sum_j B_j(t_k) a[p_kj]`` (``a`` the cascaded coefficients,
+``p_kj`` the ``4^d`` functions over sample k's leaf): one gather per sample, whose
+transpose is one scatter. Which leaf holds a sample is structure, found on the host once;
+the local coordinates ``t_k`` are computed from the samples in JAX, so a loss through a fit
+differentiates with respect to the points.
+"""
+
+from __future__ import annotations
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import Array
+from jaxtyping import ArrayLike, Float
+
+from .._model.hierarchy import (
+    Hierarchy,
+    build_hierarchy,
+    cascade,
+    cascade_matrix,
+    hierarchy_basis,
+    hierarchy_regulariser,
+    leaf_terms,
+    locate_leaves,
+    refine_near,
+)
+from .problem import offset_samples
+
+
+class AdaptiveProblem(eqx.Module):
+    """Samples, targets and their leaves on a THB hierarchy.
+
+    ``samples (S, d)`` and ``targets (S,)`` are eq. 4-5's (``[P, P + d n, P - d n]``);
+    ``positions (S, 4^d)`` index the cascaded coefficients over each sample's leaf and
+    ``cell (S, d)``, ``level (S,)`` name the leaf; ``data_diagonal`` and
+    ``regulariser_diagonal`` ``(n,)`` are the diagonals of ``D^T D`` and of ``2 G^T W
+    G`` (the normal matrix is ``D^T D + lam 2 G^T W G``) for the samples the problem was
+    made with: a preconditioner, not differentiated.
+    """
+
+    hierarchy: Hierarchy
+    samples: Array
+    targets: Array
+    level: Array
+    cell: Array
+    positions: Array
+    data_diagonal: Array
+    regulariser_diagonal: Array
+    offset: Array
+    eps: Array
+
+
+def normal_matrices(hierarchy: Hierarchy, positions: np.ndarray, basis: np.ndarray):
+    """``(D, 2 G^T W G)`` as SciPy sparse matrices over the active functions, on the host:
+    ``D = B M`` (rows the samples, ``B`` their ``4^d`` basis values at ``positions``,
+    ``M`` the cascade matrix) and the regulariser's part of the normal matrix per unit
+    lambda, so that ``D^T D + lam 2 G^T W G`` is the matrix of the normal equations."""
+    from scipy import sparse
+
+    cascaded = cascade_matrix(hierarchy)
+    total = cascaded.shape[0]
+    count, local = positions.shape
+    rows = np.repeat(np.arange(count), local)
+    collocation = (
+        sparse.csr_matrix((basis.ravel(), (rows, positions.ravel())), shape=(count, total))
+        @ cascaded
+    ).tocsr()
+    pairs, weights, start = [], [], 0
+    for level in range(hierarchy.num_levels):
+        pairs.append(np.asarray(hierarchy.edges[level]) + start)
+        weights.append(np.asarray(hierarchy.edge_weights[level], float))
+        start += hierarchy.level_sizes[level]
+    pairs, weights = np.concatenate(pairs), np.concatenate(weights)
+    edges = len(pairs)
+    difference = (
+        sparse.csr_matrix(
+            (
+                np.stack([np.ones(edges), -np.ones(edges)], 1).ravel(),
+                (np.repeat(np.arange(edges), 2), pairs.ravel()),
+            ),
+            shape=(edges, total),
+        )
+        @ cascaded
+    ).tocsr()
+    # R = 2 sum w (G a)^2: lam R adds lam * 2 G^T W G to the normal matrix.
+    regulariser = (2.0 * difference.T @ sparse.diags(weights) @ difference).tocsr()
+    return collocation, regulariser
+
+
+def make_adaptive_problem(
+    points: Float[ArrayLike, "m d"],
+    normals: Float[ArrayLike, "m d"],
+    *,
+    offset: float,
+    eps: float,
+    lower: Float[ArrayLike, " d"],
+    upper: Float[ArrayLike, " d"],
+    base: tuple[int, ...],
+    levels: int,
+    band: int = 2,
+    dtype=None,
+) -> AdaptiveProblem:
+    """The samples of eq. 4-5 for unit outward ``normals`` and a hierarchy of ``levels``
+    refinements of ``base`` cells around them (``refine_near``, ``band`` cells wide at each
+    level). Host work on concrete points."""
+    dtype = dtype or jnp.result_type(float)
+    points_np = np.asarray(points, dtype=float)
+    normals_np = np.asarray(normals, dtype=float)
+    # Host arrays through the same function (xp=np), for the structure only.
+    samples_np, _ = offset_samples(points_np, normals_np, offset, eps, xp=np)  # pyright: ignore[reportArgumentType]
+    refine = refine_near(lower, upper, base, levels, samples_np, band)
+    hierarchy = build_hierarchy(lower, upper, base, refine, dtype=dtype)
+    samples, targets = offset_samples(
+        jnp.asarray(points, dtype), jnp.asarray(normals, dtype), offset, eps
+    )
+    level, cell = locate_leaves(hierarchy, jnp.asarray(samples_np, dtype))
+    positions, local = leaf_terms(hierarchy, samples, level, cell)
+    collocation, regulariser = normal_matrices(
+        hierarchy, np.asarray(positions), np.asarray(hierarchy_basis(local))
+    )
+    data_diagonal = np.asarray(collocation.multiply(collocation).sum(axis=0)).ravel()
+    regulariser_diagonal = regulariser.diagonal()
+    return AdaptiveProblem(
+        hierarchy=hierarchy,
+        samples=samples,
+        targets=targets,
+        level=level,
+        cell=cell,
+        positions=positions,
+        data_diagonal=jnp.asarray(data_diagonal, dtype),
+        regulariser_diagonal=jnp.asarray(regulariser_diagonal, dtype),
+        offset=jnp.asarray(offset, dtype),
+        eps=jnp.asarray(eps, dtype),
+    )
+
+
+def at_points(
+    problem: AdaptiveProblem, points: Float[Array, "m d"], normals: Float[Array, "m d"]
+) -> AdaptiveProblem:
+    """The problem with its samples moved to those of ``points`` and ``normals`` (traced
+    or not), its leaves kept: for derivatives of a fit with respect to the data, each
+    sample staying in its leaf (the fit is smooth there)."""
+    samples, targets = offset_samples(points, normals, problem.offset, problem.eps)
+    return eqx.tree_at(lambda p: (p.samples, p.targets), problem, (samples, targets))
+
+
+def sample_basis(problem: AdaptiveProblem) -> Float[Array, "S k"]:
+    """The ``4^d`` basis values at each sample in its leaf (differentiable in the
+    samples)."""
+    h = problem.hierarchy
+    unit = (problem.samples - h.lower) / (h.upper - h.lower)
+    sizes = jnp.stack([jnp.asarray(h.cells(lev), unit.dtype) for lev in range(h.num_levels)])
+    t = unit * sizes[problem.level] - problem.cell.astype(unit.dtype)
+    return hierarchy_basis(t)
+
+
+def adaptive_values(
+    problem: AdaptiveProblem, coeffs: Float[Array, "*lead n"], basis: Array | None = None
+) -> Float[Array, "*lead S"]:
+    """``D c``: the THB spline of ``coeffs`` at every sample (eq. 2 on the hierarchy)."""
+    basis = sample_basis(problem) if basis is None else basis
+    a = cascade(problem.hierarchy, coeffs)
+    return jnp.sum(a[..., problem.positions] * basis, axis=-1)
+
+
+def adaptive_objective(problem: AdaptiveProblem, coeffs: Array, lam, basis=None) -> Array:
+    """``E_d + lam R`` (eq. 16 with w = 1, eq. 31 carried to the hierarchy by
+    [`hierarchy_regulariser`][jurs.internal.hierarchy_regulariser])."""
+    r = adaptive_values(problem, coeffs, basis) - problem.targets
+    return jnp.sum(r * r) + lam * hierarchy_regulariser(problem.hierarchy, coeffs)
+
+
+def normal_matvec(problem: AdaptiveProblem, lam, basis=None):
+    """``c -> (D^T D + 2 lam G^T W G) c``, half the gradient of the objective's quadratic
+    part: the matrix of the normal equations, never formed."""
+    basis = sample_basis(problem) if basis is None else basis
+
+    def quadratic(c):
+        v = adaptive_values(problem, c, basis)
+        return 0.5 * jnp.sum(v * v) + 0.5 * lam * hierarchy_regulariser(problem.hierarchy, c)
+
+    return jax.grad(quadratic)
+
+
+def normal_rhs(problem: AdaptiveProblem, basis=None) -> Array:
+    """``D^T b``."""
+    n = problem.hierarchy.num_active
+    zero = jnp.zeros((n,), problem.targets.dtype)
+    _, transpose = jax.vjp(lambda c: adaptive_values(problem, c, basis), zero)
+    return transpose(problem.targets)[0]

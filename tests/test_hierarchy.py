@@ -1,0 +1,159 @@
+"""The adaptive (THB) basis: its defining properties, exactness against the uniform
+basis, and fits on it (value, agreement with the uniform fit, derivatives)."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import jurs
+from jurs._fit.adaptive import adaptive_layout, solve_adaptive
+from jurs._model.hierarchy import _offsets, _ravel, _unravel
+from jurs._problem.adaptive import at_points, make_adaptive_problem
+from jurs.internal import build_hierarchy, cascade, hierarchy_values, refine_near
+
+
+def _hierarchy(ndim, levels=None, band=1, seed=0):
+    levels = (2 if ndim == 2 else 1) if levels is None else levels
+    rng = np.random.default_rng(seed)
+    base = (5, 4) if ndim == 2 else (3, 4, 3)
+    lower, upper = np.zeros(ndim), np.asarray(base, float) / 2
+    points = rng.uniform(0.3, 1.2, (6, ndim))
+    return build_hierarchy(
+        lower, upper, base, refine_near(lower, upper, base, levels, points, band)
+    )
+
+
+def _random_points(hierarchy, count, seed=1):
+    rng = np.random.default_rng(seed)
+    lower, upper = np.asarray(hierarchy.lower), np.asarray(hierarchy.upper)
+    return jnp.asarray(rng.uniform(lower, upper, (count, hierarchy.ndim)))
+
+
+@pytest.mark.parametrize("ndim", [2, 3])
+def test_partition_of_unity_and_nonnegative(ndim):
+    hierarchy = _hierarchy(ndim)
+    assert hierarchy.num_levels > 1  # the test is about a real hierarchy
+    x = _random_points(hierarchy, 400 if ndim == 3 else 2000)
+    values = hierarchy_values(hierarchy, jnp.eye(hierarchy.num_active), x)  # (n, m)
+    np.testing.assert_allclose(values.sum(axis=0), 1.0, atol=1e-13)
+    assert float(values.min()) >= -1e-15
+
+
+@pytest.mark.parametrize("ndim", [2, 3])
+def test_active_functions_are_linearly_independent(ndim):
+    """A THB spline is 0 iff its cascaded coefficients over every leaf are 0 (B-splines are
+    locally independent on a cell): the map from active coefficients to those has full
+    column rank."""
+    hierarchy = _hierarchy(ndim)
+    cascaded = np.asarray(cascade(hierarchy, jnp.eye(hierarchy.num_active)))
+    columns, start = [], 0
+    for level in range(hierarchy.num_levels):
+        cells, extent = hierarchy.cells(level), hierarchy.functions(level)
+        leaves = _unravel(np.asarray(hierarchy.leaf_keys[level]), cells)
+        over = _ravel((leaves[:, None, :] + _offsets(ndim, 4)[None]).reshape(-1, ndim), extent)
+        keys = np.asarray(hierarchy.function_keys[level])
+        columns.append(np.searchsorted(keys, np.unique(over)) + start)
+        start += hierarchy.level_sizes[level]
+    on_leaves = cascaded[:, np.concatenate(columns)]
+    assert np.linalg.matrix_rank(on_leaves) == hierarchy.num_active
+
+
+def test_coarse_spline_is_represented_exactly():
+    hierarchy = _hierarchy(2, levels=3)
+    coarse = build_hierarchy(hierarchy.lower, hierarchy.upper, hierarchy.base, [])
+    rng = np.random.default_rng(2)
+    x = _random_points(hierarchy, 3000)
+    target = np.asarray(
+        hierarchy_values(coarse, jnp.asarray(rng.normal(size=coarse.num_active)), x)
+    )
+    basis = np.asarray(hierarchy_values(hierarchy, jnp.eye(hierarchy.num_active), x)).T
+    coeffs = np.linalg.lstsq(basis, target, rcond=None)[0]
+    np.testing.assert_allclose(basis @ coeffs, target, atol=1e-12)
+
+
+def test_unrefined_hierarchy_is_the_uniform_basis():
+    hierarchy = _hierarchy(2, levels=0)
+    rng = np.random.default_rng(3)
+    coeffs = rng.normal(size=hierarchy.num_active)
+    spline = jurs.ImplicitSpline.bspline(
+        coeffs.reshape(hierarchy.functions(0)), hierarchy.lower, hierarchy.upper
+    )
+    x = _random_points(hierarchy, 500)
+    np.testing.assert_allclose(
+        hierarchy_values(hierarchy, jnp.asarray(coeffs), x), spline(x), atol=1e-13
+    )
+
+
+def test_refined_everywhere_fit_equals_uniform_fit():
+    """Every level-0 cell split once: the THB basis is the uniform basis of the finer grid,
+    the hierarchical regulariser is eq. 31 on it, so the fits agree."""
+    points, normals = jurs.datasets.example1(100)
+    lower, upper = np.min(points, 0) - 1.0, np.max(points, 0) + 1.0
+    base = (6, 6)
+    problem = make_adaptive_problem(
+        points, normals, offset=0.2, eps=0.2, lower=lower, upper=upper, base=base, levels=1, band=99
+    )
+    assert problem.hierarchy.active_counts == (0, 15 * 15)
+    lam = 1e-3
+    control = solve_adaptive(problem, lam, rtol=1e-13)[0]
+    uniform = jurs.fit(
+        points,
+        normals,
+        grid=(15, 15),
+        offset=0.2,
+        eps=0.2,
+        domain=(lower, upper),
+        solver=jurs.LeastSquares(lam=lam, ridge=0.0),
+    )
+    np.testing.assert_allclose(control, uniform.spline.control.ravel(), rtol=1e-8, atol=1e-10)
+
+
+def test_layout_has_square_cells_and_a_coarse_base():
+    lower, upper, base, levels = adaptive_layout(np.zeros(2), np.array([10.0, 3.0]), 0.01)
+    width = (upper - lower) / (np.asarray(base) * 2**levels)
+    np.testing.assert_allclose(width, 0.01)
+    assert max(base) >= 8 and np.all(upper >= [10.0, 3.0])
+
+
+def test_fit_adaptive_follows_a_circle_finely():
+    t = np.linspace(0, 2 * np.pi, 300, endpoint=False)
+    points = np.stack([np.cos(t), np.sin(t)], 1)
+    sol = jurs.fit_adaptive(points, points, finest=128)
+    assert sol.status == "successful"
+    assert max(sol.stats["finest"]) == 128
+    # The active set follows the curve: far fewer functions than the uniform 131^2 grid.
+    assert sum(sol.stats["active"]) < 0.35 * 131**2
+    # Each point within a small fraction of a finest cell of the zero set (|g| / |grad g|).
+    distance = np.abs(sol.spline(points)) / np.linalg.norm(sol.spline.grad(points), axis=1)
+    assert distance.max() < 0.05 * sol.spline.cell_width
+    # Outside positive, inside negative (outward normals).
+    assert float(sol.spline(jnp.array([0.0, 0.0]))) < 0 < float(sol.spline(jnp.array([1.5, 0.0])))
+
+
+@pytest.mark.slow
+def test_gradient_through_an_adaptive_fit_matches_finite_differences():
+    t = np.linspace(0, 2 * np.pi, 40, endpoint=False)
+    points = np.stack([1.3 * np.cos(t), np.sin(t)], 1)
+    normals = np.stack([np.cos(t) / 1.3, np.sin(t)], 1)
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    lower, upper, base, levels = adaptive_layout(
+        np.array([-2.0, -2.0]), np.array([2.0, 2.0]), 0.125
+    )
+    problem = make_adaptive_problem(
+        points, normals, offset=0.05, eps=0.05, lower=lower, upper=upper, base=base, levels=levels
+    )
+    query = jnp.array([[0.3, 0.2], [1.2, 0.4], [-0.5, 0.95]])
+
+    @jax.jit
+    def loss(p):
+        control = solve_adaptive(at_points(problem, p, jnp.asarray(normals)), 1e-4, rtol=1e-14)[0]
+        return jnp.sum(hierarchy_values(problem.hierarchy, control, query) ** 2)
+
+    p0 = jnp.asarray(points)
+    grad = jax.grad(loss)(p0)
+    step = 1e-6
+    for i, a in [(0, 0), (7, 1), (23, 0)]:
+        e = jnp.zeros_like(p0).at[i, a].set(step)
+        fd = (loss(p0 + e) - loss(p0 - e)) / (2 * step)
+        np.testing.assert_allclose(grad[i, a], fd, rtol=1e-5, atol=1e-9)
