@@ -131,3 +131,73 @@ def test_a_cloud_keeps_its_own_copy():
     after = jurs.fit(cloud, solver=jurs.LeastSquares(lam=1e-6), **PAPER)
     np.testing.assert_array_equal(before.spline.control, after.spline.control)
     assert after.status == "successful"
+
+
+def _circle(m, centre=0.0):
+    t = np.linspace(0.0, 2.0 * np.pi, m, endpoint=False)
+    unit = np.stack([np.cos(t), np.sin(t)], axis=1)
+    return unit + centre, unit
+
+
+def test_repeated_points_are_kept_once_with_a_warning():
+    """A cloud with every point given four times was refused as "all points coincide"
+    (its nearest other points were its own copies); with normals estimated it read as
+    inconsistent. Repeats are kept once, with a warning that counts them."""
+    points, normals = _circle(150)
+    repeated = np.repeat(points, 4, axis=0)
+    with pytest.warns(UserWarning, match="450 of the 600 points repeat"):
+        cloud = jurs.Cloud(repeated, np.repeat(normals, 4, axis=0))
+    assert len(cloud) == 150 and cloud.repeated == 450
+    np.testing.assert_array_equal(cloud.points, points)
+    for given in ((repeated, np.repeat(normals, 4, axis=0)), (repeated,)):
+        with pytest.warns(UserWarning, match="repeat others exactly"):
+            sol = jurs.fit(*given)
+        assert sol.status == "successful"
+
+
+def test_repeats_with_opposed_normals_keep_the_first():
+    points, normals = _circle(40)
+    flipped = np.concatenate([points, points[:1]]), np.concatenate([normals, -normals[:1]])
+    with pytest.warns(UserWarning, match="1 of the 41 points"):
+        cloud = jurs.Cloud(*flipped)
+    assert cloud.normals is not None
+    np.testing.assert_allclose(cloud.normals[0], normals[0])
+
+
+@pytest.mark.parametrize("estimated", [False, True])
+def test_float32_rounding_that_merges_points_is_named(estimated):
+    """Float32 coordinates 1e7 from the origin collapse onto a few distinct points; the
+    error blamed "coincident points", not the precision."""
+    points, normals = _circle(200, centre=1e7)
+    given = (points.astype(np.float32),) + (() if estimated else (normals,))
+    with pytest.raises(ValueError, match="float32, which at .* resolves only steps of 1"):
+        jurs.fit(*given)
+
+
+@pytest.mark.parametrize("estimated", [False, True])
+@pytest.mark.parametrize(
+    "points, where",
+    [
+        (np.c_[np.random.default_rng(0).uniform(-1, 1, (300, 2)), np.zeros(300)], "in a plane"),
+        (np.c_[np.linspace(0, 1, 60), 2 * np.linspace(0, 1, 60), np.full(60, 5.0)], "on a line"),
+        (np.c_[np.linspace(0, 1, 60), 2 * np.linspace(0, 1, 60)], "on a line"),
+    ],
+)
+def test_clouds_that_enclose_nothing_are_refused(points, where, estimated):
+    """A planar XYZ cloud with normals estimated was fitted as a "surface" (or crashed
+    in ARPACK); a collinear one likewise."""
+    normals = np.zeros_like(points)
+    normals[:, -1] = 1.0
+    if points.shape[1] == 2:
+        normals = np.tile([-2.0, 1.0], (len(points), 1))
+    given = (points,) if estimated else (points, normals)
+    with pytest.raises(ValueError, match=f"points lie {where}"):
+        jurs.fit(*given)
+
+
+def test_a_flat_but_closed_cloud_is_not_refused():
+    """An ellipse 50 times longer than wide encloses an area: its width is many spacings."""
+    t = np.linspace(0.0, 2.0 * np.pi, 400, endpoint=False)
+    points = np.stack([50.0 * np.cos(t), np.sin(t)], axis=1)
+    normals = np.stack([np.cos(t) / 50.0, np.sin(t)], axis=1)
+    assert len(jurs.Cloud(points, normals)) == 400

@@ -278,3 +278,18 @@ def test_noise_shrinks_the_field_less():
     )
     assert raw < 0.4  # the bias the source weights reduce
     assert raw + 0.04 < weighted < 0.5
+
+
+def test_far_from_the_origin():
+    """1e7 units from the origin the winding field lost its precision: 16 % of a
+    circle's normals came out flipped (and the fit was doubtful)."""
+    t = np.linspace(0.0, 2.0 * np.pi, 300, endpoint=False)
+    truth = np.stack([np.cos(t), np.sin(t)], axis=1)
+    assert correct_sign(estimate_normals(truth + 1e7), truth) == 1.0
+
+
+def test_planar_cloud_is_refused():
+    """A planar XYZ cloud has no outward side (it crashed in ARPACK or gave a surface)."""
+    xy = np.random.default_rng(1).uniform(-1.0, 1.0, (200, 2))
+    with pytest.raises(ValueError, match="points lie in a plane"):
+        estimate_normals(np.c_[xy, np.full(200, 3.0)])

@@ -293,3 +293,47 @@ def test_sparse_cloud_with_an_automatic_bucket_size():
         float(jurs.internal.data_energy(ones, control, weights)),
         rtol=1e-12,
     )
+
+
+def _zero_on_every_normal_line(sol, points, normals, reach=0.05) -> bool:
+    """Whether the fit's zero set crosses the line through each point along its normal
+    within ``reach`` of the cloud's diagonal (a part left out has no zero set there)."""
+    from jurs._model.lattice import values_and_gradients
+
+    diagonal = float(np.linalg.norm(np.ptp(points, axis=0)))
+    s = np.linspace(-reach, reach, 41) * diagonal
+    lines = points[:, None, :] + s[None, :, None] * normals[:, None, :]
+    g = values_and_gradients(sol.spline, lines.reshape(-1, points.shape[1]))[0]
+    g = g.reshape(len(points), len(s))
+    return bool((g.min(axis=1) < 0).all() and (g.max(axis=1) > 0).all())
+
+
+@pytest.mark.parametrize("ratio", [5, 20])
+def test_a_sparsely_sampled_half_is_kept(ratio):
+    """A circle with 600 points on one half and 120 on the other, true normals given:
+    117 of the 120 were set aside as outliers and the fit was "successful" with half
+    the shape missing. Density alone sets no part of the shape aside."""
+    t = np.r_[
+        np.linspace(0.0, np.pi, 600, endpoint=False),
+        np.linspace(np.pi, 2 * np.pi, 600 // ratio, endpoint=False),
+    ]
+    points = np.stack([np.cos(t), np.sin(t)], axis=1)
+    sol = jurs.fit(points, points)
+    assert sol.settings is not None and sol.settings.set_aside == ()
+    assert sol.status == "successful"
+    assert _zero_on_every_normal_line(sol, points, points)
+
+
+def test_a_sparsely_sampled_part_of_a_surface_is_kept():
+    """A sphere whose lower half is sampled 25 times sparser: about 49 of its 60 points
+    there stood alone (isolated_points), and the fit went without them."""
+    from jurs._cloud.outliers import isolated_points
+
+    i = np.arange(3000) + 0.5
+    polar, turn = np.arccos(1 - 2 * i / 3000), np.pi * (1 + 5**0.5) * i
+    sphere = np.stack(
+        [np.cos(turn) * np.sin(polar), np.sin(turn) * np.sin(polar), np.cos(polar)], 1
+    )
+    sparse = sphere[::25]
+    points = np.r_[sphere[sphere[:, 2] >= 0], sparse[sparse[:, 2] < 0]]
+    assert not isolated_points(points, None, points).any()

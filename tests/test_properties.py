@@ -22,6 +22,7 @@ are small. Kinds of bad input covered (numbered in the test names' docstrings):
 """
 
 import json
+import warnings
 
 import jax
 import jax.numpy as jnp
@@ -510,3 +511,99 @@ def test_orientation_verdicts(log_scale, shift, quarter, flip):
         assert report.num_components == 1 and report.chamfer < 0.05 * scale * 8
     else:
         assert sol.result == jurs.RESULTS.inconsistent_normals
+
+
+# ---------------------------------------------------------------- 3D inputs
+# 20 repeated or translated, 21 flat (planar or collinear) 3D clouds, 22 estimate_normals
+# under any rotation, translation and scale.
+
+
+def _sphere(m: int) -> np.ndarray:
+    """``m`` points evenly spread on the unit sphere (a Fibonacci lattice): also their
+    outward normals."""
+    i = np.arange(m) + 0.5
+    polar, turn = np.arccos(1.0 - 2.0 * i / m), np.pi * (1.0 + 5.0**0.5) * i
+    return np.stack([np.cos(turn) * np.sin(polar), np.sin(turn) * np.sin(polar), np.cos(polar)], 1)
+
+
+SPHERE = _sphere(60)
+EXPLICIT_3D = dict(grid=(5, 5, 5), offset=0.1, eps=0.1)
+
+
+def _rotation(a: float, b: float, c: float) -> np.ndarray:
+    def axis(i, angle):
+        r = np.eye(3)
+        j, k = [x for x in range(3) if x != i]
+        r[j, j] = r[k, k] = np.cos(angle)
+        r[j, k], r[k, j] = -np.sin(angle), np.sin(angle)
+        return r
+
+    return axis(0, a) @ axis(1, b) @ axis(2, c)
+
+
+@FEW
+@given(
+    log_scale=st.floats(-4, 4),
+    log_shift=st.floats(0, 9),
+    repeats=st.integers(1, 4),
+    x64=st.booleans(),
+)
+def test_3d_repeated_and_far_clouds(log_scale, log_shift, repeats, x64):
+    """20: a surface's cloud at any scale and distance, every point given 1-4 times,
+    fits honestly (its repeats kept once, with a warning) or is refused for the precision
+    it needs; never "all points coincide" for repeats."""
+    scale, shift = 10.0**log_scale, 10.0**log_shift
+    points = np.repeat(scale * SPHERE + shift, repeats, axis=0)
+    normals = np.repeat(SPHERE, repeats, axis=0)
+    with jax.enable_x64(x64), warnings.catch_warnings():
+        warnings.simplefilter("ignore", UserWarning)  # the repeats' warning
+        result = raises_naming(
+            lambda: jurs.fit(
+                points,
+                normals,
+                grid=EXPLICIT_3D["grid"],
+                offset=0.1 * scale,
+                eps=0.1 * scale,
+                solver=cheap_solver(),
+                throw=False,
+            ),
+            "resolves only",
+        )
+    if result is not None:
+        assert_honest(result)
+
+
+@FEW
+@given(
+    angles=st.tuples(*[st.floats(0.0, 2.0 * np.pi)] * 3),
+    flat=st.sampled_from([1, 2]),
+    log_shift=st.floats(0, 6),
+    estimated=st.booleans(),
+)
+def test_3d_flat_clouds_are_refused(angles, flat, log_shift, estimated):
+    """21: a cloud in a plane or on a line, in any orientation and place, is refused
+    naming it, with normals given or estimated (it gave a "surface", or ARPACK's
+    "Starting vector is zero")."""
+    squash = np.ones(3)
+    squash[:flat] = 0.0
+    points = (SPHERE * squash) @ _rotation(*angles).T + 10.0**log_shift
+    where = "in a plane" if flat == 1 else "on a line"
+    given_normals = () if estimated else (SPHERE,)
+    with pytest.raises(ValueError, match=f"points lie {where}"):
+        jurs.fit(points, *given_normals, **EXPLICIT_3D, solver=cheap_solver())
+
+
+@FEW
+@given(
+    angles=st.tuples(*[st.floats(0.0, 2.0 * np.pi)] * 3),
+    log_scale=st.floats(-5, 5),
+    log_shift=st.floats(0, 8),
+)
+def test_3d_normals_any_rotation_scale_and_place(angles, log_scale, log_shift):
+    """22: estimate_normals of a sphere points every normal outward wherever the sphere
+    is and whatever its size (1e8 from the origin, too)."""
+    rotation = _rotation(*angles)
+    truth = _sphere(300) @ rotation.T
+    points = 10.0**log_scale * truth + 10.0**log_shift
+    normals = jurs.estimate_normals(points)
+    assert np.all(np.sum(normals * truth, axis=1) > 0.9)

@@ -292,3 +292,37 @@ def test_half_flipped_normals_in_3d_are_named_as_such():
     )
     assert sol.result == jurs.RESULTS.doubtful
     assert len(sol.stats["extra_components"]) == 1
+
+
+def test_weights_past_the_ceiling_have_their_own_verdict():
+    """An absurd tau drove the weights to 1e294 and the run read as successful where few
+    of them reached the floor: weights past a million times the start's are named."""
+    p, n = jurs.datasets.example1(60)
+    problem = jurs.make_problem(p, n, **PAPER)
+    solver = jurs.IURS(tau=1e12)
+    ones = jax.numpy.ones(problem.shape)
+    spline = jurs.ImplicitSpline(0.0 * ones, ones, problem.lower, problem.upper)
+    state, _ = solver.init(problem, spline)
+    assert solver.terminate(problem, state)[1] == jurs.RESULTS.successful
+    blown = eqx.tree_at(lambda s: s.weights, state, state.weights.at[0, 0].set(1e294))
+    assert solver.terminate(problem, blown)[1] == jurs.RESULTS.weights_at_ceiling
+    assert "tau" in jurs.RESULTS[jurs.RESULTS.weights_at_ceiling]
+
+
+def test_singular_solve_is_reported():
+    """LeastSquares(lam=0) with the ridge off solved a singular system (coefficients of
+    1e8, signs as wrong as right) and reported success."""
+    p, n = jurs.datasets.example1(300)
+    singular = jurs.LeastSquares(lam=0.0, ridge=0.0)
+    sol = jurs.fit(p, n, grid=20, offset=0.05, eps=0.05, solver=singular, throw=False)
+    assert sol.status == "failed"
+    sound = jurs.LeastSquares(lam=1e-6, ridge=0.0)
+    sound = jurs.fit(p, n, grid=20, offset=0.05, eps=0.05, solver=sound)
+    assert sound.status == "successful"
+
+
+@pytest.mark.parametrize("scale", [1e300, 1e-300])
+def test_extreme_robust_scale_is_named(scale):
+    """RobustLeastSquares at an extreme scale ended nonfinite, nothing naming the scale."""
+    with pytest.raises(ValueError, match="scale = .* its square"):
+        jurs.RobustLeastSquares(scale=scale)

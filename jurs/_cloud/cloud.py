@@ -4,6 +4,7 @@ for every fit that reads it."""
 from __future__ import annotations
 
 import functools
+import warnings
 from typing import TYPE_CHECKING, Any
 
 import jax
@@ -11,7 +12,16 @@ import numpy as np
 from jaxtyping import Float
 
 from .._problem.validate import _is_concrete, unit_normals, validate_points
-from .measure import PROBES, kd_tree, strided_probes
+from .measure import (
+    PROBES,
+    check_encloses,
+    check_rounding,
+    kd_tree,
+    point_spacing,
+    principal_widths,
+    repeated_points,
+    strided_probes,
+)
 from .orientation import flipped_normal_fraction, orientation_sample, tangential_normal_fraction
 
 if TYPE_CHECKING:
@@ -33,9 +43,19 @@ class Cloud:
             None for a cloud whose normals are to be estimated ([`jurs.fit`][] does).
         mask: optional ``(m,)`` booleans, False marking padding points that take no part.
 
+    Exact repeats of a point (a cloud without a mask) are kept once, with the mean of
+    their normals, and a warning says how many there were: repeats add no shape, and
+    the measurements of spacing and orientation read them as a cloud of zero spacing.
+    ``cloud.points`` and every per-point result of a fit (``sol.state``'s weights,
+    ``Settings.set_aside``) then index the distinct points, in the order they first
+    occur; ``cloud.repeated`` counts the copies dropped.
+
     Raises:
         ValueError: NaN or Inf, wrong shapes, zero normals, fewer than 3 points (or a
-            mask selecting fewer), or points that all coincide.
+            mask selecting fewer), points that all coincide, points that lie on a line
+            or in a plane (they enclose nothing: ``jurs._cloud.measure.check_encloses``),
+            or points given in float32 (or float16) whose rounding at their distance
+            from the origin made them repeat each other.
         TypeError: points or normals that are not numbers.
     """
 
@@ -57,6 +77,59 @@ class Cloud:
         )
         self.mask: np.ndarray | None = None if mask is None else np.asarray(mask).astype(bool)
         self._problems: dict = {}
+        #: Exact repeats dropped (see the class docstring).
+        self.repeated: int = 0
+        if mask is None:  # a mask's padding repeats points on purpose
+            self._drop_repeats(points)
+        self._check_encloses()
+
+    def _drop_repeats(self, given) -> None:
+        """Keep each exactly repeated point once (class docstring), or raise where the
+        repeats are float32 rounding."""
+        found = repeated_points(self.points)
+        if found is None:
+            return
+        first, group = found
+        self.repeated = len(self.points) - len(first)
+        dtype = np.asarray(given[:1]).dtype if not isinstance(given, jax.Array) else given.dtype
+        check_rounding(self.points, dtype, self.repeated)
+        if len(first) < 3:
+            raise ValueError(
+                f"points: only {len(first)} distinct points (of {len(self.points)}); "
+                "need at least 3"
+            )
+        self.points = self.points[first]
+        self.given_points = self.points
+        if self.normals is not None:
+            summed = np.zeros_like(self.points)
+            np.add.at(summed, group, self.normals)
+            length = np.linalg.norm(summed, axis=1, keepdims=True)
+            count = np.bincount(group)[:, None]
+            # Repeats whose normals cancel (opposed): the first one's normal stands.
+            cancel = length < 1e-6 * count
+            mean = summed / np.maximum(length, 1e-300)
+            self.normals = np.where(cancel, self.normals[first], mean)
+            self.given_normals = self.normals
+        warnings.warn(
+            f"jurs: {self.repeated} of the {len(group)} points repeat others exactly; "
+            f"each is kept once ({len(first)} distinct points"
+            + (", normals averaged over the repeats)" if self.normals is not None else ")"),
+            stacklevel=_caller_level(),
+        )
+
+    def _check_encloses(self) -> None:
+        """Refuse a cloud on a line or in a plane (``check_encloses``); the spacing,
+        which needs the KD-tree, is measured only for a cloud thin for its size."""
+        points = self.points[self.kept]
+        widths = principal_widths(points, self.probes)
+        if widths[0] < 0.25 * widths[-1]:
+            check_encloses(points, widths, self.spacing)
+
+    @functools.cached_property
+    def spacing(self) -> float:
+        """The median distance between nearest points (``point_spacing``) of the points
+        that take part, at the probes."""
+        return point_spacing(self.points[self.kept], self.tree, self.probes)
 
     @property
     def ndim(self) -> int:
@@ -98,6 +171,19 @@ class Cloud:
         p, n = self.points[self.kept], self.normals[self.kept]
         sample = orientation_sample(p, n, self.tree if self.probes is None else None)
         return flipped_normal_fraction(p, n, sample), tangential_normal_fraction(p, n, sample)
+
+
+def _caller_level() -> int:
+    """The ``stacklevel`` of a warning raised here that names the first caller outside
+    jurs (a warning from ``Cloud`` reached through ``jurs.fit`` or directly)."""
+    import os
+    import sys
+
+    package = os.path.dirname(os.path.dirname(os.path.abspath(__file__))) + os.sep
+    frame, level = sys._getframe(1), 1
+    while frame is not None and os.path.abspath(frame.f_code.co_filename).startswith(package):
+        frame, level = frame.f_back, level + 1
+    return level
 
 
 def _kept(x):

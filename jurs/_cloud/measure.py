@@ -171,3 +171,84 @@ def feature_width(
         np.isfinite(width), keep[np.take_along_axis(idx, nearest[:, None], 1)[:, 0]], -1
     )
     return width, partner
+
+
+def repeated_points(points: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """``(first, group)`` for a cloud with exact repeats, None where every point is
+    distinct: ``first`` the index of each distinct point's first occurrence, in the
+    cloud's order, and ``group (m,)`` the position in ``first`` of each point's copy.
+
+    One sort of the first coordinate rules repeats out for most clouds (any repeated
+    point repeats its x); only a cloud with repeated x values pays for the sort of its
+    rows."""
+    x = np.sort(points[:, 0])
+    if not (x[1:] == x[:-1]).any():
+        return None
+    _, first, inverse = np.unique(points, axis=0, return_index=True, return_inverse=True)
+    if len(first) == len(points):
+        return None
+    order = np.argsort(first)  # the distinct points in the order they first occur
+    rank = np.empty_like(order)
+    rank[order] = np.arange(len(order))
+    return first[order], rank[np.ravel(inverse)]
+
+
+#: A cloud narrower than this many point spacings across a principal direction (its
+#: central 98 %: a few stray points do not give it a thickness) samples no closed
+#: surface (in 2D no closed curve) there: it lies in a plane or on a line. Two sheets
+#: of a thin part closer than a spacing make the spacing that close too, so a real
+#: closed shape is never this flat.
+FLAT_SPACINGS = 0.5
+
+
+def principal_widths(points: np.ndarray, at=None) -> np.ndarray:
+    """``(d,)`` widths of the cloud along its principal directions, narrowest first:
+    the spread of the central 98 % of the points (those indexed by ``at``, default all)
+    along each eigenvector of their covariance."""
+    p = points[_probe(points, at)]
+    centred = p - p.mean(axis=0)  # differences first: exact far from the origin too
+    vectors = np.linalg.eigh(centred.T @ centred)[1]  # ascending variance
+    lo, hi = np.percentile(centred @ vectors, [1.0, 99.0], axis=0)
+    return hi - lo
+
+
+def check_encloses(points: np.ndarray, widths: np.ndarray, spacing: float) -> None:
+    """ValueError naming the cause when the cloud, of principal ``widths`` (narrowest
+    first, ``principal_widths``) and point ``spacing``, lies on a line or in a plane
+    (``FLAT_SPACINGS``): it encloses no area (2D) or volume (3D), and a fit or an
+    orientation of its normals would invent one."""
+    d = points.shape[1]
+    flat = int(np.sum(widths < FLAT_SPACINGS * spacing))
+    if flat == 0:
+        return
+    where = "on a line" if d - flat <= 1 else "in a plane"
+    encloses = "a closed curve encloses an area" if d == 2 else "a closed surface encloses a volume"
+    hint = (
+        "; for the outline of a planar shape pass its two in-plane coordinates (a 2D curve)"
+        if where == "in a plane"
+        else ""
+    )
+    raise ValueError(
+        f"points lie {where}: they spread {widths[flat - 1]:.3g} across it, under "
+        f"{FLAT_SPACINGS} x their spacing {spacing:.3g}, and {encloses}{hint}"
+    )
+
+
+def check_rounding(points: np.ndarray, dtype, repeated: int) -> None:
+    """ValueError where ``points`` given in a float type narrower than float64 repeat
+    each other because of its rounding: the type's step at the cloud's largest
+    coordinate is more than 1e-4 of its extent (float32 at 1e7 steps by 1), so the
+    repeats are the type's, not the data's."""
+    dtype = np.dtype(dtype)
+    if dtype.kind != "f" or dtype.itemsize >= 8:
+        return
+    big = float(np.max(np.abs(points)))
+    step = float(np.spacing(np.asarray(big, dtype)))
+    extent = float(np.linalg.norm(np.ptp(points, axis=0)))
+    if step > 1e-4 * extent:
+        raise ValueError(
+            f"points are {dtype.name}, which at |x| = {big:.3g} resolves only steps of "
+            f"{step:.3g}: its rounding made {repeated} of the {len(points)} points repeat "
+            "others. Pass them in float64 (read the file as float64, or translate the "
+            "cloud near the origin before converting)"
+        )

@@ -44,6 +44,7 @@ from scipy import sparse
 from scipy.sparse import csgraph
 from scipy.spatial import cKDTree  # pyright: ignore[reportAttributeAccessIssue]  # no stub
 
+from .measure import check_encloses, check_rounding, principal_widths
 from .signs import forest_signs
 from .winding import (
     DENSE_PAIRS,
@@ -344,19 +345,32 @@ def estimate_normals(
 
     Raises:
         TypeError: ``points`` is not numeric.
-        ValueError: wrong shape, NaN/inf, fewer than ``2 d + 1`` distinct points, or a bad
-            ``k``.
+        ValueError: wrong shape, NaN/inf, fewer than ``2 d + 1`` distinct points, points
+            on a line or in a plane (no side of them is outward), float32 points whose
+            rounding made them repeat, or a bad ``k``.
     """
     array = _check_points(points)
     d = array.shape[1]
     unique, inverse = np.unique(array, axis=0, return_inverse=True)
     inverse = inverse.ravel()
     m = len(unique)
+    if m < len(array):  # repeats made by the rounding of a narrow float type are refused
+        check_rounding(array, getattr(points, "dtype", np.float64), len(array) - m)
     if m < _minimum_points(d):
         raise ValueError(
             f"points must hold at least {_minimum_points(d)} distinct points "
             f"in {d}D, got {m} (of {len(array)})"
         )
+    widths = principal_widths(unique)
+    if widths[0] < 0.25 * widths[-1]:  # on a line or in a plane: no outward side
+        spacing = float(np.median(cKDTree(unique).query(unique, k=2, workers=-1)[0][:, 1]))
+        check_encloses(unique, widths, spacing)
+    # Normals do not change with a translation or a uniform scaling: the cloud is moved
+    # to its box's centre and to unit size, so that far from the origin (1e7) the
+    # winding field's sums keep their precision (they lost it: 16 % of a circle's
+    # normals came out flipped there).
+    lower, upper = unique.min(axis=0), unique.max(axis=0)
+    unique = (unique - 0.5 * (lower + upper)) / float(np.max(upper - lower))
     if k is not None and (int(k) != k or not d <= int(k) < m):
         raise ValueError(f"k must be an integer in [{d}, {m - 1}] here, got {k}")
     rng = np.random.default_rng(seed)

@@ -52,6 +52,40 @@ STRAY_CLUSTER = 8
 RING_AGREEMENT = 0.8
 
 
+#: A point whose nearest ``ISOLATION_RANK`` points all lie along its tangent line or
+#: plane, their normals within this angle's cosine of its own (45 degrees), samples the
+#: shape where it is sparse (``on_the_shape``): no density test sets it aside.
+SHAPE_NORMAL_AGREEMENT = 0.7
+
+
+#: ... and "along the tangent": the sine of the angle between the tangent and the step to
+#: a neighbour at most this, plus what the curvature explains (``on_the_shape``).
+SHAPE_LEAN = 0.25
+
+
+def on_the_shape(points, normals, near, index) -> np.ndarray:
+    """``(len(index),)`` booleans: whether each point ``index`` samples a smooth curve
+    or surface with its nearest ``ISOLATION_RANK`` points (``near``: each point's nearest,
+    itself first). It does where each of them has a normal within
+    ``SHAPE_NORMAL_AGREEMENT`` of its own and lies along its tangent: the sine of the
+    step's angle out of the tangent at most ``SHAPE_LEAN`` plus half the two normals'
+    difference (on a circle the step leans by exactly that).
+
+    Why: density alone cannot tell a sparsely sampled part of the shape from outliers (a
+    circle with 120 points on one half and 600 on the other lost 117 of the 120). The
+    points of a part agree with their neighbours on the tangent and the side; outliers
+    with random normals, or normals estimated from a scatter of other outliers, agree
+    with three neighbours one time in a thousand in 2D and less in 3D."""
+    k = min(ISOLATION_RANK, near.shape[1] - 1)
+    nbr = near[index, 1 : k + 1]
+    step = points[nbr] - points[index, None, :]
+    length = np.maximum(np.linalg.norm(step, axis=-1), 1e-300)
+    lean = np.abs((step * normals[index, None, :]).sum(-1)) / length
+    turn = np.linalg.norm(normals[nbr] - normals[index, None, :], axis=-1)
+    agree = (normals[nbr] * normals[index, None, :]).sum(-1) >= SHAPE_NORMAL_AGREEMENT
+    return (agree & (lean <= SHAPE_LEAN + 0.5 * turn)).all(axis=1)
+
+
 def isolated_points(
     points: np.ndarray, tree: cKDTree | None = None, normals: np.ndarray | None = None
 ) -> np.ndarray:
@@ -60,7 +94,8 @@ def isolated_points(
     point is more than ``ISOLATION_RATIO`` times farther than is typical around it: the
     median of the same distance over its ``ISOLATION_NEIGHBOURS`` nearest points,
     taken as at most ``SPARSE_SPACING`` times the cloud's median. With ``normals``, so
-    do the points of a small stray cluster (``stray_clusters``).
+    do the points of a small stray cluster (``stray_clusters``), but never a point that
+    samples the shape with its neighbours (``on_the_shape``): a sparse part stays.
 
     Why this test: an outlier far from the shape has no neighbours at the sampling's
     spacing, while its nearest points (on the shape) do; a fit through it grows a loop
@@ -90,6 +125,9 @@ def isolated_points(
     if normals is not None and m > STRAY_CLUSTER:
         link = ISOLATION_RATIO * SPARSE_SPACING * typical
         isolated |= stray_clusters(points, normals, dist, near, link)
+    if normals is not None and isolated.any():
+        found = np.flatnonzero(isolated)
+        isolated[found[on_the_shape(points, normals, near, found)]] = False
     return isolated
 
 

@@ -216,13 +216,12 @@ def fit(
             iterative solver (IPIA, IURS) then runs in chunks of steps on the one problem
             (``jurs._fit.progress.solve_in_chunks``, the same result), others in one
             call, reported when done. Top-level calls only.
-        throw: raise ``equinox.EquinoxRuntimeError`` when the verdict says the fit is not
-            a reconstruction (``failed``, ``nonfinite``, ``inconsistent_normals``,
-            ``weights_at_floor``; never for ``max_steps_reached``). With ``throw=False``
-            the Solution is returned and ``sol.result`` / ``sol.status`` say what
+        throw: raise ``equinox.EquinoxRuntimeError`` when the verdict says the fit is not a
+            reconstruction (``failed``, ``nonfinite``, ``inconsistent_normals``,
+            ``weights_at_floor``, ``weights_at_ceiling``; never for ``max_steps_reached``). With
+            ``throw=False`` the Solution is returned and ``sol.result`` / ``sol.status`` say what
             happened (a non-finite run keeps its last finite iterate). Called outside any JAX
-            transformation, the fit is checked once it has run, so this call then waits
-            for it.
+            transformation, the fit is checked once it has run, so this call then waits for it.
 
     Returns:
         [`jurs.Solution`][]. Jit-compiled inside; traceable, so ``jax.grad`` and

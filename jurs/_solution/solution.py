@@ -56,6 +56,12 @@ class RESULTS(eqx.Enumeration):
         "says which and where, and what to change. The fit is "
         "returned as it is"
     )
+    weights_at_ceiling = (
+        "the rational weights grew past their ceiling (a million times the start's largest): "
+        "the weight step tau is absurdly large for this problem, and the weights head for "
+        "overflow whatever the energy says. Lower tau (the default 1e-2 suits unit-scale "
+        "data)"
+    )
 
 
 #: The short names of the [`RESULTS`][jurs.RESULTS] items, in their order
@@ -68,6 +74,7 @@ RESULT_NAMES = (
     "inconsistent_normals",
     "weights_at_floor",
     "doubtful",
+    "weights_at_ceiling",
 )
 
 
@@ -79,7 +86,13 @@ _NAME_OF_INDEX = {int(np.asarray(getattr(RESULTS, n)._value)): n for n in RESULT
 #: not a reconstruction. ``max_steps_reached`` is not one: Algorithm 1 stops there by design
 #: (the paper's fixed-step runs) and its iterate is usable; nor is ``doubtful``, a usable fit
 #: that [`jurs.fit`][] also warns about.
-RAISED_RESULTS = ("failed", "nonfinite", "inconsistent_normals", "weights_at_floor")
+RAISED_RESULTS = (
+    "failed",
+    "nonfinite",
+    "inconsistent_normals",
+    "weights_at_floor",
+    "weights_at_ceiling",
+)
 
 
 def unusable(result) -> Any:

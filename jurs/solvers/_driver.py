@@ -188,7 +188,8 @@ def solve(
     or when the energy is NaN/Inf. A non-finite step is not accepted: the solution keeps the
     last finite iterate. ``throw=True`` raises ``equinox.EquinoxRuntimeError`` on every
     verdict that is not a reconstruction (failed, nonfinite, inconsistent_normals,
-    weights_at_floor), never on ``max_steps_reached`` (Algorithm 1 stops there by design);
+    weights_at_floor, weights_at_ceiling), never on ``max_steps_reached`` (Algorithm 1
+    stops there by design);
     ``throw=False`` only reports it in ``sol.result``. Traceable (jit, grad, vmap).
 
     ``throw=True`` compiles a host callback into the solve, which JAX's persistent

@@ -26,12 +26,19 @@ from ._base import AbstractSolver
 #: docs/performance.md, "Measurements behind the defaults").
 MAX_FLOOR_FRACTION = 0.1
 
+#: A weight above this many times the start's largest ends a run with
+#: ``RESULTS.weights_at_ceiling``: sound steps keep the weights within a factor of about
+#: ten of their start, and an absurd tau (1e12, 1e300) drove them to 1e8 and 1e296
+#: (overflow next) while the energy still read as converged.
+WEIGHT_CEILING = 1e6
+
 
 class IURSState(eqx.Module):
     control: Array  # C
     weights: Array  # w
     weight_grad: Array  # nabla_w E_d at (C, w): computed with the energy, used by the next step
     mu: Array  # eq. 25 for the current weights
+    ceiling: Array  # WEIGHT_CEILING times the start's largest weight
 
 
 class IURS(AbstractSolver[IURSState]):
@@ -101,7 +108,8 @@ class IURS(AbstractSolver[IURSState]):
             problem, self._data(problem), spline.control, spline.weights
         )
         mu = jnp.zeros((), energy.dtype)  # set by the first step, from the new weights
-        return IURSState(spline.control, spline.weights, grad_w, mu), energy
+        ceiling = WEIGHT_CEILING * jnp.max(jnp.abs(spline.weights))
+        return IURSState(spline.control, spline.weights, grad_w, mu, ceiling), energy
 
     def step(self, problem: Problem, state: IURSState):
         local = problem.local
@@ -122,14 +130,17 @@ class IURS(AbstractSolver[IURSState]):
         control = state.control - mu * dtr - self.lam * regulariser_grad(state.control)
         # 4. eq. 35 at the new (C, w), with nabla_w E_d there for the next step.
         energy, grad_w = self._energy_and_weight_grad(problem, data, control, weights, inv_denom)
-        return IURSState(control, weights, grad_w, mu), energy
+        return IURSState(control, weights, grad_w, mu, state.ceiling), energy
 
     def terminate(self, problem: Problem, state: IURSState):
-        # Never stops the loop; its verdict (weights pinned by a far too large tau) is
-        # reported whether the run converged or reached max_steps.
+        # Never stops the loop; its verdict (weights pinned or blown up by a far too
+        # large tau) is reported whether the run converged or reached max_steps.
         at_floor = jnp.mean(state.weights <= self.min_weight * (1.0 + 1e-6))
+        # Not finite counts as past the ceiling too (an overflowed weight).
+        past = ~(jnp.max(state.weights) <= state.ceiling)
+        ceiling = RESULTS.where(past, RESULTS.weights_at_ceiling, RESULTS.successful)
         return jnp.array(False), RESULTS.where(
-            at_floor > MAX_FLOOR_FRACTION, RESULTS.weights_at_floor, RESULTS.successful
+            at_floor > MAX_FLOOR_FRACTION, RESULTS.weights_at_floor, ceiling
         )
 
     def to_spline(self, problem: Problem, state: IURSState) -> ImplicitSpline:

@@ -8,13 +8,14 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import lineax as lx
+import numpy as np
 from jax import Array
 
 from .._linalg.normal import DEFAULT_CHUNK
 from .._model.spline import ImplicitSpline
 from .._problem.energy import bspline_residuals, regulariser
 from .._problem.problem import Problem
-from .._problem.validate import check_count, check_nonnegative
+from .._problem.validate import _is_concrete, check_count, check_nonnegative
 from ._base import AbstractSolver
 from ._least_squares import DEFAULT_RIDGE, LeastSquares, LeastSquaresState
 
@@ -29,6 +30,24 @@ MAD_TO_SIGMA = 1.4826
 #: eps (approximation error); without a floor their median would be the unit, and a
 #: Cauchy or Tukey loss would then set aside the points of the most curved parts.
 SCALE_FLOOR = 0.02
+
+
+def _check_scale_range(scale) -> None:
+    """ValueError where a given ``scale`` squared (the unit of ``E_rob``) leaves the range
+    of the float type (with four decades to spare): at 1e300 the energy overflowed, at
+    1e-300 every weight fell to 0, and the fit ended ``nonfinite`` with nothing naming the
+    scale. Traced scales pass unchecked."""
+    if not _is_concrete(scale):
+        return
+    info = jnp.finfo(jnp.result_type(float))
+    low, high = 1e4 * float(np.sqrt(info.tiny)), 1e-4 * float(np.sqrt(info.max))
+    if not low <= float(scale) <= high:
+        raise ValueError(
+            f"scale = {float(scale):.3g} is outside [{low:.3g}, {high:.3g}]: its square, the "
+            f"unit of the robust energy, leaves the range of {info.dtype.name}. The scale "
+            "is the size of an inlier's residual, about the offset eps or below; leave it "
+            "None to estimate it from the fit"
+        )
 
 
 def robust_weight(loss: str, t: Array) -> Array:
@@ -140,6 +159,7 @@ class RobustLeastSquares(AbstractSolver[RobustLeastSquaresState]):
         check_count("max_steps", self.max_steps, 1)
         if self.scale is not None:
             check_nonnegative("scale", self.scale, strict=True)
+            _check_scale_range(self.scale)
         # The exact solve checks its own fields (ridge, chunk_size, linear_solver).
         self._exact()
 
