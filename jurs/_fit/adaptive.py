@@ -26,10 +26,9 @@ from jaxtyping import ArrayLike, Float
 
 from .._linalg.pcg import conjugate_gradients
 from .._model.adaptive import AdaptiveSpline
-from .._model.hierarchy import hierarchy_regulariser
 from .._problem.adaptive import (
     AdaptiveProblem,
-    adaptive_values,
+    adaptive_metrics,
     make_adaptive_problem,
     normal_matrices,
     normal_matvec,
@@ -91,38 +90,13 @@ def solve_adaptive(
     control, steps, residual = conjugate_gradients(
         matvec, rhs, precondition=lambda r: inverse * r, rtol=rtol, max_steps=max_steps
     )
-    r = adaptive_values(problem, control, basis) - problem.targets
-    data = jnp.sum(r * r)
-    reg = hierarchy_regulariser(problem.hierarchy, control)
-    m = problem.samples.shape[0] // 3
-    metrics = {
-        "E": data + lam * reg,
-        "E_d": data,
-        "R": reg,
-        "E_ave": data / problem.samples.shape[0],
-        "E_max": jnp.max(jnp.abs(r[:m])),
-        "lam": jnp.asarray(lam, r.dtype),
-    }
-    return control, steps, residual, metrics
+    return control, steps, residual, adaptive_metrics(problem, control, lam, basis)
 
 
 _solve = eqx.filter_jit(solve_adaptive)
 
 
-@eqx.filter_jit
-def _metrics(problem: AdaptiveProblem, control, lam):
-    r = adaptive_values(problem, control) - problem.targets
-    data = jnp.sum(r * r)
-    reg = hierarchy_regulariser(problem.hierarchy, control)
-    m = problem.samples.shape[0] // 3
-    return {
-        "E": data + lam * reg,
-        "E_d": data,
-        "R": reg,
-        "E_ave": data / problem.samples.shape[0],
-        "E_max": jnp.max(jnp.abs(r[:m])),
-        "lam": jnp.asarray(lam, r.dtype),
-    }
+_metrics = eqx.filter_jit(adaptive_metrics)
 
 
 def solve_direct(problem: AdaptiveProblem, lam: float):

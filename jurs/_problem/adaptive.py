@@ -174,6 +174,23 @@ def adaptive_objective(problem: AdaptiveProblem, coeffs: Array, lam, basis=None)
     return jnp.sum(r * r) + lam * hierarchy_regulariser(problem.hierarchy, coeffs)
 
 
+def adaptive_metrics(problem: AdaptiveProblem, coeffs: Array, lam, basis=None) -> dict:
+    """``E``, ``E_d``, ``R``, ``E_ave``, ``E_max`` and ``lam`` of a fit on the hierarchy, as
+    [`jurs.internal.metrics`][] gives them for a uniform fit (eq. 16, 31, 35-36)."""
+    r = adaptive_values(problem, coeffs, basis) - problem.targets
+    data = jnp.sum(r * r)
+    reg = hierarchy_regulariser(problem.hierarchy, coeffs)
+    m = problem.samples.shape[0] // 3
+    return {
+        "E": data + lam * reg,
+        "E_d": data,
+        "R": reg,
+        "E_ave": data / problem.samples.shape[0],
+        "E_max": jnp.max(jnp.abs(r[:m])),
+        "lam": jnp.asarray(lam, r.dtype),
+    }
+
+
 def normal_matvec(problem: AdaptiveProblem, lam, basis=None):
     """``c -> (D^T D + 2 lam G^T W G) c``, half the gradient of the objective's quadratic
     part: the matrix of the normal equations, never formed."""
