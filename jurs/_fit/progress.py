@@ -13,7 +13,7 @@ call.
 from __future__ import annotations
 
 import functools
-from typing import Any, Callable
+from typing import Any, Callable, cast
 
 import equinox as eqx
 import jax.numpy as jnp
@@ -145,7 +145,8 @@ def solve_in_chunks(
         sol: Solution = _call(_whole, reassociate, problem, solver, init)
         if callback:
             callback(total, total)
-        snapshots = {c: sol.spline for c in checkpoints}
+        # A uniform problem's solve: its spline is an ImplicitSpline.
+        snapshots = {c: cast(ImplicitSpline, sol.spline) for c in checkpoints}
     else:
         chunk = max(1, min(chunk_size(total) if chunk is None else int(chunk), total))
         carry = _call(_start, reassociate, problem, solver, init)

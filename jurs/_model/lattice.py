@@ -26,26 +26,37 @@ from .basis import CENTRED_POWER, cubic_weights
 ADAPTIVE_CHUNK = 1 << 15
 
 
-def _adaptive_evaluate(spline: AdaptiveSpline, points: np.ndarray, gradient: bool = False):
+def _values(spline: AdaptiveSpline, x):
+    return spline(x)
+
+
+def _values_and_gradients(spline: AdaptiveSpline, x):
+    return spline(x), spline.grad(x)
+
+
+_jitted: dict = {}
+
+
+def _adaptive_evaluate(spline: AdaptiveSpline, points: np.ndarray, fn=_values) -> list:
+    """``fn(spline, chunk)`` over ``points`` in chunks of ``ADAPTIVE_CHUNK`` (the last one
+    padded), jitted once per function (and per hierarchy, by JAX's cache); the parts as
+    float64 NumPy arrays cut to ``len(points)``, one list entry per output of ``fn``."""
     import equinox as eqx
+    import jax
     import jax.numpy as jnp
 
-    @eqx.filter_jit
-    def values(s, x):
-        return (s(x), s.grad(x)) if gradient else s(x)
-
+    jitted = _jitted.setdefault(fn, eqx.filter_jit(fn))
     dtype = np.asarray(spline.control).dtype
     n = len(points)
     padded = np.concatenate([points, np.repeat(points[-1:], -n % ADAPTIVE_CHUNK, axis=0)])
     parts = [
-        values(spline, jnp.asarray(padded[k : k + ADAPTIVE_CHUNK], dtype))
+        jax.tree.leaves(jitted(spline, jnp.asarray(padded[k : k + ADAPTIVE_CHUNK], dtype)))
         for k in range(0, len(padded), ADAPTIVE_CHUNK)
     ]
-    if gradient:
-        g = np.concatenate([np.asarray(v, np.float64) for v, _ in parts])[:n]
-        grad = np.concatenate([np.asarray(d, np.float64) for _, d in parts])[:n]
-        return g, grad
-    return np.concatenate([np.asarray(v, np.float64) for v in parts])[:n]
+    return [
+        np.concatenate([np.asarray(p[i], np.float64) for p in parts])[:n]
+        for i in range(len(parts[0]))
+    ]
 
 
 def adaptive_lattice_values(spline: AdaptiveSpline, axes) -> np.ndarray:
@@ -57,7 +68,7 @@ def adaptive_lattice_values(spline: AdaptiveSpline, axes) -> np.ndarray:
         )
     grids = np.meshgrid(*[np.asarray(a, np.float64) for a in axes], indexing="ij")
     points = np.stack([g.ravel() for g in grids], axis=1)
-    return _adaptive_evaluate(spline, points).reshape(grids[0].shape)
+    return _adaptive_evaluate(spline, points)[0].reshape(grids[0].shape)
 
 
 def spline_fields(spline, dims=(2, 3)):
@@ -180,7 +191,8 @@ def values_and_gradients(spline, points, *, chunk: int = 1 << 14):
             raise ValueError(f"points must have shape (n, {spline.ndim}), got {points.shape}")
         if len(points) == 0:
             return np.empty(0), np.empty((0, spline.ndim))
-        return _adaptive_evaluate(spline, points, gradient=True)
+        value, gradient = _adaptive_evaluate(spline, points, _values_and_gradients)
+        return value, gradient
     control, weights, lower, upper = spline_fields(spline)
     d = control.ndim
     points = np.asarray(points, dtype=np.float64)
