@@ -206,9 +206,9 @@ def check_lattice_size(
     (``jurs._problem.memory.check_memory``, named ``resolution=...`` as in 2D)."""
     nodes = float(np.prod(np.asarray(counts, dtype=np.float64)))
     plane = nodes / max(counts)
-    memory = BYTES_PER_SLAB_NODE * max(chunk, 2 * plane) + (
-        BYTES_PER_VERTEX * VERTICES_PER_PLANE_NODE * plane
-    )
+    # A slab holds at most the whole lattice, however large the chunk asked.
+    slab = min(max(chunk, 2 * plane), nodes)
+    memory = BYTES_PER_SLAB_NODE * slab + (BYTES_PER_VERTEX * VERTICES_PER_PLANE_NODE * plane)
     if max_nodes is not None:
         if isinstance(max_nodes, bool) or not isinstance(max_nodes, (int, np.integer)):
             raise TypeError(f"max_nodes must be an int or None, got {max_nodes!r}")
