@@ -449,9 +449,15 @@ def test_trim_checks_its_input():
         _mesh.mesh(spline, 16, points=np.full((5, 3), np.nan), trim=True)
     with pytest.raises(ValueError, match="at least 2 distinct data points"):
         _mesh.mesh(spline, 16, points=np.zeros((5, 3)), trim=True)
+    square = np.array([[0.0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]])
+    with pytest.raises(ValueError, match="vertices must be a finite"):
+        _mesh.trim_mesh(square * np.nan, [[0, 1, 2]], points)
+    with pytest.raises(ValueError, match="faces must be an integer"):
+        _mesh.trim_mesh(square, [[0, 1, 4]], points)
     # No trim: points are not needed, and False is no trim.
     whole = _mesh.mesh(spline, 16)
     np.testing.assert_array_equal(_mesh.mesh(spline, 16, points=points, trim=False)[1], whole[1])
+    np.testing.assert_array_equal(_mesh.trim_mesh(*whole, points, None)[1], whole[1])
 
 
 def test_distances_of_a_mesh_to_its_own_samples_are_tiny():

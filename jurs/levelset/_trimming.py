@@ -115,7 +115,7 @@ def trim_mesh(
     vertices: Float[npt.ArrayLike, "V 3"],
     faces: Int[npt.ArrayLike, "F 3"],
     points: Float[npt.ArrayLike, "m 3"],
-    trim: float | bool = True,
+    trim: float | bool | None = True,
 ) -> tuple[Float[np.ndarray, "V2 3"], Int[np.ndarray, "F2 3"]]:
     """The part of a mesh within ``trim`` local spacings of the data ``points``.
 
@@ -140,17 +140,35 @@ def trim_mesh(
     Args:
         vertices, faces: a triangle mesh (as from [`mesh`][jurs.levelset.mesh]).
         points: ``(m, 3)`` data points, at least 2 distinct.
-        trim: spacings to keep (positive); True for ``DEFAULT_TRIM``.
+        trim: spacings to keep (positive); True for ``DEFAULT_TRIM``; None or False
+            returns the mesh as given.
 
     Returns:
         ``(vertices (V2, 3) float64, faces (F2, 3) int64)``; empty arrays when nothing is
         within ``trim``.
     """
     vertices = np.asarray(vertices, dtype=np.float64)
-    faces = np.asarray(faces, dtype=np.int64).reshape(-1, 3)
+    faces = np.asarray(faces)
+    if vertices.ndim != 2 or vertices.shape[1] != 3 or not np.isfinite(vertices).all():
+        raise ValueError(f"vertices must be a finite (V, 3) array, got shape {vertices.shape}")
+    if faces.size == 0:
+        faces = np.empty((0, 3), dtype=np.int64)
+    elif (
+        faces.ndim != 2
+        or faces.shape[1] != 3
+        or not np.issubdtype(faces.dtype, np.integer)
+        or faces.min() < 0
+        or faces.max() >= len(vertices)
+    ):
+        raise ValueError(
+            f"faces must be an integer (F, 3) array of indices into the {len(vertices)} "
+            f"vertices, got shape {faces.shape} {faces.dtype}"
+        )
+    faces = faces.astype(np.int64)
     points = check_points(points, 3)
     value = check_trim(trim, points)
-    assert value is not None
+    if value is None:  # None or False: no trim
+        return vertices, faces
     if len(faces) == 0:
         return np.empty((0, 3)), np.empty((0, 3), dtype=np.int64)
     return clip_mesh(vertices, faces, Support(points).spacings(vertices) - value)
@@ -206,7 +224,7 @@ def _compact(vertices, faces):
 def trim_curves(
     lines,
     points: Float[npt.ArrayLike, "m 2"],
-    trim: float | bool = True,
+    trim: float | bool | None = True,
 ) -> list[tuple[Float[np.ndarray, "k 2"], bool]]:
     """The parts of 2D polylines within ``trim`` local spacings of the data ``points``.
 
@@ -221,14 +239,16 @@ def trim_curves(
             [`zero_level_set`][jurs.levelset.zero_level_set] (closed polylines repeat
             their first point at the end).
         points: ``(m, 2)`` data points, at least 2 distinct.
-        trim: spacings to keep (positive); True for ``DEFAULT_TRIM``.
+        trim: spacings to keep (positive); True for ``DEFAULT_TRIM``; None or False
+            returns the polylines as given.
 
     Returns:
         ``(polyline, closed)`` pairs: the pieces, in the order of the input.
     """
     points = check_points(points, 2)
     value = check_trim(trim, points)
-    assert value is not None
+    if value is None:  # None or False: no trim
+        return [(np.asarray(p, dtype=np.float64).reshape(-1, 2), bool(c)) for p, c in lines]
     support = Support(points)
     out = []
     for polyline, closed in lines:
