@@ -238,3 +238,28 @@ def test_mesh_file_input_notes_the_sampling(tmp_path, capsys):
     )
     out = tmp_path / "o"
     _refused(capsys, ["fit", str(bad), "-o", str(out)], out, "declares 4 rows")
+
+
+def test_open_scan_trimmed_on_the_command_line(sphere, tmp_path, capsys):
+    """The upper half of a sphere, an open scan: --trim writes an open mesh.ply with one
+    boundary loop near the rim, and metrics.json records the trim and the loop. (As many
+    points as ``sphere``: the fits share one compilation.)"""
+    points, normals = jurs.datasets.sphere3d(3400, seed=2)
+    upper = np.flatnonzero(points[:, 2] > 0)[: len(sphere[0])]
+    assert len(upper) == len(sphere[0])
+    path = tmp_path / "half.ply"
+    jurs.datasets.save_points(path, points[upper], normals[upper])
+    out = tmp_path / "result"
+    assert cli.main(["fit", str(path), "-o", str(out), "--grid", "12", "--trim"]) == 0
+    said = capsys.readouterr()
+    assert "trimmed to 2.5 point spacings: 1 boundary loop(s)" in said.out
+    assert "unsupported" not in said.err
+    vertices, faces = jurs.datasets.load_mesh(out / "mesh.ply")
+    report = levelset.analyze_mesh(vertices, faces, points[upper])
+    assert report.num_boundary_loops == 1 and not report.components[0].closed
+    assert -0.4 < vertices[:, 2].min() < 0  # stops a few spacings past the rim at z = 0
+    m = json.loads((out / "metrics.json").read_text())["metrics"]
+    assert m["trim"] == levelset.DEFAULT_TRIM
+    assert m["num_boundary_loops"] == 1 and m["boundary_loops"] == [1]
+    assert m["boundary_length"] == pytest.approx(report.boundary_length)
+    assert m["num_closed"] == 0 and m["genera"] == [None]

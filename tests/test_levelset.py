@@ -95,6 +95,59 @@ def test_curve_bridging_a_sampling_gap_is_not_supplementary():
     assert not c.supplementary and report.num_supplementary == 0
 
 
+def test_arc_of_a_circle_is_trimmed_to_its_end_points():
+    """A profile: the unit circle sampled on a third of its length (evenly, spacing
+    a = 2 pi / 3 / 69). The zero set is the whole circle; trimmed to 2.5 spacings it is one
+    open curve whose ends lie just past the arc's (the spacing near an end reads a little
+    more than a: its neighbours are on one side)."""
+    f = Analytic(lambda xy: dist(xy, (0, 0)) - 1.0)
+    t = np.linspace(0, 2 * np.pi / 3, 70)
+    a = t[1] - t[0]
+    data = np.stack([np.cos(t), np.sin(t)], axis=1)
+    report = ls.analyze(f, data, offset=0.05, resolution=200, trim=True)
+    assert report.trim == ls.DEFAULT_TRIM
+    (c,) = report.components
+    assert not c.closed and c.ends is not None
+    angles = np.sort(np.arctan2(c.ends[:, 1], c.ends[:, 0]))
+    past = np.array([-angles[0], angles[1] - 2 * np.pi / 3])  # beyond each end, in arc
+    assert ((past > 2 * a) & (past < 1.5 * ls.DEFAULT_TRIM * a)).all()
+    assert c.length == pytest.approx(2 * np.pi / 3 + past.sum(), rel=0.01)
+    d = report.as_dict()
+    assert d["trim"] == ls.DEFAULT_TRIM and d["num_open"] == 1
+    np.testing.assert_allclose(d["end_points"], [c.ends.tolist()])
+    # Untrimmed, it is the closed circle (no end points); a closed curve the data cover
+    # stays closed when trimmed.
+    whole = ls.analyze(f, data, offset=0.05, resolution=200)
+    assert whole.components[0].closed and whole.components[0].ends is None
+    assert whole.as_dict()["trim"] is None and whole.as_dict()["end_points"] == [None]
+    full = ls.analyze(f, circle_samples(200), offset=0.05, resolution=200, trim=3.0)
+    assert full.components[0].closed and full.num_components == 1
+
+
+def test_trim_curves_splits_where_a_curve_leaves_the_data():
+    """Two arcs on opposite sides of a closed circle: two pieces, each around one arc,
+    whichever vertex the polyline starts at."""
+    phi = np.linspace(0, 2 * np.pi, 361)
+    circle = np.stack([np.cos(phi), np.sin(phi)], axis=1)  # closed: last point = first
+    t = np.concatenate([np.linspace(-0.5, 0.5, 40), np.linspace(np.pi - 0.5, np.pi + 0.5, 40)])
+    data = np.stack([np.cos(t), np.sin(t)], axis=1)
+    for start in (0, 90):
+        ring = np.roll(circle[:-1], -start, axis=0)
+        pieces = ls.trim_curves([(np.concatenate([ring, ring[:1]]), True)], data, 2.0)
+        assert len(pieces) == 2 and not any(closed for _, closed in pieces)
+        for piece, _ in pieces:
+            centre = np.arctan2(*piece.mean(axis=0)[::-1])
+            assert min(abs(centre), abs(abs(centre) - np.pi)) < 0.05
+            assert ls.polyline_length(piece) == pytest.approx(1.0, abs=0.15)
+    assert ls.trim_curves([(circle + 5.0, True)], data) == []  # nowhere near the data
+    with pytest.raises(ValueError, match="trim must be a positive"):
+        ls.trim_curves([(circle, True)], data, -1.0)
+    with pytest.raises(ValueError, match="trim must be a positive"):
+        ls.analyze(Analytic(lambda xy: dist(xy, (0, 0)) - 1.0), data, trim=0.0)
+    with pytest.raises(ValueError, match="at least 2 distinct"):
+        ls.trim_curves([(circle, True)], np.zeros((3, 2)))
+
+
 def test_extra_loop_in_a_spline_is_counted(circle_fit):
     points, sol = circle_fit
     s = sol.spline

@@ -19,6 +19,7 @@ import jurs
 from jurs import datasets
 from jurs import levelset as _mesh  # levelset._meshing and levelset._mesh_analysis
 from jurs._model import lattice as _lattice
+from jurs.levelset._trimming import Support
 
 pytest.importorskip("skimage")
 pytest.importorskip("trimesh")
@@ -327,6 +328,136 @@ def test_far_small_bubble_is_supplementary():
     assert count == 2 and np.bincount(labels)[0] == sphere.num_faces
     # A threshold above the bubble's distance keeps it.
     assert not _mesh.analyze_mesh(vertices, faces, points, threshold=2.0).supplementary
+
+
+# --- open scans: trimming and boundary loops ------------------------------------------------
+
+
+def hemisphere_points(m=1500, seed=0):
+    """The upper half (z > 0) of m random samples of the unit sphere."""
+    points, _ = datasets.sphere3d(m, seed=seed)
+    return points[points[:, 2] > 0]
+
+
+def test_trimmed_mesh_of_a_hemisphere_scan_is_open_with_one_loop_at_the_rim():
+    spline = exact_sphere(radius=1.0, n=10)  # the whole sphere: a fit that closed the scan
+    points = hemisphere_points()
+    whole = _mesh.mesh(spline, 24)
+    assert _mesh.analyze_mesh(*whole).components[0].closed
+    vertices, faces = _mesh.mesh(spline, 24, points=points, trim=True)
+    report = _mesh.analyze_mesh(vertices, faces, points)
+    assert report.num_components == 1
+    (part,) = report.components
+    assert not part.closed and part.num_boundary_loops == report.num_boundary_loops == 1
+    # The rim of the data is the equator (length 2 pi); the trimmed mesh stops a few
+    # spacings below it, and keeps no face beyond the trim.
+    spacing = np.median(Support(points).spacing)
+    assert -4 * spacing < vertices[:, 2].min() < 0
+    rim = np.unique(_boundary_vertices(faces))
+    assert np.abs(vertices[rim, 2] - np.median(vertices[rim, 2])).max() < 2 * spacing
+    radius = np.hypot(vertices[rim, 0], vertices[rim, 1]).mean()
+    # About the circle there, a little longer: the rim of random samples is ragged.
+    assert 2 * np.pi * radius < part.boundary_length < 1.15 * 2 * np.pi * radius
+    assert np.abs(np.linalg.norm(vertices, axis=1) - 1.0).max() < 0.01  # still on the sphere
+    assert len(np.unique(faces)) == len(vertices)  # no unused vertex
+    # Beyond the trim only slivers at the rim, where the distance between two vertices is
+    # not quite linear (another sample is nearest midway).
+    fraction = report.unsupported_fraction
+    assert fraction is not None and fraction < 0.01 and not report.mostly_unsupported
+    # Clipped faces keep their orientation: outward, as the whole mesh's.
+    centroids = vertices[faces].mean(axis=1)
+    assert (np.sum(face_normals(vertices, faces) * centroids, axis=1) > 0).all()
+    # A wider trim keeps more; the same trim through trim_mesh gives the same mesh.
+    wider = _mesh.mesh(spline, 24, points=points, trim=5.0)[0]
+    assert wider[:, 2].min() < vertices[:, 2].min()
+    again = _mesh.trim_mesh(*whole, points, _mesh.DEFAULT_TRIM)
+    np.testing.assert_array_equal(again[1], faces)
+    np.testing.assert_allclose(again[0], vertices)
+
+
+def _boundary_vertices(faces):
+    edges = np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+    unique, uses = np.unique(edges, axis=0, return_counts=True)
+    return unique[uses == 1].reshape(-1)
+
+
+def test_trim_leaves_a_closed_sphere_scan_unchanged():
+    spline = exact_sphere(radius=1.0, n=10)
+    points, _ = datasets.sphere3d(1500, seed=0)
+    vertices, faces = _mesh.mesh(spline, 24)
+    trimmed = _mesh.mesh(spline, 24, points=points, trim=True)
+    np.testing.assert_array_equal(trimmed[1], faces)
+    np.testing.assert_array_equal(trimmed[0], vertices)
+    report = _mesh.analyze_mesh(vertices, faces, points)
+    assert report.num_boundary_loops == 0 and report.components[0].boundary_lengths == ()
+    assert report.unsupported_fraction == 0.0
+
+
+def test_untrimmed_open_scan_is_noted_as_mostly_unsupported():
+    vertices, faces = _mesh.mesh(exact_sphere(radius=1.0, n=10), 24)
+    points, _ = datasets.sphere3d(3000, seed=0)
+    cap = points[points[:, 2] > 0.5]  # a quarter of the sphere's area
+    report = _mesh.analyze_mesh(vertices, faces, cap)
+    assert report.unsupported_fraction == pytest.approx(0.75, abs=0.08)
+    assert report.mostly_unsupported
+    assert any("most of the surface is unsupported" in n and "trim" in n for n in report.notes)
+    assert report.as_dict()["unsupported_fraction"] == report.unsupported_fraction
+    # Trimmed, the note goes.
+    trimmed = _mesh.mesh(exact_sphere(radius=1.0, n=10), 24, points=cap, trim=True)
+    assert not _mesh.analyze_mesh(*trimmed, cap).notes
+
+
+def test_boundary_loops_of_a_square_and_a_square_with_a_hole():
+    square = np.array([[0.0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]])
+    faces = np.array([[0, 1, 2], [0, 2, 3]])
+    report = _mesh.analyze_mesh(square, faces)
+    (part,) = report.components
+    assert part.num_boundary_loops == 1 and part.boundary_length == pytest.approx(4.0)
+    d = report.as_dict()
+    assert d["num_boundary_loops"] == 1 and d["boundary_length"] == pytest.approx(4.0)
+    assert d["boundary_loops"] == [1] and d["boundary_lengths"] == [[pytest.approx(4.0)]]
+    owner, length = _mesh.boundary_loops(square, faces)
+    assert owner.tolist() == [0] and length == pytest.approx([4.0])
+    # A 3 x 3 square of side 3 without its middle cell: two loops, 12 and 4 long, in one
+    # component; a second, separate square adds a loop of its own.
+    grid = np.array([[x, y, 0.0] for y in range(4) for x in range(4)])
+    cells = [(x, y) for y in range(3) for x in range(3) if (x, y) != (1, 1)]
+    quads = [(4 * y + x, 4 * y + x + 1, 4 * y + x + 5, 4 * y + x + 4) for x, y in cells]
+    holed = np.array([f for a, b, c, e in quads for f in ((a, b, c), (a, c, e))])
+    vertices = np.concatenate([grid, square + [10, 0, 0]])
+    faces2 = np.concatenate([holed, faces + len(grid)])
+    report = _mesh.analyze_mesh(vertices, faces2)
+    big, small = report.components
+    assert big.boundary_lengths == (pytest.approx(12.0), pytest.approx(4.0))
+    assert small.boundary_lengths == (pytest.approx(4.0),)
+    assert report.num_boundary_loops == 3 and report.boundary_length == pytest.approx(20.0)
+
+
+def test_trim_checks_its_input():
+    spline = exact_sphere(radius=1.0, n=8)
+    points = hemisphere_points(200)
+    with pytest.raises(ValueError, match="trim needs the data points"):
+        _mesh.mesh(spline, 16, trim=True)
+    for bad in (-1.0, 0.0, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="trim must be a positive, finite number"):
+            _mesh.mesh(spline, 16, points=points, trim=bad)
+    with pytest.raises(TypeError, match="trim must be None, True or a number"):
+        _mesh.mesh(spline, 16, points=points, trim="2")  # pyright: ignore[reportArgumentType]
+    with pytest.raises(ValueError, match=r"points must have shape \(m, 3\)"):
+        _mesh.mesh(spline, 16, points=points[:, :2], trim=True)
+    with pytest.raises(ValueError, match="points must be finite"):
+        _mesh.mesh(spline, 16, points=np.full((5, 3), np.nan), trim=True)
+    with pytest.raises(ValueError, match="at least 2 distinct data points"):
+        _mesh.mesh(spline, 16, points=np.zeros((5, 3)), trim=True)
+    square = np.array([[0.0, 0, 0], [1, 0, 0], [1, 1, 0], [0, 1, 0]])
+    with pytest.raises(ValueError, match="vertices must be a finite"):
+        _mesh.trim_mesh(square * np.nan, [[0, 1, 2]], points)
+    with pytest.raises(ValueError, match="faces must be an integer"):
+        _mesh.trim_mesh(square, [[0, 1, 4]], points)
+    # No trim: points are not needed, and False is no trim.
+    whole = _mesh.mesh(spline, 16)
+    np.testing.assert_array_equal(_mesh.mesh(spline, 16, points=points, trim=False)[1], whole[1])
+    np.testing.assert_array_equal(_mesh.trim_mesh(*whole, points, None)[1], whole[1])
 
 
 def test_distances_of_a_mesh_to_its_own_samples_are_tiny():

@@ -9,13 +9,15 @@
                                     spline.npz       the spline (jurs.load_spline reads it)
                                     fit.png          heatmap of g, zero set, data, offsets
                                     zero_level.csv   zero-level polylines: component, closed,
-                                                     supplementary, x, y
+                                                     supplementary, x, y (trimmed to
+                                                     the data with --trim)
     jurs fit SCAN [options]       fit a surface to a 3D cloud (PLY, OBJ, XYZ or PTS; vertex
                                   normals where the file has them, else estimated) and
                                   write, into --output:
                                     metrics.json     fit and mesh metrics, settings, timings
                                     spline.npz       the 3D spline (jurs.load_spline)
-                                    mesh.ply         the zero set, meshed (marching cubes)
+                                    mesh.ply         the zero set, meshed (marching cubes;
+                                                     trimmed to the data with --trim)
                                     preview.png      the mesh from three directions
 
 Compiled fits are kept in JAX's persistent compilation cache in $XDG_CACHE_HOME/jurs (or
@@ -260,6 +262,19 @@ def _fit_parser(sub) -> argparse.ArgumentParser:
         help="distance to the data above which a zero-level component is "
         "supplementary; None means 2 d (2D), or 3 point spacings and at "
         "least 1%% of the cloud's diagonal (3D)",
+    )
+    f.add_argument(
+        "--trim",
+        type=_positive,
+        nargs="?",
+        const=True,
+        default=None,
+        metavar="SPACINGS",
+        help="open scans and open curves: keep only the zero set within SPACINGS local "
+        "point spacings of the data (given alone: jurs.levelset.DEFAULT_TRIM, 2.5); "
+        "mesh.ply (3D) or zero_level.csv (2D) then holds the trimmed surface or "
+        "curve pieces, and metrics.json the trim, boundary loops (3D) and end points "
+        "(2D). Put it after the file names",
     )
     f.add_argument("-q", "--quiet", action="store_true", help="no progress bar or summary")
     return f

@@ -8,6 +8,7 @@ summary line. ``fit_record`` is the part of metrics.json they share.
 from __future__ import annotations
 
 import os
+import sys
 import time
 from typing import TYPE_CHECKING
 
@@ -72,6 +73,7 @@ def curve_outputs(job: FitJob, args, sol, seconds: float):
         offset=job.chosen.offset,
         threshold=args.threshold,
         resolution=job.resolution,
+        trim=_trim(args),
     )
     record = fit_record(job, args, sol, seconds)
     record["metrics"].update(report.as_dict())
@@ -109,6 +111,14 @@ def curve_outputs(job: FitJob, args, sol, seconds: float):
         f"{report.chamfer:.3g}"
     )
     return write, summary
+
+
+def _trim(args) -> float | None:
+    """``--trim`` in spacings (given alone: the default), None without it."""
+    from ..levelset._trimming import check_trim
+
+    # The points only stand in for "given": the CLI always has them.
+    return check_trim(getattr(args, "trim", None), ())
 
 
 def mesh_record(vertices, faces, report, distances, resolution: int) -> dict:
@@ -159,11 +169,21 @@ def surface_outputs(job: FitJob, args, sol, seconds: float):
     resolution = job.resolution or default_resolution(
         spline, np.asarray(spline.lower, np.float64), np.asarray(spline.upper, np.float64)
     )
+    trim = _trim(args)
     t0 = time.perf_counter()
     # The user chose --resolution, its memory checked before the fit: no node limit.
-    vertices, faces = ls.mesh(spline, resolution, max_nodes=None)
+    vertices, faces = ls.mesh(spline, resolution, max_nodes=None, points=job.points, trim=trim)
     t1 = time.perf_counter()
     report = ls.analyze_mesh(vertices, faces, job.points, threshold=args.threshold)
+    if report.mostly_unsupported and trim is None:
+        fraction = report.unsupported_fraction or 0.0
+        print(
+            f"jurs: warning: {job.shown}: most of the surface is unsupported "
+            f"({100 * fraction:.0f} % of its area lies farther than "
+            f"{ls.DEFAULT_TRIM:g} point spacings from the data), as where an open scan "
+            "is fitted; --trim keeps the part the data support",
+            file=sys.stderr,
+        )
     distances = ls.mesh_distances(vertices, faces, job.points, job.normals)
     t2 = time.perf_counter()
     record = fit_record(job, args, sol, seconds)
@@ -172,6 +192,7 @@ def surface_outputs(job: FitJob, args, sol, seconds: float):
         chamfer=distances["chamfer"],
         hausdorff=distances["hausdorff"],
         normal_consistency=distances["normal_consistency"],
+        trim=trim,
     )
     record["mesh"] = mesh_record(vertices, faces, report, distances, resolution)
     record["timings"] = {"fit_s": seconds, "mesh_s": t1 - t0, "analysis_s": t2 - t1}
@@ -199,4 +220,9 @@ def surface_outputs(job: FitJob, args, sol, seconds: float):
         f"{float(sol.metrics['E_max']):.4e}, surface: {len(faces)} faces, {counts}, "
         f"chamfer = {distances['chamfer']:.3g}"
     )
+    if trim is not None:
+        summary += (
+            f"\n  trimmed to {trim:g} point spacings: {report.num_boundary_loops} boundary "
+            f"loop(s), {report.boundary_length:.3g} long"
+        )
     return write, summary

@@ -56,6 +56,11 @@ For 3D splines the same questions are asked of a triangle mesh of the zero set:
 [`mesh_distances`][jurs.levelset.mesh_distances] and friends (meshing in
 ``jurs/levelset/_meshing.py``, measuring in ``jurs/levelset/_mesh_analysis.py``; see
 docs/surfaces.md).
+
+Open scans and open curves: [`trim_mesh`][jurs.levelset.trim_mesh] (or ``mesh(...,
+points=, trim=)``) and [`trim_curves`][jurs.levelset.trim_curves] (or ``analyze(...,
+trim=)``) keep the part of a zero set within a number of local point spacings of the
+data (``jurs/levelset/_trimming.py``; docs/surfaces.md, "Open scans").
 """
 
 # Curves (2D) in _curves; surfaces (3D) meshed in _meshing and measured in _mesh_analysis;
@@ -87,12 +92,14 @@ from ._mesh_analysis import (
     MeshComponent,
     MeshReport,
     analyze_mesh,
+    boundary_loops,
     face_areas,
     genus,
     mesh_components,
     mesh_distances,
 )
 from ._meshing import mesh
+from ._trimming import DEFAULT_TRIM, trim_curves, trim_mesh
 
 __all__ = [
     "DEFAULT_RESOLUTION",
@@ -100,6 +107,7 @@ __all__ = [
     "BYTES_PER_NODE",
     "DEFAULT_TINY_CELLS",
     "DEFAULT_THRESHOLD_FACTOR",
+    "DEFAULT_TRIM",
     "sampling_grid",
     "evaluate_grid",
     "contour_lines",
@@ -119,11 +127,14 @@ __all__ = [
     "MeshComponent",
     "MeshReport",
     "analyze_mesh",
+    "boundary_loops",
     "face_areas",
     "genus",
     "mesh",
     "mesh_components",
     "mesh_distances",
+    "trim_mesh",
+    "trim_curves",
 ]
 
 # Public names report the public module (help(), the docs, pickles), not the private one

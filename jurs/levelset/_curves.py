@@ -16,6 +16,7 @@ from scipy.spatial import cKDTree  # pyright: ignore[reportAttributeAccessIssue]
 
 from .._model.spline import ImplicitSpline
 from .._problem.memory import check_memory
+from ._trimming import check_trim, trim_curves
 
 if TYPE_CHECKING:
     from contourpy._contourpy import LineReturn_SeparateCode
@@ -334,7 +335,8 @@ class Component:
 
     Attributes:
         polyline: ``(k, 2)`` vertices (closed ones repeat the first at the end).
-        closed: True for a loop, False for a curve ending on the box border.
+        closed: True for a loop, False for a curve ending on the box border or, trimmed
+            ([`analyze`][jurs.levelset.analyze]'s ``trim``), where it leaves the data.
         length: arc length.
         mean_distance: arc-length mean distance to the nearest data point.
         far_fraction: fraction of its length farther than the threshold from the data.
@@ -351,6 +353,12 @@ class Component:
     supplementary: bool
     tiny: bool
 
+    @property
+    def ends(self) -> Float[np.ndarray, "2 2"] | None:
+        """The two end points ``[[x0, y0], [x1, y1]]`` of an open curve; None for a
+        closed one."""
+        return None if self.closed else self.polyline[[0, -1]].copy()
+
 
 @dataclasses.dataclass(frozen=True)
 class LevelSetReport:
@@ -366,6 +374,7 @@ class LevelSetReport:
         tiny_cells: tiny-loop size in cells.
         zero_area_fraction: fraction of grid nodes where g is numerically 0.
         reference: ``"reference curve"`` or ``"data points"``, what they were measured to.
+        trim: the trim in local spacings the curves were cut to, None when untrimmed.
     """
 
     components: tuple
@@ -377,6 +386,7 @@ class LevelSetReport:
     chamfer: float
     hausdorff: float
     reference: str
+    trim: float | None = None
 
     @property
     def num_components(self) -> int:
@@ -407,7 +417,9 @@ class LevelSetReport:
         """The summary numbers (JSON-ready), prefixed by nothing: ``num_components``,
         ``num_supplementary``, ``supplementary_length``, ``total_length``,
         ``num_tiny_loops``, ``chamfer``, ``hausdorff``, ``threshold``, ``cell_size``,
-        ``resolution``, ``tiny_cells``, ``zero_area_fraction``, ``distance_reference``."""
+        ``resolution``, ``tiny_cells``, ``zero_area_fraction``, ``distance_reference``,
+        ``trim``, ``num_open`` and ``end_points`` (per component, longest first: its two
+        end points, None for a closed one)."""
         return {
             "num_components": self.num_components,
             "num_supplementary": self.num_supplementary,
@@ -422,6 +434,11 @@ class LevelSetReport:
             "tiny_cells": self.tiny_cells,
             "zero_area_fraction": self.zero_area_fraction,
             "distance_reference": self.reference,
+            "trim": self.trim,
+            "num_open": sum(not c.closed for c in self.components),
+            "end_points": [
+                None if c.closed else np.asarray(c.ends).tolist() for c in self.components
+            ],
         }
 
 
@@ -475,6 +492,7 @@ def analyze(
     box=None,
     tiny_cells: float = DEFAULT_TINY_CELLS,
     zero_tol: float = 1e-12,
+    trim: float | bool | None = None,
 ) -> LevelSetReport:
     """Extract and measure the zero-level set of ``spline`` (see the module docstring).
 
@@ -494,10 +512,24 @@ def analyze(
         tiny_cells: closed loops shorter than this many grid cells count as tiny.
         zero_tol: relative level below which g counts as identically zero (for
             ``zero_area_fraction``).
+        trim: open curves (a coastline, a profile): None (default) or False measures the
+            whole zero set over the box; a positive number cuts it to the part within
+            that many local spacings of ``points``, True to ``DEFAULT_TRIM`` (2.5)
+            spacings, by [`trim_curves`][jurs.levelset.trim_curves]: a curve is split
+            where it leaves the data, its pieces open. Everything else (components,
+            supplementary ones, distances) is then measured on the pieces, and each open
+            component's ``ends`` are its end points. A sample's spacing along a curve is
+            ``2 r_8 / 8`` (``r_8`` the distance to its 8th nearest neighbour; the median
+            over it and those neighbours), exactly the step of evenly spaced samples.
 
     Returns:
         [`LevelSetReport`][jurs.levelset.LevelSetReport].
+
+    Raises:
+        ValueError: a ``trim`` that is not positive and finite, or ``points`` with fewer
+            than 2 distinct rows when trimming.
     """
+    check_trim(trim, points)  # before the grid is sampled
     xs, ys, _ = sampling_grid(*_box(spline, box), resolution)
     return analyze_grid(
         xs,
@@ -510,6 +542,7 @@ def analyze(
         reference=reference,
         tiny_cells=tiny_cells,
         zero_tol=zero_tol,
+        trim=trim,
     )
 
 
@@ -531,6 +564,7 @@ def analyze_grid(
     reference: Float[npt.ArrayLike, "k 2"] | None = None,
     tiny_cells: float = DEFAULT_TINY_CELLS,
     zero_tol: float = 1e-12,
+    trim: float | bool | None = None,
 ) -> LevelSetReport:
     """[`analyze`][jurs.levelset.analyze] for a function already sampled on a grid:
     ``values[j, i]`` at ``(xs[i], ys[j])``, with ``xs``/``ys`` from
@@ -559,6 +593,9 @@ def analyze_grid(
     scale = float(np.nanmax(np.abs(values))) if np.isfinite(values).any() else 0.0
     zero_area = float(np.mean(np.abs(values) <= zero_tol * scale))
     lines = contour_lines(xs, ys, values)
+    spacings = check_trim(trim, points)
+    if spacings is not None:
+        lines = trim_curves(lines, points, spacings)
     components = classify(
         lines, points, threshold=float(threshold), cell_size=h, tiny_cells=tiny_cells
     )
@@ -576,6 +613,7 @@ def analyze_grid(
         chamfer,
         hausdorff,
         "data points" if reference is None else "reference curve",
+        spacings,
     )
 
 

@@ -20,6 +20,7 @@ from scipy.sparse import csgraph
 from scipy.spatial import cKDTree  # pyright: ignore[reportAttributeAccessIssue]  # no stub
 
 from ..datasets import sample_mesh
+from ._trimming import DEFAULT_TRIM, UNSUPPORTED_FRACTION, Support
 
 #: Default supplementary threshold: this many median nearest-neighbour spacings of the
 #: data, and at least ``THRESHOLD_DIAGONAL`` of the data's bounding-box diagonal.
@@ -140,6 +141,56 @@ def _face_components(faces, num_vertices: int):
     return len(used), rank[inverse.reshape(-1)]
 
 
+def _boundary_edges(faces, labels):
+    """The boundary edges (edges of one face) as ``(B, 2)`` vertex pairs, and the
+    component label of each."""
+    edges = np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+    edge_label = np.repeat(labels, 3)
+    unique, where, uses = np.unique(edges, axis=0, return_index=True, return_counts=True)
+    return unique[uses == 1], edge_label[where][uses == 1]
+
+
+def boundary_loops(
+    vertices: Float[npt.ArrayLike, "V 3"], faces: Int[npt.ArrayLike, "F 3"]
+) -> tuple[Int[np.ndarray, " L"], Float[np.ndarray, " L"]]:
+    """The boundary loops of a triangle mesh: ``(component, length)``, one entry per
+    loop, longest first. ``component`` numbers the mesh component (as
+    [`mesh_components`][jurs.levelset.mesh_components]) the loop bounds.
+
+    A boundary edge is an edge of one face; a *loop* is a connected set of boundary edges
+    (edges sharing a vertex), its length the sum of theirs. On a manifold mesh each is a
+    closed polyline, the rim of a hole or of an open surface; two rims that touch at a
+    vertex count as one loop. Degenerate and repeated faces are left out first
+    (``clean_faces``).
+    """
+    vertices, faces = _check_mesh(vertices, faces)
+    faces = faces[clean_faces(faces)[0]]
+    if len(faces) == 0:
+        return np.empty(0, dtype=np.int64), np.empty(0)
+    _, labels = _face_components(faces, len(vertices))
+    return _loops(vertices, faces, labels)
+
+
+def _loops(vertices, faces, labels):
+    """[`boundary_loops`][jurs.levelset.boundary_loops] of checked, cleaned faces with
+    their component ``labels``."""
+    edges, owner = _boundary_edges(faces, labels)
+    if len(edges) == 0:
+        return np.empty(0, dtype=np.int64), np.empty(0)
+    n = len(vertices)
+    graph = sparse.coo_matrix(
+        (np.ones(len(edges), dtype=np.int8), (edges[:, 0], edges[:, 1])), shape=(n, n)
+    )
+    _, vertex_loop = csgraph.connected_components(graph, directed=False)
+    loop = np.unique(vertex_loop[edges[:, 0]], return_inverse=True)[1].reshape(-1)
+    length = np.linalg.norm(vertices[edges[:, 0]] - vertices[edges[:, 1]], axis=1)
+    lengths = np.bincount(loop, weights=length)
+    components = np.zeros(len(lengths), dtype=np.int64)
+    components[loop] = owner
+    order = np.argsort(-lengths, kind="stable")
+    return components[order], lengths[order]
+
+
 def _topology(faces, labels, count):
     """Per component: vertices, edges, faces and boundary edges (edges of one face);
     four ``(count,)`` int arrays."""
@@ -209,6 +260,9 @@ class MeshComponent:
             the nearest data point (NaN without data).
         supplementary: ``median_distance > threshold``: more than half of its area lies
             farther than the threshold from the data.
+        boundary_lengths: the length of each of its boundary loops, longest first
+            (empty for a closed component); see
+            [`boundary_loops`][jurs.levelset.boundary_loops].
     """
 
     faces: np.ndarray
@@ -217,10 +271,19 @@ class MeshComponent:
     genus: int | None
     median_distance: float
     supplementary: bool
+    boundary_lengths: tuple = ()
 
     @property
     def num_faces(self) -> int:
         return len(self.faces)
+
+    @property
+    def num_boundary_loops(self) -> int:
+        return len(self.boundary_lengths)
+
+    @property
+    def boundary_length(self) -> float:
+        return float(sum(self.boundary_lengths))
 
 
 @dataclasses.dataclass(frozen=True)
@@ -232,12 +295,20 @@ class MeshReport:
             largest area first.
         threshold: the supplementary threshold (None without data points).
         notes: what was dropped from the input before measuring (degenerate and
-            duplicated faces, ``clean_faces``), in words; empty for a clean mesh.
+            duplicated faces, ``clean_faces``), and a note when most of the surface is
+            unsupported (below), in words; empty for a clean, supported mesh.
+        unsupported_fraction: the fraction of the area farther than ``DEFAULT_TRIM``
+            (2.5) local spacings from the data (the rule of
+            [`trim_mesh`][jurs.levelset.trim_mesh]), measured at face centroids; None
+            without data points. Above ``UNSUPPORTED_FRACTION`` (a half) most of the
+            surface runs on where there are no data, as an untrimmed fit of an open scan
+            does, and ``notes`` says so.
     """
 
     components: tuple
     threshold: float | None
     notes: tuple = ()
+    unsupported_fraction: float | None = None
 
     @property
     def num_components(self) -> int:
@@ -256,10 +327,30 @@ class MeshReport:
     def supplementary_area(self) -> float:
         return float(sum(c.area for c in self.supplementary))
 
+    @property
+    def num_boundary_loops(self) -> int:
+        """Boundary loops of all components together."""
+        return sum(c.num_boundary_loops for c in self.components)
+
+    @property
+    def boundary_length(self) -> float:
+        """Length of all boundary loops together."""
+        return float(sum(c.boundary_length for c in self.components))
+
+    @property
+    def mostly_unsupported(self) -> bool:
+        """More than ``UNSUPPORTED_FRACTION`` of the area lies away from the data."""
+        return self.unsupported_fraction is not None and (
+            self.unsupported_fraction > UNSUPPORTED_FRACTION
+        )
+
     def as_dict(self) -> dict:
         """The summary numbers (JSON-ready): ``num_components``, ``num_closed``,
         ``num_supplementary``, ``total_area``, ``supplementary_area``, ``genera`` (per
-        component, None for open ones), ``threshold`` and ``notes``."""
+        component, None for open ones), ``num_boundary_loops`` and ``boundary_length``
+        (in total), ``boundary_loops`` and ``boundary_lengths`` (per component: the
+        count, and the length of each loop), ``unsupported_fraction``, ``threshold`` and
+        ``notes``."""
         return {
             "num_components": self.num_components,
             "num_closed": sum(c.closed for c in self.components),
@@ -267,6 +358,11 @@ class MeshReport:
             "total_area": self.total_area,
             "supplementary_area": self.supplementary_area,
             "genera": [c.genus for c in self.components],
+            "num_boundary_loops": self.num_boundary_loops,
+            "boundary_length": self.boundary_length,
+            "boundary_loops": [c.num_boundary_loops for c in self.components],
+            "boundary_lengths": [list(c.boundary_lengths) for c in self.components],
+            "unsupported_fraction": self.unsupported_fraction,
             "threshold": self.threshold,
             "notes": list(self.notes),
         }
@@ -307,7 +403,12 @@ def analyze_mesh(
 
     Returns:
         [`MeshReport`][jurs.levelset.MeshReport]. Each component's ``faces`` index the
-        ``faces`` given.
+        ``faces`` given. Each component carries its boundary loops (count and lengths).
+        With ``points``, the report's ``unsupported_fraction`` is the share of the area
+        farther than ``DEFAULT_TRIM`` local spacings from the data; above a half,
+        ``notes`` says that most of the surface is unsupported and suggests trimming
+        ([`mesh`][jurs.levelset.mesh]'s ``trim``, ``jurs fit --trim``). Closed fits
+        are judged by ``supplementary`` as before; the note only flags open ones.
 
     Input: vertices must be finite and faces must index them (ValueError otherwise, as
     for non-finite ``points``). Faces that name a vertex twice and repeats of a face (the
@@ -330,9 +431,21 @@ def analyze_mesh(
     area = face_areas(vertices, faces)
     component_area = np.bincount(labels, weights=area, minlength=count)
     median = np.full(count, np.nan)
+    unsupported = None
     if points is not None:
-        distance = cKDTree(points).query(vertices[faces].mean(axis=1))[0]
+        centroids = vertices[faces].mean(axis=1)
+        distance = cKDTree(points).query(centroids)[0]
         median = _weighted_medians(distance, area, labels, component_area)
+        unsupported = _unsupported_fraction(points, centroids, area)
+        if unsupported is not None and unsupported > UNSUPPORTED_FRACTION:
+            notes = (
+                *notes,
+                f"most of the surface is unsupported: {100 * unsupported:.0f} % of its area "
+                f"lies farther than {DEFAULT_TRIM:g} local point spacings from the data, as "
+                "where an open scan was fitted; trim the mesh to the data "
+                "(levelset.mesh(..., points=, trim=True), jurs fit --trim)",
+            )
+    loop_owner, loop_length = _loops(vertices, faces, labels)
     euler = num_v - num_e + num_f
     order = np.argsort(-component_area, kind="stable")
     face_order = np.argsort(labels, kind="stable")
@@ -345,10 +458,22 @@ def analyze_mesh(
             genus=int((2 - euler[c]) // 2) if boundary[c] == 0 and euler[c] % 2 == 0 else None,
             median_distance=float(median[c]),
             supplementary=bool(points is not None and median[c] > threshold),
+            boundary_lengths=tuple(float(x) for x in loop_length[loop_owner == c]),
         )
         for c in order
     )
-    return MeshReport(components, threshold if points is not None else None, notes)
+    return MeshReport(components, threshold if points is not None else None, notes, unsupported)
+
+
+def _unsupported_fraction(points, centroids, area) -> float | None:
+    """The share of ``area`` whose centroids lie farther than ``DEFAULT_TRIM`` local
+    spacings from ``points``; None where the spacing cannot be measured (fewer than 2
+    distinct points) or the mesh has no area."""
+    total = float(area.sum())
+    if not total > 0 or len(np.unique(points, axis=0)) < 2:
+        return None
+    far = Support(points).spacings(centroids) > DEFAULT_TRIM
+    return float(area[far].sum() / total)
 
 
 def _weighted_medians(values, weights, labels, totals):

@@ -15,6 +15,7 @@ from jaxtyping import Float, Int
 from .._model.adaptive import AdaptiveSpline
 from .._model.lattice import lattice_values, spline_fields, values_and_gradients
 from .._problem.memory import check_memory
+from ._trimming import check_points, check_trim, trim_mesh
 
 #: Lattice nodes per spline cell along the finest axis for the default resolution: g is a
 #: cubic in each cell, and marching cubes sees at most one zero crossing per lattice edge,
@@ -104,6 +105,8 @@ def mesh(
     newton_steps: int = 2,
     chunk: int = SLAB_NODES,
     max_nodes: int | None = MAX_NODES,
+    points: Float[np.ndarray, "m 3"] | None = None,
+    trim: float | bool | None = None,
 ) -> tuple[Float[np.ndarray, "V 3"], Int[np.ndarray, "F 3"]]:
     """Triangle mesh of ``{g = level}`` of a 3D spline over ``box``.
 
@@ -124,6 +127,19 @@ def mesh(
             (default ``MAX_NODES``, 2^27: a 512^3 lattice, about 15 s); None, or a larger
             number, meshes anyway. The memory is checked too, against the host's
             available memory, and that check cannot be lifted.
+        points: ``(m, 3)`` data points the spline was fitted to; needed by ``trim``,
+            unused without it.
+        trim: keep only the surface the data support (an open scan): None (default) or
+            False meshes the whole zero set over the box; a positive number keeps the
+            part within that many local spacings of the data; True keeps
+            ``DEFAULT_TRIM`` (2.5) spacings. A sample's local spacing is ``1 /
+            sqrt(density)`` around it, from the distance to its 8th nearest neighbour
+            (the median over it and those neighbours), and a point's distance is
+            measured to its nearest sample in that sample's spacings (the rule and its
+            measurements: [`trim_mesh`][jurs.levelset.trim_mesh]). Faces that cross it are
+            clipped at it (not dropped whole), so the boundary of the result is a clean
+            polyline following the data's rim; see
+            [`trim_mesh`][jurs.levelset.trim_mesh] and docs/surfaces.md, "Open scans".
 
     Raises:
         ValueError: a spline with non-finite control points or weights, a weight <= 0
@@ -131,13 +147,15 @@ def mesh(
             denominator vanishes), or one whose control points all equal ``level`` (g is
             that level everywhere: its level set is the whole box, not a surface); a
             lattice of more than ``max_nodes`` nodes (the message gives the estimated time
-            and memory) or one whose estimated memory exceeds what is available.
+            and memory) or one whose estimated memory exceeds what is available; a
+            ``trim`` that is not positive and finite, or given without ``points``;
+            ``points`` not ``(m, 3)``, not finite, or with fewer than 2 distinct rows.
 
     Returns:
         ``(vertices (V, 3) float64, faces (F, 3) int64)``; every face's normal (right-hand
         rule) points towards ``g > level``, outward for a spline negative inside. Empty
-        arrays when the level set misses the box. Where the surface leaves the box the mesh
-        is open.
+        arrays when the level set misses the box (or, trimmed, lies wholly away from the
+        data). Where the surface leaves the box, or is trimmed, the mesh is open.
 
     Memory: g is never held on the whole lattice. One slab of at most
     ``max(chunk, 2 * ny * nz)`` nodes is evaluated, meshed and dropped at a time. Measured
@@ -149,6 +167,8 @@ def mesh(
     """
     lower, upper = _box(spline, box)
     _check_values(spline, float(level))
+    spacings = check_trim(trim, points)  # before the lattice: a bad trim fails at once
+    data = None if spacings is None else check_points(points, 3)
     if resolution is None:
         resolution = default_resolution(spline, lower, upper)
     if int(newton_steps) < 0:
@@ -163,7 +183,10 @@ def mesh(
     if len(faces) == 0:
         return _EMPTY
     vertices = lower + vertices * spacing
-    return _newton(spline, vertices, float(level), int(newton_steps), spacing.max()), faces
+    vertices = _newton(spline, vertices, float(level), int(newton_steps), spacing.max())
+    if spacings is None or data is None:
+        return vertices, faces
+    return trim_mesh(vertices, faces, data, spacings)
 
 
 def _check_values(spline, level: float) -> None:
