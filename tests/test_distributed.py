@@ -81,9 +81,24 @@ CHILD = textwrap.dedent(
     grid, offset, eps, domain = (24, 24), 0.02, 0.02, box(p)
     kw = dict(grid=grid, offset=offset, eps=eps, domain=domain, solver=jurs.LeastSquares(lam=1e-4))
 
-    # Refusals: an input error in one process (process 1's points outside a box around
-    # process 0's half), raised in both; normals left to estimate.
-    out["no_normals"] = error(lambda: jurs.fit(gp))
+    # Normals estimated over both processes: the gathered cloud's exactly; past the
+    # gathered size (forced: 500 probes) each process's PCA signed by the probes'.
+    from jax.experimental.multihost_utils import process_allgather
+    from jurs._cloud.parts import normals_across_processes
+
+    gathered = lambda x: np.asarray(process_allgather(x, tiled=True))
+    est = jurs.estimate_normals(gp)
+    est_whole = gathered(est)  # a collective: every process gathers
+    combined = gathered(normals_across_processes(gp, most=500))
+    out["normals"] = dict(
+        split=est.sharding == gp.sharding,
+        outward=float(np.mean(np.sum(combined * n, axis=1) > 0)),
+    )
+    if pid == 0:
+        out["normals"]["exact"] = bool(np.array_equal(est_whole, jurs.estimate_normals(p)))
+
+    # Refusal: an input error in one process (process 1's points outside a box around
+    # process 0's half), raised in both.
     out["outside"] = error(lambda: jurs.fit(gp, gn, **dict(kw, domain=box(p[:2000]))))
 
     # The layout: this process's slots only, every sample counted once in global order.
@@ -115,12 +130,12 @@ CHILD = textwrap.dedent(
 
     compare("curve", p, n, **kw)
 
-    # Automatic settings: jurs.fit(points, normals) and nothing else, against one process's.
+    # Automatic settings and normals: jurs.fit(points) alone, against one process's.
     q, m = jurs.datasets.example1(1000)
-    auto = jurs.fit(*spread(q, m))
+    auto = jurs.fit(spread(q, m)[0])
     entry = dict(status=auto.status, settings=auto.settings.as_dict())
     if pid == 0:
-        ref = jurs.fit(q, m)
+        ref = jurs.fit(q)
         c0, c1 = np.asarray(ref.spline.control), np.asarray(auto.spline.control)
         entry.update(
             ref=ref.status, ref_settings=ref.settings.as_dict(),
@@ -226,9 +241,9 @@ def test_each_process_lays_out_its_own_points(reports):
 
 
 def test_automatic_settings_across_processes_equal_one_process(reports):
-    """``jurs.fit(points, normals)`` over 2 processes: the small cloud is gathered, so the
-    settings are one process's exactly (grid, offset, eps, domain, lam), and the control
-    points within 1e-9 (relative) of the one-process automatic fit."""
+    """``jurs.fit(points)`` over 2 processes: the small cloud is gathered, so the normals
+    and settings are one process's exactly (grid, offset, eps, domain, lam), and the
+    control points within 1e-9 (relative) of the one-process automatic fit."""
     for report in reports:
         assert report["auto"]["status"] == "successful"
         assert report["auto"]["settings"] == reports[0]["auto"]["settings"]
@@ -254,12 +269,19 @@ def test_settings_measured_per_process_and_combined(reports):
     assert np.allclose(combined[0]["domain"], whole["domain"], rtol=1e-14, atol=0)
 
 
-def test_input_errors_across_processes(reports):
-    """An input error found in one process is raised in every process, not left to hang;
-    normals to estimate are refused, naming the per-process estimate."""
+def test_normals_estimated_across_processes(reports):
+    """``jurs.estimate_normals`` of a cloud over 2 processes: split like the points; a
+    small cloud's are the one-process estimate exactly; past the gathered size each
+    process's own estimate, signed by the gathered probes', points outward."""
     for report in reports:
-        kind, message = report["no_normals"]
-        assert kind == "ValueError" and "jurs.estimate_normals" in message
+        assert report["normals"]["split"]
+        assert report["normals"]["outward"] > 0.99
+    assert reports[0]["normals"]["exact"]
+
+
+def test_input_errors_across_processes(reports):
+    """An input error found in one process is raised in every process, not left to
+    hang."""
     kind, message = reports[1]["outside"]
     assert kind == "ValueError" and "outside the given domain" in message
     kind, message = reports[0]["outside"]

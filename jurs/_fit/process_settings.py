@@ -34,6 +34,7 @@ from .._cloud.measure import (
     offset_agreement,
     strided_probes,
 )
+from .._cloud.parts import allgather, gather_ragged, local_rows
 from .._problem.problem import offset_samples
 from .._problem.sizes import DEFAULT_MARGIN
 from .._problem.validate import unit_normals
@@ -49,32 +50,13 @@ from .settings import (
     choose_smoothing,
     scale_free_lam,
 )
-from .sharding import _local_rows
-
-
-def _allgather(x: np.ndarray) -> np.ndarray:
-    """``(processes, *x.shape)``: ``x`` of every process (same shape in all)."""
-    from jax.experimental.multihost_utils import process_allgather
-
-    return np.asarray(process_allgather(np.asarray(x)))
-
-
-def _gather_ragged(x: np.ndarray) -> np.ndarray:
-    """Every process's ``x`` (rows may differ in number), concatenated in process order:
-    one all-gather of the counts, one of the rows padded to the longest."""
-    counts = _allgather(np.array([len(x)], np.int64))[:, 0]
-    longest = max(int(counts.max()), 1)
-    padded = np.zeros((longest,) + x.shape[1:], x.dtype)
-    padded[: len(x)] = x
-    table = _allgather(padded)
-    return np.concatenate([table[i, : int(c)] for i, c in enumerate(counts)])
 
 
 def _bounds(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Lower and upper corner of every process's rows ``x`` together (an all-reduce)."""
     d = x.shape[1]
     local = np.stack([x.min(axis=0), x.max(axis=0)]) if len(x) else np.full((2, d), np.nan)
-    table = _allgather(local)
+    table = allgather(local)
     return np.nanmin(table[:, 0], axis=0), np.nanmax(table[:, 1], axis=0)
 
 
@@ -82,8 +64,8 @@ def local_cloud(points, normals) -> tuple[np.ndarray, np.ndarray, np.ndarray, in
     """``(rows, p, n, total)``: this process's rows of the global arrays, their indices in
     the global order, and the global point count (normals as given: ``jurs.Cloud``
     makes them unit length, once)."""
-    rows, p = _local_rows(points)
-    normal_rows, n = _local_rows(normals)
+    rows, p = local_rows(points)
+    normal_rows, n = local_rows(normals)
     if not np.array_equal(rows, normal_rows) or tuple(normals.shape) != tuple(points.shape):
         raise ValueError("normals must be shaped and split like the points")
     return rows, np.asarray(p, float), np.asarray(n, float), int(points.shape[0])
@@ -109,8 +91,8 @@ def settings_across_processes(
     ones are measured per process and combined (module docstring)."""
     rows, p, n, total = local_cloud(points, normals)
     if total <= gather_limit:  # the whole cloud is no more than the probes: gather it
-        order = np.argsort(_gather_ragged(rows), kind="stable")
-        whole_p, whole_n = _gather_ragged(p)[order], _gather_ragged(n)[order]
+        order = np.argsort(gather_ragged(rows), kind="stable")
+        whole_p, whole_n = gather_ragged(p)[order], gather_ragged(n)[order]
         return choose_settings(
             Cloud(whole_p, whole_n), shape, offset, eps, domain, margin, smoothing, solver=solver
         )
@@ -127,29 +109,29 @@ def _combined_settings(rows, p, n, total, shape, offset, eps, domain, margin, sm
     probes = strided_probes(total, most)
     assert probes is not None
     mine = np.flatnonzero(np.isin(rows, probes))  # positions in this process's rows
-    sample = np.argsort(_gather_ragged(rows[mine]), kind="stable")
-    sample_p, sample_n = _gather_ragged(p[mine])[sample], _gather_ragged(n[mine])[sample]
+    sample = np.argsort(gather_ragged(rows[mine]), kind="stable")
+    sample_p, sample_n = gather_ragged(p[mine])[sample], gather_ragged(n[mine])[sample]
     tree = kd_tree(p) if len(p) > 1 else None
     # Spacing: nearest other point of each probe in this process's rows (duplicates skipped).
     nearest = np.empty(0)
     if tree is not None and len(mine):
         dist = tree.query(p[mine], k=min(len(p), 4))[0][:, 1:]
         nearest = np.where(dist > 0, dist, np.inf).min(axis=1)
-    nearest = _gather_ragged(nearest)
+    nearest = gather_ragged(nearest)
     nearest = nearest[np.isfinite(nearest)]
     if nearest.size == 0:
         raise ValueError("all points coincide; the cloud has no extent")
     spacing = float(np.median(nearest))
     # Noise: each probe's residual RMS, from estimate_noise's per-probe form.
     residual = noise_residuals(p, n, tree, at=mine) if len(mine) else np.empty(0)
-    residual = _gather_ragged(np.asarray(residual, float))
+    residual = gather_ragged(np.asarray(residual, float))
     noise = float(np.median(residual)) if residual.size else 0.0
     if offset is None:
         d0 = max(0.5 * spacing, 2.0 * noise)
         ladder = d0 * 0.7 ** np.arange(6)
         # Agreement of every offset of the ladder: the probes' mean over all processes.
         local = offset_agreement(p, n, ladder, tree, mine) if len(mine) else np.zeros(6)
-        table = _allgather(np.concatenate([[len(mine)], len(mine) * np.asarray(local)]))
+        table = allgather(np.concatenate([[len(mine)], len(mine) * np.asarray(local)]))
         agreement = table[:, 1:].sum(axis=0) / table[:, 0].sum()
         best = ladder[np.argmax(agreement >= agreement.max() - 0.01)]  # as choose_offset
         d = float(d0) if agreement[0] >= 0.99 else float(best)
@@ -168,7 +150,7 @@ def _combined_settings(rows, p, n, total, shape, offset, eps, domain, margin, sm
     if ndim == 2:
         radius = 2.0 * float(np.max(upper - lower)) / (max_grid - 3)
         local_width = feature_width(p, n, radius, spacing, mine)[0] if len(mine) else np.empty(0)
-        width = _gather_ragged(np.asarray(local_width, float))
+        width = gather_ragged(np.asarray(local_width, float))
     feature = np.inf if width is None else float(np.sort(width)[int(FEATURE_QUANTILE * width.size)])
     if shape is None:
         shape = choose_grid(lower, upper, spacing, noise, max_grid, feature)

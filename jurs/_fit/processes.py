@@ -9,6 +9,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+from .._cloud.parts import normals_across_processes, spans_processes
 from .._problem.validate import normalise_grid
 from .._solution.solution import RAISED_RESULTS, error_message
 from ..solvers import LeastSquares
@@ -44,15 +45,14 @@ def fit_across_processes(
     all devices, and the fitted spline is replicated on every device. Settings not given
     are chosen by ``jurs._fit.process_settings.settings_across_processes`` (the default
     solver: ``jurs.LeastSquares`` with its lambda; points standing alone are not set
-    aside) and returned in ``sol.settings``. What reads the whole cloud on a host is not
-    run: the estimation of normals, the orientation and doubt checks, the padding to
+    aside) and returned in ``sol.settings``; normals None are estimated by
+    ``jurs._cloud.parts.normals_across_processes``. What reads the whole cloud on a host is not
+    run: the orientation and doubt checks, the padding to
     stable sizes and the store of exported fits (docs/sharding.md)."""
-    if normals is None:
-        raise ValueError(
-            "normals=None estimates normals from the whole cloud, which no process holds "
-            "here: estimate them per process (jurs.estimate_normals) and pass them split "
-            "like the points"
-        )
+    if normals is None:  # estimated over all processes' points, split like them
+        if not spans_processes(points):
+            raise ValueError("normals: pass them split like the points, or None")
+        normals = normals_across_processes(points)
     if smoothing is not None and solver is not None:
         raise ValueError(
             "smoothing sets the default solver's lambda; with a solver given, set its lam instead"
