@@ -30,7 +30,7 @@ import pytest
 pytestmark = pytest.mark.slow
 
 #: Seconds both children together may take before they are killed.
-TIMEOUT = 150
+TIMEOUT = 240
 
 # argv: process id, coordinator port. Prints one JSON line.
 CHILD = textwrap.dedent(
@@ -99,6 +99,9 @@ CHILD = textwrap.dedent(
 
     # Refusal: an input error in one process (process 1's points outside a box around
     # process 0's half), raised in both.
+    bad = p.copy()
+    bad[3000] = np.nan  # in process 1's half
+    out["auto_nan"] = error(lambda: jurs.fit(*spread(bad, n)))
     out["outside"] = error(lambda: jurs.fit(gp, gn, **dict(kw, domain=box(p[:2000]))))
 
     # The layout: this process's slots only, every sample counted once in global order.
@@ -144,7 +147,7 @@ CHILD = textwrap.dedent(
     out["auto"] = entry
 
     # Clouds over PROBES points are measured per process and combined: forced here at 250
-    # probes; process 0 measures the same probes against the whole cloud.
+    # probes of Example 1; process 0 measures the same probes against the whole cloud.
     from jurs._cloud.measure import estimate_noise, point_spacing, strided_probes
     from jurs._fit.process_settings import settings_across_processes
     from jurs._problem.problem import auto_domain, offset_samples
@@ -160,6 +163,7 @@ CHILD = textwrap.dedent(
         entry["whole"] = dict(
             spacing=point_spacing(q, None, at), noise=estimate_noise(q, unit, None, at=at),
             domain=[list(map(float, c)) for c in box],
+            settings=jurs.auto_settings(q, m).as_dict(),
         )
     out["combined"] = entry
     print(json.dumps(out), flush=True)
@@ -261,7 +265,7 @@ def test_settings_measured_per_process_and_combined(reports):
     combined = [report["combined"] for report in reports]
     whole = combined[0].pop("whole")
     assert combined[0] == combined[1]
-    ref = reports[0]["auto"]["ref_settings"]
+    ref = whole["settings"]
     assert abs(combined[0]["spacing"] / whole["spacing"] - 1) < 0.01
     assert abs(combined[0]["noise"] / whole["noise"] - 1) < 0.01
     assert combined[0]["grid"] == ref["grid"] and combined[0]["smoothing"] == ref["smoothing"]
@@ -282,6 +286,10 @@ def test_normals_estimated_across_processes(reports):
 def test_input_errors_across_processes(reports):
     """An input error found in one process is raised in every process, not left to
     hang."""
+    kind, message = reports[1]["auto_nan"]
+    assert kind == "ValueError" and "process 1, its own part" in message
+    kind, message = reports[0]["auto_nan"]
+    assert kind == "RuntimeError" and "process [1] failed checking its points" in message
     kind, message = reports[1]["outside"]
     assert kind == "ValueError" and "outside the given domain" in message
     kind, message = reports[0]["outside"]

@@ -62,6 +62,17 @@ def gathered_probes(rows: np.ndarray, x: np.ndarray, total: int, most: int):
     return held[order], gather_ragged(np.ascontiguousarray(x[mine]))[order]
 
 
+def agree(failure: Exception | None, what: str) -> None:
+    """Raise in every process where one failed (one all-gather of a flag): the failed
+    process its own ``failure``, the others a RuntimeError naming it, instead of waiting
+    for it in the next collective."""
+    failed = np.flatnonzero(allgather(np.array([failure is not None], np.int32))[:, 0])
+    if failure is not None:
+        raise failure
+    if failed.size:
+        raise RuntimeError(f"process {failed.tolist()} failed {what} (see its error)")
+
+
 def normals_across_processes(points, k=None, orient=True, seed=0, most: int = PROBES):
     """[`jurs.estimate_normals`][] of a cloud whose rows the global array ``points``
     spreads over several processes: a global array of outward unit normals, split like
@@ -85,7 +96,12 @@ def normals_across_processes(points, k=None, orient=True, seed=0, most: int = PR
     if len(held) == total:  # the whole cloud: this process's rows of its normals
         mine = oriented[np.searchsorted(held, rows)]
     else:
-        mine = estimate_normals(p, k=k, orient=False, seed=seed)
+        failure, mine = None, None
+        try:  # this process's own rows: an error here is raised in every process
+            mine = estimate_normals(p, k=k, orient=False, seed=seed)
+        except (TypeError, ValueError) as error:
+            failure = type(error)(f"process {jax.process_index()}, its own part: {error}")
+        agree(failure, "estimating its normals")
         assert isinstance(mine, np.ndarray)
         if orient:
             nearest = kd_tree(sample).query(p)[1]

@@ -23,6 +23,7 @@ by small collectives (docs/sharding.md, "Automatic settings over processes").
 
 from __future__ import annotations
 
+import jax
 import numpy as np
 
 from .._cloud.cloud import Cloud
@@ -34,10 +35,10 @@ from .._cloud.measure import (
     offset_agreement,
     strided_probes,
 )
-from .._cloud.parts import allgather, gather_ragged, local_rows
+from .._cloud.parts import agree, allgather, gather_ragged, local_rows
 from .._problem.problem import offset_samples
 from .._problem.sizes import DEFAULT_MARGIN
-from .._problem.validate import unit_normals
+from .._problem.validate import unit_normals, validate_inputs
 from .settings import (
     DEFAULT_MAX_GRID,
     DEFAULT_MAX_GRID_3D,
@@ -90,6 +91,12 @@ def settings_across_processes(
     ``gather_limit`` points are gathered and chosen from as one process chooses; larger
     ones are measured per process and combined (module docstring)."""
     rows, p, n, total = local_cloud(points, normals)
+    failure = None
+    try:  # this process's rows, checked as one process checks its cloud
+        validate_inputs(p, n, offset=offset, eps=eps, domain=domain, margin=margin)
+    except (TypeError, ValueError) as error:
+        failure = type(error)(f"process {jax.process_index()}, its own part: {error}")
+    agree(failure, "checking its points")
     if total <= gather_limit:  # the whole cloud is no more than the probes: gather it
         order = np.argsort(gather_ragged(rows), kind="stable")
         whole_p, whole_n = gather_ragged(p)[order], gather_ragged(n)[order]
