@@ -4,8 +4,9 @@ docs/sharding.md).
 Two child processes on localhost, two CPU devices each, joined by
 ``jax.distributed.initialize`` (cross-process collectives by gloo). Each holds half of the
 cloud (a global ``jax.Array`` made by ``jax.make_array_from_process_local_data``), lays out
-its own samples and fits with explicit settings; process 0 then fits the whole cloud alone
-and compares. The children are started and stopped here, within ``TIMEOUT`` seconds.
+its own samples and fits, with explicit settings and with automatic ones (chosen over both
+processes' points, ``jurs._fit.process_settings``); process 0 then fits the whole cloud
+alone and compares. The children are started and stopped here, within ``TIMEOUT`` seconds.
 
 Surfaces take the same path with one sample a slot; a 3D case here would double the
 time (one more compiled solve in each child), so it is not in the suite (docs/sharding.md
@@ -22,13 +23,14 @@ import sys
 import textwrap
 import time
 
+import numpy as np
 import pytest
 
-#: Two processes compile and run a fit each, process 0 one more (about 30 s here).
+#: Two processes compile and run two fits each, process 0 two more (about 40 s here).
 pytestmark = pytest.mark.slow
 
 #: Seconds both children together may take before they are killed.
-TIMEOUT = 150
+TIMEOUT = 240
 
 # argv: process id, coordinator port. Prints one JSON line.
 CHILD = textwrap.dedent(
@@ -79,10 +81,27 @@ CHILD = textwrap.dedent(
     grid, offset, eps, domain = (24, 24), 0.02, 0.02, box(p)
     kw = dict(grid=grid, offset=offset, eps=eps, domain=domain, solver=jurs.LeastSquares(lam=1e-4))
 
-    # Refusals: automatic settings, a missing domain, and an input error in one process
-    # (process 1's points outside a box around process 0's half), raised in both.
-    out["auto"] = error(lambda: jurs.fit(gp, gn))
-    out["no_domain"] = error(lambda: jurs.fit(gp, gn, **dict(kw, domain=None)))
+    # Normals estimated over both processes: the gathered cloud's exactly; past the
+    # gathered size (forced: 500 probes) each process's PCA signed by the probes'.
+    from jax.experimental.multihost_utils import process_allgather
+    from jurs._cloud.parts import normals_across_processes
+
+    gathered = lambda x: np.asarray(process_allgather(x, tiled=True))
+    est = jurs.estimate_normals(gp)
+    est_whole = gathered(est)  # a collective: every process gathers
+    combined = gathered(normals_across_processes(gp, most=500))
+    out["normals"] = dict(
+        split=est.sharding == gp.sharding,
+        outward=float(np.mean(np.sum(combined * n, axis=1) > 0)),
+    )
+    if pid == 0:
+        out["normals"]["exact"] = bool(np.array_equal(est_whole, jurs.estimate_normals(p)))
+
+    # Refusal: an input error in one process (process 1's points outside a box around
+    # process 0's half), raised in both.
+    bad = p.copy()
+    bad[3000] = np.nan  # in process 1's half
+    out["auto_nan"] = error(lambda: jurs.fit(*spread(bad, n)))
     out["outside"] = error(lambda: jurs.fit(gp, gn, **dict(kw, domain=box(p[:2000]))))
 
     # The layout: this process's slots only, every sample counted once in global order.
@@ -113,6 +132,40 @@ CHILD = textwrap.dedent(
         out[name] = entry
 
     compare("curve", p, n, **kw)
+
+    # Automatic settings and normals: jurs.fit(points) alone, against one process's.
+    q, m = jurs.datasets.example1(1000)
+    auto = jurs.fit(spread(q, m)[0])
+    entry = dict(status=auto.status, settings=auto.settings.as_dict())
+    if pid == 0:
+        ref = jurs.fit(q)
+        c0, c1 = np.asarray(ref.spline.control), np.asarray(auto.spline.control)
+        entry.update(
+            ref=ref.status, ref_settings=ref.settings.as_dict(),
+            rel=float(np.abs(c1 - c0).max() / np.abs(c0).max()),
+        )
+    out["auto"] = entry
+
+    # Clouds over PROBES points are measured per process and combined: forced here at 250
+    # probes of Example 1; process 0 measures the same probes against the whole cloud.
+    from jurs._cloud.measure import estimate_noise, point_spacing, strided_probes
+    from jurs._fit.process_settings import settings_across_processes
+    from jurs._problem.problem import auto_domain, offset_samples
+    from jurs._problem.sizes import DEFAULT_MARGIN
+
+    combined = settings_across_processes(*spread(q, m), gather_limit=250)
+    entry = combined.as_dict()
+    if pid == 0:
+        at = strided_probes(len(q), 250)
+        unit = m / np.linalg.norm(m, axis=1, keepdims=True)
+        samples = offset_samples(q, unit, combined.offset, combined.eps, np)[0]
+        box = auto_domain(samples, DEFAULT_MARGIN, xp=np)
+        entry["whole"] = dict(
+            spacing=point_spacing(q, None, at), noise=estimate_noise(q, unit, None, at=at),
+            domain=[list(map(float, c)) for c in box],
+            settings=jurs.auto_settings(q, m).as_dict(),
+        )
+    out["combined"] = entry
     print(json.dumps(out), flush=True)
     jax.distributed.shutdown()
     """
@@ -191,16 +244,52 @@ def test_each_process_lays_out_its_own_points(reports):
         assert layout["each_sample_once"]
 
 
-def test_automatic_settings_refused_across_processes(reports):
-    """Automatic settings read the whole cloud: refused, naming what to pass; an input
-    error found in one process is raised in every process, not left to hang."""
+def test_automatic_settings_across_processes_equal_one_process(reports):
+    """``jurs.fit(points)`` over 2 processes: the small cloud is gathered, so the normals
+    and settings are one process's exactly (grid, offset, eps, domain, lam), and the
+    control points within 1e-9 (relative) of the one-process automatic fit."""
     for report in reports:
-        kind, message = report["auto"]
-        assert kind == "ValueError"
-        assert "grid, offset, eps, domain, solver explicitly" in message
-        assert "jurs.auto_settings" in message
-        kind, message = report["no_domain"]
-        assert kind == "ValueError" and "pass domain explicitly" in message
+        assert report["auto"]["status"] == "successful"
+        assert report["auto"]["settings"] == reports[0]["auto"]["settings"]
+    auto = reports[0]["auto"]
+    assert auto["ref"] == "successful"
+    assert auto["settings"] == auto["ref_settings"]
+    assert auto["rel"] < 1e-9
+
+
+def test_settings_measured_per_process_and_combined(reports):
+    """Past the gathered size, each process measures its own probes against its own rows:
+    the same settings in every process; the spacing and noise off those of the whole cloud
+    at the same probes only by the probes next to a boundary between the parts (the
+    medians absorb them), the grid and smoothing the same; the domain exact."""
+    combined = [report["combined"] for report in reports]
+    whole = combined[0].pop("whole")
+    assert combined[0] == combined[1]
+    ref = whole["settings"]
+    assert abs(combined[0]["spacing"] / whole["spacing"] - 1) < 0.01
+    assert abs(combined[0]["noise"] / whole["noise"] - 1) < 0.01
+    assert combined[0]["grid"] == ref["grid"] and combined[0]["smoothing"] == ref["smoothing"]
+    # The box of the offsets chosen (up to the rounding of the unit normals).
+    assert np.allclose(combined[0]["domain"], whole["domain"], rtol=1e-14, atol=0)
+
+
+def test_normals_estimated_across_processes(reports):
+    """``jurs.estimate_normals`` of a cloud over 2 processes: split like the points; a
+    small cloud's are the one-process estimate exactly; past the gathered size each
+    process's own estimate, signed by the gathered probes', points outward."""
+    for report in reports:
+        assert report["normals"]["split"]
+        assert report["normals"]["outward"] > 0.99
+    assert reports[0]["normals"]["exact"]
+
+
+def test_input_errors_across_processes(reports):
+    """An input error found in one process is raised in every process, not left to
+    hang."""
+    kind, message = reports[1]["auto_nan"]
+    assert kind == "ValueError" and "process 1, its own part" in message
+    kind, message = reports[0]["auto_nan"]
+    assert kind == "RuntimeError" and "process [1] failed checking its points" in message
     kind, message = reports[1]["outside"]
     assert kind == "ValueError" and "outside the given domain" in message
     kind, message = reports[0]["outside"]

@@ -64,7 +64,7 @@ SKIP = {
     ("docs/design.md", 1): "the public contract: a summary with placeholders (xy, ...)",
     ("docs/design.md", 2): "reserved names: a summary with placeholders (P, N, ...)",
     ("docs/sharding.md", 1): "a million points; tests/test_sharding.py fits small clouds so",
-    ("docs/sharding.md", 2): "several processes (jax.distributed) and the reader's own data",
+    ("docs/sharding.md", 2): "a script started once per process (jax.distributed); run by hand",
 }
 #: Pages whose snippets run with the fast tests: they fit nothing. The others compile and
 #: run fits (the home page's alone, a default 2D fit, takes a few seconds on an idle 2-core

@@ -86,6 +86,20 @@ def estimate_noise(
     terms (3 in 2D, 6 in 3D), so it is unbiased for independent noise. The median ignores
     corners and the ends of a gap. Measured at the points indexed by ``at`` (default all),
     with neighbours from the whole cloud."""
+    rms = noise_residuals(points, normals, tree, neighbours, at)
+    return float(np.median(rms)) if rms.size else 0.0
+
+
+def noise_residuals(
+    points: np.ndarray,
+    normals: np.ndarray,
+    tree: cKDTree | None = None,
+    neighbours: int = NOISE_NEIGHBOURS,
+    at=None,
+) -> np.ndarray:
+    """``estimate_noise``'s RMS residual at every probe with enough same-facing
+    neighbours (twice the quadratic's terms), before the median: a fit over several
+    processes takes the median of all processes' residuals."""
     at = _probe(points, at)
     k = min(len(points), neighbours)
     tree = kd_tree(points) if tree is None else tree
@@ -113,7 +127,7 @@ def estimate_noise(
     coef = np.linalg.solve(gram + 1e-12 * np.eye(terms), rhs[..., None])[..., 0]
     resid = v - (basis * coef[:, None, :]).sum(axis=2)
     rms = np.sqrt((keep * resid * resid).sum(axis=1) / np.maximum(count - terms, 1))
-    return float(np.median(rms[ok])) if ok.any() else 0.0
+    return rms[ok]
 
 
 def offset_agreement(

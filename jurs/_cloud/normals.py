@@ -348,7 +348,18 @@ def estimate_normals(
         ValueError: wrong shape, NaN/inf, fewer than ``2 d + 1`` distinct points, points
             on a line or in a plane (no side of them is outward), float32 points whose
             rounding made them repeat, or a bad ``k``.
+
+    Points held by several processes (a global ``jax.Array`` no process holds whole):
+    every process calls this and gets a global array of the normals, split like the
+    points (``jurs._cloud.parts.normals_across_processes``, docs/sharding.md); no
+    ``return_info`` there.
     """
+    from .parts import normals_across_processes, spans_processes
+
+    if spans_processes(points):
+        if return_info:
+            raise ValueError("return_info: not over several processes (docs/sharding.md)")
+        return normals_across_processes(points, k, orient, seed)  # pyright: ignore[reportReturnType]
     array = _check_points(points)
     d = array.shape[1]
     unique, inverse = np.unique(array, axis=0, return_inverse=True)

@@ -3,13 +3,18 @@ lays out its own rows, and the one jitted solve runs over all devices (docs/shar
 
 from __future__ import annotations
 
+import dataclasses
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 
+from .._cloud.parts import normals_across_processes, spans_processes
 from .._problem.validate import normalise_grid
 from .._solution.solution import RAISED_RESULTS, error_message
+from ..solvers import LeastSquares
 from .call import as_arrays, check_start, solve_fit
+from .process_settings import settings_across_processes
 from .sharding import (
     PROCESS_SETTINGS,
     input_sharding,
@@ -37,31 +42,21 @@ def fit_across_processes(
     ``jax.Array`` s split along the point axis, ``jurs._fit.sharding.spans_processes``);
     every process calls it with the same settings. The sample layout is built per process
     (``jurs._fit.sharding.process_problem``), the solve is the one jitted function over
-    all devices, and the fitted spline is replicated on every device. What reads the whole
-    cloud on a host is not run: the automatic settings (ValueError unless ``grid``,
-    ``offset``, ``eps``, ``domain`` and ``solver`` are given), the estimation of normals,
-    the orientation and doubt checks, the padding to stable sizes and the store of
-    exported fits (docs/sharding.md)."""
-    if normals is None:
+    all devices, and the fitted spline is replicated on every device. Settings not given
+    are chosen by ``jurs._fit.process_settings.settings_across_processes`` (the default
+    solver: ``jurs.LeastSquares`` with its lambda; points standing alone are not set
+    aside) and returned in ``sol.settings``; normals None are estimated by
+    ``jurs._cloud.parts.normals_across_processes``. What reads the whole cloud on a host is not
+    run: the orientation and doubt checks, the padding to
+    stable sizes and the store of exported fits (docs/sharding.md)."""
+    if normals is None:  # estimated over all processes' points, split like them
+        if not spans_processes(points):
+            raise ValueError("normals: pass them split like the points, or None")
+        normals = normals_across_processes(points)
+    if smoothing is not None and solver is not None:
         raise ValueError(
-            "normals=None estimates normals from the whole cloud, which no process holds "
-            "here: estimate them per process (jurs.estimate_normals) and pass them split "
-            "like the points"
+            "smoothing sets the default solver's lambda; with a solver given, set its lam instead"
         )
-    given = dict(grid=grid, offset=offset, eps=eps, domain=domain, solver=solver)
-    missing = [name for name in PROCESS_SETTINGS if given[name] is None]
-    if missing or smoothing is not None:
-        raise ValueError(
-            "points split over several processes: the automatic settings read the whole "
-            "cloud, which no process holds; pass "
-            + (", ".join(missing) if missing else "a solver with its lam, not smoothing")
-            + " explicitly (a fit over several processes needs all of "
-            + f"{', '.join(PROCESS_SETTINGS)}), "
-            "e.g. from jurs.auto_settings(points, normals) on a subsample in one process, "
-            "solver=jurs.LeastSquares(lam=settings.lam)"
-        )
-    if mask is not None:
-        raise ValueError("mask: fits over several processes take no mask (docs/sharding.md)")
     for name, x in (("points", points), ("normals", normals)):
         if not isinstance(x, jax.Array) or x.is_fully_addressable or x.ndim != 2:
             raise ValueError(
@@ -69,6 +64,17 @@ def fit_across_processes(
                 "(m, d) jax.Arrays split the same way along the point axis "
                 "(jax.make_array_from_process_local_data)"
             )
+    if mask is not None:
+        raise ValueError("mask: fits over several processes take no mask (docs/sharding.md)")
+    given = dict(grid=grid, offset=offset, eps=eps, domain=domain, solver=solver)
+    settings = None
+    if any(given[name] is None for name in PROCESS_SETTINGS):
+        shape = None if grid is None else normalise_grid(grid, int(points.shape[1]))
+        settings = settings_across_processes(
+            points, normals, shape, offset, eps, domain, margin, smoothing, solver
+        )
+        grid, offset, eps, domain = settings.grid, settings.offset, settings.eps, settings.domain
+        solver = LeastSquares(lam=settings.lam) if solver is None else solver
     shape = normalise_grid(grid, int(points.shape[1]))
     check_start(shape, solver, init)  # memory: per process, by process_problem
     dtype = jnp.result_type(float)
@@ -82,4 +88,6 @@ def fit_across_processes(
     sol, top_level = solve_fit(problem, solver, init, throw)
     if top_level and throw and sol.status in RAISED_RESULTS:
         raise eqx.EquinoxRuntimeError(error_message(sol.status))
+    if settings is not None:
+        sol = dataclasses.replace(sol, settings=settings)
     return sol

@@ -22,9 +22,10 @@ fully addressable, ``spans_processes``) [`jurs.fit`][] hands over to
 surfaces), the processes agree on the bucket size and on the slot count (two small
 all-gathers), pad to it, and the per-slot arrays are assembled with
 ``jax.make_array_from_process_local_data``; ``sample_index`` counts in the global point
-order. No process holds the whole cloud. What would read it on a host is not run there:
-the automatic settings (grid, offset, eps, domain and solver must be given), the
-estimation of normals, the orientation and doubt checks, the padding to stable sizes.
+order. No process holds the whole cloud: the automatic settings are measured per
+process and combined (``jurs._fit.process_settings``). What would read the whole cloud
+on a host is not run there: the estimation of normals, the orientation and doubt checks,
+the padding to stable sizes.
 
 The slot count is padded to a whole number of buckets a device with masked-out copies of
 the last bucket (the padding convention of [`jurs.internal.bucket_layout`][]), which the
@@ -223,8 +224,8 @@ def place_fit(points, normals, problem: Problem, solver, init):
 
 # Several processes (jax.distributed): each lays out its own points.
 
-#: What a fit over several processes must be given: the automatic choices (grid, offset,
-#: eps, lambda) and the box read the whole cloud, which no process holds.
+#: The settings of a fit over several processes: where any is not given, all not given
+#: are chosen over every process's points (``jurs._fit.process_settings``).
 PROCESS_SETTINGS = ("grid", "offset", "eps", "domain", "solver")
 
 
