@@ -635,8 +635,10 @@ def test_metrics_record_the_doubts_and_extra_components():
     the data (numbers and lists, strict JSON); a fit without doubts has empty lists."""
     from jurs.cli._results import fit_record
 
+    from typing import Any
+
     chosen = jurs.auto_settings(*jurs.datasets.example1(30))
-    job = SimpleNamespace(
+    job: Any = SimpleNamespace(
         path="c.csv",
         points=np.zeros((30, 2)),
         estimated=False,
