@@ -633,9 +633,9 @@ def test_ctrl_c_to_the_process(tmp_path):
 def test_metrics_record_the_doubts_and_extra_components():
     """metrics.json carries the fit's doubts in words and the closed components away from
     the data (numbers and lists, strict JSON); a fit without doubts has empty lists."""
-    from jurs.cli._results import fit_record
-
     from typing import Any
+
+    from jurs.cli._results import fit_record
 
     chosen = jurs.auto_settings(*jurs.datasets.example1(30))
     job: Any = SimpleNamespace(
