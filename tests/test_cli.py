@@ -628,3 +628,65 @@ def test_ctrl_c_to_the_process(tmp_path):
     assert lines[-1].startswith("jurs: interrupted"), err
     assert all("steps" in line for line in lines[:-1]), err
     assert all((out / n).read_text() == "old" for n in os.listdir(out))
+
+
+def test_metrics_record_the_doubts_and_extra_components():
+    """metrics.json carries the fit's doubts in words and the closed components away from
+    the data (numbers and lists, strict JSON); a fit without doubts has empty lists."""
+    from typing import Any
+
+    from jurs.cli._results import fit_record
+
+    chosen = jurs.auto_settings(*jurs.datasets.example1(30))
+    job: Any = SimpleNamespace(
+        path="c.csv",
+        points=np.zeros((30, 2)),
+        estimated=False,
+        grid=(9, 9),
+        lam=1e-6,
+        chosen=chosen,
+    )
+    args = SimpleNamespace(solver="exact", tau=None, steps=20, tol=0.0)
+    component = {
+        "centre": np.array([0.5, -0.25]),
+        "lower": np.array([0.25, -0.5]),
+        "upper": np.array([0.75, 0.0]),
+        "area_share": np.float64(0.125),
+        "distance": np.float64(0.5),
+    }
+    sol = SimpleNamespace(
+        metrics={"E_ave": np.float64(1e-6)},
+        stats={
+            "num_steps": 1,
+            "doubts": ("a closed zero-set component",),
+            "extra_components": (component,),
+        },
+        status="doubtful",
+        message="doubtful",
+        succeeded=False,
+    )
+    metrics = json.loads(
+        json.dumps(fit_record(job, args, sol, 0.5), allow_nan=False, default=float)
+    )["metrics"]
+    assert metrics["doubts"] == ["a closed zero-set component"]
+    assert metrics["extra_components"] == [
+        {
+            "centre": [0.5, -0.25],
+            "lower": [0.25, -0.5],
+            "upper": [0.75, 0.0],
+            "area_share": 0.125,
+            "distance": 0.5,
+        }
+    ]
+    # Settings given: no doubt checks, no entries in stats; the lists are empty.
+    sol.stats = {"num_steps": 1}
+    metrics = fit_record(job, args, sol, 0.5)["metrics"]
+    assert metrics["doubts"] == [] and metrics["extra_components"] == []
+
+
+def test_fit_help_names_mesh_files(capsys):
+    """`jurs fit --help` says that STL and OFF meshes are read (sampled on their faces)."""
+    with pytest.raises(SystemExit):
+        cli.main(["fit", "--help"])
+    text = " ".join(capsys.readouterr().out.split())
+    assert "STL" in text and "OFF" in text and "sampled on its faces" in text

@@ -30,11 +30,12 @@ def test_folder_names_follow_the_stems_and_resolve_clashes_in_order():
 
 
 def test_folders_and_patterns_expand_to_their_cloud_files(tmp_path):
-    for name in ("b.csv", "a.npy", "notes.md", "c.xyz"):
+    for name in ("b.csv", "a.npy", "notes.md", "c.xyz", "d.STL", "e.off"):
         (tmp_path / name).write_text("")
     (tmp_path / "sub.csv").mkdir()  # a folder, not a cloud
     found = expand_inputs([str(tmp_path)])
-    assert [os.path.basename(p) for p in found] == ["a.npy", "b.csv", "c.xyz"]
+    # Triangle meshes (STL, OFF) are read as the surfaces they describe.
+    assert [os.path.basename(p) for p in found] == ["a.npy", "b.csv", "c.xyz", "d.STL", "e.off"]
     pattern = expand_inputs([str(tmp_path / "*.csv"), str(tmp_path / "b.csv")])
     assert [os.path.basename(p) for p in pattern] == ["b.csv"]  # named twice, fitted once
 

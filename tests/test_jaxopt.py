@@ -28,13 +28,22 @@ def test_jurs_works_without_jaxopt():
         try:
             jurs.fit(points, normals, grid=6, offset=0.1, eps=0.01, solver=jurs.JaxoptLBFGS())
         except ImportError as exc:
-            assert "jurs[jaxopt]" in str(exc), exc
+            assert "pip install -e '.[jaxopt]'" in str(exc), exc
             print("ok")
     """)
     out = subprocess.run(
         [sys.executable, "-c", script], capture_output=True, text=True, timeout=300
     )
     assert out.stdout.strip() == "ok", out.stderr[-2000:]
+
+
+def test_missing_jaxopt_says_to_install_from_the_checkout(monkeypatch):
+    """jurs is not published: the hint installs the extra from the checkout."""
+    from jurs.solvers._jaxopt import _import_jaxopt
+
+    monkeypatch.setitem(sys.modules, "jaxopt", None)  # `import jaxopt` raises ImportError
+    with pytest.raises(ImportError, match=r"pip install -e '\.\[jaxopt\]'"):
+        _import_jaxopt()
 
 
 jaxopt = pytest.importorskip("jaxopt")

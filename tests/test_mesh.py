@@ -27,6 +27,17 @@ pytest.importorskip("trimesh")
 Spline = namedtuple("Spline", "control weights lower upper")
 
 
+def test_missing_scikit_image_says_to_install_from_the_checkout(monkeypatch):
+    """jurs is not published: the hint installs the extra from the checkout."""
+    import sys
+
+    from jurs.levelset._meshing import _marching_cubes
+
+    monkeypatch.setitem(sys.modules, "skimage.measure", None)
+    with pytest.raises(ImportError, match=r"pip install -e '\.\[surfaces\]'"):
+        _marching_cubes()
+
+
 def greville_nodes(lower, upper, shape):
     """The coefficient sites of each axis, ``(axes, h)``."""
     h = [(hi - lo) / (n - 3) for lo, hi, n in zip(lower, upper, shape)]

@@ -12,7 +12,8 @@
                                                      supplementary, x, y (trimmed to
                                                      the data with --trim)
     jurs fit SCAN [options]       fit a surface to a 3D cloud (PLY, OBJ, XYZ or PTS; vertex
-                                  normals where the file has them, else estimated) and
+                                  normals where the file has them, else estimated; a PLY,
+                                  OBJ, STL or OFF mesh with faces is sampled on its faces) and
                                   write, into --output:
                                     metrics.json     fit and mesh metrics, settings, timings
                                     spline.npz       the 3D spline (jurs.load_spline)
@@ -169,12 +170,14 @@ def _fit_parser(sub) -> argparse.ArgumentParser:
     f = sub.add_parser(
         "fit",
         help="fit a point cloud from a CSV, TXT or NPY file (2D) or a PLY, OBJ, XYZ "
-        "or PTS file (3D)",
+        "or PTS file, or an STL or OFF mesh (3D)",
         description="Fit an implicit spline to points with outward normals (columns x, y, "
         "nx, ny; or x, y alone, whose normals are then estimated) and write "
         "metrics.json, spline.npz, fit.png and zero_level.csv to --output. A 3D "
         "cloud (PLY, OBJ, XYZ or PTS; normals estimated where the file has none) "
-        "gets a surface: metrics.json, spline.npz, mesh.ply and preview.png.",
+        "gets a surface: metrics.json, spline.npz, mesh.ply and preview.png. A triangle "
+        "mesh (PLY, OBJ, STL or OFF with faces) is read as the surface it describes: "
+        "points and normals are drawn uniformly by area on its faces.",
         formatter_class=argparse.ArgumentDefaultsHelpFormatter,
     )
     f.add_argument(
@@ -183,7 +186,8 @@ def _fit_parser(sub) -> argparse.ArgumentParser:
         action=FilesAction,
         help="CSV/TXT (columns x, y, nx, ny; optional header) or NPY (m, 4); "
         "3D: PLY or OBJ (vertices, vertex normals) or XYZ/PTS (rows "
-        "x y z [nx ny nz]). Several files, a folder or a glob pattern: each "
+        "x y z [nx ny nz]); a PLY, OBJ, STL or OFF mesh with faces is sampled on its "
+        "faces. Several files, a folder or a glob pattern: each "
         "cloud is fitted into its own sub-folder of --output, named from its file",
     )
     f.add_argument(

@@ -22,7 +22,7 @@ from ._inputs import InputError, _one_line, printable
 
 #: The suffixes of the clouds a folder given on the command line is searched for (those
 #: ``jurs.datasets.load_points`` reads); other files in it are left alone.
-CLOUD_FILE_SUFFIXES = (".csv", ".txt", ".npy", ".ply", ".obj", ".xyz", ".pts")
+CLOUD_FILE_SUFFIXES = (".csv", ".txt", ".npy", ".ply", ".obj", ".xyz", ".pts", ".stl", ".off")
 
 _GLOB_CHARS = frozenset("*?[")
 

@@ -13,7 +13,7 @@ import time
 from typing import TYPE_CHECKING
 
 from ._inputs import printable
-from ._outputs import _save_figure, _write_record_and_spline
+from ._outputs import _json_safe, _save_figure, _write_record_and_spline
 
 if TYPE_CHECKING:
     from . import FitJob
@@ -21,7 +21,11 @@ if TYPE_CHECKING:
 
 def fit_record(job: FitJob, args, sol, seconds: float) -> dict:
     """The part of metrics.json that curves and surfaces share: input, settings and the
-    fit's own metrics (the level-set or mesh measures are added to ``metrics``)."""
+    fit's own metrics (the level-set or mesh measures are added to ``metrics``), with the
+    reasons to doubt the zero set (``doubts``, in words, as ``sol.stats["doubts"]``) and
+    the closed components away from the data (``extra_components``: centre, bounding box,
+    share of the zero set and distance to the points, as lists and numbers); both empty
+    lists where the fit gave no doubt."""
     metrics = {k: v for k, v in sol.metrics.items()}
     metrics.update(
         num_steps=int(sol.stats["num_steps"]),
@@ -29,6 +33,8 @@ def fit_record(job: FitJob, args, sol, seconds: float) -> dict:
         result=sol.message,
         converged=bool(sol.succeeded),
         time_s=seconds,
+        doubts=[str(d) for d in sol.stats.get("doubts") or ()],
+        extra_components=_json_safe(list(sol.stats.get("extra_components") or ())),
     )
     return {
         "input": printable(os.path.abspath(job.path)),

@@ -68,7 +68,9 @@ def _marching_cubes():
     try:
         from skimage.measure import marching_cubes
     except ImportError:
-        raise ImportError('meshing needs scikit-image: pip install "jurs[surfaces]"') from None
+        raise ImportError(
+            "meshing needs scikit-image: from the jurs checkout, pip install -e '.[surfaces]'"
+        ) from None
     return marching_cubes
 
 

@@ -1,9 +1,9 @@
 """jaxopt solvers (LBFGS, GaussNewton, LevenbergMarquardt) behind the jurs solver interface.
 
-jaxopt is an optional extra (``pip install jurs[jaxopt]``; deprecated upstream): it is
-imported when a solve runs, so ``import jurs`` works without it. jaxopt's
-LevenbergMarquardt rejects pytree parameters, so every wrapper optimises the raveled
-vector of C (or of C and log w).
+jaxopt is an optional extra (from the jurs checkout ``pip install -e '.[jaxopt]'``;
+deprecated upstream): it is imported when a solve runs, so ``import jurs`` works without
+it. jaxopt's LevenbergMarquardt rejects pytree parameters, so every wrapper optimises the
+raveled vector of C (or of C and log w).
 """
 
 from __future__ import annotations
@@ -33,7 +33,8 @@ def _import_jaxopt():
             import jaxopt
     except ImportError as exc:  # pragma: no cover - exercised only without jaxopt
         raise ImportError(
-            "the jaxopt solvers need the optional dependency jaxopt: pip install 'jurs[jaxopt]'"
+            "the jaxopt solvers need the optional dependency jaxopt: from the jurs checkout, "
+            "pip install -e '.[jaxopt]'"
         ) from exc
     return jaxopt
 
