@@ -46,6 +46,7 @@ import numpy as np
 from jax.core import Tracer
 from jax.sharding import NamedSharding, PartitionSpec
 
+from .._cloud.parts import local_rows
 from .._model.basis import flat_cell, locate, num_cells
 from .._model.spline import LocalBasis
 from .._problem.layout import choose_bucket_size
@@ -255,21 +256,6 @@ def _process_positions(sharding: NamedSharding, shards: int) -> list[int]:
     return sorted(p for p, o in owners.items() if me in o)
 
 
-def _local_rows(x) -> tuple[np.ndarray, np.ndarray]:
-    """``(rows, data)``: this process's rows of the global array ``x``, each once (its
-    shards with replica id 0, in global order), and their indices in ``x``."""
-    parts = sorted(
-        (
-            (s.index[0].start or 0, np.asarray(s.data))
-            for s in x.addressable_shards
-            if s.replica_id == 0
-        ),
-        key=lambda part: part[0],
-    )
-    rows = np.concatenate([start + np.arange(len(data)) for start, data in parts])
-    return rows, np.concatenate([data for _, data in parts])
-
-
 def _agreed(values: list[int], failure: Exception | None, what: str) -> np.ndarray:
     """``(processes, len(values))``: ``values`` of every process (one small all-gather).
     Where a process failed (``failure``) it raises its own error and every other process
@@ -323,8 +309,8 @@ def process_problem(
     assert sharding is not None
     shards = _axis_size(sharding)
     positions = _process_positions(sharding, shards)
-    rows, p = _local_rows(points)
-    normal_rows, n = _local_rows(normals)
+    rows, p = local_rows(points)
+    normal_rows, n = local_rows(normals)
     total = int(points.shape[0])
     if not np.array_equal(rows, normal_rows) or tuple(normals.shape) != tuple(points.shape):
         raise ValueError("normals must be shaped and split like the points")

@@ -20,7 +20,7 @@ from scipy.sparse import csgraph
 from scipy.spatial import cKDTree  # pyright: ignore[reportAttributeAccessIssue]  # no stub
 
 from ..datasets import sample_mesh
-from ._trimming import DEFAULT_TRIM, UNSUPPORTED_FRACTION, Support
+from ._trimming import DEFAULT_TRIM, UNSUPPORTED_FRACTION, Support, check_points
 
 #: Default supplementary threshold: this many median nearest-neighbour spacings of the
 #: data, and at least ``THRESHOLD_DIAGONAL`` of the data's bounding-box diagonal.
@@ -62,16 +62,7 @@ def _check_mesh(vertices, faces):
 
 def _check_points(points, name: str, minimum: int = 1) -> np.ndarray:
     """``points`` as float64 ``(m, 3)``, m >= ``minimum``, finite; ValueError naming ``name``."""
-    points = np.asarray(points, dtype=np.float64)
-    if points.ndim != 2 or points.shape[1] != 3 or len(points) < minimum:
-        raise ValueError(f"{name} must have shape (m, 3) with m >= {minimum}, got {points.shape}")
-    bad = ~np.isfinite(points).all(axis=1)
-    if bad.any():
-        raise ValueError(
-            f"{name} must be finite; {int(bad.sum())} of {len(points)} hold NaN or infinite "
-            f"coordinates (the first is row {int(np.flatnonzero(bad)[0])})"
-        )
-    return points
+    return check_points(points, 3, name, minimum)
 
 
 def clean_faces(faces: Int[np.ndarray, "F 3"]) -> tuple[Int[np.ndarray, " K"], tuple[str, ...]]:

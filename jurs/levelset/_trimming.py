@@ -68,12 +68,14 @@ def check_trim(trim, points) -> float | None:
     return value
 
 
-def check_points(points, dim: int, name: str = "points") -> np.ndarray:
-    """``points`` as float64 ``(m, dim)`` with finite rows and at least 2 distinct ones;
+def check_points(points, dim: int, name: str = "points", minimum: int = 2) -> np.ndarray:
+    """``points`` as float64 ``(m, dim)`` with finite rows, at least ``minimum`` of them;
     ValueError naming ``name`` otherwise."""
     points = np.asarray(points, dtype=np.float64)
-    if points.ndim != 2 or points.shape[1] != dim or len(points) < 2:
-        raise ValueError(f"{name} must have shape (m, {dim}) with m >= 2, got {points.shape}")
+    if points.ndim != 2 or points.shape[1] != dim or len(points) < minimum:
+        raise ValueError(
+            f"{name} must have shape (m, {dim}) with m >= {minimum}, got {points.shape}"
+        )
     bad = ~np.isfinite(points).all(axis=1)
     if bad.any():
         raise ValueError(
