@@ -193,3 +193,19 @@ def test_adaptive_surface_fit_meshes_a_sphere():
     assert report.num_components == 1 and report.components[0].genus == 0
     radius = float(np.mean(np.linalg.norm(np.asarray(points), axis=1)))
     assert np.abs(np.linalg.norm(vertices, axis=1) - radius).max() < 0.02 * radius
+
+
+def test_fit_adaptive_checks_its_input_even_with_settings_given():
+    t = np.linspace(0, 2 * np.pi, 60, endpoint=False)
+    points = np.stack([np.cos(t), np.sin(t)], 1)
+    settings = jurs.auto_settings(points, points)
+    bad = points.copy()
+    bad[5, 0] = np.nan
+    with pytest.raises(ValueError, match="NaN|finite"):
+        jurs.fit_adaptive(bad, points, settings=settings)
+    with pytest.raises(ValueError, match="band"):
+        jurs.fit_adaptive(points, points, band=0)
+    with pytest.raises(ValueError, match="method"):
+        jurs.fit_adaptive(points, points, method="lu")
+    with pytest.raises(ValueError, match="finest"):
+        jurs.fit_adaptive(points, points, finest=4)

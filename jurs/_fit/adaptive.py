@@ -24,6 +24,7 @@ import numpy as np
 from jax import lax
 from jaxtyping import ArrayLike, Float
 
+from .._cloud.cloud import Cloud
 from .._linalg.pcg import conjugate_gradients
 from .._model.adaptive import AdaptiveSpline
 from .._problem.adaptive import (
@@ -155,7 +156,9 @@ def fit_adaptive(
             ``"direct"`` for a curve and ``"cg"`` for a surface, whose factor fills in
             (3D nested dissection fill grows as n^(4/3)).
         settings: the [`jurs.Settings`][] to take offset, eps, domain and smoothing from
-            (skips the measurement).
+            (skips the measurement). The points it sets aside (``settings.set_aside``:
+            points that stand alone) are left out of the fit, as [`jurs.fit`][] leaves
+            them out.
 
     Returns:
         A [`jurs.Solution`][] whose ``spline`` is a [`jurs.AdaptiveSpline`][];
@@ -176,9 +179,15 @@ def fit_adaptive(
         from .._cloud.normals import estimate_normals
 
         normals = cast(np.ndarray, estimate_normals(points))
+    # Checked once (NaN, shapes, zero normals, degenerate clouds) and exact repeats merged,
+    # whether or not the settings are given.
+    cloud = Cloud(points, normals)
     if settings is None:
-        settings = auto_settings(points, normals, offset=offset, eps=eps, domain=domain)
-    points_np = np.asarray(points, float)
+        settings = auto_settings(cloud, offset=offset, eps=eps, domain=domain)
+    keep = np.ones(len(cloud.points), bool)
+    keep[list(settings.set_aside)] = False
+    points_np = cloud.points[keep]
+    normals_np = np.asarray(cloud.normals, float)[keep]
     ndim = points_np.shape[1]
     lower, upper = (np.asarray(v, float) for v in settings.domain)
     longest = float((upper - lower).max())
@@ -198,7 +207,7 @@ def fit_adaptive(
     dtype = jnp.result_type(float)
     problem = make_adaptive_problem(
         points_np,
-        np.asarray(normals, float),
+        normals_np,
         offset=offset_value,
         eps=eps_value,
         lower=lower,
