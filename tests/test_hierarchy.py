@@ -209,3 +209,17 @@ def test_fit_adaptive_checks_its_input_even_with_settings_given():
         jurs.fit_adaptive(points, points, method="lu")
     with pytest.raises(ValueError, match="finest"):
         jurs.fit_adaptive(points, points, finest=4)
+
+
+def test_fit_adaptive_in_float32_converges():
+    """In float32 CG stops at a tolerance above rounding, not at its step cap."""
+    t = np.linspace(0, 2 * np.pi, 200, endpoint=False)
+    points = np.stack([np.cos(t), np.sin(t)], 1)
+    sol = jurs.fit_adaptive(points, points, finest=64, method="cg", dtype=jnp.float32)
+    assert sol.spline.control.dtype == jnp.float32
+    assert sol.status == "successful" and sol.stats["num_steps"] < 1000
+    assert (
+        float(sol.spline(jnp.zeros(2, jnp.float32)))
+        < 0
+        < float(sol.spline(jnp.ones(2, jnp.float32)))
+    )

@@ -55,6 +55,8 @@ DEFAULT_BAND = 2
 CELL_SPACINGS = {2: 1.0, 3: 3.0}
 #: CG stops at this residual, relative to ``|D^T b|``.
 DEFAULT_RTOL = 1e-10
+#: CG's stop rule in float32, where ``DEFAULT_RTOL`` is below rounding.
+FLOAT32_RTOL = 1e-5
 #: A direct solve whose relative residual exceeds this met a singular matrix.
 DIRECT_RTOL = 1e-6
 
@@ -131,10 +133,11 @@ def fit_adaptive(
     domain=None,
     smoothing: float | None = None,
     lam: float | None = None,
-    rtol: float = DEFAULT_RTOL,
+    rtol: float | None = None,
     max_steps: int = 10_000,
     settings: Settings | None = None,
     method: str | None = None,
+    dtype=None,
 ) -> Solution:
     """Fit an implicit spline on an adaptive (THB) basis: fine cells in a band around the
     data, coarse ones elsewhere, so that the cost grows with the shape's boundary rather
@@ -150,11 +153,16 @@ def fit_adaptive(
             1).
         offset, eps, domain, smoothing: as in [`jurs.auto_settings`][]; chosen from the
             data when None. ``lam`` overrides the lambda made from ``smoothing``.
-        rtol, max_steps: the conjugate gradients' stop rule.
+        rtol, max_steps: the conjugate gradients' stop rule; ``rtol`` None takes
+            ``DEFAULT_RTOL`` in float64 and ``FLOAT32_RTOL`` in float32 (a residual of
+            1e-10 is below float32's rounding, and CG would run to ``max_steps``).
         method: ``"direct"`` (a sparse factorisation on the host, SciPy's SuperLU) or
             ``"cg"`` (conjugate gradients in JAX, the path that runs on a GPU); None takes
             ``"direct"`` for a curve and ``"cg"`` for a surface, whose factor fills in
             (3D nested dissection fill grows as n^(4/3)).
+        dtype: of the fit's arrays; None takes JAX's default float (float64 with
+            ``jax_enable_x64``). A direct solve factorises in float64 on the host either
+            way.
         settings: the [`jurs.Settings`][] to take offset, eps, domain and smoothing from
             (skips the measurement). The points it sets aside (``settings.set_aside``:
             points that stand alone) are left out of the fit, as [`jurs.fit`][] leaves
@@ -204,7 +212,7 @@ def fit_adaptive(
     lower, upper, base, levels = adaptive_layout(lower, upper, cell)
     offset_value = settings.offset if offset is None else float(offset)
     eps_value = settings.eps if eps is None else float(eps)
-    dtype = jnp.result_type(float)
+    dtype = jnp.dtype(dtype or jnp.result_type(float))
     problem = make_adaptive_problem(
         points_np,
         normals_np,
@@ -224,6 +232,8 @@ def fit_adaptive(
         strength = settings.smoothing if smoothing is None else float(smoothing)
         diagonal = float(np.linalg.norm(points_np.max(0) - points_np.min(0)))
         lam = scale_free_lam(strength, 3 * len(points_np), diagonal, lower, upper, finest_cell)
+    if rtol is None:
+        rtol = DEFAULT_RTOL if dtype == jnp.float64 else FLOAT32_RTOL
     if method == "direct":
         control_np, residual = solve_direct(problem, float(lam))
         control, steps = jnp.asarray(control_np, dtype), 0
