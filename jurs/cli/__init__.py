@@ -43,7 +43,6 @@ and what a curve fit and a surface fit write in ``_results``.
 
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import os
 import shutil  # noqa: F401  (cli.shutil: the tests patch cli.shutil.disk_usage)
@@ -52,13 +51,10 @@ import time
 import warnings
 from typing import TYPE_CHECKING, cast
 
-from ._batch import FilesAction, is_batch, run_batch
+from ._batch import is_batch, run_batch
 from ._inputs import (
     InputError,
-    _grid,
-    _nonneg,
     _one_line,
-    _positive,
     grid_for,
     printable,
     read_input,
@@ -75,6 +71,7 @@ from ._outputs import (
     outputs_for,
     write_outputs,
 )
+from ._parser import build_parser
 from ._results import (
     curve_outputs,
     fit_record,
@@ -132,156 +129,6 @@ def cache_disabled_by_environment() -> bool:
     empty, ``0``, ``false`` or ``no``)."""
     value = os.environ.get(NO_CACHE_VARIABLE, "").strip().lower()
     return value not in ("", "0", "false", "no")
-
-
-def _solver_names():
-    import jurs
-
-    names = ["auto", "iurs", "ipia"]
-    if hasattr(jurs, "LeastSquares"):
-        names.append("lstsq")
-    return names
-
-
-def build_parser() -> argparse.ArgumentParser:
-    """The ``jurs`` command line's parser: subcommands ``demo`` and ``fit``."""
-    parser = argparse.ArgumentParser(
-        prog="jurs",
-        description="Implicit curve and surface reconstruction with uniform rational splines.",
-        epilog="Run 'jurs fit --help' for the fit options.",
-    )
-    sub = parser.add_subparsers(dest="command", required=True)
-    demo = sub.add_parser("demo", help="fit the paper's Example 1 with IPIA and IURS")
-    demo.add_argument("--output", default="demo-output", help="folder for the figure")
-    f = _fit_parser(sub)
-    for command in (demo, f):
-        command.add_argument(
-            "--no-compilation-cache",
-            action="store_true",
-            help="do not keep compiled fits in JAX's persistent compilation cache "
-            "($XDG_CACHE_HOME/jurs or ~/.cache/jurs; JURS_NO_COMPILATION_CACHE=1 "
-            "does the same)",
-        )
-    return parser
-
-
-def _fit_parser(sub) -> argparse.ArgumentParser:
-    """The ``jurs fit`` subcommand and its options."""
-    f = sub.add_parser(
-        "fit",
-        help="fit a point cloud from a CSV, TXT or NPY file (2D) or a PLY, OBJ, XYZ "
-        "or PTS file, or an STL or OFF mesh (3D)",
-        description="Fit an implicit spline to points with outward normals (columns x, y, "
-        "nx, ny; or x, y alone, whose normals are then estimated) and write "
-        "metrics.json, spline.npz, fit.png and zero_level.csv to --output. A 3D "
-        "cloud (PLY, OBJ, XYZ or PTS; normals estimated where the file has none) "
-        "gets a surface: metrics.json, spline.npz, mesh.ply and preview.png. A triangle "
-        "mesh (PLY, OBJ, STL or OFF with faces) is read as the surface it describes: "
-        "points and normals are drawn uniformly by area on its faces.",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
-    )
-    f.add_argument(
-        "file",
-        nargs="+",
-        action=FilesAction,
-        help="CSV/TXT (columns x, y, nx, ny; optional header) or NPY (m, 4); "
-        "3D: PLY or OBJ (vertices, vertex normals) or XYZ/PTS (rows "
-        "x y z [nx ny nz]); a PLY, OBJ, STL or OFF mesh with faces is sampled on its "
-        "faces. Several files, a folder or a glob pattern: each "
-        "cloud is fitted into its own sub-folder of --output, named from its file",
-    )
-    f.add_argument(
-        "--grid",
-        type=_grid,
-        default=None,
-        metavar="N[xM[xK]]",
-        help="basis functions along x and y (and z: N or NxMxK for a 3D cloud); "
-        "None chooses from the data (jurs.auto_settings)",
-    )
-    f.add_argument(
-        "--solver",
-        default="auto",
-        choices=_solver_names(),
-        help="auto: exact least squares with the automatic lambda; iurs: "
-        "Algorithm 1 (rational); ipia: I-PIA (B-spline); lstsq: exact least "
-        "squares (B-spline) with --lam",
-    )
-    f.add_argument(
-        "--lam",
-        type=_nonneg,
-        default=None,
-        help="regularisation weight: eq. 33's lambda for iurs (keep it well below "
-        "1/16; None is 0), the objective's lambda in E_d + lam R for lstsq "
-        "and auto (None chooses); ipia has none",
-    )
-    f.add_argument(
-        "--smoothing",
-        type=_nonneg,
-        default=None,
-        help="auto only: the dimensionless strength the automatic lambda is made "
-        "from (jurs.auto_settings; about 1e-6 on clean clouds to 1e-3 on "
-        "noisy ones); None chooses",
-    )
-    f.add_argument("--tau", type=_nonneg, default=1e-2, help="weight step size (iurs, eq. 20)")
-    f.add_argument(
-        "-d",
-        "--offset",
-        type=_positive,
-        default=None,
-        help="offset distance d; None chooses from the data",
-    )
-    f.add_argument(
-        "--eps", type=_positive, default=None, help="target value at the offsets; None takes d"
-    )
-    f.add_argument(
-        "--steps",
-        type=int,
-        default=200,
-        help="maximum number of steps (iurs, ipia; lstsq solves once)",
-    )
-    f.add_argument(
-        "--tol",
-        type=_nonneg,
-        default=1e-7,
-        help="stop when |E_new - E_old| < tol (eq. 38); 0 runs all steps",
-    )
-    f.add_argument(
-        "-o",
-        "--output",
-        default="jurs-output",
-        help="output folder (several clouds: one sub-folder each inside it)",
-    )
-    f.add_argument(
-        "--resolution",
-        type=int,
-        default=None,
-        help="2D: level-set grid nodes along the longer side of the box (None: "
-        "512); 3D: marching-cubes lattice nodes along the longest side "
-        "(None: 5 per spline cell, 32 to 256)",
-    )
-    f.add_argument(
-        "--threshold",
-        type=_positive,
-        default=None,
-        help="distance to the data above which a zero-level component is "
-        "supplementary; None means 2 d (2D), or 3 point spacings and at "
-        "least 1%% of the cloud's diagonal (3D)",
-    )
-    f.add_argument(
-        "--trim",
-        type=_positive,
-        nargs="?",
-        const=True,
-        default=None,
-        metavar="SPACINGS",
-        help="open scans and open curves: keep only the zero set within SPACINGS local "
-        "point spacings of the data (given alone: jurs.levelset.DEFAULT_TRIM, 2.5); "
-        "mesh.ply (3D) or zero_level.csv (2D) then holds the trimmed surface or "
-        "curve pieces, and metrics.json the trim, boundary loops (3D) and end points "
-        "(2D). Put it after the file names",
-    )
-    f.add_argument("-q", "--quiet", action="store_true", help="no progress bar or summary")
-    return f
 
 
 def make_solver(name: str, *, lam: float | None, tau: float, steps: int, tol: float, chosen=None):

@@ -63,8 +63,8 @@ trim=)``) keep the part of a zero set within a number of local point spacings of
 data (``jurs/levelset/_trimming.py``; docs/surfaces.md, "Open scans").
 """
 
-# Curves (2D) in _curves; surfaces (3D) meshed in _meshing and measured in _mesh_analysis;
-# one public namespace.
+# Curves (2D) in _curves, their refined distances in _distances; surfaces (3D) meshed in
+# _meshing and measured in _mesh_analysis; one public namespace.
 from ._curves import (
     BYTES_PER_NODE,
     DEFAULT_RESOLUTION,
@@ -78,16 +78,14 @@ from ._curves import (
     chamfer_hausdorff,
     classify,
     contour_lines,
-    distance_to_polyline,
     evaluate_grid,
     polyline_length,
     polylines_table,
-    project_to_zero_set,
-    refined_chamfer_hausdorff,
     resample,
     sampling_grid,
     zero_level_set,
 )
+from ._distances import distance_to_polyline, project_to_zero_set, refined_chamfer_hausdorff
 from ._mesh_analysis import (
     MeshComponent,
     MeshReport,
