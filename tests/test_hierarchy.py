@@ -7,9 +7,9 @@ import numpy as np
 import pytest
 
 import jurs
-from jurs._fit.adaptive import adaptive_layout, solve_adaptive
+from jurs._fit.adaptive import adaptive_layout, solve_adaptive, solve_direct
 from jurs._model.hierarchy import _offsets, _ravel, _unravel
-from jurs._problem.adaptive import at_points, make_adaptive_problem
+from jurs._problem.adaptive import assemble_adaptive_problem, at_points, make_adaptive_problem
 from jurs.internal import build_hierarchy, cascade, hierarchy_values, refine_near
 
 
@@ -107,6 +107,28 @@ def test_refined_everywhere_fit_equals_uniform_fit():
         solver=jurs.LeastSquares(lam=lam, ridge=0.0),
     )
     np.testing.assert_allclose(control, uniform.spline.control.ravel(), rtol=1e-8, atol=1e-10)
+
+
+def test_direct_solve_falls_back_to_superlu(monkeypatch):
+    """QDLDL refuses a matrix with a zero pivot (RuntimeError); the direct solve then
+    takes SuperLU, whose pivoting still answers, and both agree on a regular matrix."""
+    import qdldl
+
+    points, normals = jurs.datasets.example1(100)
+    lower, upper = np.min(points, 0) - 1.0, np.max(points, 0) + 1.0
+    problem, matrices = assemble_adaptive_problem(
+        points, normals, offset=0.2, eps=0.2, lower=lower, upper=upper, base=(6, 6), levels=2
+    )
+    control, residual = solve_direct(problem, 1e-3, matrices)
+    assert residual < 1e-12
+
+    def refuse(matrix):
+        raise RuntimeError("Input matrix is not quasi-definite")
+
+    monkeypatch.setattr(qdldl, "Solver", refuse)
+    fallback, residual = solve_direct(problem, 1e-3)  # assembled again: the same matrix
+    assert residual < 1e-12
+    np.testing.assert_allclose(fallback, control, rtol=1e-9, atol=1e-12)
 
 
 def test_layout_has_square_cells_and_a_coarse_base():

@@ -107,6 +107,37 @@ def make_adaptive_problem(
     """The samples of eq. 4-5 for unit outward ``normals`` and a hierarchy of ``levels``
     refinements of ``base`` cells around them (``refine_near``, ``band`` cells wide at each
     level). Host work on concrete points."""
+    problem, _ = assemble_adaptive_problem(
+        points,
+        normals,
+        offset=offset,
+        eps=eps,
+        lower=lower,
+        upper=upper,
+        base=base,
+        levels=levels,
+        band=band,
+        dtype=dtype,
+    )
+    return problem
+
+
+def assemble_adaptive_problem(
+    points: Float[ArrayLike, "m d"],
+    normals: Float[ArrayLike, "m d"],
+    *,
+    offset: float,
+    eps: float,
+    lower: Float[ArrayLike, " d"],
+    upper: Float[ArrayLike, " d"],
+    base: tuple[int, ...],
+    levels: int,
+    band: int = 2,
+    dtype=None,
+) -> tuple[AdaptiveProblem, tuple]:
+    """``(problem, (D, 2 G^T W G))``: ``make_adaptive_problem``'s problem and the host
+    matrices of ``normal_matrices`` it was assembled from (its Jacobi diagonals come from
+    them), so that a direct solve factorises them without assembling them again."""
     dtype = dtype or jnp.result_type(float)
     points_np = np.asarray(points, dtype=float)
     normals_np = np.asarray(normals, dtype=float)
@@ -124,7 +155,7 @@ def make_adaptive_problem(
     )
     data_diagonal = np.asarray(collocation.multiply(collocation).sum(axis=0)).ravel()
     regulariser_diagonal = regulariser.diagonal()
-    return AdaptiveProblem(
+    problem = AdaptiveProblem(
         hierarchy=hierarchy,
         samples=samples,
         targets=targets,
@@ -136,6 +167,7 @@ def make_adaptive_problem(
         offset=jnp.asarray(offset, dtype),
         eps=jnp.asarray(eps, dtype),
     )
+    return problem, (collocation, regulariser)
 
 
 def at_points(
