@@ -41,6 +41,23 @@ def test_partition_of_unity_and_nonnegative(ndim):
 
 
 @pytest.mark.parametrize("ndim", [2, 3])
+def test_one_search_over_levels_equals_a_search_per_level(ndim, monkeypatch):
+    """``leaf_terms`` searches the keys of all levels at once; where those would leave
+    int32 it searches level by level. Both give the same positions."""
+    from jurs._model import hierarchy as module
+
+    hierarchy = _hierarchy(ndim)
+    x = _random_points(hierarchy, 300)
+    level, cell = module.locate_leaves(hierarchy, x)
+    positions, t = module.leaf_terms(hierarchy, x, level, cell)
+    monkeypatch.setattr(module, "_MAX_KEY", 0)
+    per_level, t_per_level = module.leaf_terms(hierarchy, x, level, cell)
+    np.testing.assert_array_equal(positions, per_level)
+    np.testing.assert_array_equal(t, t_per_level)
+    assert len(np.unique(np.asarray(level))) > 1  # points on several levels' leaves
+
+
+@pytest.mark.parametrize("ndim", [2, 3])
 def test_active_functions_are_linearly_independent(ndim):
     """A THB spline is 0 iff its cascaded coefficients over every leaf are 0 (B-splines are
     locally independent on a cell): the map from active coefficients to those has full

@@ -462,24 +462,47 @@ def leaf_terms(
 ) -> tuple[Int[Array, "n k"], Array]:
     """For points in the given leaves: the positions, in the cascaded vector of
     [`cascade`][jurs.internal.cascade], of the ``4^d`` functions over each leaf, and the
-    local coordinates ``t (n, d)`` in the leaf. Differentiable in ``x`` through ``t``."""
+    local coordinates ``t (n, d)`` in the leaf. Differentiable in ``x`` through ``t``.
+
+    One sorted search of ``4^d`` keys per point: every level's function keys, shifted past
+    the previous levels' grids, form one sorted array whose positions are those of the
+    cascaded vector. (A search per level would cost ``levels * 4^d`` per point.) Where the
+    shifted keys would leave int32, a search per level it is."""
     ndim = hierarchy.ndim
     offsets = jnp.asarray(_offsets(ndim, 4), jnp.int32)
-    positions = jnp.zeros((x.shape[0], 4**ndim), jnp.int32)
-    t = jnp.zeros_like(x)
-    start = 0
+    levels = hierarchy.num_levels
+    grids = [int(np.prod(hierarchy.functions(lev))) for lev in range(levels)]
+    shifts = np.concatenate([[0], np.cumsum(grids)[:-1]]).astype(np.int64)
     unit = (x - hierarchy.lower) / (hierarchy.upper - hierarchy.lower)
+    cells = jnp.asarray([hierarchy.cells(lev) for lev in range(levels)], unit.dtype)
+    t = unit * cells[level] - cell.astype(unit.dtype)
+    if int(shifts[-1]) + grids[-1] > _MAX_KEY:
+        return _leaf_positions_per_level(hierarchy, level, cell, offsets), t
+    combined = jnp.concatenate(
+        [hierarchy.function_keys[lev] + jnp.int32(shifts[lev]) for lev in range(levels)]
+    )
+    extent = jnp.asarray([hierarchy.functions(lev) for lev in range(levels)], jnp.int32)[level]
+    index = cell[:, None, :] + offsets[None]
+    key = index[..., 0]
+    for axis in range(1, ndim):
+        key = key * extent[:, None, axis] + index[..., axis]
+    key = key + jnp.asarray(shifts, jnp.int32)[level][:, None]
+    positions = jnp.clip(jnp.searchsorted(combined, key), 0, combined.shape[0] - 1)
+    return positions.astype(jnp.int32), t
+
+
+def _leaf_positions_per_level(hierarchy: Hierarchy, level, cell, offsets) -> Array:
+    """``leaf_terms``' positions by one sorted search per level (keys beyond int32)."""
+    positions = jnp.zeros((cell.shape[0], offsets.shape[0]), jnp.int32)
+    start = 0
     for lev in range(hierarchy.num_levels):
         extent = hierarchy.functions(lev)
         keys = hierarchy.function_keys[lev]
-        here = level == lev
         key = _jnp_ravel(cell[:, None, :] + offsets[None], extent)
         at = jnp.clip(jnp.searchsorted(keys, key), 0, keys.shape[0] - 1) + start
-        positions = jnp.where(here[:, None], at, positions)
-        local = unit * jnp.asarray(hierarchy.cells(lev), unit.dtype) - cell.astype(unit.dtype)
-        t = jnp.where(here[:, None], local, t)
+        positions = jnp.where((level == lev)[:, None], at, positions)
         start += hierarchy.level_sizes[lev]
-    return positions, t
+    return positions
 
 
 def hierarchy_basis(t: Float[Array, "n d"]) -> Float[Array, "n k"]:
