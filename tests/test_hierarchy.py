@@ -9,7 +9,13 @@ import pytest
 import jurs
 from jurs._fit.adaptive import adaptive_layout, solve_adaptive, solve_direct
 from jurs._model.hierarchy import _offsets, _ravel, _unravel
-from jurs._problem.adaptive import assemble_adaptive_problem, at_points, make_adaptive_problem
+from jurs._problem.adaptive import (
+    adaptive_metrics,
+    assemble_adaptive_problem,
+    assembled_metrics,
+    at_points,
+    make_adaptive_problem,
+)
 from jurs.internal import build_hierarchy, cascade, hierarchy_values, refine_near
 
 
@@ -138,6 +144,11 @@ def test_direct_solve_falls_back_to_superlu(monkeypatch):
     )
     control, residual = solve_direct(problem, 1e-3, matrices)
     assert residual < 1e-12
+    # The host metrics of a direct solve are the traced ones.
+    host = assembled_metrics(problem, matrices, control, 1e-3)
+    traced = adaptive_metrics(problem, jnp.asarray(control), 1e-3)
+    for name, value in traced.items():
+        np.testing.assert_allclose(host[name], value, rtol=1e-9, err_msg=name)
 
     def refuse(matrix):
         raise RuntimeError("Input matrix is not quasi-definite")
@@ -262,3 +273,42 @@ def test_fit_adaptive_in_float32_converges():
         < 0
         < float(sol.spline(jnp.ones(2, jnp.float32)))
     )
+
+
+@pytest.mark.parametrize("ndim", [2, 3])
+def test_packed_evaluation_equals_the_splines_own(ndim):
+    """The packed arrays of a rational adaptive spline (keys shifted and padded, levels
+    padded) give its values and gradients to rounding."""
+    from jurs._model.packed import pack, packed_values, packed_values_and_gradients
+
+    hierarchy = _hierarchy(ndim)
+    rng = np.random.default_rng(5)
+    spline = jurs.AdaptiveSpline(
+        hierarchy,
+        jnp.asarray(rng.normal(size=hierarchy.num_active)),
+        jnp.asarray(rng.uniform(0.5, 2.0, hierarchy.num_active)),
+    )
+    packed = pack(spline)
+    assert packed is not None and packed.cells.shape[0] % 4 == 0
+    x = _random_points(hierarchy, 300)
+    np.testing.assert_allclose(packed_values(packed, x), spline(x), rtol=1e-12, atol=1e-13)
+    value, gradient = packed_values_and_gradients(packed, x)
+    np.testing.assert_allclose(value, spline(x), rtol=1e-12, atol=1e-13)
+    np.testing.assert_allclose(gradient, spline.grad(x), rtol=1e-10, atol=1e-12)
+
+
+def test_level_sets_of_two_adaptive_fits_compile_once():
+    """Two circles of other sizes and radii fit to different hierarchies; their level sets
+    are evaluated by one compiled program (their packed arrays share a size class)."""
+    from test_compile import _CompileCounter
+
+    counts = []
+    for m, radius in ((150, 1.0), (170, 1.3)):
+        t = np.linspace(0, 2 * np.pi, m, endpoint=False)
+        circle = np.stack([np.cos(t), np.sin(t)], 1)
+        sol = jurs.fit_adaptive(radius * circle, circle, finest=64)
+        with _CompileCounter("packed") as counter:
+            report = jurs.levelset.analyze(sol.spline, radius * circle, resolution=100)
+        assert report.num_components == 1
+        counts.append(counter.count)
+    assert counts[0] >= 1 and counts[1] == 0, counts

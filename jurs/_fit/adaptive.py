@@ -27,10 +27,12 @@ from jaxtyping import ArrayLike, Float
 from .._cloud.cloud import Cloud
 from .._linalg.pcg import conjugate_gradients
 from .._model.adaptive import AdaptiveSpline
+from .._model.precision import on_device
 from .._problem.adaptive import (
     AdaptiveProblem,
     adaptive_metrics,
     assemble_adaptive_problem,
+    assembled_metrics,
     normal_matrices,
     normal_matvec,
     normal_rhs,
@@ -97,9 +99,6 @@ def solve_adaptive(
 
 
 _solve = eqx.filter_jit(solve_adaptive)
-
-
-_metrics = eqx.filter_jit(adaptive_metrics)
 
 
 def solve_direct(problem: AdaptiveProblem, lam: float, matrices=None):
@@ -238,7 +237,7 @@ def fit_adaptive(
     )
     hierarchy = problem.hierarchy
     finest_level = hierarchy.num_levels - 1
-    finest_cell = float(np.max(np.asarray(hierarchy.cell_width(finest_level))))
+    finest_cell = float(np.max((upper - lower) / np.asarray(hierarchy.cells(finest_level))))
     if lam is None:
         strength = settings.smoothing if smoothing is None else float(smoothing)
         diagonal = float(np.linalg.norm(points_np.max(0) - points_np.min(0)))
@@ -247,15 +246,15 @@ def fit_adaptive(
         rtol = DEFAULT_RTOL if dtype == jnp.float64 else FLOAT32_RTOL
     if method == "direct":
         control_np, residual = solve_direct(problem, float(lam), matrices)
-        control, steps = jnp.asarray(control_np, dtype), 0
-        metrics = _metrics(problem, control, float(lam))
+        control, steps = on_device(control_np, dtype), 0
+        metrics = assembled_metrics(problem, matrices, control_np, float(lam))
         # A direct solve is exact up to rounding; a residual far above it means the
         # factorisation met a (numerically) singular matrix.
         tolerance = max(rtol, DIRECT_RTOL)
     else:
         control, steps, residual, metrics = _solve(problem, float(lam), float(rtol), int(max_steps))
         tolerance = rtol
-    spline = AdaptiveSpline(hierarchy, control, jnp.ones_like(control))
+    spline = AdaptiveSpline(hierarchy, control, on_device(np.ones(control.shape), dtype))
     finite = bool(np.all(np.isfinite(np.asarray(control))))
     converged = float(residual) <= tolerance
     result = (
