@@ -254,7 +254,13 @@ def true_rims(vertices, faces, part_faces, spacing: float) -> dict:
         seen[idx[small[labels]]] = not flip_from
     raw = len(boundary_loops(vertices, part_faces)[0])
     clean = boundary_loops(vertices, faces[seen])[1] if seen.any() else np.empty(0)
-    return {"raw_loops": raw, "rims": len(clean), "rim_lengths": clean.tolist()}
+    pieces = mesh_components(vertices, faces[seen])[0] if seen.any() else 0
+    return {
+        "raw_loops": raw,
+        "rims": len(clean),
+        "rim_lengths": clean.tolist(),
+        "true_components": int(pieces),
+    }
 
 
 # --------------------------------------------------------------------------- methods
@@ -476,7 +482,8 @@ def verdicts(record) -> dict:
 def tables(runs):
     head = (
         "| case | method | setting | Chamfer | / diag (1e-4) | Hausdorff | / diag (1e-3) | "
-        "stray max (spacings) | area > 2 sp. | boundary loops (true rims) | components | time s |"
+        "stray max (spacings) | area > 2 sp. | boundary loops (true rims) | components (true) | "
+        "time s |"
     )
     rows = [head, "|---" * 12 + "|"]
     for r in runs:
@@ -487,16 +494,16 @@ def tables(runs):
                 f"{1e4 * e['chamfer_rel']:.2f} | {e['hausdorff']:.2e} | "
                 f"{1e3 * e['hausdorff_rel']:.2f} | {e['stray_max']:.1f} | "
                 f"{100 * e['stray_share']:.2f} % | {e['loops']} ({r['rims']}) | "
-                f"{e['components']} | {e['time_s']:.2f} |"
+                f"{e['components']} ({r.get('true_components', '-')}) | {e['time_s']:.2f} |"
             )
         rows.append(
             f"| {r['case']} | scanned part (truth) | - | - | - | - | - | "
             f"{r['truth_stray_max']:.1f} | {100 * r['truth_stray_share']:.2f} % | "
-            f"{r['rims']} | - | - |"
+            f"{r['rims']} | {r.get('true_components', '-')} | - |"
         )
     ratios = [
         "| case | m | Chamfer / best trim | Hausdorff / best trim | Chamfer / untrimmed | "
-        "Hausdorff / untrimmed | time / untrimmed | accuracy | stray ≤ 2 | loops |",
+        "Hausdorff / untrimmed | time / Poisson's | accuracy | stray ≤ 2 | loops |",
         "|---" * 10 + "|",
     ]
     for r in runs:
@@ -532,8 +539,95 @@ def tables(runs):
     return rows, ratios, search, rims
 
 
-#: What the committed run measured, in words (docs/surfaces.md, "Open scans", cites it).
-FINDINGS = ""
+def span(values, fmt="{:.2f}") -> str:
+    """``low-high`` of ``values`` (one value alone)."""
+    lo, hi = min(values), max(values)
+    return fmt.format(lo) if lo == hi else f"{fmt.format(lo)}-{fmt.format(hi)}"
+
+
+def findings(runs) -> str:
+    """The targets met and missed, with the measurements that bound the misses."""
+    n = len(runs)
+    v = [verdicts(r) for r in runs]
+    rows = [r["rows"] for r in runs]
+    c_best = [ratio(r, "chamfer", "Poisson best-Chamfer trim") for r in runs]
+    h_best = [ratio(r, "hausdorff", "Poisson best-Hausdorff trim") for r in runs]
+    c_raw = [ratio(r, "chamfer", "Poisson") for r in runs]
+    to_part = [
+        x["jurs"]["to_mesh_mean"] / x["Poisson best-Chamfer trim"]["to_mesh_mean"] for x in rows
+    ]
+    to_mesh = [
+        x["jurs"]["to_truth_mean"] / x["Poisson best-Chamfer trim"]["to_truth_mean"] for x in rows
+    ]
+    c_two = [x["jurs trim 2"]["chamfer"] / x["Poisson best-Chamfer trim"]["chamfer"] for x in rows]
+    h_spacings = [x["jurs"]["hausdorff"] / r["spacing"] for x, r in zip(rows, runs)]
+    q = sorted(
+        {
+            x[k]["q"]
+            for x in rows
+            for k in ("Poisson best-Chamfer trim", "Poisson best-Hausdorff trim")
+        }
+    )
+    loops_missed = [
+        f"{r['case']}: {r['rows']['jurs']['loops']} loops for {r['rims']} rims (the "
+        "longest "
+        + ", ".join(f"{x / r['spacing']:.0f}" for x in r["rows"]["jurs"]["loop_lengths"])
+        + " spacings around; the true rims "
+        + ", ".join(f"{x / r['spacing']:.0f}" for x in r["rim_lengths"])
+        + ", along whole faces of the true mesh, a zigzag; the scanned part has "
+        f"{r['raw_loops']} loops before holes and islands too small to count are closed)"
+        for r, ok in zip(runs, v)
+        if not ok["loops"]
+    ]
+    jurs_s = [x["jurs"]["time_s"] for x in rows]
+    poisson_s = [x["Poisson"]["time_s"] for x in rows]
+    first_s = [r["jurs_fit"]["first_s"] for r in runs]
+    return "\n".join(
+        [
+            f"- **Accuracy: met on {sum(x['accuracy'] for x in v)} of {n} cases.** jurs's "
+            f"Chamfer distance to the scanned part was {span(c_best)}x Poisson's at its best "
+            f"quantile, its Hausdorff distance {span(h_best)}x (against Poisson untrimmed: "
+            f"{span(c_raw)}x its Chamfer). The two directions tell why. From the scanned "
+            f"part to the mesh (how well the surface follows the data) jurs's mean distance "
+            f"was {span(to_part)}x Poisson's best trim; from the mesh to the scanned part "
+            f"(surface where nothing was scanned) {span(to_mesh)}x. The default trim keeps "
+            "surface up to 2.5 local spacings from the nearest sample, so the mesh runs on "
+            "about 3 spacings past the rim (the rim's spacing reads about 1.2x), all of it "
+            "counted against the part; that band sets jurs's Hausdorff distance "
+            f"({span(h_spacings, '{:.1f}')} spacings). Poisson's quantile was chosen per "
+            f"case against the truth ({', '.join(f'{x:g}' for x in q)}), which a user "
+            "cannot do; no quantile suited every case. A trim of 2 brought jurs's Chamfer "
+            f"to {span(c_two)}x Poisson's best, but opened small holes (more loops).",
+            f"- **No stray surface (nothing beyond {STRAY_TARGET:g} spacings): missed on "
+            f"{n - sum(x['stray'] for x in v)} of {n}.** jurs's farthest point lay "
+            f"{span([x['jurs']['stray_max'] for x in rows], '{:.1f}')} spacings from the data, "
+            f"with {span([100 * x['jurs']['stray_share'] for x in rows])} % of its area "
+            f"beyond {STRAY_TARGET:g} (trim 2: "
+            f"{span([100 * x['jurs trim 2']['stray_share'] for x in rows])} %); Poisson "
+            f"untrimmed {span([100 * x['Poisson']['stray_share'] for x in rows], '{:.0f}')} %. "
+            "The bound: random samples leave gaps, so by the same measure the true scanned "
+            f"part itself reaches {span([r['truth_stray_max'] for r in runs], '{:.1f}')} "
+            "spacings. And the trim tests the distance at vertices, taking it as linear "
+            "along edges, while faces at the default resolution are about a spacing wide, "
+            "so points inside the faces clipped at the rim reach past it. A target of 2 "
+            "is below what the truth meets; the trim bounds the surface at about its own "
+            "value, 2.5, plus the clipped faces at the rim.",
+            f"- **Boundary loops = true rims: met on {sum(x['loops'] for x in v)} of {n}.**"
+            + (f" Missed: {'; '.join(loops_missed)}." if loops_missed else "")
+            + " Extra loops are small holes: gaps between random samples, or patches "
+            f"hidden from every viewpoint but under {RIM_CELLS:g} squared spacings, which "
+            "the true rim count leaves out. A finer grid follows the data more closely and "
+            "shows more of them (ad hoc, the three-view bunny at a grid cap of 48: 17 loops, "
+            "Chamfer 1.77x Poisson's best).",
+            "- **Reproducibility.** jurs's scores were identical in two runs (2026-12-04); "
+            "Open3D's Poisson meshes are not (its octree is built by several threads): "
+            "its best-trim Hausdorff distances differed by up to 14 % between the runs and "
+            "its Chamfer distances by up to 2 %.",
+            f"- **Time.** jurs's warm fit + mesh + trim took {span(jurs_s, '{:.0f}')} s, "
+            f"Poisson {span(poisson_s, '{:.1f}')} s; jurs's first call, compilation "
+            f"included, {span(first_s, '{:.0f}')} s.",
+        ]
+    )
 
 
 def markdown(payload):
@@ -589,8 +683,8 @@ def markdown(payload):
         *ratios,
         "",
     ]
-    if payload.get("findings", FINDINGS):
-        lines += ["## What met and what missed", "", payload.get("findings") or FINDINGS, ""]
+    if payload["runs"]:
+        lines += ["## What met and what missed", "", findings(payload["runs"]), ""]
     lines += ["## Meshes", "", *rows, "", "## The scans", "", *rims, ""]
     lines += [
         "## Poisson's density quantile search",
