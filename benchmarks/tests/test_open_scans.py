@@ -118,6 +118,8 @@ def test_a_small_run_writes_its_results(tmp_path):
     (run,) = data["runs"]
     assert set(open_scans.ROW_ORDER) <= set(run["rows"])
     assert run["rims"] == 1
-    # Untrimmed, Poisson closes the sphere: far more stray surface than jurs's trimmed mesh.
-    assert run["rows"]["Poisson"]["stray_share"] > 10 * run["rows"]["jurs"]["stray_share"]
+    # Untrimmed, both close the sphere: far more stray surface than jurs's trimmed mesh.
+    rows = run["rows"]
+    assert rows["Poisson"]["stray_share"] > 3 * rows["jurs"]["stray_share"]
+    assert rows["jurs untrimmed"]["stray_share"] > 3 * rows["jurs"]["stray_share"]
     assert (tmp_path / "small.md").read_text().startswith("# Open scans")
