@@ -248,3 +248,29 @@ def test_float32_georeferenced_cloud_is_refused(estimated):
     with pytest.raises(ValueError, match=r"float32, which at \|x\| = 5.4e\+06 resolves only"):
         jurs.fit(*given)
     jurs.Cloud(points.astype(np.float32), normals)  # near the origin float32 resolves it
+
+
+@pytest.mark.slow  # a 3D fit through the command line, meshed and measured
+def test_command_line_carries_ply_colours_onto_the_mesh(tmp_path, monkeypatch):
+    """``jurs fit scan.ply``: per-vertex red/green/blue of the input cloud come back on
+    mesh.ply's vertices (red above the equator, blue below)."""
+    trimesh = pytest.importorskip("trimesh")
+    from jurs import cli
+    from jurs.datasets._files import _write_ply
+
+    monkeypatch.setenv("JURS_NO_COMPILATION_CACHE", "1")  # as tests/test_cli_surfaces.py
+    points, normals = jurs.datasets.sphere3d(1500)
+    rgb = np.where(points[:, 2:] > 0, [[255, 0, 0]], [[0, 0, 255]]).astype(np.uint8)
+    _write_ply(str(tmp_path / "scan.ply"), points, normals=normals, colors=rgb)
+    out = tmp_path / "result"
+    assert cli.main(["fit", str(tmp_path / "scan.ply"), "-o", str(out), "--grid", "12", "-q"]) == 0
+    mesh = trimesh.load(out / "mesh.ply", process=False)
+    vertices = np.asarray(mesh.vertices)
+    colours = np.asarray(mesh.visual.vertex_colors)[:, :3].astype(int)
+    # Two cells away from the equator, where the colour steps: the smooth field rings a
+    # little there (a few levels of 255), and is exact on most vertices.
+    above, below = vertices[:, 2] > 0.5, vertices[:, 2] < -0.5
+    for side, colour in ((above, [255, 0, 0]), (below, [0, 0, 255])):
+        error = np.abs(colours[side] - colour)
+        assert error.max() <= 16 and error.mean() <= 1
+    assert (out / "metrics.json").read_text().count('"vertex_colors": true') == 1

@@ -338,6 +338,29 @@ def _vertex_colors(path: str, colors, count: int) -> np.ndarray:
     return np.clip(c, 0, 255).astype(np.uint8)
 
 
+def ply_vertex_colors(path: str) -> np.ndarray | None:
+    """``(V, 3)`` uint8 red, green and blue of a PLY point cloud's vertices, one row a
+    vertex in the file's order (the rows [`load_points`][jurs.datasets.load_points]
+    returns); None where the file is not a PLY, has no vertex colours, or has faces (a
+    mesh is read as points drawn on its faces, which carry no file colour)."""
+    if _suffix(path) != ".ply":
+        return None
+    trimesh = _trimesh()
+    try:
+        with open(path, "rb") as fh:
+            data = trimesh.exchange.ply.load_ply(fh)
+    except Exception:  # load_points names what is wrong with the file
+        return None
+    colors = data.get("vertex_colors")
+    faces = data.get("faces")
+    if colors is None or (faces is not None and len(faces)):
+        return None
+    colors = np.asarray(colors)
+    if colors.ndim != 2 or colors.shape[1] < 3:
+        return None
+    return colors[:, :3].astype(np.uint8)
+
+
 def _write_ply(path: str, vertices, faces=None, normals=None, colors=None) -> None:
     """A binary little-endian PLY of float64 (``double``) vertices, with vertex normals
     where given, ``uchar`` red, green and blue where ``colors`` (uint8 ``(V, 3)``) are
