@@ -199,6 +199,28 @@ def _mesh_counts(report) -> str:
     )
 
 
+def _vertex_colours(job: FitJob, sol, vertices):
+    """The mesh's vertex colours in [0, 1], fitted from the input PLY's per-vertex red,
+    green and blue (``jurs.fit_attributes``), or None where the input has none. A fit
+    whose box leaves points out (a --domain given) writes the mesh without them, with a
+    note."""
+    import numpy as np
+
+    import jurs
+
+    from ..datasets._files import ply_vertex_colors
+
+    rgb = ply_vertex_colors(job.path)
+    if rgb is None or len(rgb) != len(job.points):
+        return None
+    try:
+        field = jurs.fit_attributes(sol, job.points, rgb / 255.0)
+    except ValueError as exc:
+        print(f"jurs: note: {job.shown}: colours not carried ({exc})", file=sys.stderr)
+        return None
+    return np.asarray(field(vertices))
+
+
 def surface_outputs(job: FitJob, args, sol, seconds: float):
     """A surface's outputs (``OUTPUTS_3D``): ``(write, summary line)``. The zero set is
     meshed and measured here (components, genus, supplementary ones; Chamfer and Hausdorff
@@ -229,6 +251,7 @@ def surface_outputs(job: FitJob, args, sol, seconds: float):
             "is fitted; --trim keeps the part the data support",
             file=sys.stderr,
         )
+    colours = _vertex_colours(job, sol, vertices)
     distances = ls.mesh_distances(vertices, faces, job.points, job.normals)
     t2 = time.perf_counter()
     record = fit_record(job, args, sol, seconds)
@@ -240,6 +263,7 @@ def surface_outputs(job: FitJob, args, sol, seconds: float):
         trim=trim,
     )
     record["mesh"] = mesh_record(vertices, faces, report, distances, resolution)
+    record["mesh"]["vertex_colors"] = colours is not None
     record["timings"] = {"fit_s": seconds, "mesh_s": t1 - t0, "analysis_s": t2 - t1}
     counts = _mesh_counts(report)
     highlight = (
@@ -248,7 +272,7 @@ def surface_outputs(job: FitJob, args, sol, seconds: float):
 
     def write(folder):
         _write_record_and_spline(folder, record, spline)
-        datasets.save_mesh(os.path.join(folder, "mesh.ply"), vertices, faces)
+        datasets.save_mesh(os.path.join(folder, "mesh.ply"), vertices, faces, colors=colours)
         fig, axes = plot._mesh_axes(None, pyplot=False)
         plot.plot_mesh(
             vertices,
