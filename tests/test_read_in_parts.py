@@ -113,7 +113,7 @@ def test_load_rows_errors(tmp_path):
     with pytest.raises(ValueError, match="nan.npy: row 8 has NaN"):
         load_rows(tmp_path / "nan.npy", 1, 2)
     with pytest.raises(ValueError, match="process_index must be an int"):
-        load_rows(tmp_path / "nan.npy", 0.0, 2)
+        load_rows(tmp_path / "nan.npy", 0.0, 2)  # pyright: ignore[reportArgumentType]
 
 
 @pytest.mark.parametrize("counts", [[300, 700], [500, 500], [0, 1000], [1, 2, 997], [9, 1, 990]])

@@ -66,8 +66,8 @@ def _check_process(process_index, process_count) -> None:
 
 
 def _paths(path_or_paths) -> list[str]:
-    """Files named: one path, a glob pattern (sorted matches) or a sequence of paths (in
-    its order); FileNotFoundError naming every missing one."""
+    """Files named: one path, a glob pattern (sorted matches; FileNotFoundError where none)
+    or a sequence of paths (in its order)."""
     if isinstance(path_or_paths, (str, os.PathLike)):
         name = os.fspath(path_or_paths)
         if glob.has_magic(name) and not os.path.exists(name):
@@ -80,12 +80,16 @@ def _paths(path_or_paths) -> list[str]:
         paths = [os.fspath(p) for p in path_or_paths]
         if not paths:
             raise ValueError("path_or_paths: no files given")
+    return paths
+
+
+def _check_exist(paths: list[str]) -> None:
+    """FileNotFoundError naming every one of ``paths`` that is missing."""
     missing = [p for p in paths if not os.path.exists(p)]
     if missing:
         more = f" and {len(missing) - 5} more" if len(missing) > 5 else ""
         shown = ", ".join(missing[:5]) + more
         raise FileNotFoundError(f"{shown}: no such file")
-    return paths
 
 
 def load_rows(
@@ -112,7 +116,9 @@ def load_rows(
       [`load_points`][jurs.datasets.load_points] (``mesh_samples`` is passed on) and
       concatenates them in order. Every file must hold the same columns: the same
       dimension, all with normals or all without. One path that is not a ``.npy`` is a
-      list of one file.
+      list of one file. Every process must be given the same list (a glob sees the same
+      files where the folder is shared; on machines with their own disks pass the list),
+      and checks that its own files exist.
 
     The parts together are the whole cloud, in the order of the rows and the files,
     process 0's first: [`global_arrays`][jurs.datasets.global_arrays] makes them the global
@@ -122,7 +128,8 @@ def load_rows(
     ``jax.process_count()`` (after ``jax.distributed.initialize``, or
     [`jurs.distributed.initialize`][]); pass both to read a part without JAX's runtime.
 
-    Raises FileNotFoundError naming the missing files (or a pattern without matches),
+    Raises FileNotFoundError naming this process's missing files (or a pattern without
+    matches),
     ValueError for fewer rows or files than processes (every process must hold a part),
     for a ``.npy`` that is not a 2-D numeric array of 2, 3, 4 or 6 columns, for files of
     different columns (naming the first that differs from the part's first), and for the
@@ -136,8 +143,10 @@ def load_rows(
         process_count = jax.process_count() if process_count is None else process_count
     paths = _paths(path_or_paths)
     if len(paths) == 1 and paths[0].lower().endswith(".npy"):
+        _check_exist(paths)
         return _npy_rows(paths[0], process_index, process_count)
     mine = part_files(paths, process_index, process_count)
+    _check_exist(mine)  # its own only: machines may hold only their own files
     parts = [(path, *load_points(path, mesh_samples=mesh_samples)) for path in mine]
     first, p0, n0 = parts[0]
     for path, p, n in parts[1:]:
@@ -299,14 +308,22 @@ def global_arrays(
     total -= left
     d = points.shape[1]
     start = int(counts[: jax.process_index()].sum())
-    own = points if normals is None else np.concatenate([points, np.asarray(normals)], axis=1)
-    # The maths dtype (float32 where JAX's x64 is off); rows past ``total`` dropped.
-    own = own[: max(0, min(len(own), total - start))].astype(jax.dtypes.canonicalize_dtype(float))
+    keep = max(0, min(len(points), total - start))  # rows past ``total`` dropped
     target = _target(sharding, (total, d))
-    index, rows = _outgoing(own, start, target)
-    mine = _assemble(own, start, target, gather_ragged(index), gather_ragged(rows))
+    dtype = jax.dtypes.canonicalize_dtype(float)  # float32 where JAX's x64 is off
+    if (start, start + keep) == target:  # this part is its devices' rows: no copy
+        empty = np.empty((0, 2 * d if normals is not None else d), dtype)
+        gather_ragged(np.empty(0, np.int64)), gather_ragged(empty)  # the others' exchange
+        mine_p = np.asarray(points[:keep], dtype)
+        mine_n = None if normals is None else np.asarray(np.asarray(normals)[:keep], dtype)
+    else:
+        own = points if normals is None else np.concatenate([points, np.asarray(normals)], 1)
+        own = own[:keep].astype(dtype)
+        index, rows = _outgoing(own, start, target)
+        mine = _assemble(own, start, target, gather_ragged(index), gather_ragged(rows))
+        mine_p, mine_n = mine[:, :d], (None if normals is None else mine[:, d:])
 
     def make(x):
         return jax.make_array_from_process_local_data(sharding, np.ascontiguousarray(x), (total, d))
 
-    return make(mine[:, :d]), (None if normals is None else make(mine[:, d:]))
+    return make(mine_p), (None if mine_n is None else make(mine_n))
