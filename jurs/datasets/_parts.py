@@ -129,9 +129,8 @@ def load_rows(
     [`jurs.distributed.initialize`][]); pass both to read a part without JAX's runtime.
 
     Raises FileNotFoundError naming this process's missing files (or a pattern without
-    matches),
-    ValueError for fewer rows or files than processes (every process must hold a part),
-    for a ``.npy`` that is not a 2-D numeric array of 2, 3, 4 or 6 columns, for files of
+    matches), ValueError for fewer rows or files than processes (every process must hold
+    a part), for a ``.npy`` that is not a 2-D numeric array of 2, 3, 4 or 6 columns, for files of
     different columns (naming the first that differs from the part's first), and for the
     checks of [`load_points`][jurs.datasets.load_points] on this process's rows
     (NaN/Inf, zero normals; a ``.npy`` row is named by its row in the whole file).
