@@ -329,12 +329,18 @@ PARTS_CHILD = textwrap.dedent(
         exact=bool(np.array_equal(mine, whole[rows, :3]))
         and bool(np.array_equal(local_rows(gn)[1], whole[rows, 3:])),
     )
-    # One .npy of 1002 rows: 501 read by each, 2 left over on 4 devices.
+    # One .npy of 1000 rows: the rows each reads are its devices' rows, nothing moves.
     q, m = jurs.datasets.load_rows(os.path.join(folder, "cloud.npy"))
-    out["npy_error"] = error(lambda: jurs.datasets.global_arrays(q, m))
+    gq, gm = jurs.datasets.global_arrays(q, m)
+    rows, mine = local_rows(gq)
+    out["npy"] = dict(read=len(q), shape=list(gq.shape), first=int(rows[0]),
+                      same=bool(np.array_equal(mine, q) and np.array_equal(local_rows(gm)[1], m)))
+    # Of 1002 rows: 501 read by each, 2 left over on 4 devices; dropped, one row moves.
+    q, m = jurs.datasets.load_rows(os.path.join(folder, "whole.npy"))
+    out["odd_error"] = error(lambda: jurs.datasets.global_arrays(q, m))
     gq, _ = jurs.datasets.global_arrays(q, m, drop_remainder=True)
     rows, mine = local_rows(gq)
-    out["npy"] = dict(read=len(q), shape=list(gq.shape),
+    out["odd"] = dict(read=len(q), shape=list(gq.shape),
                       exact=bool(np.array_equal(mine, whole[rows, :3])))
 
     sol = jurs.fit(gp, gn, grid=(8, 8, 8), offset=0.05, eps=0.05,
@@ -367,7 +373,8 @@ PARTS_CHILD = textwrap.dedent(
 def test_read_in_parts_fit_and_write_once(tmp_path):
     """``python -m jurs.distributed --processes 2`` (2 CPU devices each) runs a script that
     reads a cloud in parts (files of unequal sizes, and rows of one ``.npy``), makes the
-    global arrays (rows exchanged to the even split; a remainder refused, then dropped),
+    global arrays (the rows read where they are the devices' split, else rows exchanged
+    to it; a remainder refused, then dropped),
     fits, and writes the spline and the surface's mesh once: exactly one whole copy of
     each in the folder, no partial file, and a failed write raised in both processes."""
     import jurs
@@ -375,7 +382,7 @@ def test_read_in_parts_fit_and_write_once(tmp_path):
     p, n = jurs.datasets.sphere3d(1002)
     whole = np.concatenate([p, n], axis=1)
     np.save(tmp_path / "whole.npy", whole)
-    np.save(tmp_path / "cloud.npy", whole)
+    np.save(tmp_path / "cloud.npy", whole[:1000])
     for i, (a, b) in enumerate([(0, 300), (300, 640), (640, 1000)]):
         jurs.datasets.save_points(tmp_path / f"scan_{i:03d}.ply", p[a:b], n[a:b])
     (tmp_path / "out").mkdir()
@@ -399,9 +406,10 @@ def test_read_in_parts_fit_and_write_once(tmp_path):
         assert report["processes"] == 2 and report["devices"] == 4
         assert report["read"] == (300, 700)[pid]
         assert report["files"] == dict(shape=[1000, 3], held=500, exact=True)
-        kind, message = report["npy_error"]
+        assert report["npy"] == dict(read=500, shape=[1000, 3], first=500 * pid, same=True)
+        kind, message = report["odd_error"]
         assert kind == "ValueError" and "2 are left over" in message
-        assert report["npy"] == dict(read=501, shape=[1000, 3], exact=True)
+        assert report["odd"] == dict(read=501, shape=[1000, 3], exact=True)
         assert report["status"] == "successful"
         assert report["after_write"] == ["fit.npz", "surface.ply"]
     assert reports[0]["write_error"] == ["OSError", "disk full"]

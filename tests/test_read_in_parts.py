@@ -27,17 +27,6 @@ def test_part_rows_cover_every_row_once_in_order(total, count):
     assert max(sizes) - min(sizes) <= 1
 
 
-def test_part_rows_are_the_split_of_a_global_array():
-    """Where the rows divide by the device count, process i's rows are those its devices
-    hold of an array split over all devices (2 processes of 4 devices each)."""
-    devices = np.arange(8)  # process 0 holds devices 0-3, process 1 devices 4-7
-    per_device = 80 // len(devices)
-    for i in range(2):
-        held = np.concatenate([np.arange(d * per_device, (d + 1) * per_device) for d in devices])
-        held = held[i * 40 : (i + 1) * 40]
-        np.testing.assert_array_equal(np.arange(80)[part_rows(80, i, 2)], held)
-
-
 def test_part_files_split_and_fewer_files_than_processes():
     names = [f"scan_{i:03d}.ply" for i in range(16)]
     parts = [part_files(names, i, 3) for i in range(3)]
