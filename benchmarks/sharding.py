@@ -447,6 +447,17 @@ def summary_processes(section: dict, floor: float | None) -> str:
             "128 x 128 system and its Cholesky factor, replicated): that floor does not "
             f"split. Above it the peak falls from {above[1]:.0f} MB to {split}."
         )
+    after = {r["processes"]: first_fit(r) for r in ok if r["m"] == m}
+    if "-" not in after.values() and 1 in after:
+        ratios = ", ".join(
+            f"{float(after[1]) / float(after[c]):.2f}x with {c}" for c in sorted(after) if c > 1
+        )
+        text += (
+            f" After the first fit alone the peak falls from {after[1]} MB by {ratios}: the "
+            "second fit raised the peak of some processes (by up to "
+            f"{max(r['peak_mb'] - float(first_fit(r)) for r in ok if r['m'] == m):.0f} MB), "
+            "which the one-process run did far less."
+        )
     worst = max((r.get("rel_diff", 0.0) for r in ok), default=0.0)
     return (
         text + f" Control points agree with the one-process fit within {worst:.0e} (relative, "
