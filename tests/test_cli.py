@@ -677,6 +677,7 @@ def test_metrics_record_the_doubts_and_extra_components():
         grid=(9, 9),
         lam=1e-6,
         chosen=chosen,
+        adaptive=False,
     )
     args = SimpleNamespace(solver="exact", tau=None, steps=20, tol=0.0)
     component = {
