@@ -142,7 +142,8 @@ def test_half_outliers_descend_and_converge():
     points = np.concatenate([3.0 * n, far])
     normals = np.concatenate([n, np.stack([np.cos(angle), np.sin(angle)], axis=1)])
     problem = jurs.make_problem(points, normals, grid=20, offset=0.1, eps=0.1)
-    sol = jurs.solve(jurs.RobustLeastSquares(lam=1e-3, loss="tukey"), problem, throw=False)
+    solver = jurs.RobustLeastSquares(lam=1e-3, loss="tukey", max_steps=100)
+    sol = jurs.solve(solver, problem, throw=False)
     assert sol.result == jurs.RESULTS.successful  # measured: 60 steps of 100
     steps = int(sol.stats["num_steps"])
     energy = np.asarray(sol.stats["energy_history"])[1 : steps + 1]

@@ -139,7 +139,10 @@ class RobustLeastSquares(AbstractSolver[RobustLeastSquaresState]):
             oscillated to ``max_steps``); non-increasing, it makes every step a descent.
         max_steps: reweighted solves at most (the first is the plain fit). With as many
             outliers as inliers the outliers are released a few at a time: 20-90 steps
-            measured (a circle, 100 points and 100 outliers, 20 x 20 to 31 x 31).
+            measured (a circle, 100 points and 100 outliers, 20 x 20 to 31 x 31), where
+            30 ends ``max_steps_reached`` on a descent. Not more by default: on clean
+            shapes with sharp corners a hard loss sets corner points aside step after
+            step (Tukey on glyph B: 5.5 % below weight 0.1 after 30 steps, 10 % after 100).
         tol: stop when ``E_rob`` changes by less than this (absolute) between steps.
         rtol: stop, too, when it changes by at most ``rtol |E_rob|`` (0: off).
         linear_solver, chunk_size, ridge: as [`LeastSquares`][jurs.LeastSquares].
@@ -153,7 +156,7 @@ class RobustLeastSquares(AbstractSolver[RobustLeastSquaresState]):
     lam: float = 0.0
     loss: str = eqx.field(static=True, default="cauchy")
     scale: float | None = None
-    max_steps: int = eqx.field(static=True, default=100)
+    max_steps: int = eqx.field(static=True, default=30)
     tol: float = 1e-10
     rtol: float = 0.0
     linear_solver: lx.AbstractLinearSolver | None = None
