@@ -326,3 +326,33 @@ def test_extreme_robust_scale_is_named(scale):
     """RobustLeastSquares at an extreme scale ended nonfinite, nothing naming the scale."""
     with pytest.raises(ValueError, match="scale = .* its square"):
         jurs.RobustLeastSquares(scale=scale)
+
+
+def _touching_rings():
+    """Two unit circles tangent at the origin, 200 points each, outward normals, and
+    the unit circle's points (its normals)."""
+    t = np.linspace(0.0, 2.0 * np.pi, 200, endpoint=False)
+    u = np.stack([np.cos(t), np.sin(t)], axis=1)
+    return np.concatenate([u - [1.0, 0.0], u + [1.0, 0.0]]), np.concatenate([u, u]), u
+
+
+def test_rings_that_touch_are_two_parts_not_a_flipped_half():
+    """Two circles tangent at one point, normals outward, were refused as
+    inconsistent_normals: neighbours along the common tangent face each other, and the
+    carried sign flipped a whole ring (0.5). A flipped half still reads 0.5."""
+    points, normals, u = _touching_rings()
+    assert _orientation.flipped_normal_fraction(points, normals) == 0.0
+    half = np.where(u[:, :1] > 0, -u, u)
+    assert _orientation.flipped_normal_fraction(u, half) > 0.4
+    # One ring's right half flipped: still found, the touching rings' seam aside.
+    assert _orientation.flipped_normal_fraction(points, np.concatenate([half, u])) > 0.2
+
+
+@pytest.mark.slow
+def test_rings_that_touch_fit():
+    """The touching rings fit as what the user sees: successful, not refused (one fit,
+    about 10 s with its compilation)."""
+    points, normals, _ = _touching_rings()
+    sol = jurs.fit(points, normals, grid=24, throw=False)
+    assert sol.result == jurs.RESULTS.successful
+    assert float(sol.metrics["flipped_normal_fraction"]) == 0.0

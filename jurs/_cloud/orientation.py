@@ -74,7 +74,35 @@ def flipped_normal_fraction(points, normals, sample=None) -> float:
     flip = forest_signs(forest, n) < 0
     flipped = np.bincount(labels, weights=flip, minlength=count)
     size = np.bincount(labels, minlength=count)
-    return float(np.minimum(flipped, size - flipped).sum() / m)
+    smaller = np.minimum(flipped, size - flipped)
+    smaller[_touching_parts(p, i[edge], j[edge], labels, flip, smaller, spacing)] = 0
+    return float(smaller.sum() / m)
+
+
+#: ``flipped_normal_fraction``: two sign classes of one part, each of at least this many
+#: points, that meet only within ``TOUCH_SPACINGS`` median spacings of one place are two
+#: parts that touch (rings or spheres tangent at a point), not a flipped half.
+TOUCH_POINTS = 25
+TOUCH_SPACINGS = 4.0
+
+
+def _touching_parts(p, i, j, labels, flip, smaller, spacing) -> np.ndarray:
+    """Labels of the parts whose two sign classes meet at one place only (within
+    ``TOUCH_SPACINGS`` spacings of the seam's centre) and hold ``TOUCH_POINTS`` points each.
+    Two rings tangent at a point are joined there by neighbours along the common tangent
+    whose outward normals face each other, and the carried sign flipped a whole ring (0.5
+    flipped). A flipped half of a closed curve meets the rest at both its ends, and of a
+    surface along a whole loop; a small flipped patch holds few points."""
+    seam = (labels[i] == labels[j]) & (flip[i] != flip[j])
+    parts = np.unique(labels[i[seam]])
+    touching = []
+    for part in parts[smaller[parts] >= TOUCH_POINTS]:
+        at = seam & (labels[i] == part)
+        ends = np.concatenate([p[i[at]], p[j[at]]])
+        reach = np.max(np.linalg.norm(ends - ends.mean(axis=0), axis=1))
+        if reach <= TOUCH_SPACINGS * spacing:
+            touching.append(part)
+    return np.asarray(touching, dtype=int)
 
 
 def tangential_normal_fraction(points, normals, sample=None) -> float:

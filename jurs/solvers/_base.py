@@ -59,6 +59,12 @@ class AbstractSolver(eqx.Module, Generic[State]):
         for a solver that chooses it among candidates."""
         return self.lam
 
+    def judged_problem(self, problem: Problem, state: State) -> Problem:
+        """The problem whose points the verdicts on the fit read (the offset-sign check):
+        ``problem``, except for a solver that sets points aside in ``state``."""
+        del state
+        return problem
+
     def terminate(self, problem: Problem, state: State) -> tuple[Array, RESULTS]:
         """Solver-specific stop (e.g. a direct solve is done after one step)."""
         return jnp.array(False), RESULTS.successful

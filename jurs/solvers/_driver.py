@@ -157,7 +157,8 @@ def finish(solver: AbstractSolver, problem: Problem, carry: Carry, throw: bool =
     metrics["lam"] = jnp.asarray(lam, dtype=carry.energy.dtype)
     # A converged fit is "successful" only if it also reads inside from outside where its
     # targets say so; random normals converge to a fit that does not.
-    disagreement = offset_sign_disagreement(problem, fitted)
+    # (Points a robust solver set aside are not read: their offsets are not fitted.)
+    disagreement = offset_sign_disagreement(solver.judged_problem(problem, state), fitted)
     metrics["offset_sign_disagreement"] = disagreement
     result = RESULTS.where(
         (result == RESULTS.successful) & (disagreement > MAX_OFFSET_SIGN_DISAGREEMENT),
