@@ -128,14 +128,13 @@ class FinestSpline:
             shape = [1] * out.ndim
             shape[1] = relative[a].shape[0]
             shape[axis] = relative[a].shape[1]
-            weight_shape = list(shape)
-            total = None
-            for m in range(4):
+            total = np.take_along_axis(out, relative[a].reshape(shape), axis=axis)
+            total = total * factors[a][:, :, 0].reshape(shape)
+            for m in range(1, 4):
                 index = (relative[a] + m).reshape(shape)
-                term = np.take_along_axis(out, index, axis=axis) * factors[a][:, :, m].reshape(
-                    weight_shape
-                )
-                total = term if total is None else total + term
+                total = total + np.take_along_axis(out, index, axis=axis) * factors[a][
+                    :, :, m
+                ].reshape(shape)
             out = total
         return out
 
