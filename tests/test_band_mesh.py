@@ -108,6 +108,21 @@ def test_finest_coefficients_evaluate_the_spline_and_agree_bitwise():
     assert np.array_equal(sub, values[5:14, 5:14, 5:14])
 
 
+def test_finest_coefficients_do_not_depend_on_their_grouping(monkeypatch):
+    """Leaves subdivided a few at a time give bitwise the coefficients of one group."""
+    from jurs._model import hierarchy as module
+
+    rng = np.random.default_rng(2)
+    lower, upper = np.zeros(2), np.ones(2)
+    refine = refine_near(lower, upper, (3, 3), 3, rng.uniform(0.4, 0.5, (10, 2)), 1)
+    hierarchy = build_hierarchy(lower, upper, (3, 3), refine)
+    cascaded = rng.normal(size=(2, sum(hierarchy.level_sizes)))
+    functions = np.argwhere(np.ones(np.asarray(hierarchy.cells(3)) + 3, bool))
+    whole = module.finest_coefficients(hierarchy, cascaded, functions)
+    monkeypatch.setattr(module, "TABLE_ENTRIES", 200)
+    assert np.array_equal(module.finest_coefficients(hierarchy, cascaded, functions), whole)
+
+
 def test_band_mesh_of_a_torus_is_the_full_lattice_mesh():
     spline = _torus()
     resolution = 61
