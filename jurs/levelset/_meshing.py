@@ -2,7 +2,9 @@
 
 [`mesh`][jurs.levelset.mesh] samples g on a lattice slab by slab
 (``jurs._model.lattice.lattice_values``), runs marching cubes (scikit-image) on each slab,
-stitches the slabs and moves the vertices onto {g = 0} by Newton steps. What to measure on
+stitches the slabs and moves the vertices onto {g = 0} by Newton steps. An adaptive spline
+([`jurs.AdaptiveSpline`][]) is marched only in the blocks of the lattice where g may reach
+the level (``jurs/levelset/_band.py``; docs/design.md section 8). What to measure on
 a mesh (components, genus, distances) is in ``jurs/levelset/_mesh_analysis.py``. Everything
 is host-side NumPy/SciPy; see docs/surfaces.md for the definitions.
 """
@@ -125,9 +127,16 @@ def mesh(
     Args:
         spline: any object with fields ``control`` and ``weights`` (``(N, M, K)``, weights
             positive), ``lower`` and ``upper`` (``(3,)``), such as a 3D
-            [`jurs.ImplicitSpline`][].
+            [`jurs.ImplicitSpline`][]; or a 3D [`jurs.AdaptiveSpline`][], which is
+            marched only in the blocks of ``BLOCK_CELLS`` (16) lattice cells where g may
+            reach the level (over the finest cells, or where the convex hull of its
+            coefficients straddles the level: surface far from the data is meshed too).
+            The result is the full lattice's mesh at the same resolution (vertices to
+            marching cubes' float32 rounding), without evaluating the full lattice.
         resolution: lattice nodes along the longest side of the box (the other sides get
-            the same spacing). Default: 5 per spline cell, between 32 and 256.
+            the same spacing). Default: 5 per spline cell, between 32 and 256; for an
+            adaptive spline 5 per finest cell, between 32 and 1025, lowered until the
+            marched nodes fit in ``max_nodes``.
         box: ``(lower, upper)`` to mesh; default the spline's own box.
         level: the level set to mesh.
         newton_steps: Newton steps ``x <- x - (g - level) grad g / |grad g|^2`` per vertex
@@ -137,7 +146,8 @@ def mesh(
         chunk: lattice nodes per slab (at least two planes of the first axis per slab).
         max_nodes: lattice nodes above which the mesh is refused before any is sampled
             (default ``MAX_NODES``, 2^27: a 512^3 lattice, about 15 s); None, or a larger
-            number, meshes anyway. The memory is checked too, against the host's
+            number, meshes anyway. For an adaptive spline the nodes counted are those of
+            the marched blocks. The memory is checked too, against the host's
             available memory, and that check cannot be lifted.
         points: ``(m, 3)`` data points the spline was fitted to; needed by ``trim``,
             unused without it.
@@ -175,7 +185,8 @@ def mesh(
     intermediates) plus about 450 bytes per vertex of the mesh (the result itself takes 72:
     a vertex and about two faces; the rest is the slabs' marching-cubes output and the
     sort that welds it); at resolution 400 with 333 000 vertices, 140 MiB where the values
-    of the whole lattice alone would take 490 MiB.
+    of the whole lattice alone would take 490 MiB. An adaptive spline's blocks are
+    evaluated ``BATCH_BLOCKS`` (256) at a time, about 20 MiB of values.
     """
     lower, upper = _box(spline, box)
     _check_values(spline, float(level))
