@@ -17,6 +17,7 @@ from typing import TYPE_CHECKING
 
 from ._cloud.cloud import Cloud
 from ._fit.adaptive import fit_adaptive
+from ._fit.attributes import AttributeField, fit_attributes
 from ._fit.compile import COMPILER_OPTIONS, enable_compilation_cache
 from ._fit.fit import fit
 from ._fit.progress import fit_in_chunks
@@ -69,6 +70,9 @@ __all__ = [
     "AdaptiveSpline",
     "save_spline",
     "load_spline",
+    # per-point values (colour, intensity, labels) carried onto the zero set
+    "fit_attributes",
+    "AttributeField",
     # solvers, one interface and one driver
     "AbstractSolver",
     "solve",

@@ -281,6 +281,38 @@ def test_bad_options_exit_2(tmp_path, capsys):
     assert not (tmp_path / "o").exists()
 
 
+def test_adaptive_fit_and_its_options(tmp_path, capsys):
+    """``--adaptive`` fits on the THB basis (``jurs.fit_adaptive``): the spline file holds
+    an adaptive spline, metrics.json its basis, finest level and lambda; ``--grid``,
+    ``--finest`` without ``--adaptive``, a uniform-grid solver and a bad ``--finest`` are
+    refused before anything is fitted."""
+    t = np.linspace(0.0, 2.0 * np.pi, 160, endpoint=False)
+    circle = np.c_[np.cos(t), np.sin(t)]
+    path = tmp_path / "circle.csv"
+    jurs.datasets.save_points(path, circle, circle)
+    out = tmp_path / "out"
+    assert cli.main(["fit", str(path), "-o", str(out), "--adaptive", "--finest", "64", "-q"]) == 0
+    assert sorted(os.listdir(out)) == sorted(cli.OUTPUTS)
+    settings = json.loads((out / "metrics.json").read_text())["settings"]
+    assert settings["basis"] == "adaptive" and settings["grid"] is None
+    assert max(settings["finest"]) == 64 and settings["lam"] > 0
+    spline = jurs.load_spline(out / "spline.npz")
+    assert isinstance(spline, jurs.AdaptiveSpline)
+    np.testing.assert_allclose(np.abs(spline(circle)), 0.0, atol=1e-3)
+    metrics = json.loads((out / "metrics.json").read_text())["metrics"]
+    assert metrics["num_components"] == 1 and metrics["resolution"] == 512
+    for args, needle in (
+        (["--adaptive", "--grid", "16"], "--grid is for the uniform fit"),
+        (["--finest", "64"], "add --adaptive"),
+        (["--adaptive", "--solver", "iurs"], "--solver iurs runs on the uniform grid"),
+        (["--adaptive", "--finest", "4"], "--finest must be between 8"),
+    ):
+        bad = tmp_path / "bad"
+        assert cli.main(["fit", str(path), "-o", str(bad), *args]) == 2
+        assert needle in capsys.readouterr().err
+        assert not bad.exists()
+
+
 def test_console_script_exit_code(tmp_path):
     script = Path(sys.executable).parent / "jurs"
     if not script.exists():

@@ -294,3 +294,130 @@ def test_input_errors_across_processes(reports):
     assert kind == "ValueError" and "outside the given domain" in message
     kind, message = reports[0]["outside"]
     assert kind == "RuntimeError" and "process [1] failed" in message
+
+
+# A cloud read in parts and a result written once, through the launcher: argv the folder.
+PARTS_CHILD = textwrap.dedent(
+    """
+    import json, os, sys
+    import jurs.distributed
+
+    jurs.distributed.initialize(initialization_timeout=60)
+    import jax, numpy as np
+    import jurs
+    from jurs._cloud.parts import local_rows
+
+    folder, pid = sys.argv[1], jax.process_index()
+    out = dict(processes=jax.process_count(), devices=len(jax.devices()))
+    whole = np.load(os.path.join(folder, "whole.npy"))  # to compare against, small
+
+    def error(call):
+        try:
+            call()
+        except Exception as e:
+            return [type(e).__name__, str(e)]
+        return None
+
+    # Files of 300, 340 and 360 points: process 0 reads one, process 1 two; the global
+    # arrays move 200 rows to process 0's devices.
+    p, n = jurs.datasets.load_rows(os.path.join(folder, "scan_*.ply"))
+    out["read"] = len(p)
+    gp, gn = jurs.datasets.global_arrays(p, n)
+    rows, mine = local_rows(gp)
+    out["files"] = dict(
+        shape=list(gp.shape), held=len(rows),
+        exact=bool(np.array_equal(mine, whole[rows, :3]))
+        and bool(np.array_equal(local_rows(gn)[1], whole[rows, 3:])),
+    )
+    # One .npy of 1000 rows: the rows each reads are its devices' rows, nothing moves.
+    q, m = jurs.datasets.load_rows(os.path.join(folder, "cloud.npy"))
+    gq, gm = jurs.datasets.global_arrays(q, m)
+    rows, mine = local_rows(gq)
+    out["npy"] = dict(read=len(q), shape=list(gq.shape), first=int(rows[0]),
+                      same=bool(np.array_equal(mine, q) and np.array_equal(local_rows(gm)[1], m)))
+    # Of 1002 rows: 501 read by each, 2 left over on 4 devices; dropped, one row moves.
+    q, m = jurs.datasets.load_rows(os.path.join(folder, "whole.npy"))
+    out["odd_error"] = error(lambda: jurs.datasets.global_arrays(q, m))
+    gq, _ = jurs.datasets.global_arrays(q, m, drop_remainder=True)
+    rows, mine = local_rows(gq)
+    out["odd"] = dict(read=len(q), shape=list(gq.shape),
+                      exact=bool(np.array_equal(mine, whole[rows, :3])))
+
+    sol = jurs.fit(gp, gn, grid=(8, 8, 8), offset=0.05, eps=0.05,
+                   domain=((-1.3,) * 3, (1.3,) * 3), solver=jurs.LeastSquares(lam=1e-4))
+    out["status"] = sol.status
+    target = os.path.join(folder, "out")
+    jurs.distributed.write_once(os.path.join(target, "fit.npz"),
+                                lambda f: jurs.save_spline(f, sol.spline))
+    jurs.distributed.write_once(
+        os.path.join(target, "surface.ply"),
+        lambda f: jurs.datasets.save_mesh(f, *jurs.levelset.mesh(sol.spline, 24)),
+    )
+    out["after_write"] = sorted(os.listdir(target))  # every process sees it there
+
+    def broken(f):
+        with open(f, "w") as fh:
+            fh.write("half")
+        raise OSError("disk full")
+
+    out["write_error"] = error(
+        lambda: jurs.distributed.write_once(os.path.join(target, "broken.ply"), broken)
+    ) or "none"
+    with open(os.path.join(folder, f"report_{pid}.json"), "w") as fh:
+        json.dump(out, fh)
+    jax.distributed.shutdown()
+    """
+)
+
+
+def test_read_in_parts_fit_and_write_once(tmp_path):
+    """``python -m jurs.distributed --processes 2`` (2 CPU devices each) runs a script that
+    reads a cloud in parts (files of unequal sizes, and rows of one ``.npy``), makes the
+    global arrays (the rows read where they are the devices' split, else rows exchanged
+    to it; a remainder refused, then dropped),
+    fits, and writes the spline and the surface's mesh once: exactly one whole copy of
+    each in the folder, no partial file, and a failed write raised in both processes."""
+    import jurs
+
+    p, n = jurs.datasets.sphere3d(1002)
+    whole = np.concatenate([p, n], axis=1)
+    np.save(tmp_path / "whole.npy", whole)
+    np.save(tmp_path / "cloud.npy", whole[:1000])
+    for i, (a, b) in enumerate([(0, 300), (300, 640), (640, 1000)]):
+        jurs.datasets.save_points(tmp_path / f"scan_{i:03d}.ply", p[a:b], n[a:b])
+    (tmp_path / "out").mkdir()
+    script = tmp_path / "child.py"
+    script.write_text(PARTS_CHILD)
+    root = os.path.dirname(os.path.dirname(os.path.abspath(jurs.__file__)))
+    env = dict(
+        os.environ,
+        JAX_ENABLE_X64="1",
+        JAX_PLATFORMS="cpu",
+        PYTHONPATH=os.pathsep.join(filter(None, [root, os.environ.get("PYTHONPATH")])),
+    )
+    command = [sys.executable, "-m", "jurs.distributed", "--processes", "2", "--cpu-devices", "2"]
+    run = subprocess.run(
+        [*command, str(script), str(tmp_path)],
+        env=env, capture_output=True, text=True, timeout=TIMEOUT,
+    )  # fmt: skip
+    assert run.returncode == 0, run.stderr[-3000:]
+    reports = [json.loads((tmp_path / f"report_{i}.json").read_text()) for i in range(2)]
+    for pid, report in enumerate(reports):
+        assert report["processes"] == 2 and report["devices"] == 4
+        assert report["read"] == (300, 700)[pid]
+        assert report["files"] == dict(shape=[1000, 3], held=500, exact=True)
+        assert report["npy"] == dict(read=500, shape=[1000, 3], first=500 * pid, same=True)
+        kind, message = report["odd_error"]
+        assert kind == "ValueError" and "2 are left over" in message
+        assert report["odd"] == dict(read=501, shape=[1000, 3], exact=True)
+        assert report["status"] == "successful"
+        assert report["after_write"] == ["fit.npz", "surface.ply"]
+    assert reports[0]["write_error"] == ["OSError", "disk full"]
+    kind, message = reports[1]["write_error"]
+    assert kind == "RuntimeError" and "process [0] failed writing" in message
+    assert sorted(os.listdir(tmp_path / "out")) == ["fit.npz", "surface.ply"]
+    vertices, faces = jurs.datasets.load_mesh(tmp_path / "out" / "surface.ply")
+    radius = np.linalg.norm(vertices, axis=1)
+    assert len(faces) > 100 and np.abs(radius - 1).max() < 0.05
+    spline = jurs.load_spline(tmp_path / "out" / "fit.npz")
+    assert spline.control.shape == (8, 8, 8)

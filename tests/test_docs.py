@@ -64,7 +64,9 @@ SKIP = {
     ("docs/design.md", 1): "the public contract: a summary with placeholders (xy, ...)",
     ("docs/design.md", 2): "reserved names: a summary with placeholders (P, N, ...)",
     ("docs/sharding.md", 1): "a million points; tests/test_sharding.py fits small clouds so",
-    ("docs/sharding.md", 2): "a script started once per process (jax.distributed); run by hand",
+    ("docs/sharding.md", 2): "a script started once per process (python -m jurs.distributed); "
+    "tests/test_distributed.py runs one so",
+    ("docs/sharding.md", 3): "the same script's lines for scans of a surface (files not here)",
 }
 #: Pages whose snippets run with the fast tests: they fit nothing. The others compile and
 #: run fits (the home page's alone, a default 2D fit, takes a few seconds on an idle 2-core

@@ -7,9 +7,15 @@ import numpy as np
 import pytest
 
 import jurs
-from jurs._fit.adaptive import adaptive_layout, solve_adaptive
+from jurs._fit.adaptive import adaptive_layout, solve_adaptive, solve_direct
 from jurs._model.hierarchy import _offsets, _ravel, _unravel
-from jurs._problem.adaptive import at_points, make_adaptive_problem
+from jurs._problem.adaptive import (
+    adaptive_metrics,
+    assemble_adaptive_problem,
+    assembled_metrics,
+    at_points,
+    make_adaptive_problem,
+)
 from jurs.internal import build_hierarchy, cascade, hierarchy_values, refine_near
 
 
@@ -38,6 +44,23 @@ def test_partition_of_unity_and_nonnegative(ndim):
     values = hierarchy_values(hierarchy, jnp.eye(hierarchy.num_active), x)  # (n, m)
     np.testing.assert_allclose(values.sum(axis=0), 1.0, atol=1e-13)
     assert float(values.min()) >= -1e-15
+
+
+@pytest.mark.parametrize("ndim", [2, 3])
+def test_one_search_over_levels_equals_a_search_per_level(ndim, monkeypatch):
+    """``leaf_terms`` searches the keys of all levels at once; where those would leave
+    int32 it searches level by level. Both give the same positions."""
+    from jurs._model import hierarchy as module
+
+    hierarchy = _hierarchy(ndim)
+    x = _random_points(hierarchy, 300)
+    level, cell = module.locate_leaves(hierarchy, x)
+    positions, t = module.leaf_terms(hierarchy, x, level, cell)
+    monkeypatch.setattr(module, "_MAX_KEY", 0)
+    per_level, t_per_level = module.leaf_terms(hierarchy, x, level, cell)
+    np.testing.assert_array_equal(positions, per_level)
+    np.testing.assert_array_equal(t, t_per_level)
+    assert len(np.unique(np.asarray(level))) > 1  # points on several levels' leaves
 
 
 @pytest.mark.parametrize("ndim", [2, 3])
@@ -107,6 +130,33 @@ def test_refined_everywhere_fit_equals_uniform_fit():
         solver=jurs.LeastSquares(lam=lam, ridge=0.0),
     )
     np.testing.assert_allclose(control, uniform.spline.control.ravel(), rtol=1e-8, atol=1e-10)
+
+
+def test_direct_solve_falls_back_to_superlu(monkeypatch):
+    """QDLDL refuses a matrix with a zero pivot (RuntimeError); the direct solve then
+    takes SuperLU, whose pivoting still answers, and both agree on a regular matrix."""
+    import qdldl
+
+    points, normals = jurs.datasets.example1(100)
+    lower, upper = np.min(points, 0) - 1.0, np.max(points, 0) + 1.0
+    problem, matrices = assemble_adaptive_problem(
+        points, normals, offset=0.2, eps=0.2, lower=lower, upper=upper, base=(6, 6), levels=2
+    )
+    control, residual = solve_direct(problem, 1e-3, matrices)
+    assert residual < 1e-12
+    # The host metrics of a direct solve are the traced ones.
+    host = assembled_metrics(problem, matrices, control, 1e-3)
+    traced = adaptive_metrics(problem, jnp.asarray(control), 1e-3)
+    for name, value in traced.items():
+        np.testing.assert_allclose(host[name], value, rtol=1e-9, err_msg=name)
+
+    def refuse(matrix):
+        raise RuntimeError("Input matrix is not quasi-definite")
+
+    monkeypatch.setattr(qdldl, "Solver", refuse)
+    fallback, residual = solve_direct(problem, 1e-3)  # assembled again: the same matrix
+    assert residual < 1e-12
+    np.testing.assert_allclose(fallback, control, rtol=1e-9, atol=1e-12)
 
 
 def test_layout_has_square_cells_and_a_coarse_base():
@@ -223,3 +273,42 @@ def test_fit_adaptive_in_float32_converges():
         < 0
         < float(sol.spline(jnp.ones(2, jnp.float32)))
     )
+
+
+@pytest.mark.parametrize("ndim", [2, 3])
+def test_packed_evaluation_equals_the_splines_own(ndim):
+    """The packed arrays of a rational adaptive spline (keys shifted and padded, levels
+    padded) give its values and gradients to rounding."""
+    from jurs._model.packed import pack, packed_values, packed_values_and_gradients
+
+    hierarchy = _hierarchy(ndim)
+    rng = np.random.default_rng(5)
+    spline = jurs.AdaptiveSpline(
+        hierarchy,
+        jnp.asarray(rng.normal(size=hierarchy.num_active)),
+        jnp.asarray(rng.uniform(0.5, 2.0, hierarchy.num_active)),
+    )
+    packed = pack(spline)
+    assert packed is not None and packed.cells.shape[0] % 4 == 0
+    x = _random_points(hierarchy, 300)
+    np.testing.assert_allclose(packed_values(packed, x), spline(x), rtol=1e-12, atol=1e-13)
+    value, gradient = packed_values_and_gradients(packed, x)
+    np.testing.assert_allclose(value, spline(x), rtol=1e-12, atol=1e-13)
+    np.testing.assert_allclose(gradient, spline.grad(x), rtol=1e-10, atol=1e-12)
+
+
+def test_level_sets_of_two_adaptive_fits_compile_once():
+    """Two circles of other sizes and radii fit to different hierarchies; their level sets
+    are evaluated by one compiled program (their packed arrays share a size class)."""
+    from test_compile import _CompileCounter
+
+    counts = []
+    for m, radius in ((150, 1.0), (170, 1.3)):
+        t = np.linspace(0, 2 * np.pi, m, endpoint=False)
+        circle = np.stack([np.cos(t), np.sin(t)], 1)
+        sol = jurs.fit_adaptive(radius * circle, circle, finest=64)
+        with _CompileCounter("packed") as counter:
+            report = jurs.levelset.analyze(sol.spline, radius * circle, resolution=100)
+        assert report.num_components == 1
+        counts.append(counter.count)
+    assert counts[0] >= 1 and counts[1] == 0, counts

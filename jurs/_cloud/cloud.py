@@ -15,6 +15,7 @@ from .._problem.validate import _is_concrete, unit_normals, validate_points
 from .measure import (
     PROBES,
     check_encloses,
+    check_narrow_type,
     check_rounding,
     kd_tree,
     point_spacing,
@@ -55,7 +56,8 @@ class Cloud:
             mask selecting fewer), points that all coincide, points that lie on a line
             or in a plane (they enclose nothing: ``jurs._cloud.measure.check_encloses``),
             or points given in float32 (or float16) whose rounding at their distance
-            from the origin made them repeat each other.
+            from the origin exceeds 1e-4 of their extent (``check_narrow_type``) or made
+            them repeat each other.
         TypeError: points or normals that are not numbers.
     """
 
@@ -79,6 +81,7 @@ class Cloud:
         self._problems: dict = {}
         #: Exact repeats dropped (see the class docstring).
         self.repeated: int = 0
+        check_narrow_type(self.points, _given_dtype(points))
         if mask is None:  # a mask's padding repeats points on purpose
             self._drop_repeats(points)
         self._check_encloses()
@@ -91,8 +94,7 @@ class Cloud:
             return
         first, group = found
         self.repeated = len(self.points) - len(first)
-        dtype = np.asarray(given[:1]).dtype if not isinstance(given, jax.Array) else given.dtype
-        check_rounding(self.points, dtype, self.repeated)
+        check_rounding(self.points, _given_dtype(given), self.repeated)
         if len(first) < 3:
             raise ValueError(
                 f"points: only {len(first)} distinct points (of {len(self.points)}); "
@@ -184,6 +186,11 @@ def _caller_level() -> int:
     while frame is not None and os.path.abspath(frame.f_code.co_filename).startswith(package):
         frame, level = frame.f_back, level + 1
     return level
+
+
+def _given_dtype(given) -> np.dtype:
+    """The float type the points were given in (before the float64 copy)."""
+    return given.dtype if isinstance(given, jax.Array) else np.asarray(given[:1]).dtype
 
 
 def _kept(x):

@@ -248,6 +248,36 @@ def check_encloses(points: np.ndarray, widths: np.ndarray, spacing: float) -> No
     )
 
 
+#: Points given in a float type narrower than float64 are refused where the type's step
+#: at their largest coordinate exceeds this share of the cloud's bounding-box diagonal
+#: (the rule of ``jurs.datasets.FLOAT32_RESOLUTION`` for files): a fit's cells are a few
+#: hundredths of the diagonal, and rounding of 1e-4 is far below them.
+NARROW_RESOLUTION = 1e-4
+
+
+def check_narrow_type(points: np.ndarray, dtype) -> None:
+    """ValueError where ``points`` (as float64) were given in a float type narrower than
+    float64 (``dtype``) whose step at their largest coordinate exceeds
+    ``NARROW_RESOLUTION`` of their extent: a georeferenced cloud (coordinates about 1e6 m)
+    in float32 is rounded to 0.06-0.5 m steps, which moves its points by a share of a
+    fit's cells that no later check can tell from the data (a 2 m sphere at [6.5e5, 5.4e6,
+    300] came back "inconsistent_normals"; other clouds fit silently wrong)."""
+    dtype = np.dtype(dtype)
+    if dtype.kind != "f" or dtype.itemsize >= 8 or len(points) == 0:
+        return
+    big = float(np.max(np.abs(points)))
+    step = float(np.spacing(np.asarray(big, dtype)))
+    extent = float(np.linalg.norm(np.ptp(points, axis=0)))
+    if step > NARROW_RESOLUTION * extent:
+        raise ValueError(
+            f"points are {dtype.name}, which at |x| = {big:.3g} resolves only steps of "
+            f"{step:.3g}, more than {NARROW_RESOLUTION:g} of the cloud's extent "
+            f"{extent:.3g}: the rounding has already moved the points. Pass them in "
+            "float64 (read the file as float64), or translate the cloud near the origin "
+            "in float64 before converting"
+        )
+
+
 def check_rounding(points: np.ndarray, dtype, repeated: int) -> None:
     """ValueError where ``points`` given in a float type narrower than float64 repeat
     each other because of its rounding: the type's step at the cloud's largest

@@ -44,7 +44,7 @@ from scipy import sparse
 from scipy.sparse import csgraph
 from scipy.spatial import cKDTree  # pyright: ignore[reportAttributeAccessIssue]  # no stub
 
-from .measure import check_encloses, check_rounding, principal_widths
+from .measure import check_encloses, check_narrow_type, check_rounding, principal_widths
 from .signs import forest_signs
 from .winding import (
     DENSE_PAIRS,
@@ -347,7 +347,7 @@ def estimate_normals(
         TypeError: ``points`` is not numeric.
         ValueError: wrong shape, NaN/inf, fewer than ``2 d + 1`` distinct points, points
             on a line or in a plane (no side of them is outward), float32 points whose
-            rounding made them repeat, or a bad ``k``.
+            rounding exceeds 1e-4 of their extent or made them repeat, or a bad ``k``.
 
     Points held by several processes (a global ``jax.Array`` no process holds whole):
     every process calls this and gets a global array of the normals, split like the
@@ -361,6 +361,7 @@ def estimate_normals(
             raise ValueError("return_info: not over several processes (docs/sharding.md)")
         return normals_across_processes(points, k, orient, seed)  # pyright: ignore[reportReturnType]
     array = _check_points(points)
+    check_narrow_type(array, getattr(points, "dtype", np.float64))
     d = array.shape[1]
     unique, inverse = np.unique(array, axis=0, return_inverse=True)
     inverse = inverse.ravel()

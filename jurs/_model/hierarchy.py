@@ -41,6 +41,7 @@ from jax import Array
 from jaxtyping import ArrayLike, Float, Int
 
 from .basis import cubic_derivatives, cubic_weights, tensor_basis
+from .precision import on_device
 
 #: Cubic B-spline subdivision mask: ``B^l_i = sum_k SUBDIVISION[k] B^{l+1}_{2i-3+k}``.
 SUBDIVISION = np.array([1.0, 4.0, 6.0, 4.0, 1.0]) / 8.0
@@ -300,15 +301,16 @@ def build_hierarchy(
         edges.append(np.concatenate(pairs))
         edge_weights.append(np.concatenate(pair_weight))
 
+    # on_device: nothing compiled per shape, as jnp.asarray would (30 programs a cloud).
     def ints(arrays):
-        return tuple(jnp.asarray(a, dtype=jnp.int32) for a in arrays)
+        return tuple(on_device(a, np.int32) for a in arrays)
 
     def floats(arrays):
-        return tuple(jnp.asarray(a, dtype=dtype) for a in arrays)
+        return tuple(on_device(a, dtype) for a in arrays)
 
     return Hierarchy(
-        lower=jnp.asarray(lower_np, dtype=dtype),
-        upper=jnp.asarray(upper_np, dtype=dtype),
+        lower=on_device(lower_np, dtype),
+        upper=on_device(upper_np, dtype),
         function_keys=ints(function_keys),
         leaf_keys=ints(leaf_keys),
         active=ints(active),
@@ -431,26 +433,28 @@ def cascade_matrix(hierarchy: Hierarchy):
 
 
 def locate_leaves(
-    hierarchy: Hierarchy, x: Float[Array, "n d"]
+    hierarchy: Hierarchy, x: Float[Array, "n d"], xp=jnp
 ) -> tuple[Int[Array, " n"], Int[Array, "n d"]]:
     """The level of each point's leaf and the leaf's cell (multi-index at that level).
     Points outside the box take the border leaf (the basis extrapolates there, as the
-    uniform basis does). A sorted search per level; no finest-level array."""
-    level = jnp.zeros(x.shape[0], jnp.int32)
-    cell = jnp.zeros(x.shape, jnp.int32)
-    unit = (x - hierarchy.lower) / (hierarchy.upper - hierarchy.lower)
+    uniform basis does). A sorted search per level; no finest-level array. ``xp=numpy``
+    computes on the host (concrete points), compiling nothing."""
+    level = xp.zeros(x.shape[0], xp.int32)
+    cell = xp.zeros(x.shape, xp.int32)
+    lower, upper = xp.asarray(hierarchy.lower), xp.asarray(hierarchy.upper)
+    unit = (x - lower) / (upper - lower)
     for lev in range(hierarchy.num_levels):
         cells = hierarchy.cells(lev)
-        top = jnp.asarray(cells, jnp.int32) - 1
-        here = jnp.clip(jnp.floor(unit * jnp.asarray(cells, unit.dtype)), 0, top).astype(jnp.int32)
+        top = xp.asarray(cells, xp.int32) - 1
+        here = xp.clip(xp.floor(unit * xp.asarray(cells, unit.dtype)), 0, top).astype(xp.int32)
         key = _jnp_ravel(here, cells)
-        keys = hierarchy.leaf_keys[lev]
+        keys = xp.asarray(hierarchy.leaf_keys[lev])
         if keys.shape[0] == 0:
             continue
-        at = jnp.clip(jnp.searchsorted(keys, key), 0, keys.shape[0] - 1)
+        at = xp.clip(xp.searchsorted(keys, key), 0, keys.shape[0] - 1)
         found = keys[at] == key
-        level = jnp.where(found, lev, level)
-        cell = jnp.where(found[:, None], here, cell)
+        level = xp.where(found, lev, level)
+        cell = xp.where(found[:, None], here, cell)
     return level, cell
 
 
@@ -462,34 +466,63 @@ def _jnp_ravel(index: Array, extent: tuple[int, ...]) -> Array:
 
 
 def leaf_terms(
-    hierarchy: Hierarchy, x: Float[Array, "n d"], level: Int[Array, " n"], cell: Int[Array, "n d"]
+    hierarchy: Hierarchy,
+    x: Float[Array, "n d"],
+    level: Int[Array, " n"],
+    cell: Int[Array, "n d"],
+    xp=jnp,
 ) -> tuple[Int[Array, "n k"], Array]:
     """For points in the given leaves: the positions, in the cascaded vector of
     [`cascade`][jurs.internal.cascade], of the ``4^d`` functions over each leaf, and the
-    local coordinates ``t (n, d)`` in the leaf. Differentiable in ``x`` through ``t``."""
+    local coordinates ``t (n, d)`` in the leaf. Differentiable in ``x`` through ``t``;
+    ``xp=numpy`` computes on the host.
+
+    One sorted search of ``4^d`` keys per point: every level's function keys, shifted past
+    the previous levels' grids, form one sorted array whose positions are those of the
+    cascaded vector. (A search per level would cost ``levels * 4^d`` per point.) Where the
+    shifted keys would leave int32, a search per level it is."""
     ndim = hierarchy.ndim
-    offsets = jnp.asarray(_offsets(ndim, 4), jnp.int32)
-    positions = jnp.zeros((x.shape[0], 4**ndim), jnp.int32)
-    t = jnp.zeros_like(x)
+    offsets = xp.asarray(_offsets(ndim, 4), xp.int32)
+    levels = hierarchy.num_levels
+    grids = [int(np.prod(hierarchy.functions(lev))) for lev in range(levels)]
+    shifts = np.concatenate([[0], np.cumsum(grids)[:-1]]).astype(np.int64)
+    lower, upper = xp.asarray(hierarchy.lower), xp.asarray(hierarchy.upper)
+    unit = (x - lower) / (upper - lower)
+    cells = xp.asarray([hierarchy.cells(lev) for lev in range(levels)], unit.dtype)
+    t = unit * cells[level] - cell.astype(unit.dtype)
+    if int(shifts[-1]) + grids[-1] > _MAX_KEY:
+        return _leaf_positions_per_level(hierarchy, level, cell, offsets, xp), t
+    combined = xp.concatenate(
+        [xp.asarray(hierarchy.function_keys[lev]) + xp.int32(shifts[lev]) for lev in range(levels)]
+    )
+    extent = xp.asarray([hierarchy.functions(lev) for lev in range(levels)], xp.int32)[level]
+    index = cell[:, None, :] + offsets[None]
+    key = index[..., 0]
+    for axis in range(1, ndim):
+        key = key * extent[:, None, axis] + index[..., axis]
+    key = key + xp.asarray(shifts, xp.int32)[level][:, None]
+    positions = xp.clip(xp.searchsorted(combined, key), 0, combined.shape[0] - 1)
+    return positions.astype(xp.int32), t
+
+
+def _leaf_positions_per_level(hierarchy: Hierarchy, level, cell, offsets, xp=jnp) -> Array:
+    """``leaf_terms``' positions by one sorted search per level (keys beyond int32)."""
+    positions = xp.zeros((cell.shape[0], offsets.shape[0]), xp.int32)
     start = 0
-    unit = (x - hierarchy.lower) / (hierarchy.upper - hierarchy.lower)
     for lev in range(hierarchy.num_levels):
         extent = hierarchy.functions(lev)
-        keys = hierarchy.function_keys[lev]
-        here = level == lev
+        keys = xp.asarray(hierarchy.function_keys[lev])
         key = _jnp_ravel(cell[:, None, :] + offsets[None], extent)
-        at = jnp.clip(jnp.searchsorted(keys, key), 0, keys.shape[0] - 1) + start
-        positions = jnp.where(here[:, None], at, positions)
-        local = unit * jnp.asarray(hierarchy.cells(lev), unit.dtype) - cell.astype(unit.dtype)
-        t = jnp.where(here[:, None], local, t)
+        at = xp.clip(xp.searchsorted(keys, key), 0, keys.shape[0] - 1) + start
+        positions = xp.where((level == lev)[:, None], at, positions)
         start += hierarchy.level_sizes[lev]
-    return positions, t
+    return positions
 
 
-def hierarchy_basis(t: Float[Array, "n d"]) -> Float[Array, "n k"]:
+def hierarchy_basis(t: Float[Array, "n d"], xp=jnp) -> Float[Array, "n k"]:
     """The ``4^d`` tensor-product cubic values at local coordinates ``t``, in the order of
     [`leaf_terms`][jurs.internal.leaf_terms]'s positions."""
-    return tensor_basis(*(cubic_weights(t[:, a]) for a in range(t.shape[1])))
+    return tensor_basis(*(cubic_weights(t[:, a], xp=xp) for a in range(t.shape[1])))
 
 
 def hierarchy_values(

@@ -9,8 +9,7 @@ evaluation, and needs no array of per-point patches.
 
 Everything here reads only the fields ``control``, ``weights``, ``lower`` and ``upper`` of
 the spline it is given (any object with them works) and computes in float64 NumPy, so
-meshing and mesh metrics run without compiling anything (an adaptive spline compiles only
-its cascade of coefficients, once per hierarchy). An adaptive spline
+meshing and mesh metrics run without compiling anything. An adaptive spline
 ([`jurs.AdaptiveSpline`][]) is read as the uniform spline of its finest level, with
 coefficients computed only where a lattice or a point needs them (``FinestSpline``).
 """
@@ -21,6 +20,64 @@ import numpy as np
 
 from .adaptive import AdaptiveSpline
 from .basis import CENTRED_POWER, cubic_weights
+
+#: Points per call of an adaptive spline's jitted evaluation (the last chunk padded, so
+#: one compiled program serves every lattice).
+ADAPTIVE_CHUNK = 1 << 15
+
+
+def _values(spline: AdaptiveSpline, x):
+    return spline(x)
+
+
+def _values_and_gradients(spline: AdaptiveSpline, x):
+    return spline(x), spline.grad(x)
+
+
+_jitted: dict = {}
+
+
+def _packed(fn):
+    """The packed evaluation doing what ``fn`` does (``_values`` or
+    ``_values_and_gradients``)."""
+    from .packed import packed_values, packed_values_and_gradients
+
+    return packed_values if fn is _values else packed_values_and_gradients
+
+
+def _adaptive_evaluate(spline: AdaptiveSpline, points: np.ndarray, fn=_values) -> list:
+    """``fn(spline, chunk)`` over ``points`` in chunks of ``ADAPTIVE_CHUNK`` (the last one
+    padded); the parts as float64 NumPy arrays cut to ``len(points)``, one list entry per
+    output of ``fn``. The spline is packed first (``jurs._model.packed``), so one compiled
+    program serves every fit of a size class; a spline too large to pack is evaluated
+    through its own methods, compiled per hierarchy."""
+    import equinox as eqx
+    import jax
+    import jax.numpy as jnp
+
+    from .packed import pack
+
+    packed = pack(spline)
+    if packed is None:
+        jitted, argument = _jitted.setdefault(fn, eqx.filter_jit(fn)), spline
+    else:
+        jitted, argument = _jitted.setdefault(_packed(fn), eqx.filter_jit(_packed(fn))), packed
+    dtype = np.asarray(spline.control).dtype
+    n = len(points)
+    padded = np.concatenate([points, np.repeat(points[-1:], -n % ADAPTIVE_CHUNK, axis=0)])
+    parts = [
+        jax.tree.leaves(jitted(argument, jnp.asarray(padded[k : k + ADAPTIVE_CHUNK], dtype)))
+        for k in range(0, len(padded), ADAPTIVE_CHUNK)
+    ]
+    return [
+        np.concatenate([np.asarray(p[i], np.float64) for p in parts])[:n]
+        for i in range(len(parts[0]))
+    ]
+
+
+def adaptive_values(spline: AdaptiveSpline, points) -> np.ndarray:
+    """g of an adaptive spline at ``points (n, d)``, float64 NumPy ``(n,)``."""
+    return _adaptive_evaluate(spline, np.asarray(points, np.float64))[0]
 
 
 def adaptive_lattice_values(spline: AdaptiveSpline, axes) -> np.ndarray:
@@ -34,8 +91,28 @@ def adaptive_lattice_values(spline: AdaptiveSpline, axes) -> np.ndarray:
     return FinestSpline(spline).lattice(axes)
 
 
-#: The jitted cascade of coefficients, made on first use (compiled once per hierarchy).
-_CASCADE: dict = {}
+def _host_cascade(hierarchy, coeffs: np.ndarray) -> np.ndarray:
+    """``jurs._model.hierarchy.cascade`` in NumPy float64 on the host: no program to
+    compile for a new hierarchy (level sets of a new fit compile nothing)."""
+    out = []
+    start = 0
+    previous = None
+    for level in range(hierarchy.num_levels):
+        count = hierarchy.active_counts[level]
+        placed = np.zeros(coeffs.shape[:-1] + (hierarchy.level_sizes[level],))
+        placed[..., np.asarray(hierarchy.active[level])] += coeffs[..., start : start + count]
+        start += count
+        if previous is None:
+            current = placed
+        else:
+            parents = np.asarray(hierarchy.parents[level])
+            weights = np.asarray(hierarchy.parent_weights[level], np.float64)
+            refined = np.sum(previous[..., parents] * weights, axis=-1)
+            current = np.asarray(hierarchy.keep[level], np.float64) * refined + placed
+        out.append(current)
+        previous = current
+    return np.concatenate(out, axis=-1)
+
 
 #: Finest-level coefficients a window of ``FinestSpline.lattice`` holds at most: about
 #: 32 MiB of float64 numerator and denominator.
@@ -62,11 +139,6 @@ class FinestSpline:
     """
 
     def __init__(self, spline: AdaptiveSpline):
-        import equinox as eqx
-        import jax.numpy as jnp
-
-        from .hierarchy import cascade
-
         hierarchy = spline.hierarchy
         self.hierarchy = hierarchy
         self.ndim = hierarchy.ndim
@@ -75,9 +147,9 @@ class FinestSpline:
         self.lower = np.asarray(hierarchy.lower, np.float64)
         self.upper = np.asarray(hierarchy.upper, np.float64)
         self.width = (self.upper - self.lower) / self.cells
-        stacked = jnp.stack([spline.weights * spline.control, spline.weights])
-        jitted = _CASCADE.setdefault("cascade", eqx.filter_jit(cascade))
-        self.cascaded = np.asarray(jitted(hierarchy, stacked), np.float64)
+        weights = np.asarray(spline.weights, np.float64)
+        stacked = np.stack([weights * np.asarray(spline.control, np.float64), weights])
+        self.cascaded = _host_cascade(hierarchy, stacked)
 
     def axis(self, coords, axis: int):
         """``(cell, weights (n, 4), slopes (n, 4))`` of 1D ``coords`` along ``axis`` at

@@ -22,3 +22,16 @@ def full_precision(fn):
             return fn(*args, **kwargs)
 
     return wrapped
+
+
+def on_device(array, dtype=None) -> jax.Array:
+    """A host array (NumPy or a Python number) as a JAX array of ``dtype`` (its own when
+    None), converted on the host and then transferred.
+
+    Why: ``jnp.asarray`` of a NumPy array compiles a small program for every new shape
+    (JAX 0.10), and a conversion to another dtype one more; an adaptive fit hands over
+    some thirty arrays whose shapes change with every cloud. ``jax.device_put`` of a
+    NumPy array compiles nothing."""
+    import numpy as np
+
+    return jax.device_put(np.asarray(array, dtype))

@@ -28,6 +28,7 @@ from .._model.hierarchy import (
     locate_leaves,
     refine_near,
 )
+from .._model.precision import on_device
 from .problem import offset_samples
 
 
@@ -54,13 +55,14 @@ class AdaptiveProblem(eqx.Module):
     eps: Array
 
 
-def normal_matrices(hierarchy: Hierarchy, positions: np.ndarray, basis: np.ndarray):
+def normal_matrices(hierarchy: Hierarchy, positions: ArrayLike, basis: ArrayLike):
     """``(D, 2 G^T W G)`` as SciPy sparse matrices over the active functions, on the host:
     ``D = B M`` (rows the samples, ``B`` their ``4^d`` basis values at ``positions``,
     ``M`` the cascade matrix) and the regulariser's part of the normal matrix per unit
     lambda, so that ``D^T D + lam 2 G^T W G`` is the matrix of the normal equations."""
     from scipy import sparse
 
+    positions, basis = np.asarray(positions), np.asarray(basis)
     cascaded = cascade_matrix(hierarchy)
     total = sum(hierarchy.level_sizes)
     count, local = positions.shape
@@ -107,35 +109,64 @@ def make_adaptive_problem(
     """The samples of eq. 4-5 for unit outward ``normals`` and a hierarchy of ``levels``
     refinements of ``base`` cells around them (``refine_near``, ``band`` cells wide at each
     level). Host work on concrete points."""
+    problem, _ = assemble_adaptive_problem(
+        points,
+        normals,
+        offset=offset,
+        eps=eps,
+        lower=lower,
+        upper=upper,
+        base=base,
+        levels=levels,
+        band=band,
+        dtype=dtype,
+    )
+    return problem
+
+
+def assemble_adaptive_problem(
+    points: Float[ArrayLike, "m d"],
+    normals: Float[ArrayLike, "m d"],
+    *,
+    offset: float,
+    eps: float,
+    lower: Float[ArrayLike, " d"],
+    upper: Float[ArrayLike, " d"],
+    base: tuple[int, ...],
+    levels: int,
+    band: int = 2,
+    dtype=None,
+) -> tuple[AdaptiveProblem, tuple]:
+    """``(problem, (D, 2 G^T W G))``: ``make_adaptive_problem``'s problem and the host
+    matrices of ``normal_matrices`` it was assembled from (its Jacobi diagonals come from
+    them), so that a direct solve factorises them without assembling them again."""
     dtype = dtype or jnp.result_type(float)
     points_np = np.asarray(points, dtype=float)
     normals_np = np.asarray(normals, dtype=float)
-    # Host arrays through the same function (xp=np), for the structure only.
-    samples_np, _ = offset_samples(points_np, normals_np, offset, eps, xp=np)  # pyright: ignore[reportArgumentType]
+    # All on the host (xp=np): a new cloud's structure compiles nothing (JAX's eager
+    # operations would compile each of their shapes, about a hundred per new cloud).
+    samples_np, targets_np = offset_samples(points_np, normals_np, offset, eps, xp=np)  # pyright: ignore[reportArgumentType]
     refine = refine_near(lower, upper, base, levels, samples_np, band)
     hierarchy = build_hierarchy(lower, upper, base, refine, dtype=dtype)
-    samples, targets = offset_samples(
-        jnp.asarray(points, dtype), jnp.asarray(normals, dtype), offset, eps
-    )
-    level, cell = locate_leaves(hierarchy, jnp.asarray(samples_np, dtype))
-    positions, local = leaf_terms(hierarchy, samples, level, cell)
-    collocation, regulariser = normal_matrices(
-        hierarchy, np.asarray(positions), np.asarray(hierarchy_basis(local))
-    )
+    samples_np = samples_np.astype(dtype)  # leaves found in the fit's own precision
+    level, cell = locate_leaves(hierarchy, samples_np, xp=np)
+    positions, local = leaf_terms(hierarchy, samples_np, level, cell, xp=np)
+    collocation, regulariser = normal_matrices(hierarchy, positions, hierarchy_basis(local, xp=np))
     data_diagonal = np.asarray(collocation.multiply(collocation).sum(axis=0)).ravel()
     regulariser_diagonal = regulariser.diagonal()
-    return AdaptiveProblem(
+    problem = AdaptiveProblem(
         hierarchy=hierarchy,
-        samples=samples,
-        targets=targets,
-        level=level,
-        cell=cell,
-        positions=positions,
-        data_diagonal=jnp.asarray(data_diagonal, dtype),
-        regulariser_diagonal=jnp.asarray(regulariser_diagonal, dtype),
-        offset=jnp.asarray(offset, dtype),
-        eps=jnp.asarray(eps, dtype),
+        samples=on_device(samples_np),
+        targets=on_device(targets_np, dtype),
+        level=on_device(level),
+        cell=on_device(cell),
+        positions=on_device(positions),
+        data_diagonal=on_device(data_diagonal, dtype),
+        regulariser_diagonal=on_device(regulariser_diagonal, dtype),
+        offset=on_device(offset, dtype),
+        eps=on_device(eps, dtype),
     )
+    return problem, (collocation, regulariser)
 
 
 def at_points(
@@ -188,6 +219,29 @@ def adaptive_metrics(problem: AdaptiveProblem, coeffs: Array, lam, basis=None) -
         "E_ave": data / problem.samples.shape[0],
         "E_max": jnp.max(jnp.abs(r[:m])),
         "lam": jnp.asarray(lam, r.dtype),
+    }
+
+
+def assembled_metrics(problem: AdaptiveProblem, matrices, coeffs, lam: float) -> dict:
+    """``adaptive_metrics`` from the host matrices
+    ``(D, 2 G^T W G)`` of ``assemble_adaptive_problem``: the same numbers with nothing
+    compiled (``R = c^T (2 G^T W G) c``), for fits solved on the host."""
+    collocation, regulariser = matrices
+    c = np.asarray(coeffs, np.float64)
+    r = collocation @ c - np.asarray(problem.targets, np.float64)
+    data, reg = float(r @ r), float(c @ (regulariser @ c))
+    m = problem.samples.shape[0] // 3
+    dtype = problem.targets.dtype
+    return {
+        name: on_device(value, dtype)
+        for name, value in (
+            ("E", data + lam * reg),
+            ("E_d", data),
+            ("R", reg),
+            ("E_ave", data / problem.samples.shape[0]),
+            ("E_max", float(np.max(np.abs(r[:m])))),
+            ("lam", lam),
+        )
     }
 
 

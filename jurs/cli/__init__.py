@@ -73,6 +73,7 @@ from ._outputs import (
 )
 from ._parser import build_parser
 from ._results import (
+    _basis_shown,
     curve_outputs,
     fit_record,
     mesh_record,
@@ -205,6 +206,8 @@ class FitJob:
     solver: AbstractSolver | None  # None: jurs.fit's own, from ``chosen``
     resolution: int | None
     cloud: Cloud
+    adaptive: bool = False  # jurs.fit_adaptive instead of jurs.fit
+    finest: int | None = None  # its finest level's cells along the longest side
 
     @property
     def dim(self) -> int:
@@ -217,6 +220,13 @@ class FitJob:
     @property
     def grid(self) -> tuple:
         return tuple(self.chosen.grid)
+
+    @property
+    def basis(self) -> str:
+        """The basis in words: ``grid 96x96`` or ``adaptive``."""
+        if self.adaptive:
+            return "adaptive"
+        return f"grid {'x'.join(map(str, self.grid))}"
 
     @property
     def lam(self) -> float:
@@ -265,6 +275,30 @@ def _surface_libraries() -> None:
         raise InputError(f"a 3D cloud needs the surface extras: {_one_line(exc)}") from None
 
 
+def _check_adaptive(args, adaptive: bool, finest, dim: int) -> None:
+    """``--adaptive`` and ``--finest`` against the other options: an adaptive fit is the
+    exact least-squares fit with its own resolution."""
+    from .._fit.adaptive import MAX_FINEST
+
+    if finest is not None and not adaptive:
+        raise InputError("--finest sets the finest level of --adaptive; add --adaptive")
+    if not adaptive:
+        return
+    if args.grid is not None:
+        raise InputError(
+            "--adaptive chooses its own resolution (--finest); --grid is for the uniform fit"
+        )
+    if args.solver not in ("auto", "lstsq"):
+        raise InputError(
+            f"--adaptive fits by exact least squares; --solver {args.solver} runs on the "
+            "uniform grid (leave out --adaptive, or use --solver auto)"
+        )
+    if finest is not None and not 8 <= finest <= MAX_FINEST[dim]:
+        raise InputError(
+            f"--finest must be between 8 and {MAX_FINEST[dim]} in {dim}D, got {finest}"
+        )
+
+
 def prepare_fit(args) -> FitJob:
     """Read the cloud and check everything that can be checked before the fit (options
     against the cloud's dimension, normals, settings, solver, output folder and its free
@@ -287,9 +321,13 @@ def prepare_fit(args) -> FitJob:
             normals = cast("np.ndarray", jurs.estimate_normals(points))
         except (ValueError, TypeError) as exc:
             raise InputError(f"{shown}: {_one_line(exc)}") from None
+    adaptive = bool(getattr(args, "adaptive", False))
+    finest = getattr(args, "finest", None)
+    _check_adaptive(args, adaptive, finest, dim)
     out = os.path.abspath(args.output)
     resolution = args.resolution
-    if dim == 2 and resolution is None:
+    # An adaptive curve's lattice follows its finest level, known after the fit.
+    if dim == 2 and resolution is None and not adaptive:
         resolution = ls.DEFAULT_RESOLUTION
     _check_options(resolution, dim, out, outputs_for(dim))
     if args.smoothing is not None and (args.solver != "auto" or args.lam is not None):
@@ -306,7 +344,11 @@ def prepare_fit(args) -> FitJob:
     solver = make_solver(
         args.solver, lam=args.lam, tau=args.tau, steps=args.steps, tol=args.tol, chosen=chosen
     )
-    job = FitJob(path, points, normals, estimated, out, chosen, solver, resolution, cloud)
+    if adaptive:
+        solver = None  # fit_adaptive's exact solve, with --lam or the automatic lambda
+    job = FitJob(
+        path, points, normals, estimated, out, chosen, solver, resolution, cloud, adaptive, finest
+    )
     check_output_folder(out, _output_bytes(job), job.outputs)
     return job
 
@@ -318,7 +360,8 @@ def _solve(job: FitJob, args):
 
     import jurs
 
-    bar = ProgressBar(f"{args.solver} {'x'.join(map(str, job.grid))}", enabled=not args.quiet)
+    # An adaptive fit is one solve: no steps to show.
+    bar = ProgressBar(f"{args.solver} {job.basis}", enabled=not (args.quiet or job.adaptive))
     t0 = time.perf_counter()
     try:
         # The automatic settings as chosen up front: with solver None jurs.fit takes their
@@ -326,9 +369,19 @@ def _solve(job: FitJob, args):
         # verdict (not warned).
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", UserWarning)
-            sol = jurs.fit(
-                job.cloud, settings=job.chosen, solver=job.solver, callback=bar, throw=False
-            )
+            if job.adaptive:
+                sol = jurs.fit_adaptive(
+                    job.cloud.points,
+                    job.cloud.normals,
+                    settings=job.chosen,
+                    # lstsq's lambda is 0 unless given, as on the uniform grid
+                    lam=0.0 if args.lam is None and args.solver == "lstsq" else args.lam,
+                    finest=job.finest,
+                )
+            else:
+                sol = jurs.fit(
+                    job.cloud, settings=job.chosen, solver=job.solver, callback=bar, throw=False
+                )
     except (ValueError, TypeError) as exc:
         bar.close()
         raise InputError(f"{job.shown}: {_one_line(exc)}") from None
@@ -384,8 +437,8 @@ def run_fit(args) -> int:
 
     if not args.quiet:
         print(
-            f"{job.shown}: {len(job.points)} points, {args.solver}, grid "
-            f"{'x'.join(map(str, job.grid))}: {int(sol.stats['num_steps'])} steps in "
+            f"{job.shown}: {len(job.points)} points, {args.solver}, {_basis_shown(job, sol)}: "
+            f"{int(sol.stats['num_steps'])} steps in "
             f"{seconds:.2f} s ({sol.status})"
         )
         print(summary)

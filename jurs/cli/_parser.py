@@ -74,6 +74,22 @@ def _fit_parser(sub) -> argparse.ArgumentParser:
         "None chooses from the data (jurs.auto_settings)",
     )
     f.add_argument(
+        "--adaptive",
+        action="store_true",
+        help="fit on an adaptive basis (jurs.fit_adaptive): fine cells in a band around "
+        "the data, coarse ones elsewhere, so that detail of about one point spacing "
+        "(2D) costs the outline, not the box; exact least squares with the automatic "
+        "lambda (--lam and --smoothing as for auto); not with --grid",
+    )
+    f.add_argument(
+        "--finest",
+        type=int,
+        default=None,
+        metavar="CELLS",
+        help="--adaptive: cells of the finest level along the longest side (None: "
+        "from the point spacing and noise)",
+    )
+    f.add_argument(
         "--solver",
         default="auto",
         choices=_solver_names(),

@@ -13,7 +13,12 @@ import time
 from typing import TYPE_CHECKING
 
 from ._inputs import printable
-from ._outputs import _json_safe, _save_figure, _write_record_and_spline
+from ._outputs import (
+    MAX_ADAPTIVE_RESOLUTION,
+    _json_safe,
+    _save_figure,
+    _write_record_and_spline,
+)
 
 if TYPE_CHECKING:
     from . import FitJob
@@ -36,30 +41,51 @@ def fit_record(job: FitJob, args, sol, seconds: float) -> dict:
         doubts=[str(d) for d in sol.stats.get("doubts") or ()],
         extra_components=_json_safe(list(sol.stats.get("extra_components") or ())),
     )
+    settings = {
+        "solver": args.solver,
+        "grid": None if job.adaptive else list(job.grid),
+        "lam": _lam(job, sol),
+        "tau": args.tau if args.solver == "iurs" else None,
+        "offset": job.chosen.offset,
+        "eps": job.chosen.eps,
+        "steps": args.steps,
+        "tol": args.tol,
+        "chosen_from_data": job.chosen.as_dict(),
+    }
+    if job.adaptive:
+        settings.update(
+            basis="adaptive",
+            finest=list(sol.stats["finest"]),
+            levels=int(sol.stats["levels"]),
+            active=list(sol.stats["active"]),
+        )
     return {
         "input": printable(os.path.abspath(job.path)),
         "num_points": int(len(job.points)),
         "normals": "estimated" if job.estimated else "given",
-        "settings": {
-            "solver": args.solver,
-            "grid": list(job.grid),
-            "lam": job.lam,
-            "tau": args.tau if args.solver == "iurs" else None,
-            "offset": job.chosen.offset,
-            "eps": job.chosen.eps,
-            "steps": args.steps,
-            "tol": args.tol,
-            "chosen_from_data": job.chosen.as_dict(),
-        },
+        "settings": settings,
         "metrics": metrics,
     }
+
+
+def _lam(job: FitJob, sol) -> float:
+    """The fit's lambda: an adaptive fit's own (made for its finest cell), else the job's."""
+    return float(sol.metrics["lam"]) if job.adaptive else job.lam
+
+
+def _basis_shown(job: FitJob, sol) -> str:
+    """The basis of a finished fit in words: ``grid 96x96``, or ``adaptive, finest
+    2048x1536`` (the finest level's cells over the box)."""
+    if not job.adaptive:
+        return job.basis
+    return f"adaptive, finest {'x'.join(map(str, sol.stats['finest']))}"
 
 
 def _fit_title(job: FitJob, args, sol) -> str:
     """First lines of the figures' titles: file, solver, grid, lambda, E_ave."""
     return (
-        f"{printable(os.path.basename(job.path))}: {args.solver}, grid "
-        f"{'x'.join(map(str, job.grid))}, lam = {job.lam:.3g}\nE_ave = "
+        f"{printable(os.path.basename(job.path))}: {args.solver}, {_basis_shown(job, sol)}, "
+        f"lam = {_lam(job, sol):.3g}\nE_ave = "
         f"{float(sol.metrics['E_ave']):.3e}, "
     )
 
@@ -72,13 +98,13 @@ def curve_outputs(job: FitJob, args, sol, seconds: float):
     from .. import levelset as ls
     from .. import plot
 
-    assert job.resolution is not None  # prepare_fit gives a 2D job the level-set default
+    resolution = job.resolution or adaptive_resolution(sol.spline)
     report = ls.analyze(
         sol.spline,
         job.points,
         offset=job.chosen.offset,
         threshold=args.threshold,
-        resolution=job.resolution,
+        resolution=resolution,
         trim=_trim(args),
     )
     record = fit_record(job, args, sol, seconds)
@@ -117,6 +143,19 @@ def curve_outputs(job: FitJob, args, sol, seconds: float):
         f"{report.chamfer:.3g}"
     )
     return write, summary
+
+
+def adaptive_resolution(spline) -> int:
+    """An adaptive curve's level-set grid (``--resolution`` not given): one node per finest
+    cell along the longer side, at least ``DEFAULT_RESOLUTION`` (512) and at most
+    ``MAX_ADAPTIVE_RESOLUTION``. An adaptive spline is evaluated point by point (a leaf
+    search, then its 16 terms): 769^2 nodes took 2.5 s and 2049^2 took 21 s on a 2-core
+    CPU running other jobs (load 11), so a finer default grid would cost more than the
+    fit."""
+    from .. import levelset as ls
+
+    finest = max(spline.finest_cells)
+    return int(min(max(ls.DEFAULT_RESOLUTION, finest + 1), MAX_ADAPTIVE_RESOLUTION))
 
 
 def _trim(args) -> float | None:
@@ -160,6 +199,28 @@ def _mesh_counts(report) -> str:
     )
 
 
+def _vertex_colours(job: FitJob, sol, vertices):
+    """The mesh's vertex colours in [0, 1], fitted from the input PLY's per-vertex red,
+    green and blue (``jurs.fit_attributes``), or None where the input has none. A fit
+    whose box leaves points out (a --domain given) writes the mesh without them, with a
+    note."""
+    import numpy as np
+
+    import jurs
+
+    from ..datasets._files import ply_vertex_colors
+
+    rgb = ply_vertex_colors(job.path)
+    if rgb is None or len(rgb) != len(job.points):
+        return None
+    try:
+        field = jurs.fit_attributes(sol, job.points, rgb / 255.0)
+    except ValueError as exc:
+        print(f"jurs: note: {job.shown}: colours not carried ({exc})", file=sys.stderr)
+        return None
+    return np.asarray(field(vertices))
+
+
 def surface_outputs(job: FitJob, args, sol, seconds: float):
     """A surface's outputs (``OUTPUTS_3D``): ``(write, summary line)``. The zero set is
     meshed and measured here (components, genus, supplementary ones; Chamfer and Hausdorff
@@ -190,6 +251,7 @@ def surface_outputs(job: FitJob, args, sol, seconds: float):
             "is fitted; --trim keeps the part the data support",
             file=sys.stderr,
         )
+    colours = _vertex_colours(job, sol, vertices)
     distances = ls.mesh_distances(vertices, faces, job.points, job.normals)
     t2 = time.perf_counter()
     record = fit_record(job, args, sol, seconds)
@@ -201,6 +263,7 @@ def surface_outputs(job: FitJob, args, sol, seconds: float):
         trim=trim,
     )
     record["mesh"] = mesh_record(vertices, faces, report, distances, resolution)
+    record["mesh"]["vertex_colors"] = colours is not None
     record["timings"] = {"fit_s": seconds, "mesh_s": t1 - t0, "analysis_s": t2 - t1}
     counts = _mesh_counts(report)
     highlight = (
@@ -209,7 +272,7 @@ def surface_outputs(job: FitJob, args, sol, seconds: float):
 
     def write(folder):
         _write_record_and_spline(folder, record, spline)
-        datasets.save_mesh(os.path.join(folder, "mesh.ply"), vertices, faces)
+        datasets.save_mesh(os.path.join(folder, "mesh.ply"), vertices, faces, colors=colours)
         fig, axes = plot._mesh_axes(None, pyplot=False)
         plot.plot_mesh(
             vertices,

@@ -7,7 +7,9 @@ Every generator returns ``(points, normals)`` as float64 NumPy arrays of shape `
 read and written by [`load_points`][jurs.datasets.load_points] /
 [`save_points`][jurs.datasets.save_points], triangle meshes by
 [`load_mesh`][jurs.datasets.load_mesh] / [`save_mesh`][jurs.datasets.save_mesh] (3D files
-through trimesh, an optional dependency).
+through trimesh, an optional dependency). A cloud no one process reads whole is read in
+parts, one per process, by [`load_rows`][jurs.datasets.load_rows] and made global arrays
+by [`global_arrays`][jurs.datasets.global_arrays] (docs/sharding.md).
 """
 
 # The generators in _examples, file reading and writing in _files; one public namespace.
@@ -39,6 +41,7 @@ from ._files import (
     save_mesh,
     save_points,
 )
+from ._parts import NPY_COLUMNS, global_arrays, load_rows, part_files, part_rows
 
 __all__ = [
     "parametric_curve",
@@ -65,6 +68,11 @@ __all__ = [
     "sample_mesh",
     "load_mesh",
     "save_mesh",
+    "load_rows",
+    "global_arrays",
+    "part_rows",
+    "part_files",
+    "NPY_COLUMNS",
 ]
 
 # Public names report the public module (help(), the docs, pickles), not the private one

@@ -280,11 +280,18 @@ def save_mesh(
     path: str | os.PathLike[str],
     vertices: Float[npt.ArrayLike, "V 3"],
     faces: Int[npt.ArrayLike, "F 3"],
+    colors: Float[npt.ArrayLike, "V 3"] | None = None,
 ) -> None:
     """Write a triangle mesh as PLY (binary, float64 coordinates), OBJ or OFF (text, all
     17 digits) or STL (float32 by the format), by the suffix of ``path``, through trimesh
     but for PLY. PLY, OBJ and OFF keep every coordinate as given, however far from the
-    origin; STL rounds them to float32 (about 1e-7 of their distance from the origin)."""
+    origin; STL rounds them to float32 (about 1e-7 of their distance from the origin).
+
+    ``colors``: ``(V, 3)`` vertex colours (PLY only), written as ``uchar`` red, green
+    and blue properties: integers are 0-255; floats are [0, 1] where none exceeds
+    ``UNIT_COLOR_MAX`` (a colour field fitted to [0, 1] values overshoots 1 a little),
+    0-255 otherwise; values outside the range are clipped. ValueError for another
+    shape, NaN or another format."""
     path = os.fspath(path)
     suffix = _suffix(path)
     if suffix not in MESH_SUFFIXES:
@@ -296,8 +303,11 @@ def save_mesh(
             f"vertices and faces must have shapes (V, 3) and (F, 3), got "
             f"{vertices.shape} and {faces.shape}"
         )
+    rgb = None if colors is None else _vertex_colors(path, colors, len(vertices))
+    if rgb is not None and suffix != ".ply":
+        raise ValueError(f"{path}: vertex colours are written to PLY only")
     if suffix == ".ply":
-        _write_ply(path, vertices, faces=np.asarray(faces, dtype=np.int64))
+        _write_ply(path, vertices, faces=np.asarray(faces, dtype=np.int64), colors=rgb)
         return
     trimesh = _trimesh()
     # OBJ and OFF are text: all digits (trimesh's defaults keep 8 and 10).
@@ -305,22 +315,73 @@ def save_mesh(
     trimesh.Trimesh(vertices, faces, process=False).export(path, file_type=suffix[1:], **options)
 
 
-def _write_ply(path: str, vertices, faces=None, normals=None) -> None:
+#: Float colours whose largest value is at most this are read as [0, 1], larger ones as
+#: 0-255 (``save_mesh``).
+UNIT_COLOR_MAX = 2.0
+
+
+def _vertex_colors(path: str, colors, count: int) -> np.ndarray:
+    """``colors`` as ``(count, 3)`` uint8 (``save_mesh`` states the rule); clipped."""
+    c = np.asarray(colors)
+    if c.dtype.kind not in "iuf" or c.shape != (count, 3):
+        raise ValueError(
+            f"{path}: colors must be a ({count}, 3) array of numbers (one row a vertex), "
+            f"got shape {c.shape} and dtype {c.dtype}"
+        )
+    if c.dtype.kind == "f":
+        if not np.isfinite(c).all():
+            bad = int(np.argmax(~np.isfinite(c).all(axis=1)))
+            raise ValueError(f"{path}: colors contain NaN or Inf (first at row {bad})")
+        if c.size and c.max() <= UNIT_COLOR_MAX:
+            c = c * 255.0
+        c = np.rint(c)
+    return np.clip(c, 0, 255).astype(np.uint8)
+
+
+def ply_vertex_colors(path: str) -> np.ndarray | None:
+    """``(V, 3)`` uint8 red, green and blue of a PLY point cloud's vertices, one row a
+    vertex in the file's order (the rows [`load_points`][jurs.datasets.load_points]
+    returns); None where the file is not a PLY, has no vertex colours, or has faces (a
+    mesh is read as points drawn on its faces, which carry no file colour)."""
+    if _suffix(path) != ".ply":
+        return None
+    trimesh = _trimesh()
+    try:
+        with open(path, "rb") as fh:
+            data = trimesh.exchange.ply.load_ply(fh)
+    except Exception:  # load_points names what is wrong with the file
+        return None
+    colors = data.get("vertex_colors")
+    faces = data.get("faces")
+    if colors is None or (faces is not None and len(faces)):
+        return None
+    colors = np.asarray(colors)
+    if colors.ndim != 2 or colors.shape[1] < 3:
+        return None
+    return colors[:, :3].astype(np.uint8)
+
+
+def _write_ply(path: str, vertices, faces=None, normals=None, colors=None) -> None:
     """A binary little-endian PLY of float64 (``double``) vertices, with vertex normals
-    where given and triangle faces (``uchar`` count, ``int`` indices) where given. Written
+    where given, ``uchar`` red, green and blue where ``colors`` (uint8 ``(V, 3)``) are
+    given, and triangle faces (``uchar`` count, ``int`` indices) where given. Written
     here, not by trimesh, whose PLY writer rounds every coordinate to float32: a mesh far
     from the origin would come back off by the float32 spacing there."""
     fields = [("x", "<f8"), ("y", "<f8"), ("z", "<f8")]
     if normals is not None:
         fields += [("nx", "<f8"), ("ny", "<f8"), ("nz", "<f8")]
-    body = np.empty(len(vertices), dtype=fields)
+    channels = [("red", "u1"), ("green", "u1"), ("blue", "u1")] if colors is not None else []
+    body = np.empty(len(vertices), dtype=fields + channels)
     for k, axis in enumerate("xyz"):
         body[axis] = vertices[:, k]
         if normals is not None:
             body["n" + axis] = normals[:, k]
+    for k, (name, _) in enumerate(channels):
+        body[name] = colors[:, k]  # pyright: ignore[reportOptionalSubscript]
     header = ["ply", "format binary_little_endian 1.0", "comment written by jurs"]
     header += [f"element vertex {len(vertices)}"]
     header += [f"property double {name}" for name, _ in fields]
+    header += [f"property uchar {name}" for name, _ in channels]
     if faces is not None:
         if len(faces) and (faces.min() < 0 or faces.max() >= len(vertices)):
             raise ValueError(f"faces must index the {len(vertices)} vertices")

@@ -14,6 +14,8 @@ import numpy.typing as npt
 from jaxtyping import Float
 from scipy.spatial import cKDTree  # pyright: ignore[reportAttributeAccessIssue]  # no stub
 
+from .._model.adaptive import AdaptiveSpline
+from .._model.lattice import adaptive_values
 from .._model.spline import ImplicitSpline
 from .._problem.memory import check_memory
 from ._trimming import check_trim, trim_curves
@@ -85,9 +87,13 @@ def evaluate_grid(
     """``values[j, i] = g(xs[i], ys[j])`` as a NumPy array.
 
     Evaluated in fixed-size chunks (the last one padded) under one jit, so grids of any
-    size reuse one compiled function per spline grid shape and dtype.
+    size reuse one compiled function per spline grid shape and dtype (an adaptive
+    spline's: per size class of its packed arrays, ``jurs._model.packed``).
     """
     gx, gy = np.meshgrid(np.asarray(xs), np.asarray(ys))
+    if isinstance(spline, AdaptiveSpline):  # packed: one compiled program a size class
+        xy = np.stack([gx.ravel(), gy.ravel()], axis=1)
+        return adaptive_values(spline, xy).reshape(gx.shape)
     dtype = np.asarray(spline.control).dtype if hasattr(spline, "control") else np.float64
     xy = np.stack([gx.ravel(), gy.ravel()], axis=1).astype(dtype)
     n = len(xy)

@@ -9,6 +9,8 @@ import numpy.typing as npt
 from jaxtyping import Bool, Float
 from scipy.spatial import cKDTree  # pyright: ignore[reportAttributeAccessIssue]  # no stub
 
+from .._model.adaptive import AdaptiveSpline
+from .._model.lattice import values_and_gradients
 from .._model.spline import ImplicitSpline
 from ._curves import _evaluate, _gradient
 
@@ -63,6 +65,20 @@ def _central_gradient(fn, xy: np.ndarray, step: float) -> np.ndarray:
     return np.stack([values[0] - values[1], values[2] - values[3]], axis=1) / (2 * step)
 
 
+def _both_at_once(spline: AdaptiveSpline):
+    """``(value_of, gradient)`` of an adaptive spline that evaluate both in one pass: the
+    loop below asks for the value, then the gradient, at the same points."""
+    last: dict = {}
+
+    def both(xy):
+        xy = np.asarray(xy, float).reshape(-1, 2)
+        if "x" not in last or not np.array_equal(last["x"], xy):
+            last["x"], last["out"] = xy.copy(), values_and_gradients(spline, xy)
+        return last["out"]
+
+    return (lambda xy: both(xy)[0]), (lambda xy: both(xy)[1])
+
+
 def project_to_zero_set(
     fn,
     points: Float[npt.ArrayLike, "k 2"],
@@ -99,6 +115,8 @@ def project_to_zero_set(
         gradient = grad
     elif spline:
         gradient = lambda xy: _gradient(fn, xy)  # noqa: E731
+    elif isinstance(fn, AdaptiveSpline):  # packed: compiled once a size class
+        value_of, gradient = _both_at_once(fn)
     else:
         gradient = lambda xy: _central_gradient(value_of, xy, step)  # noqa: E731
     for k in range(int(steps) + 1):  # the last round only checks
