@@ -10,8 +10,8 @@ evaluation, and needs no array of per-point patches.
 Everything here reads only the fields ``control``, ``weights``, ``lower`` and ``upper`` of
 the spline it is given (any object with them works) and computes in float64 NumPy, so
 meshing and mesh metrics run without compiling anything. An adaptive spline
-([`jurs.AdaptiveSpline`][]) has no tensor grid: it is evaluated point by point through its
-own jitted evaluation (``adaptive_lattice_values``), in chunks of one size.
+([`jurs.AdaptiveSpline`][]) is read as the uniform spline of its finest level, with
+coefficients computed only where a lattice or a point needs them (``FinestSpline``).
 """
 
 from __future__ import annotations
@@ -82,14 +82,185 @@ def adaptive_values(spline: AdaptiveSpline, points) -> np.ndarray:
 
 def adaptive_lattice_values(spline: AdaptiveSpline, axes) -> np.ndarray:
     """[`lattice_values`][jurs._model.lattice.lattice_values] of an adaptive spline: g at
-    every node, ``(len(xs), len(ys)(, len(zs)))``."""
+    every node, ``(len(xs), len(ys)(, len(zs)))``, through
+    ``FinestSpline.lattice``."""
     if len(axes) != spline.ndim:
         raise ValueError(
             f"a {spline.ndim}D spline needs {spline.ndim} lattice axes, got {len(axes)}"
         )
-    grids = np.meshgrid(*[np.asarray(a, np.float64) for a in axes], indexing="ij")
-    points = np.stack([g.ravel() for g in grids], axis=1)
-    return _adaptive_evaluate(spline, points)[0].reshape(grids[0].shape)
+    return FinestSpline(spline).lattice(axes)
+
+
+def _host_cascade(hierarchy, coeffs: np.ndarray) -> np.ndarray:
+    """``jurs._model.hierarchy.cascade`` in NumPy float64 on the host: no program to
+    compile for a new hierarchy (level sets of a new fit compile nothing)."""
+    out = []
+    start = 0
+    previous = None
+    for level in range(hierarchy.num_levels):
+        count = hierarchy.active_counts[level]
+        placed = np.zeros(coeffs.shape[:-1] + (hierarchy.level_sizes[level],))
+        placed[..., np.asarray(hierarchy.active[level])] += coeffs[..., start : start + count]
+        start += count
+        if previous is None:
+            current = placed
+        else:
+            parents = np.asarray(hierarchy.parents[level])
+            weights = np.asarray(hierarchy.parent_weights[level], np.float64)
+            refined = np.sum(previous[..., parents] * weights, axis=-1)
+            current = np.asarray(hierarchy.keep[level], np.float64) * refined + placed
+        out.append(current)
+        previous = current
+    return np.concatenate(out, axis=-1)
+
+
+#: Finest-level coefficients a window of ``FinestSpline.lattice`` holds at most: about
+#: 32 MiB of float64 numerator and denominator.
+WINDOW_FUNCTIONS = 1 << 21
+
+
+class FinestSpline:
+    """An adaptive spline read as the rational spline of its finest level's uniform grid,
+    evaluated on the host in float64 NumPy.
+
+    The levels' spaces nest, so numerator and denominator of eq. 14 are splines of the
+    finest level over the whole box; their coefficients on any set of finest functions
+    come from ``jurs._model.hierarchy.finest_coefficients``, computed only
+    where asked. A lattice is then contracted axis by axis as a uniform spline's
+    (``lattice_values``), at ``4 (W^d n + ...)`` operations for ``W`` functions and ``n``
+    nodes a side instead of one leaf search and ``4^d`` key searches per node.
+
+    **Bitwise agreement.** A node's value depends only on its coordinates and on the
+    coefficients of the ``4^d`` functions over its finest cell, each computed by the same
+    element-wise operations whatever window it is asked in; the per-axis contractions are
+    element-wise too (four products added in a fixed order, no BLAS). So two windows that
+    share a node give it bitwise the same value: blocks of a lattice meshed apart stitch
+    exactly (``jurs.levelset._band``).
+    """
+
+    def __init__(self, spline: AdaptiveSpline):
+        hierarchy = spline.hierarchy
+        self.hierarchy = hierarchy
+        self.ndim = hierarchy.ndim
+        finest = hierarchy.num_levels - 1
+        self.cells = np.asarray(hierarchy.cells(finest), np.int64)
+        self.lower = np.asarray(hierarchy.lower, np.float64)
+        self.upper = np.asarray(hierarchy.upper, np.float64)
+        self.width = (self.upper - self.lower) / self.cells
+        weights = np.asarray(spline.weights, np.float64)
+        stacked = np.stack([weights * np.asarray(spline.control, np.float64), weights])
+        self.cascaded = _host_cascade(hierarchy, stacked)
+
+    def axis(self, coords, axis: int):
+        """``(cell, weights (n, 4), slopes (n, 4))`` of 1D ``coords`` along ``axis`` at
+        the finest level: the arithmetic of ``locate_leaves`` (clamped cells; outside the
+        box the border pieces extrapolate). ``slopes`` are d/dx."""
+        unit = (np.asarray(coords, np.float64) - self.lower[axis]) / (
+            self.upper[axis] - self.lower[axis]
+        )
+        u = unit * float(self.cells[axis])
+        cell = np.clip(np.floor(u), 0, self.cells[axis] - 1).astype(np.int64)
+        t = u - cell
+        return cell, cubic_weights(t, xp=np), cubic_slopes(t) / self.width[axis]
+
+    def coefficients(self, functions) -> np.ndarray:
+        """Numerator and denominator coefficients of finest functions ``(n, d)``; ``(2,
+        n)``. Each distinct function is computed once."""
+        from .hierarchy import finest_coefficients
+
+        functions = np.asarray(functions, np.int64).reshape(-1, self.ndim)
+        functions = np.clip(functions, 0, self.cells + 2)
+        key = functions[:, 0]
+        for a in range(1, self.ndim):
+            key = key * (self.cells[a] + 3) + functions[:, a]
+        _, first, inverse = np.unique(key, return_index=True, return_inverse=True)
+        unique = functions[first]
+        return finest_coefficients(self.hierarchy, self.cascaded, unique)[:, inverse.reshape(-1)]
+
+    def windows(self, starts, sizes) -> np.ndarray:
+        """Coefficients of the windows of finest functions ``starts[b] + [0, sizes)`` per
+        axis (``starts (b, d)``); ``(2, b, *sizes)``. Functions past the grid's end are
+        clamped onto it (a window padded to a common size; the padding is never read by
+        nodes inside it)."""
+        starts = np.asarray(starts, np.int64).reshape(-1, self.ndim)
+        offsets = np.stack(np.meshgrid(*[np.arange(n) for n in sizes], indexing="ij"), -1)
+        functions = starts[:, None, :] + offsets.reshape(1, -1, self.ndim)
+        functions = np.minimum(functions, self.cells + 2)
+        return self.coefficients(functions).reshape((2, len(starts)) + tuple(sizes))
+
+    @staticmethod
+    def contract(windows, relative, factors) -> np.ndarray:
+        """Splines on lattices from their windows of coefficients: ``windows (k, b, W_1..W_d)``,
+        per axis ``relative[a] (b, n_a)`` (each node's cell, relative to its window's
+        start) and ``factors[a] (b, n_a, 4)`` (basis values or slopes); ``(k, b, n_1 ..
+        n_d)``. Element-wise, four terms added in order (see the class docstring)."""
+        out = windows
+        for a in range(len(relative)):
+            axis = 2 + a
+            shape = [1] * out.ndim
+            shape[1] = relative[a].shape[0]
+            shape[axis] = relative[a].shape[1]
+            total = np.take_along_axis(out, relative[a].reshape(shape), axis=axis)
+            total = total * factors[a][:, :, 0].reshape(shape)
+            for m in range(1, 4):
+                index = (relative[a] + m).reshape(shape)
+                total = total + np.take_along_axis(out, index, axis=axis) * factors[a][
+                    :, :, m
+                ].reshape(shape)
+            out = total
+        return out
+
+    def lattice(self, axes) -> np.ndarray:
+        """g on the lattice ``axes`` (``len(axes) == d``); ``(len(axes[0]), ...)``, in
+        windows of at most about ``WINDOW_FUNCTIONS`` coefficients along the first axis."""
+        located = [self.axis(a, k) for k, a in enumerate(axes)]
+        cells = [c for c, _, _ in located]
+        across = int(np.prod([c[-1] - c[0] + 4 for c in cells[1:]])) if self.ndim > 1 else 1
+        rows = max(1, WINDOW_FUNCTIONS // max(across, 1) - 3)
+        first = cells[0]
+        parts = []
+        start = 0
+        while start < len(first):
+            # nodes start .. stop - 1: their cells span at most `rows` cells
+            stop = int(np.searchsorted(first, first[start] + rows, side="left"))
+            stop = max(stop, start + 1)
+            chosen = [slice(start, stop)] + [slice(None)] * (self.ndim - 1)
+            chunk_cells = [c[s] for c, s in zip(cells, chosen)]
+            starts = np.array([[c[0] for c in chunk_cells]])
+            sizes = tuple(int(c[-1] - c[0] + 4) for c in chunk_cells)
+            window = self.windows(starts, sizes)
+            relative = [(c - c[0])[None] for c in chunk_cells]
+            factors = [w[s][None] for (_, w, _), s in zip(located, chosen)]
+            both = self.contract(window, relative, factors)[:, 0]
+            parts.append(both[0] / both[1])
+            start = stop
+        return np.concatenate(parts, axis=0)
+
+    def values_and_gradients(self, points) -> tuple[np.ndarray, np.ndarray]:
+        """g and its gradient at scattered ``points (n, d)``: each point reads the ``4^d``
+        finest coefficients over its finest cell (the distinct ones computed once) and
+        contracts them axis by axis, last axis first."""
+        points = np.asarray(points, np.float64)
+        n, d = points.shape
+        located = [self.axis(points[:, a], a) for a in range(d)]
+        corner = np.stack(np.meshgrid(*[np.arange(4)] * d, indexing="ij"), -1).reshape(-1, d)
+        cell = np.stack([c for c, _, _ in located], -1)
+        coeffs = self.coefficients(cell[:, None, :] + corner[None])
+        coeffs = coeffs.reshape((2, n) + (4,) * d)
+        # Contract the last axis, then the others; `parts[k]` holds the contraction with
+        # the slope along axis k (and values along the rest), `parts[d]` values only.
+        parts: list = [None] * d + [coeffs]
+        for a in range(d - 1, -1, -1):
+            _, weights, slopes = located[a]
+            shape = (1, n) + (1,) * a + (4,)
+            w, s = weights.reshape(shape), slopes.reshape(shape)
+            parts[a] = np.sum(parts[d] * s, axis=-1)  # before parts[d] loses axis a
+            for k in range(a + 1, d + 1):
+                parts[k] = np.sum(parts[k] * w, axis=-1)
+        numerator, denominator = parts[d]
+        g = numerator / denominator
+        gradient = np.stack([(p[0] - g * p[1]) / denominator for p in parts[:d]], axis=-1)
+        return g, gradient
 
 
 def spline_fields(spline, dims=(2, 3)):
@@ -212,8 +383,13 @@ def values_and_gradients(spline, points, *, chunk: int = 1 << 14):
             raise ValueError(f"points must have shape (n, {spline.ndim}), got {points.shape}")
         if len(points) == 0:
             return np.empty(0), np.empty((0, spline.ndim))
-        value, gradient = _adaptive_evaluate(spline, points, _values_and_gradients)
-        return value, gradient
+        value, gradient = [], []
+        evaluator = FinestSpline(spline)
+        for start in range(0, len(points), int(chunk)):
+            v, g = evaluator.values_and_gradients(points[start : start + int(chunk)])
+            value.append(v)
+            gradient.append(g)
+        return np.concatenate(value), np.concatenate(gradient)
     control, weights, lower, upper = spline_fields(spline)
     d = control.ndim
     points = np.asarray(points, dtype=np.float64)

@@ -2,7 +2,9 @@
 
 [`mesh`][jurs.levelset.mesh] samples g on a lattice slab by slab
 (``jurs._model.lattice.lattice_values``), runs marching cubes (scikit-image) on each slab,
-stitches the slabs and moves the vertices onto {g = 0} by Newton steps. What to measure on
+stitches the slabs and moves the vertices onto {g = 0} by Newton steps. An adaptive spline
+([`jurs.AdaptiveSpline`][]) is marched only in the blocks of the lattice where g may reach
+the level (``jurs/levelset/_band.py``; docs/design.md section 8). What to measure on
 a mesh (components, genus, distances) is in ``jurs/levelset/_mesh_analysis.py``. Everything
 is host-side NumPy/SciPy; see docs/surfaces.md for the definitions.
 """
@@ -13,8 +15,9 @@ import numpy as np
 from jaxtyping import Float, Int
 
 from .._model.adaptive import AdaptiveSpline
-from .._model.lattice import lattice_values, spline_fields, values_and_gradients
+from .._model.lattice import FinestSpline, lattice_values, spline_fields, values_and_gradients
 from .._problem.memory import check_memory
+from ._band import BATCH_BLOCKS, BLOCK_CELLS, BandPlan, march_band, plan_band
 from ._trimming import check_points, check_trim, trim_mesh
 
 #: Lattice nodes per spline cell along the finest axis for the default resolution: g is a
@@ -32,6 +35,10 @@ SAMPLES_PER_CELL = 5
 #: default mesh at a few hundred thousand triangles, meshed in a couple of seconds
 #: (docs/performance.md); pass ``resolution`` for more.
 MIN_RESOLUTION, MAX_RESOLUTION = 32, 256
+#: Bound of the default resolution of an adaptive spline, whose mesh marches only the
+#: blocks where g may reach the level (``jurs.levelset._band``): five nodes a finest cell
+#: up to a 1025^3-equivalent lattice, within ``max_nodes`` of marched nodes.
+MAX_ADAPTIVE_RESOLUTION = 1025
 #: Default lattice nodes per slab of [`mesh`][jurs.levelset.mesh]: 8 MiB of float64
 #: values, which bounds the memory of a mesh; larger slabs mesh no faster
 #: (docs/performance.md).
@@ -92,10 +99,15 @@ def default_resolution(
     spline, lower: Float[np.ndarray, " 3"], upper: Float[np.ndarray, " 3"]
 ) -> int:
     """``SAMPLES_PER_CELL`` lattice nodes per spline cell (the finest axis's) along the
-    longest side of the box, within [``MIN_RESOLUTION``, ``MAX_RESOLUTION``]."""
+    longest side of the box, within [``MIN_RESOLUTION``, ``MAX_RESOLUTION``]; for an
+    adaptive spline, per *finest* cell within [``MIN_RESOLUTION``,
+    ``MAX_ADAPTIVE_RESOLUTION``] (only the band is marched, and
+    [`mesh`][jurs.levelset.mesh] lowers it further when the marched nodes exceed
+    ``max_nodes``)."""
     cell = float(np.min(_cell_widths(spline)))
     nodes = int(np.ceil(SAMPLES_PER_CELL * np.max(upper - lower) / cell)) + 1
-    return int(np.clip(nodes, MIN_RESOLUTION, MAX_RESOLUTION))
+    top = MAX_ADAPTIVE_RESOLUTION if isinstance(spline, AdaptiveSpline) else MAX_RESOLUTION
+    return int(np.clip(nodes, MIN_RESOLUTION, top))
 
 
 def mesh(
@@ -115,9 +127,16 @@ def mesh(
     Args:
         spline: any object with fields ``control`` and ``weights`` (``(N, M, K)``, weights
             positive), ``lower`` and ``upper`` (``(3,)``), such as a 3D
-            [`jurs.ImplicitSpline`][].
+            [`jurs.ImplicitSpline`][]; or a 3D [`jurs.AdaptiveSpline`][], which is
+            marched only in the blocks of ``BLOCK_CELLS`` (16) lattice cells where g may
+            reach the level (over the finest cells, or where the convex hull of its
+            coefficients straddles the level: surface far from the data is meshed too).
+            The result is the full lattice's mesh at the same resolution (vertices to
+            marching cubes' float32 rounding), without evaluating the full lattice.
         resolution: lattice nodes along the longest side of the box (the other sides get
-            the same spacing). Default: 5 per spline cell, between 32 and 256.
+            the same spacing). Default: 5 per spline cell, between 32 and 256; for an
+            adaptive spline 5 per finest cell, between 32 and 1025, lowered until the
+            marched nodes fit in ``max_nodes``.
         box: ``(lower, upper)`` to mesh; default the spline's own box.
         level: the level set to mesh.
         newton_steps: Newton steps ``x <- x - (g - level) grad g / |grad g|^2`` per vertex
@@ -127,7 +146,8 @@ def mesh(
         chunk: lattice nodes per slab (at least two planes of the first axis per slab).
         max_nodes: lattice nodes above which the mesh is refused before any is sampled
             (default ``MAX_NODES``, 2^27: a 512^3 lattice, about 15 s); None, or a larger
-            number, meshes anyway. The memory is checked too, against the host's
+            number, meshes anyway. For an adaptive spline the nodes counted are those of
+            the marched blocks. The memory is checked too, against the host's
             available memory, and that check cannot be lifted.
         points: ``(m, 3)`` data points the spline was fitted to; needed by ``trim``,
             unused without it.
@@ -165,23 +185,30 @@ def mesh(
     intermediates) plus about 450 bytes per vertex of the mesh (the result itself takes 72:
     a vertex and about two faces; the rest is the slabs' marching-cubes output and the
     sort that welds it); at resolution 400 with 333 000 vertices, 140 MiB where the values
-    of the whole lattice alone would take 490 MiB.
+    of the whole lattice alone would take 490 MiB. An adaptive spline's blocks are
+    evaluated ``BATCH_BLOCKS`` (256) at a time, about 20 MiB of values.
     """
     lower, upper = _box(spline, box)
     _check_values(spline, float(level))
     spacings = check_trim(trim, points)  # before the lattice: a bad trim fails at once
     data = None if spacings is None else check_points(points, 3)
+    chosen = resolution is None
     if resolution is None:
         resolution = default_resolution(spline, lower, upper)
     if int(newton_steps) < 0:
         raise ValueError(f"newton_steps must be >= 0, got {newton_steps}")
     if int(chunk) < 1:
         raise ValueError(f"chunk must be >= 1, got {chunk}")
-    axes = lattice_axes(lower, upper, resolution)
-    check_lattice_size([len(a) for a in axes], int(resolution), int(chunk), max_nodes)
-    spacing = np.array([(a[-1] - a[0]) / (len(a) - 1) for a in axes])
-    nudge = NUDGE * float(np.max(spacing * _slope_bound(spline)))
-    vertices, faces = _march_in_slabs(spline, axes, float(level), nudge, int(chunk))
+    if isinstance(spline, AdaptiveSpline):
+        axes, spacing, vertices, faces = _mesh_band(
+            spline, lower, upper, resolution, float(level), max_nodes, chosen
+        )
+    else:
+        axes = lattice_axes(lower, upper, resolution)
+        check_lattice_size([len(a) for a in axes], int(resolution), int(chunk), max_nodes)
+        spacing = _spacing(axes)
+        nudge = NUDGE * float(np.max(spacing * _slope_bound(spline)))
+        vertices, faces = _march_in_slabs(spline, axes, float(level), nudge, int(chunk))
     if len(faces) == 0:
         return _EMPTY
     vertices = lower + vertices * spacing
@@ -298,12 +325,14 @@ def _cell_widths(spline) -> np.ndarray:
 def _slope_bound(spline) -> np.ndarray:
     """A scale of ``|dg/dx_a|`` per axis: ``(max w / min w) max |C_(i+1) - C_i| / h_a``
     (for weights 1 a bound: the derivative is a quadratic spline with those coefficients).
-    An adaptive spline's scale is its coefficients' range over its finest cell (larger
-    than the slope, which only widens the nudge that Newton steps undo)."""
+
+    An adaptive spline is, on each leaf of level ``l``, the level's B-spline with cascaded
+    coefficients ``a^l`` (``jurs._model.hierarchy.cascade``), so the same bound holds with
+    the differences of ``a^l`` between neighbours over a leaf of level ``l`` (the
+    regulariser's pairs, ``Hierarchy.edges``), over ``h_l``, the largest over the levels.
+    """
     if isinstance(spline, AdaptiveSpline):
-        control, weights = _coefficients(spline)
-        spread = float(control.max() - control.min())
-        return weights.max() / weights.min() * spread / _cell_widths(spline)
+        return _adaptive_slope_bound(spline)
     control, weights, lower, upper = spline_fields(spline, dims=(3,))
     h = (upper - lower) / (np.asarray(control.shape) - 3.0)
     steps = np.array([np.abs(np.diff(control, axis=a)).max() for a in range(3)])
@@ -377,3 +406,84 @@ def _newton(spline, vertices, level: float, steps: int, longest: float):
         ok = np.isfinite(move).all(axis=1) & (np.sum(move * move, axis=1) <= longest**2)
         x[ok] += move[ok]
     return x
+
+
+def _adaptive_slope_bound(
+    spline: AdaptiveSpline, evaluator: FinestSpline | None = None
+) -> np.ndarray:
+    """``_slope_bound`` of an adaptive spline (see there); ``(3,)``."""
+    from .._model.hierarchy import _unravel, level_offsets
+
+    hierarchy = spline.hierarchy
+    cascaded = (evaluator or FinestSpline(spline)).cascaded
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = cascaded[0] / cascaded[1]
+    starts = level_offsets(hierarchy)
+    control, weights = _coefficients(spline)
+    bound = np.zeros(hierarchy.ndim)
+    for lev in range(hierarchy.num_levels):
+        pairs = np.asarray(hierarchy.edges[lev], np.int64)
+        if len(pairs) == 0:
+            continue
+        keys = np.asarray(hierarchy.function_keys[lev], np.int64)
+        multi = _unravel(keys[pairs], hierarchy.functions(lev))  # (p, 2, d)
+        axis = np.argmax(np.abs(multi[:, 1] - multi[:, 0]), axis=1)
+        step = np.abs(ratio[starts[lev] + pairs[:, 1]] - ratio[starts[lev] + pairs[:, 0]])
+        width = np.asarray(hierarchy.cell_width(lev), np.float64)
+        for a in range(hierarchy.ndim):
+            along = step[(axis == a) & np.isfinite(step)]
+            if along.size:
+                bound[a] = max(bound[a], float(along.max()) / width[a])
+    return weights.max() / weights.min() * bound
+
+
+def _spacing(axes) -> np.ndarray:
+    return np.array([(a[-1] - a[0]) / (len(a) - 1) for a in axes])
+
+
+def _mesh_band(spline, lower, upper, resolution: int, level: float, max_nodes, chosen: bool):
+    """Marching cubes over the blocks of the lattice where an adaptive spline may reach
+    the level (``jurs.levelset._band``); ``(axes, spacing, vertices in index units,
+    faces)``. A default resolution (``chosen``) is lowered until the marched nodes fit in
+    ``max_nodes``; a given one is refused past it (``check_band_size``)."""
+    evaluator = FinestSpline(spline)
+    marching_cubes = _marching_cubes()
+    slope = _adaptive_slope_bound(spline, evaluator)
+    while True:
+        axes = lattice_axes(lower, upper, int(resolution))
+        spacing = _spacing(axes)
+        nudge = NUDGE * float(np.max(spacing * slope))
+        plan = plan_band(evaluator, axes, level, nudge)
+        fits = max_nodes is None or plan.nodes <= max_nodes
+        if fits or not chosen or resolution <= MIN_RESOLUTION:
+            break
+        # A surface's band grows as the square of the resolution.
+        shrink = 0.95 * np.sqrt(max_nodes / plan.nodes)
+        resolution = max(MIN_RESOLUTION, int((resolution - 1) * shrink) + 1)
+    check_band_size(plan, [len(a) for a in axes], int(resolution), max_nodes)
+    vertices, faces = march_band(evaluator, axes, plan, level, nudge, marching_cubes)
+    if len(faces):
+        vertices, faces = _weld(vertices, faces)
+    return axes, spacing, vertices, faces
+
+
+def check_band_size(plan: BandPlan, counts, resolution: int, max_nodes: int | None) -> None:
+    """``check_lattice_size`` for the band of an adaptive spline: the nodes counted are
+    those of the marched blocks (``plan.nodes``), the memory one batch of blocks'
+    values and the vertices of a lattice plane, as on the full lattice."""
+    plane = float(np.prod(np.asarray(counts, np.float64))) / max(counts)
+    batch = min(plan.nodes, BATCH_BLOCKS * (BLOCK_CELLS + 1) ** 3)
+    memory = BYTES_PER_SLAB_NODE * batch + BYTES_PER_VERTEX * VERTICES_PER_PLANE_NODE * plane
+    if max_nodes is not None:
+        if isinstance(max_nodes, bool) or not isinstance(max_nodes, (int, np.integer)):
+            raise TypeError(f"max_nodes must be an int or None, got {max_nodes!r}")
+        if plan.nodes > max_nodes:
+            seconds = plan.nodes / NODES_PER_SECOND
+            raise ValueError(
+                f"resolution={resolution} samples g at {plan.nodes:.3g} lattice nodes in the "
+                f"blocks where it may reach the level (of {plan.lattice_nodes:.3g} over the "
+                f"box), more than max_nodes={int(max_nodes)}: about {_duration(seconds)} of "
+                f"meshing and up to {memory / 2**30:.2g} GiB; pass a larger max_nodes (or "
+                "None) to mesh anyway, or choose a smaller resolution"
+            )
+    check_memory(f"resolution={resolution}", memory, device=False)

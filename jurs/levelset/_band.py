@@ -1,0 +1,241 @@
+"""Marching cubes over the part of the lattice where an adaptive spline's level set can be.
+
+The lattice of [`mesh`][jurs.levelset.mesh] is cut into blocks of ``BLOCK_CELLS`` lattice
+cells a side. Only the blocks where g may reach the level are evaluated and marched; the
+rest of the box costs a few comparisons per leaf of the hierarchy. A block is marched
+when both tests below let it through (docs/design.md section 8, "Meshing the band"):
+
+1. *Candidates* (per leaf, no evaluation): the blocks over a finest leaf (the band around
+   the data, where the surface is expected), the blocks over a coarser leaf whose
+   coefficients straddle the level (a surface piece far from the data, which must be
+   meshed too), and the blocks with nodes outside the spline's box (where g
+   extrapolates and no bound below holds).
+2. *Window bound* (per candidate): the spline's coefficients in the finest level's
+   uniform basis over the block's cells. With positive weights, g there is a convex
+   combination of their ratios ``A_num / A_den`` (the B-splines are non-negative and the
+   denominator's coefficients positive), so a block whose ratios all lie above the level
+   (or all below it by more than the nudge of ``NUDGE``) has every node on one side, and
+   marching cubes would find nothing in it.
+
+Both bounds are exact (convex hulls, no sampling), so the blocks left out are exactly
+blocks where marching the full lattice would put no triangle: the band's mesh is the full
+lattice's mesh, surface far from the data included.
+
+Neighbouring blocks share their boundary nodes, and ``jurs._model.lattice.FinestSpline``
+gives a node bitwise the same value in every block that holds it, so marching cubes puts
+bitwise equal vertices on the shared lattice edges (an edge along axis ``a`` lies in
+blocks with the same start along ``a``, so its vertex's float32 local coordinate is the
+same too) and ``_weld`` stitches the blocks into one watertight mesh.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import numpy as np
+
+from .._model.hierarchy import _offsets, _position, _ravel, _unravel, level_offsets
+from .._model.lattice import FinestSpline
+
+#: Lattice cells along each side of a block. Smaller blocks hug the surface closer (fewer
+#: nodes evaluated) but cost more calls of marching cubes and more shared boundary
+#: planes: at 16 a block's 17^3 nodes hold 20 % boundary repeats.
+BLOCK_CELLS = 16
+#: Blocks evaluated and marched per batch: a batch's values take about ``BATCH_BLOCKS *
+#: (BLOCK_CELLS + 1)^3 * 16`` bytes (20 MiB at 256 blocks of 16).
+BATCH_BLOCKS = 256
+#: The convex-hull tests keep a block when the level is within this fraction of the
+#: coefficients' magnitude of their range: rounding of the node values, which are
+#: combinations of the coefficients, stays far below it.
+HULL_TOLERANCE = 1e-9
+
+
+@dataclasses.dataclass
+class BandPlan:
+    """Which blocks of a lattice are marched, with their nodes along each axis.
+
+    ``blocks (b, 3)``: the marched blocks' indices in the block grid; ``nodes``: lattice
+    nodes they evaluate (shared boundary nodes counted in each block); ``lattice_nodes``:
+    the full lattice's; ``candidates``: blocks that passed the per-leaf test;
+    ``total_blocks``: the block grid's size."""
+
+    blocks: np.ndarray
+    nodes: int
+    lattice_nodes: int
+    candidates: int
+    total_blocks: int
+
+
+class _Blocks:
+    """The block grid of a lattice: per axis, each block's first and last node and the
+    finest cells of those nodes."""
+
+    def __init__(self, evaluator: FinestSpline, axes, block: int):
+        self.block = int(block)
+        self.located = [evaluator.axis(a, k) for k, a in enumerate(axes)]
+        self.counts = [len(a) for a in axes]
+        self.grid = tuple(max(1, -(-(n - 1) // self.block)) for n in self.counts)
+        self.first = [np.arange(g) * self.block for g in self.grid]
+        self.last = [np.minimum(f + self.block, n - 1) for f, n in zip(self.first, self.counts)]
+        cells = [c for c, _, _ in self.located]
+        self.first_cell = [c[f] for c, f in zip(cells, self.first)]
+        self.last_cell = [c[last] for c, last in zip(cells, self.last)]
+        # Blocks holding nodes outside the spline's box, where g extrapolates.
+        self.outside = []
+        for k, coords in enumerate(axes):
+            out = (coords < evaluator.lower[k]) | (coords > evaluator.upper[k])
+            count = np.concatenate([[0], np.cumsum(out)])
+            self.outside.append(count[self.last[k] + 1] - count[self.first[k]] > 0)
+
+    def window_sizes(self) -> tuple[int, ...]:
+        """Finest functions per axis of a block's window: those over its cells, at most."""
+        pairs = zip(self.first_cell, self.last_cell)
+        return tuple(int(np.max(last - first)) + 4 for first, last in pairs)
+
+    def mark(self, marked: np.ndarray, low: np.ndarray, high: np.ndarray) -> None:
+        """Mark in ``marked`` (the block grid) every block over a box of finest cells
+        ``[low, high]`` (inclusive, ``(m, 3)`` each)."""
+        if len(low) == 0:
+            return
+        start, stop = [], []
+        for k in range(3):
+            start.append(np.searchsorted(self.last_cell[k], low[:, k], side="left"))
+            stop.append(np.searchsorted(self.first_cell[k], high[:, k], side="right"))
+        start = np.stack(start, -1)
+        span = np.stack(stop, -1) - start  # blocks per axis (0 where none)
+        keep = np.all(span > 0, axis=1)
+        start, span = start[keep], span[keep]
+        if len(start) == 0:
+            return
+        for offset in _offsets(3, int(span.max())):
+            ok = np.all(offset < span, axis=1)
+            if ok.any():
+                index = start[ok] + offset
+                marked[index[:, 0], index[:, 1], index[:, 2]] = True
+
+
+def _straddles(low, high, level: float, nudge: float, scale: float) -> np.ndarray:
+    """Whether a range ``[low, high]`` of values may put a node's value, after the nudge,
+    on both sides of the level (see the module docstring)."""
+    tolerance = HULL_TOLERANCE * scale
+    return (low <= level + tolerance) & (high >= level - nudge - tolerance)
+
+
+def _ratios(both: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``A_num / A_den`` and whether the denominator is positive (the hull holds)."""
+    numerator, denominator = both
+    positive = denominator > 0
+    with np.errstate(divide="ignore", invalid="ignore"):
+        return np.where(positive, numerator / np.where(positive, denominator, 1.0), 0.0), positive
+
+
+def plan_band(
+    evaluator: FinestSpline, axes, level: float, nudge: float, block: int = BLOCK_CELLS
+) -> BandPlan:
+    """The blocks of the lattice ``axes`` to march for ``{g = level}`` (module docstring);
+    host work, no lattice-sized array (the block grid is ``BLOCK_CELLS^3`` times smaller)."""
+    hierarchy = evaluator.hierarchy
+    grid = _Blocks(evaluator, axes, block)
+    marked = np.zeros(grid.grid, bool)
+    finest = hierarchy.num_levels - 1
+    ratio_all, _ = _ratios(evaluator.cascaded)
+    scale = float(np.max(np.abs(ratio_all), initial=0.0)) + abs(level)
+    starts = level_offsets(hierarchy)
+    for lev in range(finest + 1):
+        leaves = _unravel(np.asarray(hierarchy.leaf_keys[lev], np.int64), hierarchy.cells(lev))
+        if len(leaves) == 0:
+            continue
+        steps = finest - lev
+        if lev < finest:
+            keys = np.asarray(hierarchy.function_keys[lev], np.int64)
+            around = _ravel(leaves[:, None, :] + _offsets(3, 4)[None], hierarchy.functions(lev))
+            both = evaluator.cascaded[:, starts[lev] + _position(around.ravel(), keys)]
+            ratio, positive = _ratios(both.reshape(2, len(leaves), -1))
+            hull = _straddles(ratio.min(axis=1), ratio.max(axis=1), level, nudge, scale)
+            leaves = leaves[hull | ~positive.all(axis=1)]
+        grid.mark(marked, leaves << steps, ((leaves + 1) << steps) - 1)
+    outside = grid.outside
+    marked |= outside[0][:, None, None] | outside[1][None, :, None] | outside[2][None, None, :]
+    candidates = np.argwhere(marked)
+    chosen = []
+    sizes = grid.window_sizes()
+    for begin in range(0, len(candidates), BATCH_BLOCKS):
+        batch = candidates[begin : begin + BATCH_BLOCKS]
+        first = np.stack([grid.first_cell[k][batch[:, k]] for k in range(3)], -1)
+        last = np.stack([grid.last_cell[k][batch[:, k]] for k in range(3)], -1)
+        ratio, positive = _ratios(evaluator.windows(first, sizes))
+        # Only the functions over the block's cells bound it (the window is padded).
+        valid = np.ones(ratio.shape, bool)
+        for k in range(3):
+            shape = [len(batch), 1, 1, 1]
+            shape[1 + k] = sizes[k]
+            inside = np.arange(sizes[k])[None] <= (last[:, k] - first[:, k] + 3)[:, None]
+            valid &= inside.reshape(shape)
+        low = np.where(valid, ratio, np.inf).reshape(len(batch), -1).min(axis=1)
+        high = np.where(valid, ratio, -np.inf).reshape(len(batch), -1).max(axis=1)
+        bad = (valid & ~positive).reshape(len(batch), -1).any(axis=1)
+        forced = np.zeros(len(batch), bool)
+        for k in range(3):
+            forced |= outside[k][batch[:, k]]
+        chosen.append(batch[_straddles(low, high, level, nudge, scale) | bad | forced])
+    blocks = np.concatenate(chosen) if chosen else np.zeros((0, 3), np.int64)
+    per_axis = [last - first + 1 for first, last in zip(grid.first, grid.last)]
+    nodes = int(sum(np.prod([per_axis[k][blocks[:, k]] for k in range(3)], axis=0)))
+    return BandPlan(
+        blocks=blocks,
+        nodes=nodes,
+        lattice_nodes=int(np.prod(grid.counts)),
+        candidates=len(candidates),
+        total_blocks=int(np.prod(grid.grid)),
+    )
+
+
+def march_band(
+    evaluator: FinestSpline,
+    axes,
+    plan: BandPlan,
+    level: float,
+    nudge: float,
+    marching_cubes,
+    block: int = BLOCK_CELLS,
+):
+    """Marching cubes over ``plan``'s blocks; ``(vertices in lattice index units, faces)``
+    before welding. Values within ``nudge`` of the level are set to ``level + nudge``
+    first, as on the full lattice."""
+    grid = _Blocks(evaluator, axes, block)
+    sizes = grid.window_sizes()
+    vertex_parts, face_parts = [], []
+    count = 0
+    span = np.arange(block + 1)
+    for begin in range(0, len(plan.blocks), BATCH_BLOCKS):
+        batch = plan.blocks[begin : begin + BATCH_BLOCKS]
+        first_cell = np.stack([grid.first_cell[k][batch[:, k]] for k in range(3)], -1)
+        relative, factors, real = [], [], []
+        for k in range(3):
+            cells, weights, _ = grid.located[k]
+            start = grid.first[k][batch[:, k]]
+            # Nodes past the lattice's end repeat its last node (cut off below).
+            index = np.minimum(start[:, None] + span[None], grid.counts[k] - 1)
+            relative.append(cells[index] - first_cell[:, k : k + 1])
+            factors.append(weights[index])
+            real.append(grid.last[k][batch[:, k]] - start + 1)
+        both = evaluator.contract(evaluator.windows(first_cell, sizes), relative, factors)
+        values = both[0] / both[1]
+        for b, where in enumerate(batch):
+            block_values = values[b, : real[0][b], : real[1][b], : real[2][b]]
+            block_values = np.where(
+                np.abs(block_values - level) < nudge, level + nudge, block_values
+            )
+            if not block_values.min() <= level <= block_values.max():
+                continue
+            # "descent": faces (right-hand rule) towards g > level, as on the full lattice.
+            verts, tris, _, _ = marching_cubes(block_values, level, gradient_direction="descent")
+            verts = verts.astype(np.float64) + np.array(
+                [grid.first[k][where[k]] for k in range(3)], np.float64
+            )
+            vertex_parts.append(verts)
+            face_parts.append(tris.astype(np.int64) + count)
+            count += len(verts)
+    if not face_parts:
+        return np.empty((0, 3)), np.empty((0, 3), np.int64)
+    return np.concatenate(vertex_parts), np.concatenate(face_parts)
