@@ -263,3 +263,19 @@ def test_open_scan_trimmed_on_the_command_line(sphere, tmp_path, capsys):
     assert m["num_boundary_loops"] == 1 and m["boundary_loops"] == [1]
     assert m["boundary_length"] == pytest.approx(report.boundary_length)
     assert m["num_closed"] == 0 and m["genera"] == [None]
+
+
+@pytest.mark.slow  # a surface fit by CG and its band mesh: about 10 s
+def test_adaptive_surface_fit_is_band_meshed(sphere_files, tmp_path):
+    """``jurs fit --adaptive`` on a 3D cloud: the band mesh chooses its resolution
+    (recorded as None) and the sphere comes back closed, of genus 0, near the unit
+    sphere."""
+    out = tmp_path / "out"
+    assert cli.main(["fit", str(sphere_files[0]), "-o", str(out), "--adaptive", "-q"]) == 0
+    record = json.loads((out / "metrics.json").read_text())
+    assert record["settings"]["basis"] == "adaptive" and record["mesh"]["resolution"] is None
+    assert record["metrics"]["num_components"] == 1
+    assert record["mesh"]["components"][0]["genus"] == 0
+    vertices, _ = jurs.datasets.load_mesh(out / "mesh.ply")
+    assert np.abs(np.linalg.norm(vertices, axis=1) - 1.0).max() < 0.05
+    assert isinstance(jurs.load_spline(out / "spline.npz"), jurs.AdaptiveSpline)

@@ -166,8 +166,9 @@ def _trim(args) -> float | None:
     return check_trim(getattr(args, "trim", None), ())
 
 
-def mesh_record(vertices, faces, report, distances, resolution: int) -> dict:
-    """metrics.json's ``mesh`` entry: size, lattice resolution and every component."""
+def mesh_record(vertices, faces, report, distances, resolution: int | None) -> dict:
+    """metrics.json's ``mesh`` entry: size, lattice resolution (None: chosen by the band
+    mesh of an adaptive fit) and every component."""
     components = [
         {
             "num_faces": c.num_faces,
@@ -182,7 +183,7 @@ def mesh_record(vertices, faces, report, distances, resolution: int) -> dict:
     return {
         "num_vertices": int(len(vertices)),
         "num_faces": int(len(faces)),
-        "resolution": int(resolution),
+        "resolution": None if resolution is None else int(resolution),
         "samples": distances["samples"],
         "components": components,
     }
@@ -233,13 +234,19 @@ def surface_outputs(job: FitJob, args, sol, seconds: float):
     from ..levelset._meshing import default_resolution
 
     spline = sol.spline
-    resolution = job.resolution or default_resolution(
-        spline, np.asarray(spline.lower, np.float64), np.asarray(spline.upper, np.float64)
-    )
     trim = _trim(args)
     t0 = time.perf_counter()
-    # The user chose --resolution, its memory checked before the fit: no node limit.
-    vertices, faces = ls.mesh(spline, resolution, max_nodes=None, points=job.points, trim=trim)
+    if job.adaptive and job.resolution is None:
+        # The band mesh chooses its resolution (five nodes a finest cell, lowered until
+        # the marched nodes fit in its node limit); metrics.json records it as None.
+        resolution = None
+        vertices, faces = ls.mesh(spline, points=job.points, trim=trim)
+    else:
+        resolution = job.resolution or default_resolution(
+            spline, np.asarray(spline.lower, np.float64), np.asarray(spline.upper, np.float64)
+        )
+        # The user chose --resolution, its memory checked before the fit: no node limit.
+        vertices, faces = ls.mesh(spline, resolution, max_nodes=None, points=job.points, trim=trim)
     t1 = time.perf_counter()
     report = ls.analyze_mesh(vertices, faces, job.points, threshold=args.threshold)
     if report.mostly_unsupported and trim is None:
