@@ -110,7 +110,7 @@ def test_finest_coefficients_evaluate_the_spline_and_agree_bitwise():
 
 def test_finest_coefficients_do_not_depend_on_their_grouping(monkeypatch):
     """Leaves subdivided a few at a time give bitwise the coefficients of one group."""
-    from jurs._model import hierarchy as module
+    from jurs._model import finest as module
 
     rng = np.random.default_rng(2)
     lower, upper = np.zeros(2), np.ones(2)

@@ -125,7 +125,7 @@ class FinestSpline:
 
     The levels' spaces nest, so numerator and denominator of eq. 14 are splines of the
     finest level over the whole box; their coefficients on any set of finest functions
-    come from ``jurs._model.hierarchy.finest_coefficients``, computed only
+    come from ``jurs._model.finest.finest_coefficients``, computed only
     where asked. A lattice is then contracted axis by axis as a uniform spline's
     (``lattice_values``), at ``4 (W^d n + ...)`` operations for ``W`` functions and ``n``
     nodes a side instead of one leaf search and ``4^d`` key searches per node.
@@ -166,7 +166,7 @@ class FinestSpline:
     def coefficients(self, functions) -> np.ndarray:
         """Numerator and denominator coefficients of finest functions ``(n, d)``; ``(2,
         n)``. Each distinct function is computed once."""
-        from .hierarchy import finest_coefficients
+        from .finest import finest_coefficients
 
         functions = np.asarray(functions, np.int64).reshape(-1, self.ndim)
         functions = np.clip(functions, 0, self.cells + 2)

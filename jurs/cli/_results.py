@@ -209,7 +209,7 @@ def _vertex_colours(job: FitJob, sol, vertices):
 
     import jurs
 
-    from ..datasets._files import ply_vertex_colors
+    from ..datasets._meshes import ply_vertex_colors
 
     rgb = ply_vertex_colors(job.path)
     if rgb is None or len(rgb) != len(job.points):

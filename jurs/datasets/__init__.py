@@ -36,11 +36,10 @@ from ._files import (
     FLOAT32_RESOLUTION,
     MESH_SAMPLES,
     MESH_SUFFIXES,
-    load_mesh,
     load_points,
-    save_mesh,
     save_points,
 )
+from ._meshes import load_mesh, save_mesh
 from ._parts import NPY_COLUMNS, global_arrays, load_rows, part_files, part_rows
 
 __all__ = [

@@ -34,7 +34,8 @@ import dataclasses
 
 import numpy as np
 
-from .._model.hierarchy import _offsets, _position, _ravel, _unravel, level_offsets
+from .._model.finest import level_offsets
+from .._model.hierarchy import _offsets, _position, _ravel, _unravel
 from .._model.lattice import FinestSpline
 
 #: Lattice cells along each side of a block. Smaller blocks hug the surface closer (fewer

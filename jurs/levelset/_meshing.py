@@ -412,7 +412,8 @@ def _adaptive_slope_bound(
     spline: AdaptiveSpline, evaluator: FinestSpline | None = None
 ) -> np.ndarray:
     """``_slope_bound`` of an adaptive spline (see there); ``(3,)``."""
-    from .._model.hierarchy import _unravel, level_offsets
+    from .._model.finest import level_offsets
+    from .._model.hierarchy import _unravel
 
     hierarchy = spline.hierarchy
     cascaded = (evaluator or FinestSpline(spline)).cascaded
