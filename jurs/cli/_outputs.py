@@ -113,7 +113,13 @@ def stale_outputs(out: str, names) -> tuple:
 def _no_interrupts():
     """Ctrl-C held off while the old outputs are put back (in the main thread, where
     signal handlers live): a second Ctrl-C then cannot leave the folder half restored."""
-    if threading.current_thread() is not threading.main_thread():
+    # A handler installed outside Python reads as None and could not be put back: then
+    # Ctrl-C stays as it is (ignoring it would outlast the call, for this process and
+    # the processes it starts).
+    if (
+        threading.current_thread() is not threading.main_thread()
+        or signal.getsignal(signal.SIGINT) is None
+    ):
         yield
         return
     previous = signal.signal(signal.SIGINT, signal.SIG_IGN)
