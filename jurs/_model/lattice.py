@@ -20,6 +20,7 @@ import numpy as np
 
 from .adaptive import AdaptiveSpline
 from .basis import CENTRED_POWER, cubic_weights
+from .hierarchy import cascade_matrix
 
 #: Points per call of an adaptive spline's jitted evaluation (the last chunk padded, so
 #: one compiled program serves every lattice).
@@ -91,29 +92,6 @@ def adaptive_lattice_values(spline: AdaptiveSpline, axes) -> np.ndarray:
     return FinestSpline(spline).lattice(axes)
 
 
-def _host_cascade(hierarchy, coeffs: np.ndarray) -> np.ndarray:
-    """``jurs._model.hierarchy.cascade`` in NumPy float64 on the host: no program to
-    compile for a new hierarchy (level sets of a new fit compile nothing)."""
-    out = []
-    start = 0
-    previous = None
-    for level in range(hierarchy.num_levels):
-        count = hierarchy.active_counts[level]
-        placed = np.zeros(coeffs.shape[:-1] + (hierarchy.level_sizes[level],))
-        placed[..., np.asarray(hierarchy.active[level])] += coeffs[..., start : start + count]
-        start += count
-        if previous is None:
-            current = placed
-        else:
-            parents = np.asarray(hierarchy.parents[level])
-            weights = np.asarray(hierarchy.parent_weights[level], np.float64)
-            refined = np.sum(previous[..., parents] * weights, axis=-1)
-            current = np.asarray(hierarchy.keep[level], np.float64) * refined + placed
-        out.append(current)
-        previous = current
-    return np.concatenate(out, axis=-1)
-
-
 #: Finest-level coefficients a window of ``FinestSpline.lattice`` holds at most: about
 #: 32 MiB of float64 numerator and denominator.
 WINDOW_FUNCTIONS = 1 << 21
@@ -149,7 +127,8 @@ class FinestSpline:
         self.width = (self.upper - self.lower) / self.cells
         weights = np.asarray(spline.weights, np.float64)
         stacked = np.stack([weights * np.asarray(spline.control, np.float64), weights])
-        self.cascaded = _host_cascade(hierarchy, stacked)
+        # The cascade on the host (SciPy): no program to compile for a new hierarchy.
+        self.cascaded = np.asarray((cascade_matrix(hierarchy) @ stacked.T).T)
 
     def axis(self, coords, axis: int):
         """``(cell, weights (n, 4), slopes (n, 4))`` of 1D ``coords`` along ``axis`` at

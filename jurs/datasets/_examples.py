@@ -227,13 +227,7 @@ def sample_mesh(
     """``m`` points drawn uniformly by area on a triangle mesh, with the unit normal of the
     face each lies on (right-hand rule); ``(points (m, 3), normals (m, 3))``. Faces without
     area are never drawn; ValueError for a mesh without area."""
-    vertices = np.asarray(vertices, dtype=np.float64)
-    faces = np.asarray(faces)
-    if vertices.ndim != 2 or vertices.shape[1] != 3 or faces.ndim != 2 or faces.shape[1] != 3:
-        raise ValueError(
-            f"vertices and faces must have shapes (V, 3) and (F, 3), got "
-            f"{vertices.shape} and {faces.shape}"
-        )
+    vertices, faces = mesh_arrays(vertices, faces)
     m = _count(m)
     a, b, c = (vertices[faces[:, k]] for k in range(3))
     cross = np.cross(b - a, c - a)
@@ -248,3 +242,15 @@ def sample_mesh(
     s[flip], t[flip] = 1.0 - s[flip], 1.0 - t[flip]
     points = a[face] + s[:, None] * (b - a)[face] + t[:, None] * (c - a)[face]
     return points, cross[face] / area[face, None]
+
+
+def mesh_arrays(vertices, faces) -> tuple[np.ndarray, np.ndarray]:
+    """``(vertices (V, 3) float64, faces (F, 3))`` as arrays; ValueError for other shapes."""
+    vertices = np.asarray(vertices, dtype=np.float64)
+    faces = np.asarray(faces)
+    if vertices.ndim != 2 or vertices.shape[1] != 3 or faces.ndim != 2 or faces.shape[1] != 3:
+        raise ValueError(
+            f"vertices and faces must have shapes (V, 3) and (F, 3), got "
+            f"{vertices.shape} and {faces.shape}"
+        )
+    return vertices, faces

@@ -11,6 +11,7 @@ import numpy as np
 import numpy.typing as npt
 from jaxtyping import Float, Int
 
+from ._examples import mesh_arrays
 from ._files import MESH_SUFFIXES, _suffix, _trimesh, _write_ply
 
 
@@ -63,13 +64,7 @@ def save_mesh(
     suffix = _suffix(path)
     if suffix not in MESH_SUFFIXES:
         raise ValueError(f"{path}: mesh files are {', '.join(MESH_SUFFIXES)}")
-    vertices = np.asarray(vertices, dtype=np.float64)
-    faces = np.asarray(faces)
-    if vertices.ndim != 2 or vertices.shape[1] != 3 or faces.ndim != 2 or faces.shape[1] != 3:
-        raise ValueError(
-            f"vertices and faces must have shapes (V, 3) and (F, 3), got "
-            f"{vertices.shape} and {faces.shape}"
-        )
+    vertices, faces = mesh_arrays(vertices, faces)
     rgb = None if colors is None else _vertex_colors(path, colors, len(vertices))
     if rgb is not None and suffix != ".ply":
         raise ValueError(f"{path}: vertex colours are written to PLY only")
