@@ -14,7 +14,10 @@ figure ``benchmarks/results/realdata/worst.png``:
   outline); ``outlier`` (1.5 % of the points moved uniformly into the enlarged box, at
   least 5 % of diag from the outline, with random normals). Fixed seeds per run.
 * **jurs**: ``jurs.fit(points, normals, throw=False)``, nothing else; warm time
-  (``_common.time_repeated``); status, settings and scalar stats recorded.
+  (``_common.time_repeated``); status, settings and scalar stats recorded. ``--fit
+  adaptive`` fits ``jurs.fit_adaptive(points, normals, throw=False)`` instead (the THB
+  basis, fine cells only near the data) and writes ``realdata_adaptive.{json,md}`` and
+  ``realdata/worst_adaptive.png``.
 * **RBF**: ``_baselines.rbf_fit`` (SciPy's thin-plate ``RBFInterpolator``) on the same offset
   samples with jurs's d and eps, smoothing 0, no outlier handling (what a user has today);
   on at most ``RBF_MAX_POINTS`` evenly strided points (its dense solve is O((3m)^3)).
@@ -25,7 +28,8 @@ figure ``benchmarks/results/realdata/worst.png``:
   others merge, so every true ring is checked for the one component that follows it.
 
     python benchmarks/realdata.py [--quick] [--cases a,b] [--variants clean,noisy]
-    python benchmarks/realdata.py --markdown-only
+                                  [--fit adaptive]
+    python benchmarks/realdata.py --markdown-only [--fit adaptive]
 
 ``--markdown-only`` re-renders the markdown from the JSON (no measurement, no figure).
 """
@@ -56,6 +60,15 @@ from _baselines import rbf_fit, rbf_grid_values  # noqa: E402
 from _common import RESULTS, machine, rerender_beside, time_repeated, write_results  # noqa: E402
 
 # --------------------------------------------------------------------------- configuration
+
+#: The fits compared with the RBF: ``jurs.fit``'s defaults (a uniform grid) or the adaptive
+#: basis, each with nothing but the cloud.
+FITS = {
+    "uniform": lambda points, normals: jurs.fit(points, normals, throw=False),
+    "adaptive": lambda points, normals: jurs.fit_adaptive(points, normals, throw=False),
+}
+#: Results file of each fit.
+RESULTS_NAME = {"uniform": "realdata", "adaptive": "realdata_adaptive"}
 
 VARIANTS = ("clean", "noisy", "uneven", "outlier")
 QUICK_CASES = ("rocket", "coffee", "blobs_small", "mono")
@@ -354,8 +367,9 @@ def measure(report, rings, diag, reference) -> tuple[dict, dict]:
     return out, {"lines": lines, "topology": topo, "focus": focus(report, topo, rings, reference)}
 
 
-def run_one(name: str, variant: str) -> tuple[dict, dict]:
-    """Fit, time and measure one (case, variant); returns the JSON row and figure data."""
+def run_one(name: str, variant: str, fit: str = "uniform") -> tuple[dict, dict]:
+    """Fit (``FITS[fit]``), time and measure one (case, variant); returns the JSON row and
+    figure data."""
     case = cases.build(name)
     ref = reference_samples(case)
     diag, res = case.diag, resolution_of(case)
@@ -375,7 +389,7 @@ def run_one(name: str, variant: str) -> tuple[dict, dict]:
 
     # jurs, defaults only
     timing = time_repeated(
-        lambda: jurs.fit(points, normals, throw=False), budget_s=WARM_BUDGET_S, max_repeats=5
+        lambda: FITS[fit](points, normals), budget_s=WARM_BUDGET_S, max_repeats=5
     )
     sol = timing.pop("output")
     st = sol.settings
@@ -394,6 +408,9 @@ def run_one(name: str, variant: str) -> tuple[dict, dict]:
         "stats": stat_summary(sol.stats),
         "metrics": stat_summary(sol.metrics),
     }
+    if fit == "adaptive":
+        out["jurs"]["finest"] = list(sol.stats["finest"])
+        out["jurs"]["active"] = int(sum(sol.stats["active"]))
 
     # RBF on the same offset samples (an evenly strided subset above RBF_MAX_POINTS)
     keep = np.arange(case.m)
@@ -522,9 +539,11 @@ def time_table(runs: list) -> list:
 def markdown(payload: dict) -> str:
     """The results page from the JSON payload."""
     meta, runs = payload["meta"], payload["runs"]
+    adaptive = meta.get("fit") == "adaptive"
+    call = "jurs.fit_adaptive" if adaptive else "jurs.fit"
     ok = [r for r in runs if "error" not in r]
     lines = [
-        "# Real data: `jurs.fit` defaults on traced outlines against a thin-plate RBF"
+        f"# Real data: `{call}` defaults on traced outlines against a thin-plate RBF"
         + (" (quick subset)" if meta["quick"] else ""),
         "",
         f"Date: {meta['date']}. Machine: {meta['machine']} (load average "
@@ -557,17 +576,29 @@ def markdown(payload: dict) -> str:
         "",
         *time_table(ok),
         "",
-        "What limits the misses (measurements in `docs/performance.md` and "
-        "`docs/design.md`): the topology misses are features of 1-3 pixels (handles, tripod "
-        "legs, fins, letter gaps) narrower than a cell; cells finer than the data's spacing "
-        "or 4 noise levels are not chosen, and the grid stays within its coefficient "
-        "budget, because the exact solve (a block Cholesky of the stencil, about N M^3) "
-        "grows as the cube of the shorter side. The same solve bounds the time: one "
-        "costs 35-60 ms at 96 x 96 on this CPU, and a held-out choice needs two or more "
-        "before the fit. Chamfer on clean and uneven data: the RBF interpolates the pixel "
-        "staircase, while jurs's cells are several spacings wide.",
-        "",
     ]
+    if adaptive:
+        lines += [
+            "The adaptive fit is one direct solve on the THB basis (no held-out choice of "
+            "its own; the settings' measurements are those of `jurs.auto_settings`), with "
+            "its finest cell one point spacing or 4 noise levels wide (`jurs._fit.adaptive"
+            ".CELL_SPACINGS`); the per-run table gives its finest level (cells along each "
+            "axis over the box) and its active functions.",
+            "",
+        ]
+    else:
+        lines += [
+            "What limits the misses (measurements in `docs/performance.md` and "
+            "`docs/design.md`): the topology misses are features of 1-3 pixels (handles, tripod "
+            "legs, fins, letter gaps) narrower than a cell; cells finer than the data's spacing "
+            "or 4 noise levels are not chosen, and the grid stays within its coefficient "
+            "budget, because the exact solve (a block Cholesky of the stencil, about N M^3) "
+            "grows as the cube of the shorter side. The same solve bounds the time: one "
+            "costs 35-60 ms at 96 x 96 on this CPU, and a held-out choice needs two or more "
+            "before the fit. Chamfer on clean and uneven data: the RBF interpolates the pixel "
+            "staircase, while jurs's cells are several spacings wide.",
+            "",
+        ]
     errors = [r for r in runs if "error" in r]
     if errors:
         lines += ["Errors: " + "; ".join(f"{label(r)}: {r['error']}" for r in errors), ""]
@@ -575,7 +606,7 @@ def markdown(payload: dict) -> str:
         "## How to read",
         "",
         "Each run samples a real outline (below) with m points, applies its variant and calls "
-        "`jurs.fit(points, normals, throw=False)` with nothing else; the warm time is the "
+        f"`{call}(points, normals, throw=False)` with nothing else; the warm time is the "
         f"median of warm calls after a first one (`_common.time_repeated`, budget "
         f"{WARM_BUDGET_S:g} s). The RBF is `_baselines.rbf_fit` (SciPy's thin-plate "
         "`RBFInterpolator`) on the same offset samples with jurs's d and eps, smoothing 0, "
@@ -629,6 +660,7 @@ def markdown(payload: dict) -> str:
     ]
     if meta.get("figure"):
         lines += [f"![worst runs](realdata/{meta['figure']})", "", meta["caption"], ""]
+    basis = "finest (active)" if adaptive else "grid"
     lines += [
         "## Per run",
         "",
@@ -638,7 +670,7 @@ def markdown(payload: dict) -> str:
         "Chamfer. jurs time: warm median / fastest (first call; it compiles where the "
         "grid is new to the process).",
         "",
-        "| case | variant | m | RBF pts | grid | smoothing | d | noise | status | "
+        f"| case | variant | m | RBF pts | {basis} | smoothing | d | noise | status | "
         "jurs topology | jurs C | jurs H | RBF topology | RBF C | RBF H | C ratio | "
         "jurs time | RBF fit |",
         "|" + "---|" * 18,
@@ -648,7 +680,9 @@ def markdown(payload: dict) -> str:
             lines.append(f"| {r['case']} | {r['variant']} | {r['m']} | error: {r['error']} |")
             continue
         st, j, b = r["settings"], r["jurs"], r["rbf"]
-        grid = "x".join(str(g) for g in st["grid"])
+        grid = "x".join(str(g) for g in (j["finest"] if adaptive else st["grid"]))
+        if adaptive:
+            grid += f" ({j['active']})"
         lines.append(
             f"| {r['case']} | {r['variant']} | {r['m']} | {b['points']} | {grid} | "
             f"{st['smoothing']:.2g} | {100 * st['offset'] / r['diag']:.3f} | "
@@ -812,9 +846,16 @@ def main(argv=None):
     parser.add_argument(
         "--markdown-only", action="store_true", help="re-render realdata.md from realdata.json"
     )
+    parser.add_argument(
+        "--fit",
+        choices=tuple(FITS),
+        default="uniform",
+        help="jurs.fit's defaults (uniform grid) or jurs.fit_adaptive (default: uniform)",
+    )
     args = parser.parse_args(argv)
+    name_of_results = RESULTS_NAME[args.fit]
     if args.markdown_only:
-        print(rerender_beside(os.path.join(RESULTS, "realdata.json"), markdown))
+        print(rerender_beside(os.path.join(RESULTS, f"{name_of_results}.json"), markdown))
         return
     names = args.cases.split(",") if args.cases else QUICK_CASES if args.quick else cases.CASES
     variants = (
@@ -837,6 +878,7 @@ def main(argv=None):
         ),
         "cases": list(names),
         "variants": list(variants),
+        "fit": args.fit,
         "case_info": {},
     }
     runs, figs = [], []
@@ -854,7 +896,7 @@ def main(argv=None):
         for variant in variants:
             t0 = time.perf_counter()
             try:
-                out, fig = run_one(name, variant)
+                out, fig = run_one(name, variant, args.fit)
             except Exception as exc:  # keep the other runs of a long benchmark
                 out = {"case": name, "variant": variant, "m": case.m}
                 out["error"] = f"{type(exc).__name__}: {exc}"
@@ -866,8 +908,10 @@ def main(argv=None):
                 print(f"{name:12s} {variant:8s} ERROR {out['error']}", flush=True)
                 continue
             j, b = out["jurs"], out["rbf"]
+            basis = f"finest={j['finest']}" if "finest" in j else f"grid={out['settings']['grid']}"
             print(
-                f"{name:12s} {variant:8s} m={out['m']} grid={out['settings']['grid']} "
+                f"{name:12s} {variant:8s} m={out['m']} "
+                f"{basis} "
                 f"s={out['settings']['smoothing']:.2g} {j['status']} | jurs "
                 f"{topology_text(j['topology'])} C={100 * j['chamfer']:.3f}% "
                 f"H={100 * j['hausdorff']:.2f}% warm={1e3 * j['warm_s']:.0f}ms | RBF "
@@ -875,7 +919,7 @@ def main(argv=None):
                 f"H={100 * b['hausdorff']:.2f}% fit={b['fit_s']:.1f}s | {out['run_s']:.0f}s",
                 flush=True,
             )
-    meta["figure"] = "worst.png"
+    meta["figure"] = "worst.png" if args.fit == "uniform" else f"worst_{args.fit}.png"
     meta["caption"] = figure(runs, figs, os.path.join(FIGURE_DIR, meta["figure"]))
     meta["total_s"] = time.perf_counter() - start
     meta["load_average_end"] = os.getloadavg()[0]
@@ -897,7 +941,7 @@ def main(argv=None):
         }
     )
     text = markdown(payload)
-    write_results("realdata", payload, text)
+    write_results(name_of_results, payload, text)
     print(text)
 
 

@@ -1,6 +1,7 @@
 """The adaptive (THB) basis: its defining properties, exactness against the uniform
 basis, and fits on it (value, agreement with the uniform fit, derivatives)."""
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -314,3 +315,25 @@ def test_level_sets_of_two_adaptive_fits_compile_once():
         counts.append(counter.count)
     # The first may reuse a program an earlier test compiled for its class.
     assert counts[1] == 0 and counts[2] >= 1, counts
+
+
+def test_fit_adaptive_gives_the_fits_verdicts():
+    """The adaptive fit is judged as ``jurs.fit`` judges its automatic fits: half-flipped
+    normals give ``inconsistent_normals`` (raised with ``throw``), two rings a gap
+    narrower than the finest cell apart are ``doubtful`` (bridged), and the same rings
+    on cells the data ask for are not."""
+    t = np.linspace(0, 2 * np.pi, 200, endpoint=False)
+    ring = np.stack([np.cos(t), np.sin(t)], 1)
+    points = np.concatenate([ring - [1.02, 0.0], ring + [1.02, 0.0]])
+    normals = np.concatenate([ring, ring])
+    fine = jurs.fit_adaptive(points, normals)
+    assert fine.status == "successful", fine.stats["doubts"]
+    coarse = jurs.fit_adaptive(points, normals, finest=8, throw=False)
+    assert coarse.status == "doubtful"
+    assert any("narrow gap" in doubt for doubt in coarse.stats["doubts"])
+    half = normals.copy()
+    half[::2] *= -1
+    flipped = jurs.fit_adaptive(points, half, settings=fine.settings, throw=False)
+    assert flipped.status == "inconsistent_normals"
+    with pytest.raises(eqx.EquinoxRuntimeError, match="inconsistent_normals"):
+        jurs.fit_adaptive(points, half, settings=fine.settings)

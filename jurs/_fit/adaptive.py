@@ -38,7 +38,8 @@ from .._problem.adaptive import (
     normal_rhs,
     sample_basis,
 )
-from .._solution.solution import RESULTS, Solution
+from .._solution.solution import RAISED_RESULTS, RESULTS, Solution, error_message
+from .._solution.verdicts import judge
 from .settings import Settings, auto_settings, scale_free_lam
 
 #: Cells of the coarsest level along the longest side, at least: it fixes the sign of g far
@@ -148,6 +149,8 @@ def fit_adaptive(
     settings: Settings | None = None,
     method: str | None = None,
     dtype=None,
+    checks: bool = True,
+    throw: bool = True,
 ) -> Solution:
     """Fit an implicit spline on an adaptive (THB) basis: fine cells in a band around the
     data, coarse ones elsewhere, so that the cost grows with the shape's boundary rather
@@ -177,13 +180,21 @@ def fit_adaptive(
             (skips the measurement). The points it sets aside (``settings.set_aside``:
             points that stand alone) are left out of the fit, as [`jurs.fit`][] leaves
             them out.
+        checks: judge the fit against its cloud on the host, as [`jurs.fit`][] judges
+            its automatic fits: the orientation of the normals (``inconsistent_normals``)
+            and the doubts (``doubtful``: parts cut or bridged, points far from the zero
+            set, closed components away from the data; the reasons in
+            ``sol.stats["doubts"]``). False skips them.
+        throw: raise ``equinox.EquinoxRuntimeError`` when the verdict says the fit is not a
+            reconstruction (``nonfinite``, ``inconsistent_normals``; never for
+            ``max_steps_reached`` or ``doubtful``), as [`jurs.fit`][] does.
 
     Returns:
         A [`jurs.Solution`][] whose ``spline`` is a [`jurs.AdaptiveSpline`][];
         ``sol.stats`` holds ``num_steps`` (CG steps), ``residual``, ``levels``,
         ``active`` (functions per level) and ``finest`` (cells per axis of the finest
         level over the box). ``result`` is ``successful``, ``max_steps_reached`` (CG
-        stopped first) or ``nonfinite``.
+        stopped first) or ``nonfinite``, or with ``checks`` the verdicts above.
 
     Differentiable: with the structure fixed (the same points' leaves), ``jax.grad``
     through [`jurs.internal.make_adaptive_problem`][] and the solve is exact (the solve
@@ -272,4 +283,9 @@ def fit_adaptive(
         "active": hierarchy.active_counts,
         "finest": hierarchy.cells(finest_level),
     }
-    return Solution(spline, metrics, stats, result, None, settings)
+    sol = Solution(spline, metrics, stats, result, None, settings)
+    if checks:
+        sol = judge(sol, cloud, settings, offset_value)
+    if throw and sol.status in RAISED_RESULTS:
+        raise eqx.EquinoxRuntimeError(error_message(sol.status))
+    return sol

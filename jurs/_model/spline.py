@@ -542,6 +542,12 @@ class ImplicitSpline(eqx.Module):
         extent = np.asarray(self.upper, float) - np.asarray(self.lower, float)
         return float(np.max(extent / (np.asarray(self.shape) - 3)))
 
+    @property
+    def finest_cells(self) -> tuple[int, ...]:
+        """Knot spans per axis (``N - 3``): the uniform grid's cells, named as an
+        adaptive spline names the cells of its finest level over the box."""
+        return tuple(int(n) - 3 for n in self.shape)
+
     @classmethod
     def bspline(
         cls,

@@ -278,7 +278,7 @@ def extra_components(spline: ImplicitSpline, tree, threshold: float) -> list[dic
     from .._model.lattice import lattice_values
 
     lower, upper = np.asarray(spline.lower, float), np.asarray(spline.upper, float)
-    spans = np.asarray(spline.shape) - 3.0
+    spans = np.asarray(spline.finest_cells, float)
     d = len(spans)
     steps = 2.0 * spans
     scale = (EXTRA_CHECK_NODES / float(np.prod(steps + 1))) ** (1.0 / d)

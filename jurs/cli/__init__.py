@@ -377,6 +377,7 @@ def _solve(job: FitJob, args):
                     # lstsq's lambda is 0 unless given, as on the uniform grid
                     lam=0.0 if args.lam is None and args.solver == "lstsq" else args.lam,
                     finest=job.finest,
+                    throw=False,
                 )
             else:
                 sol = jurs.fit(
