@@ -14,7 +14,10 @@ One command measures everything, prints the ratio table and writes the dated res
   float64), then ``jurs.levelset.mesh(sol.spline)`` at its default resolution. Poisson:
   ``create_from_point_cloud_poisson(cloud, depth)`` with the same points and normals,
   ``depth = round(log4 m)`` (8 at 1e5 points, the issue's setting: about one octree leaf
-  per point on a surface), its mesh taken as Open3D returns it (no trimming by density).
+  per point on a surface), its mesh taken as Open3D returns it (no trimming by density);
+  ``--depths 8 9 10`` runs each and keeps the one of least Chamfer. ``--fit adaptive``
+  fits ``jurs.fit_adaptive`` (fine cells only near the data) instead of ``jurs.fit``, into
+  ``surfaces_adaptive.{json,md,png}``.
 * **Accuracy.** Against the true surface, not against points: ``Z`` area-uniform samples of
   the reconstructed mesh and ``Y`` exact samples of the true surface, both dense, with
   point-to-surface distances (analytic shapes: Newton projection onto their implicit
@@ -30,7 +33,8 @@ One command measures everything, prints the ratio table and writes the dated res
   the first includes compilation; wall and CPU seconds.
 
     python benchmarks/surfaces.py [--quick] [--million] [--cases a,b] [--points m]
-                                  [--max-grid N] [--depth D] [--out DIR] [--name NAME]
+                                  [--max-grid N] [--depths D ...] [--fit adaptive]
+                                  [--out DIR] [--name NAME]
     python benchmarks/surfaces.py --from-json benchmarks/results/surfaces.json  # re-render
 
 ``--quick``: 2e4 points, torus and bunny, a smaller grid cap, fewer evaluation samples (a
@@ -119,8 +123,9 @@ def timed(fn, *args, **kwargs):
     return out, time.perf_counter() - wall, time.process_time() - cpu
 
 
-def run_jurs(points, normals, max_grid):
-    """In a child: ``jurs.fit`` twice (first call compiles), then ``jurs.levelset.mesh``."""
+def run_jurs(points, normals, max_grid, fit="uniform"):
+    """In a child: ``jurs.fit`` (``fit="adaptive"``: ``jurs.fit_adaptive``) twice (the first
+    call compiles), then ``jurs.levelset.mesh``."""
     import jax
 
     jax.config.update("jax_enable_x64", True)  # as the README's examples run it
@@ -131,13 +136,16 @@ def run_jurs(points, normals, max_grid):
     # A cap only changes the grid; fit then chooses everything else as by default.
     grid = None if max_grid is None else jurs.auto_settings(points, normals, max_grid=max_grid).grid
 
-    def fit():
-        sol = jurs.fit(points, normals, grid=grid)
+    def fit_once():
+        if fit == "adaptive":
+            sol = jurs.fit_adaptive(points, normals, throw=False)
+        else:
+            sol = jurs.fit(points, normals, grid=grid)
         jax.block_until_ready(sol.spline.control)
         return sol
 
-    _, first_s, first_cpu = timed(fit)
-    sol, fit_s, fit_cpu = timed(fit)
+    _, first_s, first_cpu = timed(fit_once)
+    sol, fit_s, fit_cpu = timed(fit_once)
     (vertices, faces), mesh_s, mesh_cpu = timed(jurs.levelset.mesh, sol.spline)
     return {
         "vertices": vertices,
@@ -155,7 +163,12 @@ def run_jurs(points, normals, max_grid):
         },
         "message": sol.message,
         "converged": bool(sol.result == jurs.RESULTS.successful),
-        "method": f"grid {'x'.join(map(str, sol.settings.grid))}",
+        "method": (
+            f"finest {'x'.join(map(str, sol.stats['finest']))}, "
+            f"{sum(sol.stats['active'])} functions, {sol.stats['num_steps']} CG steps"
+            if fit == "adaptive"
+            else f"grid {'x'.join(map(str, sol.settings.grid))}"
+        ),
     }
 
 
@@ -225,7 +238,7 @@ def run_case(truth, m, variant, args, reference, diag, log):
     if variant == "noise":
         rng = np.random.default_rng(SEEDS["noise"])
         points = points + NOISE * diag * rng.standard_normal(points.shape)
-    depth = args.depth or poisson_depth(m)
+    depths = args.depths or (poisson_depth(m),)
     record = {
         "case": truth.name,
         "m": m,
@@ -235,12 +248,40 @@ def run_case(truth, m, variant, args, reference, diag, log):
         "true_genus": truth.genus,
     }
     meshes = {}
-    for name, fn, extra in (("jurs", run_jurs, args.max_grid), ("poisson", run_poisson, depth)):
-        log(f"{truth.name}/{variant} m {m}: {name}")
-        record[name], meshes[name] = measure(
-            in_child(fn, points, normals, extra), truth, points, reference, diag, args.eval_samples
+    log(f"{truth.name}/{variant} m {m}: jurs")
+    record["jurs"], meshes["jurs"] = measure(
+        in_child(run_jurs, points, normals, args.max_grid, args.fit),
+        truth,
+        points,
+        reference,
+        diag,
+        args.eval_samples,
+    )
+    # Poisson at each depth asked for; the record keeps the one of least Chamfer.
+    tried = []
+    for depth in depths:
+        log(f"{truth.name}/{variant} m {m}: Poisson depth {depth}")
+        result = measure(
+            in_child(run_poisson, points, normals, depth),
+            truth,
+            points,
+            reference,
+            diag,
+            args.eval_samples,
         )
+        tried.append(result)
+    scored = [t for t in tried if "error" not in t[0]]
+    record["poisson"], meshes["poisson"] = min(scored or tried, key=lambda t: _chamfer(t[0]))
+    if len(depths) > 1:
+        record["poisson_depths"] = [
+            {k: t[0].get(k) for k in ("method", "chamfer", "hausdorff", "total_s", "error")}
+            for t in tried
+        ]
     return record, meshes
+
+
+def _chamfer(entry) -> float:
+    return float(entry.get("chamfer", np.inf))
 
 
 # --------------------------------------------------------------------------- report
@@ -365,12 +406,51 @@ LIMITS = (
 )
 
 
+def depth_table(runs) -> list:
+    """Poisson's Chamfer and Hausdorff at each depth tried (runs with several depths)."""
+    tried = [r for r in runs if r.get("poisson_depths")]
+    if not tried:
+        return []
+    lines = [
+        "## Poisson at each depth",
+        "",
+        "The tables above keep the depth of least Chamfer.",
+        "",
+        "| case | m | depth | Chamfer | Hausdorff | total s |",
+        "|---|---|---|---|---|---|",
+    ]
+    for r in tried:
+        for t in r["poisson_depths"]:
+            measured = t.get("error") is None and t.get("chamfer") is not None
+            lines.append(
+                f"| {r['case']}/{r['variant']} | {r['m']} | {t.get('method') or '-'} | "
+                + (
+                    f"{t['chamfer']:.2e} | {t['hausdorff']:.2e} | {t['total_s']:.2f} |"
+                    if measured
+                    else f"error ({str(t.get('error'))[:40]}) | | |"
+                )
+            )
+    return lines + [""]
+
+
+#: What bounds the adaptive fit's ratios (docs/design.md section 8).
+ADAPTIVE_LIMITS = (
+    "The adaptive fit (`jurs.fit_adaptive`): finest cells three point spacings wide "
+    "(`jurs._fit.adaptive.CELL_SPACINGS`) in a band of two cells around the samples, "
+    "coarser levels elsewhere; conjugate gradients in JAX with the exact diagonal as "
+    "preconditioner (docs/design.md section 8)."
+)
+
+
 def markdown(payload):
     acc, cost, ratios = tables(payload["runs"])
     quick = " A `--quick` development run: not the issue's sizes." if payload["quick"] else ""
+    adaptive = payload.get("fit") == "adaptive"
+    call = "jurs.fit_adaptive" if adaptive else "jurs.fit"
+    depths = payload.get("depths")
     lines = (
         [
-            "# Surfaces: `jurs.fit` + `jurs.levelset.mesh` beside screened Poisson (Open3D)",
+            f"# Surfaces: `{call}` + `jurs.levelset.mesh` beside screened Poisson (Open3D)",
             "",
             f"Run {payload['date']} on {payload['machine']}, {payload['memory']}. Command: "
             f"`{payload['command']}` ({payload['total_s']:.0f} s). Open3D {payload['open3d']}. "
@@ -378,16 +458,23 @@ def markdown(payload):
             f"{payload['load_end']:.1f} at the end (a shared machine: times carry tens of "
             f"percent of noise).{quick}",
             "",
-            "**Setup.** jurs: `jurs.fit(points, normals)` with defaults (float64; "
+            f"**Setup.** jurs: `{call}(points, normals)` with defaults (float64; "
             + (
-                f"grid capped at {payload['max_grid']}"
+                "its finest level chosen from the data"
+                if adaptive
+                else f"grid capped at {payload['max_grid']}"
                 if payload["max_grid"]
                 else "the default grid cap"
             )
             + ") and `jurs.levelset.mesh(sol.spline)` at its "
             "default resolution. Poisson: Open3D's `create_from_point_cloud_poisson(cloud, "
-            "depth)` on the same points and (exact) normals, `depth = round(log4 m)` (8 at 1e5 "
-            "points), its mesh as Open3D returns it. Users often trim Poisson's vertices of low "
+            "depth)` on the same points and (exact) normals, "
+            + (
+                f"at depths {', '.join(map(str, depths))}, the one of least Chamfer kept"
+                if depths
+                else "`depth = round(log4 m)` (8 at 1e5 points)"
+            )
+            + ", its mesh as Open3D returns it. Users often trim Poisson's vertices of low "
             "density (its second output) to cut the surface it extrapolates where data are "
             "sparse; not done here. Noise: Gaussian, "
             f"{100 * NOISE:g} % of the bounding-box diagonal per coordinate, on the positions "
@@ -414,12 +501,13 @@ def markdown(payload):
         * bool(notes(payload["runs"]))
         + ["## jurs / Poisson", "", "Ratios (below 1: jurs smaller, i.e. better).", ""]
         + ratios
-        + ["", "## What limits the misses", "", LIMITS]
+        + ["", "## What limits the misses", "", ADAPTIVE_LIMITS if adaptive else LIMITS]
         + ["", "## Accuracy", ""]
         + acc
         + ["", "## Cost", ""]
         + cost
         + [""]
+        + depth_table(payload["runs"])
     )
     if payload.get("figure"):
         lines += [
@@ -519,14 +607,25 @@ def parse():
         type=int,
         help="cap on jurs's automatic grid (jurs.auto_settings max_grid); default: the library's",
     )
-    parser.add_argument("--depth", type=int, help="Poisson depth (default round(log4 m))")
+    parser.add_argument(
+        "--depths",
+        type=int,
+        nargs="+",
+        help="Poisson depths, the best Chamfer kept (default one: round(log4 m))",
+    )
+    parser.add_argument(
+        "--fit",
+        choices=("uniform", "adaptive"),
+        default="uniform",
+        help="jurs.fit's defaults (uniform grid) or jurs.fit_adaptive",
+    )
     parser.add_argument("--eval-samples", type=int, help="samples per side for distances")
     parser.add_argument("--out", default=RESULTS, help="folder of the results files")
     parser.add_argument(
         "--name",
-        default="surfaces",
-        help="results file names, <name>.{json,md,png} (default: surfaces; the 1e6 run: "
-        "--cases sphere,bunny --points 1000000 --name surfaces_1e6)",
+        help="results file names, <name>.{json,md,png} (default: surfaces, or "
+        "surfaces_adaptive with --fit adaptive; the 1e6 run: --cases sphere,bunny --points "
+        "1000000 --name surfaces_1e6)",
     )
     parser.add_argument(
         "--markdown-only",
@@ -549,6 +648,7 @@ def parse():
     args.sizes = tuple(args.points or preset["sizes"]) + ((MILLION,) if args.million else ())
     args.max_grid = args.max_grid or preset["max_grid"]
     args.eval_samples = args.eval_samples or preset["eval_samples"]
+    args.name = args.name or ("surfaces" if args.fit == "uniform" else f"surfaces_{args.fit}")
     return args
 
 
@@ -611,6 +711,8 @@ def main():
         "command": command.strip(),
         "open3d": open3d.__version__,
         "max_grid": args.max_grid,
+        "fit": args.fit,
+        "depths": args.depths,
         "eval_samples": args.eval_samples,
         "load_start": load_start,
         "load_end": os.getloadavg()[0],
