@@ -31,6 +31,7 @@ same too) and ``_weld`` stitches the blocks into one watertight mesh.
 from __future__ import annotations
 
 import dataclasses
+from typing import Any
 
 import numpy as np
 
@@ -265,20 +266,42 @@ def march_band(
 
 
 def band_lattice(evaluator: FinestSpline, axes, level: float, block: int = BLOCK_CELLS):
-    """g on the nodes of the blocks of the lattice ``axes`` where ``{g = level}`` may be
-    (``plan_band`` without a nudge), NaN on every other node: ``(values (len(axes[0]),
-    ..), plan)``. A node left NaN lies in a block whose every node is on one side of the
-    level (strictly), so contouring the array (NaN masked) finds the lines of the full
-    lattice: every cell a line crosses is in an evaluated block, whose values are the full
-    lattice's to the bit (``FinestSpline``)."""
+    """g on the lattice ``axes`` where ``{g = level}`` may be: ``(values (len(axes[0]),
+    ..), evaluated (same shape, bool), plan)``.
+
+    The nodes of the blocks of ``plan_band`` (no nudge) hold g, bitwise the full
+    lattice's values (``FinestSpline``). Every other node lies in a block whose nodes are
+    all strictly on one side of the level, and holds instead g at one node of its
+    connected region of such blocks (blocks sharing a side share nodes, so a region is on
+    one side): contouring ``values`` crosses exactly the cells the full lattice's values
+    cross, at the same points. ``evaluated`` marks the nodes that hold their own g."""
+    from scipy import ndimage
+
     plan = plan_band(evaluator, axes, level, 0.0, block)
     grid = _Blocks(evaluator, axes, block)
-    out = np.full(tuple(grid.counts), np.nan)
+    skipped = np.ones(grid.grid, bool)
+    skipped[tuple(plan.blocks.T)] = False
+    labelled: Any = ndimage.label(skipped)  # (labels, count); the stubs type it loosely
+    labels, regions = np.asarray(labelled[0], np.int64), int(labelled[1])
+    # One node per region (the first node of its first block), evaluated to find its side.
+    _, first = np.unique(labels.ravel(), return_index=True)
+    first = first[labels.ravel()[first] > 0]
+    where = np.stack(np.unravel_index(first, grid.grid), -1)
+    side = np.full(regions + 1, np.nan)
+    if len(where):
+        node = [np.asarray(axes[k])[grid.first[k][where[:, k]]] for k in range(grid.ndim)]
+        side[labels[tuple(where.T)]] = evaluator.values_and_gradients(np.stack(node, -1))[0]
+    # Each node takes its block's region (a node shared by two blocks: the later one's;
+    # shared with an evaluated block, overwritten below).
+    owner = [np.minimum(np.arange(n) // grid.block, g - 1) for n, g in zip(grid.counts, grid.grid)]
+    values = side[labels[np.ix_(*owner)]]
+    evaluated = np.zeros(tuple(grid.counts), bool)
     for begin in range(0, len(plan.blocks), grid.batch):
         batch = plan.blocks[begin : begin + grid.batch]
-        values, real = grid.values(evaluator, batch)
-        for b, where in enumerate(batch):
-            start = [grid.first[k][where[k]] for k in range(grid.ndim)]
+        block_values, real = grid.values(evaluator, batch)
+        for b, at in enumerate(batch):
+            start = [grid.first[k][at[k]] for k in range(grid.ndim)]
             target = tuple(slice(f, f + n) for f, n in zip(start, real[b]))
-            out[target] = values[(b,) + tuple(slice(0, n) for n in real[b])]
-    return out, plan
+            values[target] = block_values[(b,) + tuple(slice(0, n) for n in real[b])]
+            evaluated[target] = True
+    return values, evaluated, plan

@@ -143,57 +143,55 @@ def zero_level_set(
     Returns a list of ``(polyline (k, 2), closed)`` pairs; see the module docstring.
     """
     xs, ys, _ = sampling_grid(*_box(spline, box), resolution)
-    return contour_lines(xs, ys, contour_values(spline, xs, ys, level), level)
+    return contour_lines(xs, ys, _contour_values(spline, xs, ys, level), level)
 
 
-def contour_values(
+def _contour_values(
     spline, xs: Float[npt.ArrayLike, " nx"], ys: Float[npt.ArrayLike, " ny"], level: float = 0.0
 ) -> Float[np.ndarray, "ny nx"]:
     """The grid [`contour_lines`][jurs.levelset.contour_lines] needs for ``{g = level}``:
     [`evaluate_grid`][jurs.levelset.evaluate_grid]'s values, except that an adaptive
     spline ([`jurs.AdaptiveSpline`][]) is evaluated only on the blocks of 16 x 16 cells
-    where g may reach the level, NaN elsewhere (``jurs/levelset/_band.py``; docs/design.md
-    section 8, "Contouring the band"). The lines are those of the full grid: a NaN node
-    lies in a block with every node strictly on one side of the level, which no line
-    crosses."""
+    where g may reach the level (``jurs/levelset/_band.py``; docs/design.md section 8,
+    "Contouring the band"). The other nodes, in blocks with every node strictly on one
+    side of the level, hold a value of g from their side: the lines are the full grid's."""
     if not isinstance(spline, AdaptiveSpline):
         return evaluate_grid(spline, xs, ys)
     return _band_values(spline, xs, ys, level)[0]
 
 
 def _band_values(spline: AdaptiveSpline, xs, ys, level: float):
-    """``(values (ny, nx) NaN outside the band, plan)`` (``contour_values``)."""
+    """``(values (ny, nx), evaluated (ny, nx), plan)`` of ``band_lattice``."""
     axes = [np.asarray(xs, np.float64).reshape(-1), np.asarray(ys, np.float64).reshape(-1)]
-    values, plan = band_lattice(FinestSpline(spline), axes, float(level))
-    return values.T, plan
+    values, evaluated, plan = band_lattice(FinestSpline(spline), axes, float(level))
+    return values.T, evaluated.T, plan
 
 
 def _zero_area(values: np.ndarray, zero_tol: float) -> float:
-    """The fraction of nodes where ``|g| <= zero_tol * max|g|`` (NaN nodes count as not)."""
+    """The fraction of nodes where ``|g| <= zero_tol * max|g|``."""
     scale = float(np.nanmax(np.abs(values))) if np.isfinite(values).any() else 0.0
-    with np.errstate(invalid="ignore"):
-        return float(np.mean(np.abs(values) <= zero_tol * scale))
+    return float(np.mean(np.abs(values) <= zero_tol * scale))
 
 
 def _sampled(spline, xs, ys, zero_tol: float) -> tuple[np.ndarray, float]:
-    """The values ``analyze`` contours (``contour_values`` at level 0) and the zero-area
+    """The values ``analyze`` contours (``_contour_values`` at level 0) and the zero-area
     fraction of the full grid's values.
 
     For an adaptive spline's band the fraction is exact when it can be decided without
     the nodes left out: with ``R`` the largest ``|A_num / A_den|`` of its coefficients
-    (all denominators positive), ``max|g| <= R`` on the grid and every node left out has
-    ``|g| > HULL_TOLERANCE R``. So when ``zero_tol < HULL_TOLERANCE`` no node left out
-    counts, and when no band node lies between ``zero_tol`` times the band's ``max|g|``
-    (a lower bound of the grid's) and ``zero_tol R`` (its upper bound), the band's count
-    is the grid's.
-    Otherwise the whole grid is evaluated for it."""
+    (all denominators positive), ``|g| <= R`` on the spline's box and every node left
+    out has ``|g| > HULL_TOLERANCE R``. So when ``zero_tol`` times the grid's ``max|g|``
+    stays below that, no node left out counts, and when no band node lies between
+    ``zero_tol`` times the band's ``max|g|`` (a lower bound of the grid's) and ``zero_tol``
+    times an upper bound of it, the band's count is the grid's. Otherwise the whole grid
+    is evaluated for it."""
     if not isinstance(spline, AdaptiveSpline):
         values = evaluate_grid(spline, xs, ys)
         return values, _zero_area(values, zero_tol)
-    values, _ = _band_values(spline, xs, ys, 0.0)
+    values, evaluated, _ = _band_values(spline, xs, ys, 0.0)
     ratio = _coefficient_ratio(spline)
-    band = np.abs(values[np.isfinite(values)])
-    if ratio is not None and band.size:
+    band = np.abs(values[evaluated])
+    if ratio is not None and band.size and np.isfinite(band).all():
         # Outside the spline's box (a larger ``box``) g extrapolates past R: those nodes
         # are all in the band, so max|g| is at most the larger of R and the band's.
         low, high = zero_tol * float(band.max()), zero_tol * max(ratio, float(band.max()))
