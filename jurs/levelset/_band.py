@@ -1,7 +1,10 @@
-"""Marching cubes over the part of the lattice where an adaptive spline's level set can be.
+"""Marching cubes (3D) and contouring (2D) over the part of the lattice where an adaptive
+spline's level set can be.
 
-The lattice of [`mesh`][jurs.levelset.mesh] is cut into blocks of ``BLOCK_CELLS`` lattice
-cells a side. Only the blocks where g may reach the level are evaluated and marched; the
+The lattice of [`mesh`][jurs.levelset.mesh] (of [`analyze`][jurs.levelset.analyze] and
+[`zero_level_set`][jurs.levelset.zero_level_set] for a curve, ``band_lattice``) is cut
+into blocks of ``BLOCK_CELLS`` lattice cells a side; the planning is the same in any
+dimension. Only the blocks where g may reach the level are evaluated and marched; the
 rest of the box costs a few comparisons per leaf of the hierarchy. A block is marched
 when both tests below let it through (docs/design.md section 8, "Meshing the band"):
 

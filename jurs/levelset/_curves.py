@@ -140,7 +140,10 @@ def zero_level_set(
 ) -> list[tuple[Float[np.ndarray, "k 2"], bool]]:
     """The zero-level set of ``spline`` over ``box`` (default the spline's box) as polylines.
 
-    Returns a list of ``(polyline (k, 2), closed)`` pairs; see the module docstring.
+    Returns a list of ``(polyline (k, 2), closed)`` pairs; see the module docstring. An
+    adaptive spline ([`jurs.AdaptiveSpline`][]) is evaluated only on the grid's blocks
+    where g may reach the level; the lines are the full grid's (docs/design.md section 8,
+    "Contouring the band").
     """
     xs, ys, _ = sampling_grid(*_box(spline, box), resolution)
     return contour_lines(xs, ys, _contour_values(spline, xs, ys, level), level)
@@ -419,7 +422,9 @@ def analyze(
         threshold: distance above which a component is supplementary (overrides ``offset``).
         reference: optional ``(k, 2)`` dense samples of the true curve for the Chamfer and
             Hausdorff distances; default the data points.
-        resolution: grid nodes along the longer side of the box (default 512).
+        resolution: grid nodes along the longer side of the box (default 512). An
+            adaptive spline is evaluated only on the grid's blocks where g may reach 0,
+            with the full grid's lines and zero-area fraction as the result.
         box: ``((x_min, y_min), (x_max, y_max))``; default the spline's box.
         tiny_cells: closed loops shorter than this many grid cells count as tiny.
         zero_tol: relative level below which g counts as identically zero (for
