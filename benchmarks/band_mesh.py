@@ -1,4 +1,5 @@
-"""Meshing an adaptive sphere over the band against the full lattice: nodes and time.
+"""Meshing an adaptive sphere (or contouring an adaptive curve) over the band against the
+full lattice: nodes and time.
 
 For each spline and resolution: the lattice's nodes, the nodes the band path evaluates
 (``jurs.levelset._band.plan_band``), the band mesh's time (``jurs.levelset.mesh``, Newton
@@ -11,6 +12,11 @@ long here).
 Run ``python benchmarks/band_mesh.py --fit 128 --synthetic 256 --resolution 257 513``
 (``--load FILE`` takes a fit saved by ``jurs.save_spline`` instead of fitting);
 prints a Markdown table (docs/design.md section 8 quotes one).
+
+Curves: ``--curve camera --resolution 1025 2049 4097`` fits ``jurs.fit_adaptive`` (default
+settings) to a traced outline of ``benchmarks/_realdata_cases.py`` and contours it over
+the band (``jurs.levelset._contour_values``) and over the full lattice (``evaluate_grid``),
+checking that the lines are the same; each time is the best of three.
 """
 
 from __future__ import annotations
@@ -92,14 +98,73 @@ def measure(name: str, spline: AdaptiveSpline, resolution: int, full: bool) -> s
     )
 
 
+def fitted_curve(name: str) -> AdaptiveSpline:
+    import os
+    import sys
+
+    sys.path.insert(0, os.path.dirname(__file__))
+    from _realdata_cases import build
+
+    case = build(name)
+    points, normals = jurs.shapes.sample_outline(list(case.components), case.m)
+    spline = jurs.fit_adaptive(points, normals).spline
+    assert isinstance(spline, AdaptiveSpline)
+    return spline
+
+
+def _best(fn, repeats: int):
+    """``(result, seconds)``: the fastest of ``repeats`` calls (the machine is shared)."""
+    best = float("inf")
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        out = fn()
+        best = min(best, time.perf_counter() - t0)
+    return out, best
+
+
+def measure_curve(name: str, spline: AdaptiveSpline, resolution: int, repeats: int = 3) -> str:
+    from jurs.levelset import _curves
+
+    xs, ys, _ = _curves.sampling_grid(spline.lower, spline.upper, resolution)
+    (band, _, plan), band_s = _best(lambda: _curves._band_values(spline, xs, ys, 0.0), repeats)
+    band_lines, band_contour_s = _best(lambda: _curves.contour_lines(xs, ys, band), repeats)
+    full, full_s = _best(lambda: _curves.evaluate_grid(spline, xs, ys), repeats)
+    full_lines, full_contour_s = _best(lambda: _curves.contour_lines(xs, ys, full), repeats)
+    same = len(band_lines) == len(full_lines) and all(
+        a[1] == b[1] and np.array_equal(a[0], b[0]) for a, b in zip(band_lines, full_lines)
+    )
+    return (
+        f"| {name} | {max(spline.finest_cells)} | {resolution} | {plan.lattice_nodes:.3g} | "
+        f"{plan.nodes:.3g} | {plan.nodes / plan.lattice_nodes:.3f} | {band_s:.2f} | "
+        f"{band_contour_s:.2f} | {full_s:.2f} | {full_contour_s:.2f} | {len(band_lines)} | "
+        f"{'yes' if same else 'NO'} |"
+    )
+
+
+def main_curves(names, resolutions):
+    print(
+        "| outline | finest | resolution | lattice nodes | band nodes | fraction | band "
+        "values s | band contour s | full values s | full contour s | lines | identical |"
+    )
+    print("|---|---|---|---|---|---|---|---|---|---|---|---|")
+    for name in names:
+        spline = fitted_curve(name)
+        for resolution in resolutions:
+            print(measure_curve(name, spline, resolution), flush=True)
+
+
 def main():
     parser = argparse.ArgumentParser()
+    parser.add_argument("--curve", nargs="*", default=[], help="outlines to contour instead")
     parser.add_argument("--fit", type=int, nargs="*", default=[128])
     parser.add_argument("--load", nargs="*", default=[], help="saved adaptive sphere fits")
     parser.add_argument("--synthetic", type=int, nargs="*", default=[256])
     parser.add_argument("--resolution", type=int, nargs="+", default=[257, 513])
     parser.add_argument("--full-up-to", type=int, default=257, help="largest full lattice")
     args = parser.parse_args()
+    if args.curve:
+        main_curves(args.curve, args.resolution)
+        return
     print(
         "| spline | finest | resolution | lattice nodes | band nodes | fraction | plan s | "
         "band mesh s | full lattice s | vertices | components / genus |"

@@ -276,47 +276,6 @@ def test_fit_adaptive_in_float32_converges():
     )
 
 
-@pytest.mark.parametrize("ndim", [2, 3])
-def test_packed_evaluation_equals_the_splines_own(ndim):
-    """The packed arrays of a rational adaptive spline (keys shifted and padded, levels
-    padded) give its values and gradients to rounding."""
-    from jurs._model.packed import pack, packed_values, packed_values_and_gradients
-
-    hierarchy = _hierarchy(ndim)
-    rng = np.random.default_rng(5)
-    spline = jurs.AdaptiveSpline(
-        hierarchy,
-        jnp.asarray(rng.normal(size=hierarchy.num_active)),
-        jnp.asarray(rng.uniform(0.5, 2.0, hierarchy.num_active)),
-    )
-    packed = pack(spline)
-    assert packed is not None and packed.cells.shape[0] % 4 == 0
-    x = _random_points(hierarchy, 300)
-    np.testing.assert_allclose(packed_values(packed, x), spline(x), rtol=1e-12, atol=1e-13)
-    value, gradient = packed_values_and_gradients(packed, x)
-    np.testing.assert_allclose(value, spline(x), rtol=1e-12, atol=1e-13)
-    np.testing.assert_allclose(gradient, spline.grad(x), rtol=1e-10, atol=1e-12)
-
-
-def test_level_sets_of_two_adaptive_fits_compile_once():
-    """Two circles of other sizes and radii fit to different hierarchies; their level sets
-    are evaluated by one compiled program (their packed arrays share a size class). A
-    much finer fit, of the next size classes, compiles anew (the counter counts)."""
-    from test_compile import _CompileCounter
-
-    counts = []
-    for m, radius, finest in ((150, 1.0, 64), (170, 1.3, 64), (170, 1.0, 512)):
-        t = np.linspace(0, 2 * np.pi, m, endpoint=False)
-        circle = np.stack([np.cos(t), np.sin(t)], 1)
-        sol = jurs.fit_adaptive(radius * circle, circle, finest=finest)
-        with _CompileCounter("packed") as counter:
-            report = jurs.levelset.analyze(sol.spline, radius * circle, resolution=100)
-        assert report.num_components == 1
-        counts.append(counter.count)
-    # The first may reuse a program an earlier test compiled for its class.
-    assert counts[1] == 0 and counts[2] >= 1, counts
-
-
 def test_fit_adaptive_gives_the_fits_verdicts():
     """The adaptive fit is judged as ``jurs.fit`` judges its automatic fits: half-flipped
     normals give ``inconsistent_normals`` (raised with ``throw``), two rings a gap

@@ -22,64 +22,6 @@ from .adaptive import AdaptiveSpline
 from .basis import CENTRED_POWER, cubic_weights
 from .hierarchy import cascade_matrix
 
-#: Points per call of an adaptive spline's jitted evaluation (the last chunk padded, so
-#: one compiled program serves every lattice).
-ADAPTIVE_CHUNK = 1 << 15
-
-
-def _values(spline: AdaptiveSpline, x):
-    return spline(x)
-
-
-def _values_and_gradients(spline: AdaptiveSpline, x):
-    return spline(x), spline.grad(x)
-
-
-_jitted: dict = {}
-
-
-def _packed(fn):
-    """The packed evaluation doing what ``fn`` does (``_values`` or
-    ``_values_and_gradients``)."""
-    from .packed import packed_values, packed_values_and_gradients
-
-    return packed_values if fn is _values else packed_values_and_gradients
-
-
-def _adaptive_evaluate(spline: AdaptiveSpline, points: np.ndarray, fn=_values) -> list:
-    """``fn(spline, chunk)`` over ``points`` in chunks of ``ADAPTIVE_CHUNK`` (the last one
-    padded); the parts as float64 NumPy arrays cut to ``len(points)``, one list entry per
-    output of ``fn``. The spline is packed first (``jurs._model.packed``), so one compiled
-    program serves every fit of a size class; a spline too large to pack is evaluated
-    through its own methods, compiled per hierarchy."""
-    import equinox as eqx
-    import jax
-    import jax.numpy as jnp
-
-    from .packed import pack
-
-    packed = pack(spline)
-    if packed is None:
-        jitted, argument = _jitted.setdefault(fn, eqx.filter_jit(fn)), spline
-    else:
-        jitted, argument = _jitted.setdefault(_packed(fn), eqx.filter_jit(_packed(fn))), packed
-    dtype = np.asarray(spline.control).dtype
-    n = len(points)
-    padded = np.concatenate([points, np.repeat(points[-1:], -n % ADAPTIVE_CHUNK, axis=0)])
-    parts = [
-        jax.tree.leaves(jitted(argument, jnp.asarray(padded[k : k + ADAPTIVE_CHUNK], dtype)))
-        for k in range(0, len(padded), ADAPTIVE_CHUNK)
-    ]
-    return [
-        np.concatenate([np.asarray(p[i], np.float64) for p in parts])[:n]
-        for i in range(len(parts[0]))
-    ]
-
-
-def adaptive_values(spline: AdaptiveSpline, points) -> np.ndarray:
-    """g of an adaptive spline at ``points (n, d)``, float64 NumPy ``(n,)``."""
-    return _adaptive_evaluate(spline, np.asarray(points, np.float64))[0]
-
 
 def adaptive_lattice_values(spline: AdaptiveSpline, axes) -> np.ndarray:
     """[`lattice_values`][jurs._model.lattice.lattice_values] of an adaptive spline: g at

@@ -1,7 +1,10 @@
-"""Marching cubes over the part of the lattice where an adaptive spline's level set can be.
+"""Marching cubes (3D) and contouring (2D) over the part of the lattice where an adaptive
+spline's level set can be.
 
-The lattice of [`mesh`][jurs.levelset.mesh] is cut into blocks of ``BLOCK_CELLS`` lattice
-cells a side. Only the blocks where g may reach the level are evaluated and marched; the
+The lattice of [`mesh`][jurs.levelset.mesh] (of [`analyze`][jurs.levelset.analyze] and
+[`zero_level_set`][jurs.levelset.zero_level_set] for a curve, ``band_lattice``) is cut
+into blocks of ``BLOCK_CELLS`` lattice cells a side; the planning is the same in any
+dimension. Only the blocks where g may reach the level are evaluated and marched; the
 rest of the box costs a few comparisons per leaf of the hierarchy. A block is marched
 when both tests below let it through (docs/design.md section 8, "Meshing the band"):
 
@@ -31,6 +34,7 @@ same too) and ``_weld`` stitches the blocks into one watertight mesh.
 from __future__ import annotations
 
 import dataclasses
+from typing import Any
 
 import numpy as np
 
@@ -43,7 +47,8 @@ from .._model.lattice import FinestSpline
 #: planes: at 16 a block's 17^3 nodes hold 20 % boundary repeats.
 BLOCK_CELLS = 16
 #: Blocks evaluated and marched per batch: a batch's values take about ``BATCH_BLOCKS *
-#: (BLOCK_CELLS + 1)^3 * 16`` bytes (20 MiB at 256 blocks of 16).
+#: (BLOCK_CELLS + 1)^3 * 16`` bytes (20 MiB at 256 blocks of 16). Curves' blocks are
+#: ``BLOCK_CELLS + 1`` times smaller, and as many times more of them make a batch.
 BATCH_BLOCKS = 256
 #: The convex-hull tests keep a block when the level is within this fraction of the
 #: coefficients' magnitude of their range: rounding of the node values, which are
@@ -72,7 +77,9 @@ class _Blocks:
     finest cells of those nodes."""
 
     def __init__(self, evaluator: FinestSpline, axes, block: int):
+        self.ndim = len(axes)
         self.block = int(block)
+        self.batch = BATCH_BLOCKS * (self.block + 1) ** max(0, 3 - self.ndim)
         self.located = [evaluator.axis(a, k) for k, a in enumerate(axes)]
         self.counts = [len(a) for a in axes]
         self.grid = tuple(max(1, -(-(n - 1) // self.block)) for n in self.counts)
@@ -95,11 +102,11 @@ class _Blocks:
 
     def mark(self, marked: np.ndarray, low: np.ndarray, high: np.ndarray) -> None:
         """Mark in ``marked`` (the block grid) every block over a box of finest cells
-        ``[low, high]`` (inclusive, ``(m, 3)`` each)."""
+        ``[low, high]`` (inclusive, ``(m, d)`` each)."""
         if len(low) == 0:
             return
         start, stop = [], []
-        for k in range(3):
+        for k in range(self.ndim):
             start.append(np.searchsorted(self.last_cell[k], low[:, k], side="left"))
             stop.append(np.searchsorted(self.first_cell[k], high[:, k], side="right"))
         start = np.stack(start, -1)
@@ -108,11 +115,44 @@ class _Blocks:
         start, span = start[keep], span[keep]
         if len(start) == 0:
             return
-        for offset in _offsets(3, int(span.max())):
+        for offset in _offsets(self.ndim, int(span.max())):
             ok = np.all(offset < span, axis=1)
             if ok.any():
-                index = start[ok] + offset
-                marked[index[:, 0], index[:, 1], index[:, 2]] = True
+                marked[tuple((start[ok] + offset).T)] = True
+
+    def outside_blocks(self) -> np.ndarray:
+        """The block grid's blocks that hold nodes outside the spline's box."""
+        out = np.zeros(self.grid, bool)
+        for k in range(self.ndim):
+            shape = [1] * self.ndim
+            shape[k] = self.grid[k]
+            out |= self.outside[k].reshape(shape)
+        return out
+
+    def corners(self, batch: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """First and last finest cells of the blocks ``batch (b, d)``; ``(b, d)`` each."""
+        first = np.stack([self.first_cell[k][batch[:, k]] for k in range(self.ndim)], -1)
+        last = np.stack([self.last_cell[k][batch[:, k]] for k in range(self.ndim)], -1)
+        return first, last
+
+    def values(self, evaluator: FinestSpline, batch: np.ndarray):
+        """g on the nodes of the blocks ``batch (b, d)``: ``(values (b, B+1, .., B+1),
+        nodes (b, d))``, block ``i``'s own nodes being ``values[i, :nodes[i, 0], ...]``
+        (a block cut by the lattice's end repeats its last node past it). Each node gets
+        bitwise the value of every other block holding it (``FinestSpline``)."""
+        first_cell, _ = self.corners(batch)
+        span = np.arange(self.block + 1)
+        relative, factors, real = [], [], []
+        for k in range(self.ndim):
+            cells, weights, _ = self.located[k]
+            start = self.first[k][batch[:, k]]
+            index = np.minimum(start[:, None] + span[None], self.counts[k] - 1)
+            relative.append(cells[index] - first_cell[:, k : k + 1])
+            factors.append(weights[index])
+            real.append(self.last[k][batch[:, k]] - start + 1)
+        windows = evaluator.windows(first_cell, self.window_sizes())
+        both = evaluator.contract(windows, relative, factors)
+        return both[0] / both[1], np.stack(real, -1)
 
 
 def _straddles(low, high, level: float, nudge: float, scale: float) -> np.ndarray:
@@ -133,8 +173,9 @@ def _ratios(both: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 def plan_band(
     evaluator: FinestSpline, axes, level: float, nudge: float, block: int = BLOCK_CELLS
 ) -> BandPlan:
-    """The blocks of the lattice ``axes`` to march for ``{g = level}`` (module docstring);
-    host work, no lattice-sized array (the block grid is ``BLOCK_CELLS^3`` times smaller)."""
+    """The blocks of the lattice ``axes`` (``d`` of them, the spline's dimension) where
+    ``{g = level}`` may be (module docstring); host work, no lattice-sized array (the
+    block grid is ``BLOCK_CELLS^d`` times smaller)."""
     hierarchy = evaluator.hierarchy
     grid = _Blocks(evaluator, axes, block)
     marked = np.zeros(grid.grid, bool)
@@ -149,39 +190,37 @@ def plan_band(
         steps = finest - lev
         if lev < finest:
             keys = np.asarray(hierarchy.function_keys[lev], np.int64)
-            around = _ravel(leaves[:, None, :] + _offsets(3, 4)[None], hierarchy.functions(lev))
+            corner = _offsets(grid.ndim, 4)[None]
+            around = _ravel(leaves[:, None, :] + corner, hierarchy.functions(lev))
             both = evaluator.cascaded[:, starts[lev] + _position(around.ravel(), keys)]
             ratio, positive = _ratios(both.reshape(2, len(leaves), -1))
             hull = _straddles(ratio.min(axis=1), ratio.max(axis=1), level, nudge, scale)
             leaves = leaves[hull | ~positive.all(axis=1)]
         grid.mark(marked, leaves << steps, ((leaves + 1) << steps) - 1)
-    outside = grid.outside
-    marked |= outside[0][:, None, None] | outside[1][None, :, None] | outside[2][None, None, :]
+    outside = grid.outside_blocks()
+    marked |= outside
     candidates = np.argwhere(marked)
     chosen = []
     sizes = grid.window_sizes()
-    for begin in range(0, len(candidates), BATCH_BLOCKS):
-        batch = candidates[begin : begin + BATCH_BLOCKS]
-        first = np.stack([grid.first_cell[k][batch[:, k]] for k in range(3)], -1)
-        last = np.stack([grid.last_cell[k][batch[:, k]] for k in range(3)], -1)
+    for begin in range(0, len(candidates), grid.batch):
+        batch = candidates[begin : begin + grid.batch]
+        first, last = grid.corners(batch)
         ratio, positive = _ratios(evaluator.windows(first, sizes))
         # Only the functions over the block's cells bound it (the window is padded).
         valid = np.ones(ratio.shape, bool)
-        for k in range(3):
-            shape = [len(batch), 1, 1, 1]
+        for k in range(grid.ndim):
+            shape = [len(batch)] + [1] * grid.ndim
             shape[1 + k] = sizes[k]
             inside = np.arange(sizes[k])[None] <= (last[:, k] - first[:, k] + 3)[:, None]
             valid &= inside.reshape(shape)
         low = np.where(valid, ratio, np.inf).reshape(len(batch), -1).min(axis=1)
         high = np.where(valid, ratio, -np.inf).reshape(len(batch), -1).max(axis=1)
         bad = (valid & ~positive).reshape(len(batch), -1).any(axis=1)
-        forced = np.zeros(len(batch), bool)
-        for k in range(3):
-            forced |= outside[k][batch[:, k]]
+        forced = outside[tuple(batch.T)]
         chosen.append(batch[_straddles(low, high, level, nudge, scale) | bad | forced])
-    blocks = np.concatenate(chosen) if chosen else np.zeros((0, 3), np.int64)
+    blocks = np.concatenate(chosen) if chosen else np.zeros((0, grid.ndim), np.int64)
     per_axis = [last - first + 1 for first, last in zip(grid.first, grid.last)]
-    nodes = int(sum(np.prod([per_axis[k][blocks[:, k]] for k in range(3)], axis=0)))
+    nodes = int(sum(np.prod([per_axis[k][blocks[:, k]] for k in range(grid.ndim)], axis=0)))
     return BandPlan(
         blocks=blocks,
         nodes=nodes,
@@ -204,26 +243,13 @@ def march_band(
     before welding. Values within ``nudge`` of the level are set to ``level + nudge``
     first, as on the full lattice."""
     grid = _Blocks(evaluator, axes, block)
-    sizes = grid.window_sizes()
     vertex_parts, face_parts = [], []
     count = 0
-    span = np.arange(block + 1)
-    for begin in range(0, len(plan.blocks), BATCH_BLOCKS):
-        batch = plan.blocks[begin : begin + BATCH_BLOCKS]
-        first_cell = np.stack([grid.first_cell[k][batch[:, k]] for k in range(3)], -1)
-        relative, factors, real = [], [], []
-        for k in range(3):
-            cells, weights, _ = grid.located[k]
-            start = grid.first[k][batch[:, k]]
-            # Nodes past the lattice's end repeat its last node (cut off below).
-            index = np.minimum(start[:, None] + span[None], grid.counts[k] - 1)
-            relative.append(cells[index] - first_cell[:, k : k + 1])
-            factors.append(weights[index])
-            real.append(grid.last[k][batch[:, k]] - start + 1)
-        both = evaluator.contract(evaluator.windows(first_cell, sizes), relative, factors)
-        values = both[0] / both[1]
+    for begin in range(0, len(plan.blocks), grid.batch):
+        batch = plan.blocks[begin : begin + grid.batch]
+        values, real = grid.values(evaluator, batch)
         for b, where in enumerate(batch):
-            block_values = values[b, : real[0][b], : real[1][b], : real[2][b]]
+            block_values = values[b, : real[b, 0], : real[b, 1], : real[b, 2]]
             block_values = np.where(
                 np.abs(block_values - level) < nudge, level + nudge, block_values
             )
@@ -232,7 +258,7 @@ def march_band(
             # "descent": faces (right-hand rule) towards g > level, as on the full lattice.
             verts, tris, _, _ = marching_cubes(block_values, level, gradient_direction="descent")
             verts = verts.astype(np.float64) + np.array(
-                [grid.first[k][where[k]] for k in range(3)], np.float64
+                [grid.first[k][where[k]] for k in range(grid.ndim)], np.float64
             )
             vertex_parts.append(verts)
             face_parts.append(tris.astype(np.int64) + count)
@@ -240,3 +266,45 @@ def march_band(
     if not face_parts:
         return np.empty((0, 3)), np.empty((0, 3), np.int64)
     return np.concatenate(vertex_parts), np.concatenate(face_parts)
+
+
+def band_lattice(evaluator: FinestSpline, axes, level: float, block: int = BLOCK_CELLS):
+    """g on the lattice ``axes`` where ``{g = level}`` may be: ``(values (len(axes[0]),
+    ..), evaluated (same shape, bool), plan)``.
+
+    The nodes of the blocks of ``plan_band`` (no nudge) hold g, bitwise the full
+    lattice's values (``FinestSpline``). Every other node lies in a block whose nodes are
+    all strictly on one side of the level, and holds instead g at one node of its
+    connected region of such blocks (blocks sharing a side share nodes, so a region is on
+    one side): contouring ``values`` crosses exactly the cells the full lattice's values
+    cross, at the same points. ``evaluated`` marks the nodes that hold their own g."""
+    from scipy import ndimage
+
+    plan = plan_band(evaluator, axes, level, 0.0, block)
+    grid = _Blocks(evaluator, axes, block)
+    skipped = np.ones(grid.grid, bool)
+    skipped[tuple(plan.blocks.T)] = False
+    labelled: Any = ndimage.label(skipped)  # (labels, count); the stubs type it loosely
+    labels, regions = np.asarray(labelled[0], np.int64), int(labelled[1])
+    # One node per region (the first node of its first block), evaluated to find its side.
+    _, first = np.unique(labels.ravel(), return_index=True)
+    first = first[labels.ravel()[first] > 0]
+    where = np.stack(np.unravel_index(first, grid.grid), -1)
+    side = np.full(regions + 1, np.nan)
+    if len(where):
+        node = [np.asarray(axes[k])[grid.first[k][where[:, k]]] for k in range(grid.ndim)]
+        side[labels[tuple(where.T)]] = evaluator.values_and_gradients(np.stack(node, -1))[0]
+    # Each node takes its block's region (a node shared by two blocks: the later one's;
+    # shared with an evaluated block, overwritten below).
+    owner = [np.minimum(np.arange(n) // grid.block, g - 1) for n, g in zip(grid.counts, grid.grid)]
+    values = side[labels[np.ix_(*owner)]]
+    evaluated = np.zeros(tuple(grid.counts), bool)
+    for begin in range(0, len(plan.blocks), grid.batch):
+        batch = plan.blocks[begin : begin + grid.batch]
+        block_values, real = grid.values(evaluator, batch)
+        for b, at in enumerate(batch):
+            start = [grid.first[k][at[k]] for k in range(grid.ndim)]
+            target = tuple(slice(f, f + n) for f, n in zip(start, real[b]))
+            values[target] = block_values[(b,) + tuple(slice(0, n) for n in real[b])]
+            evaluated[target] = True
+    return values, evaluated, plan

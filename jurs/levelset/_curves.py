@@ -15,9 +15,10 @@ from jaxtyping import Float
 from scipy.spatial import cKDTree  # pyright: ignore[reportAttributeAccessIssue]  # no stub
 
 from .._model.adaptive import AdaptiveSpline
-from .._model.lattice import adaptive_values
+from .._model.lattice import FinestSpline
 from .._model.spline import ImplicitSpline
 from .._problem.memory import check_memory
+from ._band import HULL_TOLERANCE, band_lattice
 from ._trimming import check_trim, trim_curves
 
 if TYPE_CHECKING:
@@ -87,13 +88,13 @@ def evaluate_grid(
     """``values[j, i] = g(xs[i], ys[j])`` as a NumPy array.
 
     Evaluated in fixed-size chunks (the last one padded) under one jit, so grids of any
-    size reuse one compiled function per spline grid shape and dtype (an adaptive
-    spline's: per size class of its packed arrays, ``jurs._model.packed``).
+    size reuse one compiled function per spline grid shape and dtype. An adaptive spline
+    is evaluated on the host, nothing compiled (``jurs._model.lattice.FinestSpline``).
     """
+    if isinstance(spline, AdaptiveSpline):
+        axes = [np.asarray(xs, np.float64).reshape(-1), np.asarray(ys, np.float64).reshape(-1)]
+        return FinestSpline(spline).lattice(axes).T
     gx, gy = np.meshgrid(np.asarray(xs), np.asarray(ys))
-    if isinstance(spline, AdaptiveSpline):  # packed: one compiled program a size class
-        xy = np.stack([gx.ravel(), gy.ravel()], axis=1)
-        return adaptive_values(spline, xy).reshape(gx.shape)
     dtype = np.asarray(spline.control).dtype if hasattr(spline, "control") else np.float64
     xy = np.stack([gx.ravel(), gy.ravel()], axis=1).astype(dtype)
     n = len(xy)
@@ -139,10 +140,76 @@ def zero_level_set(
 ) -> list[tuple[Float[np.ndarray, "k 2"], bool]]:
     """The zero-level set of ``spline`` over ``box`` (default the spline's box) as polylines.
 
-    Returns a list of ``(polyline (k, 2), closed)`` pairs; see the module docstring.
+    Returns a list of ``(polyline (k, 2), closed)`` pairs; see the module docstring. An
+    adaptive spline ([`jurs.AdaptiveSpline`][]) is evaluated only on the grid's blocks
+    where g may reach the level; the lines are the full grid's (docs/design.md section 8,
+    "Contouring the band").
     """
     xs, ys, _ = sampling_grid(*_box(spline, box), resolution)
-    return contour_lines(xs, ys, evaluate_grid(spline, xs, ys), level)
+    return contour_lines(xs, ys, _contour_values(spline, xs, ys, level), level)
+
+
+def _contour_values(
+    spline, xs: Float[npt.ArrayLike, " nx"], ys: Float[npt.ArrayLike, " ny"], level: float = 0.0
+) -> Float[np.ndarray, "ny nx"]:
+    """The grid [`contour_lines`][jurs.levelset.contour_lines] needs for ``{g = level}``:
+    [`evaluate_grid`][jurs.levelset.evaluate_grid]'s values, except that an adaptive
+    spline ([`jurs.AdaptiveSpline`][]) is evaluated only on the blocks of 16 x 16 cells
+    where g may reach the level (``jurs/levelset/_band.py``; docs/design.md section 8,
+    "Contouring the band"). The other nodes, in blocks with every node strictly on one
+    side of the level, hold a value of g from their side: the lines are the full grid's."""
+    if not isinstance(spline, AdaptiveSpline):
+        return evaluate_grid(spline, xs, ys)
+    return _band_values(spline, xs, ys, level)[0]
+
+
+def _band_values(spline: AdaptiveSpline, xs, ys, level: float):
+    """``(values (ny, nx), evaluated (ny, nx), plan)`` of ``band_lattice``."""
+    axes = [np.asarray(xs, np.float64).reshape(-1), np.asarray(ys, np.float64).reshape(-1)]
+    values, evaluated, plan = band_lattice(FinestSpline(spline), axes, float(level))
+    return values.T, evaluated.T, plan
+
+
+def _zero_area(values: np.ndarray, zero_tol: float) -> float:
+    """The fraction of nodes where ``|g| <= zero_tol * max|g|``."""
+    scale = float(np.nanmax(np.abs(values))) if np.isfinite(values).any() else 0.0
+    return float(np.mean(np.abs(values) <= zero_tol * scale))
+
+
+def _sampled(spline, xs, ys, zero_tol: float) -> tuple[np.ndarray, float]:
+    """The values ``analyze`` contours (``_contour_values`` at level 0) and the zero-area
+    fraction of the full grid's values.
+
+    For an adaptive spline's band the fraction is exact when it can be decided without
+    the nodes left out: with ``R`` the largest ``|A_num / A_den|`` of its coefficients
+    (all denominators positive), ``|g| <= R`` on the spline's box and every node left
+    out has ``|g| > HULL_TOLERANCE R``. So when ``zero_tol`` times the grid's ``max|g|``
+    stays below that, no node left out counts, and when no band node lies between
+    ``zero_tol`` times the band's ``max|g|`` (a lower bound of the grid's) and ``zero_tol``
+    times an upper bound of it, the band's count is the grid's. Otherwise the whole grid
+    is evaluated for it."""
+    if not isinstance(spline, AdaptiveSpline):
+        values = evaluate_grid(spline, xs, ys)
+        return values, _zero_area(values, zero_tol)
+    values, evaluated, _ = _band_values(spline, xs, ys, 0.0)
+    ratio = _coefficient_ratio(spline)
+    band = np.abs(values[evaluated])
+    if ratio is not None and band.size and np.isfinite(band).all():
+        # Outside the spline's box (a larger ``box``) g extrapolates past R: those nodes
+        # are all in the band, so max|g| is at most the larger of R and the band's.
+        low, high = zero_tol * float(band.max()), zero_tol * max(ratio, float(band.max()))
+        if high < HULL_TOLERANCE * ratio and not np.any((band > low) & (band <= high)):
+            return values, float(np.count_nonzero(band <= low)) / values.size
+    return values, _zero_area(evaluate_grid(spline, xs, ys), zero_tol)
+
+
+def _coefficient_ratio(spline: AdaptiveSpline) -> float | None:
+    """``max |A_num / A_den|`` over the cascaded coefficients (``FinestSpline``); None
+    when a denominator is not positive (no bound on ``|g|`` then)."""
+    numerator, denominator = FinestSpline(spline).cascaded
+    if not np.all(denominator > 0):
+        return None
+    return float(np.max(np.abs(numerator / denominator), initial=0.0))
 
 
 def polyline_length(polyline: Float[npt.ArrayLike, "k 2"]) -> float:
@@ -355,7 +422,9 @@ def analyze(
         threshold: distance above which a component is supplementary (overrides ``offset``).
         reference: optional ``(k, 2)`` dense samples of the true curve for the Chamfer and
             Hausdorff distances; default the data points.
-        resolution: grid nodes along the longer side of the box (default 512).
+        resolution: grid nodes along the longer side of the box (default 512). An
+            adaptive spline is evaluated only on the grid's blocks where g may reach 0,
+            with the full grid's lines and zero-area fraction as the result.
         box: ``((x_min, y_min), (x_max, y_max))``; default the spline's box.
         tiny_cells: closed loops shorter than this many grid cells count as tiny.
         zero_tol: relative level below which g counts as identically zero (for
@@ -379,17 +448,18 @@ def analyze(
     """
     check_trim(trim, points)  # before the grid is sampled
     xs, ys, _ = sampling_grid(*_box(spline, box), resolution)
-    return analyze_grid(
+    values, zero_area = _sampled(spline, xs, ys, zero_tol)
+    return _measure(
         xs,
         ys,
-        evaluate_grid(spline, xs, ys),
+        values,
+        zero_area,
         points,
         offset=offset,
         threshold=threshold,
         fit_cell=_fit_cell(spline),
         reference=reference,
         tiny_cells=tiny_cells,
-        zero_tol=zero_tol,
         trim=trim,
     )
 
@@ -421,6 +491,37 @@ def analyze_grid(
     along the longer side; ``fit_cell``, the width of the fitted function's own cells (0:
     none), raises the default threshold to ``FIT_CELL_FRACTION`` of it; other arguments as
     in [`analyze`][jurs.levelset.analyze]."""
+    values = np.asarray(values, float)
+    return _measure(
+        xs,
+        ys,
+        values,
+        _zero_area(values, zero_tol),
+        points,
+        offset=offset,
+        threshold=threshold,
+        fit_cell=fit_cell,
+        reference=reference,
+        tiny_cells=tiny_cells,
+        trim=trim,
+    )
+
+
+def _measure(
+    xs,
+    ys,
+    values: np.ndarray,
+    zero_area: float,
+    points,
+    *,
+    offset: float,
+    threshold: float | None,
+    fit_cell: float,
+    reference,
+    tiny_cells: float,
+    trim: float | bool | None,
+) -> LevelSetReport:
+    """``analyze_grid`` given the zero-area fraction (NaN values: no line there)."""
     points = np.asarray(points, float)
     if points.ndim != 2 or points.shape[1] != 2 or len(points) == 0:
         raise ValueError(f"points must have shape (m, 2) with m >= 1, got {points.shape}")
@@ -438,8 +539,6 @@ def analyze_grid(
             f"values must have shape (len(ys), len(xs)) = {(len(ys), len(xs))}, got {values.shape}"
         )
     h = float(max(xs[-1] - xs[0], ys[-1] - ys[0]) / (max(len(xs), len(ys)) - 1))
-    scale = float(np.nanmax(np.abs(values))) if np.isfinite(values).any() else 0.0
-    zero_area = float(np.mean(np.abs(values) <= zero_tol * scale))
     lines = contour_lines(xs, ys, values)
     spacings = check_trim(trim, points)
     if spacings is not None:

@@ -115,7 +115,7 @@ def project_to_zero_set(
         gradient = grad
     elif spline:
         gradient = lambda xy: _gradient(fn, xy)  # noqa: E731
-    elif isinstance(fn, AdaptiveSpline):  # packed: compiled once a size class
+    elif isinstance(fn, AdaptiveSpline):  # on the host (FinestSpline): nothing compiled
         value_of, gradient = _both_at_once(fn)
     else:
         gradient = lambda xy: _central_gradient(value_of, xy, step)  # noqa: E731
