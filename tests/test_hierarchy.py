@@ -47,6 +47,43 @@ def test_partition_of_unity_and_nonnegative(ndim):
 
 
 @pytest.mark.parametrize("ndim", [2, 3])
+def test_table_and_sorted_key_lookups_build_the_same_hierarchy(ndim, monkeypatch):
+    """``build_hierarchy`` looks keys up in tables where their range is small and by a
+    sorted search beyond: both build the same arrays."""
+    from jurs._model import hierarchy as module
+
+    table = _hierarchy(ndim, levels=3)
+    monkeypatch.setattr(module, "TABLE_KEYS", 0)
+    searched = _hierarchy(ndim, levels=3)
+    assert table.num_levels == 4
+    for a, b in zip(jax.tree.leaves(table), jax.tree.leaves(searched), strict=True):
+        assert a.dtype == b.dtype
+        np.testing.assert_array_equal(a, b)
+
+
+@pytest.mark.parametrize("ndim", [2, 3])
+def test_gradient_of_a_rational_spline_is_the_quotient_rule(ndim):
+    """``AdaptiveSpline.grad`` (numerator and denominator in one cascade) against the
+    quotient rule on the two polynomial splines' own gradients."""
+    from jurs._model.hierarchy import hierarchy_gradient
+
+    hierarchy = _hierarchy(ndim)
+    rng = np.random.default_rng(3)
+    control = jnp.asarray(rng.normal(size=hierarchy.num_active))
+    weights = jnp.asarray(rng.uniform(0.5, 2.0, hierarchy.num_active))
+    spline = jurs.AdaptiveSpline(hierarchy, control, weights)
+    x = _random_points(hierarchy, 200)
+    top = hierarchy_values(hierarchy, weights * control, x)
+    bottom = hierarchy_values(hierarchy, weights, x)
+    expected = (
+        hierarchy_gradient(hierarchy, weights * control, x) * bottom[:, None]
+        - top[:, None] * hierarchy_gradient(hierarchy, weights, x)
+    ) / (bottom * bottom)[:, None]
+    np.testing.assert_allclose(spline.grad(x), expected, rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(spline.grad(x[0]), expected[0], rtol=1e-10, atol=1e-12)
+
+
+@pytest.mark.parametrize("ndim", [2, 3])
 def test_one_search_over_levels_equals_a_search_per_level(ndim, monkeypatch):
     """``leaf_terms`` searches the keys of all levels at once; where those would leave
     int32 it searches level by level. Both give the same positions."""

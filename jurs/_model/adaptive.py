@@ -15,7 +15,7 @@ import numpy as np
 from jax import Array
 from jaxtyping import ArrayLike, Float
 
-from .hierarchy import Hierarchy, hierarchy_gradient, hierarchy_values
+from .hierarchy import Hierarchy, hierarchy_values, hierarchy_values_and_gradients
 
 
 class AdaptiveSpline(eqx.Module):
@@ -86,11 +86,10 @@ class AdaptiveSpline(eqx.Module):
         xy = jnp.asarray(xy)
         single = xy.ndim == 1
         x = jnp.atleast_2d(xy)
-        both = hierarchy_values(
+        # One leaf search and one cascade for numerator and denominator together.
+        both, slopes = hierarchy_values_and_gradients(
             self.hierarchy, jnp.stack([self.weights * self.control, self.weights]), x
         )
         g = both[0] / both[1]
-        numerator = hierarchy_gradient(self.hierarchy, self.weights * self.control, x)
-        denominator = hierarchy_gradient(self.hierarchy, self.weights, x)
-        out = (numerator - g[:, None] * denominator) / both[1][:, None]
+        out = (slopes[0] - g[:, None] * slopes[1]) / both[1][:, None]
         return out[0] if single else out
