@@ -437,3 +437,17 @@ def test_surface_fits_of_two_clouds_share_one_compiled_solve():
     )
     assert actives[0] != actives[1], actives
     assert counts[1] == 0 and counts[2] == 1, counts
+
+
+def test_a_curve_fit_keeps_a_band_of_one_cell_by_default():
+    """A curve's default band is one cell a level (as accurate as two on traced outlines,
+    with fewer functions); a wider band is asked for explicitly."""
+    t = np.linspace(0, 2 * np.pi, 200, endpoint=False)
+    points = np.stack([np.cos(t), np.sin(t)], 1)
+    default = jurs.fit_adaptive(points, points, finest=64)
+    one = jurs.fit_adaptive(points, points, finest=64, band=1)
+    two = jurs.fit_adaptive(points, points, finest=64, band=2)
+    assert default.stats["active"] == one.stats["active"]
+    assert sum(one.stats["active"]) < sum(two.stats["active"])
+    x = np.array([[0.0, 0.0], [0.5, 0.5], [1.2, 0.1]])
+    np.testing.assert_array_equal(default.spline(x), one.spline(x))

@@ -47,8 +47,12 @@ BASE_CELLS = 8
 #: Finest cells along the longest side, at most (2D, 3D): the keys of a level are int32,
 #: and beyond these the band's functions outgrow a 2-core machine's memory.
 MAX_FINEST = {2: 4096, 3: 1024}
-#: The band, in cells of each level, around the cells that hold samples.
-DEFAULT_BAND = 2
+#: The band, in cells of each level, around the cells that hold samples (curve, surface).
+#: On seven traced outlines (benchmarks/_realdata_cases.py, clean) a band of 1 gave the
+#: same Chamfer distance as 2 to four digits, Hausdorff within 0.7 % and every ring, with
+#: 40-45 % fewer active functions (docs/design.md section 8). A surface keeps 2 until
+#: measured.
+DEFAULT_BAND = {2: 1, 3: 2}
 #: The finest cell in point spacings (curve, surface). A curve's adaptive fit takes
 #: cells of one spacing, where the uniform grid takes 1.5: on two traced outlines
 #: (benchmarks/_realdata_cases.py camera and text, clean), Chamfer fell 8 % and 18 % from
@@ -221,7 +225,7 @@ def fit_adaptive(
     normals: Float[ArrayLike, "m d"] | None = None,
     *,
     finest: int | None = None,
-    band: int = DEFAULT_BAND,
+    band: int | None = None,
     offset: float | None = None,
     eps: float | None = None,
     domain=None,
@@ -244,7 +248,7 @@ def fit_adaptive(
             cell from the data, ``max(s, 4 sigma)`` (``3 s`` on a surface;
             ``CELL_SPACINGS``), at most ``MAX_FINEST`` cells.
         band: cells of each level kept fine around the cells that hold samples (at least
-            1).
+            1); None takes ``DEFAULT_BAND``: 1 on a curve, 2 on a surface.
         offset, eps, domain, smoothing: as in [`jurs.auto_settings`][]; chosen from the
             data when None. ``lam`` overrides the lambda made from ``smoothing``.
         rtol, max_steps: the conjugate gradients' stop rule; ``rtol`` None takes
@@ -275,7 +279,7 @@ def fit_adaptive(
     """
     if method not in (None, "direct", "cg"):
         raise ValueError(f"method must be 'direct', 'cg' or None, got {method!r}")
-    if band < 1:
+    if band is not None and band < 1:
         raise ValueError(f"band must be at least 1 cell, got {band}")
     if normals is None:
         from .._cloud.normals import estimate_normals
@@ -303,6 +307,7 @@ def fit_adaptive(
             )
         cell = longest / int(finest)
     method = method or ("direct" if ndim == 2 else "cg")
+    band = DEFAULT_BAND[ndim] if band is None else int(band)
     lower, upper, base, levels = adaptive_layout(lower, upper, cell)
     offset_value = settings.offset if offset is None else float(offset)
     eps_value = settings.eps if eps is None else float(eps)
