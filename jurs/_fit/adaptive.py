@@ -8,9 +8,10 @@ with ``k = CELL_SPACINGS`` (one spacing on a curve, where a uniform grid takes 1
 on a surface), and the levels above it are coarse everywhere but near the samples.
 
 A curve's normal equations are assembled on the host and factorised (QDLDL's LDL^T); a
-surface's are solved by conjugate gradients in JAX, preconditioned by their exact
-diagonal, which on the hierarchical basis keeps the step count nearly flat as levels are
-added (docs/design.md section 8).
+surface's are solved by conjugate gradients in JAX on the same assembled matrices, padded
+to size classes so that a new cloud of a similar size compiles nothing, preconditioned
+by their exact diagonal, which on the hierarchical basis keeps the step count nearly flat
+as levels are added (docs/design.md section 8).
 """
 
 from __future__ import annotations
