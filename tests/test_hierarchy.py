@@ -48,6 +48,43 @@ def test_partition_of_unity_and_nonnegative(ndim):
 
 
 @pytest.mark.parametrize("ndim", [2, 3])
+def test_table_and_sorted_key_lookups_build_the_same_hierarchy(ndim, monkeypatch):
+    """``build_hierarchy`` looks keys up in tables where their range is small and by a
+    sorted search beyond: both build the same arrays."""
+    from jurs._model import hierarchy as module
+
+    table = _hierarchy(ndim, levels=3)
+    monkeypatch.setattr(module, "TABLE_KEYS", 0)
+    searched = _hierarchy(ndim, levels=3)
+    assert table.num_levels == 4
+    for a, b in zip(jax.tree.leaves(table), jax.tree.leaves(searched), strict=True):
+        assert a.dtype == b.dtype
+        np.testing.assert_array_equal(a, b)
+
+
+@pytest.mark.parametrize("ndim", [2, 3])
+def test_gradient_of_a_rational_spline_is_the_quotient_rule(ndim):
+    """``AdaptiveSpline.grad`` (numerator and denominator in one cascade) against the
+    quotient rule on the two polynomial splines' own gradients."""
+    from jurs._model.hierarchy import hierarchy_gradient
+
+    hierarchy = _hierarchy(ndim)
+    rng = np.random.default_rng(3)
+    control = jnp.asarray(rng.normal(size=hierarchy.num_active))
+    weights = jnp.asarray(rng.uniform(0.5, 2.0, hierarchy.num_active))
+    spline = jurs.AdaptiveSpline(hierarchy, control, weights)
+    x = _random_points(hierarchy, 200)
+    top = hierarchy_values(hierarchy, weights * control, x)
+    bottom = hierarchy_values(hierarchy, weights, x)
+    expected = (
+        hierarchy_gradient(hierarchy, weights * control, x) * bottom[:, None]
+        - top[:, None] * hierarchy_gradient(hierarchy, weights, x)
+    ) / (bottom * bottom)[:, None]
+    np.testing.assert_allclose(spline.grad(x), expected, rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(spline.grad(x[0]), expected[0], rtol=1e-10, atol=1e-12)
+
+
+@pytest.mark.parametrize("ndim", [2, 3])
 def test_one_search_over_levels_equals_a_search_per_level(ndim, monkeypatch):
     """``leaf_terms`` searches the keys of all levels at once; where those would leave
     int32 it searches level by level. Both give the same positions."""
@@ -296,3 +333,103 @@ def test_fit_adaptive_gives_the_fits_verdicts():
     assert flipped.status == "inconsistent_normals"
     with pytest.raises(eqx.EquinoxRuntimeError, match="inconsistent_normals"):
         jurs.fit_adaptive(points, half, settings=fine.settings)
+
+
+def test_size_classes_are_four_an_octave():
+    from jurs._fit.adaptive import MIN_CLASS, size_class
+
+    counts = np.arange(1, 5000)
+    classes = np.array([size_class(int(c)) for c in counts])
+    assert np.all(classes >= counts) and np.all(classes >= MIN_CLASS)
+    assert np.all(classes[counts > MIN_CLASS] < 1.25 * counts[counts > MIN_CLASS] + 1)
+    assert len(np.unique(classes[(counts > 1024) & (counts <= 2048)])) == 4
+
+
+def test_assembled_cg_solve_equals_the_traced_one():
+    """The padded CG on the host-assembled matrices (fit_adaptive's surface path) and the
+    matrix-free CG in JAX reach the same control and the same metrics."""
+    from jurs._fit.adaptive import solve_assembled
+
+    points, normals = jurs.datasets.example1(100)
+    lower, upper = np.min(points, 0) - 1.0, np.max(points, 0) + 1.0
+    problem, matrices = assemble_adaptive_problem(
+        points, normals, offset=0.2, eps=0.2, lower=lower, upper=upper, base=(6, 6), levels=2
+    )
+    traced, traced_steps, _, metrics = solve_adaptive(problem, 1e-3, rtol=1e-13)
+    control, steps, residual = solve_assembled(problem, matrices, 1e-3, 1e-13, 10_000, jnp.float64)
+    assert control.shape == (problem.hierarchy.num_active,) and residual <= 1e-13
+    assert abs(steps - int(traced_steps)) <= 2
+    np.testing.assert_allclose(control, traced, rtol=1e-9, atol=1e-11)
+    host = assembled_metrics(problem, matrices, control, 1e-3)
+    for name, value in metrics.items():
+        np.testing.assert_allclose(host[name], value, rtol=1e-9, err_msg=name)
+
+
+def _compiled_cg_solves(fits):
+    """Compilations of the padded CG solve for each fit in ``fits`` (thunks), and the
+    active functions of each fit."""
+    from test_compile import _CompileCounter
+
+    counts, actives = [], []
+    for fit in fits:
+        with _CompileCounter("_assembled_cg") as counter:
+            sol = fit()
+        assert sol.status == "successful" and sol.stats["method"] == "cg"
+        counts.append(counter.count)
+        actives.append(sol.stats["active"])
+    return counts, actives
+
+
+def test_cg_fits_of_two_clouds_share_one_compiled_solve():
+    """A circle and an ellipse of other point counts fit on different hierarchies; their CG
+    solves (padded to size classes) run one compiled program. In float32 it is another
+    program (the counter counts)."""
+
+    def ellipse(m, stretch, dtype=None):
+        t = np.linspace(0, 2 * np.pi, m, endpoint=False)
+        points = np.stack([np.cos(t), stretch * np.sin(t)], 1)
+        normals = np.stack([stretch * np.cos(t), np.sin(t)], 1)
+        normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+        return lambda: jurs.fit_adaptive(
+            points, normals, finest=64, method="cg", dtype=dtype, lam=1e-3
+        )
+
+    counts, actives = _compiled_cg_solves(
+        [ellipse(150, 1.0), ellipse(160, 0.8), ellipse(150, 1.0, jnp.float32)]
+    )
+    assert actives[0] != actives[1], actives  # two hierarchies
+    # The first may reuse a program an earlier test compiled for its classes.
+    assert counts[1] == 0 and counts[2] == 1, counts
+
+
+@pytest.mark.slow  # three 3D fits of 30k functions; the circles' test above is fast
+def test_surface_fits_of_two_clouds_share_one_compiled_solve():
+    """A sphere and an ellipsoid of other point counts fit on different hierarchies (of
+    the same size classes) and share one compiled CG solve."""
+
+    def ellipsoid(m, seed, stretch, dtype=None):
+        points, normals = jurs.datasets.sphere3d(m, seed=seed)
+        scale = np.array([1.0, stretch, 1.0])
+        normals = normals / scale
+        normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+        return lambda: jurs.fit_adaptive(points * scale, normals, finest=32, dtype=dtype)
+
+    counts, actives = _compiled_cg_solves(
+        [ellipsoid(300, 0, 1.0), ellipsoid(320, 1, 0.9), ellipsoid(300, 0, 1.0, jnp.float32)]
+    )
+    assert actives[0] != actives[1], actives
+    assert counts[1] == 0 and counts[2] == 1, counts
+
+
+def test_a_curve_fit_keeps_a_band_of_one_cell_by_default():
+    """A curve's default band is one cell a level (as accurate as two on traced outlines,
+    with fewer functions); a wider band is asked for explicitly."""
+    t = np.linspace(0, 2 * np.pi, 200, endpoint=False)
+    points = np.stack([np.cos(t), np.sin(t)], 1)
+    default = jurs.fit_adaptive(points, points, finest=64)
+    one = jurs.fit_adaptive(points, points, finest=64, band=1)
+    two = jurs.fit_adaptive(points, points, finest=64, band=2)
+    assert default.stats["active"] == one.stats["active"]
+    assert sum(one.stats["active"]) < sum(two.stats["active"])
+    x = np.array([[0.0, 0.0], [0.5, 0.5], [1.2, 0.1]])
+    np.testing.assert_array_equal(default.spline(x), one.spline(x))

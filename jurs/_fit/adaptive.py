@@ -8,9 +8,10 @@ with ``k = CELL_SPACINGS`` (one spacing on a curve, where a uniform grid takes 1
 on a surface), and the levels above it are coarse everywhere but near the samples.
 
 A curve's normal equations are assembled on the host and factorised (QDLDL's LDL^T); a
-surface's are solved by conjugate gradients in JAX, preconditioned by their exact
-diagonal, which on the hierarchical basis keeps the step count nearly flat as levels are
-added (docs/design.md section 8).
+surface's are solved by conjugate gradients in JAX on the same assembled matrices, padded
+to size classes so that a new cloud of a similar size compiles nothing, preconditioned
+by their exact diagonal, which on the hierarchical basis keeps the step count nearly flat
+as levels are added (docs/design.md section 8).
 """
 
 from __future__ import annotations
@@ -18,7 +19,7 @@ from __future__ import annotations
 import math
 from typing import cast
 
-import equinox as eqx
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
@@ -48,8 +49,12 @@ BASE_CELLS = 8
 #: Finest cells along the longest side, at most (2D, 3D): the keys of a level are int32,
 #: and beyond these the band's functions outgrow a 2-core machine's memory.
 MAX_FINEST = {2: 4096, 3: 1024}
-#: The band, in cells of each level, around the cells that hold samples.
-DEFAULT_BAND = 2
+#: The band, in cells of each level, around the cells that hold samples (curve, surface).
+#: On seven traced outlines (benchmarks/_realdata_cases.py, clean) a band of 1 gave the
+#: same Chamfer distance as 2 to four digits, Hausdorff within 0.7 % and every ring, with
+#: 40-45 % fewer active functions (docs/design.md section 8). A surface keeps 2 until
+#: measured.
+DEFAULT_BAND = {2: 1, 3: 2}
 #: The finest cell in point spacings (curve, surface). A curve's adaptive fit takes
 #: cells of one spacing, where the uniform grid takes 1.5: on two traced outlines
 #: (benchmarks/_realdata_cases.py camera and text, clean), Chamfer fell 8 % and 18 % from
@@ -99,7 +104,91 @@ def solve_adaptive(
     return control, steps, residual, adaptive_metrics(problem, control, lam, basis)
 
 
-_solve = eqx.filter_jit(solve_adaptive)
+#: Smallest padded length of the arrays of an assembled CG solve (``size_class``).
+MIN_CLASS = 256
+
+
+def size_class(count: int) -> int:
+    """The padded length for ``count`` entries: the next of four sizes an octave (4, 5,
+    6 or 7 times a power of two, at most 25 % padding), at least ``MIN_CLASS``. A solve
+    compiled for one class serves every problem whose arrays fall in it."""
+    if count <= MIN_CLASS:
+        return MIN_CLASS
+    power = 1 << max(0, (count - 1).bit_length() - 3)
+    return next(m * power for m in (4, 5, 6, 7, 8) if m * power >= count)
+
+
+def _padded(values: np.ndarray, length: int, fill=0) -> np.ndarray:
+    out = np.full((length,) + values.shape[1:], fill, values.dtype)
+    out[: values.shape[0]] = values
+    return out
+
+
+def _coo(matrix, nnz: int, dtype):
+    """``(rows, cols, values)`` of a SciPy sparse matrix padded to ``nnz`` entries with
+    zeros at (0, 0), which add exactly nothing."""
+    coo = matrix.tocoo()
+    return (
+        on_device(_padded(coo.row.astype(np.int32), nnz)),
+        on_device(_padded(coo.col.astype(np.int32), nnz)),
+        on_device(_padded(coo.data, nnz), dtype),
+    )
+
+
+@jax.jit
+def _assembled_cg(collocation, regulariser, targets, diagonal, lam, rtol, max_steps):
+    """CG on ``(D^T D + lam 2 G^T W G) c = D^T b`` from the padded COO entries of ``D``
+    and ``2 G^T W G``: every shape is a size class, so a new cloud of a similar size
+    compiles nothing. Padded functions have a zero row, right-hand side and diagonal,
+    and stay 0."""
+    rows, cols, values = collocation
+    reg_rows, reg_cols, reg_values = regulariser
+    n, count = diagonal.shape[0], targets.shape[0]
+
+    def apply(c):  # D c
+        return jax.ops.segment_sum(values * c[cols], rows, count)
+
+    def transpose(v):  # D^T v
+        return jax.ops.segment_sum(values * v[rows], cols, n)
+
+    def matvec(c):
+        regular = jax.ops.segment_sum(reg_values * c[reg_cols], reg_rows, n)
+        return transpose(apply(c)) + lam * regular
+
+    inverse = jnp.where(diagonal > 0, 1.0 / jnp.where(diagonal > 0, diagonal, 1.0), 0.0)
+    return conjugate_gradients(
+        matvec,
+        transpose(targets),
+        precondition=lambda r: inverse * r,
+        rtol=rtol,
+        max_steps=max_steps,
+    )
+
+
+def solve_assembled(
+    problem: AdaptiveProblem, matrices, lam: float, rtol: float, max_steps: int, dtype
+) -> tuple[np.ndarray, int, float]:
+    """``(control, steps, relative residual)``: ``solve_adaptive``'s CG (the same
+    preconditioner, the same stop rule) on the host-assembled matrices ``(D, 2 G^T W G)``
+    of ``assemble_adaptive_problem``, padded to size classes (``size_class``) so that the
+    compiled solve is shared between clouds. Not differentiable; the answer agrees with
+    ``solve_adaptive``'s to the CG tolerance."""
+    collocation, regulariser = matrices
+    count, n = collocation.shape
+    n_class = size_class(n)
+    diagonal = np.asarray(problem.data_diagonal, float) + lam * np.asarray(
+        problem.regulariser_diagonal, float
+    )
+    control, steps, residual = _assembled_cg(
+        _coo(collocation, size_class(collocation.nnz), dtype),
+        _coo(regulariser, size_class(regulariser.nnz), dtype),
+        on_device(_padded(np.asarray(problem.targets), size_class(count)), dtype),
+        on_device(_padded(diagonal, n_class), dtype),
+        on_device(lam, dtype),
+        on_device(rtol, dtype),
+        on_device(max_steps, np.int32),
+    )
+    return np.asarray(control)[:n], int(steps), float(residual)
 
 
 def solve_direct(problem: AdaptiveProblem, lam: float, matrices=None):
@@ -138,7 +227,7 @@ def fit_adaptive(
     normals: Float[ArrayLike, "m d"] | None = None,
     *,
     finest: int | None = None,
-    band: int = DEFAULT_BAND,
+    band: int | None = None,
     offset: float | None = None,
     eps: float | None = None,
     domain=None,
@@ -163,7 +252,7 @@ def fit_adaptive(
             cell from the data, ``max(s, 4 sigma)`` (``3 s`` on a surface;
             ``CELL_SPACINGS``), at most ``MAX_FINEST`` cells.
         band: cells of each level kept fine around the cells that hold samples (at least
-            1).
+            1); None takes ``DEFAULT_BAND``: 1 on a curve, 2 on a surface.
         offset, eps, domain, smoothing: as in [`jurs.auto_settings`][]; chosen from the
             data when None. ``lam`` overrides the lambda made from ``smoothing``.
         rtol, max_steps: the conjugate gradients' stop rule; ``rtol`` None takes
@@ -202,7 +291,7 @@ def fit_adaptive(
     """
     if method not in (None, "direct", "cg"):
         raise ValueError(f"method must be 'direct', 'cg' or None, got {method!r}")
-    if band < 1:
+    if band is not None and band < 1:
         raise ValueError(f"band must be at least 1 cell, got {band}")
     if normals is None:
         from .._cloud.normals import estimate_normals
@@ -230,6 +319,7 @@ def fit_adaptive(
             )
         cell = longest / int(finest)
     method = method or ("direct" if ndim == 2 else "cg")
+    band = DEFAULT_BAND[ndim] if band is None else int(band)
     lower, upper, base, levels = adaptive_layout(lower, upper, cell)
     offset_value = settings.offset if offset is None else float(offset)
     eps_value = settings.eps if eps is None else float(eps)
@@ -263,7 +353,11 @@ def fit_adaptive(
         # factorisation met a (numerically) singular matrix.
         tolerance = max(rtol, DIRECT_RTOL)
     else:
-        control, steps, residual, metrics = _solve(problem, float(lam), float(rtol), int(max_steps))
+        control_np, steps, residual = solve_assembled(
+            problem, matrices, float(lam), float(rtol), int(max_steps), dtype
+        )
+        control = on_device(control_np, dtype)
+        metrics = assembled_metrics(problem, matrices, control_np, float(lam))
         tolerance = rtol
     spline = AdaptiveSpline(hierarchy, control, on_device(np.ones(control.shape), dtype))
     finite = bool(np.all(np.isfinite(np.asarray(control))))
