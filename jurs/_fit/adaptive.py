@@ -19,6 +19,7 @@ from __future__ import annotations
 import math
 from typing import cast
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
