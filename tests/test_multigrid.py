@@ -145,6 +145,30 @@ def test_galerkin_and_probe_match_dense(shape):
     np.testing.assert_allclose(got, expected, atol=1e-13 * np.abs(expected).max())
 
 
+@pytest.mark.parametrize("shape", [(5, 4), (3, 4, 5)])
+def test_stencil_product_derivatives_are_the_dense_products(shape):
+    """stencil_matvec's own derivative rule (a contraction with the grid's windows): its
+    forward and reverse derivatives in the stencil and the grid are the dense matrix's."""
+    rng = np.random.default_rng(3)
+    d = len(shape)
+    stencil = jnp.asarray(rng.standard_normal(shape + (_stencil.SIDE,) * d))
+    grid, d_grid, cotangent = (jnp.asarray(rng.standard_normal(shape)) for _ in range(3))
+    d_stencil = jnp.asarray(rng.standard_normal(stencil.shape))
+
+    def dense(s, x):
+        return (_stencil.stencil_to_dense(s) @ x.ravel()).reshape(shape)
+
+    def derivatives(fn):  # jvp, then vjp, in one compiled program
+        def both(s, x, ds, dx, ct):
+            return (jax.jvp(fn, (s, x), (ds, dx))[1], *jax.vjp(fn, s, x)[1](ct))
+
+        return jit(both)(stencil, grid, d_stencil, d_grid, cotangent)
+
+    got, expected = derivatives(_stencil.stencil_matvec), derivatives(dense)
+    for a, b in zip(got, expected):
+        np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-12, atol=1e-12)
+
+
 def test_generic_kernels_in_3d():
     """stencil_matvec, laplacian_stencil and stencil_to_scipy on a 3D grid."""
     shape = (5, 6, 7)
