@@ -551,7 +551,8 @@ def markdown(payload: dict) -> str:
         + (f", {meta['load_average_end']:.1f} at the end" if "load_average_end" in meta else "")
         + f"). Float64. Command: `{meta['command']}`; "
         f"{len(runs)} runs ({len(meta['cases'])} cases x variants "
-        f"{', '.join(meta['variants'])}) in {meta['total_s'] / 60:.1f} min.",
+        f"{', '.join(meta['variants'])}) in {meta['total_s'] / 60:.1f} min."
+        + (f" {meta['note']}" if meta.get("note") else ""),
         "",
         "## Targets of issue 23",
         "",

@@ -456,7 +456,7 @@ def markdown(payload):
             f"`{payload['command']}` ({payload['total_s']:.0f} s). Open3D {payload['open3d']}. "
             f"1-minute load average {payload['load_start']:.1f} at the start, "
             f"{payload['load_end']:.1f} at the end (a shared machine: times carry tens of "
-            f"percent of noise).{quick}",
+            f"percent of noise).{quick}" + (f" {payload['note']}" if payload.get("note") else ""),
             "",
             f"**Setup.** jurs: `{call}(points, normals)` with defaults (float64; "
             + (
@@ -621,6 +621,7 @@ def parse():
     )
     parser.add_argument("--eval-samples", type=int, help="samples per side for distances")
     parser.add_argument("--out", default=RESULTS, help="folder of the results files")
+    parser.add_argument("--note", default="", help="a sentence for the results page")
     parser.add_argument(
         "--name",
         help="results file names, <name>.{json,md,png} (default: surfaces, or "
@@ -712,6 +713,7 @@ def main():
         "open3d": open3d.__version__,
         "max_grid": args.max_grid,
         "fit": args.fit,
+        "note": args.note,
         "depths": args.depths,
         "eval_samples": args.eval_samples,
         "load_start": load_start,
