@@ -248,7 +248,7 @@ def choose_grid(
         if finest < h:
             h, cap = finest, np.inf
     cells = np.maximum(1, np.ceil(extent / h - 1e-9).astype(int))
-    if extent.size == 2 and np.isfinite(cap):
+    if extent.size == 2 and np.isfinite(cap) and extent.max() > 0:
         # A curve's grid class: the longest side's cell count rounded up to a power of two
         # (within the cap), the cells along every side narrowed to match, so that one
         # shape gets one grid an octave of points (the other sides follow the aspect).
