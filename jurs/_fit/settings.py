@@ -223,16 +223,16 @@ def choose_grid(
     functions a side) lets elongated shapes have it cheaply.
 
     Grid classes, so that clouds of similar size and extent get the same grid and share
-    one compiled fit (a compilation costs 10-30 s on a 2-core CPU, a warm fit below the
-    cap 0.01-0.2 s): on a curve below the cap, the longest side's cell count is rounded up
+    one compiled fit (a compilation costs seconds to a minute on a 2-core CPU, a warm fit
+    below the cap 0.01-0.3 s): on a curve below the cap, the longest side's cell count is rounded up
     to a power of two (``round_octave``, or to the cap) and the cells along every side
     narrowed to match, so that one shape gets one grid an octave of points (the other
     sides' counts follow the aspect ratio); then every count is rounded up to
     ``jurs._problem.sizes.round_size`` (four sizes an octave), which on a curve's other
     sides narrows cells by up to 25 % more. Cells get narrower, never wider: a curve's up
     to half as wide as chosen below the cap (at most 4x the coefficients; on Example 1,
-    rose and glyph shapes of 70-220 points the fits came as close or closer to the true
-    curve, warm fits within 0.2 s; docs/design.md section 5, "Compiled shapes"). The
+    rose, ellipse and glyph clouds of 70-220 points the fits came as close or closer to
+    the true curve, warm fits within 0.3 s; docs/design.md section 5, "Compiled shapes"). The
     margin is left alone: widening the box to reach a class with cells as wide as chosen
     fitted less closely, the same coefficients spent on the far field. A surface keeps
     four sizes an octave on each side: its coefficients grow as the cube (up to 8x), its
