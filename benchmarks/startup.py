@@ -37,7 +37,9 @@ runs do not change what is measured), with a fresh cache folder:
 
 Writes ``benchmarks/results/startup.{md,json}``. ``--parts ladder,batch,cli`` runs only the
 parts named (``imports``, ``fits``, ``ladder``, ``batch``, ``cli``); the report says which
-were skipped.
+were skipped. ``--sizes 100`` (or ``100,1000``) re-runs only those rows of part 2 and puts
+them in place of the committed rows of ``results/startup.json``, each re-run row with its
+own date and load (the report says which); the other rows and parts are kept.
 
 ``--overhead`` measures, in this process, what a warm top-level call of ``jurs.fit`` costs
 beyond its compiled work: Example 1 (120 points, 9 x 9, ``LeastSquares``, every setting
@@ -499,12 +501,19 @@ def _render_fits(fits: list) -> list:
         "full recompilation.)",
         "",
     ]
+    rerun = [f"n = {r['n']} on {r['run']}" for r in fits if "run" in r]
+    if rerun:
+        lines += [
+            f"Rows re-run on their own (`--sizes`), after the rest: {'; '.join(rerun)}.",
+            "",
+        ]
     regridded = [str(r["n"]) for r in fits if list(r["grid_a"]) != list(r["grid_b"])]
     if regridded:
         lines += [
-            f"At n = {', '.join(regridded)}, A and B got different automatic grids (cell "
-            "counts round to four sizes an octave, below the grid cap): B compiles a fit "
-            "of its own grid, whatever its point count.",
+            f"At n = {', '.join(regridded)}, A and B got different automatic grids (below "
+            "the grid cap, a curve's longest side takes one cell count an octave, and "
+            "clouds on either side of a rung differ): B compiles a fit of its own grid, "
+            "whatever its point count.",
             "",
         ]
     return lines
@@ -694,6 +703,19 @@ def render_overhead(data: dict) -> str:
     return "\n".join(lines)
 
 
+def merged_rows(data: dict) -> dict:
+    """The committed results (``results/startup.json``) with the rows of part 2 just
+    measured in ``data`` in place of those of the same size, each marked with its run's
+    date and load."""
+    with open(os.path.join(ROOT, "benchmarks", "results", "startup.json")) as fh:
+        committed = json.load(fh)
+    run = f"{data['date']}, load average {data['load_before']} before, {data['load_after']} after"
+    fresh = {r["n"]: dict(r, run=run) for r in data["fits"]}
+    kept = [r for r in committed.get("fits", []) if r["n"] not in fresh]
+    committed["fits"] = sorted(kept + list(fresh.values()), key=lambda r: r["n"])
+    return committed
+
+
 def main() -> None:
     global SIZES, REPEATS, IMPORT_REPEATS, LADDER, SECOND_SHAPE, BATCH_FILES
     if "--overhead" in sys.argv[1:]:
@@ -713,6 +735,10 @@ def main() -> None:
         unknown = set(parts) - set(PARTS)
         if unknown:
             raise SystemExit(f"--parts: unknown {sorted(unknown)}; the parts are {PARTS}")
+    merge = "--sizes" in sys.argv[1:]  # rows of part 2 re-run into the committed results
+    if merge:
+        SIZES = tuple(int(n) for n in sys.argv[sys.argv.index("--sizes") + 1].split(","))
+        parts = ("fits",)
     quick = "--quick" in sys.argv[1:]  # a smoke test: 100 points, one of each, not written
     if quick:
         SIZES, REPEATS, IMPORT_REPEATS = (100,), 1, 1
@@ -750,6 +776,8 @@ def main() -> None:
             if part in parts:
                 data[part] = measures[part](py, env, work, log)
     data["load_after"] = " ".join(f"{x:.1f}" for x in os.getloadavg())
+    if merge and not quick:
+        data = merged_rows(data)
     text = render(data)
     if not quick:
         write_results("startup", data, text)

@@ -334,9 +334,10 @@ def test_automatic_grids_are_rounded_up_to_the_ladder():
             assert n - 3 >= min(cells, DEFAULT_MAX_GRID - 3)  # never coarser
             assert n - 3 in (round_size(n - 3), DEFAULT_MAX_GRID - 3) or n == 8
             assert n <= DEFAULT_MAX_GRID
-    # Spacings 8 % apart (25-27 and 18-19 cells): one grid, 28 x 20 cells.
+    # Spacings 8 % apart (25-27 and 18-19 cells): one grid, 32 x 24 cells (the longer
+    # side a power of two, tests/test_grid_classes.py).
     assert (
         choose_grid(lower, np.array([10.0, 7.0]), 0.27, 0.0)
         == choose_grid(lower, np.array([10.0, 7.0]), 0.25, 0.0)
-        == (31, 23)
+        == (35, 27)
     )

@@ -240,7 +240,7 @@ def fit(
     (``jurs._problem.sizes.padded_count``: ..., 512, 1024, 2048, ...; four sizes an octave
     above 2^18 points) with masked-out points, and its sample layout sized from that, so
     that a new cloud in the same octave reuses the compiled fit instead of compiling
-    again; automatic grids are rounded up to four sizes an octave
+    again; automatic grids fall into classes, a curve's one grid an octave of points
     (``jurs._fit.settings.choose_grid``). The padding changes the result
     only at rounding level. With [`jurs.enable_compilation_cache`][], new processes load
     compiled (and traced) fits from the cache folder.

@@ -17,11 +17,13 @@ def round_size(n: int) -> int:
     """``n`` rounded up to the size ladder 1, 2, ..., 8, then 4, 5, 6, 7 times a power of
     two (10, 12, 14, 16, 20, 24, 28, 32, 40, ...): four sizes an octave.
 
-    Automatic grids' cell counts are rounded to it (``jurs._fit.settings.choose_grid``):
-    cells at most 25 % narrower than chosen, where a power of two would make them up to
-    half as wide and change the fit itself; and point counts above
-    ``OCTAVE_PADDING_MAX``. A size in ``[4, 8) * 2^k`` on it is divisible by 2^k (a cell
-    count halves k times), which multigrid coarsening likes.
+    Automatic grids' cell counts are rounded to it (``jurs._fit.settings.choose_grid``;
+    a curve's longest side first to ``round_octave`` up to 64 cells, one size an octave,
+    so that a shape gets one grid an octave of points; a surface's every side to this
+    ladder, cells at most 25 % narrower, where a power of two would cost up to 8x the
+    coefficients);
+    and point counts above ``OCTAVE_PADDING_MAX``. A size in ``[4, 8) * 2^k`` on it is
+    divisible by 2^k (a cell count halves k times), which multigrid coarsening likes.
     """
     n = int(n)
     if n <= 8:
