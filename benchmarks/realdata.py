@@ -523,13 +523,17 @@ def solve_count(r: dict) -> int:
 def time_table(runs: list) -> list:
     """Warm times of the runs the time target applies to, by the number of solves."""
     timed = [r for r in runs if r["m"] <= TIME_MAX_M]
+    adaptive = any("active" in r["jurs"] for r in timed)
+    basis = "active functions" if adaptive else "grid (coefficients)"
     lines = [
-        "| solves | runs | median grid (coefficients) | median warm fit | <= 150 ms |",
+        f"| solves | runs | median {basis} | median warm fit | <= 150 ms |",
         "|---|---|---|---|---|",
     ]
     for count in sorted({solve_count(r) for r in timed}):
         group = [r for r in timed if solve_count(r) == count]
-        size = np.median([np.prod(r["settings"]["grid"]) for r in group])
+        size = np.median(
+            [r["jurs"]["active"] if adaptive else np.prod(r["settings"]["grid"]) for r in group]
+        )
         warm = np.median([r["jurs"]["warm_s"] for r in group])
         fast = sum(r["jurs"]["warm_s"] <= TIME_TARGET_S for r in group)
         lines.append(f"| {count} | {len(group)} | {size:.0f} | {1e3 * warm:.0f} ms | {fast} |")
