@@ -4,29 +4,13 @@ the full grid, pieces far from the data kept, nothing compiled."""
 import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
+from test_band_mesh import _quasi_interpolant  # one helper for 2D and 3D
 
 import jurs
 from jurs._model.adaptive import AdaptiveSpline
 from jurs._model.hierarchy import build_hierarchy, refine_near
 from jurs._model.lattice import values_and_gradients
 from jurs.levelset import _curves
-
-
-def _quasi_interpolant(f, lower, upper, base, levels, samples, band=1):
-    """The 2D THB spline with each active function's coefficient ``f`` at its Greville
-    point (node ``i - 1`` of its level), on a hierarchy refined around ``samples``."""
-    lower, upper = np.asarray(lower, float), np.asarray(upper, float)
-    hierarchy = build_hierarchy(
-        lower, upper, base, refine_near(lower, upper, base, levels, samples, band)
-    )
-    coeffs = []
-    for lev in range(hierarchy.num_levels):
-        keys = np.asarray(hierarchy.function_keys[lev])[np.asarray(hierarchy.active[lev])]
-        multi = np.stack(np.unravel_index(keys, hierarchy.functions(lev)), -1)
-        width = (upper - lower) / np.asarray(hierarchy.cells(lev))
-        coeffs.append(f(lower + (multi - 1) * width))
-    control = jnp.asarray(np.concatenate(coeffs))
-    return AdaptiveSpline(hierarchy, control, jnp.ones_like(control))
 
 
 def _circle_with_far_piece():

@@ -5,6 +5,7 @@ a grid, and so one compiled fit (jurs._fit.settings.choose_grid; docs/design.md 
 import jax
 import numpy as np
 import pytest
+from test_compile import _CompileCounter  # counts jurs.fit's solve compilations
 
 import jurs
 from jurs._fit.settings import CELL_SPACINGS, DEFAULT_MAX_GRID, MIN_GRID, choose_grid
@@ -72,27 +73,6 @@ def test_clouds_of_one_shape_and_similar_size_get_one_grid():
     # A smoothing given skips the held-out choice of it (a compilation), not the grid's.
     grid_a = jurs.auto_settings(pa, na, smoothing=1e-6).grid
     assert grid_a == jurs.auto_settings(pb, nb, smoothing=1e-6).grid
-
-
-class _CompileCounter:
-    """Counts XLA compilations of jurs.fit's jitted solve (``_run``), through JAX's public
-    monitoring events (as tests/test_compile.py)."""
-
-    EVENT = "/jax/core/compile/backend_compile_duration"
-
-    def __init__(self):
-        self.count = 0
-
-    def __call__(self, event: str, duration_secs: float, **kwargs):
-        if event == self.EVENT and "_run" in str(kwargs.get("fun_name", "")):
-            self.count += 1
-
-    def __enter__(self):
-        jax.monitoring.register_event_duration_secs_listener(self)
-        return self
-
-    def __exit__(self, *exc):
-        jax.monitoring.unregister_event_duration_listener(self)
 
 
 @pytest.mark.slow  # one compilation of the default fit (10-20 s on a 2-core CPU)
