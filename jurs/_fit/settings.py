@@ -223,24 +223,14 @@ def choose_grid(
     functions a side) lets elongated shapes have it cheaply.
 
     Grid classes, so that clouds of similar size and extent get the same grid and share
-    one compiled fit (a compilation costs seconds to a minute on a 2-core CPU, a warm fit
-    below the cap 0.01-0.3 s): on a curve, the longest side's cell count is rounded up to
-    a power of two (``round_octave``: 8, 16, 32, 64) where that stays under the cap, and
-    the cells along every side narrowed to match, so that one shape gets one grid an
-    octave of points (the other sides' counts follow the aspect ratio); then every count
-    is rounded up to ``jurs._problem.sizes.round_size`` (four sizes an octave), within the
-    cap. Cells get narrower, never wider: a curve's up to half as wide as chosen (at most
-    4x the coefficients; on Example 1, rose, ellipse and glyph clouds of 70-220 points the
-    fits came as close or closer to the true curve, warm fits within 0.3 s;
-    docs/design.md section 5, "Compiled shapes"). Between 64 cells and the cap, four
-    sizes an octave (80, then the cap): there a class would cost the largest grids up to
-    1.4x narrower cells, and a robust (Cauchy, Tukey) reweighting of 300 points no longer
-    settled on the cap's grid. The margin is left alone: widening the box to reach a
-    class with cells as wide as chosen fitted less closely, the same coefficients spent
-    on the far field. A surface keeps four sizes an octave on each side: its
-    coefficients grow as the cube (up to 8x), its iterative solve with them, and a
-    compilation is a smaller share of its fit; so does the refinement for thin features,
-    within its own budget of coefficients.
+    one compiled fit: on a curve, the longest side's cell count is rounded up to a power
+    of two (``round_octave``: 8, 16, 32, 64) where that stays under the cap, and the cells
+    along every side narrowed to match (one grid an octave of points for one shape); then
+    every count is rounded up to ``jurs._problem.sizes.round_size`` (four sizes an
+    octave), within the cap. Cells get narrower than chosen, never wider: a curve's up to
+    half as wide (at most 4x the coefficients). Between 64 cells and the cap, and on a
+    surface, only the four sizes an octave apply. docs/design.md section 5 ("Compiled
+    shapes") gives the measurements behind these classes and the alternatives tried.
     """
     extent = np.asarray(upper, float) - np.asarray(lower, float)
     h = max(CELL_SPACINGS[extent.size] * spacing, 4.0 * noise, float(extent.max()) / (max_grid - 3))
