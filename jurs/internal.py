@@ -17,13 +17,10 @@ from ._model.hierarchy import (
     build_hierarchy,
     cascade,
     cascade_matrix,
-    hierarchy_gradient,
     hierarchy_regulariser,
-    hierarchy_values,
-    leaf_terms,
-    locate_leaves,
     refine_near,
 )
+from ._model.leaves import hierarchy_gradient, hierarchy_values, leaf_terms, locate_leaves
 from ._model.spline import (
     LocalBasis,
     bspline_transpose,

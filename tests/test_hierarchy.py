@@ -66,7 +66,7 @@ def test_table_and_sorted_key_lookups_build_the_same_hierarchy(ndim, monkeypatch
 def test_gradient_of_a_rational_spline_is_the_quotient_rule(ndim):
     """``AdaptiveSpline.grad`` (numerator and denominator in one cascade) against the
     quotient rule on the two polynomial splines' own gradients."""
-    from jurs._model.hierarchy import hierarchy_gradient
+    from jurs._model.leaves import hierarchy_gradient
 
     hierarchy = _hierarchy(ndim)
     rng = np.random.default_rng(3)

@@ -16,7 +16,8 @@ import numpy as np
 from jax import Array
 from jaxtyping import ArrayLike, Float
 
-from .hierarchy import Hierarchy, hierarchy_values, hierarchy_values_and_gradients
+from .hierarchy import Hierarchy
+from .leaves import hierarchy_values, hierarchy_values_and_gradients
 
 # One compiled program per hierarchy and point count: run eagerly, the leaf search and the
 # cascade compile each of their few dozen operations for every new shape (18 s against

@@ -22,12 +22,10 @@ from .._model.hierarchy import (
     build_hierarchy,
     cascade,
     cascade_matrix,
-    hierarchy_basis,
     hierarchy_regulariser,
-    leaf_terms,
-    locate_leaves,
     refine_near,
 )
+from .._model.leaves import hierarchy_basis, leaf_terms, locate_leaves
 from .._model.precision import on_device
 from .problem import offset_samples
 
