@@ -40,6 +40,7 @@ from .._problem.adaptive import (
     normal_rhs,
     sample_basis,
 )
+from .._problem.sizes import round_size
 from .._solution.solution import RAISED_RESULTS, RESULTS, Solution, error_message
 from .._solution.verdicts import judge
 from .settings import Settings, auto_settings, scale_free_lam
@@ -110,13 +111,11 @@ MIN_CLASS = 256
 
 
 def size_class(count: int) -> int:
-    """The padded length for ``count`` entries: the next of four sizes an octave (4, 5,
-    6 or 7 times a power of two, at most 25 % padding), at least ``MIN_CLASS``. A solve
-    compiled for one class serves every problem whose arrays fall in it."""
-    if count <= MIN_CLASS:
-        return MIN_CLASS
-    power = 1 << max(0, (count - 1).bit_length() - 3)
-    return next(m * power for m in (4, 5, 6, 7, 8) if m * power >= count)
+    """The padded length for ``count`` entries: the next of four sizes an octave
+    (``jurs._problem.sizes.round_size``: 4, 5, 6 or 7 times a power of two, at most 25 %
+    padding), at least ``MIN_CLASS``. A solve compiled for one class serves every problem
+    whose arrays fall in it."""
+    return max(MIN_CLASS, round_size(count))
 
 
 def _padded(values: np.ndarray, length: int, fill=0) -> np.ndarray:
