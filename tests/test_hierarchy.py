@@ -88,7 +88,7 @@ def test_gradient_of_a_rational_spline_is_the_quotient_rule(ndim):
 def test_one_search_over_levels_equals_a_search_per_level(ndim, monkeypatch):
     """``leaf_terms`` searches the keys of all levels at once; where those would leave
     int32 it searches level by level. Both give the same positions."""
-    from jurs._model import hierarchy as module
+    from jurs._model import leaves as module
 
     hierarchy = _hierarchy(ndim)
     x = _random_points(hierarchy, 300)
