@@ -2,7 +2,7 @@
 full lattice: nodes and time.
 
 For each spline and resolution: the lattice's nodes, the nodes the band path evaluates
-(``jurs.levelset._band.plan_band``), the band mesh's time (``jurs.levelset.mesh``, Newton
+(``jurs._model.band.plan_band``), the band mesh's time (``jurs.levelset.mesh``, Newton
 steps included) and, where asked, the full lattice's marching (the slab path on every
 node) at the same resolution. Splines: a ``jurs.fit_adaptive`` sphere at a finest level
 (``--fit FINEST``), or a THB quasi-interpolant of the unit sphere's distance on the same
@@ -34,10 +34,10 @@ import numpy as np  # noqa: E402
 import jurs  # noqa: E402
 from jurs._fit.adaptive import adaptive_layout  # noqa: E402
 from jurs._model.adaptive import AdaptiveSpline  # noqa: E402
+from jurs._model.band import plan_band  # noqa: E402
 from jurs._model.hierarchy import build_hierarchy, refine_near  # noqa: E402
 from jurs._model.lattice import FinestSpline  # noqa: E402
 from jurs.levelset import _meshing  # noqa: E402
-from jurs.levelset._band import plan_band  # noqa: E402
 
 
 def synthetic_sphere(finest: int, samples: int = 200_000) -> AdaptiveSpline:

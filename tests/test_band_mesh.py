@@ -8,10 +8,10 @@ import pytest
 
 import jurs
 from jurs._model.adaptive import AdaptiveSpline
+from jurs._model.band import plan_band
 from jurs._model.hierarchy import build_hierarchy, refine_near
 from jurs._model.lattice import FinestSpline, adaptive_lattice_values, values_and_gradients
 from jurs.levelset import _meshing
-from jurs.levelset._band import plan_band
 
 
 def _quasi_interpolant(f, lower, upper, base, levels, samples, band=1):

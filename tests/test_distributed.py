@@ -138,7 +138,7 @@ CHILD = textwrap.dedent(
     auto = jurs.fit(spread(q, m)[0])
     entry = dict(status=auto.status, settings=auto.settings.as_dict())
     if pid == 0:
-        ref = jurs.fit(q)
+        ref = jurs.fit(q, basis="uniform")  # as over processes: the uniform grid
         c0, c1 = np.asarray(ref.spline.control), np.asarray(auto.spline.control)
         entry.update(
             ref=ref.status, ref_settings=ref.settings.as_dict(),

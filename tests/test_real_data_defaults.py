@@ -180,18 +180,24 @@ def test_stray_groups_are_set_aside_small_rings_kept():
 
 @pytest.mark.slow
 def test_default_fit_sets_outliers_aside():
-    """1.5 % outliers: set aside, a robust fit of the rest (Huber), their weights 0, no loop
-    around any of them; the clean cloud keeps every point and the plain exact solve."""
+    """1.5 % outliers: set aside, a robust fit of the rest (Huber) on the uniform grid,
+    their weights 0, no loop around any of them (and none on the adaptive basis, which
+    leaves them out); the clean cloud keeps every point and the plain exact solve."""
     p, n = _circle(600)
     po, no, index = _with_outliers(p, n, 9)
-    sol = jurs.fit(po, no)
+    sol = jurs.fit(po, no, basis="uniform")
     assert sol.settings.set_aside == tuple(index)
     assert isinstance(sol.state, jurs.solvers.RobustLeastSquaresState)
     w = np.asarray(sol.state.point_weights)[: len(po)]
     assert np.all(w[index] == 0) and np.all(np.delete(w, index) > 0.5)
     report = jurs.levelset.analyze(sol.spline, p, offset=sol.settings.offset)
     assert report.num_components == 1 and report.num_supplementary == 0
-    clean = jurs.fit(p, n)
+    # Dense enough for the adaptive basis by default: it fits without the points set aside.
+    auto = jurs.fit(po, no)
+    assert isinstance(auto.spline, jurs.AdaptiveSpline) and auto.settings == sol.settings
+    report = jurs.levelset.analyze(auto.spline, p, offset=auto.settings.offset)
+    assert report.num_components == 1 and report.num_supplementary == 0
+    clean = jurs.fit(p, n, basis="uniform")
     assert clean.settings.set_aside == () and isinstance(
         clean.state, jurs.solvers.LeastSquaresState
     )

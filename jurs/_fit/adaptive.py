@@ -69,6 +69,46 @@ DEFAULT_RTOL = 1e-10
 FLOAT32_RTOL = 1e-5
 #: A direct solve whose relative residual exceeds this met a singular matrix.
 DIRECT_RTOL = 1e-6
+#: [`jurs.fit`][] with ``basis="auto"`` takes the adaptive basis where the uniform grid's
+#: cells are at least this many times wider than the data ask for (``Settings.data_cell``):
+#: nearer, the hierarchy's finest level is about the uniform grid itself, and buys no detail
+#: for its cost (the noisy bunny of benchmarks/results/surfaces_adaptive.md, its finest
+#: level 48 cells against the uniform grid's 45, fitted 4x slower for 5 % less Chamfer).
+AUTO_REFINEMENT = 1.5
+#: The automatic choice's limits on a surface: at most this many finest cells along the
+#: longest side, and clouds of at most ``AUTO_MAX_SURFACE_POINTS`` points (larger ones keep
+#: the uniform grid, whose matrix-free solve holds no matrix). The surface CG holds its
+#: assembled matrices: at finest 80 x 80 x 64, 128k functions, the bunny of 2e4 points
+#: peaked at 1.2 GB (benchmarks/results/surfaces_adaptive.md), memory growing with the
+#: functions and the points.
+AUTO_MAX_FINEST_3D = 128
+AUTO_MAX_SURFACE_POINTS = 50_000
+
+
+def wants_adaptive(settings: Settings, points: int) -> bool:
+    """Whether [`jurs.fit`][] with ``basis="auto"`` fits ``points`` points on the adaptive
+    basis: where the automatic uniform grid (``settings.grid``) was capped, its cells at
+    least ``AUTO_REFINEMENT`` times wider than the data ask for (``settings.data_cell``),
+    and, on a surface, the cloud within ``AUTO_MAX_SURFACE_POINTS``."""
+    if settings.data_cell is None:  # the grid was given
+        return False
+    ndim = len(settings.grid)
+    if ndim == 3 and points > AUTO_MAX_SURFACE_POINTS:
+        return False
+    lower, upper = (np.asarray(v, float) for v in settings.domain)
+    uniform = float(np.max((upper - lower) / (np.asarray(settings.grid, float) - 3)))
+    return uniform >= AUTO_REFINEMENT * settings.data_cell
+
+
+def auto_finest(settings: Settings) -> int | None:
+    """The ``finest`` an automatic adaptive fit takes: None (chosen from the data) on a
+    curve, and on a surface at most ``AUTO_MAX_FINEST_3D`` cells along the longest side."""
+    if len(settings.grid) == 2:
+        return None
+    lower, upper = (np.asarray(v, float) for v in settings.domain)
+    longest = float((upper - lower).max())
+    cell = max(CELL_SPACINGS[3] * settings.spacing, 4.0 * settings.noise)
+    return AUTO_MAX_FINEST_3D if longest / cell > AUTO_MAX_FINEST_3D else None
 
 
 def adaptive_layout(
@@ -223,7 +263,7 @@ def solve_direct(problem: AdaptiveProblem, lam: float, matrices=None):
 
 
 def fit_adaptive(
-    points: Float[ArrayLike, "m d"],
+    points: Float[ArrayLike, "m d"] | Cloud,
     normals: Float[ArrayLike, "m d"] | None = None,
     *,
     finest: int | None = None,
@@ -247,7 +287,8 @@ def fit_adaptive(
 
     Args:
         points, normals: ``(m, 2)`` or ``(m, 3)``; normals outward (estimated with
-            [`jurs.estimate_normals`][] when None).
+            [`jurs.estimate_normals`][] when None). Or a ``jurs.Cloud`` with its normals
+            (then ``normals`` is None), checked and measured once for all its fits.
         finest: cells of the finest level along the box's longest side; None chooses the
             cell from the data, ``max(s, 4 sigma)`` (``3 s`` on a surface;
             ``CELL_SPACINGS``), at most ``MAX_FINEST`` cells.
@@ -293,13 +334,21 @@ def fit_adaptive(
         raise ValueError(f"method must be 'direct', 'cg' or None, got {method!r}")
     if band is not None and band < 1:
         raise ValueError(f"band must be at least 1 cell, got {band}")
-    if normals is None:
-        from .._cloud.normals import estimate_normals
+    if isinstance(points, Cloud):
+        if normals is not None or points.normals is None or points.mask is not None:
+            raise ValueError(
+                "fit_adaptive(cloud): pass a jurs.Cloud with its normals and no mask, "
+                "and no normals beside it"
+            )
+        cloud = points
+    else:
+        if normals is None:
+            from .._cloud.normals import estimate_normals
 
-        normals = cast(np.ndarray, estimate_normals(points))
-    # Checked once (NaN, shapes, zero normals, degenerate clouds) and exact repeats merged,
-    # whether or not the settings are given.
-    cloud = Cloud(points, normals)
+            normals = cast(np.ndarray, estimate_normals(points))
+        # Checked once (NaN, shapes, zero normals, degenerate clouds) and exact repeats
+        # merged, whether or not the settings are given.
+        cloud = Cloud(points, normals)
     if settings is None:
         settings = auto_settings(cloud, offset=offset, eps=eps, domain=domain)
     keep = np.ones(len(cloud.points), bool)

@@ -34,14 +34,17 @@ from .._problem.validate import (
 from .._solution.solution import RAISED_RESULTS, Solution, error_message
 from .._solution.verdicts import judge
 from ..solvers import AbstractSolver
+from .adaptive import auto_finest, fit_adaptive, wants_adaptive
 from .call import as_arrays, check_start, solve_fit
 from .processes import fit_across_processes
 from .progress import chunked_run
 from .settings import Settings, choose_settings, default_solver, set_aside_mask
-from .sharding import place_fit, spans_processes
+from .sharding import input_sharding, place_fit, spans_processes
 
 #: Problems a ``jurs.Cloud`` keeps, the latest first, for fits that repeat settings.
 KEPT_PROBLEMS = 4
+#: The bases [`fit`][jurs.fit] takes: chosen from the data, the uniform grid, the hierarchy.
+BASES = ("auto", "uniform", "adaptive")
 
 
 def _estimated(points, mask) -> tuple[Cloud, dict]:
@@ -139,6 +142,22 @@ def _traced_fit(
     return solve_fit(problem, as_arrays(solver, dtype), init, throw)[0]
 
 
+def _uniform_only(grid, solver, init, mask, bucket_size, run, points, normals) -> list[str]:
+    """The arguments of a [`fit`][jurs.fit] call that only the uniform grid takes, by
+    name; empty where the adaptive basis can fit it."""
+    given = dict(grid=grid, solver=solver, init=init, mask=mask, bucket_size=bucket_size)
+    names = [name for name, value in given.items() if value is not None]
+    if run is not None:
+        names.append("callback")
+    if spans_processes(points, normals):
+        names.append("points split over processes")
+    elif not isinstance(points, Cloud) and not _is_concrete(points, normals):
+        names.append("traced points")
+    elif not isinstance(points, Cloud) and input_sharding(points, normals) is not None:
+        names.append("points sharded over devices")
+    return names
+
+
 def _point_dimension(points) -> int:
     """The d of ``(m, d)`` points; 2 for anything else (make_problem names the error)."""
     try:
@@ -166,6 +185,7 @@ def fit(
     checks: bool = True,
     callback: Callable[[int, int], None] | None = None,
     throw: bool = True,
+    basis: str = "auto",
 ) -> Solution:
     """Fit an implicit spline whose zero set passes through ``points``.
 
@@ -179,6 +199,12 @@ def fit(
     the zero set make the verdict ``doubtful``, with a warning and the reasons in
     ``sol.stats["doubts"]`` (docs/guide/settings.md). Give any setting to override it; the
     paper's Example 1 settings are ``grid=(9, 9), offset=0.1, eps=0.01``.
+
+    Where the data ask for finer cells than the automatic uniform grid affords (dense or
+    detailed clouds: the grid capped at ``jurs.auto_settings``' ``max_grid``), the fit is
+    made on the adaptive basis instead ([`jurs.fit_adaptive`][]: fine cells in a band around
+    the data, coarse ones elsewhere) and ``sol.spline`` is a [`jurs.AdaptiveSpline`][]
+    (``basis`` below).
 
     Args:
         points: ``(m, 2)`` data points of a curve, or ``(m, 3)`` of a surface (then
@@ -222,6 +248,15 @@ def fit(
             ``throw=False`` the Solution is returned and ``sol.result`` / ``sol.status`` say what
             happened (a non-finite run keeps its last finite iterate). Called outside any JAX
             transformation, the fit is checked once it has run, so this call then waits for it.
+        basis: ``"auto"`` (default): the adaptive basis where the uniform grid would be
+            capped, its cells ``jurs._fit.adaptive.AUTO_REFINEMENT`` times wider than the
+            data ask for (``sol.settings.data_cell``; on a surface only up to
+            ``AUTO_MAX_SURFACE_POINTS`` points, at most ``AUTO_MAX_FINEST_3D`` finest cells
+            a side), else the uniform grid. Any of ``grid``, ``solver``, ``init``,
+            ``mask``, ``bucket_size``, a ``callback``, points sharded over devices or
+            processes, or traced points keep the uniform grid. ``"uniform"``: the uniform
+            grid always. ``"adaptive"``: [`jurs.fit_adaptive`][] with the settings chosen
+            here (it takes none of the uniform-only arguments above).
 
     Returns:
         [`jurs.Solution`][]. Jit-compiled inside; traceable, so ``jax.grad`` and
@@ -271,6 +306,7 @@ def fit(
         checks=checks,
         throw=throw,
         run=run,
+        basis=basis,
     )
     return sol
 
@@ -293,11 +329,20 @@ def _fit(
     checks,
     throw,
     run=None,
+    basis="auto",
 ):
     """[`fit`][jurs.fit], its solve made by ``run(problem, solver, init, throw)``
     (default the compiled call, ``jurs._fit.call.solve_fit``) returning ``(solution,
     top_level, extra)``; returns ``(solution, extra)``. [`jurs.fit_in_chunks`][] runs
     the same flow with a chunked solve."""
+    uniform_only = _uniform_only(grid, solver, init, mask, bucket_size, run, points, normals)
+    if basis not in BASES:
+        raise ValueError(f"basis must be one of {', '.join(map(repr, BASES))}, got {basis!r}")
+    if basis == "adaptive" and uniform_only:
+        raise ValueError(
+            "basis='adaptive' fits by exact least squares on a hierarchy chosen from the "
+            f"data; it takes no {', '.join(uniform_only)} (leave them out, or basis='uniform')"
+        )
     if spans_processes(points, normals):  # each process lays out its own part (jurs._fit.sharding)
         if run is not None:
             raise ValueError("a fit over several processes runs in one call: no callback")
@@ -347,6 +392,16 @@ def _fit(
         check_fit_memory(shape, len(cloud), solver)
     if domain is not None and offset_given is None:  # the chosen offset, in the box given
         validate_settings(cloud.points, cloud.normals, cloud.mask, offset=offset, domain=domain)
+    if settings is not None and (
+        basis == "adaptive"
+        or (basis == "auto" and not uniform_only and wants_adaptive(settings, len(cloud)))
+    ):
+        sol = fit_adaptive(
+            cloud, settings=settings, finest=auto_finest(settings), checks=checks, throw=throw
+        )
+        if estimated is not None:
+            sol = dataclasses.replace(sol, stats=dict(sol.stats, estimated_normals=estimated))
+        return sol, None
     check_start(shape, solver, init)
     dtype = jnp.result_type(float)
     problem = _problem_of(

@@ -49,6 +49,7 @@ from .settings import (
     choose_grid,
     choose_settings,
     choose_smoothing,
+    data_cell,
     scale_free_lam,
 )
 
@@ -159,7 +160,8 @@ def _combined_settings(rows, p, n, total, shape, offset, eps, domain, margin, sm
         local_width = feature_width(p, n, radius, spacing, mine)[0] if len(mine) else np.empty(0)
         width = gather_ragged(np.asarray(local_width, float))
     feature = np.inf if width is None else float(np.sort(width)[int(FEATURE_QUANTILE * width.size)])
-    if shape is None:
+    chosen = shape is None
+    if chosen:
         shape = choose_grid(lower, upper, spacing, noise, max_grid, feature)
     lo, hi = _bounds(p)
     diagonal = float(np.linalg.norm(hi - lo))
@@ -183,4 +185,5 @@ def _combined_settings(rows, p, n, total, shape, offset, eps, domain, margin, sm
         noise=noise,
         held_out=held_out,
         thin_fraction=thin,
+        data_cell=data_cell(ndim, spacing, noise, feature) if chosen else None,
     )

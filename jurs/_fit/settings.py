@@ -127,6 +127,9 @@ class Settings:
         thin_fraction: the fraction of the points on features (thin parts, narrow gaps:
             ``feature_width``) narrower than ``FEATURE_CELLS`` cells of ``grid``;
             0 for a surface (not measured).
+        data_cell: the cell width the data ask for (``data_cell``), before the cap on
+            the grid; None where the grid was given. Where ``grid``'s cells are wider,
+            [`jurs.fit`][] takes the adaptive basis (``jurs._fit.adaptive.wants_adaptive``).
     """
 
     grid: tuple[int, ...]
@@ -140,6 +143,7 @@ class Settings:
     held_out: tuple[tuple[float, float], ...] | None = None
     set_aside: tuple[int, ...] = ()
     thin_fraction: float = 0.0
+    data_cell: float | None = None
 
     def as_dict(self) -> dict:
         return dataclasses.asdict(self)
@@ -233,11 +237,10 @@ def choose_grid(
     shapes") gives the measurements behind these classes and the alternatives tried.
     """
     extent = np.asarray(upper, float) - np.asarray(lower, float)
-    h = max(CELL_SPACINGS[extent.size] * spacing, 4.0 * noise, float(extent.max()) / (max_grid - 3))
+    h = max(data_cell(extent.size, spacing, noise), float(extent.max()) / (max_grid - 3))
     cap = max(max_grid - 3, 1)
     if extent.size == 2 and feature < FEATURE_CELLS * h:
-        # Never below the noise's cell: finer cells would follow the noise, not the feature.
-        finest = max(feature / FEATURE_CELLS, spacing, 4.0 * noise, _budget_cell(extent))
+        finest = max(_feature_cell(feature, spacing, noise), _budget_cell(extent))
         if finest < h:
             h, cap = finest, np.inf
     cells = np.maximum(1, np.ceil(extent / h - 1e-9).astype(int))
@@ -250,6 +253,24 @@ def choose_grid(
         h = float(extent[longest]) / count
         cells = np.maximum(1, np.ceil(extent / h - 1e-9).astype(int))
     return tuple(int(max(MIN_GRID, min(round_size(c), max(cap, c)) + 3)) for c in cells)
+
+
+def data_cell(ndim: int, spacing: float, noise: float, feature: float = np.inf) -> float:
+    """The cell width the data ask for, before any cap on the grid: ``max(c s, 4 sigma)``
+    (``c = CELL_SPACINGS``), and on a curve whose narrowest ``feature`` is under
+    ``FEATURE_CELLS`` such cells wide, the feature's cell (``_feature_cell``).
+    ``choose_grid`` takes it where its cap allows; where it does not, [`jurs.fit`][]
+    takes the adaptive basis (``jurs._fit.adaptive.wants_adaptive``)."""
+    h = max(CELL_SPACINGS[ndim] * spacing, 4.0 * noise)
+    if ndim == 2 and feature < FEATURE_CELLS * h:
+        h = min(h, _feature_cell(feature, spacing, noise))
+    return h
+
+
+def _feature_cell(feature: float, spacing: float, noise: float) -> float:
+    """The cell that resolves a feature ``feature`` wide (``FEATURE_CELLS`` of it), never
+    below one spacing or 4 sigma: finer cells would follow the noise, not the feature."""
+    return max(feature / FEATURE_CELLS, spacing, 4.0 * noise)
 
 
 def _budget_cell(extent: np.ndarray) -> float:
@@ -481,7 +502,8 @@ def choose_settings(
         radius = 2.0 * float(np.max(upper - lower)) / (max_grid - 3)
         width = feature_width(p, n, radius, spacing, at)[0]
     feature = np.inf if width is None else float(np.sort(width)[int(FEATURE_QUANTILE * width.size)])
-    if shape is None:
+    chosen = shape is None
+    if chosen:
         shape = choose_grid(lower, upper, spacing, noise, max_grid, feature)
     # Once per fit, before the first solve on the grid (the held-out choice below).
     check_fit_memory(shape, len(cloud), solver)
@@ -508,6 +530,7 @@ def choose_settings(
         held_out=held_out,
         set_aside=tuple(int(i) for i in np.flatnonzero(isolated)),
         thin_fraction=thin,
+        data_cell=data_cell(ndim, spacing, noise, feature) if chosen else None,
     )
 
 

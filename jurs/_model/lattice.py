@@ -55,7 +55,7 @@ class FinestSpline:
     element-wise operations whatever window it is asked in; the per-axis contractions are
     element-wise too (four products added in a fixed order, no BLAS). So two windows that
     share a node give it bitwise the same value: blocks of a lattice meshed apart stitch
-    exactly (``jurs.levelset._band``).
+    exactly (``jurs._model.band``).
     """
 
     def __init__(self, spline: AdaptiveSpline):

@@ -23,6 +23,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from .._cloud.measure import PROBES, feature_width, kd_tree, strided_probes
+from .._model.adaptive import AdaptiveSpline
 from .._model.spline import ImplicitSpline
 from .._problem.energy import layout_residuals
 from .._problem.problem import Problem, values_by_point
@@ -275,7 +276,8 @@ def extra_components(spline: ImplicitSpline, tree, threshold: float) -> list[dic
     for curves and surfaces: the same lattice, regions and interfaces in 2D and 3D."""
     from scipy import ndimage
 
-    from .._model.lattice import lattice_values
+    from .._model.band import band_lattice
+    from .._model.lattice import FinestSpline, lattice_values
 
     lower, upper = np.asarray(spline.lower, float), np.asarray(spline.upper, float)
     spans = np.asarray(spline.finest_cells, float)
@@ -286,7 +288,12 @@ def extra_components(spline: ImplicitSpline, tree, threshold: float) -> list[dic
         steps = np.maximum(2.0, np.floor(steps * scale))
     axes = [np.linspace(lo, hi, int(n) + 1) for lo, hi, n in zip(lower, upper, steps)]
     with np.errstate(invalid="ignore", divide="ignore"):
-        positive = lattice_values(spline, axes) > 0
+        if isinstance(spline, AdaptiveSpline):
+            # Only the blocks where g may change sign are evaluated; the others take their
+            # region's sign, so the signs are the full lattice's (jurs._model.band).
+            positive = band_lattice(FinestSpline(spline), axes, 0.0)[0] > 0
+        else:
+            positive = lattice_values(spline, axes) > 0
     if positive.all() or not positive.any():
         return []
     faces_only = ndimage.generate_binary_structure(d, 1)

@@ -281,7 +281,9 @@ def _check_adaptive(args, adaptive: bool, finest, dim: int) -> None:
     from .._fit.adaptive import MAX_FINEST
 
     if finest is not None and not adaptive:
-        raise InputError("--finest sets the finest level of --adaptive; add --adaptive")
+        raise InputError(
+            "--finest sets the finest level of --adaptive; add --adaptive (or --basis adaptive)"
+        )
     if not adaptive:
         return
     if args.grid is not None:
@@ -321,14 +323,16 @@ def prepare_fit(args) -> FitJob:
             normals = cast("np.ndarray", jurs.estimate_normals(points))
         except (ValueError, TypeError) as exc:
             raise InputError(f"{shown}: {_one_line(exc)}") from None
-    adaptive = bool(getattr(args, "adaptive", False))
+    basis = getattr(args, "basis", "auto")
+    if getattr(args, "adaptive", False):
+        if basis == "uniform":
+            raise InputError("--adaptive and --basis uniform contradict each other")
+        basis = "adaptive"
+    adaptive = basis == "adaptive"
     finest = getattr(args, "finest", None)
     _check_adaptive(args, adaptive, finest, dim)
     out = os.path.abspath(args.output)
     resolution = args.resolution
-    # An adaptive curve's lattice follows its finest level, known after the fit.
-    if dim == 2 and resolution is None and not adaptive:
-        resolution = ls.DEFAULT_RESOLUTION
     _check_options(resolution, dim, out, outputs_for(dim))
     if args.smoothing is not None and (args.solver != "auto" or args.lam is not None):
         raise InputError(
@@ -344,6 +348,15 @@ def prepare_fit(args) -> FitJob:
     solver = make_solver(
         args.solver, lam=args.lam, tau=args.tau, steps=args.steps, tol=args.tol, chosen=chosen
     )
+    if basis == "auto" and args.grid is None and args.solver == "auto":
+        # As jurs.fit: the adaptive basis where the uniform grid would be capped.
+        from .._fit.adaptive import auto_finest, wants_adaptive
+
+        adaptive = wants_adaptive(chosen, len(cloud))
+        finest = auto_finest(chosen) if adaptive else None
+    # An adaptive curve's lattice follows its finest level, known after the fit.
+    if dim == 2 and resolution is None and not adaptive:
+        resolution = ls.DEFAULT_RESOLUTION
     if adaptive:
         solver = None  # fit_adaptive's exact solve, with --lam or the automatic lambda
     job = FitJob(

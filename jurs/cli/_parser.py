@@ -74,6 +74,15 @@ def _fit_parser(sub) -> argparse.ArgumentParser:
         "None chooses from the data (jurs.auto_settings)",
     )
     f.add_argument(
+        "--basis",
+        default="auto",
+        choices=("auto", "uniform", "adaptive"),
+        help="auto: the adaptive basis where the data ask for finer cells than the "
+        "automatic uniform grid affords (as jurs.fit), else the uniform grid; uniform: "
+        "always the grid; adaptive: as --adaptive. --grid or a --solver other than auto "
+        "keeps the uniform grid",
+    )
+    f.add_argument(
         "--adaptive",
         action="store_true",
         help="fit on an adaptive basis (jurs.fit_adaptive): fine cells in a band around "

@@ -15,10 +15,10 @@ from jaxtyping import Float
 from scipy.spatial import cKDTree  # pyright: ignore[reportAttributeAccessIssue]  # no stub
 
 from .._model.adaptive import AdaptiveSpline
+from .._model.band import HULL_TOLERANCE, band_lattice
 from .._model.lattice import FinestSpline
 from .._model.spline import ImplicitSpline
 from .._problem.memory import check_memory
-from ._band import HULL_TOLERANCE, band_lattice
 from ._trimming import check_trim, trim_curves
 
 if TYPE_CHECKING:
@@ -155,7 +155,7 @@ def _contour_values(
     """The grid [`contour_lines`][jurs.levelset.contour_lines] needs for ``{g = level}``:
     [`evaluate_grid`][jurs.levelset.evaluate_grid]'s values, except that an adaptive
     spline ([`jurs.AdaptiveSpline`][]) is evaluated only on the blocks of 16 x 16 cells
-    where g may reach the level (``jurs/levelset/_band.py``; docs/design.md section 8,
+    where g may reach the level (``jurs/_model/band.py``; docs/design.md section 8,
     "Contouring the band"). The other nodes, in blocks with every node strictly on one
     side of the level, hold a value of g from their side: the lines are the full grid's."""
     if not isinstance(spline, AdaptiveSpline):

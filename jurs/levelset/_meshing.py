@@ -4,7 +4,7 @@
 (``jurs._model.lattice.lattice_values``), runs marching cubes (scikit-image) on each slab,
 stitches the slabs and moves the vertices onto {g = 0} by Newton steps. An adaptive spline
 ([`jurs.AdaptiveSpline`][]) is marched only in the blocks of the lattice where g may reach
-the level (``jurs/levelset/_band.py``; docs/design.md section 8). What to measure on
+the level (``jurs/_model/band.py``; docs/design.md section 8). What to measure on
 a mesh (components, genus, distances) is in ``jurs/levelset/_mesh_analysis.py``. Everything
 is host-side NumPy/SciPy; see docs/surfaces.md for the definitions.
 """
@@ -15,9 +15,9 @@ import numpy as np
 from jaxtyping import Float, Int
 
 from .._model.adaptive import AdaptiveSpline
+from .._model.band import BATCH_BLOCKS, BLOCK_CELLS, BandPlan, BlockGrid, plan_band
 from .._model.lattice import FinestSpline, lattice_values, spline_fields, values_and_gradients
 from .._problem.memory import check_memory
-from ._band import BATCH_BLOCKS, BLOCK_CELLS, BandPlan, march_band, plan_band
 from ._trimming import check_points, check_trim, trim_mesh
 
 #: Lattice nodes per spline cell along the finest axis for the default resolution: g is a
@@ -36,7 +36,7 @@ SAMPLES_PER_CELL = 5
 #: (docs/performance.md); pass ``resolution`` for more.
 MIN_RESOLUTION, MAX_RESOLUTION = 32, 256
 #: Bound of the default resolution of an adaptive spline, whose mesh marches only the
-#: blocks where g may reach the level (``jurs.levelset._band``): five nodes a finest cell
+#: blocks where g may reach the level (``jurs._model.band``): five nodes a finest cell
 #: up to a 1025^3-equivalent lattice, within ``max_nodes`` of marched nodes.
 MAX_ADAPTIVE_RESOLUTION = 1025
 #: Default lattice nodes per slab of [`mesh`][jurs.levelset.mesh]: 8 MiB of float64
@@ -444,7 +444,7 @@ def _spacing(axes) -> np.ndarray:
 
 def _mesh_band(spline, lower, upper, resolution: int, level: float, max_nodes, chosen: bool):
     """Marching cubes over the blocks of the lattice where an adaptive spline may reach
-    the level (``jurs.levelset._band``); ``(axes, spacing, vertices in index units,
+    the level (``jurs._model.band``); ``(axes, spacing, vertices in index units,
     faces)``. A default resolution (``chosen``) is lowered until the marched nodes fit in
     ``max_nodes``; a given one is refused past it (``check_band_size``)."""
     evaluator = FinestSpline(spline)
@@ -488,3 +488,41 @@ def check_band_size(plan: BandPlan, counts, resolution: int, max_nodes: int | No
                 "None) to mesh anyway, or choose a smaller resolution"
             )
     check_memory(f"resolution={resolution}", memory, device=False)
+
+
+def march_band(
+    evaluator: FinestSpline,
+    axes,
+    plan: BandPlan,
+    level: float,
+    nudge: float,
+    marching_cubes,
+    block: int = BLOCK_CELLS,
+):
+    """Marching cubes over ``plan``'s blocks; ``(vertices in lattice index units, faces)``
+    before welding. Values within ``nudge`` of the level are set to ``level + nudge``
+    first, as on the full lattice."""
+    grid = BlockGrid(evaluator, axes, block)
+    vertex_parts, face_parts = [], []
+    count = 0
+    for begin in range(0, len(plan.blocks), grid.batch):
+        batch = plan.blocks[begin : begin + grid.batch]
+        values, real = grid.values(evaluator, batch)
+        for b, where in enumerate(batch):
+            block_values = values[b, : real[b, 0], : real[b, 1], : real[b, 2]]
+            block_values = np.where(
+                np.abs(block_values - level) < nudge, level + nudge, block_values
+            )
+            if not block_values.min() <= level <= block_values.max():
+                continue
+            # "descent": faces (right-hand rule) towards g > level, as on the full lattice.
+            verts, tris, _, _ = marching_cubes(block_values, level, gradient_direction="descent")
+            verts = verts.astype(np.float64) + np.array(
+                [grid.first[k][where[k]] for k in range(grid.ndim)], np.float64
+            )
+            vertex_parts.append(verts)
+            face_parts.append(tris.astype(np.int64) + count)
+            count += len(verts)
+    if not face_parts:
+        return np.empty((0, 3)), np.empty((0, 3), np.int64)
+    return np.concatenate(vertex_parts), np.concatenate(face_parts)

@@ -1,5 +1,5 @@
-"""Marching cubes (3D) and contouring (2D) over the part of the lattice where an adaptive
-spline's level set can be.
+"""The part of a lattice where an adaptive spline's level set can be: the blocks marching
+cubes (3D) and contouring (2D) need, and g on them (``band_lattice``).
 
 The lattice of [`mesh`][jurs.levelset.mesh] (of [`analyze`][jurs.levelset.analyze] and
 [`zero_level_set`][jurs.levelset.zero_level_set] for a curve, ``band_lattice``) is cut
@@ -28,7 +28,7 @@ Neighbouring blocks share their boundary nodes, and ``jurs._model.lattice.Finest
 gives a node bitwise the same value in every block that holds it, so marching cubes puts
 bitwise equal vertices on the shared lattice edges (an edge along axis ``a`` lies in
 blocks with the same start along ``a``, so its vertex's float32 local coordinate is the
-same too) and ``_weld`` stitches the blocks into one watertight mesh.
+same too) and ``jurs.levelset._meshing``'s ``_weld`` stitches the blocks into one watertight mesh.
 """
 
 from __future__ import annotations
@@ -38,9 +38,9 @@ from typing import Any
 
 import numpy as np
 
-from .._model.finest import level_offsets
-from .._model.hierarchy import _offsets, _position, _ravel, _unravel
-from .._model.lattice import FinestSpline
+from .finest import level_offsets
+from .hierarchy import _offsets, _position, _ravel, _unravel
+from .lattice import FinestSpline
 
 #: Lattice cells along each side of a block. Smaller blocks hug the surface closer (fewer
 #: nodes evaluated) but cost more calls of marching cubes and more shared boundary
@@ -72,7 +72,7 @@ class BandPlan:
     total_blocks: int
 
 
-class _Blocks:
+class BlockGrid:
     """The block grid of a lattice: per axis, each block's first and last node and the
     finest cells of those nodes."""
 
@@ -177,7 +177,7 @@ def plan_band(
     ``{g = level}`` may be (module docstring); host work, no lattice-sized array (the
     block grid is ``BLOCK_CELLS^d`` times smaller)."""
     hierarchy = evaluator.hierarchy
-    grid = _Blocks(evaluator, axes, block)
+    grid = BlockGrid(evaluator, axes, block)
     marked = np.zeros(grid.grid, bool)
     finest = hierarchy.num_levels - 1
     ratio_all, _ = _ratios(evaluator.cascaded)
@@ -230,44 +230,6 @@ def plan_band(
     )
 
 
-def march_band(
-    evaluator: FinestSpline,
-    axes,
-    plan: BandPlan,
-    level: float,
-    nudge: float,
-    marching_cubes,
-    block: int = BLOCK_CELLS,
-):
-    """Marching cubes over ``plan``'s blocks; ``(vertices in lattice index units, faces)``
-    before welding. Values within ``nudge`` of the level are set to ``level + nudge``
-    first, as on the full lattice."""
-    grid = _Blocks(evaluator, axes, block)
-    vertex_parts, face_parts = [], []
-    count = 0
-    for begin in range(0, len(plan.blocks), grid.batch):
-        batch = plan.blocks[begin : begin + grid.batch]
-        values, real = grid.values(evaluator, batch)
-        for b, where in enumerate(batch):
-            block_values = values[b, : real[b, 0], : real[b, 1], : real[b, 2]]
-            block_values = np.where(
-                np.abs(block_values - level) < nudge, level + nudge, block_values
-            )
-            if not block_values.min() <= level <= block_values.max():
-                continue
-            # "descent": faces (right-hand rule) towards g > level, as on the full lattice.
-            verts, tris, _, _ = marching_cubes(block_values, level, gradient_direction="descent")
-            verts = verts.astype(np.float64) + np.array(
-                [grid.first[k][where[k]] for k in range(grid.ndim)], np.float64
-            )
-            vertex_parts.append(verts)
-            face_parts.append(tris.astype(np.int64) + count)
-            count += len(verts)
-    if not face_parts:
-        return np.empty((0, 3)), np.empty((0, 3), np.int64)
-    return np.concatenate(vertex_parts), np.concatenate(face_parts)
-
-
 def band_lattice(evaluator: FinestSpline, axes, level: float, block: int = BLOCK_CELLS):
     """g on the lattice ``axes`` where ``{g = level}`` may be: ``(values (len(axes[0]),
     ..), evaluated (same shape, bool), plan)``.
@@ -281,7 +243,7 @@ def band_lattice(evaluator: FinestSpline, axes, level: float, block: int = BLOCK
     from scipy import ndimage
 
     plan = plan_band(evaluator, axes, level, 0.0, block)
-    grid = _Blocks(evaluator, axes, block)
+    grid = BlockGrid(evaluator, axes, block)
     skipped = np.ones(grid.grid, bool)
     skipped[tuple(plan.blocks.T)] = False
     labelled: Any = ndimage.label(skipped)  # (labels, count); the stubs type it loosely

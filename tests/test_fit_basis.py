@@ -1,0 +1,127 @@
+"""``jurs.fit``'s choice of basis: the adaptive (THB) basis where the data ask for finer
+cells than the automatic uniform grid affords, the uniform grid otherwise or when asked."""
+
+import dataclasses
+import json
+
+import numpy as np
+import pytest
+
+import jurs
+from jurs import cli
+from jurs._fit.adaptive import (
+    AUTO_MAX_FINEST_3D,
+    AUTO_MAX_SURFACE_POINTS,
+    AUTO_REFINEMENT,
+    auto_finest,
+    wants_adaptive,
+)
+from jurs._fit.settings import data_cell
+
+
+def _ellipse(m: int):
+    t = np.linspace(0.0, 2.0 * np.pi, m, endpoint=False)
+    points = np.c_[np.cos(t), 0.5 * np.sin(t)]
+    normals = np.c_[np.cos(t), 2.0 * np.sin(t)]
+    return points, normals / np.linalg.norm(normals, axis=1, keepdims=True)
+
+
+@pytest.fixture(scope="module")
+def dense():
+    """An ellipse sampled densely enough that its uniform grid is capped."""
+    return _ellipse(1000)
+
+
+def _uniform_cell(settings) -> float:
+    lower, upper = (np.asarray(v, float) for v in settings.domain)
+    return float(np.max((upper - lower) / (np.asarray(settings.grid) - 3)))
+
+
+def test_dense_cloud_is_fitted_on_the_adaptive_basis(dense):
+    """Cells of the capped grid wider than the data ask for: the default fit is the
+    adaptive one (the same spline as fit_adaptive with those settings), and
+    basis='uniform' or a grid given keeps the uniform grid."""
+    points, normals = dense
+    sol = jurs.fit(points, normals)
+    assert isinstance(sol.spline, jurs.AdaptiveSpline) and sol.succeeded
+    settings = sol.settings
+    assert _uniform_cell(settings) >= AUTO_REFINEMENT * settings.data_cell
+    assert max(sol.stats["finest"]) > max(settings.grid)
+    direct = jurs.fit_adaptive(points, normals, settings=settings)
+    np.testing.assert_array_equal(np.asarray(sol.spline.control), direct.spline.control)
+    np.testing.assert_allclose(np.asarray(sol.spline(points)), 0.0, atol=1e-4)
+    uniform = jurs.fit(points, normals, basis="uniform")
+    assert isinstance(uniform.spline, jurs.ImplicitSpline)
+    assert uniform.settings.grid == settings.grid
+    # The finer basis follows the ellipse closer than the capped grid.
+    assert np.abs(sol.spline(points)).max() < np.abs(uniform.spline(points)).max()
+    given = jurs.fit(points, normals, grid=(16, 12))
+    assert isinstance(given.spline, jurs.ImplicitSpline)
+    assert jurs.auto_settings(points, normals, grid=(16, 12)).data_cell is None
+
+
+def test_sparse_cloud_keeps_the_uniform_grid():
+    """A grid that gives the cells the data ask for: the uniform fit, as before."""
+    points, normals = _ellipse(120)
+    sol = jurs.fit(points, normals)
+    assert isinstance(sol.spline, jurs.ImplicitSpline)
+    assert _uniform_cell(sol.settings) < AUTO_REFINEMENT * sol.settings.data_cell
+    adaptive = jurs.fit(points, normals, basis="adaptive")
+    assert isinstance(adaptive.spline, jurs.AdaptiveSpline)
+    assert adaptive.settings == sol.settings
+
+
+def test_basis_arguments_are_checked(dense):
+    points, normals = dense
+    with pytest.raises(ValueError, match="basis must be one of"):
+        jurs.fit(points, normals, basis="octree")
+    extras: tuple[tuple[dict, str], ...] = (
+        (dict(grid=(16, 12)), "grid"),
+        (dict(solver=jurs.LeastSquares(lam=1e-6)), "solver"),
+        (dict(bucket_size=4), "bucket_size"),
+    )
+    for extra, name in extras:
+        with pytest.raises(ValueError, match=f"takes no {name}"):
+            jurs.fit(points, normals, basis="adaptive", **extra)
+    # A callback (a chunked run) keeps the uniform grid.
+    calls = []
+    sol = jurs.fit(points, normals, callback=lambda done, total: calls.append(done))
+    assert isinstance(sol.spline, jurs.ImplicitSpline) and calls
+
+
+def test_rule_on_settings():
+    """``wants_adaptive``: grid given (no data cell) never; a surface above the point limit
+    never; ``auto_finest`` caps a surface's finest level only."""
+    settings = jurs.Settings(
+        grid=(99, 99),
+        offset=0.01,
+        eps=0.01,
+        lam=1e-6,
+        smoothing=1e-6,
+        domain=((0.0, 0.0), (96.0, 96.0)),
+        spacing=0.1,
+        noise=0.0,
+        data_cell=data_cell(2, 0.1, 0.0),
+    )
+    assert wants_adaptive(settings, 1000)
+    assert not wants_adaptive(dataclasses.replace(settings, data_cell=None), 1000)
+    assert not wants_adaptive(dataclasses.replace(settings, data_cell=1.01 / AUTO_REFINEMENT), 10)
+    assert auto_finest(settings) is None
+    surface = dataclasses.replace(
+        settings, grid=(51, 51, 51), domain=((0.0,) * 3, (48.0,) * 3), data_cell=0.3
+    )
+    assert wants_adaptive(surface, AUTO_MAX_SURFACE_POINTS)
+    assert not wants_adaptive(surface, AUTO_MAX_SURFACE_POINTS + 1)
+    assert auto_finest(surface) == AUTO_MAX_FINEST_3D  # 48 / 0.3 = 160 cells asked for
+
+
+def test_command_line_follows_the_same_rule(dense, tmp_path):
+    points, normals = dense
+    path = tmp_path / "ellipse.csv"
+    jurs.datasets.save_points(path, points, normals)
+    for args, basis in (([], "adaptive"), (["--basis", "uniform"], None)):
+        out = tmp_path / f"out{len(args)}"
+        assert cli.main(["fit", str(path), "-o", str(out), "-q", *args]) == 0
+        settings = json.loads((out / "metrics.json").read_text())["settings"]
+        assert settings.get("basis") == basis
+        assert (settings["grid"] is None) == (basis == "adaptive")
