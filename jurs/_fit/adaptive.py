@@ -77,12 +77,14 @@ DIRECT_RTOL = 1e-6
 AUTO_REFINEMENT = 1.5
 #: The automatic choice's limits on a surface: at most this many finest cells along the
 #: longest side, and clouds of at most ``AUTO_MAX_SURFACE_POINTS`` points (larger ones keep
-#: the uniform grid, whose matrix-free solve holds no matrix). The surface CG holds its
-#: assembled matrices: at finest 80 x 80 x 64, 128k functions, the bunny of 2e4 points
-#: peaked at 1.2 GB (benchmarks/results/surfaces_adaptive.md), memory growing with the
-#: functions and the points.
-AUTO_MAX_FINEST_3D = 128
-AUTO_MAX_SURFACE_POINTS = 50_000
+#: the uniform grid). The surface CG's steps apply the collocation matrix, so they grow with
+#: the points where the uniform grid's stencil does not: the bunny of 2e4 points (finest 80
+#: x 80 x 64, 128k functions) fitted in about the uniform grid's time, at half its Chamfer
+#: distance and half its memory (benchmarks/results/surfaces_adaptive.md), but at 5e4 points
+#: the hierarchy took 73 s warm at finest 128, 41 s at 96, against the uniform grid's 16 s
+#: (2-core CPU, loaded; docs/design.md section 8).
+AUTO_MAX_FINEST_3D = 96
+AUTO_MAX_SURFACE_POINTS = 25_000
 
 
 def wants_adaptive(settings: Settings, points: int) -> bool:
