@@ -233,6 +233,20 @@ def solve_assembled(
     return np.asarray(control)[:n], int(steps), float(residual)
 
 
+def _upper_triangle(matrix):
+    """The upper triangle (diagonal included) of a square CSC matrix, as CSC with sorted
+    row indices."""
+    from scipy.sparse import csc_matrix
+
+    matrix.sort_indices()
+    n = matrix.shape[1]
+    columns = np.repeat(np.arange(n), np.diff(matrix.indptr))
+    keep = matrix.indices <= columns
+    indptr = np.zeros(n + 1, np.int64)
+    np.cumsum(np.bincount(columns[keep], minlength=n), out=indptr[1:])
+    return csc_matrix((matrix.data[keep], matrix.indices[keep], indptr), shape=matrix.shape)
+
+
 def solve_direct(problem: AdaptiveProblem, lam: float, matrices=None):
     """``(control, relative residual)`` by a sparse direct factorisation on the host: no
     derivative, concrete problems only. ``matrices``: the problem's ``(D, 2 G^T W G)``
@@ -255,7 +269,9 @@ def solve_direct(problem: AdaptiveProblem, lam: float, matrices=None):
     try:
         import qdldl
 
-        control = qdldl.Solver(matrix).solve(rhs)
+        # QDLDL reads the upper triangle; cut here in one pass over the entries (its own
+        # cut goes through SciPy's triu, which sorts them again: 0.2-0.5 s at 24k functions).
+        control = qdldl.Solver(_upper_triangle(matrix), upper=True).solve(rhs)
     except (ImportError, RuntimeError):
         from scipy.sparse.linalg import splu
 
