@@ -188,7 +188,7 @@ def test_direct_solve_falls_back_to_superlu(monkeypatch):
     for name, value in traced.items():
         np.testing.assert_allclose(host[name], value, rtol=1e-9, err_msg=name)
 
-    def refuse(matrix):
+    def refuse(matrix, upper=False):
         raise RuntimeError("Input matrix is not quasi-definite")
 
     monkeypatch.setattr(qdldl, "Solver", refuse)
