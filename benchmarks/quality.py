@@ -196,6 +196,8 @@ def run_case(case, level, m, ref, diag, true_components, check):
         "warm_s": float(np.median(warm)),
         "warm_all_s": warm,
         "result": str(sol.message),
+        "basis": "adaptive" if isinstance(sol.spline, jurs.AdaptiveSpline) else "uniform",
+        "finest": list(sol.stats.get("finest") or ()),
     }
     figure = {"points": points, "jurs": lines_of(rep)}
 
@@ -324,7 +326,9 @@ def markdown(runs, meta):
             f"{sum(r['jurs']['num_components'] == r['jurs']['true_components'] for r in ok)} "
             f"of {len(ok)} jurs runs and in "
             f"{sum(r['rbf']['num_components'] == r['rbf']['true_components'] for r in ok)} of "
-            f"{len(ok)} unsmoothed-RBF runs."
+            f"{len(ok)} unsmoothed-RBF runs. `jurs.fit` took the adaptive basis in "
+            f"{sum(basis_of(r).startswith('adaptive') for r in ok)} of {len(ok)} runs "
+            "(where the automatic uniform grid would be capped; column 'basis')."
         )
         whole = [
             r
@@ -427,7 +431,7 @@ def markdown(runs, meta):
         "Chamfer / the reference RBF's Chamfer (s = 0 clean, best noisy). T ratio: RBF (s = 0) "
         "fit time / jurs warm time.",
         "",
-        "| case | m | noise | grid | d | smoothing | jurs Chamfer | jurs Hausdorff | "
+        "| case | m | noise | basis | d | smoothing | jurs Chamfer | jurs Hausdorff | "
         "supp | tiny | comps | jurs time | RBF Chamfer | RBF supp | RBF tiny | RBF time | "
         "best RBF Chamfer (s) | C ratio | T ratio |",
         "|" + "---|" * 19,
@@ -440,7 +444,7 @@ def markdown(runs, meta):
             continue
         st, j, b = r["settings"], r["jurs"], r["rbf"]
         lines.append(
-            f"| {r['case']} | {r['m']} | {pct(r['noise'])} | {st['grid'][0]}x{st['grid'][1]} | "
+            f"| {r['case']} | {r['m']} | {pct(r['noise'])} | {basis_of(r)} | "
             f"{st['offset'] / r['diag'] * 1e3:.2f} | {st['smoothing']:.2g} | "
             f"{j['chamfer'] * 1e3:.3f} | {j['hausdorff'] * 1e3:.2f} | {j['num_supplementary']} | "
             f"{j['num_tiny_loops']} | {j['num_components']}/{j['true_components']} | "
@@ -544,6 +548,24 @@ def jsonable(x):
     if isinstance(x, np.ndarray):
         return x.tolist()
     return x
+
+
+def basis_of(run: dict) -> str:
+    """The basis ``jurs.fit`` took, in words: ``grid NxM``, or ``adaptive`` (with its
+    finest level where recorded). Runs recorded before the basis was (a results file of
+    2026-12-04) get it from their settings by the rule the fit applies
+    (``jurs._fit.adaptive.wants_adaptive``)."""
+    from jurs._fit.adaptive import wants_adaptive
+
+    st, j = run["settings"], run["jurs"]
+    basis = j.get("basis")
+    if basis is None:
+        settings = jurs.Settings(**{k: v for k, v in st.items() if k != "held_out"})
+        basis = "adaptive" if wants_adaptive(settings, run["m"]) else "uniform"
+    if basis == "uniform":
+        return "grid " + "x".join(map(str, st["grid"]))
+    finest = j.get("finest")
+    return "adaptive" + (" " + "x".join(map(str, finest)) if finest else "")
 
 
 def main(argv=None):

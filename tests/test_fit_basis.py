@@ -4,6 +4,7 @@ cells than the automatic uniform grid affords, the uniform grid otherwise or whe
 import dataclasses
 import json
 
+import jax
 import numpy as np
 import pytest
 
@@ -125,3 +126,29 @@ def test_command_line_follows_the_same_rule(dense, tmp_path):
         settings = json.loads((out / "metrics.json").read_text())["settings"]
         assert settings.get("basis") == basis
         assert (settings["grid"] is None) == (basis == "adaptive")
+
+
+def test_new_dense_clouds_compile_nothing(dense):
+    """After one adaptive default fit, clouds of other sizes and shapes compile nothing:
+    the hierarchy is built, solved and checked on the host (a compiled check per new
+    hierarchy cost seconds)."""
+
+    def stretched(m, stretch):
+        points, normals = _ellipse(m)
+        normals = normals * [1.0, stretch]
+        return points * [stretch, 1.0], normals / np.linalg.norm(normals, axis=1, keepdims=True)
+
+    jurs.fit(*dense)
+    counts = []
+
+    def count(event, duration, **kwargs):
+        if event == "/jax/core/compile/backend_compile_duration":
+            counts.append(kwargs.get("fun_name"))
+
+    jax.monitoring.register_event_duration_secs_listener(count)
+    try:
+        sols = [jurs.fit(*stretched(m, stretch)) for m, stretch in ((1100, 1.3), (1500, 0.8))]
+    finally:
+        jax.monitoring.unregister_event_duration_listener(count)
+    assert counts == []
+    assert all(isinstance(sol.spline, jurs.AdaptiveSpline) and sol.succeeded for sol in sols)

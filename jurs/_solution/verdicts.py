@@ -160,11 +160,18 @@ def evaluate_bucketed(spline: ImplicitSpline, points) -> tuple[np.ndarray, np.nd
     """``values_and_distances(spline, points)`` on the host's ``(n, d)`` ``points``,
     padded with copies of the first to a power of two of at least ``MIN_CHECK_BUCKET``
     rows and cut back to ``n``: clouds of different sizes share one compiled
-    evaluation (for one grid)."""
+    evaluation (for one grid). An adaptive spline is evaluated on the host instead
+    (``jurs._model.lattice.values_and_gradients``, float64 NumPy): its hierarchy's arrays
+    have shapes of their own, and a compiled evaluation per new cloud cost seconds."""
     points = np.asarray(points, float)
     n = len(points)
     if n == 0:
         return np.empty(0), np.empty(0)
+    if isinstance(spline, AdaptiveSpline):
+        from .._model.lattice import values_and_gradients
+
+        value, gradient = values_and_gradients(spline, points)
+        return value, np.abs(value) / np.maximum(np.linalg.norm(gradient, axis=1), 1e-300)
     size = max(MIN_CHECK_BUCKET, 1 << (n - 1).bit_length())
     padded = np.concatenate([points, np.repeat(points[:1], size - n, axis=0)])
     value, distance = values_and_distances(spline, jnp.asarray(padded, spline.control.dtype))
