@@ -283,7 +283,7 @@ def markdown(runs, meta):
         f"Command: `{meta['command']}`; "
         f"{n} runs ({len(meta['cases'])} base cases x noise levels "
         f"{', '.join(pct(x) for x in meta['noise_levels'])}) in "
-        f"{meta['total_s'] / 60:.1f} min.",
+        f"{meta['total_s'] / 60:.1f} min." + (f" {meta['note']}" if meta.get("note") else ""),
         "",
     ]
     ratios = np.array([r["chamfer_ratio"] for r in ok])
@@ -577,6 +577,9 @@ def main(argv=None):
         f"{', '.join(map(str, QUICK_NOISE_LEVELS))} only",
     )
     parser.add_argument(
+        "--note", default="", help="a sentence for the results' header (what the run measured)"
+    )
+    parser.add_argument(
         "--markdown-only",
         action="store_true",
         help="rewrite quality.md from the existing quality.json (no measurement)",
@@ -591,6 +594,8 @@ def main(argv=None):
         payload["config"].pop("time_fraction", None)
         for r in payload["runs"]:
             r.pop("targets", None)
+        if args.note:
+            payload["meta"]["note"] = args.note
         text = markdown(payload["runs"], payload["meta"])
         write_results("quality", payload, text)
         print(text)
@@ -607,6 +612,7 @@ def main(argv=None):
         "python": platform.python_version(),
         "load_average": os.getloadavg()[0],
         "command": "python benchmarks/quality.py" + (" --quick" if args.quick else ""),
+        "note": args.note,
         "cases": list(cases),
         "noise_levels": list(levels),
         "m": {},

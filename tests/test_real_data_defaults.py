@@ -85,6 +85,17 @@ def test_select_lam_known_optimum():
     assert float(lam) == 0.3 and scores[1] < scores[0]
 
 
+def test_held_out_search_stops_only_where_the_score_clearly_rises():
+    """A rise within ``EARLY_STOP_RISE`` (a flat start, as noisy clouds score) goes on to
+    the next candidate; a clear rise (a structured cloud's) stops the search."""
+    from jurs.solvers._held_out import EARLY_STOP_RISE, stops_search
+
+    horse = (0.016798587707113937, 0.01682314586444228)  # 1 % noise: 1e-6, then 1e-5
+    assert not bool(stops_search(horse[1], horse[0]))
+    assert bool(stops_search(1.08, 1.0))  # the smallest first rise of a structured cloud
+    assert not bool(stops_search(1.0 + 0.99 * EARLY_STOP_RISE, 1.0))
+
+
 @pytest.mark.slow
 def test_held_out_solver_reports_its_choice():
     p, n = _circle(300)

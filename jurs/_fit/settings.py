@@ -119,9 +119,9 @@ class Settings:
         spacing, noise: the measurements (see the module docstring).
         held_out: where the smoothing was chosen by held-out points
             (``choose_smoothing``), ``((smoothing, score), ...)`` for every candidate
-            tried (from the smallest up, until the score rises), the score being the
-            held-out points' mean squared distance to the candidate's zero set; None
-            otherwise.
+            tried (from the smallest up, until the score rises by more than 5 %), the
+            score being the held-out points' mean squared distance to the candidate's
+            zero set; None otherwise.
         set_aside: indices of the points that stand alone (``isolated_points``): they
             took no part in the measurements, and [`jurs.fit`][] fits without them.
         thin_fraction: the fraction of the points on features (thin parts, narrow gaps:
@@ -381,7 +381,7 @@ def _held_out_smoothing(cloud, support, shape, offset, eps, domain, unit: float)
     points (``jurs.solvers._held_out.select_lam``) on the fit's own problem (padded
     as [`jurs.fit`][] pads it, so clouds of similar size share the compiled selection),
     and ``((smoothing, score), ...)`` for the candidates tried (from the smallest up, until
-    the score rises)."""
+    the score rises by more than 5 %)."""
     dtype = jnp.result_type(float)
     problem = padded_problem(
         cloud.points, cloud.normals, None, shape, offset, eps, domain, 0.0, None, dtype, support
