@@ -133,9 +133,17 @@ def scaling_row(points, normals, finest: int) -> dict:
         max_repeats=3,
     )
     sol = timing.pop("output")
+    # The same fit without the verdicts' checks on the host (checks=False): the part of
+    # the time that is the fit itself.
+    unchecked = time_repeated(
+        lambda: jurs.fit_adaptive(points, normals, finest=finest, settings=settings, checks=False),
+        budget_s=3.0,
+        max_repeats=3,
+    )
     return {
         **_hierarchy(sol, finest),
         **timing,
+        "unchecked_s": unchecked["warm_s"],
         "base_rss": base,
         "peak_rss": peak_rss_bytes(),
     }
@@ -302,6 +310,12 @@ def scaling_table(rows: list[dict], ndim: int, payload: dict) -> list[str]:
             "gradients, the surface default). Warm s: the second call; where the first "
             "call took more of the row's time bound than was left, it alone is reported."
         )
+    unchecked = any("unchecked_s" in r for r in rows)
+    if unchecked:
+        intro += (
+            " 'no checks s': the warm time of the same fit with `checks=False` (without the "
+            "verdicts' checks of the zero set on the host)."
+        )
     lines = [
         intro + f" Each row in a fresh process: 'first s' includes its compilations; peak "
         "RSS is the process's VmHWM, in brackets its resident set before the fit (Python, "
@@ -310,45 +324,68 @@ def scaling_table(rows: list[dict], ndim: int, payload: dict) -> list[str]:
         "doubling of F; memory: of the peak above the base); the target is at most about "
         f"{target}x (a box-bound cost would be {box}x).",
         "",
-        "| finest F | finest cells | levels | active | uniform grid's functions | CG steps | "
-        "first s | warm s | peak RSS GB (base) | active x | time x | memory x |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
+    header = [
+        "finest F",
+        "finest cells",
+        "levels",
+        "active",
+        "uniform grid's functions",
+        "CG steps",
+        "first s",
+        "warm s",
+        *(["no checks s"] if unchecked else []),
+        "peak RSS GB (base)",
+        "active x",
+        "time x",
+        *(["no checks x"] if unchecked else []),
+        "memory x",
+    ]
+    lines += ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
     previous = None
     checked = []
     for r in rows:
         if "skipped" in r or "error" in r:
             reason = r.get("skipped") or r["error"]
-            lines.append(f"| {r['finest']} | {reason} |  |  |  |  |  |  |  |  |  |  |")
+            lines.append(f"| {r['finest']} | {reason} |" + "  |" * (len(header) - 2))
             previous = None
             continue
         seconds, text = _seconds(r)
-        ratios = ["", "", ""]
+        ratios = [""] * (4 if unchecked else 3)
         if previous is not None:
             ratios = [
                 r["active"] / previous["active"],
                 seconds / _seconds(previous)[0],
+                *([r["unchecked_s"] / previous["unchecked_s"]] if unchecked else []),
                 (r["peak_rss"] - r["base_rss"]) / (previous["peak_rss"] - previous["base_rss"]),
             ]
-            checked.append((previous["finest"], r["finest"], ratios[0], ratios[1]))
+            checked.append((ratios[0], ratios[1], ratios[2] if unchecked else None))
             ratios = [f"{x:.2f}" for x in ratios]
-        lines.append(
-            f"| {r['finest']} | {'x'.join(map(str, r['cells']))} | {r['levels']} | "
-            f"{r['active']} | {r['uniform_functions']} | {r['cg_steps']} | "
-            f"{r['first_s']:.3f} | {text} | {r['peak_rss'] / GB:.2f} "
-            f"({r['base_rss'] / GB:.2f}) | " + " | ".join(ratios) + " |"
-        )
+        cells = [
+            r["finest"],
+            "x".join(map(str, r["cells"])),
+            r["levels"],
+            r["active"],
+            r["uniform_functions"],
+            r["cg_steps"],
+            f"{r['first_s']:.3f}",
+            text,
+            *([f"{r['unchecked_s']:.3f}"] if unchecked else []),
+            f"{r['peak_rss'] / GB:.2f} ({r['base_rss'] / GB:.2f})",
+            *ratios,
+        ]
+        lines.append("| " + " | ".join(map(str, cells)) + " |")
         previous = r
     if checked:
-        active_ok = sum(a <= target for _, _, a, _ in checked)
-        time_ok = sum(t <= target for _, _, _, t in checked)
-        lines += [
-            "",
-            f"Per doubling, active functions grew by {min(c[2] for c in checked):.2f}-"
-            f"{max(c[2] for c in checked):.2f}x ({active_ok}/{len(checked)} at most "
-            f"{target}x), time by {min(c[3] for c in checked):.2f}-"
-            f"{max(c[3] for c in checked):.2f}x ({time_ok}/{len(checked)} at most {target}x).",
-        ]
+
+        def spread(k: int) -> str:
+            values = [c[k] for c in checked]
+            ok = sum(v <= target for v in values)
+            return f"{min(values):.2f}-{max(values):.2f}x ({ok}/{len(values)} at most {target}x)"
+
+        text = f"Per doubling, active functions grew by {spread(0)}, warm time by {spread(1)}"
+        text += f", time without checks by {spread(2)}." if unchecked else "."
+        lines += ["", text]
     return lines
 
 

@@ -74,3 +74,17 @@ def test_a_row_without_a_warm_call_is_timed_by_its_first():
     cells = _cells(lines, "128")
     assert cells[7] == "8.000 (first call)"
     assert cells[-2] == "8.00"
+
+
+def test_the_time_without_checks_gets_its_own_ratio():
+    rows = [
+        {**_row(256, 1000, 1.0, 1.5), "unchecked_s": 0.5},
+        {**_row(512, 2000, 3.0, 2.5), "unchecked_s": 1.0},
+    ]
+    payload = {"scaling_case": "camera", "timeout_s": 360.0, "max_gb": 12.0}
+    lines = adaptive.scaling_table(rows, 2, payload)
+    cells = _cells(lines, "512")
+    assert cells[8] == "1.000"
+    # active x, time x, no checks x, memory x
+    assert cells[-4:] == ["2.00", "3.00", "2.00", "2.00"]
+    assert lines[-1].endswith("time without checks by 2.00-2.00x (1/1 at most 2.2x).")
