@@ -1,4 +1,4 @@
-"""The adaptive (THB) fit beside the uniform default on real 2D outlines, and its scaling.
+"""The adaptive (THB) fit beside the uniform grid on real 2D outlines, and its scaling.
 
 Three tables:
 
@@ -240,7 +240,7 @@ def _rings(fit: dict) -> str:
 def markdown(payload: dict) -> str:
     load = payload.get("load_average", [float("nan")] * 2)
     lines = [
-        f"# Adaptive (THB) fits beside the uniform default ({payload['date']})",
+        f"# Adaptive (THB) fits beside the uniform grid ({payload['date']})",
         "",
         f"Machine: {payload['machine']}; float64. 1-minute load average "
         f"{load[0]:.1f} at the start, {load[1]:.1f} at the end. {payload['note']}",
@@ -276,7 +276,7 @@ def markdown(payload: dict) -> str:
     gains = [r["uniform"]["chamfer"] / r["adaptive"]["chamfer"] for r in rows]
     lines += [
         "",
-        f"Adaptive Chamfer below the uniform default's in {better}/{len(rows)} cases "
+        f"Adaptive Chamfer below the uniform grid's in {better}/{len(rows)} cases "
         f"({min(gains):.2f}-{max(gains):.2f}x smaller); no worse than the RBF's in "
         f"{no_worse}/{len(rows)} (ratio {min(ratios):.2f}-{max(ratios):.2f}); every ring "
         f"matched exactly in {exact}/{len(rows)}.",
