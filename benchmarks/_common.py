@@ -6,8 +6,10 @@ from __future__ import annotations
 
 import importlib
 import json
+import multiprocessing
 import os
 import platform
+import resource
 import sys
 import time
 from typing import Any
@@ -86,6 +88,106 @@ def time_repeated(fn, *args, budget_s: float = 2.0, max_repeats: int = 20) -> di
         "repeats": len(times),
         "output": out,
     }
+
+
+def _status_bytes(field: str, pid: int | str = "self") -> int:
+    """``field`` (``VmHWM``, ``VmRSS``) of ``/proc/<pid>/status`` in bytes; 0 where there is
+    no such file (off Linux, or the process is gone)."""
+    try:
+        with open(f"/proc/{pid}/status") as fh:
+            for line in fh:
+                if line.startswith(f"{field}:"):
+                    return int(line.split()[1]) * 1024
+    except OSError:
+        pass
+    return 0
+
+
+def peak_rss_bytes() -> int:
+    """Peak resident set of this process: ``VmHWM``, which ``exec`` resets. ``ru_maxrss``
+    is the fallback off Linux, but on Linux a spawned child inherits its parent's resident
+    set at the fork into it, so there it would count the parent's memory too."""
+    peak = _status_bytes("VmHWM")
+    if peak:
+        return peak
+    scale = 1 if sys.platform == "darwin" else 1024  # bytes on macOS, KiB elsewhere
+    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * scale
+
+
+def current_rss_bytes() -> int:
+    """Resident set of this process now (0 off Linux)."""
+    return _status_bytes("VmRSS")
+
+
+def _child_main(conn, fn, args) -> None:
+    try:
+        message = ("ok", fn(*args))
+    except Exception as exc:  # noqa: BLE001 - reported to the parent, which goes on
+        message = ("error", f"{type(exc).__name__}: {exc}")
+    conn.send(message)
+    conn.close()
+
+
+def in_child(
+    fn,
+    *args,
+    timeout_s: float | None = None,
+    max_rss_bytes: float | None = None,
+    poll_s: float = 0.5,
+) -> Any:
+    """``fn(*args)`` in a fresh spawned process (own peak memory, own JAX); ``fn`` must be
+    importable (a module-level function) and its result picklable.
+
+    An exception or a killed child comes back as ``{"error": ...}``. With ``timeout_s``
+    (wall seconds from the child's start, its imports included) or ``max_rss_bytes`` (its
+    resident set, read every ``poll_s`` seconds, so a spike shorter than that can pass
+    unseen) the parent kills a child that passes either; the answer is then
+    ``{"error": ..., "bound": {"kind": "time" | "memory", "limit", "elapsed_s",
+    "rss_bytes"}}``, ``rss_bytes`` the largest resident set read (a lower bound of the
+    child's peak).
+    """
+    context = multiprocessing.get_context("spawn")
+    receive, send = context.Pipe(duplex=False)
+    child = context.Process(target=_child_main, args=(send, fn, args))
+    start = time.perf_counter()
+    child.start()
+    send.close()  # the child holds the other end: its exit reads as end of file here
+    largest = 0
+    try:
+        while not receive.poll(poll_s):
+            elapsed = time.perf_counter() - start
+            largest = max(largest, _status_bytes("VmRSS", child.pid or 0))
+            bound = None
+            if timeout_s is not None and elapsed > timeout_s:
+                bound = ("time", float(timeout_s), f"{timeout_s:.0f} s")
+            elif max_rss_bytes is not None and largest > max_rss_bytes:
+                bound = ("memory", float(max_rss_bytes), f"{max_rss_bytes / 1e9:.1f} GB")
+            if bound is not None:
+                child.kill()
+                kind, limit, text = bound
+                return {
+                    "error": f"stopped at {elapsed:.0f} s, {largest / 1e9:.2f} GB resident: "
+                    f"over the {text} bound",
+                    "bound": {
+                        "kind": kind,
+                        "limit": limit,
+                        "elapsed_s": elapsed,
+                        "rss_bytes": largest,
+                    },
+                }
+        try:
+            status, value = receive.recv()
+        except EOFError:
+            child.join()
+            return {"error": f"the child process exited with code {child.exitcode}"}
+        return {"error": value} if status == "error" else value
+    finally:
+        if child.is_alive():
+            child.join(timeout=10)
+            if child.is_alive():
+                child.kill()
+        child.join()
+        receive.close()
 
 
 def write_results(name: str, payload: dict, markdown: str, folder: str = RESULTS) -> None:

@@ -44,13 +44,10 @@ development run, not the issue's sizes).
 from __future__ import annotations
 
 import argparse
-import concurrent.futures
 import dataclasses
 import datetime
-import multiprocessing
 import os
 import platform
-import resource
 import sys
 import time
 
@@ -62,8 +59,11 @@ sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 # file, and importing JAX there would put JAX's resident set into Poisson's peak.
 from _common import (  # noqa: E402
     RESULTS,
+    current_rss_bytes,
     elapsed_log,
     import_open3d,
+    in_child,
+    peak_rss_bytes,
     rerender_beside,
     write_results,
 )
@@ -88,32 +88,6 @@ GB = 1e9
 
 
 # --------------------------------------------------------------------------- the methods
-
-
-def peak_rss_bytes() -> int:
-    """Peak resident set of this process: ``VmHWM``, which ``exec`` resets. ``ru_maxrss``
-    is the fallback off Linux, but on Linux a spawned child inherits its parent's resident
-    set at the fork into it, so there it would count the parent's memory too."""
-    try:
-        with open("/proc/self/status") as fh:
-            for line in fh:
-                if line.startswith("VmHWM:"):
-                    return int(line.split()[1]) * 1024
-    except OSError:
-        pass
-    scale = 1 if sys.platform == "darwin" else 1024  # bytes on macOS, KiB elsewhere
-    return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * scale
-
-
-def current_rss_bytes() -> int:
-    try:
-        with open("/proc/self/status") as fh:
-            for line in fh:
-                if line.startswith("VmRSS:"):
-                    return int(line.split()[1]) * 1024
-    except OSError:
-        pass
-    return 0
 
 
 def timed(fn, *args, **kwargs):
@@ -198,17 +172,6 @@ def run_poisson(points, normals, depth):
         "method": f"depth {depth}",
         "open3d": o3d.__version__,
     }
-
-
-def in_child(fn, *args):
-    """``fn(*args)`` in a fresh spawned process (own peak memory, own JAX); an exception
-    or a killed child comes back as ``{"error": ...}``."""
-    context = multiprocessing.get_context("spawn")
-    try:
-        with concurrent.futures.ProcessPoolExecutor(1, mp_context=context) as pool:
-            return pool.submit(fn, *args).result()
-    except Exception as exc:  # noqa: BLE001 - one failed case must not end the run
-        return {"error": f"{type(exc).__name__}: {exc}"}
 
 
 def poisson_depth(m: int) -> int:
