@@ -6,14 +6,7 @@ import time
 import adaptive  # pyright: ignore[reportMissingImports]  # benchmarks/ (conftest.py)
 from _common import in_child  # pyright: ignore[reportMissingImports]
 
-
-def _cells(lines, first):
-    """The cells of the table row whose first cell is ``first``."""
-    for line in lines:
-        cells = [c.strip() for c in line.strip("|").split("|")]
-        if cells[0] == first:
-            return cells
-    raise AssertionError(f"no row {first!r} in {lines}")
+from ._tables import row_cells as _cells
 
 
 def test_a_child_past_its_time_bound_is_stopped_and_says_so():

@@ -8,16 +8,9 @@ import gpu_speed  # pyright: ignore[reportMissingImports]  # benchmarks/ (confte
 import pytest
 import speed  # pyright: ignore[reportMissingImports]
 
+from ._tables import row_cells as _cells
+
 RESULTS = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "results")
-
-
-def _cells(lines, first):
-    """The cells of the table row whose first cell is ``first``."""
-    for line in lines:
-        cells = [c.strip() for c in line.strip("|").split("|")]
-        if cells[0] == first:
-            return cells
-    raise AssertionError(f"no row {first!r} in {lines}")
 
 
 def test_port_table_shows_the_ratio_to_jurs():
