@@ -353,7 +353,9 @@ PARTS_CHILD = textwrap.dedent(
         os.path.join(target, "surface.ply"),
         lambda f: jurs.datasets.save_mesh(f, *jurs.levelset.mesh(sol.spline, 24)),
     )
-    out["after_write"] = sorted(os.listdir(target))  # every process sees it there
+    # Every process sees both files there; process 0 may already be writing the next one
+    # (a hidden partial file), as nothing holds it back once the last write agreed.
+    out["after_write"] = sorted(f for f in os.listdir(target) if not f.startswith("."))
 
     def broken(f):
         with open(f, "w") as fh:
