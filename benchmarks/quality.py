@@ -551,21 +551,12 @@ def jsonable(x):
 
 
 def basis_of(run: dict) -> str:
-    """The basis ``jurs.fit`` took, in words: ``grid NxM``, or ``adaptive`` (with its
-    finest level where recorded). Runs recorded before the basis was (a results file of
-    2026-12-04) get it from their settings by the rule the fit applies
-    (``jurs._fit.adaptive.wants_adaptive``)."""
-    from jurs._fit.adaptive import wants_adaptive
-
+    """The basis ``jurs.fit`` took, in words: ``grid NxM``, or ``adaptive`` with its
+    finest level. Runs recorded before the basis was are the uniform grid's."""
     st, j = run["settings"], run["jurs"]
-    basis = j.get("basis")
-    if basis is None:
-        settings = jurs.Settings(**{k: v for k, v in st.items() if k != "held_out"})
-        basis = "adaptive" if wants_adaptive(settings, run["m"]) else "uniform"
-    if basis == "uniform":
+    if j.get("basis", "uniform") == "uniform":
         return "grid " + "x".join(map(str, st["grid"]))
-    finest = j.get("finest")
-    return "adaptive" + (" " + "x".join(map(str, finest)) if finest else "")
+    return "adaptive " + "x".join(map(str, j["finest"]))
 
 
 def main(argv=None):

@@ -33,11 +33,6 @@ def dense():
     return _ellipse(1000)
 
 
-def _uniform_cell(settings) -> float:
-    lower, upper = (np.asarray(v, float) for v in settings.domain)
-    return float(np.max((upper - lower) / (np.asarray(settings.grid) - 3)))
-
-
 def test_dense_cloud_is_fitted_on_the_adaptive_basis(dense):
     """Cells of the capped grid wider than the data ask for: the default fit is the
     adaptive one (the same spline as fit_adaptive with those settings), and
@@ -46,7 +41,7 @@ def test_dense_cloud_is_fitted_on_the_adaptive_basis(dense):
     sol = jurs.fit(points, normals)
     assert isinstance(sol.spline, jurs.AdaptiveSpline) and sol.succeeded
     settings = sol.settings
-    assert _uniform_cell(settings) >= AUTO_REFINEMENT * settings.data_cell
+    assert settings.cell_width >= AUTO_REFINEMENT * settings.data_cell
     assert max(sol.stats["finest"]) > max(settings.grid)
     direct = jurs.fit_adaptive(points, normals, settings=settings)
     np.testing.assert_array_equal(np.asarray(sol.spline.control), direct.spline.control)
@@ -66,7 +61,7 @@ def test_sparse_cloud_keeps_the_uniform_grid():
     points, normals = _ellipse(120)
     sol = jurs.fit(points, normals)
     assert isinstance(sol.spline, jurs.ImplicitSpline)
-    assert _uniform_cell(sol.settings) < AUTO_REFINEMENT * sol.settings.data_cell
+    assert sol.settings.cell_width < AUTO_REFINEMENT * sol.settings.data_cell
     adaptive = jurs.fit(points, normals, basis="adaptive")
     assert isinstance(adaptive.spline, jurs.AdaptiveSpline)
     assert adaptive.settings == sol.settings

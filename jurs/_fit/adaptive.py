@@ -97,9 +97,7 @@ def wants_adaptive(settings: Settings, points: int) -> bool:
     ndim = len(settings.grid)
     if ndim == 3 and points > AUTO_MAX_SURFACE_POINTS:
         return False
-    lower, upper = (np.asarray(v, float) for v in settings.domain)
-    uniform = float(np.max((upper - lower) / (np.asarray(settings.grid, float) - 3)))
-    return uniform >= AUTO_REFINEMENT * settings.data_cell
+    return settings.cell_width >= AUTO_REFINEMENT * settings.data_cell
 
 
 def auto_finest(settings: Settings) -> int | None:
@@ -109,8 +107,14 @@ def auto_finest(settings: Settings) -> int | None:
         return None
     lower, upper = (np.asarray(v, float) for v in settings.domain)
     longest = float((upper - lower).max())
-    cell = max(CELL_SPACINGS[3] * settings.spacing, 4.0 * settings.noise)
-    return AUTO_MAX_FINEST_3D if longest / cell > AUTO_MAX_FINEST_3D else None
+    asked = longest / data_finest_cell(settings, 3)  # finest cells the data ask for
+    return AUTO_MAX_FINEST_3D if asked > AUTO_MAX_FINEST_3D else None
+
+
+def data_finest_cell(settings: Settings, ndim: int) -> float:
+    """The finest cell the data ask of the hierarchy: ``max(c s, 4 sigma)``, ``c =
+    CELL_SPACINGS`` (one spacing on a curve, three on a surface)."""
+    return max(CELL_SPACINGS[ndim] * settings.spacing, 4.0 * settings.noise)
 
 
 def adaptive_layout(
@@ -377,8 +381,7 @@ def fit_adaptive(
     lower, upper = (np.asarray(v, float) for v in settings.domain)
     longest = float((upper - lower).max())
     if finest is None:
-        cell = max(CELL_SPACINGS[ndim] * settings.spacing, 4.0 * settings.noise)
-        cell = max(cell, longest / MAX_FINEST[ndim])
+        cell = max(data_finest_cell(settings, ndim), longest / MAX_FINEST[ndim])
     else:
         if not 8 <= int(finest) <= MAX_FINEST[ndim]:
             raise ValueError(

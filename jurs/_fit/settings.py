@@ -145,6 +145,12 @@ class Settings:
     thin_fraction: float = 0.0
     data_cell: float | None = None
 
+    @property
+    def cell_width(self) -> float:
+        """The widest cell of ``grid`` over ``domain`` (the grid's knot span)."""
+        lower, upper = (np.asarray(v, float) for v in self.domain)
+        return float(np.max((upper - lower) / (np.asarray(self.grid, float) - 3)))
+
     def as_dict(self) -> dict:
         return dataclasses.asdict(self)
 
