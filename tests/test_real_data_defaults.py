@@ -11,6 +11,7 @@ import pytest
 import jurs
 from jurs._cloud.measure import feature_width
 from jurs._cloud.outliers import isolated_points
+from jurs._fit.adaptive import UNIFORM_RESIDUAL_SPACINGS
 from jurs._fit.settings import CLEAN_SMOOTHING, MAX_FEATURE_COEFFICIENTS, SMOOTHING_CANDIDATES
 from jurs._solution.verdicts import crossed_features
 from jurs.solvers._held_out import held_out_distance, held_out_points, select_lam
@@ -203,10 +204,16 @@ def test_default_fit_sets_outliers_aside():
     assert np.all(w[index] == 0) and np.all(np.delete(w, index) > 0.5)
     report = jurs.levelset.analyze(sol.spline, p, offset=sol.settings.offset)
     assert report.num_components == 1 and report.num_supplementary == 0
-    # Dense enough for the adaptive basis by default: it fits without the points set aside.
+    # Dense enough that the uniform grid is capped, but its fit follows the circle: the
+    # default keeps it, as fitted above.
     auto = jurs.fit(po, no)
-    assert isinstance(auto.spline, jurs.AdaptiveSpline) and auto.settings == sol.settings
-    report = jurs.levelset.analyze(auto.spline, p, offset=auto.settings.offset)
+    assert isinstance(auto.spline, jurs.ImplicitSpline) and auto.settings == sol.settings
+    assert auto.stats["uniform_residual"] <= UNIFORM_RESIDUAL_SPACINGS
+    np.testing.assert_array_equal(np.asarray(auto.spline.control), np.asarray(sol.spline.control))
+    # The adaptive basis fits without the points set aside.
+    adaptive = jurs.fit(po, no, basis="adaptive")
+    assert isinstance(adaptive.spline, jurs.AdaptiveSpline)
+    report = jurs.levelset.analyze(adaptive.spline, p, offset=adaptive.settings.offset)
     assert report.num_components == 1 and report.num_supplementary == 0
     clean = jurs.fit(p, n, basis="uniform")
     assert clean.settings.set_aside == () and isinstance(

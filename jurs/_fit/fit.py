@@ -34,7 +34,13 @@ from .._problem.validate import (
 from .._solution.solution import RAISED_RESULTS, Solution, error_message
 from .._solution.verdicts import judge
 from ..solvers import AbstractSolver
-from .adaptive import auto_finest, fit_adaptive, wants_adaptive
+from .adaptive import (
+    UNIFORM_RESIDUAL_SPACINGS,
+    auto_finest,
+    fit_adaptive,
+    uniform_residual,
+    wants_adaptive,
+)
 from .call import as_arrays, check_start, solve_fit
 from .processes import fit_across_processes
 from .progress import chunked_run
@@ -201,10 +207,10 @@ def fit(
     paper's Example 1 settings are ``grid=(9, 9), offset=0.1, eps=0.01``.
 
     Where the data ask for finer cells than the automatic uniform grid affords (dense or
-    detailed clouds: the grid capped at ``jurs.auto_settings``' ``max_grid``), the fit is
-    made on the adaptive basis instead ([`jurs.fit_adaptive`][]: fine cells in a band around
-    the data, coarse ones elsewhere) and ``sol.spline`` is a [`jurs.AdaptiveSpline`][]
-    (``basis`` below).
+    detailed clouds: the grid capped at ``jurs.auto_settings``' ``max_grid``) and the capped
+    grid's zero set does not follow the data closely, the fit is made on the adaptive basis
+    instead ([`jurs.fit_adaptive`][]: fine cells in a band around the data, coarse ones
+    elsewhere) and ``sol.spline`` is a [`jurs.AdaptiveSpline`][] (``basis`` below).
 
     Args:
         points: ``(m, 2)`` data points of a curve, or ``(m, 3)`` of a surface (then
@@ -248,11 +254,14 @@ def fit(
             ``throw=False`` the Solution is returned and ``sol.result`` / ``sol.status`` say what
             happened (a non-finite run keeps its last finite iterate). Called outside any JAX
             transformation, the fit is checked once it has run, so this call then waits for it.
-        basis: ``"auto"`` (default): the adaptive basis where the uniform grid would be
-            capped, its cells ``jurs._fit.adaptive.AUTO_REFINEMENT`` times wider than the
-            data ask for (``sol.settings.data_cell``; on a surface only up to
+        basis: ``"auto"`` (default): where the uniform grid is capped, its cells
+            ``jurs._fit.adaptive.AUTO_REFINEMENT`` times wider than the data ask for
+            (``sol.settings.data_cell``; on a surface only up to
             ``AUTO_MAX_SURFACE_POINTS`` points, at most ``AUTO_MAX_FINEST_3D`` finest cells
-            a side), else the uniform grid. Any of ``grid``, ``solver``, ``init``,
+            a side), the uniform grid is fitted first and kept if 90 % of the points lie
+            within ``UNIFORM_RESIDUAL_SPACINGS`` (0.02) spacings of its zero set, else the
+            fit is made on the adaptive basis; ``sol.stats["uniform_residual"]`` records
+            that distance. Elsewhere the uniform grid. Any of ``grid``, ``solver``, ``init``,
             ``mask``, ``bucket_size``, a ``callback``, points sharded over devices or
             processes, or traced points keep the uniform grid. ``"uniform"``: the uniform
             grid always. ``"adaptive"``: [`jurs.fit_adaptive`][] with the settings chosen
@@ -308,6 +317,18 @@ def fit(
         run=run,
         basis=basis,
     )
+    return sol
+
+
+def _on_hierarchy(cloud, settings, checks, throw, estimated) -> Solution:
+    """The fit of ``cloud`` on the adaptive basis with ``settings`` (``jurs.fit_adaptive``),
+    its finest level chosen as ``basis="auto"`` does; ``estimated`` (where the normals were
+    estimated) recorded in its stats."""
+    sol = fit_adaptive(
+        cloud, settings=settings, finest=auto_finest(settings), checks=checks, throw=throw
+    )
+    if estimated is not None:
+        sol = dataclasses.replace(sol, stats=dict(sol.stats, estimated_normals=estimated))
     return sol
 
 
@@ -392,16 +413,16 @@ def _fit(
         check_fit_memory(shape, len(cloud), solver)
     if domain is not None and offset_given is None:  # the chosen offset, in the box given
         validate_settings(cloud.points, cloud.normals, cloud.mask, offset=offset, domain=domain)
-    if settings is not None and (
-        basis == "adaptive"
-        or (basis == "auto" and not uniform_only and wants_adaptive(settings, len(cloud)))
-    ):
-        sol = fit_adaptive(
-            cloud, settings=settings, finest=auto_finest(settings), checks=checks, throw=throw
-        )
-        if estimated is not None:
-            sol = dataclasses.replace(sol, stats=dict(sol.stats, estimated_normals=estimated))
-        return sol, None
+    # Where the automatic uniform grid is capped below what the data ask for, it is fitted
+    # first and kept if its zero set follows the data; otherwise the hierarchy is fitted.
+    escalate = (
+        basis == "auto"
+        and not uniform_only
+        and settings is not None
+        and wants_adaptive(settings, len(cloud))
+    )
+    if settings is not None and basis == "adaptive":
+        return _on_hierarchy(cloud, settings, checks, throw, estimated), None
     check_start(shape, solver, init)
     dtype = jnp.result_type(float)
     problem = _problem_of(
@@ -420,9 +441,21 @@ def _fit(
         cloud.given_points, cloud.given_normals, problem, as_arrays(solver, dtype), init
     )
     if run is None:
-        (sol, top_level), extra = solve_fit(problem, solver, init, throw), None
+        # An escalated fit's failure is the hierarchy's to raise, not the grid's.
+        (sol, top_level), extra = solve_fit(problem, solver, init, throw and not escalate), None
     else:
         sol, top_level, extra = run(problem, solver, init, throw)
+    if escalate and top_level:
+        assert settings is not None  # escalate says so
+        residual = (
+            uniform_residual(sol.spline, cloud, settings)
+            if sol.status == "successful"
+            else float("inf")
+        )
+        if residual > UNIFORM_RESIDUAL_SPACINGS:
+            sol = _on_hierarchy(cloud, settings, checks, throw, estimated)
+            return dataclasses.replace(sol, stats=dict(sol.stats, uniform_residual=residual)), None
+        sol = dataclasses.replace(sol, stats=dict(sol.stats, uniform_residual=residual))
     if top_level:
         if checks:
             sol = judge(sol, cloud, settings if doubted else None, offset)

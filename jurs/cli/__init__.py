@@ -208,6 +208,25 @@ class FitJob:
     cloud: Cloud
     adaptive: bool = False  # jurs.fit_adaptive instead of jurs.fit
     finest: int | None = None  # its finest level's cells along the longest side
+    # jurs.fit chooses: the capped uniform grid where its fit follows the data, else the
+    # adaptive basis (``adaptive`` True until the fit says which; ``settled``).
+    chooses: bool = False
+
+    def settled(self, sol) -> FitJob:
+        """The job as ``sol`` was fitted: where ``jurs.fit`` chose (``chooses``) and kept
+        the uniform grid, a uniform job (a curve's lattice at its default resolution)."""
+        import jurs
+
+        from .. import levelset as ls
+
+        if not self.chooses or isinstance(sol.spline, jurs.AdaptiveSpline):
+            return self
+        resolution = self.resolution
+        if self.dim == 2 and resolution is None:
+            resolution = ls.DEFAULT_RESOLUTION
+        return dataclasses.replace(
+            self, adaptive=False, finest=None, chooses=False, resolution=resolution
+        )
 
     @property
     def dim(self) -> int:
@@ -348,11 +367,13 @@ def prepare_fit(args) -> FitJob:
     solver = make_solver(
         args.solver, lam=args.lam, tau=args.tau, steps=args.steps, tol=args.tol, chosen=chosen
     )
-    if basis == "auto" and args.grid is None and args.solver == "auto":
-        # As jurs.fit: the adaptive basis where the uniform grid would be capped.
+    chooses = False
+    if basis == "auto" and args.grid is None and args.solver == "auto" and args.lam is None:
+        # As jurs.fit: where the uniform grid is capped, jurs.fit fits it and keeps it if
+        # its zero set follows the data, else fits the adaptive basis (FitJob.settled).
         from .._fit.adaptive import auto_finest, wants_adaptive
 
-        adaptive = wants_adaptive(chosen, len(cloud))
+        adaptive = chooses = wants_adaptive(chosen, len(cloud))
         finest = auto_finest(chosen) if adaptive else None
     # An adaptive curve's lattice follows its finest level, known after the fit.
     if dim == 2 and resolution is None and not adaptive:
@@ -360,7 +381,18 @@ def prepare_fit(args) -> FitJob:
     if adaptive:
         solver = None  # fit_adaptive's exact solve, with --lam or the automatic lambda
     job = FitJob(
-        path, points, normals, estimated, out, chosen, solver, resolution, cloud, adaptive, finest
+        path,
+        points,
+        normals,
+        estimated,
+        out,
+        chosen,
+        solver,
+        resolution,
+        cloud,
+        adaptive,
+        finest,
+        chooses,
     )
     check_output_folder(out, _output_bytes(job), job.outputs)
     return job
@@ -382,7 +414,9 @@ def _solve(job: FitJob, args):
         # verdict (not warned).
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", UserWarning)
-            if job.adaptive:
+            if job.chooses:
+                sol = jurs.fit(job.cloud, settings=job.chosen, throw=False)
+            elif job.adaptive:
                 sol = jurs.fit_adaptive(
                     job.cloud.points,
                     job.cloud.normals,
@@ -437,6 +471,7 @@ def run_fit(args) -> int:
     if solved is None:
         return EXIT_FIT_FAILED
     sol, seconds = solved
+    job = job.settled(sol)
     analyse = curve_outputs if job.dim == 2 else surface_outputs
     write, summary = analyse(job, args, sol, seconds)
     try:
