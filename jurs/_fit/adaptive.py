@@ -44,6 +44,7 @@ from .._problem.sizes import round_size
 from .._solution.solution import RAISED_RESULTS, RESULTS, Solution, error_message
 from .._solution.verdicts import judge
 from .settings import Settings, auto_settings, scale_free_lam
+from .sharding import input_sharding
 
 #: Cells of the coarsest level along the longest side, at least: it fixes the sign of g far
 #: from the data, where a few cells suffice.
@@ -389,6 +390,8 @@ def fit_adaptive(
             )
         cell = longest / int(finest)
     method = method or ("direct" if ndim == 2 else "cg")
+    # Points sharded over devices (one process): CG keeps each device's samples there.
+    sharding = input_sharding(cloud.given_points, cloud.given_normals)
     band = DEFAULT_BAND[ndim] if band is None else int(band)
     lower, upper, base, levels = adaptive_layout(lower, upper, cell)
     offset_value = settings.offset if offset is None else float(offset)
@@ -422,6 +425,14 @@ def fit_adaptive(
         # A direct solve is exact up to rounding; a residual far above it means the
         # factorisation met a (numerically) singular matrix.
         tolerance = max(rtol, DIRECT_RTOL)
+    elif sharding is not None:
+        from .adaptive_sharding import solve_sharded
+
+        control_np, steps, residual, metrics = solve_sharded(
+            problem, matrices, float(lam), float(rtol), int(max_steps), dtype, sharding
+        )
+        control = on_device(control_np, dtype)
+        tolerance = rtol
     else:
         control_np, steps, residual = solve_assembled(
             problem, matrices, float(lam), float(rtol), int(max_steps), dtype
@@ -447,6 +458,8 @@ def fit_adaptive(
         "active": hierarchy.active_counts,
         "finest": hierarchy.cells(finest_level),
     }
+    if sharding is not None:  # the devices the solve ran over (a direct solve: the host)
+        stats["devices"] = len(sharding.device_set) if method == "cg" else 1
     sol = Solution(spline, metrics, stats, result, None, settings)
     if checks:
         sol = judge(sol, cloud, settings, offset_value)
