@@ -44,7 +44,7 @@ from .._problem.sizes import round_size
 from .._solution.solution import RAISED_RESULTS, RESULTS, Solution, error_message
 from .._solution.verdicts import judge
 from .settings import Settings, auto_settings, scale_free_lam
-from .sharding import input_sharding
+from .sharding import input_sharding, spans_processes
 
 #: Cells of the coarsest level along the longest side, at least: it fixes the sign of g far
 #: from the data, where a few cells suffice.
@@ -285,6 +285,21 @@ def solve_direct(problem: AdaptiveProblem, lam: float, matrices=None):
     return control, float(np.linalg.norm(matrix @ control - rhs)) / scale
 
 
+def finest_cell_width(settings: Settings, ndim: int, finest: int | None) -> float:
+    """The finest level's cell in ``settings.domain``: ``fit_adaptive``'s ``finest``
+    cells along the longest side, or where None the data's (``data_finest_cell``), at
+    most ``MAX_FINEST`` cells. ValueError for a ``finest`` outside 8 .. ``MAX_FINEST``."""
+    lower, upper = (np.asarray(v, float) for v in settings.domain)
+    longest = float((upper - lower).max())
+    if finest is None:
+        return max(data_finest_cell(settings, ndim), longest / MAX_FINEST[ndim])
+    if not 8 <= int(finest) <= MAX_FINEST[ndim]:
+        raise ValueError(
+            f"finest must be between 8 and {MAX_FINEST[ndim]} cells in {ndim}D, got {finest}"
+        )
+    return longest / int(finest)
+
+
 def fit_adaptive(
     points: Float[ArrayLike, "m d"] | Cloud,
     normals: Float[ArrayLike, "m d"] | None = None,
@@ -357,6 +372,14 @@ def fit_adaptive(
         raise ValueError(f"method must be 'direct', 'cg' or None, got {method!r}")
     if band is not None and band < 1:
         raise ValueError(f"band must be at least 1 cell, got {band}")
+    if spans_processes(points, normals):  # each process assembles its own samples' rows
+        from .adaptive_sharding import fit_adaptive_across_processes
+
+        return fit_adaptive_across_processes(
+            points, normals, finest=finest, band=band, offset=offset, eps=eps, domain=domain,
+            smoothing=smoothing, lam=lam, rtol=rtol, max_steps=max_steps, settings=settings,
+            method=method, dtype=dtype, throw=throw,
+        )  # fmt: skip
     if isinstance(points, Cloud):
         if normals is not None or points.normals is None or points.mask is not None:
             raise ValueError(
@@ -380,15 +403,7 @@ def fit_adaptive(
     normals_np = np.asarray(cloud.normals, float)[keep]
     ndim = points_np.shape[1]
     lower, upper = (np.asarray(v, float) for v in settings.domain)
-    longest = float((upper - lower).max())
-    if finest is None:
-        cell = max(data_finest_cell(settings, ndim), longest / MAX_FINEST[ndim])
-    else:
-        if not 8 <= int(finest) <= MAX_FINEST[ndim]:
-            raise ValueError(
-                f"finest must be between 8 and {MAX_FINEST[ndim]} cells in {ndim}D, got {finest}"
-            )
-        cell = longest / int(finest)
+    cell = finest_cell_width(settings, ndim, finest)
     method = method or ("direct" if ndim == 2 else "cg")
     # Points sharded over devices (one process): CG keeps each device's samples there.
     sharding = input_sharding(cloud.given_points, cloud.given_normals)

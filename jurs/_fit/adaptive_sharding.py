@@ -22,16 +22,32 @@ from __future__ import annotations
 
 import functools
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
+from .._cloud.parts import agree, allgather, gather_ragged, normals_across_processes
 from .._linalg.pcg import conjugate_gradients
+from .._model.adaptive import AdaptiveSpline
 from .._model.precision import on_device
-from .adaptive import _padded, size_class
-from .sharding import _axis_size
+from .._problem.adaptive import assemble_adaptive_problem
+from .._problem.validate import unit_normals, validate_inputs
+from .._solution.solution import RAISED_RESULTS, RESULTS, Solution, error_message
+from .adaptive import (
+    DEFAULT_BAND,
+    DEFAULT_RTOL,
+    FLOAT32_RTOL,
+    _padded,
+    adaptive_layout,
+    finest_cell_width,
+    size_class,
+)
+from .process_settings import _bounds, local_cloud, settings_across_processes
+from .settings import Settings, scale_free_lam
+from .sharding import _axis_size, _process_positions, input_sharding
 
 
 def device_rows(count: int, points: int, shards: int) -> np.ndarray:
@@ -53,20 +69,24 @@ def _host_coo(matrix, nnz: int, dtype) -> tuple[np.ndarray, np.ndarray, np.ndarr
     )
 
 
-def split_rows(collocation, targets: np.ndarray, points: int, shards: int, dtype):
+def split_rows(collocation, targets: np.ndarray, points: int, devices: int, dtype, agree=None):
     """``((rows, cols, values), targets, is_data)``: host arrays of the rows of
-    ``collocation`` (SciPy, ``(3 points, n)``) and of ``targets`` split over ``shards``
+    ``collocation`` (SciPy, ``(3 points, n)``) and of ``targets`` split over ``devices``
     devices by ``device_rows``, each device's part padded to one length (a size class)
     and laid end to end: its entries with row indices local to its part (padding: zeros
     at (0, 0), which add nothing), its targets padded with zeros (rows without entries:
-    a residual of 0), ``is_data`` True on its rows of data points (eq. 4's ``P``)."""
+    a residual of 0), ``is_data`` True on its rows of data points (eq. 4's ``P``).
+    ``agree``: maps this process's ``[rows, entries]`` a device (the most of its devices)
+    to those of every process (their maximum), so that all pad to one length."""
     count = collocation.shape[0]
-    owner = device_rows(count, points, shards)
+    owner = device_rows(count, points, devices)
     csr = collocation.tocsr()
-    parts = [np.flatnonzero(owner == k) for k in range(shards)]
-    length = size_class(max(len(rows) for rows in parts))
+    parts = [np.flatnonzero(owner == k) for k in range(devices)]
     blocks = [csr[rows] for rows in parts]
-    nnz = size_class(max(block.nnz for block in blocks))
+    sizes = [max(len(rows) for rows in parts), max(block.nnz for block in blocks)]
+    if agree is not None:
+        sizes = agree(sizes)
+    length, nnz = (size_class(int(x)) for x in sizes)
     entries, values, data = [], [], []
     for rows, block in zip(parts, blocks):
         entries.append(_host_coo(block, nnz, dtype))
@@ -131,48 +151,195 @@ def _sharded_cg(
 
 
 def solve_sharded(
-    problem, matrices, lam: float, rtol: float, max_steps: int, dtype, sharding: NamedSharding
+    problem,
+    matrices,
+    lam: float,
+    rtol: float,
+    max_steps: int,
+    dtype,
+    sharding: NamedSharding,
+    samples: int | None = None,
 ) -> tuple[np.ndarray, int, float, dict]:
     """``(control, steps, relative residual, metrics)``: ``solve_assembled``'s CG (the
     same matrix, preconditioner and stop rule) with the collocation matrix's rows and the
     targets split over ``sharding``'s point axis (module docstring). Agrees with the
-    one-device solve to the CG tolerance (the sums run in another order)."""
+    one-device solve to the CG tolerance (the sums run in another order).
+
+    Over several processes each calls it with its own samples' rows (``matrices`` and
+    ``problem.targets`` its own, the regulariser the same in all) and ``samples``, the
+    sample count of all processes; the rows go to this process's devices (one small
+    all-gather agrees on the padded lengths) and the control points come back in every
+    process."""
     collocation, regulariser = matrices
     count, n = collocation.shape
     shards = _axis_size(sharding)
     mesh, names = sharding.mesh, sharding.spec[0]
-    coo, targets, is_data = split_rows(
-        collocation, np.asarray(problem.targets), count // 3, shards, dtype
-    )
     split = NamedSharding(mesh, PartitionSpec(names))
     replicated = NamedSharding(mesh, PartitionSpec())
-    n_class = size_class(n)
+    if jax.process_count() == 1:
+        coo, targets, is_data = split_rows(
+            collocation, np.asarray(problem.targets), count // 3, shards, dtype
+        )
+        put_split = functools.partial(jax.device_put, device=split)
+    else:
+        mine = len(_process_positions(sharding, shards))
+        coo, targets, is_data = split_rows(
+            collocation, np.asarray(problem.targets), count // 3, mine, dtype, _agreed_max
+        )
+
+        def put_split(x):  # this process's devices' parts of the global rows
+            size = (x.shape[0] // mine * shards,)
+            return jax.make_array_from_process_local_data(split, x, size)
+
+    def put_whole(x):  # the same host value on every device of every process
+        x = np.asarray(x)
+        return jax.make_array_from_process_local_data(replicated, x, x.shape)
+
     reg_coo = _host_coo(regulariser, size_class(regulariser.nnz), dtype)
-    regulariser_diagonal = _padded(np.asarray(problem.regulariser_diagonal, float), n_class)
+    regulariser_diagonal = _padded(np.asarray(problem.regulariser_diagonal, float), size_class(n))
     control, steps, residual, data, largest = _sharded_cg(
-        tuple(jax.device_put(a, split) for a in coo),
-        jax.device_put(targets, split),
-        jax.device_put(is_data, split),
-        tuple(jax.device_put(a, replicated) for a in reg_coo),
-        jax.device_put(regulariser_diagonal.astype(dtype), replicated),
-        jax.device_put(np.asarray(lam, dtype), replicated),
-        jax.device_put(np.asarray(rtol, dtype), replicated),
-        jax.device_put(np.asarray(max_steps, np.int32), replicated),
+        tuple(put_split(a) for a in coo),
+        put_split(targets),
+        put_split(is_data),
+        tuple(put_whole(a) for a in reg_coo),
+        put_whole(regulariser_diagonal.astype(dtype)),
+        put_whole(np.asarray(lam, dtype)),
+        put_whole(np.asarray(rtol, dtype)),
+        put_whole(np.asarray(max_steps, np.int32)),
         mesh=mesh,
         names=names,
     )
-    c = np.asarray(control)[:n]
+    c = np.asarray(control.addressable_data(0))[:n]  # replicated: every device holds it
     reg = float(c @ (regulariser @ c))
-    data = float(data)
+    data = float(data.addressable_data(0))
+    samples = count if samples is None else samples
     metrics = {
         name: on_device(value, dtype)
         for name, value in (
             ("E", data + lam * reg),
             ("E_d", data),
             ("R", reg),
-            ("E_ave", data / count),
-            ("E_max", float(largest)),
+            ("E_ave", data / samples),
+            ("E_max", float(largest.addressable_data(0))),
             ("lam", lam),
         )
     }
-    return c, int(steps), float(residual), metrics
+    return c, int(steps.addressable_data(0)), float(residual.addressable_data(0)), metrics
+
+
+def _agreed_max(sizes: list[int]) -> list[int]:
+    """``sizes`` of every process, their maximum (one small all-gather)."""
+    return allgather(np.asarray(sizes, np.int64)).max(axis=0).tolist()
+
+
+def _union(refined: list[np.ndarray]) -> list[np.ndarray]:
+    """Every process's cells to refine (one sorted array of keys a level), joined: the
+    OR of the level's refinement flags, sent as the keys of the set flags (a few
+    all-gathers a level)."""
+    return [np.unique(gather_ragged(np.asarray(keys, np.int64))) for keys in refined]
+
+
+def fit_adaptive_across_processes(
+    points,
+    normals,
+    *,
+    finest=None,
+    band=None,
+    offset=None,
+    eps=None,
+    domain=None,
+    smoothing=None,
+    lam=None,
+    rtol=None,
+    max_steps: int = 10_000,
+    settings: Settings | None = None,
+    method=None,
+    dtype=None,
+    throw: bool = True,
+) -> Solution:
+    """[`jurs.fit_adaptive`][] of points and normals held by several processes (global
+    ``jax.Array`` s split along the point axis); every process calls it with the same
+    arguments and gets the same fit. Settings not given are chosen over every process's
+    points (``jurs._fit.process_settings.settings_across_processes``); the hierarchy is
+    built from the union of every process's cells to refine (``_union``), so it is the
+    same in all; each process assembles the collocation rows of its own samples, and the
+    solve is ``solve_sharded``'s CG over all devices. The direct path would factorise on
+    one host: ``method="direct"`` is refused. What reads the whole cloud on a host (the
+    orientation and doubt checks) is not run (docs/sharding.md, "Adaptive fits")."""
+    if method not in (None, "cg"):
+        raise ValueError(
+            f"method={method!r}: over several processes fit_adaptive solves by conjugate "
+            "gradients (method='cg' or None); the direct solve factorises on one host"
+        )
+    if normals is None:  # estimated over all processes' points, split like them
+        normals = normals_across_processes(points)
+    for name, x in (("points", points), ("normals", normals)):
+        if not isinstance(x, jax.Array) or x.is_fully_addressable or x.ndim != 2:
+            raise ValueError(
+                f"{name}: over several processes pass points and normals both as global "
+                "(m, d) jax.Arrays split the same way along the point axis "
+                "(jax.make_array_from_process_local_data)"
+            )
+    sharding = input_sharding(points, normals)
+    assert sharding is not None
+    if settings is None:
+        settings = settings_across_processes(
+            points, normals, None, offset, eps, domain, smoothing=smoothing
+        )
+    _, p, n, total = local_cloud(points, normals)
+    failure = None
+    try:  # this process's rows, checked as one process checks its cloud
+        validate_inputs(p, n, offset=offset, eps=eps, domain=settings.domain)
+    except (TypeError, ValueError) as error:
+        failure = type(error)(f"process {jax.process_index()}, its own part: {error}")
+    agree(failure, "checking its points")
+    n = unit_normals(n)
+    ndim = p.shape[1]
+    lower, upper = (np.asarray(v, float) for v in settings.domain)
+    cell = finest_cell_width(settings, ndim, finest)
+    band = DEFAULT_BAND[ndim] if band is None else int(band)
+    lower, upper, base, levels = adaptive_layout(lower, upper, cell)
+    offset_value = settings.offset if offset is None else float(offset)
+    eps_value = settings.eps if eps is None else float(eps)
+    dtype = jnp.dtype(dtype or jnp.result_type(float))
+    problem, matrices = assemble_adaptive_problem(
+        p, n, offset=offset_value, eps=eps_value, lower=lower, upper=upper, base=base,
+        levels=levels, band=band, dtype=dtype, combine_refined=_union,
+    )  # fmt: skip
+    hierarchy = problem.hierarchy
+    finest_level = hierarchy.num_levels - 1
+    finest_width = float(np.max((upper - lower) / np.asarray(hierarchy.cells(finest_level))))
+    if lam is None:
+        strength = settings.smoothing if smoothing is None else float(smoothing)
+        lo, hi = _bounds(p)
+        diagonal = float(np.linalg.norm(hi - lo))
+        lam = scale_free_lam(strength, 3 * total, diagonal, lower, upper, finest_width)
+    if rtol is None:
+        rtol = DEFAULT_RTOL if dtype == jnp.float64 else FLOAT32_RTOL
+    control_np, steps, residual, metrics = solve_sharded(
+        problem, matrices, float(lam), float(rtol), int(max_steps), dtype, sharding, 3 * total
+    )
+    control = on_device(control_np, dtype)
+    spline = AdaptiveSpline(hierarchy, control, on_device(np.ones(control.shape), dtype))
+    finite = bool(np.all(np.isfinite(control_np)))
+    result = (
+        RESULTS.successful
+        if finite and residual <= rtol
+        else RESULTS.max_steps_reached
+        if finite
+        else RESULTS.nonfinite
+    )
+    stats = {
+        "method": "cg",
+        "num_steps": steps,
+        "residual": residual,
+        "levels": hierarchy.num_levels,
+        "active": hierarchy.active_counts,
+        "finest": hierarchy.cells(finest_level),
+        "devices": len(sharding.device_set),
+        "processes": jax.process_count(),
+    }
+    sol = Solution(spline, metrics, stats, result, None, settings)
+    if throw and sol.status in RAISED_RESULTS:
+        raise eqx.EquinoxRuntimeError(error_message(sol.status))
+    return sol
