@@ -364,6 +364,14 @@ def fit_adaptive(
         level over the box). ``result`` is ``successful``, ``max_steps_reached`` (CG
         stopped first) or ``nonfinite``, or with ``checks`` the verdicts above.
 
+    Points (and normals) sharded along the point axis over several devices, or split over
+    several processes (``jax.distributed``), fit where they lie
+    (``jurs._fit.adaptive_sharding``, docs/sharding.md "Adaptive fits"): CG splits the
+    samples' rows over the devices and reduces only active-function-sized sums; a direct
+    solve reads every shard on the host (one process), and over processes ``method``
+    must be ``"cg"`` or None (the settings are then chosen over every process's points,
+    and the host checks are not run). ``sol.stats["devices"]`` counts the devices.
+
     Differentiable: with the structure fixed (the same points' leaves), ``jax.grad``
     through [`jurs.internal.make_adaptive_problem`][] and the solve is exact (the solve
     sits behind ``lax.custom_linear_solve``).
