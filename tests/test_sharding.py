@@ -284,3 +284,34 @@ def test_sharded_adaptive_cg_reduces_only_function_sums(adaptive_child):
     assert result["kinds"] == ["all-reduce"]
     assert result["sizes"] == [1, result["functions"]]
     assert result["functions"] != result["rows"]  # the sizes tell the two apart
+
+
+def test_split_rows_gives_each_device_its_points_samples():
+    """``split_rows`` hands each device the collocation rows and targets of the samples
+    of its block of points (``[P, P + d n, P - d n]``), with row indices local to its
+    part and padding that adds nothing: the parts rebuild ``D`` and ``b`` exactly."""
+    from scipy import sparse
+
+    from jurs._fit.adaptive_sharding import device_rows, split_rows
+
+    points, functions, devices = 10, 7, 3
+    rng = np.random.default_rng(0)
+    matrix = sparse.random(3 * points, functions, density=0.4, random_state=rng, format="csr")
+    targets = rng.normal(size=3 * points)
+    (rows, cols, values), b, is_data = split_rows(matrix, targets, points, devices, np.float64)
+    owner = device_rows(3 * points, points, devices)
+    assert owner.tolist()[:points] == [0] * 4 + [1] * 4 + [2] * 2  # blocks of 4 points
+    length, nnz = len(b) // devices, len(values) // devices
+    dense = matrix.toarray()
+    for k in range(devices):
+        mine = np.flatnonzero(owner == k)
+        part = np.zeros((length, functions))
+        entries = slice(k * nnz, (k + 1) * nnz)
+        np.add.at(part, (rows[entries], cols[entries]), values[entries])
+        np.testing.assert_array_equal(part[: len(mine)], dense[mine])
+        np.testing.assert_array_equal(part[len(mine) :], 0.0)
+        np.testing.assert_array_equal(b[k * length : k * length + len(mine)], targets[mine])
+        np.testing.assert_array_equal(b[k * length + len(mine) : (k + 1) * length], 0.0)
+        assert is_data[k * length : (k + 1) * length].tolist() == (
+            (mine < points).tolist() + [False] * (length - len(mine))
+        )
