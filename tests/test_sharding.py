@@ -296,7 +296,7 @@ def test_split_rows_gives_each_device_its_points_samples():
 
     points, functions, devices = 10, 7, 3
     rng = np.random.default_rng(0)
-    matrix = sparse.random(3 * points, functions, density=0.4, random_state=rng, format="csr")
+    matrix = sparse.random(3 * points, functions, density=0.4, rng=rng, format="csr")
     targets = rng.normal(size=3 * points)
     (rows, cols, values), b, is_data = split_rows(matrix, targets, points, devices, np.float64)
     owner = device_rows(3 * points, points, devices)
