@@ -271,6 +271,12 @@ def solve_direct(problem: AdaptiveProblem, lam: float, matrices=None):
     collocation, regulariser = matrices
     matrix = (collocation.T @ collocation + lam * regulariser).tocsc()
     rhs = collocation.T @ np.asarray(problem.targets, float)
+    return solve_normal(matrix, rhs)
+
+
+def solve_normal(matrix, rhs: np.ndarray) -> tuple[np.ndarray, float]:
+    """``(control, relative residual)`` of ``matrix c = rhs`` (a SciPy CSC symmetric
+    positive definite matrix) by ``solve_direct``'s factorisation, on the host."""
     try:
         import qdldl
 

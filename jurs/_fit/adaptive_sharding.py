@@ -39,11 +39,13 @@ from .._solution.solution import RAISED_RESULTS, RESULTS, Solution, error_messag
 from .adaptive import (
     DEFAULT_BAND,
     DEFAULT_RTOL,
+    DIRECT_RTOL,
     FLOAT32_RTOL,
     _padded,
     adaptive_layout,
     finest_cell_width,
     size_class,
+    solve_normal,
 )
 from .process_settings import _bounds, local_cloud, settings_across_processes
 from .settings import Settings, scale_free_lam
@@ -227,6 +229,62 @@ def solve_sharded(
     return c, int(steps.addressable_data(0)), float(residual.addressable_data(0)), metrics
 
 
+def _summed(local: np.ndarray, sharding: NamedSharding) -> np.ndarray:
+    """Every process's ``local`` (one vector, the same length in all) summed: an
+    all-reduce over the processes' devices (this process's vector on its first device,
+    zeros on the others), the sum back on the host of every process."""
+    shards = _axis_size(sharding)
+    mine = len(_process_positions(sharding, shards))
+    rows = np.zeros((mine, local.shape[0]), local.dtype)
+    rows[0] = local
+    mesh, names = sharding.mesh, sharding.spec[0]
+    spread = jax.make_array_from_process_local_data(
+        NamedSharding(mesh, PartitionSpec(names, None)), rows, (shards, local.shape[0])
+    )
+    total = _sum_rows(spread, NamedSharding(mesh, PartitionSpec()))
+    return np.asarray(total.addressable_data(0))
+
+
+@functools.partial(jax.jit, static_argnums=1)
+def _sum_rows(x, replicated):
+    return jax.lax.with_sharding_constraint(x.sum(axis=0), replicated)
+
+
+def solve_summed(
+    problem, matrices, lam: float, sharding: NamedSharding, samples: int
+) -> tuple[np.ndarray, float, dict]:
+    """``(control, relative residual, metrics)``: ``solve_direct``'s factorisation of
+    ``sum_k D_k^T D_k + lam 2 G^T W G`` over several processes, each calling it with its
+    own samples' rows (``matrices``: its ``D_k`` and the regulariser, the same in all).
+    The pattern of the sum is the union of the processes' patterns (an all-gather of
+    their entries' keys), the values and ``sum_k D_k^T b_k`` one all-reduce of a vector
+    of that many entries plus the active functions; every process then factorises the
+    same matrix (the same numbers in all). ``samples``: all processes' sample count."""
+    from scipy import sparse
+
+    collocation, regulariser = matrices
+    n = collocation.shape[1]
+    targets = np.asarray(problem.targets, float)
+    local = sparse.coo_matrix(collocation.T @ collocation)
+    local.sum_duplicates()
+    keys = local.row.astype(np.int64) * n + local.col
+    union = np.unique(gather_ragged(keys))
+    values = np.zeros(len(union) + n)
+    values[np.searchsorted(union, keys)] = local.data
+    values[len(union) :] = collocation.T @ targets
+    values = _summed(values, sharding)
+    rows, cols = np.divmod(union, n)
+    normal = sparse.csc_matrix((values[: len(union)], (rows, cols)), shape=(n, n))
+    control, residual = solve_normal((normal + lam * regulariser).tocsc(), values[len(union) :])
+    r = collocation @ control - targets
+    m = len(targets) // 3
+    table = allgather(np.array([r @ r, np.max(np.abs(r[:m]), initial=0.0)]))
+    data, largest = float(table[:, 0].sum()), float(table[:, 1].max())
+    reg = float(control @ (regulariser @ control))
+    metrics = dict(E=data + lam * reg, E_d=data, R=reg, E_ave=data / samples)
+    return control, residual, dict(metrics, E_max=largest, lam=lam)
+
+
 def _agreed_max(sizes: list[int]) -> list[int]:
     """``sizes`` of every process, their maximum (one small all-gather)."""
     return allgather(np.asarray(sizes, np.int64)).max(axis=0).tolist()
@@ -262,15 +320,11 @@ def fit_adaptive_across_processes(
     arguments and gets the same fit. Settings not given are chosen over every process's
     points (``jurs._fit.process_settings.settings_across_processes``); the hierarchy is
     built from the union of every process's cells to refine (``_union``), so it is the
-    same in all; each process assembles the collocation rows of its own samples, and the
-    solve is ``solve_sharded``'s CG over all devices. The direct path would factorise on
-    one host: ``method="direct"`` is refused. What reads the whole cloud on a host (the
-    orientation and doubt checks) is not run (docs/sharding.md, "Adaptive fits")."""
-    if method not in (None, "cg"):
-        raise ValueError(
-            f"method={method!r}: over several processes fit_adaptive solves by conjugate "
-            "gradients (method='cg' or None); the direct solve factorises on one host"
-        )
+    same in all; each process assembles the collocation rows of its own samples. The
+    solve is ``solve_sharded``'s CG over all devices, or (``method="direct"``, a curve's
+    default) ``solve_summed``'s factorisation of the processes' summed normal equations
+    in every process. What reads the whole cloud on a host (the orientation and doubt
+    checks) is not run (docs/sharding.md, "Adaptive fits")."""
     if normals is None:  # estimated over all processes' points, split like them
         normals = normals_across_processes(points)
     for name, x in (("points", points), ("normals", normals)):
@@ -316,21 +370,30 @@ def fit_adaptive_across_processes(
         lam = scale_free_lam(strength, 3 * total, diagonal, lower, upper, finest_width)
     if rtol is None:
         rtol = DEFAULT_RTOL if dtype == jnp.float64 else FLOAT32_RTOL
-    control_np, steps, residual, metrics = solve_sharded(
-        problem, matrices, float(lam), float(rtol), int(max_steps), dtype, sharding, 3 * total
-    )
+    method = method or ("direct" if ndim == 2 else "cg")
+    if method == "direct":
+        control_np, residual, metrics = solve_summed(
+            problem, matrices, float(lam), sharding, 3 * total
+        )
+        metrics = {name: on_device(value, dtype) for name, value in metrics.items()}
+        steps, tolerance = 0, max(rtol, DIRECT_RTOL)  # as fit_adaptive's direct solve
+    else:
+        control_np, steps, residual, metrics = solve_sharded(
+            problem, matrices, float(lam), float(rtol), int(max_steps), dtype, sharding, 3 * total
+        )
+        tolerance = rtol
     control = on_device(control_np, dtype)
     spline = AdaptiveSpline(hierarchy, control, on_device(np.ones(control.shape), dtype))
     finite = bool(np.all(np.isfinite(control_np)))
     result = (
         RESULTS.successful
-        if finite and residual <= rtol
+        if finite and residual <= tolerance
         else RESULTS.max_steps_reached
         if finite
         else RESULTS.nonfinite
     )
     stats = {
-        "method": "cg",
+        "method": method,
         "num_steps": steps,
         "residual": residual,
         "levels": hierarchy.num_levels,
