@@ -374,9 +374,10 @@ def fit_adaptive(
     several processes (``jax.distributed``), fit where they lie
     (``jurs._fit.adaptive_sharding``, docs/sharding.md "Adaptive fits"): CG splits the
     samples' rows over the devices and reduces only active-function-sized sums; a direct
-    solve reads every shard on the host (one process), and over processes ``method``
-    must be ``"cg"`` or None (the settings are then chosen over every process's points,
-    and the host checks are not run). ``sol.stats["devices"]`` counts the devices.
+    solve reads every shard on the host (one process), or factorises the processes'
+    summed normal equations in each (over processes, where the settings are chosen over
+    every process's points and the host checks are not run). ``sol.stats["devices"]``
+    counts the devices.
 
     Differentiable: with the structure fixed (the same points' leaves), ``jax.grad``
     through [`jurs.internal.make_adaptive_problem`][] and the solve is exact (the solve

@@ -15,7 +15,10 @@ says so, not a partitioner's choice; docs/sharding.md, "Adaptive fits").
 
 The direct path (a curve's default) factorises ``D^T D + lam 2 G^T W G`` on the host: in
 one process every shard is addressable there, so it reads the whole cloud and solves
-exactly as unsharded.
+exactly as unsharded. Over several processes (``fit_adaptive_across_processes``) the
+hierarchy refines the union of every process's cells to refine, each process assembles
+its own samples' rows, and the direct path sums the processes' normal equations
+(``solve_summed``: level-sized, one all-reduce) and factorises them in each.
 """
 
 from __future__ import annotations
