@@ -262,7 +262,9 @@ def solve_summed(
     The pattern of the sum is the union of the processes' patterns (an all-gather of
     their entries' keys), the values and ``sum_k D_k^T b_k`` one all-reduce of a vector
     of that many entries plus the active functions; every process then factorises the
-    same matrix (the same numbers in all). ``samples``: all processes' sample count."""
+    same matrix (the same numbers in all). ``samples``: all processes' sample count. The
+    sums travel in JAX's float: float64 with ``jax_enable_x64``, else float32 (then
+    factorised in float64)."""
     from scipy import sparse
 
     collocation, regulariser = matrices
@@ -271,7 +273,10 @@ def solve_summed(
     local = sparse.coo_matrix(collocation.T @ collocation)
     local.sum_duplicates()
     keys = local.row.astype(np.int64) * n + local.col
-    union = np.unique(gather_ragged(keys))
+    # Sent as (row, col) pairs: each below n fits int32, which JAX keeps without x64;
+    # a key row * n + col would not.
+    pairs = gather_ragged(np.stack([local.row, local.col], axis=1).astype(np.int32))
+    union = np.unique(pairs[:, 0].astype(np.int64) * n + pairs[:, 1])
     values = np.zeros(len(union) + n)
     values[np.searchsorted(union, keys)] = local.data
     values[len(union) :] = collocation.T @ targets
@@ -296,8 +301,11 @@ def _agreed_max(sizes: list[int]) -> list[int]:
 def _union(refined: list[np.ndarray]) -> list[np.ndarray]:
     """Every process's cells to refine (one sorted array of keys a level), joined: the
     OR of the level's refinement flags, sent as the keys of the set flags (a few
-    all-gathers a level)."""
-    return [np.unique(gather_ragged(np.asarray(keys, np.int64))) for keys in refined]
+    all-gathers a level). A level's keys fit int32 (``MAX_FINEST``), which JAX keeps
+    without x64."""
+    return [
+        np.unique(gather_ragged(np.asarray(keys, np.int32))).astype(np.int64) for keys in refined
+    ]
 
 
 def fit_adaptive_across_processes(
