@@ -8,9 +8,10 @@ its own samples and fits, with explicit settings and with automatic ones (chosen
 processes' points, ``jurs._fit.process_settings``); process 0 then fits the whole cloud
 alone and compares. The children are started and stopped here, within ``TIMEOUT`` seconds.
 
-Surfaces take the same path with one sample a slot; a 3D case here would double the
-time (one more compiled solve in each child), so it is not in the suite (docs/sharding.md
-gives its measured agreement).
+Surfaces take the same path with one sample a slot; a 3D case on the uniform grid here
+would double the time (one more compiled solve in each child), so it is not in the suite
+(docs/sharding.md gives its measured agreement). Adaptive fits (a curve, and a small
+surface, whose CG compiles in a few seconds) run over both processes too.
 """
 
 from __future__ import annotations
@@ -26,7 +27,8 @@ import time
 import numpy as np
 import pytest
 
-#: Two processes compile and run two fits each, process 0 two more (about 40 s here).
+#: Two processes compile and run four fits each (two on the uniform grid, two adaptive),
+#: process 0 four more (about 70 s here, the machine loaded).
 pytestmark = pytest.mark.slow
 
 #: Seconds both children together may take before they are killed.
@@ -35,7 +37,7 @@ TIMEOUT = 240
 # argv: process id, coordinator port. Prints one JSON line.
 CHILD = textwrap.dedent(
     """
-    import json, sys
+    import json, re, sys
     import jax
 
     jax.config.update("jax_cpu_collectives_implementation", "gloo")
@@ -166,6 +168,56 @@ CHILD = textwrap.dedent(
             settings=jurs.auto_settings(q, m).as_dict(),
         )
     out["combined"] = entry
+
+    # Adaptive fits (jurs._fit.adaptive_sharding): the hierarchy from every process's
+    # cells to refine, each process's collocation rows on its devices, CG over all.
+    from jurs._fit import adaptive_sharding
+
+    ran = []  # the sharded CG solves as called: the collectives check reads the last one
+    sharded_cg = adaptive_sharding._sharded_cg
+
+    def recording(*args, **kw):
+        ran.append((args, kw))
+        return sharded_cg(*args, **kw)
+
+    adaptive_sharding._sharded_cg = recording
+    summed = []  # the direct path's sums of the processes' normal equations
+    sum_rows = adaptive_sharding._sum_rows
+
+    def recording_sum(x, replicated):
+        summed.append((x, replicated))
+        return sum_rows(x, replicated)
+
+    adaptive_sharding._sum_rows = recording_sum
+
+    def compare_adaptive(name, fit, p, n, **kw):
+        sol = fit(*spread(p, n), **kw)
+        entry = dict(
+            status=sol.status, method=sol.stats["method"], devices=sol.stats["devices"],
+            processes=sol.stats["processes"], active=sol.stats["active"],
+        )
+        if pid == 0:  # the whole cloud in one process
+            ref = fit(p, n, **kw)
+            c0, c1 = np.asarray(ref.spline.control), np.asarray(sol.spline.control)
+            entry.update(
+                ref=ref.status, ref_active=ref.stats["active"],
+                same_settings=ref.settings.as_dict() == sol.settings.as_dict(),
+                rel=float(np.abs(c1 - c0).max() / np.abs(c0).max()),
+            )
+        out[name] = entry
+
+    compare_adaptive("adaptive_curve", jurs.fit, q, m, basis="adaptive")
+    compare_adaptive(
+        "adaptive_sphere", jurs.fit_adaptive, *jurs.datasets.sphere3d(800), finest=16
+    )
+    collective = (
+        r"(all-reduce|all-gather|all-to-all|reduce-scatter|collective-permute)(?:-start)?\\("
+    )
+    args, kw = ran[-1]  # the sphere's CG
+    hlo = sharded_cg.lower(*args, **kw).compile().as_text()
+    out["adaptive_cg_collectives"] = sorted(set(re.findall(collective, hlo)))
+    hlo = sum_rows.lower(*summed[-1]).compile().as_text()  # the curve's summed matrix
+    out["adaptive_direct_collectives"] = sorted(set(re.findall(collective, hlo)))
     print(json.dumps(out), flush=True)
     jax.distributed.shutdown()
     """
@@ -423,3 +475,24 @@ def test_read_in_parts_fit_and_write_once(tmp_path):
     assert len(faces) > 100 and np.abs(radius - 1).max() < 0.05
     spline = jurs.load_spline(tmp_path / "out" / "fit.npz")
     assert spline.control.shape == (8, 8, 8)
+
+
+def test_adaptive_fit_over_two_processes_equals_one_process_fit(reports):
+    """An adaptive fit over 2 processes x 2 devices builds the one-process hierarchy (the
+    same active functions a level, from the union of the processes' refinements) and
+    agrees with the one-process fit: a curve (``jurs.fit(basis="adaptive")``, the direct
+    solve of the processes' summed normal equations) to rounding, a surface
+    (``jurs.fit_adaptive``, CG over the 4 devices) to CG's tolerance."""
+    cases = (("adaptive_curve", "direct", 1e-9), ("adaptive_sphere", "cg", 1e-7))
+    for name, method, bound in cases:
+        for report in reports:
+            entry = report[name]
+            assert entry["status"] == "successful" and entry["method"] == method
+            assert entry["devices"] == 4 and entry["processes"] == 2
+        ref = reports[0][name]
+        assert ref["ref"] == "successful" and ref["same_settings"]
+        assert ref["active"] == ref["ref_active"]
+        assert ref["rel"] < bound
+    for report in reports:  # the compiled programs' collectives: reductions only
+        assert report["adaptive_cg_collectives"] == ["all-reduce"]
+        assert report["adaptive_direct_collectives"] == ["all-reduce"]

@@ -117,19 +117,96 @@ CHILD = textwrap.dedent(
 )
 
 
-@pytest.fixture(scope="module")
-def child():
-    env = dict(
-        os.environ,
-        XLA_FLAGS="--xla_force_host_platform_device_count=4",
-        JAX_ENABLE_X64="1",
-        JAX_PLATFORMS="cpu",
+# Adaptive fits (jurs._fit.adaptive_sharding) in a child process with 4 CPU devices: each
+# sharded fit against the one-device fit of the same cloud. Prints one JSON line.
+ADAPTIVE_CHILD = textwrap.dedent(
+    """
+    import json, re
+    import jax, jax.numpy as jnp, numpy as np
+    from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
+    import jurs
+    from jurs._fit import adaptive_sharding
+
+    assert len(jax.devices()) == 4 and jnp.result_type(float) == jnp.float64
+    mesh = Mesh(np.array(jax.devices()), ("points",))
+    split = NamedSharding(mesh, P("points"))
+    out = {}
+
+    ran = []  # the sharded CG solves, as called: the collectives check reads the last one
+    solve = adaptive_sharding._sharded_cg
+
+    def recording(*args, **kw):
+        ran.append((args, kw))
+        return solve(*args, **kw)
+
+    adaptive_sharding._sharded_cg = recording
+
+    def compare(name, fit, points, normals, **kw):
+        ref = fit(points, normals, **kw)
+        sol = fit(jax.device_put(points, split), jax.device_put(normals, split), **kw)
+        c0, c1 = np.asarray(ref.spline.control), np.asarray(sol.spline.control)
+        out[name] = dict(
+            rel=float(np.abs(c1 - c0).max() / np.abs(c0).max()),
+            status=[ref.status, sol.status],
+            devices=sol.stats.get("devices"),
+            method=sol.stats["method"],
+            metrics=max(
+                abs(float(sol.metrics[k]) - float(ref.metrics[k])) / abs(float(ref.metrics[k]))
+                for k in ("E_d", "E_max", "R")
+            ),
+        )
+
+    p, n = jurs.datasets.example1(600)
+    compare("curve_direct", jurs.fit, p, n, basis="adaptive")
+    compare("curve_cg", jurs.fit_adaptive, p, n, finest=64, method="cg")
+    compare("sphere", jurs.fit_adaptive, *jurs.datasets.sphere3d(800), finest=16)
+
+    # The compiled sharded CG of the sphere: which collectives, of what sizes.
+    args, kw = ran[-1]
+    hlo = solve.lower(*args, **kw).compile().as_text()
+    reduced = re.findall(r"= \\(?([^=]*?)\\)? all-reduce(?:-start)?\\(", hlo)
+    sizes = sorted({
+        int(np.prod([int(d) for d in dims.split(",") if d] or [1]))
+        for shapes in reduced for dims in re.findall(r"\\[([0-9,]*)\\]", shapes)
+    })
+    out["collectives"] = dict(
+        kinds=sorted(set(re.findall(
+            r"(all-reduce|all-gather|all-to-all|reduce-scatter|collective-permute)(?:-start)?\\(",
+            hlo,
+        ))),
+        sizes=sizes,
+        functions=int(args[4].shape[0]),  # the active functions, padded to a size class
+        rows=int(args[1].shape[0]),  # the sample rows over all devices
+        rows_per_device=sorted({s.data.shape[0] for s in args[1].addressable_shards}),
     )
+    print(json.dumps(out))
+    """
+)
+
+FORCED_DEVICES = dict(
+    XLA_FLAGS="--xla_force_host_platform_device_count=4",
+    JAX_ENABLE_X64="1",
+    JAX_PLATFORMS="cpu",
+)
+
+
+def _run_child(script: str) -> dict:
+    env = dict(os.environ, **FORCED_DEVICES)
     run = subprocess.run(
-        [sys.executable, "-c", CHILD], env=env, capture_output=True, text=True, timeout=240
+        [sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=240
     )
     assert run.returncode == 0, run.stderr[-3000:]
     return json.loads(run.stdout.strip().splitlines()[-1])
+
+
+@pytest.fixture(scope="module")
+def child():
+    return _run_child(CHILD)
+
+
+@pytest.fixture(scope="module")
+def adaptive_child():
+    return _run_child(ADAPTIVE_CHILD)
 
 
 @pytest.mark.parametrize("case", ["table", "buckets", "sphere"])
@@ -179,3 +256,62 @@ def test_unsharded_fit_unaffected():
     a = jurs.fit(p, n, **kw)
     b = jurs.fit(jax.device_put(p), jax.device_put(n), **kw)
     np.testing.assert_array_equal(np.asarray(a.spline.control), np.asarray(b.spline.control))
+
+
+@pytest.mark.parametrize("case", ["curve_direct", "curve_cg", "sphere"])
+def test_sharded_adaptive_fit_equals_one_device_fit(adaptive_child, case):
+    """Adaptive fits of points sharded over 4 devices against the one-device fit: a curve's
+    direct solve (``jurs.fit(basis="adaptive")``, host-assembled from the whole cloud) to
+    rounding; CG (a curve with ``method="cg"``, a surface) over the 4 devices, whose sums
+    run in another order, to its tolerance (relative residual 1e-10)."""
+    result = adaptive_child[case]
+    assert result["status"] == ["successful", "successful"]
+    if case == "curve_direct":
+        assert result["method"] == "direct" and result["devices"] == 1
+        assert result["rel"] < 1e-9 and result["metrics"] < 1e-9
+    else:
+        assert result["method"] == "cg" and result["devices"] == 4
+        assert result["rel"] < 1e-7 and result["metrics"] < 1e-7
+
+
+def test_sharded_adaptive_cg_reduces_only_function_sums(adaptive_child):
+    """The compiled sharded CG splits the sample rows evenly over the devices and its only
+    collectives are all-reduces of active-function-sized vectors (``D_k^T D_k c``, ``D^T
+    b``, the diagonal) and of scalars (the data term's metrics): no sample array travels."""
+    result = adaptive_child["collectives"]
+    assert len(result["rows_per_device"]) == 1
+    assert result["rows_per_device"][0] * 4 == result["rows"]
+    assert result["kinds"] == ["all-reduce"]
+    assert result["sizes"] == [1, result["functions"]]
+    assert result["functions"] != result["rows"]  # the sizes tell the two apart
+
+
+def test_split_rows_gives_each_device_its_points_samples():
+    """``split_rows`` hands each device the collocation rows and targets of the samples
+    of its block of points (``[P, P + d n, P - d n]``), with row indices local to its
+    part and padding that adds nothing: the parts rebuild ``D`` and ``b`` exactly."""
+    from scipy import sparse
+
+    from jurs._fit.adaptive_sharding import device_rows, split_rows
+
+    points, functions, devices = 10, 7, 3
+    rng = np.random.default_rng(0)
+    matrix = sparse.random(3 * points, functions, density=0.4, rng=rng, format="csr")
+    targets = rng.normal(size=3 * points)
+    (rows, cols, values), b, is_data = split_rows(matrix, targets, points, devices, np.float64)
+    owner = device_rows(3 * points, points, devices)
+    assert owner.tolist()[:points] == [0] * 4 + [1] * 4 + [2] * 2  # blocks of 4 points
+    length, nnz = len(b) // devices, len(values) // devices
+    dense = matrix.toarray()
+    for k in range(devices):
+        mine = np.flatnonzero(owner == k)
+        part = np.zeros((length, functions))
+        entries = slice(k * nnz, (k + 1) * nnz)
+        np.add.at(part, (rows[entries], cols[entries]), values[entries])
+        np.testing.assert_array_equal(part[: len(mine)], dense[mine])
+        np.testing.assert_array_equal(part[len(mine) :], 0.0)
+        np.testing.assert_array_equal(b[k * length : k * length + len(mine)], targets[mine])
+        np.testing.assert_array_equal(b[k * length + len(mine) : (k + 1) * length], 0.0)
+        assert is_data[k * length : (k + 1) * length].tolist() == (
+            (mine < points).tolist() + [False] * (length - len(mine))
+        )

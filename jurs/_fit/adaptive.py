@@ -45,6 +45,7 @@ from .._problem.sizes import round_size
 from .._solution.solution import RAISED_RESULTS, RESULTS, Solution, error_message
 from .._solution.verdicts import evaluate_bucketed, judge
 from .settings import Settings, auto_settings, scale_free_lam
+from .sharding import input_sharding, spans_processes
 
 #: Cells of the coarsest level along the longest side, at least: it fixes the sign of g far
 #: from the data, where a few cells suffice.
@@ -300,6 +301,12 @@ def solve_direct(problem: AdaptiveProblem, lam: float, matrices=None):
     collocation, regulariser = matrices
     matrix = (collocation.T @ collocation + lam * regulariser).tocsc()
     rhs = collocation.T @ np.asarray(problem.targets, float)
+    return solve_normal(matrix, rhs)
+
+
+def solve_normal(matrix, rhs: np.ndarray) -> tuple[np.ndarray, float]:
+    """``(control, relative residual)`` of ``matrix c = rhs`` (a SciPy CSC symmetric
+    positive definite matrix) by ``solve_direct``'s factorisation, on the host."""
     try:
         import qdldl
 
@@ -312,6 +319,21 @@ def solve_direct(problem: AdaptiveProblem, lam: float, matrices=None):
         control = splu(matrix, permc_spec="COLAMD").solve(rhs)
     scale = max(float(np.linalg.norm(rhs)), np.finfo(float).tiny)
     return control, float(np.linalg.norm(matrix @ control - rhs)) / scale
+
+
+def finest_cell_width(settings: Settings, ndim: int, finest: int | None) -> float:
+    """The finest level's cell in ``settings.domain``: ``fit_adaptive``'s ``finest``
+    cells along the longest side, or where None the data's (``data_finest_cell``), at
+    most ``MAX_FINEST`` cells. ValueError for a ``finest`` outside 8 .. ``MAX_FINEST``."""
+    lower, upper = (np.asarray(v, float) for v in settings.domain)
+    longest = float((upper - lower).max())
+    if finest is None:
+        return max(data_finest_cell(settings, ndim), longest / MAX_FINEST[ndim])
+    if not 8 <= int(finest) <= MAX_FINEST[ndim]:
+        raise ValueError(
+            f"finest must be between 8 and {MAX_FINEST[ndim]} cells in {ndim}D, got {finest}"
+        )
+    return longest / int(finest)
 
 
 def fit_adaptive(
@@ -378,6 +400,15 @@ def fit_adaptive(
         level over the box). ``result`` is ``successful``, ``max_steps_reached`` (CG
         stopped first) or ``nonfinite``, or with ``checks`` the verdicts above.
 
+    Points (and normals) sharded along the point axis over several devices, or split over
+    several processes (``jax.distributed``), fit where they lie
+    (``jurs._fit.adaptive_sharding``, docs/sharding.md "Adaptive fits"): CG splits the
+    samples' rows over the devices and reduces only active-function-sized sums; a direct
+    solve reads every shard on the host (one process), or factorises the processes'
+    summed normal equations in each (over processes, where the settings are chosen over
+    every process's points and the host checks are not run). ``sol.stats["devices"]``
+    counts the devices.
+
     Differentiable: with the structure fixed (the same points' leaves), ``jax.grad``
     through [`jurs.internal.make_adaptive_problem`][] and the solve is exact (the solve
     sits behind ``lax.custom_linear_solve``).
@@ -386,6 +417,14 @@ def fit_adaptive(
         raise ValueError(f"method must be 'direct', 'cg' or None, got {method!r}")
     if band is not None and band < 1:
         raise ValueError(f"band must be at least 1 cell, got {band}")
+    if spans_processes(points, normals):  # each process assembles its own samples' rows
+        from .adaptive_sharding import fit_adaptive_across_processes
+
+        return fit_adaptive_across_processes(
+            points, normals, finest=finest, band=band, offset=offset, eps=eps, domain=domain,
+            smoothing=smoothing, lam=lam, rtol=rtol, max_steps=max_steps, settings=settings,
+            method=method, dtype=dtype, throw=throw,
+        )  # fmt: skip
     if isinstance(points, Cloud):
         if normals is not None or points.normals is None or points.mask is not None:
             raise ValueError(
@@ -409,16 +448,10 @@ def fit_adaptive(
     normals_np = np.asarray(cloud.normals, float)[keep]
     ndim = points_np.shape[1]
     lower, upper = (np.asarray(v, float) for v in settings.domain)
-    longest = float((upper - lower).max())
-    if finest is None:
-        cell = max(data_finest_cell(settings, ndim), longest / MAX_FINEST[ndim])
-    else:
-        if not 8 <= int(finest) <= MAX_FINEST[ndim]:
-            raise ValueError(
-                f"finest must be between 8 and {MAX_FINEST[ndim]} cells in {ndim}D, got {finest}"
-            )
-        cell = longest / int(finest)
+    cell = finest_cell_width(settings, ndim, finest)
     method = method or ("direct" if ndim == 2 else "cg")
+    # Points sharded over devices (one process): CG keeps each device's samples there.
+    sharding = input_sharding(cloud.given_points, cloud.given_normals)
     band = DEFAULT_BAND[ndim] if band is None else int(band)
     lower, upper, base, levels = adaptive_layout(lower, upper, cell)
     offset_value = settings.offset if offset is None else float(offset)
@@ -452,6 +485,14 @@ def fit_adaptive(
         # A direct solve is exact up to rounding; a residual far above it means the
         # factorisation met a (numerically) singular matrix.
         tolerance = max(rtol, DIRECT_RTOL)
+    elif sharding is not None:
+        from .adaptive_sharding import solve_sharded
+
+        control_np, steps, residual, metrics = solve_sharded(
+            problem, matrices, float(lam), float(rtol), int(max_steps), dtype, sharding
+        )
+        control = on_device(control_np, dtype)
+        tolerance = rtol
     else:
         control_np, steps, residual = solve_assembled(
             problem, matrices, float(lam), float(rtol), int(max_steps), dtype
@@ -477,6 +518,8 @@ def fit_adaptive(
         "active": hierarchy.active_counts,
         "finest": hierarchy.cells(finest_level),
     }
+    if sharding is not None:  # the devices the solve ran over (a direct solve: the host)
+        stats["devices"] = len(sharding.device_set) if method == "cg" else 1
     sol = Solution(spline, metrics, stats, result, None, settings)
     if checks:
         sol = judge(sol, cloud, settings, offset_value)

@@ -148,18 +148,27 @@ def _traced_fit(
     return solve_fit(problem, as_arrays(solver, dtype), init, throw)[0]
 
 
-def _uniform_only(grid, solver, init, mask, bucket_size, run, points, normals) -> list[str]:
+def _uniform_only(
+    grid, solver, init, mask, bucket_size, run, points, normals, basis="auto"
+) -> list[str]:
     """The arguments of a [`fit`][jurs.fit] call that only the uniform grid takes, by
-    name; empty where the adaptive basis can fit it."""
+    name; empty where the adaptive basis can fit it. Points sharded over devices or
+    processes are fitted on the adaptive basis when it is asked for (``basis="adaptive"``,
+    ``jurs._fit.adaptive_sharding``); the automatic choice keeps them on the grid."""
     given = dict(grid=grid, solver=solver, init=init, mask=mask, bucket_size=bucket_size)
     names = [name for name, value in given.items() if value is not None]
     if run is not None:
         names.append("callback")
     if spans_processes(points, normals):
-        names.append("points split over processes")
+        if basis != "adaptive":
+            names.append("points split over processes")
     elif not isinstance(points, Cloud) and not _is_concrete(points, normals):
         names.append("traced points")
-    elif not isinstance(points, Cloud) and input_sharding(points, normals) is not None:
+    elif (
+        basis != "adaptive"
+        and not isinstance(points, Cloud)
+        and input_sharding(points, normals) is not None
+    ):
         names.append("points sharded over devices")
     return names
 
@@ -265,7 +274,8 @@ def fit(
             ``mask``, ``bucket_size``, a ``callback``, points sharded over devices or
             processes, or traced points keep the uniform grid. ``"uniform"``: the uniform
             grid always. ``"adaptive"``: [`jurs.fit_adaptive`][] with the settings chosen
-            here (it takes none of the uniform-only arguments above).
+            here (it takes none of the uniform-only arguments above, but points sharded
+            over devices or processes: docs/sharding.md, "Adaptive fits").
 
     Returns:
         [`jurs.Solution`][]. Jit-compiled inside; traceable, so ``jax.grad`` and
@@ -356,7 +366,7 @@ def _fit(
     (default the compiled call, ``jurs._fit.call.solve_fit``) returning ``(solution,
     top_level, extra)``; returns ``(solution, extra)``. [`jurs.fit_in_chunks`][] runs
     the same flow with a chunked solve."""
-    uniform_only = _uniform_only(grid, solver, init, mask, bucket_size, run, points, normals)
+    uniform_only = _uniform_only(grid, solver, init, mask, bucket_size, run, points, normals, basis)
     if basis not in BASES:
         raise ValueError(f"basis must be one of {', '.join(map(repr, BASES))}, got {basis!r}")
     if basis == "adaptive" and uniform_only:
@@ -368,7 +378,7 @@ def _fit(
         if run is not None:
             raise ValueError("a fit over several processes runs in one call: no callback")
         args = grid, solver, offset, eps, domain, margin, init, mask, bucket_size, smoothing, throw
-        return fit_across_processes(points, normals, *args), None
+        return fit_across_processes(points, normals, *args, basis=basis), None
     if smoothing is not None and solver is not None:
         raise ValueError(
             "smoothing sets the default solver's lambda; with a solver given, set its lam instead"

@@ -13,6 +13,7 @@ from .._cloud.parts import normals_across_processes, spans_processes
 from .._problem.validate import normalise_grid
 from .._solution.solution import RAISED_RESULTS, error_message
 from ..solvers import LeastSquares
+from .adaptive import auto_finest, fit_adaptive
 from .call import as_arrays, check_start, solve_fit
 from .process_settings import settings_across_processes
 from .sharding import (
@@ -37,6 +38,7 @@ def fit_across_processes(
     bucket_size,
     smoothing,
     throw,
+    basis="auto",
 ):
     """[`jurs.fit`][] of points and normals held by several processes (global
     ``jax.Array`` s split along the point axis, ``jurs._fit.sharding.spans_processes``);
@@ -48,7 +50,9 @@ def fit_across_processes(
     aside) and returned in ``sol.settings``; normals None are estimated by
     ``jurs._cloud.parts.normals_across_processes``. What reads the whole cloud on a host is not
     run: the orientation and doubt checks, the padding to
-    stable sizes and the store of exported fits (docs/sharding.md)."""
+    stable sizes and the store of exported fits (docs/sharding.md). ``basis="adaptive"``:
+    [`jurs.fit_adaptive`][] over the processes with the settings chosen here
+    (``jurs._fit.adaptive_sharding``)."""
     if normals is None:  # estimated over all processes' points, split like them
         if not spans_processes(points):
             raise ValueError("normals: pass them split like the points, or None")
@@ -66,6 +70,13 @@ def fit_across_processes(
             )
     if mask is not None:
         raise ValueError("mask: fits over several processes take no mask (docs/sharding.md)")
+    if basis == "adaptive":  # the arguments only the grid takes were refused by jurs.fit
+        settings = settings_across_processes(
+            points, normals, None, offset, eps, domain, margin, smoothing
+        )
+        return fit_adaptive(
+            points, normals, settings=settings, finest=auto_finest(settings), throw=throw
+        )
     given = dict(grid=grid, offset=offset, eps=eps, domain=domain, solver=solver)
     settings = None
     if any(given[name] is None for name in PROCESS_SETTINGS):

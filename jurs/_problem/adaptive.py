@@ -10,6 +10,8 @@ differentiates with respect to the points.
 
 from __future__ import annotations
 
+from collections.abc import Callable
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -134,10 +136,16 @@ def assemble_adaptive_problem(
     levels: int,
     band: int = 2,
     dtype=None,
+    combine_refined: Callable[[list[np.ndarray]], list[np.ndarray]] | None = None,
 ) -> tuple[AdaptiveProblem, tuple]:
     """``(problem, (D, 2 G^T W G))``: ``make_adaptive_problem``'s problem and the host
     matrices of ``normal_matrices`` it was assembled from (its Jacobi diagonals come from
-    them), so that a direct solve factorises them without assembling them again."""
+    them), so that a direct solve factorises them without assembling them again.
+
+    ``combine_refined``: maps the cells these points ask to refine (``refine_near``: one
+    sorted array of cell keys a level) to the cells the hierarchy refines; over several
+    processes, the union of every process's (the same hierarchy in all), while each
+    process's problem holds its own samples only. None: these points' own."""
     dtype = dtype or jnp.result_type(float)
     points_np = np.asarray(points, dtype=float)
     normals_np = np.asarray(normals, dtype=float)
@@ -145,6 +153,8 @@ def assemble_adaptive_problem(
     # operations would compile each of their shapes, about a hundred per new cloud).
     samples_np, targets_np = offset_samples(points_np, normals_np, offset, eps, xp=np)  # pyright: ignore[reportArgumentType]
     refine = refine_near(lower, upper, base, levels, samples_np, band)
+    if combine_refined is not None:
+        refine = combine_refined(refine)
     hierarchy = build_hierarchy(lower, upper, base, refine, dtype=dtype)
     samples_np = samples_np.astype(dtype)  # leaves found in the fit's own precision
     level, cell = locate_leaves(hierarchy, samples_np, xp=np)

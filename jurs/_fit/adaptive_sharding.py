@@ -1,0 +1,419 @@
+"""Adaptive fits ([`jurs.fit_adaptive`][]) of points sharded over several devices.
+
+The hierarchy's structure (which cells are refined, ``refine_near``) is built on the host
+from the whole cloud, once, so it is the same on every device. The conjugate-gradient path
+then keeps the samples where the points are: the rows of the collocation matrix ``D``
+(one a sample: its ``4^d`` cascaded basis values, assembled on the host) and the targets
+are split over the points' mesh axis, each device holding the rows of the samples of its
+own block of points (``[P, P + d n, P - d n]`` of them); the coefficients, the regulariser
+(``2 G^T W G``, active-function-sized) and every CG vector are replicated. One CG step's
+``D^T D c`` is a per-device product (``D_k c``, then its transpose, a scatter-add onto the
+active functions) and one all-reduce of an active-function-sized vector; the right-hand
+side ``D^T b``, the Jacobi diagonal of ``D^T D`` and the data term of the metrics reduce
+the same way once. No sample-sized array leaves its device (``shard_map``: the program
+says so, not a partitioner's choice; docs/sharding.md, "Adaptive fits").
+
+The direct path (a curve's default) factorises ``D^T D + lam 2 G^T W G`` on the host: in
+one process every shard is addressable there, so it reads the whole cloud and solves
+exactly as unsharded. Over several processes (``fit_adaptive_across_processes``) the
+hierarchy refines the union of every process's cells to refine, each process assembles
+its own samples' rows, and the direct path sums the processes' normal equations
+(``solve_summed``: level-sized, one all-reduce) and factorises them in each.
+"""
+
+from __future__ import annotations
+
+import functools
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import lax
+from jax.sharding import Mesh, NamedSharding, PartitionSpec
+
+from .._cloud.parts import agree, allgather, gather_ragged, normals_across_processes
+from .._linalg.pcg import conjugate_gradients
+from .._model.adaptive import AdaptiveSpline
+from .._model.precision import on_device
+from .._problem.adaptive import assemble_adaptive_problem
+from .._problem.validate import unit_normals, validate_inputs
+from .._solution.solution import RAISED_RESULTS, RESULTS, Solution, error_message
+from .adaptive import (
+    DEFAULT_BAND,
+    DEFAULT_RTOL,
+    DIRECT_RTOL,
+    FLOAT32_RTOL,
+    _padded,
+    adaptive_layout,
+    finest_cell_width,
+    size_class,
+    solve_normal,
+)
+from .process_settings import _bounds, local_cloud, settings_across_processes
+from .settings import Settings, scale_free_lam
+from .sharding import _axis_size, _process_positions, input_sharding
+
+
+def device_rows(count: int, points: int, shards: int) -> np.ndarray:
+    """The device (``0 .. shards - 1``) of each of the ``count = 3 points`` sample rows:
+    that of its point's block (``ceil(points / shards)`` points a device, in order), as
+    the points are split."""
+    block = -(-points // shards)
+    return (np.arange(count) % points) // block
+
+
+def _host_coo(matrix, nnz: int, dtype) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(rows, cols, values)`` of a SciPy sparse matrix on the host, padded to ``nnz``
+    entries with zeros at (0, 0), which add exactly nothing."""
+    coo = matrix.tocoo()
+    return (
+        _padded(coo.row.astype(np.int32), nnz),
+        _padded(coo.col.astype(np.int32), nnz),
+        _padded(coo.data.astype(dtype), nnz),
+    )
+
+
+def split_rows(collocation, targets: np.ndarray, points: int, devices: int, dtype, agree=None):
+    """``((rows, cols, values), targets, is_data)``: host arrays of the rows of
+    ``collocation`` (SciPy, ``(3 points, n)``) and of ``targets`` split over ``devices``
+    devices by ``device_rows``, each device's part padded to one length (a size class)
+    and laid end to end: its entries with row indices local to its part (padding: zeros
+    at (0, 0), which add nothing), its targets padded with zeros (rows without entries:
+    a residual of 0), ``is_data`` True on its rows of data points (eq. 4's ``P``).
+    ``agree``: maps this process's ``[rows, entries]`` a device (the most of its devices)
+    to those of every process (their maximum), so that all pad to one length."""
+    count = collocation.shape[0]
+    owner = device_rows(count, points, devices)
+    csr = collocation.tocsr()
+    parts = [np.flatnonzero(owner == k) for k in range(devices)]
+    blocks = [csr[rows] for rows in parts]
+    sizes = [max(len(rows) for rows in parts), max(block.nnz for block in blocks)]
+    if agree is not None:
+        sizes = agree(sizes)
+    length, nnz = (size_class(int(x)) for x in sizes)
+    entries, values, data = [], [], []
+    for rows, block in zip(parts, blocks):
+        entries.append(_host_coo(block, nnz, dtype))
+        values.append(_padded(np.asarray(targets, float)[rows], length))
+        data.append(_padded(rows < points, length, False))
+    coo = tuple(np.concatenate([e[i] for e in entries]) for i in range(3))
+    return coo, np.concatenate(values).astype(dtype), np.concatenate(data)
+
+
+@functools.partial(jax.jit, static_argnames=("mesh", "names"))
+def _sharded_cg(
+    collocation, targets, is_data, regulariser, regulariser_diagonal, lam, rtol, max_steps,
+    *, mesh: Mesh, names,
+):  # fmt: skip
+    """``(control, steps, relative residual, E_d, E_max)``: ``_assembled_cg``'s solve
+    with ``D``'s rows (``collocation``, local row indices), ``targets`` and ``is_data``
+    split over ``mesh``'s ``names`` axis, everything else replicated. The data term runs
+    per device under ``shard_map``; its sums onto the active functions are all-reduced."""
+    reg_rows, reg_cols, reg_values = regulariser
+    n = regulariser_diagonal.shape[0]
+    split, whole = PartitionSpec(names), PartitionSpec()
+    on_parts = functools.partial(jax.shard_map, mesh=mesh, check_vma=False)
+
+    def apply(entries, c, count):  # this device's D_k c
+        rows, cols, values = entries
+        return jax.ops.segment_sum(values * c[cols], rows, count)
+
+    def transpose(entries, v):  # this device's D_k^T v: active-function-sized
+        rows, cols, values = entries
+        return jax.ops.segment_sum(values * v[rows], cols, n)
+
+    local = targets.shape[0] // _axis_size(NamedSharding(mesh, split))  # rows a device
+
+    @functools.partial(on_parts, in_specs=(split, whole), out_specs=whole)
+    def data_normal(entries, c):  # D^T D c = sum_k D_k^T D_k c
+        return lax.psum(transpose(entries, apply(entries, c, local)), names)
+
+    @functools.partial(on_parts, in_specs=(split, split), out_specs=(whole, whole))
+    def once(entries, b):  # D^T b and the diagonal of D^T D
+        rows, cols, values = entries
+        diagonal = jax.ops.segment_sum(values * values, cols, n)
+        return lax.psum(transpose(entries, b), names), lax.psum(diagonal, names)
+
+    @functools.partial(on_parts, in_specs=(split, split, split, whole), out_specs=(whole, whole))
+    def data_metrics(entries, b, data, c):  # E_d and E_max
+        r = apply(entries, c, b.shape[0]) - b
+        largest = jnp.max(jnp.where(data, jnp.abs(r), 0.0))
+        return lax.psum(jnp.sum(r * r), names), lax.pmax(largest, names)
+
+    def matvec(c):
+        regular = jax.ops.segment_sum(reg_values * c[reg_cols], reg_rows, n)
+        return data_normal(collocation, c) + lam * regular
+
+    rhs, data_diagonal = once(collocation, targets)
+    diagonal = data_diagonal + lam * regulariser_diagonal
+    inverse = jnp.where(diagonal > 0, 1.0 / jnp.where(diagonal > 0, diagonal, 1.0), 0.0)
+    control, steps, residual = conjugate_gradients(
+        matvec, rhs, precondition=lambda r: inverse * r, rtol=rtol, max_steps=max_steps
+    )
+    data, largest = data_metrics(collocation, targets, is_data, control)
+    return control, steps, residual, data, largest
+
+
+def solve_sharded(
+    problem,
+    matrices,
+    lam: float,
+    rtol: float,
+    max_steps: int,
+    dtype,
+    sharding: NamedSharding,
+    samples: int | None = None,
+) -> tuple[np.ndarray, int, float, dict]:
+    """``(control, steps, relative residual, metrics)``: ``solve_assembled``'s CG (the
+    same matrix, preconditioner and stop rule) with the collocation matrix's rows and the
+    targets split over ``sharding``'s point axis (module docstring). Agrees with the
+    one-device solve to the CG tolerance (the sums run in another order).
+
+    Over several processes each calls it with its own samples' rows (``matrices`` and
+    ``problem.targets`` its own, the regulariser the same in all) and ``samples``, the
+    sample count of all processes; the rows go to this process's devices (one small
+    all-gather agrees on the padded lengths) and the control points come back in every
+    process."""
+    collocation, regulariser = matrices
+    count, n = collocation.shape
+    shards = _axis_size(sharding)
+    mesh, names = sharding.mesh, sharding.spec[0]
+    split = NamedSharding(mesh, PartitionSpec(names))
+    replicated = NamedSharding(mesh, PartitionSpec())
+    if jax.process_count() == 1:
+        coo, targets, is_data = split_rows(
+            collocation, np.asarray(problem.targets), count // 3, shards, dtype
+        )
+        put_split = functools.partial(jax.device_put, device=split)
+    else:
+        mine = len(_process_positions(sharding, shards))
+        coo, targets, is_data = split_rows(
+            collocation, np.asarray(problem.targets), count // 3, mine, dtype, _agreed_max
+        )
+
+        def put_split(x):  # this process's devices' parts of the global rows
+            size = (x.shape[0] // mine * shards,)
+            return jax.make_array_from_process_local_data(split, x, size)
+
+    def put_whole(x):  # the same host value on every device of every process
+        x = np.asarray(x)
+        return jax.make_array_from_process_local_data(replicated, x, x.shape)
+
+    reg_coo = _host_coo(regulariser, size_class(regulariser.nnz), dtype)
+    regulariser_diagonal = _padded(np.asarray(problem.regulariser_diagonal, float), size_class(n))
+    control, steps, residual, data, largest = _sharded_cg(
+        tuple(put_split(a) for a in coo),
+        put_split(targets),
+        put_split(is_data),
+        tuple(put_whole(a) for a in reg_coo),
+        put_whole(regulariser_diagonal.astype(dtype)),
+        put_whole(np.asarray(lam, dtype)),
+        put_whole(np.asarray(rtol, dtype)),
+        put_whole(np.asarray(max_steps, np.int32)),
+        mesh=mesh,
+        names=names,
+    )
+    c = np.asarray(control.addressable_data(0))[:n]  # replicated: every device holds it
+    reg = float(c @ (regulariser @ c))
+    data = float(data.addressable_data(0))
+    samples = count if samples is None else samples
+    metrics = {
+        name: on_device(value, dtype)
+        for name, value in (
+            ("E", data + lam * reg),
+            ("E_d", data),
+            ("R", reg),
+            ("E_ave", data / samples),
+            ("E_max", float(largest.addressable_data(0))),
+            ("lam", lam),
+        )
+    }
+    return c, int(steps.addressable_data(0)), float(residual.addressable_data(0)), metrics
+
+
+def _summed(local: np.ndarray, sharding: NamedSharding) -> np.ndarray:
+    """Every process's ``local`` (one vector, the same length in all) summed: an
+    all-reduce over the processes' devices (this process's vector on its first device,
+    zeros on the others), the sum back on the host of every process."""
+    shards = _axis_size(sharding)
+    mine = len(_process_positions(sharding, shards))
+    rows = np.zeros((mine, local.shape[0]), local.dtype)
+    rows[0] = local
+    mesh, names = sharding.mesh, sharding.spec[0]
+    spread = jax.make_array_from_process_local_data(
+        NamedSharding(mesh, PartitionSpec(names, None)), rows, (shards, local.shape[0])
+    )
+    total = _sum_rows(spread, NamedSharding(mesh, PartitionSpec()))
+    return np.asarray(total.addressable_data(0))
+
+
+@functools.partial(jax.jit, static_argnums=1)
+def _sum_rows(x, replicated):
+    return jax.lax.with_sharding_constraint(x.sum(axis=0), replicated)
+
+
+def solve_summed(
+    problem, matrices, lam: float, sharding: NamedSharding, samples: int
+) -> tuple[np.ndarray, float, dict]:
+    """``(control, relative residual, metrics)``: ``solve_direct``'s factorisation of
+    ``sum_k D_k^T D_k + lam 2 G^T W G`` over several processes, each calling it with its
+    own samples' rows (``matrices``: its ``D_k`` and the regulariser, the same in all).
+    The pattern of the sum is the union of the processes' patterns (an all-gather of
+    their entries' keys), the values and ``sum_k D_k^T b_k`` one all-reduce of a vector
+    of that many entries plus the active functions; every process then factorises the
+    same matrix (the same numbers in all). ``samples``: all processes' sample count. The
+    sums travel in JAX's float: float64 with ``jax_enable_x64``, else float32 (then
+    factorised in float64)."""
+    from scipy import sparse
+
+    collocation, regulariser = matrices
+    n = collocation.shape[1]
+    targets = np.asarray(problem.targets, float)
+    local = sparse.coo_matrix(collocation.T @ collocation)
+    local.sum_duplicates()
+    keys = local.row.astype(np.int64) * n + local.col
+    # Sent as (row, col) pairs: each below n fits int32, which JAX keeps without x64;
+    # a key row * n + col would not.
+    pairs = gather_ragged(np.stack([local.row, local.col], axis=1).astype(np.int32))
+    union = np.unique(pairs[:, 0].astype(np.int64) * n + pairs[:, 1])
+    values = np.zeros(len(union) + n)
+    values[np.searchsorted(union, keys)] = local.data
+    values[len(union) :] = collocation.T @ targets
+    values = _summed(values, sharding)
+    rows, cols = np.divmod(union, n)
+    normal = sparse.csc_matrix((values[: len(union)], (rows, cols)), shape=(n, n))
+    control, residual = solve_normal((normal + lam * regulariser).tocsc(), values[len(union) :])
+    r = collocation @ control - targets
+    m = len(targets) // 3
+    table = allgather(np.array([r @ r, np.max(np.abs(r[:m]), initial=0.0)]))
+    data, largest = float(table[:, 0].sum()), float(table[:, 1].max())
+    reg = float(control @ (regulariser @ control))
+    metrics = dict(E=data + lam * reg, E_d=data, R=reg, E_ave=data / samples)
+    return control, residual, dict(metrics, E_max=largest, lam=lam)
+
+
+def _agreed_max(sizes: list[int]) -> list[int]:
+    """``sizes`` of every process, their maximum (one small all-gather)."""
+    return allgather(np.asarray(sizes, np.int64)).max(axis=0).tolist()
+
+
+def _union(refined: list[np.ndarray]) -> list[np.ndarray]:
+    """Every process's cells to refine (one sorted array of keys a level), joined: the
+    OR of the level's refinement flags, sent as the keys of the set flags (a few
+    all-gathers a level). A level's keys fit int32 (``MAX_FINEST``), which JAX keeps
+    without x64."""
+    return [
+        np.unique(gather_ragged(np.asarray(keys, np.int32))).astype(np.int64) for keys in refined
+    ]
+
+
+def fit_adaptive_across_processes(
+    points,
+    normals,
+    *,
+    finest=None,
+    band=None,
+    offset=None,
+    eps=None,
+    domain=None,
+    smoothing=None,
+    lam=None,
+    rtol=None,
+    max_steps: int = 10_000,
+    settings: Settings | None = None,
+    method=None,
+    dtype=None,
+    throw: bool = True,
+) -> Solution:
+    """[`jurs.fit_adaptive`][] of points and normals held by several processes (global
+    ``jax.Array`` s split along the point axis); every process calls it with the same
+    arguments and gets the same fit. Settings not given are chosen over every process's
+    points (``jurs._fit.process_settings.settings_across_processes``); the hierarchy is
+    built from the union of every process's cells to refine (``_union``), so it is the
+    same in all; each process assembles the collocation rows of its own samples. The
+    solve is ``solve_sharded``'s CG over all devices, or (``method="direct"``, a curve's
+    default) ``solve_summed``'s factorisation of the processes' summed normal equations
+    in every process. What reads the whole cloud on a host (the orientation and doubt
+    checks) is not run (docs/sharding.md, "Adaptive fits")."""
+    if normals is None:  # estimated over all processes' points, split like them
+        normals = normals_across_processes(points)
+    for name, x in (("points", points), ("normals", normals)):
+        if not isinstance(x, jax.Array) or x.is_fully_addressable or x.ndim != 2:
+            raise ValueError(
+                f"{name}: over several processes pass points and normals both as global "
+                "(m, d) jax.Arrays split the same way along the point axis "
+                "(jax.make_array_from_process_local_data)"
+            )
+    sharding = input_sharding(points, normals)
+    assert sharding is not None
+    if settings is None:
+        settings = settings_across_processes(
+            points, normals, None, offset, eps, domain, smoothing=smoothing
+        )
+    _, p, n, total = local_cloud(points, normals)
+    failure = None
+    try:  # this process's rows, checked as one process checks its cloud
+        validate_inputs(p, n, offset=offset, eps=eps, domain=settings.domain)
+    except (TypeError, ValueError) as error:
+        failure = type(error)(f"process {jax.process_index()}, its own part: {error}")
+    agree(failure, "checking its points")
+    n = unit_normals(n)
+    ndim = p.shape[1]
+    lower, upper = (np.asarray(v, float) for v in settings.domain)
+    cell = finest_cell_width(settings, ndim, finest)
+    band = DEFAULT_BAND[ndim] if band is None else int(band)
+    lower, upper, base, levels = adaptive_layout(lower, upper, cell)
+    offset_value = settings.offset if offset is None else float(offset)
+    eps_value = settings.eps if eps is None else float(eps)
+    dtype = jnp.dtype(dtype or jnp.result_type(float))
+    problem, matrices = assemble_adaptive_problem(
+        p, n, offset=offset_value, eps=eps_value, lower=lower, upper=upper, base=base,
+        levels=levels, band=band, dtype=dtype, combine_refined=_union,
+    )  # fmt: skip
+    hierarchy = problem.hierarchy
+    finest_level = hierarchy.num_levels - 1
+    finest_width = float(np.max((upper - lower) / np.asarray(hierarchy.cells(finest_level))))
+    if lam is None:
+        strength = settings.smoothing if smoothing is None else float(smoothing)
+        lo, hi = _bounds(p)
+        diagonal = float(np.linalg.norm(hi - lo))
+        lam = scale_free_lam(strength, 3 * total, diagonal, lower, upper, finest_width)
+    if rtol is None:
+        rtol = DEFAULT_RTOL if dtype == jnp.float64 else FLOAT32_RTOL
+    method = method or ("direct" if ndim == 2 else "cg")
+    if method == "direct":
+        control_np, residual, metrics = solve_summed(
+            problem, matrices, float(lam), sharding, 3 * total
+        )
+        metrics = {name: on_device(value, dtype) for name, value in metrics.items()}
+        steps, tolerance = 0, max(rtol, DIRECT_RTOL)  # as fit_adaptive's direct solve
+    else:
+        control_np, steps, residual, metrics = solve_sharded(
+            problem, matrices, float(lam), float(rtol), int(max_steps), dtype, sharding, 3 * total
+        )
+        tolerance = rtol
+    control = on_device(control_np, dtype)
+    spline = AdaptiveSpline(hierarchy, control, on_device(np.ones(control.shape), dtype))
+    finite = bool(np.all(np.isfinite(control_np)))
+    result = (
+        RESULTS.successful
+        if finite and residual <= tolerance
+        else RESULTS.max_steps_reached
+        if finite
+        else RESULTS.nonfinite
+    )
+    stats = {
+        "method": method,
+        "num_steps": steps,
+        "residual": residual,
+        "levels": hierarchy.num_levels,
+        "active": hierarchy.active_counts,
+        "finest": hierarchy.cells(finest_level),
+        "devices": len(sharding.device_set),
+        "processes": jax.process_count(),
+    }
+    sol = Solution(spline, metrics, stats, result, None, settings)
+    if throw and sol.status in RAISED_RESULTS:
+        raise eqx.EquinoxRuntimeError(error_message(sol.status))
+    return sol
