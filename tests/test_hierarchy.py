@@ -433,3 +433,49 @@ def test_a_curve_fit_keeps_a_band_of_one_cell_by_default():
     assert sum(one.stats["active"]) < sum(two.stats["active"])
     x = np.array([[0.0, 0.0], [0.5, 0.5], [1.2, 0.1]])
     np.testing.assert_array_equal(default.spline(x), one.spline(x))
+
+
+@pytest.mark.parametrize("ndim", [2, 3])
+def test_packed_evaluation_equals_the_hierarchys(ndim):
+    """Outside a transformation a rational adaptive spline evaluates by its packed arrays
+    (keys shifted and padded, levels padded); inside one, through its hierarchy. Values
+    and gradients agree to rounding, for many points and for one."""
+    from jurs._model.packed import pack
+
+    hierarchy = _hierarchy(ndim)
+    rng = np.random.default_rng(5)
+    control = jnp.asarray(rng.normal(size=hierarchy.num_active))
+    weights = jnp.asarray(rng.uniform(0.5, 2.0, hierarchy.num_active))
+    spline = jurs.AdaptiveSpline(hierarchy, control, weights)
+    packed = pack(hierarchy, control, weights)
+    assert packed is not None and packed.cells.shape[0] % 4 == 0
+    x = _random_points(hierarchy, 300)
+    traced = jax.jit(lambda s, p: (s(p), s.grad(p)))(spline, x)
+    np.testing.assert_allclose(spline(x), traced[0], rtol=1e-12, atol=1e-13)
+    np.testing.assert_allclose(spline.grad(x), traced[1], rtol=1e-10, atol=1e-12)
+    np.testing.assert_allclose(spline(x[7]), traced[0][7], rtol=1e-12, atol=1e-13)
+    np.testing.assert_allclose(spline.grad(x[7]), traced[1][7], rtol=1e-10, atol=1e-12)
+    # jax.grad with respect to the coefficients goes through the hierarchy, as before.
+    slope = jax.grad(lambda c: jnp.sum(jurs.AdaptiveSpline(hierarchy, c, weights)(x)))(control)
+    assert slope.shape == control.shape and np.isfinite(np.asarray(slope)).all()
+
+
+def test_evaluating_a_new_adaptive_fit_compiles_nothing():
+    """A user's first ``sol.spline(x)`` and ``sol.spline.grad(x)`` on a new fit (another
+    hierarchy of the same size class, another number of points) reuse the programs the
+    last fit compiled."""
+    from test_compile import _CompileCounter
+
+    t = np.linspace(0, 2 * np.pi, 150, endpoint=False)
+    circle = np.stack([np.cos(t), np.sin(t)], 1)
+    x = np.random.default_rng(2).uniform(-1.5, 1.5, (300, 2))
+    first = jurs.fit_adaptive(circle, circle, finest=64).spline
+    first(x), first.grad(x)
+    second = jurs.fit_adaptive(1.3 * circle[:140], circle[:140], finest=64).spline
+    assert second.hierarchy.num_active != first.hierarchy.num_active  # a new hierarchy
+    with _CompileCounter("") as counter:
+        values, gradient = second(x[:280]), second.grad(x[:280])
+    assert counter.count == 0
+    assert values.shape == (280,) and gradient.shape == (280, 2)
+    inside = np.linalg.norm(x[:280], axis=1) < 1.3
+    assert np.all((np.asarray(values) < 0) == inside)

@@ -18,8 +18,10 @@ from jaxtyping import ArrayLike, Float
 
 from .hierarchy import Hierarchy
 from .leaves import hierarchy_values, hierarchy_values_and_gradients
+from .packed import packed_evaluation
 
-# One compiled program per hierarchy and point count: run eagerly, the leaf search and the
+# Traced evaluations (jurs._model.packed takes the others): one compiled program per
+# hierarchy and point count. Run eagerly, the leaf search and the
 # cascade compile each of their few dozen operations for every new shape (18 s against
 # 5.5 s for a first gradient on a 14k-function curve fit, a loaded 2-core CPU), and a warm
 # call is several times slower.
@@ -79,6 +81,9 @@ class AdaptiveSpline(eqx.Module):
         return self.hierarchy.cells(self.hierarchy.num_levels - 1)
 
     def __call__(self, xy: Float[ArrayLike, "*n d"]) -> Float[Array, "*n"]:
+        packed = packed_evaluation(self.hierarchy, self.control, self.weights, xy)
+        if packed is not None:  # outside any transformation: one program per size class
+            return packed
         xy = jnp.asarray(xy)
         single = xy.ndim == 1
         both = _values(
@@ -92,6 +97,9 @@ class AdaptiveSpline(eqx.Module):
     def grad(self, xy: Float[ArrayLike, "*n d"]) -> Float[Array, "*n d"]:
         """Spatial gradient of g at ``xy (n, d)``; ``(n, d)`` (or ``(d,)`` for one point):
         the quotient rule on eq. 14."""
+        packed = packed_evaluation(self.hierarchy, self.control, self.weights, xy, True)
+        if packed is not None:
+            return packed[1]
         xy = jnp.asarray(xy)
         single = xy.ndim == 1
         x = jnp.atleast_2d(xy)
