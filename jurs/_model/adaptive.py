@@ -18,7 +18,7 @@ from jaxtyping import ArrayLike, Float
 
 from .hierarchy import Hierarchy
 from .leaves import hierarchy_values, hierarchy_values_and_gradients
-from .packed import packed_evaluation
+from .packed import packed_gradients_at, packed_values_at
 
 # Traced evaluations (jurs._model.packed takes the others): one compiled program per
 # hierarchy and point count. Run eagerly, the leaf search and the
@@ -81,7 +81,7 @@ class AdaptiveSpline(eqx.Module):
         return self.hierarchy.cells(self.hierarchy.num_levels - 1)
 
     def __call__(self, xy: Float[ArrayLike, "*n d"]) -> Float[Array, "*n"]:
-        packed = packed_evaluation(self.hierarchy, self.control, self.weights, xy)
+        packed = packed_values_at(self.hierarchy, self.control, self.weights, xy)
         if packed is not None:  # outside any transformation: one program per size class
             return packed
         xy = jnp.asarray(xy)
@@ -97,9 +97,9 @@ class AdaptiveSpline(eqx.Module):
     def grad(self, xy: Float[ArrayLike, "*n d"]) -> Float[Array, "*n d"]:
         """Spatial gradient of g at ``xy (n, d)``; ``(n, d)`` (or ``(d,)`` for one point):
         the quotient rule on eq. 14."""
-        packed = packed_evaluation(self.hierarchy, self.control, self.weights, xy, True)
+        packed = packed_gradients_at(self.hierarchy, self.control, self.weights, xy)
         if packed is not None:
-            return packed[1]
+            return packed
         xy = jnp.asarray(xy)
         single = xy.ndim == 1
         x = jnp.atleast_2d(xy)

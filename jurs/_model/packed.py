@@ -18,7 +18,7 @@ past the previous levels' grids so that all levels form one sorted array, and pa
 
 So a program compiled for one fit serves every fit of the same dimension, dtype and size
 class. Packing reads concrete arrays on the host, so only a spline and points outside
-any JAX transformation take this path (``packed_evaluation``); traced ones (``jax.grad``
+any JAX transformation take this path (``packed_values_at``); traced ones (``jax.grad``
 through a fit, ``jax.jit`` of a loss) evaluate through the hierarchy, the same function.
 Values and gradients agree with the hierarchy's evaluation to rounding
 (``tests/test_hierarchy.py``).
@@ -33,6 +33,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import Array
+from jax.core import Tracer
 from jaxtyping import Float
 
 from .basis import cubic_derivatives, cubic_weights, tensor_basis
@@ -205,7 +206,7 @@ _cache: OrderedDict = OrderedDict()
 
 def _concrete(*arrays) -> bool:
     leaves = jax.tree_util.tree_leaves(arrays)
-    return not any(isinstance(leaf, jax.core.Tracer) for leaf in leaves)
+    return not any(isinstance(leaf, Tracer) for leaf in leaves)
 
 
 def _packed(hierarchy: Hierarchy, control, weights) -> PackedSpline | None:
@@ -222,18 +223,29 @@ def _packed(hierarchy: Hierarchy, control, weights) -> PackedSpline | None:
     return packed
 
 
-def packed_evaluation(hierarchy: Hierarchy, control, weights, x, gradient: bool = False):
-    """g at ``x (n, d)`` (and its gradient, where ``gradient``) by the packed program, or
-    None where the spline or ``x`` is traced, ``x`` is not ``(n, d)`` with n > 0, or the
-    hierarchy does not pack (then the caller evaluates through the hierarchy)."""
+def packed_values_at(hierarchy: Hierarchy, control, weights, x) -> Array | None:
+    """g at ``x`` (``(n, d)`` or one point ``(d,)``) by the packed program, or None where
+    the spline or ``x`` is traced, ``x`` is of another shape or empty, or the hierarchy
+    does not pack (then the caller evaluates through the hierarchy)."""
+    found = _evaluate(hierarchy, control, weights, x, False)
+    return None if found is None else found[0]
+
+
+def packed_gradients_at(hierarchy: Hierarchy, control, weights, x) -> Array | None:
+    """The spatial gradient of g at ``x`` by the packed program, or None as
+    ``packed_values_at``."""
+    found = _evaluate(hierarchy, control, weights, x, True)
+    return None if found is None else found[1]
+
+
+def _evaluate(hierarchy: Hierarchy, control, weights, x, gradient: bool):
+    """``(g, gradient or None)`` at ``x`` by the packed program, or None."""
     if not _concrete(hierarchy, control, weights, x):
         return None
     x = np.asarray(x)
-    if x.ndim == 1 and x.shape == (hierarchy.ndim,):  # one point: g (and grad) unbatched
-        one = packed_evaluation(hierarchy, control, weights, x[None], gradient)
-        if one is None or not gradient:
-            return None if one is None else one[0]
-        return one[0][0], one[1][0]
+    if x.ndim == 1 and x.shape == (hierarchy.ndim,):  # one point: unbatched results
+        one = _evaluate(hierarchy, control, weights, x[None], gradient)
+        return None if one is None else tuple(None if a is None else a[0] for a in one)
     if x.ndim != 2 or x.shape[1] != hierarchy.ndim or len(x) == 0:
         return None
     packed = _packed(hierarchy, control, weights)
@@ -248,4 +260,4 @@ def packed_evaluation(hierarchy: Hierarchy, control, weights, x, gradient: bool 
     if gradient:
         value, slope = _packed_values_and_gradients(packed, on_device(padded))
         return on_device(np.asarray(value)[:n]), on_device(np.asarray(slope)[:n])
-    return on_device(np.asarray(_packed_values(packed, on_device(padded)))[:n])
+    return on_device(np.asarray(_packed_values(packed, on_device(padded)))[:n]), None
