@@ -97,9 +97,10 @@ def test_curve_bridging_a_sampling_gap_is_not_supplementary():
 
 def test_arc_of_a_circle_is_trimmed_to_its_end_points():
     """A profile: the unit circle sampled on a third of its length (evenly, spacing
-    a = 2 pi / 3 / 69). The zero set is the whole circle; trimmed to 2.5 spacings it is one
-    open curve whose ends lie just past the arc's (the spacing near an end reads a little
-    more than a: its neighbours are on one side)."""
+    a = 2 pi / 3 / 69). The zero set is the whole circle; trimmed it is one open curve
+    whose ends lie ``DEFAULT_RIM`` spacings past the arc's (the rim test: past an end
+    every sample lies to one side), or about ``DEFAULT_TRIM`` by the distance alone (the
+    spacing near an end reads a little more than a: its neighbours are on one side)."""
     f = Analytic(lambda xy: dist(xy, (0, 0)) - 1.0)
     t = np.linspace(0, 2 * np.pi / 3, 70)
     a = t[1] - t[0]
@@ -110,8 +111,12 @@ def test_arc_of_a_circle_is_trimmed_to_its_end_points():
     assert not c.closed and c.ends is not None
     angles = np.sort(np.arctan2(c.ends[:, 1], c.ends[:, 0]))
     past = np.array([-angles[0], angles[1] - 2 * np.pi / 3])  # beyond each end, in arc
-    assert ((past > 2 * a) & (past < 1.5 * ls.DEFAULT_TRIM * a)).all()
+    assert ((past > 0.8 * ls.DEFAULT_RIM * a) & (past < 1.5 * ls.DEFAULT_RIM * a)).all()
     assert c.length == pytest.approx(2 * np.pi / 3 + past.sum(), rel=0.01)
+    (far,) = ls.analyze(f, data, offset=0.05, resolution=200, trim=True, rim=None).components
+    ends = np.sort(np.arctan2(far.ends[:, 1], far.ends[:, 0]))  # pyright: ignore[reportOptionalSubscript]
+    past = np.array([-ends[0], ends[1] - 2 * np.pi / 3])
+    assert ((past > 2 * a) & (past < 1.5 * ls.DEFAULT_TRIM * a)).all()
     d = report.as_dict()
     assert d["trim"] == ls.DEFAULT_TRIM and d["num_open"] == 1
     np.testing.assert_allclose(d["end_points"], [c.ends.tolist()])
@@ -146,6 +151,10 @@ def test_trim_curves_splits_where_a_curve_leaves_the_data():
         ls.analyze(Analytic(lambda xy: dist(xy, (0, 0)) - 1.0), data, trim=0.0)
     with pytest.raises(ValueError, match="at least 2 distinct"):
         ls.trim_curves([(circle, True)], np.zeros((3, 2)))
+    with pytest.raises(ValueError, match="rim must be a finite number of spacings >= 0"):
+        ls.trim_curves([(circle, True)], data, 2.0, rim=-0.5)
+    with pytest.raises(ValueError, match="rim must be a finite number"):
+        ls.analyze(Analytic(lambda xy: dist(xy, (0, 0)) - 1.0), data, trim=True, rim=np.nan)
 
 
 def test_extra_loop_in_a_spline_is_counted(circle_fit):

@@ -97,7 +97,7 @@ from ._mesh_analysis import (
     mesh_distances,
 )
 from ._meshing import mesh
-from ._trimming import DEFAULT_TRIM, trim_curves, trim_mesh
+from ._trimming import DEFAULT_RIM, DEFAULT_TRIM, trim_curves, trim_mesh
 
 __all__ = [
     "DEFAULT_RESOLUTION",
@@ -105,6 +105,7 @@ __all__ = [
     "BYTES_PER_NODE",
     "DEFAULT_TINY_CELLS",
     "DEFAULT_THRESHOLD_FACTOR",
+    "DEFAULT_RIM",
     "DEFAULT_TRIM",
     "sampling_grid",
     "evaluate_grid",
