@@ -10,6 +10,7 @@ import pytest  # noqa: E402
 
 import jurs  # noqa: E402
 from jurs import levelset as ls  # noqa: E402
+from jurs.levelset._trimming import Support  # noqa: E402
 
 
 class Analytic:
@@ -127,6 +128,27 @@ def test_arc_of_a_circle_is_trimmed_to_its_end_points():
     assert whole.as_dict()["trim"] is None and whole.as_dict()["end_points"] == [None]
     full = ls.analyze(f, circle_samples(200), offset=0.05, resolution=200, trim=3.0)
     assert full.components[0].closed and full.num_components == 1
+
+
+def test_randomly_sampled_arc_trims_to_one_piece_ending_at_its_ends():
+    """100 samples at random along a third of a circle leave gaps of up to about ln(100)
+    spacings: by the distance alone the trimmed circle often falls into pieces there;
+    with the rim test a gap (samples on both sides) is bridged and the one piece ends
+    about ``DEFAULT_RIM`` spacings past the arc's ends."""
+    phi = np.linspace(0, 2 * np.pi, 2001)
+    circle = np.stack([np.cos(phi), np.sin(phi)], axis=1)
+    split = 0
+    for seed in range(10):
+        t = np.sort(np.random.default_rng(seed).uniform(0, 2 * np.pi / 3, 100))
+        data = np.stack([np.cos(t), np.sin(t)], axis=1)
+        spacing = np.median(Support(data).spacing)
+        (piece, closed), *rest = ls.trim_curves([(circle, True)], data)
+        assert not rest and not closed
+        angle = np.arctan2(piece[:, 1], piece[:, 0])
+        past = np.array([t[0] - angle.min(), angle.max() - t[-1]]) / spacing
+        assert ((past > 0.3 * ls.DEFAULT_RIM) & (past < 3 * ls.DEFAULT_RIM)).all()
+        split += len(ls.trim_curves([(circle, True)], data, rim=None)) > 1
+    assert split > 0
 
 
 def test_trim_curves_splits_where_a_curve_leaves_the_data():
