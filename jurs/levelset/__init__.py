@@ -58,9 +58,10 @@ For 3D splines the same questions are asked of a triangle mesh of the zero set:
 docs/surfaces.md).
 
 Open scans and open curves: [`trim_mesh`][jurs.levelset.trim_mesh] (or ``mesh(...,
-points=, trim=)``) and [`trim_curves`][jurs.levelset.trim_curves] (or ``analyze(...,
-trim=)``) keep the part of a zero set within a number of local point spacings of the
-data (``jurs/levelset/_trimming.py``; docs/surfaces.md, "Open scans").
+points=, trim=, rim=)``) and [`trim_curves`][jurs.levelset.trim_curves] (or
+``analyze(..., trim=, rim=)``) keep the part of a zero set the data support: within
+``trim`` local point spacings amid the samples, ``rim`` past the data's rim
+(``jurs/levelset/_trimming.py``; docs/surfaces.md, "Open scans").
 """
 
 # Curves (2D) in _curves, their refined distances in _distances; surfaces (3D) meshed in

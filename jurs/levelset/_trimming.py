@@ -49,9 +49,10 @@ rule here keeps what lies near the data, measured in the data's own *local spaci
 
 Where the zero set runs on past the data's rim, the trimmed surface (or curve) stops about
 ``rim`` rim spacings past the last samples (1.2 times the median spacing there), and its
-boundary follows the rim; on the scans of ``benchmarks/open_scans.py`` (20000 random
-samples) its farthest point lay 1.2-1.7 spacings past the true rim, where the distance
-rule alone (``rim=None``) ran on 3.3-4.1.
+boundary follows the rim. On the scans of ``benchmarks/open_scans.py`` (20000 random
+samples each) the trimmed mesh's farthest point from the scanned part lay 1.2-1.8
+spacings from it on four of five (on the three-view bunny 3.7, across patches hidden from
+every viewpoint), where the distance rule alone (``rim=None``) ran on 3.5-4.3.
 """
 
 from __future__ import annotations
@@ -216,35 +217,49 @@ def trim_mesh(
     trim: float | bool | None = True,
     rim: float | bool | None = True,
 ) -> tuple[Float[np.ndarray, "V2 3"], Int[np.ndarray, "F2 3"]]:
-    """The part of a mesh within ``trim`` local spacings of the data ``points``.
+    """The part of a mesh the data ``points`` support: within ``trim`` local spacings of
+    them amid the samples, within ``rim`` past the data's rim.
 
-    The rule (docs/surfaces.md, "Open scans"): a sample's *local spacing* is ``1 /
-    sqrt(density)`` around it, ``r_8 sqrt(pi / 8)`` with ``r_8`` the distance to its 8th
-    nearest neighbour, then the median of that over the sample and its 8 neighbours (the
-    median keeps samples at the rim, whose neighbours lie on one side, from reading
-    twice as sparse). A point's distance in spacings is its distance to the nearest
-    sample over that sample's spacing. The default of 2.5 (``DEFAULT_TRIM``) was measured:
-    random samples of a sphere leave all of it within 2.4-2.6 spacings and 99.9 % within
-    1.6-2.0, and the meshes of sphere fits stayed whole at 2; the trimmed surface stops
-    about 3 spacings past the data's rim.
+    The rule (module docstring; docs/surfaces.md, "Open scans"): a sample's *local
+    spacing* is ``1 / sqrt(density)`` around it, ``r_8 sqrt(pi / 8)`` with ``r_8`` the
+    distance to its 8th nearest neighbour, then the median of that over the sample and
+    its 8 neighbours (the median keeps samples at the rim, whose neighbours lie on one
+    side, from reading twice as sparse). A point's distance in spacings is its distance to
+    the nearest sample over that sample's spacing. Its tolerance is ``trim`` where its 48
+    nearest samples surround it and ``rim`` where they lie to one side (the offset of
+    their centroid along the tangent plane over their reach, 0.25 to 0.4: between, a mix).
+    ``trim`` 2.5 (``DEFAULT_TRIM``) bridges the gaps random samples leave (a sphere's
+    random samples leave all of it within 2.4-2.6 spacings, 99.9 % within 1.6-2.0);
+    ``rim`` 1 (``DEFAULT_RIM``) stops an open surface about a rim spacing past its last
+    samples, where the distance alone stopped it about 3 spacings out.
 
-    The distance in spacings is measured at every vertex and taken as
-    linear along each edge. Faces wholly beyond ``trim`` are dropped, faces wholly within
-    kept, and faces that cross it are **clipped** at ``trim``: a new vertex on each crossing
-    edge (shared by the two faces of that edge, so the result stays one connected
-    surface), one triangle where one corner is within, two where two are. The boundary of
-    the result is that contour, a polyline that follows the data's rim ``trim`` spacings out.
-    Vertices no face uses are removed; face orientation is kept.
+    The level (distance less tolerance) is measured at every vertex and taken as linear
+    along each edge. Faces wholly beyond are dropped, faces wholly within kept, and faces
+    that cross it are **clipped**: a new vertex on each crossing edge (shared by the two
+    faces of that edge, so the result stays one connected surface), one triangle where
+    one corner is within, two where two are. The boundary of the result is that contour,
+    a polyline that follows the data's rim. With the rim test, cut regions that kept
+    surface rings (no border of the mesh) under ``HOLE_AREA`` (20) squared spacings are
+    kept whole, holes random sampling leaves, and open pieces under ``ISLAND_AREA`` (4)
+    squared spacings are dropped. Vertices no face uses are removed; face orientation is
+    kept.
 
     Args:
         vertices, faces: a triangle mesh (as from [`mesh`][jurs.levelset.mesh]).
         points: ``(m, 3)`` data points, at least 2 distinct.
-        trim: spacings to keep (positive); True for ``DEFAULT_TRIM``; None or False
-            returns the mesh as given.
+        trim: spacings to keep amid the samples (positive); True for ``DEFAULT_TRIM``;
+            None or False returns the mesh as given.
+        rim: spacings to keep past the data's rim (>= 0; a rim above ``trim`` is
+            ``trim``); True for ``DEFAULT_RIM``; None or False for the distance rule
+            alone (``trim`` everywhere, no holes closed or islands dropped).
 
     Returns:
         ``(vertices (V2, 3) float64, faces (F2, 3) int64)``; empty arrays when nothing is
-        within ``trim``.
+        kept.
+
+    Raises:
+        ValueError: bad ``vertices``, ``faces``, ``points``, ``trim`` or ``rim`` (named).
+        TypeError: a ``trim`` or ``rim`` that is not None, a bool or a number.
     """
     vertices = np.asarray(vertices, dtype=np.float64)
     faces = np.asarray(faces)
@@ -424,21 +439,27 @@ def trim_curves(
     trim: float | bool | None = True,
     rim: float | bool | None = True,
 ) -> list[tuple[Float[np.ndarray, "k 2"], bool]]:
-    """The parts of 2D polylines within ``trim`` local spacings of the data ``points``.
+    """The parts of 2D polylines the data ``points`` support: within ``trim`` local
+    spacings of them amid the samples, within ``rim`` past the end of the data.
 
-    The distance in spacings (module docstring) is measured at every vertex and taken as
-    linear along each segment; a polyline is cut where it crosses ``trim`` (a new end point
-    there) and split into one piece per stretch within it. A closed polyline wholly within
-    stays closed; one that leaves the data becomes open pieces (the piece across its start
-    is joined up). Pieces of fewer than 2 points are dropped.
+    The level (distance in spacings less the tolerance: ``trim`` where the 8 nearest
+    samples surround a point, ``rim`` where they lie to one side; module docstring) is
+    measured at every vertex and taken as linear along each segment; a polyline is cut
+    where it crosses 0 (a new end point there) and split into one piece per stretch
+    within it. With the rim test a cut between two kept stretches whose kept ends lie
+    under ``GAP_LENGTH`` (5) spacings apart is kept (a gap random sampling leaves). A
+    closed polyline wholly within stays closed; one that leaves the data becomes open
+    pieces (the piece across its start is joined up). Pieces of fewer than 2 points are dropped.
 
     Args:
         lines: ``(polyline (k, 2), closed)`` pairs, as from
             [`zero_level_set`][jurs.levelset.zero_level_set] (closed polylines repeat
             their first point at the end).
         points: ``(m, 2)`` data points, at least 2 distinct.
-        trim: spacings to keep (positive); True for ``DEFAULT_TRIM``; None or False
-            returns the polylines as given.
+        trim: spacings to keep amid the samples (positive); True for
+            ``DEFAULT_TRIM``; None or False returns the polylines as given.
+        rim: spacings to keep past the end of the data (>= 0; at most ``trim``); True
+            for ``DEFAULT_RIM``; None or False for the distance rule alone.
 
     Returns:
         ``(polyline, closed)`` pairs: the pieces, in the order of the input.
