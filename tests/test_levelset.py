@@ -10,6 +10,7 @@ import pytest  # noqa: E402
 
 import jurs  # noqa: E402
 from jurs import levelset as ls  # noqa: E402
+from jurs.levelset._trimming import Support  # noqa: E402
 
 
 class Analytic:
@@ -97,9 +98,10 @@ def test_curve_bridging_a_sampling_gap_is_not_supplementary():
 
 def test_arc_of_a_circle_is_trimmed_to_its_end_points():
     """A profile: the unit circle sampled on a third of its length (evenly, spacing
-    a = 2 pi / 3 / 69). The zero set is the whole circle; trimmed to 2.5 spacings it is one
-    open curve whose ends lie just past the arc's (the spacing near an end reads a little
-    more than a: its neighbours are on one side)."""
+    a = 2 pi / 3 / 69). The zero set is the whole circle; trimmed it is one open curve
+    whose ends lie ``DEFAULT_RIM`` spacings past the arc's (the rim test: past an end
+    every sample lies to one side), or about ``DEFAULT_TRIM`` by the distance alone (the
+    spacing near an end reads a little more than a: its neighbours are on one side)."""
     f = Analytic(lambda xy: dist(xy, (0, 0)) - 1.0)
     t = np.linspace(0, 2 * np.pi / 3, 70)
     a = t[1] - t[0]
@@ -110,8 +112,12 @@ def test_arc_of_a_circle_is_trimmed_to_its_end_points():
     assert not c.closed and c.ends is not None
     angles = np.sort(np.arctan2(c.ends[:, 1], c.ends[:, 0]))
     past = np.array([-angles[0], angles[1] - 2 * np.pi / 3])  # beyond each end, in arc
-    assert ((past > 2 * a) & (past < 1.5 * ls.DEFAULT_TRIM * a)).all()
+    assert ((past > 0.8 * ls.DEFAULT_RIM * a) & (past < 1.5 * ls.DEFAULT_RIM * a)).all()
     assert c.length == pytest.approx(2 * np.pi / 3 + past.sum(), rel=0.01)
+    (far,) = ls.analyze(f, data, offset=0.05, resolution=200, trim=True, rim=None).components
+    ends = np.sort(np.arctan2(far.ends[:, 1], far.ends[:, 0]))  # pyright: ignore[reportOptionalSubscript]
+    past = np.array([-ends[0], ends[1] - 2 * np.pi / 3])
+    assert ((past > 2 * a) & (past < 1.5 * ls.DEFAULT_TRIM * a)).all()
     d = report.as_dict()
     assert d["trim"] == ls.DEFAULT_TRIM and d["num_open"] == 1
     np.testing.assert_allclose(d["end_points"], [c.ends.tolist()])
@@ -122,6 +128,27 @@ def test_arc_of_a_circle_is_trimmed_to_its_end_points():
     assert whole.as_dict()["trim"] is None and whole.as_dict()["end_points"] == [None]
     full = ls.analyze(f, circle_samples(200), offset=0.05, resolution=200, trim=3.0)
     assert full.components[0].closed and full.num_components == 1
+
+
+def test_randomly_sampled_arc_trims_to_one_piece_ending_at_its_ends():
+    """100 samples at random along a third of a circle leave gaps of up to about ln(100)
+    spacings: by the distance alone the trimmed circle often falls into pieces there;
+    with the rim test a gap (samples on both sides) is bridged and the one piece ends
+    about ``DEFAULT_RIM`` spacings past the arc's ends."""
+    phi = np.linspace(0, 2 * np.pi, 2001)
+    circle = np.stack([np.cos(phi), np.sin(phi)], axis=1)
+    split = 0
+    for seed in range(10):
+        t = np.sort(np.random.default_rng(seed).uniform(0, 2 * np.pi / 3, 100))
+        data = np.stack([np.cos(t), np.sin(t)], axis=1)
+        spacing = np.median(Support(data).spacing)
+        (piece, closed), *rest = ls.trim_curves([(circle, True)], data)
+        assert not rest and not closed
+        angle = np.arctan2(piece[:, 1], piece[:, 0])
+        past = np.array([t[0] - angle.min(), angle.max() - t[-1]]) / spacing
+        assert ((past > 0.3 * ls.DEFAULT_RIM) & (past < 3 * ls.DEFAULT_RIM)).all()
+        split += len(ls.trim_curves([(circle, True)], data, rim=None)) > 1
+    assert split > 0
 
 
 def test_trim_curves_splits_where_a_curve_leaves_the_data():
@@ -146,6 +173,10 @@ def test_trim_curves_splits_where_a_curve_leaves_the_data():
         ls.analyze(Analytic(lambda xy: dist(xy, (0, 0)) - 1.0), data, trim=0.0)
     with pytest.raises(ValueError, match="at least 2 distinct"):
         ls.trim_curves([(circle, True)], np.zeros((3, 2)))
+    with pytest.raises(ValueError, match="rim must be a finite number of spacings >= 0"):
+        ls.trim_curves([(circle, True)], data, 2.0, rim=-0.5)
+    with pytest.raises(ValueError, match="rim must be a finite number"):
+        ls.analyze(Analytic(lambda xy: dist(xy, (0, 0)) - 1.0), data, trim=True, rim=np.nan)
 
 
 def test_extra_loop_in_a_spline_is_counted(circle_fit):

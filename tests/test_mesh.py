@@ -351,11 +351,12 @@ def hemisphere_points(m=1500, seed=0):
 
 
 def test_trimmed_mesh_of_a_hemisphere_scan_is_open_with_one_loop_at_the_rim():
+    """The distance rule alone (``rim=None``): the surface within 2.5 spacings."""
     spline = exact_sphere(radius=1.0, n=10)  # the whole sphere: a fit that closed the scan
     points = hemisphere_points()
     whole = _mesh.mesh(spline, 24)
     assert _mesh.analyze_mesh(*whole).components[0].closed
-    vertices, faces = _mesh.mesh(spline, 24, points=points, trim=True)
+    vertices, faces = _mesh.mesh(spline, 24, points=points, trim=True, rim=None)
     report = _mesh.analyze_mesh(vertices, faces, points)
     assert report.num_components == 1
     (part,) = report.components
@@ -379,11 +380,73 @@ def test_trimmed_mesh_of_a_hemisphere_scan_is_open_with_one_loop_at_the_rim():
     centroids = vertices[faces].mean(axis=1)
     assert (np.sum(face_normals(vertices, faces) * centroids, axis=1) > 0).all()
     # A wider trim keeps more; the same trim through trim_mesh gives the same mesh.
-    wider = _mesh.mesh(spline, 24, points=points, trim=5.0)[0]
+    wider = _mesh.mesh(spline, 24, points=points, trim=5.0, rim=None)[0]
     assert wider[:, 2].min() < vertices[:, 2].min()
-    again = _mesh.trim_mesh(*whole, points, _mesh.DEFAULT_TRIM)
+    again = _mesh.trim_mesh(*whole, points, _mesh.DEFAULT_TRIM, rim=None)
     np.testing.assert_array_equal(again[1], faces)
     np.testing.assert_allclose(again[0], vertices)
+
+
+def test_default_trim_stops_at_the_rim_of_a_hemisphere_scan():
+    """The rim test: where the samples lie to one side the surface stops ``DEFAULT_RIM``
+    spacings past them, not ``DEFAULT_TRIM``; still one piece with one boundary loop."""
+    spline = exact_sphere(radius=1.0, n=10)
+    points = hemisphere_points()
+    spacing = np.median(Support(points).spacing)
+    whole = _mesh.mesh(spline, 24)
+    vertices, faces = _mesh.mesh(spline, 24, points=points, trim=True)
+    report = _mesh.analyze_mesh(vertices, faces, points)
+    assert report.num_components == 1 and report.num_boundary_loops == 1
+    # The true rim is the equator: the farthest point past it is under 2 spacings (the
+    # distance rule alone: about 3.7).
+    assert -2 * spacing < vertices[:, 2].min() < 0
+    distance_only = _mesh.trim_mesh(*whole, points, True, rim=None)[0]
+    assert distance_only[:, 2].min() < -3 * spacing
+    # The boundary lies about DEFAULT_RIM spacings from the data (linear along edges).
+    rim = np.unique(_boundary_vertices(faces))
+    reach = Support(points).spacings(vertices[rim])
+    assert 0.8 * _mesh.DEFAULT_RIM < np.median(reach) < 1.2 * _mesh.DEFAULT_RIM
+    # The same through trim_mesh; a wider rim keeps more; a rim above the trim is the trim.
+    again = _mesh.trim_mesh(*whole, points, True, rim=True)
+    np.testing.assert_array_equal(again[1], faces)
+    wider = _mesh.trim_mesh(*whole, points, True, rim=2.0)[0]
+    assert wider[:, 2].min() < vertices[:, 2].min() - 0.5 * spacing
+    capped = _mesh.trim_mesh(*whole, points, 2.0, rim=4.0)
+    np.testing.assert_array_equal(capped[1], _mesh.trim_mesh(*whole, points, 2.0, rim=None)[1])
+
+
+def _grid_sheet(n=21):
+    """A flat square sheet of (n - 1)^2 pairs of triangles, unit cells."""
+    x, y = np.meshgrid(np.arange(n, dtype=float), np.arange(n, dtype=float), indexing="ij")
+    vertices = np.stack([x.ravel(), y.ravel(), np.zeros(n * n)], 1)
+    k = np.arange(n * n).reshape(n, n)
+    a, b, c, d = k[:-1, :-1].ravel(), k[1:, :-1].ravel(), k[1:, 1:].ravel(), k[:-1, 1:].ravel()
+    return vertices, np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)])
+
+
+def test_small_holes_are_closed_and_small_islands_dropped():
+    """On a sheet sampled at every node (spacing 0.89): a cut disc of 2 cells radius
+    inside is a hole under ``HOLE_AREA`` squared spacings (closed), one of 5 is not; a cut
+    region touching the sheet's border is never closed; a kept piece of one cell is an
+    island under ``ISLAND_AREA`` (dropped)."""
+    from jurs.levelset import _trimming
+
+    vertices, faces = _grid_sheet()
+    support = Support(vertices)
+    r = np.linalg.norm(vertices[:, :2] - 10.0, axis=1)
+    for radius, closed in ((2.0, True), (5.0, False)):
+        level = np.where(r < radius, 1.0, -1.0)
+        filled = _trimming.fill_holes(vertices, faces, level, support, _trimming.HOLE_AREA)
+        assert (filled < 0).all() == closed
+        assert ((filled >= 0) == (level >= 0)).all() != closed
+    corner = np.where(np.linalg.norm(vertices[:, :2], axis=1) < 2.0, 1.0, -1.0)
+    same = _trimming.fill_holes(vertices, faces, corner, support, _trimming.HOLE_AREA)
+    np.testing.assert_array_equal(same, corner)
+    kept = (r > 6.0) | (np.abs(vertices[:, :2] - 10.0).max(axis=1) < 0.6)  # a ring, a dot
+    v, f = _trimming.clip_mesh(vertices, faces, np.where(kept, -1.0, 1.0))
+    assert _mesh.mesh_components(v, f)[0] == 2
+    v2, f2 = _trimming.drop_islands(v, f, support, _trimming.ISLAND_AREA)
+    assert _mesh.mesh_components(v2, f2)[0] == 1 and len(f2) < len(f)
 
 
 def _boundary_vertices(faces):
@@ -399,6 +462,8 @@ def test_trim_leaves_a_closed_sphere_scan_unchanged():
     trimmed = _mesh.mesh(spline, 24, points=points, trim=True)
     np.testing.assert_array_equal(trimmed[1], faces)
     np.testing.assert_array_equal(trimmed[0], vertices)
+    # Whole even with no rim at all: amid the samples the tolerance is the trim's.
+    np.testing.assert_array_equal(_mesh.trim_mesh(vertices, faces, points, True, rim=0.0)[1], faces)
     report = _mesh.analyze_mesh(vertices, faces, points)
     assert report.num_boundary_loops == 0 and report.components[0].boundary_lengths == ()
     assert report.unsupported_fraction == 0.0
@@ -469,6 +534,13 @@ def test_trim_checks_its_input():
     whole = _mesh.mesh(spline, 16)
     np.testing.assert_array_equal(_mesh.mesh(spline, 16, points=points, trim=False)[1], whole[1])
     np.testing.assert_array_equal(_mesh.trim_mesh(*whole, points, None)[1], whole[1])
+    for bad in (-1.0, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="rim must be a finite number of spacings >= 0"):
+            _mesh.mesh(spline, 16, points=points, trim=True, rim=bad)
+        with pytest.raises(ValueError, match="rim must be a finite number"):
+            _mesh.trim_mesh(*whole, points, True, rim=bad)
+    with pytest.raises(TypeError, match="rim must be None, True or a number"):
+        _mesh.mesh(spline, 16, points=points, trim=True, rim="1")  # pyright: ignore[reportArgumentType]
 
 
 def test_distances_of_a_mesh_to_its_own_samples_are_tiny():

@@ -58,9 +58,10 @@ For 3D splines the same questions are asked of a triangle mesh of the zero set:
 docs/surfaces.md).
 
 Open scans and open curves: [`trim_mesh`][jurs.levelset.trim_mesh] (or ``mesh(...,
-points=, trim=)``) and [`trim_curves`][jurs.levelset.trim_curves] (or ``analyze(...,
-trim=)``) keep the part of a zero set within a number of local point spacings of the
-data (``jurs/levelset/_trimming.py``; docs/surfaces.md, "Open scans").
+points=, trim=, rim=)``) and [`trim_curves`][jurs.levelset.trim_curves] (or
+``analyze(..., trim=, rim=)``) keep the part of a zero set the data support: within
+``trim`` local point spacings amid the samples, ``rim`` past the data's rim
+(``jurs/levelset/_trimming.py``; docs/surfaces.md, "Open scans").
 """
 
 # Curves (2D) in _curves, their refined distances in _distances; surfaces (3D) meshed in
@@ -97,7 +98,7 @@ from ._mesh_analysis import (
     mesh_distances,
 )
 from ._meshing import mesh
-from ._trimming import DEFAULT_TRIM, trim_curves, trim_mesh
+from ._trimming import DEFAULT_RIM, DEFAULT_TRIM, trim_curves, trim_mesh
 
 __all__ = [
     "DEFAULT_RESOLUTION",
@@ -105,6 +106,7 @@ __all__ = [
     "BYTES_PER_NODE",
     "DEFAULT_TINY_CELLS",
     "DEFAULT_THRESHOLD_FACTOR",
+    "DEFAULT_RIM",
     "DEFAULT_TRIM",
     "sampling_grid",
     "evaluate_grid",

@@ -19,7 +19,7 @@ from .._model.band import HULL_TOLERANCE, band_lattice
 from .._model.lattice import FinestSpline
 from .._model.spline import ImplicitSpline
 from .._problem.memory import check_memory
-from ._trimming import check_trim, trim_curves
+from ._trimming import check_rim, check_trim, trim_curves
 
 if TYPE_CHECKING:
     from contourpy._contourpy import LineReturn_SeparateCode
@@ -408,6 +408,7 @@ def analyze(
     tiny_cells: float = DEFAULT_TINY_CELLS,
     zero_tol: float = 1e-12,
     trim: float | bool | None = None,
+    rim: float | bool | None = True,
 ) -> LevelSetReport:
     """Extract and measure the zero-level set of ``spline`` (see the module docstring).
 
@@ -438,15 +439,21 @@ def analyze(
             component's ``ends`` are its end points. A sample's spacing along a curve is
             ``2 r_8 / 8`` (``r_8`` the distance to its 8th nearest neighbour; the median
             over it and those neighbours), exactly the step of evenly spaced samples.
+        rim: with ``trim``, the spacings a curve may run past the end of the data
+            (where the samples lie to one side): True (default) ``DEFAULT_RIM`` (1), a
+            number >= 0, None or False the distance rule alone; see
+            [`trim_curves`][jurs.levelset.trim_curves].
 
     Returns:
         [`LevelSetReport`][jurs.levelset.LevelSetReport].
 
     Raises:
-        ValueError: a ``trim`` that is not positive and finite, or ``points`` with fewer
-            than 2 distinct rows when trimming.
+        ValueError: a ``trim`` that is not positive and finite, a ``rim`` that is
+            negative or not finite, or ``points`` with fewer than 2 distinct rows when
+            trimming.
     """
     check_trim(trim, points)  # before the grid is sampled
+    check_rim(rim)
     xs, ys, _ = sampling_grid(*_box(spline, box), resolution)
     values, zero_area = _sampled(spline, xs, ys, zero_tol)
     return _measure(
@@ -461,6 +468,7 @@ def analyze(
         reference=reference,
         tiny_cells=tiny_cells,
         trim=trim,
+        rim=rim,
     )
 
 
@@ -483,6 +491,7 @@ def analyze_grid(
     tiny_cells: float = DEFAULT_TINY_CELLS,
     zero_tol: float = 1e-12,
     trim: float | bool | None = None,
+    rim: float | bool | None = True,
 ) -> LevelSetReport:
     """[`analyze`][jurs.levelset.analyze] for a function already sampled on a grid:
     ``values[j, i]`` at ``(xs[i], ys[j])``, with ``xs``/``ys`` from
@@ -504,6 +513,7 @@ def analyze_grid(
         reference=reference,
         tiny_cells=tiny_cells,
         trim=trim,
+        rim=rim,
     )
 
 
@@ -520,6 +530,7 @@ def _measure(
     reference,
     tiny_cells: float,
     trim: float | bool | None,
+    rim: float | bool | None,
 ) -> LevelSetReport:
     """``analyze_grid`` given the zero-area fraction (NaN values: no line there)."""
     points = np.asarray(points, float)
@@ -542,7 +553,7 @@ def _measure(
     lines = contour_lines(xs, ys, values)
     spacings = check_trim(trim, points)
     if spacings is not None:
-        lines = trim_curves(lines, points, spacings)
+        lines = trim_curves(lines, points, spacings, rim)
     components = classify(
         lines, points, threshold=float(threshold), cell_size=h, tiny_cells=tiny_cells
     )

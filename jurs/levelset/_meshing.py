@@ -18,7 +18,7 @@ from .._model.adaptive import AdaptiveSpline
 from .._model.band import BATCH_BLOCKS, BLOCK_CELLS, BandPlan, BlockGrid, plan_band
 from .._model.lattice import FinestSpline, lattice_values, spline_fields, values_and_gradients
 from .._problem.memory import check_memory
-from ._trimming import check_points, check_trim, trim_mesh
+from ._trimming import check_points, check_rim, check_trim, trim_mesh
 
 #: Lattice nodes per spline cell along the finest axis for the default resolution: g is a
 #: cubic in each cell, and marching cubes sees at most one zero crossing per lattice edge,
@@ -121,6 +121,7 @@ def mesh(
     max_nodes: int | None = MAX_NODES,
     points: Float[np.ndarray, "m 3"] | None = None,
     trim: float | bool | None = None,
+    rim: float | bool | None = True,
 ) -> tuple[Float[np.ndarray, "V 3"], Int[np.ndarray, "F 3"]]:
     """Triangle mesh of ``{g = level}`` of a 3D spline over ``box``.
 
@@ -153,15 +154,20 @@ def mesh(
             unused without it.
         trim: keep only the surface the data support (an open scan): None (default) or
             False meshes the whole zero set over the box; a positive number keeps the
-            part within that many local spacings of the data; True keeps
-            ``DEFAULT_TRIM`` (2.5) spacings. A sample's local spacing is ``1 /
-            sqrt(density)`` around it, from the distance to its 8th nearest neighbour
-            (the median over it and those neighbours), and a point's distance is
-            measured to its nearest sample in that sample's spacings (the rule and its
-            measurements: [`trim_mesh`][jurs.levelset.trim_mesh]). Faces that cross it are
-            clipped at it (not dropped whole), so the boundary of the result is a clean
-            polyline following the data's rim; see
+            part within that many local spacings of the data amid the samples (across
+            the gaps random samples leave); True keeps ``DEFAULT_TRIM`` (2.5) spacings.
+            A sample's local spacing is ``1 / sqrt(density)`` around it, from the
+            distance to its 8th nearest neighbour (the median over it and those
+            neighbours), and a point's distance is measured to its nearest sample in
+            that sample's spacings. Faces that cross the trim are clipped at it (not
+            dropped whole), so the boundary of the result is a clean polyline following
+            the data's rim; the rule and its measurements:
             [`trim_mesh`][jurs.levelset.trim_mesh] and docs/surfaces.md, "Open scans".
+        rim: with ``trim``, the spacings the surface may run past the data's rim,
+            where the samples lie to one side of it: True (default) ``DEFAULT_RIM``
+            (1), a number >= 0 that many (at most ``trim``), None or False the
+            distance rule alone (``trim`` spacings everywhere). See
+            [`trim_mesh`][jurs.levelset.trim_mesh].
 
     Raises:
         ValueError: a spline with non-finite control points or weights, a weight <= 0
@@ -170,7 +176,8 @@ def mesh(
             that level everywhere: its level set is the whole box, not a surface); a
             lattice of more than ``max_nodes`` nodes (the message gives the estimated time
             and memory) or one whose estimated memory exceeds what is available; a
-            ``trim`` that is not positive and finite, or given without ``points``;
+            ``trim`` that is not positive and finite, or given without ``points``; a
+            ``rim`` that is negative or not finite;
             ``points`` not ``(m, 3)``, not finite, or with fewer than 2 distinct rows.
 
     Returns:
@@ -191,6 +198,7 @@ def mesh(
     lower, upper = _box(spline, box)
     _check_values(spline, float(level))
     spacings = check_trim(trim, points)  # before the lattice: a bad trim fails at once
+    check_rim(rim)
     data = None if spacings is None else check_points(points, 3)
     chosen = resolution is None
     if resolution is None:
@@ -215,7 +223,7 @@ def mesh(
     vertices = _newton(spline, vertices, float(level), int(newton_steps), spacing.max())
     if spacings is None or data is None:
         return vertices, faces
-    return trim_mesh(vertices, faces, data, spacings)
+    return trim_mesh(vertices, faces, data, spacings, rim)
 
 
 def _check_values(spline, level: float) -> None:
