@@ -252,7 +252,8 @@ def test_open_scan_trimmed_on_the_command_line(sphere, tmp_path, capsys):
     out = tmp_path / "result"
     assert cli.main(["fit", str(path), "-o", str(out), "--grid", "12", "--trim"]) == 0
     said = capsys.readouterr()
-    assert "trimmed to 2.5 point spacings: 1 boundary loop(s)" in said.out
+    said_trim = "trimmed to 2.5 point spacings amid the data, 1 past its rim: 1 boundary loop(s)"
+    assert said_trim in said.out
     assert "unsupported" not in said.err
     vertices, faces = jurs.datasets.load_mesh(out / "mesh.ply")
     report = levelset.analyze_mesh(vertices, faces, points[upper])

@@ -336,6 +336,25 @@ def finest_cell_width(settings: Settings, ndim: int, finest: int | None) -> floa
     return longest / int(finest)
 
 
+def hierarchy_layout(settings: Settings, ndim: int, finest, band, offset, eps, dtype) -> dict:
+    """The keywords of ``assemble_adaptive_problem`` for a ``fit_adaptive`` call: the box
+    and levels of the hierarchy (``adaptive_layout`` of ``settings.domain`` for the finest
+    cell, ``finest_cell_width``), its band, and the offset, eps and dtype given or chosen."""
+    cell = finest_cell_width(settings, ndim, finest)
+    lower, upper = (np.asarray(v, float) for v in settings.domain)
+    lower, upper, base, levels = adaptive_layout(lower, upper, cell)
+    return dict(
+        lower=lower,
+        upper=upper,
+        base=base,
+        levels=levels,
+        band=DEFAULT_BAND[ndim] if band is None else int(band),
+        offset=settings.offset if offset is None else float(offset),
+        eps=settings.eps if eps is None else float(eps),
+        dtype=jnp.dtype(dtype or jnp.result_type(float)),
+    )
+
+
 def fit_adaptive(
     points: Float[ArrayLike, "m d"] | Cloud,
     normals: Float[ArrayLike, "m d"] | None = None,
@@ -447,28 +466,12 @@ def fit_adaptive(
     points_np = cloud.points[keep]
     normals_np = np.asarray(cloud.normals, float)[keep]
     ndim = points_np.shape[1]
-    lower, upper = (np.asarray(v, float) for v in settings.domain)
-    cell = finest_cell_width(settings, ndim, finest)
     method = method or ("direct" if ndim == 2 else "cg")
     # Points sharded over devices (one process): CG keeps each device's samples there.
     sharding = input_sharding(cloud.given_points, cloud.given_normals)
-    band = DEFAULT_BAND[ndim] if band is None else int(band)
-    lower, upper, base, levels = adaptive_layout(lower, upper, cell)
-    offset_value = settings.offset if offset is None else float(offset)
-    eps_value = settings.eps if eps is None else float(eps)
-    dtype = jnp.dtype(dtype or jnp.result_type(float))
-    problem, matrices = assemble_adaptive_problem(
-        points_np,
-        normals_np,
-        offset=offset_value,
-        eps=eps_value,
-        lower=lower,
-        upper=upper,
-        base=base,
-        levels=levels,
-        band=band,
-        dtype=dtype,
-    )
+    layout = hierarchy_layout(settings, ndim, finest, band, offset, eps, dtype)
+    lower, upper, dtype = layout["lower"], layout["upper"], layout["dtype"]
+    problem, matrices = assemble_adaptive_problem(points_np, normals_np, **layout)
     hierarchy = problem.hierarchy
     finest_level = hierarchy.num_levels - 1
     finest_cell = float(np.max((upper - lower) / np.asarray(hierarchy.cells(finest_level))))
@@ -522,7 +525,7 @@ def fit_adaptive(
         stats["devices"] = len(sharding.device_set) if method == "cg" else 1
     sol = Solution(spline, metrics, stats, result, None, settings)
     if checks:
-        sol = judge(sol, cloud, settings, offset_value)
+        sol = judge(sol, cloud, settings, layout["offset"])
     if throw and sol.status in RAISED_RESULTS:
         raise eqx.EquinoxRuntimeError(error_message(sol.status))
     return sol

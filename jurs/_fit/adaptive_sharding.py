@@ -40,13 +40,11 @@ from .._problem.adaptive import assemble_adaptive_problem
 from .._problem.validate import unit_normals, validate_inputs
 from .._solution.solution import RAISED_RESULTS, RESULTS, Solution, error_message
 from .adaptive import (
-    DEFAULT_BAND,
     DEFAULT_RTOL,
     DIRECT_RTOL,
     FLOAT32_RTOL,
     _padded,
-    adaptive_layout,
-    finest_cell_width,
+    hierarchy_layout,
     size_class,
     solve_normal,
 )
@@ -360,17 +358,9 @@ def fit_adaptive_across_processes(
     agree(failure, "checking its points")
     n = unit_normals(n)
     ndim = p.shape[1]
-    lower, upper = (np.asarray(v, float) for v in settings.domain)
-    cell = finest_cell_width(settings, ndim, finest)
-    band = DEFAULT_BAND[ndim] if band is None else int(band)
-    lower, upper, base, levels = adaptive_layout(lower, upper, cell)
-    offset_value = settings.offset if offset is None else float(offset)
-    eps_value = settings.eps if eps is None else float(eps)
-    dtype = jnp.dtype(dtype or jnp.result_type(float))
-    problem, matrices = assemble_adaptive_problem(
-        p, n, offset=offset_value, eps=eps_value, lower=lower, upper=upper, base=base,
-        levels=levels, band=band, dtype=dtype, combine_refined=_union,
-    )  # fmt: skip
+    layout = hierarchy_layout(settings, ndim, finest, band, offset, eps, dtype)
+    lower, upper, dtype = layout["lower"], layout["upper"], layout["dtype"]
+    problem, matrices = assemble_adaptive_problem(p, n, **layout, combine_refined=_union)
     hierarchy = problem.hierarchy
     finest_level = hierarchy.num_levels - 1
     finest_width = float(np.max((upper - lower) / np.asarray(hierarchy.cells(finest_level))))

@@ -175,7 +175,8 @@ def _fit_parser(sub) -> argparse.ArgumentParser:
         default=None,
         metavar="SPACINGS",
         help="open scans and open curves: keep only the zero set within SPACINGS local "
-        "point spacings of the data (given alone: jurs.levelset.DEFAULT_TRIM, 2.5); "
+        "point spacings of the data (given alone: jurs.levelset.DEFAULT_TRIM, 2.5), and "
+        "within jurs.levelset.DEFAULT_RIM (1) past the data's rim; "
         "mesh.ply (3D) or zero_level.csv (2D) then holds the trimmed surface or "
         "curve pieces, and metrics.json the trim, boundary loops (3D) and end points "
         "(2D). Put it after the file names",

@@ -298,7 +298,8 @@ def surface_outputs(job: FitJob, args, sol, seconds: float):
     )
     if trim is not None:
         summary += (
-            f"\n  trimmed to {trim:g} point spacings: {report.num_boundary_loops} boundary "
+            f"\n  trimmed to {trim:g} point spacings amid the data, {ls.DEFAULT_RIM:g} past "
+            f"its rim: {report.num_boundary_loops} boundary "
             f"loop(s), {report.boundary_length:.3g} long"
         )
     return write, summary
