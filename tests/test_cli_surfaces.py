@@ -260,7 +260,17 @@ def test_open_scan_trimmed_on_the_command_line(sphere, tmp_path, capsys):
     assert report.num_boundary_loops == 1 and not report.components[0].closed
     assert -0.4 < vertices[:, 2].min() < 0  # stops a few spacings past the rim at z = 0
     m = json.loads((out / "metrics.json").read_text())["metrics"]
-    assert m["trim"] == levelset.DEFAULT_TRIM
+    assert m["trim"] == levelset.DEFAULT_TRIM and m["rim"] == levelset.DEFAULT_RIM
+    # --rim as large as the trim: the distance alone, which runs on farther past the rim.
+    wide = tmp_path / "wide"
+    args = ["fit", str(path), "-o", str(wide), "--grid", "12", "--trim", "--rim", "2.5", "-q"]
+    assert cli.main(args) == 0
+    assert json.loads((wide / "metrics.json").read_text())["metrics"]["rim"] == 2.5
+    further, _ = jurs.datasets.load_mesh(wide / "mesh.ply")
+    assert further[:, 2].min() < vertices[:, 2].min()
+    capsys.readouterr()
+    assert cli.main(["fit", str(path), "-o", str(tmp_path / "x"), "--rim", "1"]) == 2
+    assert "add --trim" in capsys.readouterr().err and not (tmp_path / "x").exists()
     assert m["num_boundary_loops"] == 1 and m["boundary_loops"] == [1]
     assert m["boundary_length"] == pytest.approx(report.boundary_length)
     assert m["num_closed"] == 0 and m["genera"] == [None]

@@ -353,6 +353,8 @@ def prepare_fit(args) -> FitJob:
     out = os.path.abspath(args.output)
     resolution = args.resolution
     _check_options(resolution, dim, out, outputs_for(dim))
+    if getattr(args, "rim", None) is not None and getattr(args, "trim", None) is None:
+        raise InputError("--rim sets the trim's tolerance at the data's rim: add --trim")
     if args.smoothing is not None and (args.solver != "auto" or args.lam is not None):
         raise InputError(
             "--smoothing sets the automatic lambda of --solver auto; give --lam instead"

@@ -181,5 +181,14 @@ def _fit_parser(sub) -> argparse.ArgumentParser:
         "curve pieces, and metrics.json the trim, boundary loops (3D) and end points "
         "(2D). Put it after the file names",
     )
+    f.add_argument(
+        "--rim",
+        type=_nonneg,
+        default=None,
+        metavar="SPACINGS",
+        help="with --trim: the tolerance where the samples lie to one side of the zero set "
+        "(past the data's rim), in local point spacings (default jurs.levelset.DEFAULT_RIM, "
+        "1); a rim as large as the trim is the distance-only rule",
+    )
     f.add_argument("-q", "--quiet", action="store_true", help="no progress bar or summary")
     return f

@@ -106,6 +106,7 @@ def curve_outputs(job: FitJob, args, sol, seconds: float):
         threshold=args.threshold,
         resolution=resolution,
         trim=_trim(args),
+        rim=_rim(args),
     )
     record = fit_record(job, args, sol, seconds)
     record["metrics"].update(report.as_dict())
@@ -164,6 +165,14 @@ def _trim(args) -> float | None:
 
     # The points only stand in for "given": the CLI always has them.
     return check_trim(getattr(args, "trim", None), ())
+
+
+def _rim(args) -> float:
+    """``--rim`` in spacings (``DEFAULT_RIM`` when not given)."""
+    from ..levelset._trimming import DEFAULT_RIM
+
+    rim = getattr(args, "rim", None)
+    return DEFAULT_RIM if rim is None else float(rim)
 
 
 def mesh_record(vertices, faces, report, distances, resolution: int | None) -> dict:
@@ -240,13 +249,15 @@ def surface_outputs(job: FitJob, args, sol, seconds: float):
         # The band mesh chooses its resolution (five nodes a finest cell, lowered until
         # the marched nodes fit in its node limit); metrics.json records it as None.
         resolution = None
-        vertices, faces = ls.mesh(spline, points=job.points, trim=trim)
+        vertices, faces = ls.mesh(spline, points=job.points, trim=trim, rim=_rim(args))
     else:
         resolution = job.resolution or default_resolution(
             spline, np.asarray(spline.lower, np.float64), np.asarray(spline.upper, np.float64)
         )
         # The user chose --resolution, its memory checked before the fit: no node limit.
-        vertices, faces = ls.mesh(spline, resolution, max_nodes=None, points=job.points, trim=trim)
+        vertices, faces = ls.mesh(
+            spline, resolution, max_nodes=None, points=job.points, trim=trim, rim=_rim(args)
+        )
     t1 = time.perf_counter()
     report = ls.analyze_mesh(vertices, faces, job.points, threshold=args.threshold)
     if report.mostly_unsupported and trim is None:
@@ -268,6 +279,7 @@ def surface_outputs(job: FitJob, args, sol, seconds: float):
         hausdorff=distances["hausdorff"],
         normal_consistency=distances["normal_consistency"],
         trim=trim,
+        rim=None if trim is None else _rim(args),
     )
     record["mesh"] = mesh_record(vertices, faces, report, distances, resolution)
     record["mesh"]["vertex_colors"] = colours is not None
@@ -298,7 +310,7 @@ def surface_outputs(job: FitJob, args, sol, seconds: float):
     )
     if trim is not None:
         summary += (
-            f"\n  trimmed to {trim:g} point spacings amid the data, {ls.DEFAULT_RIM:g} past "
+            f"\n  trimmed to {trim:g} point spacings amid the data, {_rim(args):g} past "
             f"its rim: {report.num_boundary_loops} boundary "
             f"loop(s), {report.boundary_length:.3g} long"
         )
