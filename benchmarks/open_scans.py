@@ -287,10 +287,15 @@ def jurs_meshes(points, normals, colours, max_grid):
     import jurs
     import jurs.levelset as ls
 
-    grid = jurs.auto_settings(points, normals, max_grid=max_grid).grid
+    # max_grid None: jurs.fit's own defaults (its grid cap, or the adaptive basis).
+    given = (
+        {}
+        if max_grid is None
+        else {"grid": jurs.auto_settings(points, normals, max_grid=max_grid).grid}
+    )
 
     def fit():
-        sol = jurs.fit(points, normals, grid=grid)
+        sol = jurs.fit(points, normals, **given)
         jax.block_until_ready(sol.spline.control)
         return sol
 
@@ -307,7 +312,10 @@ def jurs_meshes(points, normals, colours, max_grid):
     tv, tf = ls.trim_mesh(v, f, points, True)
     trim_s = time.perf_counter() - t0
     report = ls.analyze_mesh(v, f, points)
-    setting = f"grid {'x'.join(map(str, sol.settings.grid))}"
+    if isinstance(sol.spline, jurs.AdaptiveSpline):
+        setting = f"adaptive, finest {'x'.join(map(str, sol.stats['finest']))}"
+    else:
+        setting = f"grid {'x'.join(map(str, sol.settings.grid))}"
     t0 = time.perf_counter()
     field = jurs.fit_attributes(sol, points, colours, normals=normals)
     jax.block_until_ready(field.coefficients)
@@ -673,7 +681,7 @@ STRAY_NOTE = (
 )
 
 
-def findings(runs) -> str:
+def findings(runs, max_grid: int | None = MAX_GRID) -> str:
     """The targets met and missed, with the measurements that bound the misses."""
     n = len(runs)
     v = [verdicts(r) for r in runs]
@@ -752,8 +760,13 @@ def findings(runs) -> str:
         + (
             "There the mesh is farther from the part than Poisson's in both directions, "
             "from the part to the mesh too (how well the surface follows the data): the "
-            "bound is the fit, not the trim; the grid cap of 32 does not resolve the ears "
-            "and folds that Poisson's depth-7 octree does. " + BUNNY_GRID_48
+            "bound is the fit, not the trim"
+            + (
+                f"; the grid cap of {max_grid} does not resolve the ears and folds that "
+                "Poisson's depth-7 octree does. " + BUNNY_GRID_48
+                if max_grid is not None
+                else ". "
+            )
             if missed_c
             else ""
         )
@@ -808,7 +821,7 @@ def findings(runs) -> str:
             f"The median difference was jurs's lower, {span(jm, '{:.4f}')} against "
             f"{span(pm, '{:.4f}')}, and its largest {span(jx)} against {span(px)}: jurs's "
             "field is nearer on the smooth part and farther across the stripe's edges, "
-            "which it blurs over a wider band. " + COLOUR_NOTE
+            "which it blurs over a wider band. " + (COLOUR_NOTE if max_grid is not None else "")
         )
     return "\n".join(lines)
 
@@ -869,8 +882,13 @@ def markdown(payload):
         f"once occluded holes and visible islands under {RIM_CELLS:g} squared local "
         "spacings are closed or dropped (a scan of this density cannot show them).",
         "",
-        "**Methods.** jurs: `jurs.fit(points, normals)` with defaults (float64, grid capped "
-        f"at {payload['max_grid']}), `jurs.levelset.mesh(spline)` at its default resolution, "
+        "**Methods.** jurs: `jurs.fit(points, normals)` with defaults (float64, "
+        + (
+            "no grid given: the fit's own cap, or the adaptive basis where it chooses it"
+            if payload["max_grid"] is None
+            else f"grid capped at {payload['max_grid']}"
+        )
+        + "), `jurs.levelset.mesh(spline)` at its default resolution, "
         "then `trim_mesh(..., points, trim, rim)` = `mesh(spline, points=points, trim=..., "
         "rim=...)`: `jurs` is the default trim (2.5 local spacings amid the samples, 1 "
         "past the data's rim, where the samples lie to one side), `jurs distance only` the "
@@ -904,7 +922,12 @@ def markdown(payload):
         "",
     ]
     if payload["runs"]:
-        lines += ["## What met and what missed", "", findings(payload["runs"]), ""]
+        lines += [
+            "## What met and what missed",
+            "",
+            findings(payload["runs"], payload.get("max_grid", MAX_GRID)),
+            "",
+        ]
     lines += ["## Meshes", "", *rows, "", "## The scans", "", *rims, ""]
     if payload["runs"] and all("colour" in r for r in payload["runs"]):
         lines += [
@@ -1003,6 +1026,12 @@ def parse(argv=None):
     parser.add_argument("--cases", help=f"comma-separated subset of {', '.join(CASES)}")
     parser.add_argument("--points", type=int, help=f"visible points per scan ({POINTS})")
     parser.add_argument("--max-grid", type=int, help=f"cap on jurs's grid ({MAX_GRID})")
+    parser.add_argument(
+        "--default-fit",
+        action="store_true",
+        help="fit with jurs.fit's own defaults (no grid given: the adaptive basis where it "
+        "chooses it) instead of a grid capped at --max-grid",
+    )
     parser.add_argument("--eval-samples", type=int, help=f"({EVAL_SAMPLES})")
     parser.add_argument("--out", default=RESULTS, help="folder of the results files")
     parser.add_argument("--name", default="open_scans", help="results file names")
@@ -1016,7 +1045,7 @@ def parse(argv=None):
     if unknown:
         parser.error(f"unknown cases {sorted(unknown)}; choose from {list(CASES)}")
     args.points = args.points or preset["points"]
-    args.max_grid = args.max_grid or preset["max_grid"]
+    args.max_grid = None if args.default_fit else args.max_grid or preset["max_grid"]
     args.eval_samples = args.eval_samples or (20_000 if args.quick else EVAL_SAMPLES)
     return args
 
