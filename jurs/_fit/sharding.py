@@ -308,7 +308,9 @@ def process_problem(
     replicated. Every process calls this (it runs two small all-gathers: the bucket size,
     the slot count); an input error in one process is raised in all. ``solver``: checks
     the memory of this process's share of the fit
-    (``jurs._problem.problem.fit_memory``)."""
+    (``jurs._problem.problem.fit_memory``). Memory: each per-slot array is freed in this
+    process as soon as its global array exists, and the heap's freed memory is returned
+    to the system before and after the layout (``release_freed``)."""
     release_freed()  # a previous fit's freed buffers, before this layout's
     sharding = input_sharding(points, normals)
     assert sharding is not None
@@ -395,14 +397,13 @@ def process_problem(
 
     by_point_sharding = NamedSharding(mesh, _spec(0, names))
 
-    def by_point(x, given):  # the given global array where it holds these values already
+    def by_point(x, given=None):  # ``given``: a global array that may hold ``x`` already
         if (
-            given is points
-            and isinstance(given, jax.Array)
+            isinstance(given, jax.Array)
             and given.dtype == x.dtype
             and given.sharding.is_equivalent_to(by_point_sharding, given.ndim)
         ):
-            return given  # the points, cast to nothing: not copied again
+            return given  # the points, not cast: not copied again
         return jax.make_array_from_process_local_data(
             by_point_sharding, np.asarray(x), tuple(points.shape)
         )
@@ -415,7 +416,7 @@ def process_problem(
     basis = LocalBasis(cell=arrays.pop("cell"), s=arrays.pop("s"), bucket_size=k, parts=shards)
     problem = Problem(
         points=by_point(local_points, points),
-        normals=by_point(local_normals, normals),
+        normals=by_point(local_normals),  # made unit length: its own
         lower=same(box[0]),
         upper=same(box[1]),
         offset=same(box[2]),
