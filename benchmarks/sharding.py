@@ -432,31 +432,54 @@ def summary_processes(section: dict, floor: float | None) -> str:
         + "; ".join(parts)
         + "."
     )
-    if floor is not None:
-        # What every process holds whatever its share: the runtime, the compiled solve and
-        # the grid's arrays (the one-device process peak at the smallest m above).
-        above = {c: peak[c] - floor for c in peak}
-        split = ", ".join(
-            f"{above[c]:.0f} MB with {c} ({above[1] / above[c]:.2f}x)"
-            for c in sorted(peak)
-            if c > 1
+    # What a process holds whatever its share (the runtime, the compiled programs, the
+    # grid's arrays): measured per P where the section has a run of few points (under
+    # 1e5), else the one-device process peak at the smallest m of the table above.
+    small = {r["processes"]: r for r in ok if r["m"] < 100_000}
+    floors = {c: small[c]["peak_mb"] if c in small else floor for c in peak}
+    if all(f is not None for f in floors.values()):
+        above = {c: peak[c] - floors[c] for c in peak}
+        if small:
+            m_small = min(r["m"] for r in small.values())
+            said = ", ".join(f"{floors[c]:.0f} MB with {c}" for c in sorted(peak))
+            text += (
+                f" A fit of {m_small:.0e} points on this grid (the rows above) peaks at {said} "
+                "process(es): the floor, which does not split (the JAX runtime and its "
+                "collectives, the compiled programs, the grid-sized arrays, i.e. the 128 x 128 "
+                "system and its Cholesky factor, replicated)."
+            )
+        else:
+            text += (
+                f" A process fitting 1e4 points on this grid peaks at {floor:.0f} MB (the "
+                "table above: the JAX runtime and compiled programs, the grid-sized arrays): "
+                "that floor does not split."
+            )
+        per_point = ", ".join(
+            f"{above[c] * 1e6 / (m / c):.0f} with {c}" for c in sorted(peak) if c > 1
         )
         text += (
-            f" A process fitting 1e4 points on this grid peaks at {floor:.0f} MB (the table "
-            "above: the JAX runtime and compiled programs, the grid-sized arrays, i.e. the "
-            "128 x 128 system and its Cholesky factor, replicated): that floor does not "
-            f"split. Above it the peak falls from {above[1]:.0f} MB to {split}."
+            f" Above it the peak falls from {above[1]:.0f} MB to "
+            + ", ".join(
+                f"{above[c]:.0f} MB with {c} ({above[1] / above[c]:.2f}x)"
+                for c in sorted(peak)
+                if c > 1
+            )
+            + f"; bytes a point held: {above[1] * 1e6 / m:.0f} in one process, {per_point}."
         )
     after = {r["processes"]: first_fit(r) for r in ok if r["m"] == m}
     if "-" not in after.values() and 1 in after:
         ratios = ", ".join(
             f"{float(after[1]) / float(after[c]):.2f}x with {c}" for c in sorted(after) if c > 1
         )
+        rise = max(  # a process's own end peak over its own peak after fit 1
+            p["peak_mb"] - p["stages"]["fit 1"]
+            for r in ok
+            if r["m"] == m
+            for p in r.get("per_process", [])
+        )
         text += (
-            f" After the first fit alone the peak falls from {after[1]} MB by {ratios}: the "
-            "second fit raised the peak of some processes (by up to "
-            f"{max(r['peak_mb'] - float(first_fit(r)) for r in ok if r['m'] == m):.0f} MB), "
-            "which the one-process run did far less."
+            f" After the first fit alone the peak falls from {after[1]} MB by {ratios}; "
+            f"the second fit raised a process's peak by at most {rise:.0f} MB."
         )
     worst = max((r.get("rel_diff", 0.0) for r in ok), default=0.0)
     return (

@@ -37,8 +37,12 @@ process's layout, sorted by cell), as the per-device sums onto the grid declare
 
 from __future__ import annotations
 
+import ctypes
 import dataclasses
+import functools
+import gc
 import math
+import sys
 
 import equinox as eqx
 import jax
@@ -304,7 +308,10 @@ def process_problem(
     replicated. Every process calls this (it runs two small all-gathers: the bucket size,
     the slot count); an input error in one process is raised in all. ``solver``: checks
     the memory of this process's share of the fit
-    (``jurs._problem.problem.fit_memory``)."""
+    (``jurs._problem.problem.fit_memory``). Memory: each per-slot array is freed in this
+    process as soon as its global array exists, and the heap's freed memory is returned
+    to the system before and after the layout (``release_freed``)."""
+    release_freed()  # a previous fit's freed buffers, before this layout's
     sharding = input_sharding(points, normals)
     assert sharding is not None
     shards = _axis_size(sharding)
@@ -349,18 +356,31 @@ def process_problem(
         per_device = -(-local.samples.shape[0] // (len(positions) * k)) * k
     except (TypeError, ValueError) as error:
         failure = _in_process(error)
+    del p, n, normal_rows  # this process's rows: the layout holds what it needs
     per_device = int(_agreed([per_device], failure, "laying out its samples").max())
     assert local is not None and local.local.terms is None  # no table form
     extra = per_device * len(positions) - local.samples.shape[0]
     index = np.asarray(local.sample_index).astype(np.int64)
     kind, point = np.divmod(index, len(rows))
-    fields = dict(
-        samples=_padded(local.samples, 0, extra, False),
-        targets=_padded(local.targets, 0, extra, False),
-        mask=_padded(local.mask, 0, extra, True),
-        is_data=_padded(local.is_data, 0, extra, True),
-        sample_index=_padded((kind * total + rows[point]).astype(np.int32), 0, extra, False),
+    del index
+    global_index = (kind * total + rows[point]).astype(np.int32)  # in the global point order
+    del kind, point
+    # (array, slot axis, zeroed in the padding): the per-slot arrays, taken out of ``local``
+    # so that each is freed as soon as its global array exists (one at a time, not the
+    # whole layout held twice).
+    slotted = dict(
+        samples=(local.samples, 0, False),
+        targets=(local.targets, 0, False),
+        mask=(local.mask, 0, True),
+        is_data=(local.is_data, 0, True),
+        sample_index=(global_index, 0, False),
+        cell=(local.local.cell, 0, False),
+        s=(local.local.s, 1, False),
     )
+    local_points, local_normals = local.points, local.normals
+    box = (local.lower, local.upper, local.offset, local.eps)
+    k = local.local.bucket_size
+    del local, global_index
     mesh, names = sharding.mesh, sharding.spec[0]
     replicated = NamedSharding(mesh, PartitionSpec())
 
@@ -375,28 +395,63 @@ def process_problem(
         x = np.asarray(x)
         return jax.make_array_from_process_local_data(replicated, x, x.shape)
 
-    def by_point(x):
+    by_point_sharding = NamedSharding(mesh, _spec(0, names))
+
+    def by_point(x, given=None):  # ``given``: a global array that may hold ``x`` already
+        if (
+            isinstance(given, jax.Array)
+            and given.dtype == x.dtype
+            and given.sharding.is_equivalent_to(by_point_sharding, given.ndim)
+        ):
+            return given  # the points, not cast: not copied again
         return jax.make_array_from_process_local_data(
-            NamedSharding(mesh, _spec(0, names)), np.asarray(x), tuple(points.shape)
+            by_point_sharding, np.asarray(x), tuple(points.shape)
         )
 
-    basis = LocalBasis(
-        cell=spread(_padded(local.local.cell, 0, extra, False), 0),
-        s=spread(_padded(local.local.s, 1, extra, False), 1),
-        bucket_size=local.local.bucket_size,
-        parts=shards,
-    )
-    return Problem(
-        points=by_point(local.points),
-        normals=by_point(local.normals),
-        lower=same(local.lower),
-        upper=same(local.upper),
-        offset=same(local.offset),
-        eps=same(local.eps),
+    arrays = {}
+    for name in list(slotted):
+        x, axis, zero = slotted.pop(name)
+        arrays[name] = spread(_padded(x, axis, extra, zero), axis)
+        del x  # this process's copy: the global array holds its own
+    basis = LocalBasis(cell=arrays.pop("cell"), s=arrays.pop("s"), bucket_size=k, parts=shards)
+    problem = Problem(
+        points=by_point(local_points, points),
+        normals=by_point(local_normals),  # made unit length: its own
+        lower=same(box[0]),
+        upper=same(box[1]),
+        offset=same(box[2]),
+        eps=same(box[3]),
         local=basis,
         shape=tuple(shape),
-        **{name: spread(x, 0) for name, x in fields.items()},
+        **arrays,
     )
+    del local_points, local_normals
+    release_freed()
+    return problem
+
+
+def release_freed() -> None:
+    """Collect Python's garbage cycles and hand the memory freed on the host back to the
+    system (glibc's ``malloc_trim``; elsewhere the collection only). A fit over several
+    processes calls it before and after laying out its samples: the previous fit's
+    buffers and the layout's host temporaries, freed but kept by the C heap, would
+    otherwise stay in the resident set beneath the solve's buffers (which are mapped
+    anew), and raise each process's peak (benchmarks/results/sharding.md)."""
+    gc.collect()
+    trim = _malloc_trim()
+    if trim is not None:
+        trim(0)
+
+
+@functools.cache
+def _malloc_trim():
+    """glibc's ``malloc_trim``, or None where the C library has none (not Linux, musl)."""
+    if not sys.platform.startswith("linux"):
+        return None
+    try:
+        return ctypes.CDLL(None).malloc_trim
+    except (OSError, AttributeError):
+        return None
 
 
 def replicate_across_processes(tree, sharding: NamedSharding):
