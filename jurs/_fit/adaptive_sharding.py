@@ -48,7 +48,12 @@ from .adaptive import (
     size_class,
     solve_normal,
 )
-from .process_settings import _bounds, local_cloud, settings_across_processes
+from .process_settings import (
+    _bounds,
+    check_global_arrays,
+    local_cloud,
+    settings_across_processes,
+)
 from .settings import Settings, scale_free_lam
 from .sharding import _axis_size, _process_positions, input_sharding
 
@@ -336,13 +341,7 @@ def fit_adaptive_across_processes(
     checks) is not run (docs/sharding.md, "Adaptive fits")."""
     if normals is None:  # estimated over all processes' points, split like them
         normals = normals_across_processes(points)
-    for name, x in (("points", points), ("normals", normals)):
-        if not isinstance(x, jax.Array) or x.is_fully_addressable or x.ndim != 2:
-            raise ValueError(
-                f"{name}: over several processes pass points and normals both as global "
-                "(m, d) jax.Arrays split the same way along the point axis "
-                "(jax.make_array_from_process_local_data)"
-            )
+    check_global_arrays(points, normals)
     sharding = input_sharding(points, normals)
     assert sharding is not None
     if settings is None:

@@ -54,6 +54,18 @@ from .settings import (
 )
 
 
+def check_global_arrays(points, normals) -> None:
+    """ValueError unless ``points`` and ``normals`` are both global ``(m, d)``
+    ``jax.Array`` s that no one process holds whole (split over the processes)."""
+    for name, x in (("points", points), ("normals", normals)):
+        if not isinstance(x, jax.Array) or x.is_fully_addressable or x.ndim != 2:
+            raise ValueError(
+                f"{name}: over several processes pass points and normals both as global "
+                "(m, d) jax.Arrays split the same way along the point axis "
+                "(jax.make_array_from_process_local_data)"
+            )
+
+
 def _bounds(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Lower and upper corner of every process's rows ``x`` together (an all-reduce)."""
     d = x.shape[1]

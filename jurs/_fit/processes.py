@@ -6,7 +6,6 @@ from __future__ import annotations
 import dataclasses
 
 import equinox as eqx
-import jax
 import jax.numpy as jnp
 
 from .._cloud.parts import normals_across_processes, spans_processes
@@ -15,7 +14,7 @@ from .._solution.solution import RAISED_RESULTS, error_message
 from ..solvers import LeastSquares
 from .adaptive import auto_finest, fit_adaptive
 from .call import as_arrays, check_start, solve_fit
-from .process_settings import settings_across_processes
+from .process_settings import check_global_arrays, settings_across_processes
 from .sharding import (
     PROCESS_SETTINGS,
     input_sharding,
@@ -61,13 +60,7 @@ def fit_across_processes(
         raise ValueError(
             "smoothing sets the default solver's lambda; with a solver given, set its lam instead"
         )
-    for name, x in (("points", points), ("normals", normals)):
-        if not isinstance(x, jax.Array) or x.is_fully_addressable or x.ndim != 2:
-            raise ValueError(
-                f"{name}: over several processes pass points and normals both as global "
-                "(m, d) jax.Arrays split the same way along the point axis "
-                "(jax.make_array_from_process_local_data)"
-            )
+    check_global_arrays(points, normals)
     if mask is not None:
         raise ValueError("mask: fits over several processes take no mask (docs/sharding.md)")
     if basis == "adaptive":  # the arguments only the grid takes were refused by jurs.fit
