@@ -789,15 +789,20 @@ def findings(runs, max_grid: int | None = MAX_GRID) -> str:
         f"part itself reaches {span([r['truth_stray_max'] for r in runs], '{:.1f}')} "
         "spacings; the trim keeps the surface across such interior gaps (up to 2.5 "
         "spacings, and closes holes under 20 squared spacings), which is where the "
-        "surface beyond 2 lies. " + STRAY_NOTE,
+        "surface beyond 2 lies. " + (STRAY_NOTE if max_grid is not None else ""),
         f"- **Boundary loops = true rims: met on {sum(x['loops'] for x in v)} of {n}** "
         f"(distance only: {old_loops} of {n})."
         + (f" Missed: {'; '.join(loops_missed)}." if loops_missed else ""),
         "- **Reproducibility.** Open3D's Poisson meshes are not reproducible (its octree "
         "is built by several threads): between two earlier runs (2026-12-04) its "
         "best-trim Hausdorff distances differed by up to 14 % and its Chamfer distances "
-        "by up to 2 %; jurs's scores were identical (here too: the distance-only rows "
-        "repeat the earlier runs' default rows to every digit shown).",
+        "by up to 2 %; jurs's scores were identical"
+        + (
+            " (here too: the distance-only rows repeat the earlier runs' default rows to "
+            "every digit shown)."
+            if max_grid is not None
+            else "."
+        ),
         f"- **Time.** jurs's warm fit + mesh + trim took {span(jurs_s, '{:.0f}')} s, "
         f"Poisson {span(poisson_s, '{:.1f}')} s; jurs's first call, compilation "
         f"included, {span(first_s, '{:.0f}')} s.",
