@@ -458,6 +458,10 @@ def test_packed_evaluation_equals_the_hierarchys(ndim):
     # jax.grad with respect to the coefficients goes through the hierarchy, as before.
     slope = jax.grad(lambda c: jnp.sum(jurs.AdaptiveSpline(hierarchy, c, weights)(x)))(control)
     assert slope.shape == control.shape and np.isfinite(np.asarray(slope)).all()
+    # A spline and points closed over by a jitted function are concrete there, but the
+    # trace is not: the hierarchy's path, the same values.
+    closed = jax.jit(lambda w: w * spline(np.asarray(x)))(2.0)
+    np.testing.assert_allclose(closed, 2.0 * np.asarray(spline(x)), rtol=1e-12, atol=1e-13)
 
 
 def test_evaluating_a_new_adaptive_fit_compiles_nothing():

@@ -205,8 +205,14 @@ _cache: OrderedDict = OrderedDict()
 
 
 def _concrete(*arrays) -> bool:
+    """Whether ``arrays`` hold no tracer and no transformation is being traced: inside
+    ``jax.jit`` a spline and points closed over are concrete, but every array the packed
+    path makes (``device_put`` of its host arrays) would be a tracer, which it neither
+    reads back on the host nor may keep in its cache."""
     leaves = jax.tree_util.tree_leaves(arrays)
-    return not any(isinstance(leaf, Tracer) for leaf in leaves)
+    if any(isinstance(leaf, Tracer) for leaf in leaves):
+        return False
+    return not isinstance(jax.device_put(np.zeros((), np.float32)), Tracer)
 
 
 def _packed(hierarchy: Hierarchy, control, weights) -> PackedSpline | None:
