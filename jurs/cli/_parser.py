@@ -78,9 +78,9 @@ def _fit_parser(sub) -> argparse.ArgumentParser:
         default="auto",
         choices=("auto", "uniform", "adaptive"),
         help="auto: the adaptive basis where the data ask for finer cells than the "
-        "automatic uniform grid affords (as jurs.fit), else the uniform grid; uniform: "
-        "always the grid; adaptive: as --adaptive. --grid or a --solver other than auto "
-        "keeps the uniform grid",
+        "automatic uniform grid affords and its fit leaves them (as jurs.fit), else the "
+        "uniform grid; uniform: always the grid; adaptive: as --adaptive. --grid, --lam "
+        "or a --solver other than auto keeps the uniform grid",
     )
     f.add_argument(
         "--adaptive",
