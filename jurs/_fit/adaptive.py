@@ -43,7 +43,7 @@ from .._problem.adaptive import (
 )
 from .._problem.sizes import round_size
 from .._solution.solution import RAISED_RESULTS, RESULTS, Solution, error_message
-from .._solution.verdicts import evaluate_bucketed, judge
+from .._solution.verdicts import evaluate_bucketed, judge, judged_points
 from .settings import Settings, auto_settings, scale_free_lam
 from .sharding import input_sharding, spans_processes
 
@@ -119,11 +119,7 @@ def uniform_residual(spline, cloud: Cloud, settings: Settings) -> float:
     those set aside by the settings left out. [`jurs.fit`][] keeps a capped uniform fit
     where this is at most ``UNIFORM_RESIDUAL_SPACINGS``, and fits on the hierarchy
     otherwise."""
-    keep = np.zeros(len(cloud), bool)
-    keep[cloud.kept] = True
-    if settings.set_aside:
-        keep[list(settings.set_aside)] = False
-    points = cloud.points[keep]
+    points = cloud.points[judged_points(cloud, settings)]
     at = strided_probes(len(points), PROBES)
     _, distance = evaluate_bucketed(spline, points if at is None else points[at])
     # A nonfinite distance (a fit that failed) counts as far.

@@ -330,16 +330,17 @@ def fit(
     return sol
 
 
-def _on_hierarchy(cloud, settings, checks, throw, estimated) -> Solution:
+def _on_hierarchy(cloud, settings, checks, throw, estimated, residual=None) -> Solution:
     """The fit of ``cloud`` on the adaptive basis with ``settings`` (``jurs.fit_adaptive``),
     its finest level chosen as ``basis="auto"`` does; ``estimated`` (where the normals were
-    estimated) recorded in its stats."""
+    estimated) and the capped grid's ``residual`` (where it was fitted first) recorded in
+    its stats."""
     sol = fit_adaptive(
         cloud, settings=settings, finest=auto_finest(settings), checks=checks, throw=throw
     )
-    if estimated is not None:
-        sol = dataclasses.replace(sol, stats=dict(sol.stats, estimated_normals=estimated))
-    return sol
+    noted = dict(estimated_normals=estimated, uniform_residual=residual)
+    extra = {name: value for name, value in noted.items() if value is not None}
+    return dataclasses.replace(sol, stats=dict(sol.stats, **extra)) if extra else sol
 
 
 def _fit(
@@ -463,8 +464,8 @@ def _fit(
             else float("inf")
         )
         if residual > UNIFORM_RESIDUAL_SPACINGS:
-            sol = _on_hierarchy(cloud, settings, checks, throw, estimated)
-            return dataclasses.replace(sol, stats=dict(sol.stats, uniform_residual=residual)), None
+            hierarchy = _on_hierarchy(cloud, settings, checks, throw, estimated, residual)
+            return hierarchy, None
         sol = dataclasses.replace(sol, stats=dict(sol.stats, uniform_residual=residual))
     if top_level:
         if checks:

@@ -363,6 +363,16 @@ def _describe_extra(component: dict) -> str:
     )
 
 
+def judged_points(cloud, settings) -> np.ndarray:
+    """Mask of ``cloud.points`` a fit is judged on: the cloud's kept points, less those
+    the ``settings`` (None: none) set aside."""
+    keep = np.zeros(len(cloud), bool)
+    keep[cloud.kept] = True
+    if settings is not None and settings.set_aside:
+        keep[list(settings.set_aside)] = False
+    return keep
+
+
 def check_doubts(sol, cloud, settings, offset):
     """``sol`` with ``metrics["far_point_fraction"]``, ``metrics["crossed_features"]``,
     ``stats["doubts"]`` (the reasons to doubt the zero set, in words; one for each closed
@@ -371,10 +381,7 @@ def check_doubts(sol, cloud, settings, offset):
     ``RESULTS.doubtful`` in place of success, and a warning. Host side;
     ``settings`` (None: a fit with settings given) says which points were set aside and
     the cloud's spacing, without which the thin-part check is not made."""
-    keep = np.zeros(len(cloud), bool)
-    keep[cloud.kept] = True
-    if settings is not None and settings.set_aside:
-        keep[list(settings.set_aside)] = False
+    keep = judged_points(cloud, settings)
     p = cloud.points
     far, threshold = far_point_fraction(sol.spline, p[keep], offset)
     crossed, along, thin = 0, 0, 0.0 if settings is None else settings.thin_fraction

@@ -190,6 +190,17 @@ class ProgressBar:
             self.drawn = False
 
 
+def lattice_resolution(resolution: int | None, dim: int, adaptive: bool) -> int | None:
+    """``--resolution``, or where not given a uniform curve fit's default lattice; None
+    for an adaptive curve (its lattice follows its finest level, known after the fit) and
+    for a surface (its mesh chooses)."""
+    from .. import levelset as ls
+
+    if dim == 2 and resolution is None and not adaptive:
+        return ls.DEFAULT_RESOLUTION
+    return resolution
+
+
 @dataclasses.dataclass(frozen=True)
 class FitJob:
     """What ``jurs fit`` has read and checked before the fit: the cloud (``(m, 2)`` or
@@ -217,13 +228,9 @@ class FitJob:
         the uniform grid, a uniform job (a curve's lattice at its default resolution)."""
         import jurs
 
-        from .. import levelset as ls
-
         if not self.chooses or isinstance(sol.spline, jurs.AdaptiveSpline):
             return self
-        resolution = self.resolution
-        if self.dim == 2 and resolution is None:
-            resolution = ls.DEFAULT_RESOLUTION
+        resolution = lattice_resolution(self.resolution, self.dim, adaptive=False)
         return dataclasses.replace(
             self, adaptive=False, finest=None, chooses=False, resolution=resolution
         )
@@ -326,8 +333,6 @@ def prepare_fit(args) -> FitJob:
     space); every problem raises ``InputError``."""
     import jurs
 
-    from .. import levelset as ls
-
     path = args.file
     shown = printable(path)
     points, normals = read_input(path)
@@ -377,9 +382,7 @@ def prepare_fit(args) -> FitJob:
 
         adaptive = chooses = wants_adaptive(chosen, len(cloud))
         finest = auto_finest(chosen) if adaptive else None
-    # An adaptive curve's lattice follows its finest level, known after the fit.
-    if dim == 2 and resolution is None and not adaptive:
-        resolution = ls.DEFAULT_RESOLUTION
+    resolution = lattice_resolution(resolution, dim, adaptive)
     if adaptive:
         solver = None  # fit_adaptive's exact solve, with --lam or the automatic lambda
     job = FitJob(

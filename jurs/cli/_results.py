@@ -243,20 +243,20 @@ def surface_outputs(job: FitJob, args, sol, seconds: float):
     from ..levelset._meshing import default_resolution
 
     spline = sol.spline
-    trim = _trim(args)
+    trim, rim = _trim(args), _rim(args)
     t0 = time.perf_counter()
     if job.adaptive and job.resolution is None:
         # The band mesh chooses its resolution (five nodes a finest cell, lowered until
         # the marched nodes fit in its node limit); metrics.json records it as None.
         resolution = None
-        vertices, faces = ls.mesh(spline, points=job.points, trim=trim, rim=_rim(args))
+        vertices, faces = ls.mesh(spline, points=job.points, trim=trim, rim=rim)
     else:
         resolution = job.resolution or default_resolution(
             spline, np.asarray(spline.lower, np.float64), np.asarray(spline.upper, np.float64)
         )
         # The user chose --resolution, its memory checked before the fit: no node limit.
         vertices, faces = ls.mesh(
-            spline, resolution, max_nodes=None, points=job.points, trim=trim, rim=_rim(args)
+            spline, resolution, max_nodes=None, points=job.points, trim=trim, rim=rim
         )
     t1 = time.perf_counter()
     report = ls.analyze_mesh(vertices, faces, job.points, threshold=args.threshold)
@@ -279,7 +279,7 @@ def surface_outputs(job: FitJob, args, sol, seconds: float):
         hausdorff=distances["hausdorff"],
         normal_consistency=distances["normal_consistency"],
         trim=trim,
-        rim=None if trim is None else _rim(args),
+        rim=None if trim is None else rim,
     )
     record["mesh"] = mesh_record(vertices, faces, report, distances, resolution)
     record["mesh"]["vertex_colors"] = colours is not None
@@ -310,7 +310,7 @@ def surface_outputs(job: FitJob, args, sol, seconds: float):
     )
     if trim is not None:
         summary += (
-            f"\n  trimmed to {trim:g} point spacings amid the data, {_rim(args):g} past "
+            f"\n  trimmed to {trim:g} point spacings amid the data, {rim:g} past "
             f"its rim: {report.num_boundary_loops} boundary "
             f"loop(s), {report.boundary_length:.3g} long"
         )

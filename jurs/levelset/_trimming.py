@@ -357,29 +357,21 @@ def fill_holes(vertices, faces, level, support: Support, area: float) -> np.ndar
 def drop_islands(vertices, faces, support: Support, area: float):
     """The mesh without its open connected pieces (a border edge) that cover less than
     ``area`` squared local spacings: slivers the clip leaves beside the rim."""
-    from scipy.sparse import coo_matrix
-    from scipy.sparse.csgraph import connected_components
+    # Imported here: the mesh analysis imports this module (its trim and Support).
+    from ._mesh_analysis import _boundary_edges, _face_components, face_areas
 
     if len(faces) == 0:
         return vertices, faces
-    n = len(vertices)
-    pairs = faces[:, [0, 1, 1, 2]].reshape(-1, 2)
-    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(n, n))
-    count, label = connected_components(graph, directed=False)
+    faces = np.asarray(faces, dtype=np.int64)
+    count, owner = _face_components(faces, len(vertices))
     if count == 1:
         return vertices, faces
-    owner = label[faces[:, 0]]
-    a, b, c = (vertices[faces[:, i]] for i in range(3))
-    size = np.bincount(
-        owner, weights=0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1), minlength=count
-    )
-    edges = np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
-    unique, uses = np.unique(edges, axis=0, return_counts=True)
+    size = np.bincount(owner, weights=face_areas(vertices, faces), minlength=count)
     open_piece = np.zeros(count, dtype=bool)
-    open_piece[label[unique[uses == 1][:, 0]]] = True
+    open_piece[_boundary_edges(faces, owner)[1]] = True
     _, nearest = support.tree.query(vertices)
     scale = np.zeros(count)
-    np.maximum.at(scale, label, support.spacing[nearest] ** 2)
+    np.maximum.at(scale, np.repeat(owner, 3), (support.spacing[nearest] ** 2)[faces].ravel())
     drop = open_piece & (size < area * scale)
     if not drop.any():
         return vertices, faces
