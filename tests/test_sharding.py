@@ -18,6 +18,7 @@ import numpy as np
 import pytest
 
 import jurs
+from jurs._fit.adaptive import UNIFORM_RESIDUAL_SPACINGS
 from jurs._fit.sharding import input_sharding, place_fit, spans_processes
 
 #: The module fixture runs fits on forced devices in a process of its own (about 30 s).
@@ -57,8 +58,7 @@ CHILD = textwrap.dedent(
         setattr(_fit, name, recording(getattr(_fit, name)))
 
     def compare(name, points, normals, **kw):
-        # Sharded points keep the uniform grid (jurs.fit's basis="auto"): so does the reference.
-        ref = jurs.fit(points, normals, basis="uniform", **kw)
+        ref = jurs.fit(points, normals, **kw)
         sol = jurs.fit(jax.device_put(points, split), jax.device_put(normals, split), **kw)
         c0, c1 = np.asarray(ref.spline.control), np.asarray(sol.spline.control)
         out[name] = dict(
@@ -67,11 +67,39 @@ CHILD = textwrap.dedent(
             devices=len(sol.spline.control.sharding.device_set),
         )
 
-    compare("table", *jurs.datasets.example1(2000))  # automatic settings, table form
+    # Automatic settings, table form: the uniform grid asked for (this cloud's capped
+    # grid reads a residual just above UNIFORM_RESIDUAL_SPACINGS; basis="auto" would go
+    # on to the hierarchy).
+    compare("table", *jurs.datasets.example1(2000), basis="uniform")
     p, n = jurs.datasets.example1(3000)
     grid, offset, eps = (24, 24), 0.02, 0.02
     compare("buckets", p, n, grid=grid, offset=offset, eps=eps, bucket_size=8)
     solve, problem, solver, init, throw = ran[-1]  # the sharded bucketed fit's solve
+
+    # basis="auto" on sharded points chooses as unsharded (the capped grid fitted sharded,
+    # its residual measured on the whole cloud on the host): a star of 12 spikes, whose
+    # corners the capped grid rounds off, goes on to the hierarchy, fitted with the sharded
+    # points; a circle keeps the grid. Both take the table case's 96 x 96 grid (compiled).
+    angles = np.arange(24) * np.pi / 12
+    corners = np.c_[np.cos(angles), np.sin(angles)] * np.where(np.arange(24) % 2, 0.8, 1)[:, None]
+    edges = np.roll(corners, -1, axis=0) - corners  # 24 edges of 62 points each
+    star = (corners[:, None] + (np.arange(62) / 62)[:, None] * edges[:, None]).reshape(-1, 2)
+    star_normals = np.repeat(np.c_[edges[:, 1], -edges[:, 0]], 62, axis=0)
+    t = np.linspace(0.0, 2.0 * np.pi, len(star), endpoint=False)
+    circle = np.c_[np.cos(t), np.sin(t)]
+    clouds = ("auto_star", star, star_normals), ("auto_circle", circle, circle)
+    for name, points, normals in clouds:
+        ref = jurs.fit(points, normals)
+        sol = jurs.fit(jax.device_put(points, split), jax.device_put(normals, split))
+        c0, c1 = np.asarray(ref.spline.control), np.asarray(sol.spline.control)
+        out[name] = dict(
+            rel=float(np.abs(c1 - c0).max() / np.abs(c0).max()),
+            status=[ref.status, sol.status],
+            bases=[type(ref.spline).__name__, type(sol.spline).__name__],
+            residuals=[ref.stats["uniform_residual"], sol.stats["uniform_residual"]],
+            devices=[ref.stats.get("devices"), sol.stats.get("devices")],
+            spread=len(sol.spline.control.sharding.device_set),
+        )
     compare("sphere", *jurs.datasets.sphere3d(1000), grid=(6, 6, 6), offset=0.05, eps=0.05)
 
     # The compiled bucketed (power-form) solve: which collectives GSPMD put in.
@@ -219,6 +247,28 @@ def test_sharded_fit_equals_one_device_fit(child, case):
     assert result["rel"] < 1e-9
     assert result["status"] == ["successful", "successful"]
     assert result["devices"] == 4  # the result lives on the mesh
+
+
+@pytest.mark.parametrize("case", ["auto_star", "auto_circle"])
+def test_sharded_auto_basis_chooses_as_unsharded(child, case):
+    """``basis="auto"`` on points sharded over 4 devices makes the unsharded fit's choice:
+    the capped grid's residual (measured on the whole cloud on the host) the same to
+    rounding; a star goes on to the hierarchy, whose fit sees the sharded points
+    (``stats["devices"]``: a curve's direct solve runs on the host, 1) and equals the
+    unsharded one; a circle keeps the grid, fitted over the devices."""
+    result = child[case]
+    assert result["status"] == ["successful", "successful"]
+    ref, sharded = result["residuals"]
+    assert abs(sharded - ref) < 1e-9 * ref
+    if case == "auto_star":
+        assert ref > UNIFORM_RESIDUAL_SPACINGS
+        assert result["bases"] == ["AdaptiveSpline", "AdaptiveSpline"]
+        assert result["devices"] == [None, 1]  # the hierarchy fit read the sharding
+    else:
+        assert ref <= UNIFORM_RESIDUAL_SPACINGS
+        assert result["bases"] == ["ImplicitSpline", "ImplicitSpline"]
+        assert result["spread"] == 4  # the grid's fit lives on the mesh
+    assert result["rel"] < 1e-9
 
 
 def test_sharded_samples_stay_on_their_devices(child):

@@ -45,7 +45,7 @@ from .call import as_arrays, check_start, solve_fit
 from .processes import fit_across_processes
 from .progress import chunked_run
 from .settings import Settings, choose_settings, default_solver, set_aside_mask
-from .sharding import input_sharding, place_fit, spans_processes
+from .sharding import place_fit, spans_processes
 
 #: Problems a ``jurs.Cloud`` keeps, the latest first, for fits that repeat settings.
 KEPT_PROBLEMS = 4
@@ -152,9 +152,11 @@ def _uniform_only(
     grid, solver, init, mask, bucket_size, run, points, normals, basis="auto"
 ) -> list[str]:
     """The arguments of a [`fit`][jurs.fit] call that only the uniform grid takes, by
-    name; empty where the adaptive basis can fit it. Points sharded over devices or
-    processes are fitted on the adaptive basis when it is asked for (``basis="adaptive"``,
-    ``jurs._fit.adaptive_sharding``); the automatic choice keeps them on the grid."""
+    name; empty where the adaptive basis can fit it. Points sharded over the devices of
+    one process take the automatic choice as unsharded (the grid's residual measured on
+    the whole cloud on the host, the hierarchy fitted sharded:
+    ``jurs._fit.adaptive_sharding``); points split over processes are fitted on the
+    adaptive basis only when it is asked for (``basis="adaptive"``)."""
     given = dict(grid=grid, solver=solver, init=init, mask=mask, bucket_size=bucket_size)
     names = [name for name, value in given.items() if value is not None]
     if run is not None:
@@ -164,12 +166,6 @@ def _uniform_only(
             names.append("points split over processes")
     elif not isinstance(points, Cloud) and not _is_concrete(points, normals):
         names.append("traced points")
-    elif (
-        basis != "adaptive"
-        and not isinstance(points, Cloud)
-        and input_sharding(points, normals) is not None
-    ):
-        names.append("points sharded over devices")
     return names
 
 
@@ -271,11 +267,13 @@ def fit(
             within ``UNIFORM_RESIDUAL_SPACINGS`` (0.02) spacings of its zero set, else the
             fit is made on the adaptive basis; ``sol.stats["uniform_residual"]`` records
             that distance. Elsewhere the uniform grid. Any of ``grid``, ``solver``, ``init``,
-            ``mask``, ``bucket_size``, a ``callback``, points sharded over devices or
-            processes, or traced points keep the uniform grid. ``"uniform"``: the uniform
-            grid always. ``"adaptive"``: [`jurs.fit_adaptive`][] with the settings chosen
-            here (it takes none of the uniform-only arguments above, but points sharded
-            over devices or processes: docs/sharding.md, "Adaptive fits").
+            ``mask``, ``bucket_size``, a ``callback``, points split over processes, or
+            traced points keep the uniform grid; points sharded over the devices of one
+            process take the same choice as unsharded (the hierarchy then fitted with the
+            sharded points: docs/sharding.md, "Adaptive fits"). ``"uniform"``: the uniform
+            grid always. ``"adaptive"``: [`jurs.fit_adaptive`][] with the settings chosen here
+            (it takes none of the uniform-only arguments above, but points sharded over
+            devices or processes).
 
     Returns:
         [`jurs.Solution`][]. Jit-compiled inside; traceable, so ``jax.grad`` and
