@@ -69,6 +69,7 @@ from _common import (  # noqa: E402
     rerender_beside,
     write_results,
 )
+from _open_scan_rims import describe_rims, follow_rims  # noqa: E402
 from _surface_cases import (  # noqa: E402
     MeshDistance,
     Truth,
@@ -95,6 +96,8 @@ EVAL_SAMPLES = 100_000
 QUANTILES = (0.01, 0.02, 0.03, 0.05, 0.075, 0.1, 0.15, 0.2)
 #: The target on stray surface: nothing farther than this many local spacings from the data.
 STRAY_TARGET = 2.0
+#: No bleeding: at most this share of the other sheet's colour at a vertex.
+BLEED_TARGET = 0.01
 #: Occluded holes and visible islands of the scanned part smaller than this many squared
 #: local spacings are not counted as rims: a scan of that density cannot show them (a
 #: default trim of 2.5 spacings bridges holes up to about 5 spacings across).
@@ -247,9 +250,10 @@ def scan(vertices, faces, normal_fn, directions, m: int):
     return points[keep], normals[keep], faces[part], scanner
 
 
-def true_rims(vertices, faces, part_faces, spacing: float) -> dict:
+def true_rims(vertices, faces, part_faces, spacing: float, support) -> tuple[dict, np.ndarray]:
     """Boundary loops of the scanned part, raw and after closing occluded holes and dropping
-    visible islands smaller than ``RIM_CELLS`` squared spacings (what a scan shows)."""
+    visible islands smaller than ``RIM_CELLS`` squared spacings (what a scan shows), each
+    rim described (``_open_scan_rims.describe_rims``); and the cleaned part's faces."""
     from jurs.levelset import boundary_loops, face_areas, mesh_components
 
     minimum = RIM_CELLS * spacing**2
@@ -266,12 +270,14 @@ def true_rims(vertices, faces, part_faces, spacing: float) -> dict:
     raw = len(boundary_loops(vertices, part_faces)[0])
     clean = boundary_loops(vertices, faces[seen])[1] if seen.any() else np.empty(0)
     pieces = mesh_components(vertices, faces[seen])[0] if seen.any() else 0
-    return {
+    record = {
         "raw_loops": raw,
         "rims": len(clean),
         "rim_lengths": clean.tolist(),
         "true_components": int(pieces),
+        "rim_details": describe_rims(vertices, faces, seen, support, spacing),
     }
+    return record, faces[seen]
 
 
 # --------------------------------------------------------------------------- methods
@@ -408,6 +414,105 @@ def poisson_depth(m: int) -> int:
     return int(round(np.log(m) / np.log(4.0)))
 
 
+# --------------------------------------------------------------------------- two sheets
+
+#: The planted two-sheet case: a square plate 2 wide sampled on a grid of this step, its
+#: faces this many steps apart (under one cell of the fit's grid), red above, blue below.
+SHEETS_STEP, SHEETS_GAP = 0.1, 1.5
+RED, BLUE = np.array([0.9, 0.1, 0.1]), np.array([0.1, 0.1, 0.9])
+
+
+def two_sheets() -> dict:
+    """Bleeding across two sheets nearer than a cell: a thin plate (faces ``SHEETS_GAP``
+    sample steps apart, the rim at mid-height purple), fitted on a grid whose cells span
+    the gap; each method's colour at its own mesh's vertices over the plate's middle
+    (``|x|, |y| < 0.7``), as the share of the other face's colour (0: none, 0.5: the
+    average). jurs: ``fit_attributes`` (read from the side each vertex faces) and the
+    same fit's single smooth field (the split taken out); Poisson: Open3D's vertex
+    colours."""
+    import jurs
+    import jurs.levelset as ls
+    from jurs._fit.attributes import AttributeField
+
+    half = SHEETS_GAP * SHEETS_STEP / 2
+    axis = np.arange(-1.0, 1.0 + 1e-9, SHEETS_STEP)
+    x, y = (a.ravel() for a in np.meshgrid(axis, axis, indexing="ij"))
+    sheets = [np.stack([x, y, np.full_like(x, z)], 1) for z in (half, -half)]
+    rim, rim_normals = [], []
+    for a in axis[1:-1]:  # the four sides of the rim, at mid-height, facing out
+        for side in ([a, -1.0, 0.0], [a, 1.0, 0.0], [-1.0, a, 0.0], [1.0, a, 0.0]):
+            rim.append(side)
+            rim_normals.append([0.0 if abs(c) < 1 else c for c in side[:2]] + [0.0])
+    points = np.concatenate([*sheets, np.array(rim)])
+    up, down = np.tile([0.0, 0.0, 1.0], (len(x), 1)), np.tile([0.0, 0.0, -1.0], (len(x), 1))
+    normals = np.concatenate([up, down, np.array(rim_normals)])
+    colours = np.concatenate(
+        [
+            np.tile(RED, (len(x), 1)),
+            np.tile(BLUE, (len(x), 1)),
+            np.tile((RED + BLUE) / 2, (len(rim), 1)),
+        ]
+    )
+    grid = (14, 14, 6)
+    sol = jurs.fit(
+        points, normals, grid=grid, offset=0.025, eps=0.025, solver=jurs.LeastSquares(lam=1e-3)
+    )
+    cell = float(
+        np.min((np.asarray(sol.spline.upper) - np.asarray(sol.spline.lower)) / (np.array(grid) - 3))
+    )
+    field = jurs.fit_attributes(sol, points, colours)
+    single = AttributeField(
+        field.geometry, field.coefficients.at[1:].set(0.0), field.lower, field.upper
+    )
+    vertices = ls.mesh(sol.spline, resolution=64)[0]
+    pv, pf, _, _, pc = poisson(points, normals, colours, poisson_depth(len(points)))
+
+    def share(v, values) -> dict:
+        middle = (np.abs(v[:, :2]) < 0.7).all(axis=1)
+        v, values = v[middle], np.asarray(values)[middle]
+        top = v[:, 2] > 0
+        own = np.where(top[:, None], RED, BLUE)
+        other = np.where(top[:, None], BLUE, RED)
+        s = np.einsum("nc,nc->n", values - own, other - own) / np.sum((RED - BLUE) ** 2)
+        return {
+            "max": float(np.abs(s).max()),
+            "mean": float(np.abs(s).mean()),
+            "vertices": int(middle.sum()),
+        }
+
+    return {
+        "gap_spacings": SHEETS_GAP,
+        "cell_over_gap": cell / (2 * half),
+        "m": len(points),
+        "jurs": share(vertices, field(vertices)),
+        "jurs single field": share(vertices, single(vertices)),
+        "Poisson": share(pv, pc),
+    }
+
+
+def two_sheets_text(planted: dict) -> list[str]:
+    """The planted two-sheet case's table and verdict."""
+    rows = [
+        "| method | vertices read | largest share of the other face's colour | mean share |",
+        "|---|---|---|---|",
+    ]
+    for label in ("jurs", "jurs single field", "Poisson"):
+        e = planted[label]
+        rows.append(f"| {label} | {e['vertices']} | {e['max']:.4f} | {e['mean']:.4f} |")
+    met = planted["jurs"]["max"] <= BLEED_TARGET
+    return [
+        f"A plate whose faces lie {planted['gap_spacings']:g} sample steps apart (red above, "
+        f"blue below, {planted['m']} points on a grid), fitted on a grid whose cells are "
+        f"{planted['cell_over_gap']:.1f}x the gap; each method's colour at its own mesh's "
+        "vertices over the plate's middle, as the share of the other face's colour (0 none, "
+        "0.5 the average). `jurs single field`: the same fit's attribute field without the "
+        "split by facing direction. **No bleeding** (the share at most "
+        f"{BLEED_TARGET:g}): {'met' if met else 'missed'}.",
+        "",
+        *rows,
+    ]
+
+
 # --------------------------------------------------------------------------- measuring
 
 
@@ -464,6 +569,7 @@ def run_case(name, args, log):
     spacing = float(np.median(support.spacing))
     truth = part_truth(name, vertices, part, origin)
     reference, _ = truth.sample(args.eval_samples, SEEDS["truth"])
+    rims, shown = true_rims(vertices, faces, part, spacing, support)
     diag = diagonal(reference)
     record = {
         "case": name,
@@ -472,7 +578,7 @@ def run_case(name, args, log):
         "m": len(points),
         "diag": diag,
         "spacing": spacing,
-        **true_rims(vertices, faces, part, spacing),
+        **rims,
         # The scanned part itself read by the same measure: random samples leave gaps, so
         # even the true surface lies more than 2 spacings from the data in places.
         "truth_stray_max": float(support.spacings(reference).max()),
@@ -490,6 +596,7 @@ def run_case(name, args, log):
         rows[label] = {"setting": setting, "time_s": seconds}
         rows[label].update(score(v, f, truth, reference, diag, support, args.eval_samples))
         meshes[label] = (v, f)
+    record["followed"] = follow_rims(vertices, shown, *jm["jurs"][:2], support, spacing)
     log(f"{name}: Poisson")
     depth = poisson_depth(len(points))
     pv, pf, dens, p_s, p_colours = poisson(points, normals, colours, depth)
@@ -621,15 +728,80 @@ def tables(runs):
             )
             + " |"
         )
-    rims = ["| case | viewpoints | m | local spacing | true rims (raw loops) | rim lengths |"]
-    rims.append("|---" * 6 + "|")
+    rims = [
+        "| case | viewpoints | m | local spacing | true rims (raw loops) | rim lengths | "
+        "each rim: spacings around / gap to the next rim / a hole's depth | "
+        "missed by jurs | jurs's extra loops |"
+    ]
+    rims.append("|---" * 9 + "|")
     for r in runs:
         lengths = ", ".join(f"{x:.3g}" for x in r["rim_lengths"][:6])
+        details = r.get("rim_details", [])
+        described = "; ".join(rim_text(d) for d in details[:6]) or "-"
+        followed = r.get("followed", {})
+        missed = ", ".join(str(i + 1) for i in followed.get("missed", [])) or "none"
+        extra = "; ".join(extra_text(e) for e in followed.get("extra", [])) or "none"
         rims.append(
             f"| {r['case']} | {r['viewpoints']} | {r['m']} | {r['spacing']:.3g} | "
-            f"{r['rims']} ({r['raw_loops']}) | {lengths} |"
+            f"{r['rims']} ({r['raw_loops']}) | {lengths} | {described} | "
+            + (f"{missed} | {extra} |" if followed else "- | - |")
         )
     return rows, ratios, search, rims
+
+
+def rim_text(rim: dict) -> str:
+    """One true rim: length / gap to the nearest other rim (median spacings) / depth."""
+    gap = "-" if not np.isfinite(rim["gap"]) else f"{rim['gap']:.1f}"
+    depth = (
+        f"hole {rim['depth']:.1f} ({rim['beyond']:.0f} beyond the trim)"
+        if rim["kind"] == "hole"
+        else "rim"
+    )
+    return f"{rim['length']:.0f} / {gap} / {depth}"
+
+
+def extra_text(loop: dict) -> str:
+    """One extra loop of jurs's mesh: its length and the piece it bounds."""
+    return (
+        f"{loop['length']:.0f} around a piece of {loop['area']:.0f} sq. spacings, "
+        f"{loop['samples']} samples"
+    )
+
+
+def loop_bound(r: dict) -> str:
+    """What the true rims jurs missed show a scan, and what its extra loops bound."""
+    details, followed = r.get("rim_details"), r.get("followed")
+    if not details or not followed:
+        return ""
+    from jurs.levelset import DEFAULT_TRIM
+    from jurs.levelset._trimming import HOLE_AREA
+
+    parts = []
+    for i in followed["missed"]:
+        d = details[i]
+        text = f"rim {i + 1} ({d['length']:.0f} spacings around"
+        if np.isfinite(d["gap"]):
+            text += f", {d['gap']:.1f} from the nearest other rim"
+            if d["gap"] < DEFAULT_TRIM:
+                text += f" (under the {DEFAULT_TRIM:g} of random gaps the trim bridges)"
+        if d["kind"] == "hole":
+            text += f"; a hole reaching {d['depth']:.1f} spacings from the data"
+            if d["depth"] <= r["truth_stray_max"]:
+                text += (
+                    f", no deeper than the scanned part's own random gaps "
+                    f"({r['truth_stray_max']:.1f})"
+                )
+            text += f", {d['beyond']:.0f} squared spacings of it beyond the trim's {DEFAULT_TRIM:g}"
+            if d["beyond"] < HOLE_AREA:
+                text += f", under the {HOLE_AREA:g} the trim closes as a random gap"
+        parts.append(text + ")")
+    extra = [f"{extra_text(e)}" for e in followed["extra"]]
+    out = ""
+    if parts:
+        out += " Missed " + "; ".join(parts) + "."
+    if extra:
+        out += " Extra loops: " + "; ".join(extra) + "."
+    return out
 
 
 def span(values, fmt="{:.2f}") -> str:
@@ -734,9 +906,10 @@ def findings(runs, max_grid: int | None = MAX_GRID) -> str:
         + ", ".join(f"{x / r['spacing']:.0f}" for x in r["rows"]["jurs"]["loop_lengths"])
         + " spacings around; the true rims "
         + ", ".join(f"{x / r['spacing']:.0f}" for x in r["rim_lengths"])
-        + ")"
+        + ")."
+        + loop_bound(r)
         for r, ok in zip(runs, v)
-        if not ok["loops"]
+        if not ok["loops"] or (r.get("followed") and r["followed"]["missed"])
     ]
     old_loops = sum(x["jurs distance only"]["loops"] == r["rims"] for x, r in zip(rows, runs))
     stray_missed = [
@@ -792,7 +965,14 @@ def findings(runs, max_grid: int | None = MAX_GRID) -> str:
         "surface beyond 2 lies. " + (STRAY_NOTE if max_grid is not None else ""),
         f"- **Boundary loops = true rims: met on {sum(x['loops'] for x in v)} of {n}** "
         f"(distance only: {old_loops} of {n})."
-        + (f" Missed: {'; '.join(loops_missed)}." if loops_missed else ""),
+        + (f" Where a rim was missed: {' '.join(loops_missed)}" if loops_missed else "")
+        + (
+            " Each true rim's gap and depth are in the table of the scans below: a rim "
+            "nearer another than the random gaps the trim bridges, or a hole no deeper "
+            "than those gaps, looks to the samples like random sampling."
+            if loops_missed
+            else ""
+        ),
         "- **Reproducibility.** Open3D's Poisson meshes are not reproducible (its octree "
         "is built by several threads): between two earlier runs (2026-12-04) its "
         "best-trim Hausdorff distances differed by up to 14 % and its Chamfer distances "
@@ -941,6 +1121,13 @@ def markdown(payload):
             colour_text(payload["runs"]),
             "",
             *colour_table(payload["runs"]),
+            "",
+        ]
+    if payload.get("two_sheets"):
+        lines += [
+            "## Two sheets nearer than a cell",
+            "",
+            *two_sheets_text(payload["two_sheets"]),
             "",
         ]
     lines += [
@@ -1092,6 +1279,8 @@ def main(argv=None):
             f"{record['rows']['jurs']['loops']} (true {record['rims']})",
             flush=True,
         )
+    log("two sheets (planted)")
+    planted = two_sheets()
     os.makedirs(args.out, exist_ok=True)
     caption = None
     if shown is not None:
@@ -1109,6 +1298,7 @@ def main(argv=None):
         "load_start": load_start,
         "load_end": os.getloadavg()[0],
         "runs": runs,
+        "two_sheets": planted,
         "total_s": time.perf_counter() - start,
         "figure": caption and {"file": f"{args.name}.png", "caption": caption},
     }

@@ -13,11 +13,14 @@ figure ``benchmarks/results/realdata/worst.png``:
   coordinate, normals turned by N(0, 0.1 rad)); ``uneven`` (density varying 5x along the
   outline); ``outlier`` (1.5 % of the points moved uniformly into the enlarged box, at
   least 5 % of diag from the outline, with random normals). Fixed seeds per run.
-* **jurs**: ``jurs.fit(points, normals, throw=False)``, nothing else; warm time
-  (``_common.time_repeated``); status, settings and scalar stats recorded. ``--fit
-  adaptive`` fits ``jurs.fit_adaptive(points, normals, throw=False)`` instead (the THB
-  basis, fine cells only near the data) and writes ``realdata_adaptive.{json,md}`` and
-  ``realdata/worst_adaptive.png``.
+* **jurs**: ``jurs.fit(points, normals, throw=False, basis="uniform")``, nothing else;
+  warm time (``_common.time_repeated``); status, settings and scalar stats recorded.
+  ``--fit default`` fits with ``jurs.fit``'s defaults (the uniform grid or the adaptive
+  basis, as ``basis="auto"`` chooses) and writes ``realdata_default.{json,md}``, with the
+  other two fits' counts beside it where their results are present; ``--fit adaptive``
+  fits ``jurs.fit_adaptive(points, normals, throw=False)`` (the THB basis, fine cells only
+  near the data) and writes ``realdata_adaptive.{json,md}``; each its own
+  ``realdata/worst_<fit>.png``.
 * **RBF**: ``_baselines.rbf_fit`` (SciPy's thin-plate ``RBFInterpolator``) on the same offset
   samples with jurs's d and eps, smoothing 0, no outlier handling (what a user has today);
   on at most ``RBF_MAX_POINTS`` evenly strided points (its dense solve is O((3m)^3)).
@@ -28,8 +31,8 @@ figure ``benchmarks/results/realdata/worst.png``:
   others merge, so every true ring is checked for the one component that follows it.
 
     python benchmarks/realdata.py [--quick] [--cases a,b] [--variants clean,noisy]
-                                  [--fit adaptive]
-    python benchmarks/realdata.py --markdown-only [--fit adaptive]
+                                  [--fit uniform|default|adaptive]
+    python benchmarks/realdata.py --markdown-only [--fit ...]
 
 ``--markdown-only`` re-renders the markdown from the JSON (no measurement, no figure).
 """
@@ -37,6 +40,7 @@ figure ``benchmarks/results/realdata/worst.png``:
 from __future__ import annotations
 
 import argparse
+import json
 import os
 import platform
 import sys
@@ -61,14 +65,32 @@ from _common import RESULTS, machine, rerender_beside, time_repeated, write_resu
 
 # --------------------------------------------------------------------------- configuration
 
-#: The fits compared with the RBF: ``jurs.fit``'s defaults (a uniform grid) or the adaptive
-#: basis, each with nothing but the cloud.
+#: The fits compared with the RBF, each with nothing but the cloud: ``jurs.fit`` on the
+#: uniform grid always (its defaults before the automatic choice of basis), ``jurs.fit``'s
+#: defaults (``basis="auto"``: the capped grid, or the adaptive basis where the grid misses
+#: the data) and ``jurs.fit_adaptive``.
 FITS = {
-    "uniform": lambda points, normals: jurs.fit(points, normals, throw=False),
+    "uniform": lambda points, normals: jurs.fit(points, normals, throw=False, basis="uniform"),
+    "default": lambda points, normals: jurs.fit(points, normals, throw=False),
     "adaptive": lambda points, normals: jurs.fit_adaptive(points, normals, throw=False),
 }
+#: The call each fit makes, and its name in the results pages' titles and tables.
+CALLS = {
+    "uniform": 'jurs.fit(points, normals, throw=False, basis="uniform")',
+    "default": "jurs.fit(points, normals, throw=False)",
+    "adaptive": "jurs.fit_adaptive(points, normals, throw=False)",
+}
+TITLES = {
+    "uniform": "`jurs.fit` on the uniform grid",
+    "default": "`jurs.fit` defaults",
+    "adaptive": "`jurs.fit_adaptive` defaults",
+}
 #: Results file of each fit.
-RESULTS_NAME = {"uniform": "realdata", "adaptive": "realdata_adaptive"}
+RESULTS_NAME = {
+    "uniform": "realdata",
+    "default": "realdata_default",
+    "adaptive": "realdata_adaptive",
+}
 
 VARIANTS = ("clean", "noisy", "uneven", "outlier")
 QUICK_CASES = ("rocket", "coffee", "blobs_small", "mono")
@@ -408,7 +430,7 @@ def run_one(name: str, variant: str, fit: str = "uniform") -> tuple[dict, dict]:
         "stats": stat_summary(sol.stats),
         "metrics": stat_summary(sol.metrics),
     }
-    if fit == "adaptive":
+    if "finest" in sol.stats:  # the adaptive basis, chosen or asked for
         out["jurs"]["finest"] = list(sol.stats["finest"])
         out["jurs"]["active"] = int(sum(sol.stats["active"]))
 
@@ -520,34 +542,79 @@ def solve_count(r: dict) -> int:
     return len(r["settings"].get("held_out") or ()) + 1
 
 
+def basis_of(r: dict) -> str:
+    """The basis a run's fit ended on: ``"adaptive"`` or ``"grid"``."""
+    return "adaptive" if "active" in r["jurs"] else "grid"
+
+
+def basis_size(r: dict) -> int:
+    """Active functions of an adaptive fit, coefficients of a grid's."""
+    return r["jurs"]["active"] if "active" in r["jurs"] else int(np.prod(r["settings"]["grid"]))
+
+
 def time_table(runs: list) -> list:
-    """Warm times of the runs the time target applies to, by the number of solves."""
+    """Warm times of the runs the time target applies to, by basis and number of solves."""
     timed = [r for r in runs if r["m"] <= TIME_MAX_M]
-    adaptive = any("active" in r["jurs"] for r in timed)
-    basis = "active functions" if adaptive else "grid (coefficients)"
     lines = [
-        f"| solves | runs | median {basis} | median warm fit | <= 150 ms |",
-        "|---|---|---|---|---|",
+        "| basis | solves on the grid | runs | median functions | median warm fit | <= 150 ms |",
+        "|---|---|---|---|---|---|",
     ]
-    for count in sorted({solve_count(r) for r in timed}):
-        group = [r for r in timed if solve_count(r) == count]
-        size = np.median(
-            [r["jurs"]["active"] if adaptive else np.prod(r["settings"]["grid"]) for r in group]
-        )
+    for key in sorted({(basis_of(r), solve_count(r)) for r in timed}):
+        group = [r for r in timed if (basis_of(r), solve_count(r)) == key]
+        size = np.median([basis_size(r) for r in group])
         warm = np.median([r["jurs"]["warm_s"] for r in group])
         fast = sum(r["jurs"]["warm_s"] <= TIME_TARGET_S for r in group)
-        lines.append(f"| {count} | {len(group)} | {size:.0f} | {1e3 * warm:.0f} ms | {fast} |")
+        lines.append(
+            f"| {key[0]} | {key[1]} | {len(group)} | {size:.0f} | {1e3 * warm:.0f} ms | {fast} |"
+        )
     return lines
+
+
+def beside_table(meta: dict, runs: list) -> list:
+    """The target counts of this page's ``runs`` beside the other fits' results files
+    (where present and over the same runs): each fit measured in its own run of this
+    script."""
+    rows = []
+    for fit in ("uniform", "default", "adaptive"):
+        if fit == meta.get("fit"):
+            these, date = runs, meta["date"]
+        else:
+            path = os.path.join(RESULTS, f"{RESULTS_NAME[fit]}.json")
+            if not os.path.exists(path):
+                continue
+            with open(path) as f:
+                other = json.load(f)
+            if other["meta"].get("quick") != meta["quick"]:
+                continue
+            these, date = other["runs"], other["meta"]["date"]
+        these = [r for r in these if "error" not in r]
+        t = [targets(r) for r in these]
+        n = {k: sum(bool(x[k]) for x in t) for k in ("topology", "hausdorff", "chamfer", "time")}
+        timed = sum(x["time"] is not None for x in t)
+        adaptive = sum(basis_of(r) == "adaptive" for r in these)
+        rows.append(
+            f"| {TITLES[fit]} | {date} | {len(these)} | {adaptive} | "
+            f"{n['topology']} | {n['hausdorff']} | {n['chamfer']} | {n['time']} of {timed} |"
+        )
+    if not rows:
+        return []
+    return [
+        "| fit | run | runs | on the adaptive basis | exact topology | Hausdorff target | "
+        "Chamfer <= RBF's | warm fit <= 150 ms |",
+        "|---|---|---|---|---|---|---|---|",
+        *rows,
+    ]
 
 
 def markdown(payload: dict) -> str:
     """The results page from the JSON payload."""
     meta, runs = payload["meta"], payload["runs"]
-    adaptive = meta.get("fit") == "adaptive"
-    call = "jurs.fit_adaptive" if adaptive else "jurs.fit"
+    fit = meta.get("fit", "uniform")
+    adaptive = fit == "adaptive"
+    call = CALLS[fit]
     ok = [r for r in runs if "error" not in r]
     lines = [
-        f"# Real data: `{call}` defaults on traced outlines against a thin-plate RBF"
+        f"# Real data: {TITLES[fit]} on traced outlines against a thin-plate RBF"
         + (" (quick subset)" if meta["quick"] else ""),
         "",
         f"Date: {meta['date']}. Machine: {meta['machine']} (load average "
@@ -567,6 +634,23 @@ def markdown(payload: dict) -> str:
         *summary_table(ok),
         "",
     ]
+    beside = beside_table(meta, ok) if fit == "default" else []
+    if beside:
+        lines += [
+            "## Beside the uniform grid and the adaptive basis",
+            "",
+            "The same runs fitted on the uniform grid always and on the adaptive basis "
+            "always, each from its own results file and run of this script (dates in the "
+            "table; machine load differs between runs, so the time column compares loosely):",
+            "",
+            *beside,
+            "",
+            "The default fits the capped grid first wherever the data ask for finer cells "
+            "than it affords, and moves to the adaptive basis where fewer than 90 % of the "
+            "points lie within `jurs._fit.adaptive.UNIFORM_RESIDUAL_SPACINGS` spacings of "
+            "the grid's zero set (`sol.stats['uniform_residual']`); such a fit pays for both.",
+            "",
+        ]
     lines += [
         "## Misses, verdicts and limits",
         "",
@@ -591,7 +675,7 @@ def markdown(payload: dict) -> str:
             "axis over the box) and its active functions.",
             "",
         ]
-    else:
+    elif fit == "uniform":
         lines += [
             "What limits the misses (measurements in `docs/performance.md` and "
             "`docs/design.md`): the topology misses are features of 1-3 pixels (handles, tripod "
@@ -611,7 +695,7 @@ def markdown(payload: dict) -> str:
         "## How to read",
         "",
         "Each run samples a real outline (below) with m points, applies its variant and calls "
-        f"`{call}(points, normals, throw=False)` with nothing else; the warm time is the "
+        f"`{call}` with nothing else; the warm time is the "
         f"median of warm calls after a first one (`_common.time_repeated`, budget "
         f"{WARM_BUDGET_S:g} s). The RBF is `_baselines.rbf_fit` (SciPy's thin-plate "
         "`RBFInterpolator`) on the same offset samples with jurs's d and eps, smoothing 0, "
@@ -665,7 +749,7 @@ def markdown(payload: dict) -> str:
     ]
     if meta.get("figure"):
         lines += [f"![worst runs](realdata/{meta['figure']})", "", meta["caption"], ""]
-    basis = "finest (active)" if adaptive else "grid"
+    basis = "grid, or finest (active)"
     lines += [
         "## Per run",
         "",
@@ -685,9 +769,9 @@ def markdown(payload: dict) -> str:
             lines.append(f"| {r['case']} | {r['variant']} | {r['m']} | error: {r['error']} |")
             continue
         st, j, b = r["settings"], r["jurs"], r["rbf"]
-        grid = "x".join(str(g) for g in (j["finest"] if adaptive else st["grid"]))
-        if adaptive:
-            grid += f" ({j['active']})"
+        grid = "x".join(str(g) for g in (j["finest"] if "finest" in j else st["grid"]))
+        if "finest" in j:
+            grid = f"finest {grid} ({j['active']})"
         lines.append(
             f"| {r['case']} | {r['variant']} | {r['m']} | {b['points']} | {grid} | "
             f"{st['smoothing']:.2g} | {100 * st['offset'] / r['diag']:.3f} | "
@@ -855,7 +939,8 @@ def main(argv=None):
         "--fit",
         choices=tuple(FITS),
         default="uniform",
-        help="jurs.fit's defaults (uniform grid) or jurs.fit_adaptive (default: uniform)",
+        help="jurs.fit on the uniform grid, jurs.fit's defaults (basis chosen) or "
+        "jurs.fit_adaptive (default: uniform)",
     )
     args = parser.parse_args(argv)
     name_of_results = RESULTS_NAME[args.fit]

@@ -63,10 +63,46 @@ def test_true_rims_close_holes_too_small_to_see():
     upper = centroids[:, 2] > 0
     upper[pole] = False
     part = faces[upper]
-    rims = open_scans.true_rims(vertices, faces, part, spacing=0.02)
+    rims, _ = open_scans.true_rims(vertices, faces, part, 0.02, _support_on(vertices, part))
     assert rims["raw_loops"] == 2  # the cap's rim and a one-face pinhole at the pole
     # The rim of whole faces zigzags about the equator: longer than 2 pi, not much.
     assert rims["rims"] == 1 and 2 * np.pi < rims["rim_lengths"][0] < 1.3 * 2 * np.pi
+
+
+def _support_on(vertices, faces, m=3000):
+    from jurs.datasets import sample_mesh
+    from jurs.levelset._trimming import Support
+
+    return Support(sample_mesh(vertices, faces, m, seed=0)[0])
+
+
+def test_each_rim_is_described_and_followed_or_missed():
+    """A cap with a hole at its pole: two rims, the hole's depth measured from the
+    samples; a mesh that closes the hole misses its rim, the part itself misses none, and
+    a stray piece off the part is an extra loop."""
+    from _open_scan_rims import follow_rims
+
+    vertices, faces = icosphere(4)
+    centroids = vertices[faces].mean(axis=1)
+    hole = np.linalg.norm(centroids - [0.0, 0.0, 1.0], axis=1) < 0.35
+    part = faces[(centroids[:, 2] > 0) & ~hole]
+    support = _support_on(vertices, part)
+    spacing = float(np.median(support.spacing))
+    rims, shown = open_scans.true_rims(vertices, faces, part, spacing, support)
+    assert rims["rims"] == 2
+    rim, pole = rims["rim_details"]
+    assert rim["kind"] == "rim" and pole["kind"] == "hole"
+    # The hole is 0.35 across its middle: its centre lies about that far from the data.
+    assert 0.25 < pole["depth"] * spacing < 0.45 and pole["beyond"] > 0
+    assert 1.0 < pole["gap"] * spacing < 1.25  # from the hole (0.36 rad) to the equator
+    same = follow_rims(vertices, shown, vertices, part, support, spacing)
+    assert same == {"missed": [], "extra": []}
+    closed = faces[centroids[:, 2] > 0]
+    assert follow_rims(vertices, shown, vertices, closed, support, spacing)["missed"] == [1]
+    stray = faces[centroids[:, 2] < -0.9]  # a cap on the far side: no rim of the part
+    mesh = np.vstack([part, stray])
+    out = follow_rims(vertices, shown, vertices, mesh, support, spacing)
+    assert out["missed"] == [] and len(out["extra"]) == 1 and out["extra"][0]["samples"] == 0
 
 
 def test_the_density_trim_drops_faces_at_low_density_vertices():
