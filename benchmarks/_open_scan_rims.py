@@ -61,15 +61,19 @@ def rim_loops(vertices, faces) -> list[tuple[float, np.ndarray]]:
 
 def describe_rims(vertices, faces, seen, support, spacing: float) -> list[dict]:
     """Each true rim of the scanned part (``faces[seen]``, holes and islands already
-    cleaned): ``length`` and ``gap`` in median spacings, ``kind`` ("hole" where it bounds
-    an unseen region of its own, else "rim") and a hole's ``depth`` in local spacings."""
+    cleaned): ``length`` and ``gap`` in median spacings (``gap`` None for a lone rim),
+    ``kind`` ("hole" where it rings an unseen region other than the largest, the far side;
+    else "rim"), a hole's ``depth`` in local spacings and the area of it ``beyond`` the
+    default trim (faces whose centroid lies farther; squared median spacings)."""
     from jurs.levelset import DEFAULT_TRIM, face_areas, mesh_components
 
     loops = rim_loops(vertices, faces[seen])
     if not loops:
         return []
     unseen = faces[~seen]
-    count, labels = mesh_components(vertices, unseen) if len(unseen) else (0, np.empty(0))
+    count, labels = (0, np.empty(0, dtype=np.int64))
+    if len(unseen):  # a heightfield seen whole has none
+        count, labels = mesh_components(vertices, unseen)
     areas = np.bincount(labels, weights=face_areas(vertices, unseen), minlength=count)
     region_of_vertex = np.full(len(vertices), -1)
     for k in range(count):  # a rim's vertices are corners of the unseen faces beside it
@@ -82,7 +86,7 @@ def describe_rims(vertices, faces, seen, support, spacing: float) -> list[dict]:
         others = [trees[j].query(vertices[ids])[0].min() for j in range(len(loops)) if j != i]
         entry = {
             "length": length / spacing,
-            "gap": float(min(others)) / spacing if others else float("inf"),
+            "gap": float(min(others)) / spacing if others else None,  # the one rim
             "kind": "rim",
             "depth": None,
         }

@@ -431,28 +431,14 @@ def two_sheets() -> dict:
     same fit's single smooth field (the split taken out); Poisson: Open3D's vertex
     colours."""
     import jurs
+    import jurs.datasets
     import jurs.levelset as ls
     from jurs._fit.attributes import AttributeField
 
     half = SHEETS_GAP * SHEETS_STEP / 2
-    axis = np.arange(-1.0, 1.0 + 1e-9, SHEETS_STEP)
-    x, y = (a.ravel() for a in np.meshgrid(axis, axis, indexing="ij"))
-    sheets = [np.stack([x, y, np.full_like(x, z)], 1) for z in (half, -half)]
-    rim, rim_normals = [], []
-    for a in axis[1:-1]:  # the four sides of the rim, at mid-height, facing out
-        for side in ([a, -1.0, 0.0], [a, 1.0, 0.0], [-1.0, a, 0.0], [1.0, a, 0.0]):
-            rim.append(side)
-            rim_normals.append([0.0 if abs(c) < 1 else c for c in side[:2]] + [0.0])
-    points = np.concatenate([*sheets, np.array(rim)])
-    up, down = np.tile([0.0, 0.0, 1.0], (len(x), 1)), np.tile([0.0, 0.0, -1.0], (len(x), 1))
-    normals = np.concatenate([up, down, np.array(rim_normals)])
-    colours = np.concatenate(
-        [
-            np.tile(RED, (len(x), 1)),
-            np.tile(BLUE, (len(x), 1)),
-            np.tile((RED + BLUE) / 2, (len(rim), 1)),
-        ]
-    )
+    points, normals = jurs.datasets.thin_plate(step=SHEETS_STEP, thickness=2 * half)
+    side = np.sign(normals[:, 2])[:, None]  # +1 the top face, -1 the bottom, 0 the rim
+    colours = np.where(side > 0, RED, np.where(side < 0, BLUE, (RED + BLUE) / 2))
     grid = (14, 14, 6)
     sol = jurs.fit(
         points, normals, grid=grid, offset=0.025, eps=0.025, solver=jurs.LeastSquares(lam=1e-3)
@@ -751,7 +737,7 @@ def tables(runs):
 
 def rim_text(rim: dict) -> str:
     """One true rim: length / gap to the nearest other rim (median spacings) / depth."""
-    gap = "-" if not np.isfinite(rim["gap"]) else f"{rim['gap']:.1f}"
+    gap = "-" if rim["gap"] is None else f"{rim['gap']:.1f}"
     depth = (
         f"hole {rim['depth']:.1f} ({rim['beyond']:.0f} beyond the trim)"
         if rim["kind"] == "hole"
@@ -763,8 +749,8 @@ def rim_text(rim: dict) -> str:
 def extra_text(loop: dict) -> str:
     """One extra loop of jurs's mesh: its length and the piece it bounds."""
     return (
-        f"{loop['length']:.0f} around a piece of {loop['area']:.0f} sq. spacings, "
-        f"{loop['samples']} samples"
+        f"{loop['length']:.0f} spacings around a piece of {loop['area']:.0f} squared "
+        f"spacings near {loop['samples']} samples"
     )
 
 
@@ -780,7 +766,7 @@ def loop_bound(r: dict) -> str:
     for i in followed["missed"]:
         d = details[i]
         text = f"rim {i + 1} ({d['length']:.0f} spacings around"
-        if np.isfinite(d["gap"]):
+        if d["gap"] is not None:
             text += f", {d['gap']:.1f} from the nearest other rim"
             if d["gap"] < DEFAULT_TRIM:
                 text += f" (under the {DEFAULT_TRIM:g} of random gaps the trim bridges)"
@@ -967,9 +953,10 @@ def findings(runs, max_grid: int | None = MAX_GRID) -> str:
         f"(distance only: {old_loops} of {n})."
         + (f" Where a rim was missed: {' '.join(loops_missed)}" if loops_missed else "")
         + (
-            " Each true rim's gap and depth are in the table of the scans below: a rim "
-            "nearer another than the random gaps the trim bridges, or a hole no deeper "
-            "than those gaps, looks to the samples like random sampling."
+            " Each true rim's gap and depth are in the table of the scans below: to the "
+            "trim, a rim nearer another than the random gaps it bridges, or a hole whose "
+            "part beyond it is smaller than the random gaps it closes, reads as random "
+            "sampling."
             if loops_missed
             else ""
         ),

@@ -76,27 +76,10 @@ def test_two_sheets_nearer_than_a_cell_keep_their_colours_2d(slab_2d):
 def test_two_sheets_nearer_than_a_cell_keep_their_colours_3d():
     """The same in 3D, on the vertices of the mesh: a thin plate whose faces, 1.5
     spacings apart (under a cell), are red above and blue below."""
-    spacing, half = 0.1, 0.075
-    axis = np.arange(-1.0, 1.0 + 1e-9, spacing)
-    x, y = (a.ravel() for a in np.meshgrid(axis, axis, indexing="ij"))
-    faces = [np.stack([x, y, np.full_like(x, z)], 1) for z in (half, -half)]
-    rim, rim_normals = [], []
-    for a in axis[1:-1]:  # the four sides of the rim, at mid-height, facing out
-        for side in ([a, -1.0, 0.0], [a, 1.0, 0.0], [-1.0, a, 0.0], [1.0, a, 0.0]):
-            rim.append(side)
-            rim_normals.append([0.0 if abs(c) < 1 else c for c in side[:2]] + [0.0])
-    rim, rim_normals = np.array(rim), np.array(rim_normals)
-    points = np.concatenate(faces + [rim])
-    normals = np.concatenate(
-        [np.tile([0.0, 0.0, 1.0], (len(x), 1)), np.tile([0.0, 0.0, -1.0], (len(x), 1)), rim_normals]
-    )
-    colours = np.concatenate(
-        [
-            np.tile(RED, (len(x), 1)),
-            np.tile(BLUE, (len(x), 1)),
-            np.tile((RED + BLUE) / 2, (len(rim), 1)),
-        ]
-    )
+    half = 0.075
+    points, normals = jurs.datasets.thin_plate(step=0.1, thickness=2 * half)
+    side = np.sign(normals[:, 2])[:, None]  # +1 the top face, -1 the bottom, 0 the rim
+    colours = np.where(side > 0, RED, np.where(side < 0, BLUE, (RED + BLUE) / 2))
     solver = jurs.LeastSquares(lam=1e-3)
     sol = jurs.fit(points, normals, grid=(14, 14, 6), offset=0.025, eps=0.025, solver=solver)
     h = (np.asarray(sol.spline.upper) - np.asarray(sol.spline.lower)) / (np.array([14, 14, 6]) - 3)

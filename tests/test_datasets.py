@@ -29,6 +29,23 @@ def test_example1_is_the_papers_curve():
     np.testing.assert_allclose(points[:, 1], np.sin(t) * (3 - 5 * np.sin(t)))
 
 
+def test_thin_plate_has_two_faces_and_a_rim():
+    points, normals = datasets.thin_plate(step=0.25, thickness=0.1)
+    side = np.sign(normals[:, 2])
+    np.testing.assert_allclose(np.linalg.norm(normals, axis=1), 1.0)
+    np.testing.assert_allclose(points[side > 0, 2], 0.05)
+    np.testing.assert_allclose(points[side < 0, 2], -0.05)
+    assert (side > 0).sum() == (side < 0).sum() == 81  # a 9 x 9 grid a face
+    rim = points[side == 0]
+    assert len(rim) == 4 * 7 and np.allclose(rim[:, 2], 0.0)
+    # Each rim point faces out of the side it lies on.
+    on = np.abs(rim[:, :2]) == 1.0
+    np.testing.assert_allclose(normals[side == 0][:, :2][on], rim[:, :2][on])
+    for bad in (dict(step=0.0), dict(step=2.0), dict(thickness=-1.0)):
+        with pytest.raises(ValueError):
+            datasets.thin_plate(**bad)
+
+
 def test_noise_is_seeded():
     a = datasets.example10(seed=1)
     b = datasets.example10(seed=1)

@@ -105,6 +105,21 @@ def test_each_rim_is_described_and_followed_or_missed():
     assert out["missed"] == [] and len(out["extra"]) == 1 and out["extra"][0]["samples"] == 0
 
 
+def test_a_part_seen_whole_has_one_rim_and_no_hole():
+    """A heightfield seen whole: its own border is its one rim, and nothing is unseen."""
+    vertices, faces = icosphere(3)
+    part = faces[vertices[faces].mean(axis=1)[:, 2] > 0]
+    used = np.unique(part)
+    index = np.full(len(vertices), -1)
+    index[used] = np.arange(len(used))
+    vertices, part = vertices[used], index[part]  # the cap alone: every face seen
+    support = _support_on(vertices, part)
+    spacing = float(np.median(support.spacing))
+    rims, shown = open_scans.true_rims(vertices, part, part, spacing, support)
+    assert rims["rims"] == 1 and len(shown) == len(part)
+    assert rims["rim_details"][0]["kind"] == "rim"
+
+
 def test_the_density_trim_drops_faces_at_low_density_vertices():
     vertices = np.zeros((5, 3))
     faces = np.array([[0, 1, 2], [1, 2, 3], [2, 3, 4]])

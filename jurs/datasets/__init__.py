@@ -2,7 +2,8 @@
 
 Every generator returns ``(points, normals)`` as float64 NumPy arrays of shape ``(m, 2)``
 (the 3D ones [`sphere3d`][jurs.datasets.sphere3d], [`torus`][jurs.datasets.torus],
-[`genus2`][jurs.datasets.genus2] and [`sample_mesh`][jurs.datasets.sample_mesh]:
+[`genus2`][jurs.datasets.genus2], [`thin_plate`][jurs.datasets.thin_plate] and
+[`sample_mesh`][jurs.datasets.sample_mesh]:
 ``(m, 3)``), normals unit length and pointing out of the enclosed region. Point clouds are
 read and written by [`load_points`][jurs.datasets.load_points] /
 [`save_points`][jurs.datasets.save_points], triangle meshes by
@@ -28,6 +29,7 @@ from ._examples import (
     parametric_curve,
     sample_mesh,
     sphere3d,
+    thin_plate,
     torus,
 )
 from ._files import (
@@ -58,6 +60,7 @@ __all__ = [
     "FLOAT32_RESOLUTION",
     "sphere3d",
     "torus",
+    "thin_plate",
     "GENUS2_SHIFT",
     "GENUS2_MAJOR",
     "GENUS2_MINOR",

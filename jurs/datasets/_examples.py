@@ -144,6 +144,37 @@ def torus(
     return centres + minor * normals, normals
 
 
+def thin_plate(
+    step: float = 0.1, thickness: float = 0.15
+) -> tuple[Float[np.ndarray, "m 3"], Float[np.ndarray, "m 3"]]:
+    """A thin square plate over ``[-1, 1]^2``: its two faces at ``z = +-thickness / 2``
+    sampled on a grid of ``step`` (normals ``+-e_z``) and its rim at mid-height (the four
+    sides without the corners, normals facing out). A planted case of two sheets nearer
+    than a cell: the sign of a normal's z says which face a point is on (0 on the rim).
+    """
+    if not (np.isfinite(step) and 0 < step <= 1):
+        raise ValueError(f"step must be in (0, 1], got {step}")
+    if not (np.isfinite(thickness) and thickness > 0):
+        raise ValueError(f"thickness must be positive, got {thickness}")
+    axis = np.arange(-1.0, 1.0 + 1e-9, step)
+    x, y = (a.ravel() for a in np.meshgrid(axis, axis, indexing="ij"))
+    half = thickness / 2
+    faces = [np.stack([x, y, np.full_like(x, z)], 1) for z in (half, -half)]
+    inner, zero, one = axis[1:-1], np.zeros(len(axis) - 2), np.ones(len(axis) - 2)
+    rim_points, rim_normals = [], []
+    for sign in (-1.0, 1.0):  # the sides y = +-1 and x = +-1, facing out
+        rim_points += [
+            np.stack([inner, sign * one, zero], 1),
+            np.stack([sign * one, inner, zero], 1),
+        ]
+        rim_normals += [
+            np.stack([zero, sign * one, zero], 1),
+            np.stack([sign * one, zero, zero], 1),
+        ]
+    up = np.tile([0.0, 0.0, 1.0], (len(x), 1))
+    return np.concatenate([*faces, *rim_points]), np.concatenate([up, -up, *rim_normals])
+
+
 #: The double torus of [`genus2`][jurs.datasets.genus2]: two tori about parallel axes
 #: through (+-GENUS2_SHIFT, 0), of radii GENUS2_MAJOR, GENUS2_MINOR, joined by a smooth
 #: minimum of blend width GENUS2_BLEND.
