@@ -930,7 +930,11 @@ def findings(runs, max_grid: int | None = MAX_GRID) -> str:
             else ""
         )
         + f"Hausdorff missed on {'; '.join(missed_h) or 'none'}. "
-        + (SPHERE_RIM if any(r["case"] == "sphere/one view" for r in hmissed) else "")
+        + (
+            SPHERE_RIM
+            if max_grid is not None and any(r["case"] == "sphere/one view" for r in hmissed)
+            else ""
+        )
         + f"jurs's Hausdorff distance was {span(h_spacings, '{:.1f}')} local spacings. "
         "Poisson's quantile was chosen per case against "
         f"the truth ({', '.join(f'{x:g}' for x in q)}), which a user cannot do; no "

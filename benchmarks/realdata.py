@@ -3,8 +3,8 @@
 Issue 23 asks whether the defaults, built on clean analytic curves and fonts, hold on the
 outlines a new user brings: traced from images with plain marching squares (pixel
 staircases), with noise, uneven density or outliers, many rings, thin parts. One command
-measures it and writes the dated results ``benchmarks/results/realdata.{json,md}`` and the
-figure ``benchmarks/results/realdata/worst.png``:
+measures it and writes the dated results ``benchmarks/results/realdata_default.{json,md}``
+and the figure ``benchmarks/results/realdata/worst_default.png``:
 
 * **Cases** (``_realdata_cases``): 14 outlines from data that ship with scikit-image and
   matplotlib (photos, a medical slice, a terrain model, binary blobs, text) or set in
@@ -13,14 +13,14 @@ figure ``benchmarks/results/realdata/worst.png``:
   coordinate, normals turned by N(0, 0.1 rad)); ``uneven`` (density varying 5x along the
   outline); ``outlier`` (1.5 % of the points moved uniformly into the enlarged box, at
   least 5 % of diag from the outline, with random normals). Fixed seeds per run.
-* **jurs**: ``jurs.fit(points, normals, throw=False, basis="uniform")``, nothing else;
-  warm time (``_common.time_repeated``); status, settings and scalar stats recorded.
-  ``--fit default`` fits with ``jurs.fit``'s defaults (the uniform grid or the adaptive
-  basis, as ``basis="auto"`` chooses) and writes ``realdata_default.{json,md}``, with the
-  other two fits' counts beside it where their results are present; ``--fit adaptive``
-  fits ``jurs.fit_adaptive(points, normals, throw=False)`` (the THB basis, fine cells only
-  near the data) and writes ``realdata_adaptive.{json,md}``; each its own
-  ``realdata/worst_<fit>.png``.
+* **jurs**: ``jurs.fit(points, normals, throw=False)``, nothing else (the uniform grid or
+  the adaptive basis, as ``basis="auto"`` chooses): warm time
+  (``_common.time_repeated``); status, settings and scalar stats recorded; results
+  ``realdata_default.{json,md}``, with the other two fits' counts beside them where their
+  results are present. ``--fit uniform`` adds ``basis="uniform"`` (``realdata.{json,md}``,
+  the defaults before the automatic choice of basis); ``--fit adaptive`` fits
+  ``jurs.fit_adaptive(points, normals, throw=False)`` (``realdata_adaptive.{json,md}``);
+  each its own ``realdata/worst_<fit>.png`` (the uniform grid's ``worst.png``).
 * **RBF**: ``_baselines.rbf_fit`` (SciPy's thin-plate ``RBFInterpolator``) on the same offset
   samples with jurs's d and eps, smoothing 0, no outlier handling (what a user has today);
   on at most ``RBF_MAX_POINTS`` evenly strided points (its dense solve is O((3m)^3)).
@@ -389,7 +389,7 @@ def measure(report, rings, diag, reference) -> tuple[dict, dict]:
     return out, {"lines": lines, "topology": topo, "focus": focus(report, topo, rings, reference)}
 
 
-def run_one(name: str, variant: str, fit: str = "uniform") -> tuple[dict, dict]:
+def run_one(name: str, variant: str, fit: str = "default") -> tuple[dict, dict]:
     """Fit (``FITS[fit]``), time and measure one (case, variant); returns the JSON row and
     figure data."""
     case = cases.build(name)
@@ -933,14 +933,16 @@ def main(argv=None):
     parser.add_argument("--cases", help=f"comma-separated subset of {', '.join(cases.CASES)}")
     parser.add_argument("--variants", help=f"comma-separated subset of {', '.join(VARIANTS)}")
     parser.add_argument(
-        "--markdown-only", action="store_true", help="re-render realdata.md from realdata.json"
+        "--markdown-only",
+        action="store_true",
+        help="re-render the results page of --fit from its JSON",
     )
     parser.add_argument(
         "--fit",
         choices=tuple(FITS),
-        default="uniform",
-        help="jurs.fit on the uniform grid, jurs.fit's defaults (basis chosen) or "
-        "jurs.fit_adaptive (default: uniform)",
+        default="default",
+        help="jurs.fit's defaults (the basis chosen; default), jurs.fit on the uniform grid "
+        "or jurs.fit_adaptive",
     )
     args = parser.parse_args(argv)
     name_of_results = RESULTS_NAME[args.fit]

@@ -239,8 +239,8 @@ def test_quality_row():
 
 def test_realdata_row():
     task, jurs, other = readme_row("outlines traced")
-    targets = table("realdata", "Targets")
-    text = results_text("realdata")
+    targets = table("realdata_default", "Targets")
+    text = results_text("realdata_default")
 
     outlines, outliers, date = quoted(
         task, r"defaults on (\d+) outlines .*? ([\d.]+) % outliers \((\d{4}-\d\d-\d\d)\)"
@@ -248,7 +248,7 @@ def test_realdata_row():
     assert int(outlines) == int(targets.cell("runs", variant="clean"))
     share = re.search(r"\*outlier\*: ([\d.]+) % of the points", text).group(1)
     assert Decimal(outliers) == Decimal(share)
-    assert date == date_of("realdata")
+    assert date == date_of("realdata_default")
 
     matched, runs, clean_tol, other_tol, within, runs_h = quoted(
         jurs,
@@ -272,6 +272,11 @@ def test_realdata_row():
     assert int(runs_r) == int(runs_c) == runs_all
     assert int(rbf_matched) == int(re.search(r"\((\d+)\)", topology).group(1))
     assert int(no_worse) == int(targets.cell("Chamfer <= RBF's", variant="all"))
+    if "every miss flagged" in jurs:
+        verdicts = table("realdata_default", "Misses", having="count")
+        for row in ("topology not exact", "Hausdorff over its target"):
+            flagged = verdicts.cell("flagged by the fit (status not successful)", runs=row)
+            assert int(flagged) == int(verdicts.cell("count", runs=row))
 
 
 def test_example1_default_fit_row():

@@ -237,17 +237,22 @@ def test_verdict_and_time_tables_count_flagged_misses_and_solves():
     runs[1]["jurs"]["status"] = "doubtful"  # the miss flagged; b/clean's miss is silent
     runs[1]["settings"]["held_out"] = [[1e-6, 0.1], [1e-5, 0.2]]
 
-    def cells(lines, first):
+    def cells(lines, first):  # the cells after ``first`` (one or more leading cells)
         line = next(x for x in lines if x.startswith(f"| {first} |"))
-        return [c.strip() for c in line.strip("|").split("|")][1:]
+        return [c.strip() for c in line.strip("|").split("|")][first.count("|") + 1 :]
 
     verdicts = realdata.verdict_table(runs)
     assert cells(verdicts, "topology not exact") == ["2", "1"]
     assert cells(verdicts, "Hausdorff over its target") == ["1", "1"]
     assert cells(verdicts, "both met") == ["1", "0"]
+    runs.append(
+        _run("c", "clean", exact=True, hausdorff=0.003, chamfer=1e-4, rbf_chamfer=2e-4, warm_s=0.9)
+    )
+    runs[-1]["jurs"].update(finest=[256, 256], active=12000)  # a fit on the adaptive basis
     times = realdata.time_table(runs)
-    assert cells(times, "1") == ["2", "3072", "150 ms", "1"]  # medians of 0.1 and 0.2 s
-    assert cells(times, "3") == ["1", "3072", "300 ms", "0"]
+    assert cells(times, "grid | 1") == ["2", "3072", "150 ms", "1"]  # medians of 0.1, 0.2 s
+    assert cells(times, "grid | 3") == ["1", "3072", "300 ms", "0"]
+    assert cells(times, "adaptive | 1") == ["1", "12000", "900 ms", "0"]
 
 
 def test_the_figure_shows_one_run_per_case():
