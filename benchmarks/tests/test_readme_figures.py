@@ -178,7 +178,7 @@ def percent(text):
 
 def test_the_intro_names_the_speed_run():
     """'Measured on a 2-core x86_64 CPU in float64 (and one H100 GPU where marked), <date>'
-    is the speed run's machine, date and GPU."""
+    is the speed run's machine, date and GPU (the date of the rows that name none)."""
     cores, arch, gpu, date = quoted(
         headline_section(),
         r"Measured on a (\d+)-core (\S+) CPU in float64 \(and one (\w+) GPU where marked\), "
@@ -277,18 +277,6 @@ def test_realdata_row():
         for row in ("topology not exact", "Hausdorff over its target"):
             flagged = verdicts.cell("flagged by the fit (status not successful)", runs=row)
             assert int(flagged) == int(verdicts.cell("count", runs=row))
-
-
-def test_example1_default_fit_row():
-    """The default fit of Example 1 at 5000 points against SciPy's RBF (speed.md)."""
-    task, jurs, other = readme_row("Example 1,")
-    m, date = quoted(task, r"Example 1, (\d+) points, default fit \((\d{4}-\d\d-\d\d)")
-    rbf = table("speed", "Baseline: scipy RBFInterpolator", having="RBF fit")
-    assert date == date_of("speed")
-    warm, unit = quoted(jurs, r"^([\d.]+) (ms|s)\b")
-    assert_time(warm, unit, seconds(rbf.cell("jurs warm", m=m)), f"jurs at m = {m}")
-    fit, fit_unit = quoted(other, r"SciPy thin-plate RBF: ([\d.]+) (ms|s)\b")
-    assert_time(fit, fit_unit, seconds(rbf.cell("RBF fit", m=m)), f"the RBF at m = {m}")
 
 
 def test_example4_row():
@@ -444,6 +432,39 @@ def test_surfaces_row():
     faster = [Decimal(c) for c in ratios.column("warm fit time")]
     assert_figure(fast_lo, min(faster), "jurs's warm fit time over Poisson's, smallest")
     assert_figure(fast_hi, max(faster), "jurs's warm fit time over Poisson's, largest")
+
+
+def test_open_scans_row():
+    """The open scans' ratios, loops and times (open_scans_default.json, the default fit)."""
+    task, jurs, other = readme_row("open scans,")
+    with open(os.path.join(RESULTS, "open_scans_default.json"), encoding="utf-8") as fh:
+        runs = json.load(fh)["runs"]
+    m, date = quoted(task, r"open scans, (\d+) points .*?\((\d{4}-\d\d-\d\d)\)")
+    assert {str(r["m"]) for r in runs} == {m} and date == date_of("open_scans_default")
+
+    def ratios(key, best):
+        return [r["rows"]["jurs"][key] / r["rows"][best][key] for r in runs]
+
+    c_lo, c_hi, h_lo, h_hi, loops, cases, t_lo, t_hi = quoted(
+        jurs,
+        r"Chamfer ([\d.]+)-([\d.]+)x Poisson's at its best density trim, Hausdorff "
+        r"([\d.]+)-([\d.]+)x; boundary loops = true rims on (\d+)/(\d+); (\d+)-(\d+) s",
+    )
+    chamfer = ratios("chamfer", "Poisson best-Chamfer trim")
+    hausdorff = ratios("hausdorff", "Poisson best-Hausdorff trim")
+    assert_figure(c_lo, Decimal(min(chamfer)), "the smallest Chamfer ratio")
+    assert_figure(c_hi, Decimal(max(chamfer)), "the largest Chamfer ratio")
+    assert_figure(h_lo, Decimal(min(hausdorff)), "the smallest Hausdorff ratio")
+    assert_figure(h_hi, Decimal(max(hausdorff)), "the largest Hausdorff ratio")
+    assert int(cases) == len(runs)
+    assert int(loops) == sum(r["rows"]["jurs"]["loops"] == r["rims"] for r in runs)
+    times = [r["rows"]["jurs"]["time_s"] for r in runs]
+    assert_figure(t_lo, Decimal(min(times)), "jurs's shortest fit + mesh + trim")
+    assert_figure(t_hi, Decimal(max(times)), "jurs's longest fit + mesh + trim")
+    p_lo, p_hi = quoted(other, r"Open3D Poisson: ([\d.]+)-([\d.]+) s")
+    poisson = [r["rows"]["Poisson"]["time_s"] for r in runs]
+    assert_figure(p_lo, Decimal(min(poisson)), "Poisson's shortest call")
+    assert_figure(p_hi, Decimal(max(poisson)), "Poisson's longest call")
 
 
 @pytest.mark.parametrize(
