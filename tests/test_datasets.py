@@ -41,7 +41,7 @@ def test_thin_plate_has_two_faces_and_a_rim():
     # Each rim point faces out of the side it lies on.
     on = np.abs(rim[:, :2]) == 1.0
     np.testing.assert_allclose(normals[side == 0][:, :2][on], rim[:, :2][on])
-    for bad in (dict(step=0.0), dict(step=2.0), dict(thickness=-1.0)):
+    for bad in (dict(step=0.0), dict(step=2.0), dict(step=0.3), dict(thickness=-1.0)):
         with pytest.raises(ValueError):
             datasets.thin_plate(**bad)
 

@@ -151,12 +151,14 @@ def thin_plate(
     sampled on a grid of ``step`` (normals ``+-e_z``) and its rim at mid-height (the four
     sides without the corners, normals facing out). A planted case of two sheets nearer
     than a cell: the sign of a normal's z says which face a point is on (0 on the rim).
+    ``step`` divides 2 (the grid ends on the rim); ValueError otherwise.
     """
-    if not (np.isfinite(step) and 0 < step <= 1):
-        raise ValueError(f"step must be in (0, 1], got {step}")
+    count = round(2.0 / step) if np.isfinite(step) and 0 < step <= 1 else 0
+    if count == 0 or abs(count * step - 2.0) > 1e-9:
+        raise ValueError(f"step must divide 2 and lie in (0, 1], got {step}")
     if not (np.isfinite(thickness) and thickness > 0):
         raise ValueError(f"thickness must be positive, got {thickness}")
-    axis = np.arange(-1.0, 1.0 + 1e-9, step)
+    axis = np.linspace(-1.0, 1.0, count + 1)
     x, y = (a.ravel() for a in np.meshgrid(axis, axis, indexing="ij"))
     half = thickness / 2
     faces = [np.stack([x, y, np.full_like(x, z)], 1) for z in (half, -half)]
