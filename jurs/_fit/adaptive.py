@@ -457,8 +457,7 @@ def fit_adaptive(
         cloud = Cloud(points, normals)
     if settings is None:
         settings = auto_settings(cloud, offset=offset, eps=eps, domain=domain)
-    keep = np.ones(len(cloud.points), bool)
-    keep[list(settings.set_aside)] = False
+    keep = judged_points(cloud, settings)  # the cloud has no mask: all but those set aside
     points_np = cloud.points[keep]
     normals_np = np.asarray(cloud.normals, float)[keep]
     ndim = points_np.shape[1]

@@ -17,7 +17,11 @@ from jax import Array
 from jaxtyping import ArrayLike, Float
 
 from .hierarchy import Hierarchy
-from .leaves import hierarchy_values, hierarchy_values_and_gradients
+from .leaves import (
+    hierarchy_values,
+    hierarchy_values_and_gradients,
+    rational_values_and_gradients,
+)
 from .packed import packed_gradients_at, packed_values_at
 
 # Traced evaluations (jurs._model.packed takes the others): one compiled program per
@@ -107,6 +111,5 @@ class AdaptiveSpline(eqx.Module):
         both, slopes = _values_and_gradients(
             self.hierarchy, jnp.stack([self.weights * self.control, self.weights]), x
         )
-        g = both[0] / both[1]
-        out = (slopes[0] - g[:, None] * slopes[1]) / both[1][:, None]
+        out = rational_values_and_gradients(both, slopes)[1]
         return out[0] if single else out

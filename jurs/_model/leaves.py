@@ -136,12 +136,30 @@ def hierarchy_values_and_gradients(
     level, cell = locate_leaves(hierarchy, x)
     positions, t = leaf_terms(hierarchy, x, level, cell)
     a = cascade(hierarchy, coeffs)[..., positions]
-    ndim = hierarchy.ndim
+    widths = jnp.stack([hierarchy.cell_width(lev) for lev in range(hierarchy.num_levels)])[level]
+    return local_values_and_gradients(a, t, widths)
+
+
+def local_values_and_gradients(
+    a: Float[Array, "*lead m k"], t: Float[Array, "m d"], widths: Float[Array, "m d"]
+) -> tuple[Float[Array, "*lead m"], Float[Array, "*lead m d"]]:
+    """Values and spatial gradients of the tensor-product cubic pieces with coefficients
+    ``a`` (the ``4^d`` over each point's leaf, in ``hierarchy_basis``'s order) at local
+    coordinates ``t`` in leaves of ``widths``."""
+    ndim = t.shape[1]
     values = [cubic_weights(t[:, k]) for k in range(ndim)]
     slopes = [cubic_derivatives(t[:, k]) for k in range(ndim)]
-    widths = jnp.stack([hierarchy.cell_width(lev) for lev in range(hierarchy.num_levels)])[level]
     out = []
     for k in range(ndim):
         axes = [slopes[j] if j == k else values[j] for j in range(ndim)]
         out.append(jnp.sum(a * tensor_basis(*axes), axis=-1) / widths[:, k])
     return jnp.sum(a * tensor_basis(*values), axis=-1), jnp.stack(out, axis=-1)
+
+
+def rational_values_and_gradients(
+    both: Float[Array, "2 m"], slopes: Float[Array, "2 m d"]
+) -> tuple[Float[Array, " m"], Float[Array, "m d"]]:
+    """g = N / D (eq. 14) and its gradient by the quotient rule, from the stacked values
+    ``both = (N, D)`` and gradients ``slopes`` of numerator and denominator."""
+    g = both[0] / both[1]
+    return g, (slopes[0] - g[:, None] * slopes[1]) / both[1][:, None]

@@ -36,8 +36,8 @@ from jax import Array
 from jax.core import Tracer
 from jaxtyping import Float
 
-from .basis import cubic_derivatives, cubic_weights, tensor_basis
 from .hierarchy import _MAX_KEY, Hierarchy, _offsets, cascade_matrix
+from .leaves import hierarchy_basis, local_values_and_gradients, rational_values_and_gradients
 from .precision import on_device
 
 #: Smallest padded length of the key and coefficient arrays.
@@ -171,7 +171,7 @@ def _terms(packed: PackedSpline, x: Array):
 def packed_values(packed: PackedSpline, x: Float[Array, "n d"]) -> Float[Array, " n"]:
     """g at ``x (n, d)`` (eq. 14 on the hierarchy)."""
     numerator, denominator, t, _ = _terms(packed, x)
-    basis = tensor_basis(*(cubic_weights(t[:, k]) for k in range(x.shape[1])))
+    basis = hierarchy_basis(t)
     return jnp.sum(numerator * basis, axis=-1) / jnp.sum(denominator * basis, axis=-1)
 
 
@@ -181,20 +181,8 @@ def packed_values_and_gradients(
     """g and its spatial gradient at ``x (n, d)``: the quotient rule on eq. 14, each
     factor from the leaf's local pieces."""
     numerator, denominator, t, widths = _terms(packed, x)
-    ndim = x.shape[1]
-    values = [cubic_weights(t[:, k]) for k in range(ndim)]
-    slopes = [cubic_derivatives(t[:, k]) for k in range(ndim)]
-    basis = tensor_basis(*values)
-    top = jnp.sum(numerator * basis, axis=-1)
-    bottom = jnp.sum(denominator * basis, axis=-1)
-    g = top / bottom
-    gradient = []
-    for k in range(ndim):
-        along = tensor_basis(*[slopes[j] if j == k else values[j] for j in range(ndim)])
-        d_top = jnp.sum(numerator * along, axis=-1) / widths[:, k]
-        d_bottom = jnp.sum(denominator * along, axis=-1) / widths[:, k]
-        gradient.append((d_top - g * d_bottom) / bottom)
-    return g, jnp.stack(gradient, axis=-1)
+    both, slopes = local_values_and_gradients(jnp.stack([numerator, denominator]), t, widths)
+    return rational_values_and_gradients(both, slopes)
 
 
 _packed_values = jax.jit(packed_values)

@@ -107,17 +107,8 @@ def check_trim(trim, points) -> float | None:
     """``trim`` as a float number of spacings (True: ``DEFAULT_TRIM``), or None for no
     trim (None or False); ValueError for a trim that is not positive and finite, or a trim
     without ``points``."""
-    if trim is None or trim is False:
-        return None
-    if trim is True:
-        value = DEFAULT_TRIM
-    else:
-        if not isinstance(trim, (int, float, np.integer, np.floating)):
-            raise TypeError(f"trim must be None, True or a number of spacings, got {trim!r}")
-        value = float(trim)
-    if not (np.isfinite(value) and value > 0):
-        raise ValueError(f"trim must be a positive, finite number of spacings, got {trim!r}")
-    if points is None:
+    value = _spacings_option(trim, "trim", DEFAULT_TRIM, "a positive, finite", lambda v: v > 0)
+    if value is not None and points is None:
         raise ValueError("trim needs the data points: pass points=, the cloud that was fitted")
     return value
 
@@ -125,16 +116,24 @@ def check_trim(trim, points) -> float | None:
 def check_rim(rim) -> float | None:
     """``rim`` as a float number of spacings (True: ``DEFAULT_RIM``), or None for the
     distance alone (None or False); ValueError for a rim that is negative or not finite."""
-    if rim is None or rim is False:
+    return _spacings_option(rim, "rim", DEFAULT_RIM, "a finite", lambda v: v >= 0, ">= 0")
+
+
+def _spacings_option(value, name, default, kind, valid, bound="") -> float | None:
+    """A trim-like option as a float number of spacings: None or False is None, True the
+    ``default``; TypeError for anything but a number, ValueError for one not finite and
+    ``valid``."""
+    if value is None or value is False:
         return None
-    if rim is True:
-        return DEFAULT_RIM
-    if not isinstance(rim, (int, float, np.integer, np.floating)):
-        raise TypeError(f"rim must be None, True or a number of spacings, got {rim!r}")
-    value = float(rim)
-    if not (np.isfinite(value) and value >= 0):
-        raise ValueError(f"rim must be a finite number of spacings >= 0, got {rim!r}")
-    return value
+    if value is True:
+        return float(default)
+    if not isinstance(value, (int, float, np.integer, np.floating)):
+        raise TypeError(f"{name} must be None, True or a number of spacings, got {value!r}")
+    number = float(value)
+    if not (np.isfinite(number) and valid(number)):
+        bound = f" {bound}" if bound else ""
+        raise ValueError(f"{name} must be {kind} number of spacings{bound}, got {value!r}")
+    return number
 
 
 def check_points(points, dim: int, name: str = "points", minimum: int = 2) -> np.ndarray:
@@ -318,6 +317,8 @@ def fill_holes(vertices, faces, level, support: Support, area: float) -> np.ndar
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
+    from ._mesh_analysis import face_areas  # here: the mesh analysis imports this module
+
     out = level >= 0
     if not out.any() or out[faces].all():
         return level
@@ -338,9 +339,7 @@ def fill_holes(vertices, faces, level, support: Support, area: float) -> np.ndar
     # vertices share an edge, hence a set).
     touched = out[faces].any(axis=1)
     owner = g[faces[touched]].max(axis=1)
-    a, b, c = (vertices[faces[touched][:, i]] for i in range(3))
-    face_area = 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
-    size = np.bincount(owner, weights=face_area, minlength=count)
+    size = np.bincount(owner, weights=face_areas(vertices, faces[touched]), minlength=count)
     ringed = np.bincount(owner, weights=(~out[faces[touched]]).any(axis=1), minlength=count) > 0
     bordered = np.bincount(group, weights=border[outside], minlength=count) > 0
     _, nearest = support.tree.query(vertices[outside])
