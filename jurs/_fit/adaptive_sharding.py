@@ -339,6 +339,11 @@ def fit_adaptive_across_processes(
     default) ``solve_summed``'s factorisation of the processes' summed normal equations
     in every process. What reads the whole cloud on a host (the orientation and doubt
     checks) is not run (docs/sharding.md, "Adaptive fits")."""
+    if method == "host_cg":
+        raise ValueError(
+            "method='host_cg' reads every sample on one host; points split over processes "
+            "fit with 'cg' (over every device) or 'direct'"
+        )
     if normals is None:  # estimated over all processes' points, split like them
         normals = normals_across_processes(points)
     check_global_arrays(points, normals)
