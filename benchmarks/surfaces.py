@@ -15,9 +15,12 @@ One command measures everything, prints the ratio table and writes the dated res
   ``create_from_point_cloud_poisson(cloud, depth)`` with the same points and normals,
   ``depth = round(log4 m)`` (8 at 1e5 points, the issue's setting: about one octree leaf
   per point on a surface), its mesh taken as Open3D returns it (no trimming by density);
-  ``--depths 8 9 10`` runs each and keeps the one of least Chamfer. ``--fit adaptive``
-  fits ``jurs.fit_adaptive`` (fine cells only near the data) instead of ``jurs.fit``, into
-  ``surfaces_adaptive.{json,md,png}``.
+  ``--depths 8 9 10`` runs each and keeps the one of least Chamfer. ``--fit uniform``
+  (the default, into ``surfaces.{json,md,png}``) adds ``basis="uniform"``: the uniform
+  grid, as the defaults were before they chose the basis; ``--fit default`` runs
+  ``jurs.fit``'s own choice (``surfaces_default``); ``--fit adaptive`` fits
+  ``jurs.fit_adaptive`` (fine cells only near the data, its finest level uncapped;
+  ``surfaces_adaptive``).
 * **Accuracy.** Against the true surface, not against points: ``Z`` area-uniform samples of
   the reconstructed mesh and ``Y`` exact samples of the true surface, both dense, with
   point-to-surface distances (analytic shapes: Newton projection onto their implicit
@@ -33,7 +36,7 @@ One command measures everything, prints the ratio table and writes the dated res
   the first includes compilation; wall and CPU seconds.
 
     python benchmarks/surfaces.py [--quick] [--million] [--cases a,b] [--points m]
-                                  [--max-grid N] [--depths D ...] [--fit adaptive]
+                                  [--max-grid N] [--depths D ...] [--fit F]
                                   [--out DIR] [--name NAME]
     python benchmarks/surfaces.py --from-json benchmarks/results/surfaces.json  # re-render
 
@@ -98,8 +101,9 @@ def timed(fn, *args, **kwargs):
 
 
 def run_jurs(points, normals, max_grid, fit="uniform"):
-    """In a child: ``jurs.fit`` (``fit="adaptive"``: ``jurs.fit_adaptive``) twice (the first
-    call compiles), then ``jurs.levelset.mesh``."""
+    """In a child: ``jurs.fit`` (``fit="uniform"``: with ``basis="uniform"``; ``"default"``:
+    its own choice of basis; ``"adaptive"``: ``jurs.fit_adaptive``) twice (the first call
+    compiles), then ``jurs.levelset.mesh``."""
     import jax
 
     jax.config.update("jax_enable_x64", True)  # as the README's examples run it
@@ -113,6 +117,8 @@ def run_jurs(points, normals, max_grid, fit="uniform"):
     def fit_once():
         if fit == "adaptive":
             sol = jurs.fit_adaptive(points, normals, throw=False)
+        elif fit == "uniform":
+            sol = jurs.fit(points, normals, grid=grid, basis="uniform")
         else:
             sol = jurs.fit(points, normals, grid=grid)
         jax.block_until_ready(sol.spline.control)
@@ -139,9 +145,15 @@ def run_jurs(points, normals, max_grid, fit="uniform"):
         "converged": bool(sol.result == jurs.RESULTS.successful),
         "method": (
             f"finest {'x'.join(map(str, sol.stats['finest']))}, "
-            f"{sum(sol.stats['active'])} functions, {sol.stats['num_steps']} CG steps"
-            if fit == "adaptive"
+            f"{sum(sol.stats['active'])} functions, {sol.stats['num_steps']} CG steps "
+            f"({sol.stats['method']})"
+            if isinstance(sol.spline, jurs.AdaptiveSpline)
             else f"grid {'x'.join(map(str, sol.settings.grid))}"
+        )
+        + (
+            f"; uniform residual {sol.stats['uniform_residual']:.3f}"
+            if "uniform_residual" in sol.stats
+            else ""
         ),
     }
 
@@ -400,15 +412,25 @@ def depth_table(runs) -> list:
 ADAPTIVE_LIMITS = (
     "The adaptive fit (`jurs.fit_adaptive`): finest cells three point spacings wide "
     "(`jurs._fit.adaptive.CELL_SPACINGS`) in a band of two cells around the samples, "
-    "coarser levels elsewhere; conjugate gradients in JAX with the exact diagonal as "
-    "preconditioner (docs/design.md section 8)."
+    "coarser levels elsewhere; conjugate gradients with the exact diagonal as "
+    "preconditioner, in JAX or (the CPU default, `host_cg` in the cost table) by SciPy on "
+    "the host (docs/design.md section 8). Its time and memory follow the active functions "
+    "(the cost table)."
+)
+#: What decides the default fit's basis (docs/design.md section 8).
+DEFAULT_LIMITS = (
+    "`jurs.fit` fits the uniform grid (cap 48 a side) and keeps it where 90 % of the points "
+    "lie within 0.02 spacings of its zero set; otherwise it fits the adaptive basis "
+    "(the cost table gives the uniform residual of each escalated fit, and its time "
+    "includes the grid's fit). " + ADAPTIVE_LIMITS
 )
 
 
 def markdown(payload):
     acc, cost, ratios = tables(payload["runs"])
     quick = " A `--quick` development run: not the issue's sizes." if payload["quick"] else ""
-    adaptive = payload.get("fit") == "adaptive"
+    fit = payload.get("fit", "uniform")
+    adaptive = fit == "adaptive"
     call = "jurs.fit_adaptive" if adaptive else "jurs.fit"
     depths = payload.get("depths")
     lines = (
@@ -425,6 +447,8 @@ def markdown(payload):
             + (
                 "its finest level chosen from the data"
                 if adaptive
+                else "the basis chosen by the fit: the cost table's setting says which"
+                if fit == "default"
                 else f"grid capped at {payload['max_grid']}"
                 if payload["max_grid"]
                 else "the default grid cap"
@@ -464,7 +488,12 @@ def markdown(payload):
         * bool(notes(payload["runs"]))
         + ["## jurs / Poisson", "", "Ratios (below 1: jurs smaller, i.e. better).", ""]
         + ratios
-        + ["", "## What limits the misses", "", ADAPTIVE_LIMITS if adaptive else LIMITS]
+        + [
+            "",
+            "## What limits the misses",
+            "",
+            {"adaptive": ADAPTIVE_LIMITS, "default": DEFAULT_LIMITS}.get(fit, LIMITS),
+        ]
         + ["", "## Accuracy", ""]
         + acc
         + ["", "## Cost", ""]
@@ -578,9 +607,9 @@ def parse():
     )
     parser.add_argument(
         "--fit",
-        choices=("uniform", "adaptive"),
+        choices=("uniform", "default", "adaptive"),
         default="uniform",
-        help="jurs.fit's defaults (uniform grid) or jurs.fit_adaptive",
+        help="jurs.fit with basis='uniform', jurs.fit's own defaults, or jurs.fit_adaptive",
     )
     parser.add_argument("--eval-samples", type=int, help="samples per side for distances")
     parser.add_argument("--out", default=RESULTS, help="folder of the results files")

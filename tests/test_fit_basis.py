@@ -149,9 +149,11 @@ def test_rule_on_settings():
     surface = dataclasses.replace(
         settings, grid=(51, 51, 51), domain=((0.0,) * 3, (48.0,) * 3), data_cell=0.3
     )
+    assert auto_finest(surface) is None  # 48 / 0.3 = 160 cells asked for: not capped
+    surface = dataclasses.replace(surface, spacing=0.03, data_cell=0.09)
     assert wants_adaptive(surface, AUTO_MAX_SURFACE_POINTS)
     assert not wants_adaptive(surface, AUTO_MAX_SURFACE_POINTS + 1)
-    assert auto_finest(surface) == AUTO_MAX_FINEST_3D  # 48 / 0.3 = 160 cells asked for
+    assert auto_finest(surface) == AUTO_MAX_FINEST_3D  # 48 / 0.09 = 533 cells asked for
 
 
 def test_command_line_follows_the_same_rule(dense, detailed, tmp_path):

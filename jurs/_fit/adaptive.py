@@ -79,14 +79,17 @@ DIRECT_RTOL = 1e-6
 AUTO_REFINEMENT = 1.5
 #: The automatic choice's limits on a surface: at most this many finest cells along the
 #: longest side, and clouds of at most ``AUTO_MAX_SURFACE_POINTS`` points (larger ones keep
-#: the uniform grid). The surface CG's steps apply the collocation matrix, so they grow with
-#: the points where the uniform grid's stencil does not: the bunny of 2e4 points (finest 80
-#: x 80 x 64, 128k functions) fitted in about the uniform grid's time, at half its Chamfer
-#: distance and half its memory (benchmarks/results/surfaces_adaptive.md), but at 5e4 points
-#: the hierarchy took 73 s warm at finest 128, 41 s at 96, against the uniform grid's 16 s
-#: (2-core CPU, loaded; docs/design.md section 8).
-AUTO_MAX_FINEST_3D = 96
-AUTO_MAX_SURFACE_POINTS = 25_000
+#: the uniform grid). At 1e5 points the hierarchy's fits (finest 64-384 cells, 87k-660k
+#: functions) beat screened Poisson at its best depth of 8, 9 and 10 in Chamfer and
+#: Hausdorff distance on all five shapes of benchmarks/surfaces.py, clean and noisy, where
+#: the uniform grid lost on the bunny and the airplane; its warm fit took 20-60 s and 1.4-3.5
+#: GB (benchmarks/results/surfaces_adaptive_1e5.md, 2-core CPU, CG on the host). Memory
+#: and time follow the active functions (3.0-3.5 GB and 49-60 s at 575k-660k), which grow
+#: with the points at three spacings a cell: at 1e6 points the cells the data ask for
+#: (about 3x finer) would hold some 6 million functions, tens of GB, so there the grid is
+#: kept (docs/design.md section 8).
+AUTO_MAX_FINEST_3D = 384
+AUTO_MAX_SURFACE_POINTS = 150_000
 #: Where the uniform grid is capped, [`jurs.fit`][] fits it first and keeps it where its
 #: zero set follows the data: 90 % of the points within this many spacings of it
 #: (``uniform_residual``). On the quality suite's clean outlines the capped grid's fits
