@@ -562,7 +562,8 @@ def figure(meshes, records, path):
                 highlight_label="supplementary components",
             )
             ax.set_title(
-                f"{heading}\n{r['method']}\nChamfer {1e4 * r['chamfer_rel']:.2f}e-4, "
+                f"{heading}\n{chr(10).join(textwrap.wrap(r['method'], 60))}\n"
+                f"Chamfer {1e4 * r['chamfer_rel']:.2f}e-4, "
                 f"Hausdorff {1e3 * r['hausdorff_rel']:.2f}e-3 of the diagonal\n"
                 f"components {r['num_components']} (supplementary "
                 f"{r['num_supplementary']})",

@@ -378,60 +378,52 @@ SCANNED = ("bunny", "airplane")  # "the bunny and the airplane"
 
 
 def test_surfaces_row():
+    """The default fit at 1e5 points against Poisson's best depth (surfaces_default.md)."""
     task, jurs, other = readme_row("surfaces,")
-    ratios = table("surfaces", "jurs / Poisson")
-    accuracy = table("surfaces", "Accuracy")
-    cost = table("surfaces", "Cost")
+    name = "surfaces_default"
+    ratios = table(name, "jurs / Poisson")
+    accuracy = table(name, "Accuracy")
+    cost = table(name, "Cost")
 
-    m, shapes, date = quoted(task, r"surfaces, (\d+e\d+) points, (\d+) shapes, defaults \((\S+)\)")
-    assert date == date_of("surfaces")
+    m, shapes, date = quoted(
+        task, r"surfaces, (\d+e\d+) points, (\d+) shapes, clean and 0.5 % noise, defaults \((\S+)\)"
+    )
+    assert date == date_of(name)
     cases = {c.split("/")[0] for c in ratios.column("case")}
     assert int(shapes) == len(cases) and cases == set(SMOOTH + SCANNED)
     assert set(ratios.column("m")) == {str(int(float(m)))}
+    assert "Noise: Gaussian, 0.5 % of the bounding-box diagonal" in results_text(name)
 
-    assert "one component on every clean shape, no bubbles with 0.5 % noise" in jurs
-    fits = accuracy.where(method="jurs")
-    for row in fits:
-        components = row[accuracy.col("components (bubbles)")]  # "1 (0)"
-        if row[0].endswith("/clean"):
-            assert components.startswith("1 ("), row
-        assert components.endswith("(0)"), row
-    assert "Noise: Gaussian, 0.5 % of the bounding-box diagonal" in results_text("surfaces")
+    assert "one component on every cloud, no bubbles" in jurs
+    for row in accuracy.where(method="jurs"):
+        assert row[accuracy.col("components (bubbles)")] == "1 (0)", row
 
-    def chamfer_ratio(names, variant):
-        return [
-            Decimal(ratios.cell("Chamfer", case=f"{name}/{variant}", m=str(int(float(m)))))
-            for name in names
-        ]
-
-    lo, hi, scan_lo, scan_hi = quoted(
+    lo, hi, h_lo, h_hi, below, clouds, hierarchy = quoted(
         jurs,
-        r"Chamfer ([\d.]+)-([\d.]+)x Poisson's on clean smooth shapes, ([\d.]+)-([\d.]+)x on "
-        r"the bunny and the airplane",
+        r"Chamfer ([\d.]+)-([\d.]+)x and Hausdorff ([\d.]+)-([\d.]+)x Poisson's best depth, "
+        r"both below it on (\d+) of (\d+) clouds; the hierarchy on (\d+)",
     )
-    smooth = chamfer_ratio(SMOOTH, "clean")
-    assert_figure(lo, min(smooth), "the smallest clean Chamfer ratio")
-    assert_figure(hi, max(smooth), "the largest clean Chamfer ratio")
-    scanned = chamfer_ratio(SCANNED, "clean")
-    assert_figure(scan_lo, min(scanned), "the bunny's and airplane's smaller Chamfer ratio")
-    assert_figure(scan_hi, max(scanned), "the bunny's and airplane's larger Chamfer ratio")
+    chamfer = [Decimal(c) for c in ratios.column("Chamfer")]
+    hausdorff = [Decimal(c) for c in ratios.column("Hausdorff")]
+    assert_figure(lo, min(chamfer), "the smallest Chamfer ratio")
+    assert_figure(hi, max(chamfer), "the largest Chamfer ratio")
+    assert_figure(h_lo, min(hausdorff), "the smallest Hausdorff ratio")
+    assert_figure(h_hi, max(hausdorff), "the largest Hausdorff ratio")
+    assert int(clouds) == len(chamfer)
+    assert int(below) == sum(c <= 1 and h <= 1 for c, h in zip(chamfer, hausdorff))
+    settings = cost.column("setting", cost.where(method="jurs"))
+    assert int(hierarchy) == sum(s.startswith("finest") for s in settings)
 
-    depth, lo, hi, fast_lo, fast_hi = quoted(
+    depths, slow_lo, slow_hi = quoted(
         other,
-        r"Poisson \(depth (\d+)\): ([\d.]+)-([\d.]+)x larger Chamfer on noisy smooth shapes; "
-        r"([\d.]+)-([\d.]+)x faster",
+        r"Poisson \(best of depths ([\d, ]+)\): ([\d.]+)-([\d.]+)x faster, fit and mesh",
     )
-    assert set(cost.column("setting", cost.where(method="Poisson"))) == {f"depth {depth}"}
-    larger = [
-        Decimal(accuracy.cell("Chamfer", case=f"{name}/noise", method="Poisson"))
-        / Decimal(accuracy.cell("Chamfer", case=f"{name}/noise", method="jurs"))
-        for name in SMOOTH
-    ]
-    assert_figure(lo, min(larger), "Poisson's smallest noisy Chamfer over jurs's")
-    assert_figure(hi, max(larger), "Poisson's largest noisy Chamfer over jurs's")
-    faster = [Decimal(c) for c in ratios.column("warm fit time")]
-    assert_figure(fast_lo, min(faster), "jurs's warm fit time over Poisson's, smallest")
-    assert_figure(fast_hi, max(faster), "jurs's warm fit time over Poisson's, largest")
+    assert "Poisson at each depth" in results_text(name)
+    tried = table(name, "Poisson at each depth").column("depth")
+    assert {d.strip() for d in depths.split(",")} == {t.split()[-1] for t in tried}
+    slower = [Decimal(c) for c in ratios.column("total time")]
+    assert_figure(slow_lo, min(slower), "jurs's fit and mesh time over Poisson's, smallest")
+    assert_figure(slow_hi, max(slower), "jurs's fit and mesh time over Poisson's, largest")
 
 
 def test_open_scans_row():
