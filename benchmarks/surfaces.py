@@ -426,6 +426,38 @@ DEFAULT_LIMITS = (
 )
 
 
+def per_function(runs) -> str:
+    """The hierarchy fits' warm time and peak memory (above the runtime's base) per active
+    function, measured in this run, beside Poisson's whole fit: the bound on time and
+    memory."""
+    import re
+
+    rates = []
+    for r in runs:
+        jurs_run, poisson = r.get("jurs", {}), r.get("poisson", {})
+        found = re.match(r"finest \S+, (\d+) functions", str(jurs_run.get("method", "")))
+        if found is None or "error" in jurs_run or "error" in poisson:
+            continue
+        functions = int(found.group(1))
+        rates.append(
+            (
+                1e6 * jurs_run["fit_s"] / functions,
+                (jurs_run["peak_rss"] - jurs_run["base_rss"]) / functions / 1e3,
+                functions,
+            )
+        )
+    if not rates:
+        return ""
+    us, kb, n = zip(*rates)
+    return (
+        f" Measured here over the {len(rates)} fits on the hierarchy ({min(n)}-{max(n)} "
+        f"functions): {min(us):.0f}-{max(us):.0f} us of warm fit and {min(kb):.1f}-"
+        f"{max(kb):.1f} KB of peak memory per active function (the grid's fit included where "
+        "`jurs.fit` fitted it first). At the functions the detail asks for, that is "
+        "several times Poisson's time and memory: the ratios above."
+    )
+
+
 def markdown(payload):
     acc, cost, ratios = tables(payload["runs"])
     quick = " A `--quick` development run: not the issue's sizes." if payload["quick"] else ""
@@ -492,7 +524,8 @@ def markdown(payload):
             "",
             "## What limits the misses",
             "",
-            {"adaptive": ADAPTIVE_LIMITS, "default": DEFAULT_LIMITS}.get(fit, LIMITS),
+            {"adaptive": ADAPTIVE_LIMITS, "default": DEFAULT_LIMITS}.get(fit, LIMITS)
+            + per_function(payload["runs"]),
         ]
         + ["", "## Accuracy", ""]
         + acc
