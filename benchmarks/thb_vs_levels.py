@@ -43,6 +43,7 @@ sys.path.insert(0, os.path.dirname(__file__))
 import _realdata_cases as cases  # noqa: E402
 import realdata  # noqa: E402
 from _common import machine, write_results  # noqa: E402
+from adaptive import _rings as rings  # noqa: E402
 
 from jurs._fit.adaptive import finest_cell_width, hierarchy_layout, solve_normal  # noqa: E402
 from jurs._fit.settings import scale_free_lam  # noqa: E402
@@ -243,10 +244,6 @@ def markdown(payload: dict) -> str:
     ]
     for r in payload["rows"]:
         t, c, s = r["thb"], r["cascade"], r["levels"]
-
-        def rings(x):
-            topo = x["topology"]
-            return f"{topo['matched']}/{topo['rings']}" + ("" if topo["exact"] else "*")
 
         lines.append(
             f"| {r['case']} | {r['m']} | {t['functions']} | {s['functions']} | "
