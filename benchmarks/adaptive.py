@@ -393,8 +393,17 @@ def scaling_table(rows: list[dict], ndim: int, payload: dict) -> list[str]:
             ok = sum(v <= target for v in values)
             return f"{min(values):.2f}-{max(values):.2f}x ({ok}/{len(values)} at most {target}x)"
 
+        def mean(k: int) -> str:  # geometric mean per doubling over the whole ladder
+            values = np.array([c[k] for c in checked], float)
+            return f"{float(np.exp(np.log(values).mean())):.2f}x"
+
         text = f"Per doubling, active functions grew by {spread(0)}, warm time by {spread(1)}"
         text += f", time without checks by {spread(2)}." if unchecked else "."
+        text += (
+            f" Over the {len(checked)} doublings of the ladder: {mean(0)} a doubling in active "
+            f"functions, {mean(1)} in warm time"
+            + (f", {mean(2)} without checks." if unchecked else ".")
+        )
         lines += ["", text]
     return lines
 
