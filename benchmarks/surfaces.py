@@ -652,7 +652,7 @@ def parse():
         "--name",
         help="results file names, <name>.{json,md,png} (default: surfaces, or "
         "surfaces_adaptive with --fit adaptive; the 1e6 run: --cases sphere,bunny --points "
-        "1000000 --name surfaces_1e6)",
+        "1000000 --fit default --depths 8 9 10 --name surfaces_1e6_default)",
     )
     parser.add_argument(
         "--markdown-only",
