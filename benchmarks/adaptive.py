@@ -408,6 +408,21 @@ def scaling_table(rows: list[dict], ndim: int, payload: dict) -> list[str]:
     return lines
 
 
+def surface_ladder(args) -> dict:
+    """The 3D ladder's fields of the payload: the case, its origin, its points and rows."""
+    surface_case, origin, points, normals = surface_cloud(args.surface_points)
+    rows = ladder(
+        surface_row, points, normals, args.surface_finest, args.timeout, args.max_gb,
+        args.timeout,
+    )  # fmt: skip
+    return {
+        "surface_case": surface_case,
+        "surface_origin": origin,
+        "surface_points": args.surface_points,
+        "surface_scaling": rows,
+    }
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=(__doc__ or "").splitlines()[0])
     parser.add_argument("--cases", nargs="*", default=list(DEFAULT_CASES))
@@ -441,16 +456,8 @@ def main(argv=None) -> None:
         with open(os.path.join(RESULTS, "adaptive.json")) as fh:
             payload = json.load(fh)
         load = os.getloadavg()[0]
-        surface_case, origin, points, normals = surface_cloud(args.surface_points)
-        surface = ladder(
-            surface_row, points, normals, args.surface_finest, args.timeout, args.max_gb,
-            args.timeout,
-        )  # fmt: skip
         payload.update(
-            surface_case=surface_case,
-            surface_origin=origin,
-            surface_points=args.surface_points,
-            surface_scaling=surface,
+            surface_ladder(args),
             surface_run={
                 "date": datetime.date.today().isoformat(),
                 "note": args.note,
@@ -466,16 +473,7 @@ def main(argv=None) -> None:
         print(name, {k: row[k]["chamfer"] for k in ("uniform", "adaptive", "rbf")}, flush=True)
         accuracy.append(row)
     scaling = scaling_rows(SCALING_CASE, args.finest, args.timeout, args.max_gb)
-    surface_case, origin, points, normals = surface_cloud(args.surface_points)
-    surface = ladder(
-        surface_row,
-        points,
-        normals,
-        args.surface_finest,
-        args.timeout,
-        args.max_gb,
-        args.timeout,
-    )
+    surface = surface_ladder(args)
     load.append(os.getloadavg()[0])
     payload = {
         "date": datetime.date.today().isoformat(),
@@ -487,10 +485,7 @@ def main(argv=None) -> None:
         "accuracy": accuracy,
         "scaling_case": SCALING_CASE,
         "scaling": scaling,
-        "surface_case": surface_case,
-        "surface_origin": origin,
-        "surface_points": args.surface_points,
-        "surface_scaling": surface,
+        **surface,
     }
     write_results("adaptive", payload, markdown(payload))
 

@@ -417,26 +417,33 @@ ADAPTIVE_LIMITS = (
     "the host (docs/design.md section 8). Its time and memory follow the active functions "
     "(the cost table)."
 )
-#: What decides the default fit's basis (docs/design.md section 8).
-DEFAULT_LIMITS = (
-    "`jurs.fit` fits the uniform grid (cap 48 a side) and keeps it where 90 % of the points "
-    "lie within 0.02 spacings of its zero set; otherwise it fits the adaptive basis "
-    "(the cost table gives the uniform residual of each escalated fit, and its time "
-    "includes the grid's fit). " + ADAPTIVE_LIMITS
-)
+
+
+def default_limits() -> str:
+    """What decides the default fit's basis (docs/design.md section 8), from the library's
+    own constants (imported here: the parent process does not import jurs up front)."""
+    from jurs._fit.adaptive import UNIFORM_RESIDUAL_SPACINGS
+    from jurs._fit.settings import DEFAULT_MAX_GRID_3D
+
+    return (
+        f"`jurs.fit` fits the uniform grid (cap {DEFAULT_MAX_GRID_3D} a side) and keeps it "
+        f"where 90 % of the points lie within {UNIFORM_RESIDUAL_SPACINGS} spacings of its zero "
+        "set; otherwise it fits the adaptive basis (the cost table gives the uniform residual "
+        "of each escalated fit, and its time includes the grid's fit). " + ADAPTIVE_LIMITS
+    )
 
 
 def per_function(runs) -> str:
     """The hierarchy fits' warm time and peak memory (above the runtime's base) per active
-    function, measured in this run, beside Poisson's whole fit: the bound on time and
-    memory."""
+    function, measured in this run (the functions read from the cost table's setting,
+    which older results files hold alone): the bound on time and memory."""
     import re
 
     rates = []
     for r in runs:
-        jurs_run, poisson = r.get("jurs", {}), r.get("poisson", {})
+        jurs_run = r.get("jurs", {})
         found = re.match(r"finest \S+, (\d+) functions", str(jurs_run.get("method", "")))
-        if found is None or "error" in jurs_run or "error" in poisson:
+        if found is None or "error" in jurs_run:
             continue
         functions = int(found.group(1))
         rates.append(
@@ -524,7 +531,7 @@ def markdown(payload):
             "",
             "## What limits the misses",
             "",
-            {"adaptive": ADAPTIVE_LIMITS, "default": DEFAULT_LIMITS}.get(fit, LIMITS)
+            (ADAPTIVE_LIMITS if adaptive else default_limits() if fit == "default" else LIMITS)
             + per_function(payload["runs"]),
         ]
         + ["", "## Accuracy", ""]

@@ -63,11 +63,9 @@ def _axis_weights(x, lower, width, cells):
 def level_functions(cells, omega):
     """Row-major keys (in the ``(cells + 3)`` function grid) of the level's functions whose
     support meets a cell of ``omega`` (``(k, 2)`` cell indices)."""
-    fy = cells[1] + 3
     a = np.arange(4)
-    ix = (omega[:, 0][:, None, None] + a[None, :, None]).repeat(4, 2)
-    iy = (omega[:, 1][:, None, None] + a[None, None, :]).repeat(4, 1)
-    return np.unique((ix * fy + iy).ravel())
+    keys = (omega[:, 0, None, None] + a[:, None]) * (cells[1] + 3) + (omega[:, 1, None, None] + a)
+    return np.unique(keys.ravel())
 
 
 def level_matrices(samples, lower, width, cells, keys):
@@ -144,16 +142,17 @@ def sum_of_levels(points, normals, settings, sweeps):
             omega = (2 * parents[:, None, :] + kids[None]).reshape(-1, 2)
         keys = level_functions(cells, omega)
         basis, regulariser = level_matrices(samples, lower, width, cells, keys)
-        structure.append((cells, width, keys, basis, regulariser))
+        # The level's normal matrix, the same in every pass: formed once.
+        matrix = (basis.T @ basis + lam * regulariser).tocsc()
+        structure.append((cells, width, keys, basis, matrix))
     assembled = time.perf_counter() - start
     residual = np.asarray(targets, float).copy()
     coeffs = [np.zeros(len(s[2])) for s in structure]
     passes = []  # after the cascade, and after the sweeps
     start = time.perf_counter()
     for sweep in range(1 + sweeps):
-        for level, (_, _, _, basis, regulariser) in enumerate(structure):
+        for level, (_, _, _, basis, matrix) in enumerate(structure):
             residual += basis @ coeffs[level]  # this level's part back in
-            matrix = (basis.T @ basis + lam * regulariser).tocsc()
             coeffs[level], _ = solve_normal(matrix, basis.T @ residual)
             residual -= basis @ coeffs[level]
         if sweep in (0, sweeps):

@@ -241,6 +241,14 @@ def _assembled_cg(collocation, regulariser, targets, diagonal, lam, rtol, max_st
     )
 
 
+def normal_diagonal(problem: AdaptiveProblem, lam: float) -> np.ndarray:
+    """The diagonal of ``D^T D + lam 2 G^T W G`` (the CG's Jacobi preconditioner), on the
+    host, in float64."""
+    return np.asarray(problem.data_diagonal, float) + lam * np.asarray(
+        problem.regulariser_diagonal, float
+    )
+
+
 def solve_assembled(
     problem: AdaptiveProblem, matrices, lam: float, rtol: float, max_steps: int, dtype
 ) -> tuple[np.ndarray, int, float]:
@@ -252,9 +260,7 @@ def solve_assembled(
     collocation, regulariser = matrices
     count, n = collocation.shape
     n_class = size_class(n)
-    diagonal = np.asarray(problem.data_diagonal, float) + lam * np.asarray(
-        problem.regulariser_diagonal, float
-    )
+    diagonal = normal_diagonal(problem, lam)
     control, steps, residual = _assembled_cg(
         _coo(collocation, size_class(collocation.nnz), dtype),
         _coo(regulariser, size_class(regulariser.nnz), dtype),
@@ -284,9 +290,7 @@ def solve_host_cg(
     collocation, regulariser = (matrix.tocsr() for matrix in matrices)
     transposed = collocation.T.tocsr()
     n = collocation.shape[1]
-    diagonal = np.asarray(problem.data_diagonal, float) + lam * np.asarray(
-        problem.regulariser_diagonal, float
-    )
+    diagonal = normal_diagonal(problem, lam)
     inverse = np.where(diagonal > 0, 1.0 / np.where(diagonal > 0, diagonal, 1.0), 0.0)
 
     def matvec(c):
@@ -538,14 +542,7 @@ def fit_adaptive(
         # A direct solve is exact up to rounding; a residual far above it means the
         # factorisation met a (numerically) singular matrix.
         tolerance = max(rtol, DIRECT_RTOL)
-    elif method == "host_cg":  # every sample read on the host, as a direct solve does
-        control_np, steps, residual = solve_host_cg(
-            problem, matrices, float(lam), float(rtol), int(max_steps)
-        )
-        control = on_device(control_np, dtype)
-        metrics = assembled_metrics(problem, matrices, control_np, float(lam))
-        tolerance = rtol
-    elif sharding is not None:
+    elif method == "cg" and sharding is not None:
         from .adaptive_sharding import solve_sharded
 
         control_np, steps, residual, metrics = solve_sharded(
@@ -553,9 +550,11 @@ def fit_adaptive(
         )
         control = on_device(control_np, dtype)
         tolerance = rtol
-    else:
-        control_np, steps, residual = solve_assembled(
-            problem, matrices, float(lam), float(rtol), int(max_steps), dtype
+    else:  # CG on the assembled matrices: SciPy on the host, or JAX (padded, compiled)
+        args = (problem, matrices, float(lam), float(rtol), int(max_steps))
+        # host_cg reads every sample on the host, as a direct solve does.
+        control_np, steps, residual = (
+            solve_host_cg(*args) if method == "host_cg" else solve_assembled(*args, dtype)
         )
         control = on_device(control_np, dtype)
         metrics = assembled_metrics(problem, matrices, control_np, float(lam))
