@@ -27,6 +27,7 @@ from ._model.spline import (
     bspline_values,
     local_basis,
     rational_values,
+    with_groups,
 )
 from ._problem.adaptive import (
     AdaptiveProblem,
@@ -51,7 +52,7 @@ from ._problem.energy import (
     transpose_apply,
     weight_gradient,
 )
-from ._problem.layout import bucket_layout
+from ._problem.layout import bucket_layout, cell_groups
 from ._problem.problem import auto_domain, offset_samples
 
 __all__ = [
@@ -75,6 +76,7 @@ __all__ = [
     "bspline_transpose",
     "bspline_values",
     "bucket_layout",
+    "cell_groups",
     "collocation_column_sums",
     "collocation_transpose",
     "cubic_derivatives",
@@ -96,4 +98,5 @@ __all__ = [
     "step_size",
     "transpose_apply",
     "weight_gradient",
+    "with_groups",
 ]

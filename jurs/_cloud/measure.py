@@ -32,6 +32,25 @@ def kd_tree(points: np.ndarray) -> cKDTree:
     return cKDTree(points)
 
 
+def query_all(tree: cKDTree, points: np.ndarray, k: int) -> tuple[np.ndarray, np.ndarray]:
+    """``tree.query(points, k, workers=-1)`` (``(dist, index)``, each ``(m, k)``) of the
+    tree's own ``points``, queried in the tree's leaf order and returned in theirs.
+
+    Why: queries in a cloud's own order (random on a scan) walk the whole tree for each
+    point; in leaf order consecutive queries read the same nodes. On 1e6 surface points,
+    k = 9: 3.3 s against 1.3 s (2 cores), the same results. Any order gives the same
+    answers, so ``points`` other than the tree's (of its size) are queried correctly too."""
+    order = tree.indices if len(points) == tree.n else np.arange(len(points))
+    dist, index = tree.query(points[order], k=k, workers=-1)
+    dist, index = (
+        np.asarray(dist).reshape(len(points), -1),
+        np.asarray(index).reshape(len(points), -1),
+    )
+    out_dist, out_index = np.empty_like(dist), np.empty_like(index)
+    out_dist[order], out_index[order] = dist, index
+    return out_dist, out_index
+
+
 def strided_probes(count: int, most: int) -> np.ndarray | None:
     """Indices of at most ``most`` of ``count`` points, evenly strided over their order (the
     same points wherever the cloud is placed); None where all ``count`` fit."""
@@ -157,7 +176,12 @@ def offset_agreement(
 
 
 def feature_width(
-    points: np.ndarray, normals: np.ndarray, radius: float, spacing: float, at=None
+    points: np.ndarray,
+    normals: np.ndarray,
+    radius: float,
+    spacing: float,
+    at=None,
+    tree: cKDTree | None = None,
 ) -> tuple[np.ndarray, np.ndarray]:
     """``(width, partner)`` per probe point (``at``, default all): the distance to the
     nearest point whose normal faces the other way (more than 120 degrees apart), within
@@ -166,11 +190,13 @@ def feature_width(
     On a thin part of the shape it is the part's width at that point, on the far side of a
     narrow gap the gap's: the features a grid must resolve. Clouds much denser than the
     radius are thinned to about 16 points a radius first (by stride: only the nearest
-    opposite point matters, and 64 neighbours must reach across)."""
+    opposite point matters, and 64 neighbours must reach across). ``tree``: one of
+    ``points`` the caller has, used where none are thinned out."""
     own = _probe(points, at)
     stride = max(1, min(int(radius / (16.0 * spacing)), len(points) // 64))
     keep = np.arange(0, len(points), stride)
-    tree = kd_tree(points[keep])
+    if stride > 1 or tree is None:
+        tree = kd_tree(points[keep])
     k = min(len(keep), 64)
     # k as a list: 2-D results even for k = 1 (SciPy's stub types k as an int only).
     ks = list(range(1, k + 1))

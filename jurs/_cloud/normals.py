@@ -44,7 +44,13 @@ from scipy import sparse
 from scipy.sparse import csgraph
 from scipy.spatial import cKDTree  # pyright: ignore[reportAttributeAccessIssue]  # no stub
 
-from .measure import check_encloses, check_narrow_type, check_rounding, principal_widths
+from .measure import (
+    check_encloses,
+    check_narrow_type,
+    check_rounding,
+    principal_widths,
+    query_all,
+)
 from .signs import forest_signs
 from .winding import (
     DENSE_PAIRS,
@@ -388,7 +394,7 @@ def estimate_normals(
     rng = np.random.default_rng(seed)
     tree = cKDTree(unique)
     k = _choose_k(unique, tree, rng) if k is None else int(k)
-    _, neighbours = tree.query(unique, k=k + 1, workers=-1)
+    _, neighbours = query_all(tree, unique, k + 1)
     values, vectors = _pca(unique, neighbours)
     normals = vectors[:, :, 0]
     noise = _local_noise(unique, neighbours)
@@ -439,7 +445,7 @@ def _orient(points, normals, values, noise, neighbours, tree, rng, confidence):
     else:  # pi r_k^2 / k: unbiased for uniform random samples (the PCA spread is not)
         r_k = np.linalg.norm(points[neighbours[:, -1]] - points, axis=1)
         area = np.pi * r_k**2 / (k - 1)
-    spacing = tree.query(points, k=min(d + 1, m), workers=-1)[0][:, -1]  # ~ sample spacing
+    spacing = query_all(tree, points, min(d + 1, m))[0][:, -1]  # ~ sample spacing
     eps = np.maximum(FIELD_WIDTH * spacing, 2.0 * noise)
     weight = confidence  # as a query
     source = _source_weight(confidence, d)
@@ -491,7 +497,7 @@ def _point_corrections(points, normals, area, eps, offset, tree, neighbours, rou
     if neighbours.shape[1] >= count:
         near_all = neighbours[:, :count]
     else:
-        near_all = tree.query(points, k=count, workers=-1)[1]
+        near_all = query_all(tree, points, count)[1]
     check = np.arange(m)
     for _ in range(rounds):
         dipoles = normals * area[:, None]

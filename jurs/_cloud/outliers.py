@@ -7,7 +7,7 @@ from typing import TYPE_CHECKING
 
 import numpy as np
 
-from .measure import kd_tree
+from .measure import kd_tree, query_all
 
 if TYPE_CHECKING:
     from scipy.spatial import KDTree as cKDTree
@@ -111,8 +111,7 @@ def isolated_points(
     m = len(points)
     k = min(m - 1, ISOLATION_RANK)
     count = min(m, max(ISOLATION_RANK, ISOLATION_NEIGHBOURS) + 1)
-    dist, near = tree.query(points, k=count, workers=-1)  # reach, neighbours, clusters
-    dist, near = np.asarray(dist).reshape(m, -1), np.asarray(near).reshape(m, -1)
+    dist, near = query_all(tree, points, count)  # reach, neighbours, clusters
     reach = dist[:, k]  # the k-th nearest other point
     typical = float(np.median(reach))
     isolated = np.zeros(m, bool)

@@ -50,7 +50,6 @@ from .._cloud.measure import (
     PROBES,
     estimate_noise,
     feature_width,
-    kd_tree,
     offset_agreement,
     point_spacing,
     strided_probes,
@@ -491,7 +490,7 @@ def choose_settings(
     at = cloud.probes
     if isolated.any():  # measure the shape without them
         p, n = p[~isolated], n[~isolated]
-        tree = kd_tree(p)
+        tree = cloud.tree_without(tuple(int(i) for i in np.flatnonzero(isolated)))
         at = strided_probes(len(p), PROBES)
     spacing = point_spacing(p, tree, at)
     noise = estimate_noise(p, n, tree, at=at)

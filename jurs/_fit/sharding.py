@@ -182,10 +182,11 @@ def shard_problem(problem: Problem, sharding: NamedSharding) -> Problem:
     ``problem`` up to the order of its sums."""
     shards = _axis_size(sharding)
     problem, axes = _padded_problem(problem, shards)
-    # Chunked sums over the slots run per device (jurs._linalg.normal.chunked_segment_sum).
-    problem = eqx.tree_at(
-        lambda p: p.local, problem, dataclasses.replace(problem.local, parts=shards)
-    )
+    # Chunked sums over the slots run per device (jurs._linalg.normal.chunked_segment_sum);
+    # the slots gathered by cell would read across devices: the assembly runs without them.
+    groups = dict(group_slot=None, group_filled=None, group_position=None)
+    local = dataclasses.replace(problem.local, parts=shards, **groups)
+    problem = eqx.tree_at(lambda p: p.local, problem, local)
     mesh, names = sharding.mesh, sharding.spec[0]
     replicated = NamedSharding(mesh, PartitionSpec())
 

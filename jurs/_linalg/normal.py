@@ -43,7 +43,7 @@ from .._model.basis import (
     tensor_basis,
 )
 from .._model.precision import full_precision
-from .._model.spline import rational_terms
+from .._model.spline import map_groups, rational_terms
 from .._problem.problem import Problem
 from .stencil import (
     HALF,
@@ -196,6 +196,8 @@ def _bernstein_moments(problem: Problem, chunk_size: int) -> Array:
     factor per term in 3D)."""
     local = problem.local
     count = num_cells(problem.shape)
+    if local.group_slot is not None:
+        return _grouped_moments(problem, count)
     if local.bucket_size > 1:
         # Bucketed layout: the 65 sums of each bucket are one variadic reduction over its
         # slots (no (samples x 65) array, no scatter), then a sorted sum per cell.
@@ -224,6 +226,42 @@ def _bernstein_moments(problem: Problem, chunk_size: int) -> Array:
 
     inputs = [t, problem.mask, problem.targets]
     return chunked_segment_sum(moments, inputs, local.cell, count, chunk_size, local.parts)
+
+
+def _group_tensor_sums(t: Array, weight: Array, degree: int) -> Array:
+    """``sum_k weight_k Bern_p(t_k[0]) Bern_q(t_k[1]) ...`` over the ``K`` entries of each
+    group: ``t (d, G, K)``, ``weight (G, K)`` -> ``(G, (degree + 1) ** d)``, row-major in
+    the axes as ``tensor_basis``. The first axis's values meet the other axes' products
+    in one batched matrix product a group, never a ``(samples, (degree + 1) ** d)``
+    array."""
+    first = jnp.stack(_bernstein_terms(t[0], degree), -1) * weight[..., None]
+    rest = jnp.stack(_bernstein_terms(t[1], degree), -1)
+    for axis in range(2, t.shape[0]):
+        more = jnp.stack(_bernstein_terms(t[axis], degree), -1)
+        rest = (rest[..., :, None] * more[..., None, :]).reshape(rest.shape[:2] + (-1,))
+    sums = jnp.einsum("gkp,gkq->gpq", first, rest, precision=jax.lax.Precision.HIGHEST)
+    return sums.reshape(sums.shape[0], -1)
+
+
+def _grouped_moments(problem: Problem, count: int) -> Array:
+    """``_bernstein_moments`` from the slots gathered by cell
+    ([`jurs.internal.with_groups`][]): each group's moments in one batched product
+    (``_group_tensor_sums``), ``GROUP_CHUNK`` groups at a time, then one sorted scatter
+    of a row a group. A slot's mask and target are read here, so a mask changed after
+    the layout (the robust fit's weights) counts."""
+    local = problem.local
+
+    def sums(slot, filled):  # (c, K) -> (c, 7 ** d + 4 ** d)
+        t = local.t[:, slot]  # (d, c, K)
+        weight = problem.mask[slot] * filled
+        gram = _group_tensor_sums(t, weight, 6)
+        rhs = _group_tensor_sums(t, weight * problem.targets[slot], 3)
+        return jnp.concatenate([gram, rhs], axis=1)
+
+    per_group = map_groups(sums, local)
+    assert local.group_slot is not None  # map_groups ran
+    group_cell = local.cell[local.group_slot[:, 0]]
+    return jax.ops.segment_sum(per_group, group_cell, num_segments=count, indices_are_sorted=True)
 
 
 def _fold_axis(cells: Array, kernel: Array, axis: int) -> Array:

@@ -108,3 +108,22 @@ def stable_layout(
     num_buckets = -(-num_slots // bucket_size) + occupied
     slot, valid = bucket_layout(cells[real], bucket_size, count, num_buckets)
     return real[slot].astype(np.int32), valid, bucket_size
+
+
+#: Smallest group of ``cell_groups``: with fewer samples an occupied cell, grouping them
+#: saves the assembly little and pads it much.
+MIN_GROUP_SIZE = 4
+
+
+def cell_groups(cells: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray] | None:
+    """A problem's slots (``cells (S,)``: the flat cell of each) gathered by cell into
+    groups of one size, for the assembly of a surface's normal equations
+    ([`jurs.internal.with_groups`][]): ``(slot, valid)``, both ``(G, K)``; None where
+    the samples are under ``MIN_GROUP_SIZE`` an occupied cell. Every slot takes part,
+    masked ones too: a solver may weigh them in later (the robust fit's weights are its
+    mask). Sized as ``stable_layout``, so that clouds padded to one size share one
+    compiled fit."""
+    slot, valid, k = stable_layout(cells, np.ones(cells.shape[0]), count)
+    if k < MIN_GROUP_SIZE:
+        return None
+    return slot.reshape(-1, k), valid.reshape(-1, k)

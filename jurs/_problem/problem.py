@@ -20,8 +20,14 @@ from jax import Array
 from jaxtyping import ArrayLike, Float
 
 from .._model.basis import flat_cell, locate, num_cells
-from .._model.spline import TABLE_MAX_SLOTS, LocalBasis, local_basis, with_table
-from .layout import bucket_layout, choose_bucket_size, round_buckets, stable_layout
+from .._model.spline import TABLE_MAX_SLOTS, LocalBasis, local_basis, with_groups, with_table
+from .layout import (
+    bucket_layout,
+    cell_groups,
+    choose_bucket_size,
+    round_buckets,
+    stable_layout,
+)
 from .sizes import DEFAULT_MARGIN
 from .validate import (
     _is_concrete,
@@ -254,6 +260,10 @@ def _laid_out_slots(geometry, shape, bucket_size, concrete, small, stable_shapes
         )
     if table is not None:
         local = with_table(local, *table, shape)
+    if concrete and stable_shapes and len(shape) != 2 and layout is None:
+        # A surface's slots, gathered by cell for the assembly (jurs._linalg.normal).
+        groups = cell_groups(np.asarray(cells), num_cells(shape))
+        local = local if groups is None else with_groups(local, *groups)
     return dict(
         samples=slot_xy,
         targets=slot_targets,
@@ -300,7 +310,9 @@ def make_problem(
             host); above, buckets of ``choose_bucket_size``. 1 keeps the paper's order
             (with the table form when small and concrete). Sizes above 1 need concrete
             (untraced) inputs: the layout is computed on the host. 3D problems always
-            take one sample a slot (the generic form of ``jurs._model.spline``).
+            take one sample a slot (the generic form of ``jurs._model.spline``); with
+            ``stable_shapes`` a concrete one also holds its slots gathered by cell, for
+            the assembly of the normal equations ([`jurs.internal.with_groups`][]).
         dtype: floating dtype; default float64 when ``jax_enable_x64`` is on, else float32.
         stable_shapes: size a concrete problem's sample layout from the number of points
             and the rounded number of occupied cells (``stable_layout``), so that

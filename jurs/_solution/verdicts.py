@@ -22,7 +22,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._cloud.measure import PROBES, feature_width, kd_tree, strided_probes
+from .._cloud.measure import PROBES, feature_width, strided_probes
 from .._model.adaptive import AdaptiveSpline
 from .._model.spline import ImplicitSpline
 from .._problem.energy import layout_residuals
@@ -215,7 +215,7 @@ MAX_SHEET_FRACTION = 0.02
 
 
 def crossed_pairs(
-    spline: ImplicitSpline, points, normals, spacing: float
+    spline: ImplicitSpline, points, normals, spacing: float, tree=None
 ) -> tuple[int, int, float, float]:
     """``(across, along, sheets, width)``: how many of ``points`` (at most ``PROBES``,
     evenly strided) face a point less than a cell away whose normal points the other way
@@ -229,11 +229,12 @@ def crossed_pairs(
     flipped read as thin parts along the seam). ``sheets`` is the fraction of the points
     read that face a point across (not along) less than a cell away, whatever the fit
     does there: two sheets of a thin part or the two sides of a gap closer than a cell,
-    and ``width`` the median distance across (NaN where there is none)."""
+    and ``width`` the median distance across (NaN where there is none). ``tree``: a
+    KD-tree of ``points``, where the caller has one."""
     p, n = np.asarray(points, float), unit_normals(np.asarray(normals, float), np)
     at = strided_probes(len(p), PROBES)
     own = np.arange(len(p)) if at is None else at
-    width, partner = feature_width(p, n, spline.cell_width, spacing, own)
+    width, partner = feature_width(p, n, spline.cell_width, spacing, own, tree)
     paired = partner >= 0
     if not paired.any():
         return 0, 0, 0.0, float("nan")
@@ -383,12 +384,14 @@ def check_doubts(sol, cloud, settings, offset):
     the cloud's spacing, without which the thin-part check is not made."""
     keep = judged_points(cloud, settings)
     p = cloud.points
+    aside = settings is not None and bool(settings.set_aside)
+    tree = cloud.tree_without(settings.set_aside) if aside else cloud.tree  # of p[keep]
     far, threshold = far_point_fraction(sol.spline, p[keep], offset)
     crossed, along, thin = 0, 0, 0.0 if settings is None else settings.thin_fraction
     sheets, width = 0.0, float("nan")
     if settings is not None:
         crossed, along, sheets, width = crossed_pairs(
-            sol.spline, p[keep], cloud.normals[keep], settings.spacing
+            sol.spline, p[keep], cloud.normals[keep], settings.spacing, tree
         )
     doubts = []
     if cloud.ndim == 3 and sheets > MAX_SHEET_FRACTION:
@@ -426,8 +429,6 @@ def check_doubts(sol, cloud, settings, offset):
             "the fit does not follow the data there (features too fine for the grid, "
             "outliers or inconsistent normals)"
         )
-    aside = settings is not None and bool(settings.set_aside)
-    tree = kd_tree(p[keep]) if aside else cloud.tree  # cloud.tree: the points kept
     extra = extra_components(sol.spline, tree, threshold)
     doubts.extend(_describe_extra(c) for c in extra)
     # device_put, not jnp.asarray: a Python number through jnp.asarray compiles a small

@@ -277,18 +277,27 @@ class LeastSquares(AbstractSolver[LeastSquaresState]):
         ), energy
 
     def step(self, problem: Problem, state: LeastSquaresState):
-        normal = normal_equations(
-            problem, state.weights if self.keep_weights else None, chunk_size=self.chunk_size
-        )
-        control, result = self.solve_assembled(problem, normal, self.lam, state.control)
-        result = singular_solve(normal, self.lam, control, result)
+        control, result = self.minimise(problem, state.weights, state.control)
         energy = objective(problem, control, state.weights, self.lam)
         return LeastSquaresState(control, state.weights, jnp.array(True), result), energy
 
-    def solve_assembled(self, problem: Problem, normal, lam, start: Array):
+    def minimise(self, problem: Problem, weights: Array, start: Array, warm=False):
+        """``(C, lineax result)``: the normal equations of ``problem`` assembled (with
+        ``weights`` where ``keep_weights``) and solved from ``start``, the singular
+        solves flagged (``singular_solve``). ``warm`` (a bool, may be traced): ``start``
+        is already a fit of a problem like this one, whose far field a surface's solve
+        keeps instead of the cascade's (``solve_assembled``)."""
+        normal = normal_equations(
+            problem, weights if self.keep_weights else None, chunk_size=self.chunk_size
+        )
+        control, result = self.solve_assembled(problem, normal, self.lam, start, warm)
+        return control, singular_solve(normal, self.lam, control, result)
+
+    def solve_assembled(self, problem: Problem, normal, lam, start: Array, warm=False):
         """``(C, lineax result)``: the minimiser of ``E_d + lam R`` from the assembled
         ``normal`` equations ([`jurs.internal.NormalEquations`][] of ``problem``), by
-        this solver's linear solver (see the class docstring), started from ``start``."""
+        this solver's linear solver (see the class docstring), started from ``start``;
+        on a surface from the cascade's start unless ``warm`` (see ``minimise``)."""
         system = (normal.regularised(lam), normal.rhs, start)
         n, m = sorted(problem.shape, reverse=True)[:2]
         if (
@@ -314,8 +323,13 @@ class LeastSquares(AbstractSolver[LeastSquaresState]):
             and np.prod(problem.shape) > DENSE_MAX_COEFFICIENTS
         ):
             # Surfaces: CG from the cascade's start (jurs/solvers/_cascade.py), which
-            # carries the far field that CG from 0 leaves behind.
-            start = cascadic_start(problem, lam, self._level_solve, start)
+            # carries the far field that CG from 0 leaves behind; a warm start (the
+            # previous fit of a reweighted problem) has it already.
+            cascade = lambda: cascadic_start(problem, lam, self._level_solve, start)  # noqa: E731
+            if isinstance(warm, bool):
+                start = start if warm else cascade()
+            else:
+                start = jax.lax.cond(warm, lambda: start, cascade)
             return solve_normal_equations(
                 *system[:2], start, surface_linear_solver(normal.rhs), self.ridge
             )
