@@ -405,6 +405,7 @@ def _grouped_values(local: LocalBasis, flat: Array, shape: tuple[int, ...]) -> A
         out = jnp.einsum(spec, coeffs, *basis, precision=jax.lax.Precision.HIGHEST)
         return jnp.moveaxis(out, -2, 0)
 
+    assert local.group_position is not None  # the group fields are set together
     grouped = map_groups(values, local)  # (G, ..., K)
     grouped = jnp.moveaxis(grouped, 0, -2).reshape(flat.shape[:-1] + (-1,))
     return jnp.take(grouped, local.group_position, axis=-1)

@@ -384,8 +384,8 @@ def check_doubts(sol, cloud, settings, offset):
     the cloud's spacing, without which the thin-part check is not made."""
     keep = judged_points(cloud, settings)
     p = cloud.points
-    aside = settings is not None and bool(settings.set_aside)
-    tree = cloud.tree_without(settings.set_aside) if aside else cloud.tree  # of p[keep]
+    aside = () if settings is None else settings.set_aside
+    tree = cloud.tree_without(aside)  # of p[keep]
     far, threshold = far_point_fraction(sol.spline, p[keep], offset)
     crossed, along, thin = 0, 0, 0.0 if settings is None else settings.thin_fraction
     sheets, width = 0.0, float("nan")

@@ -281,7 +281,7 @@ class LeastSquares(AbstractSolver[LeastSquaresState]):
         energy = objective(problem, control, state.weights, self.lam)
         return LeastSquaresState(control, state.weights, jnp.array(True), result), energy
 
-    def minimise(self, problem: Problem, weights: Array, start: Array, warm=False):
+    def minimise(self, problem: Problem, weights: Array, start: Array, warm: bool | Array = False):
         """``(C, lineax result)``: the normal equations of ``problem`` assembled (with
         ``weights`` where ``keep_weights``) and solved from ``start``, the singular
         solves flagged (``singular_solve``). ``warm`` (a bool, may be traced): ``start``
@@ -293,7 +293,9 @@ class LeastSquares(AbstractSolver[LeastSquaresState]):
         control, result = self.solve_assembled(problem, normal, self.lam, start, warm)
         return control, singular_solve(normal, self.lam, control, result)
 
-    def solve_assembled(self, problem: Problem, normal, lam, start: Array, warm=False):
+    def solve_assembled(
+        self, problem: Problem, normal, lam, start: Array, warm: bool | Array = False
+    ):
         """``(C, lineax result)``: the minimiser of ``E_d + lam R`` from the assembled
         ``normal`` equations ([`jurs.internal.NormalEquations`][] of ``problem``), by
         this solver's linear solver (see the class docstring), started from ``start``;
