@@ -247,8 +247,8 @@ class RobustLeastSquares(AbstractSolver[RobustLeastSquaresState]):
         slot_weights = state.point_weights[slot_points(problem)]
         weighted = eqx.tree_at(lambda p: p.mask, problem, problem.mask * slot_weights)
         # After the first solve, each starts from the last: its far field is that of a
-        # problem reweighted only a little, and a surface skips the cascade (a third of a
-        # 1e6-point solve). The weighted E_d + lam R is not computed: E_rob is the energy.
+        # problem reweighted only a little, and a surface skips the cascade. The weighted
+        # E_d + lam R is not computed: E_rob is this solver's energy.
         warm = state.solved
         control, result = self._exact().minimise(
             weighted, jnp.ones_like(state.control), state.control, warm
