@@ -42,7 +42,7 @@ import jurs.levelset  # noqa: E402
 sys.path.insert(0, os.path.dirname(__file__))
 import _realdata_cases as cases  # noqa: E402
 import realdata  # noqa: E402
-from _common import machine, write_results  # noqa: E402
+from _common import machine, md_table, write_results  # noqa: E402
 from adaptive import _rings as rings  # noqa: E402
 
 from jurs._fit.adaptive import finest_cell_width, hierarchy_layout, solve_normal  # noqa: E402
@@ -235,24 +235,39 @@ def markdown(payload: dict) -> str:
         "fractions of the diagonal against the dense clean outline; rings matched / "
         "expected (`*`: not one to one).",
         "",
-        "| case | m | THB functions | levels functions | THB chamfer | cascade chamfer | "
-        "levels chamfer | levels / THB | THB hausdorff | cascade hausdorff | "
-        "levels hausdorff | THB rings | cascade rings | levels rings | THB s | cascade s | "
-        "levels s | cascade / levels rms residual |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
+    header = (
+        "case", "m", "THB functions", "levels functions", "THB chamfer", "cascade chamfer",
+        "levels chamfer", "levels / THB", "THB hausdorff", "cascade hausdorff",
+        "levels hausdorff", "THB rings", "cascade rings", "levels rings", "THB s",
+        "cascade s", "levels s", "cascade / levels rms residual",
+    )  # fmt: skip
+    cells = []
     for r in payload["rows"]:
         t, c, s = r["thb"], r["cascade"], r["levels"]
-
-        lines.append(
-            f"| {r['case']} | {r['m']} | {t['functions']} | {s['functions']} | "
-            f"{t['chamfer']:.2e} | {c['chamfer']:.2e} | {s['chamfer']:.2e} | "
-            f"{s['chamfer'] / t['chamfer']:.2f} | {t['hausdorff']:.2e} | "
-            f"{c['hausdorff']:.2e} | {s['hausdorff']:.2e} | {rings(t)} | {rings(c)} | "
-            f"{rings(s)} | {t['fit_s']:.2f} | {c['assemble_s'] + c['solve_s']:.2f} | "
-            f"{s['assemble_s'] + s['solve_s']:.2f} | "
-            f"{c['rms_residual']:.2e} / {s['rms_residual']:.2e} |"
+        cells.append(
+            (
+                r["case"],
+                r["m"],
+                t["functions"],
+                s["functions"],
+                f"{t['chamfer']:.2e}",
+                f"{c['chamfer']:.2e}",
+                f"{s['chamfer']:.2e}",
+                f"{s['chamfer'] / t['chamfer']:.2f}",
+                f"{t['hausdorff']:.2e}",
+                f"{c['hausdorff']:.2e}",
+                f"{s['hausdorff']:.2e}",
+                rings(t),
+                rings(c),
+                rings(s),
+                f"{t['fit_s']:.2f}",
+                f"{c['assemble_s'] + c['solve_s']:.2f}",
+                f"{s['assemble_s'] + s['solve_s']:.2f}",
+                f"{c['rms_residual']:.2e} / {s['rms_residual']:.2e}",
+            )  # fmt: skip
         )
+    lines += md_table(header, cells)
     rows = payload["rows"]
 
     def spread(key, variant):

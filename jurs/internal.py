@@ -12,6 +12,7 @@ surface. Importing this module costs nothing beyond ``import jurs``.
 
 from ._linalg.normal import NormalEquations, normal_equations
 from ._model.basis import cubic_derivatives, cubic_weights
+from ._model.groups import with_groups
 from ._model.hierarchy import (
     Hierarchy,
     build_hierarchy,
@@ -27,7 +28,6 @@ from ._model.spline import (
     bspline_values,
     local_basis,
     rational_values,
-    with_groups,
 )
 from ._problem.adaptive import (
     AdaptiveProblem,

@@ -42,8 +42,9 @@ from .._model.basis import (
     patches_to_grid,
     tensor_basis,
 )
+from .._model.groups import map_groups
 from .._model.precision import full_precision
-from .._model.spline import map_groups, rational_terms
+from .._model.spline import rational_terms
 from .._problem.problem import Problem
 from .stencil import (
     HALF,

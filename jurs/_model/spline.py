@@ -63,6 +63,7 @@ from .basis import (
     power_values,
     tensor_basis,
 )
+from .groups import grouped_values
 from .precision import full_precision
 
 
@@ -75,8 +76,8 @@ class LocalBasis(eqx.Module):
     basis values are recomputed from the local coordinates where needed: reading 2 numbers
     a sample is cheaper than reading 8 stored ones. The optional fields hold the table form
     (see the module notes), or the groups: a surface's slots gathered by cell
-    ([`with_groups`][jurs.internal.with_groups]), which the normal equations' assembly
-    and F read.
+    ([`with_groups`][jurs.internal.with_groups], ``jurs._model.groups``), which the normal
+    equations' assembly and F read.
     """
 
     cell: Array  # (S,) int32 flat cell index
@@ -227,54 +228,6 @@ def with_table(
     )
 
 
-def with_groups(local: LocalBasis, slot: np.ndarray, valid: np.ndarray) -> LocalBasis:
-    """``local`` (one sample a slot, concrete) with its slots gathered by cell into
-    groups, built on the host. ``slot`` and ``valid``, both ``(G, K)``: the slot at entry
-    ``i`` of group ``g`` (all of a group's slots in one cell, the groups in cell order;
-    padding entries repeat a slot of their group) and whether it is real.
-
-    Why: the assembly of the normal equations sums ``7 ** d`` moments a sample into its
-    cell. One sample a slot, that is a scatter of every sample's moments (a surface's
-    343), slow on a CPU; by groups, a batched product of each group's per-axis Bernstein
-    values and one scatter a group ([`jurs.internal.normal_equations`][]). F likewise
-    gathers a group's ``4 ** d`` coefficients once, not every sample's
-    (``_gathered_values``; docs/design.md section 5, "Surfaces: the same code in 3D").
-    The slots keep their order: every other kernel reads them as before."""
-    position = np.zeros(local.cell.shape[0], np.int32)
-    position[slot[valid]] = np.flatnonzero(valid.reshape(-1))
-    return eqx.tree_at(
-        lambda x: (x.group_slot, x.group_filled, x.group_position),
-        local,
-        jax.device_put((slot.astype(np.int32), valid.astype(local.s.dtype), position)),
-        is_leaf=lambda x: x is None,
-    )
-
-
-#: Groups ([`with_groups`][jurs.internal.with_groups]) a kernel takes at once: bounds the
-#: per-entry products (``K x 4 ** d`` a group for F, ``K x 7 ** (d - 1)`` for the
-#: assembly: about 100 MB at K = 64 in 3D).
-GROUP_CHUNK = 4096
-
-
-def map_groups(fn, local: LocalBasis, *arrays: Array) -> Array:
-    """``fn(slot, filled, *blocks)`` over the groups of ``local`` (``(c, K)`` slots and
-    fills, and the ``arrays``, each ``(G, ...)``, sliced alike), ``GROUP_CHUNK`` groups
-    at a time, its ``(..., c, ...)`` results (the group axis given by ``fn`` as its
-    first) joined to ``(G, ...)``. Padding groups take slot 0 with fill 0."""
-    slot, filled = local.group_slot, local.group_filled
-    assert slot is not None and filled is not None  # the group fields are set together
-    groups = slot.shape[0]
-    chunk = min(groups, GROUP_CHUNK)
-    pad = (-groups) % chunk
-
-    def blocks(x):
-        x = jnp.pad(x, [(0, pad)] + [(0, 0)] * (x.ndim - 1))
-        return x.reshape((-1, chunk) + x.shape[1:])
-
-    out = jax.lax.map(lambda b: fn(*b), tuple(blocks(x) for x in (slot, filled, *arrays)))
-    return out.reshape((-1,) + out.shape[2:])[:groups]
-
-
 def _take(x: Array, i: int, axis: int) -> Array:
     """``x`` at index ``i`` of ``axis``, that axis dropped (a static slice)."""
     return jax.lax.index_in_dim(x, i, axis, keepdims=False)
@@ -387,30 +340,6 @@ def bspline_values(
 GATHER_BLOCK = 1 << 16
 
 
-def _grouped_values(local: LocalBasis, flat: Array, shape: tuple[int, ...]) -> Array:
-    """F of the flat grids ``(..., size)`` by the slots' groups
-    ([`with_groups`][jurs.internal.with_groups]): each group's ``4 ** d`` coefficients
-    gathered once and contracted with each entry's per-axis basis values one axis at a
-    time (never the ``4 ** d`` products: 4x faster at 1e6 surface points), then read
-    back in slot order."""
-    offsets = jnp.asarray(patch_offsets(shape))
-    axes = "xyz"[: len(shape)]
-    spec = f"...c{axes}," + ",".join(f"ck{a}" for a in axes) + "->...ck"
-
-    def values(slot, filled):  # (c, K) -> (c, ..., K)
-        corner = patch_corner(local.cell[slot[:, 0]], shape)
-        coeffs = jnp.take(flat, corner[:, None] + offsets, axis=-1)  # (..., c, 4 ** d)
-        coeffs = coeffs.reshape(coeffs.shape[:-1] + (4,) * len(shape))
-        basis = [cubic_weights(t) for t in local.t[:, slot]]  # d x (c, K, 4)
-        out = jnp.einsum(spec, coeffs, *basis, precision=jax.lax.Precision.HIGHEST)
-        return jnp.moveaxis(out, -2, 0)
-
-    assert local.group_position is not None  # the group fields are set together
-    grouped = map_groups(values, local)  # (G, ..., K)
-    grouped = jnp.moveaxis(grouped, 0, -2).reshape(flat.shape[:-1] + (-1,))
-    return jnp.take(grouped, local.group_position, axis=-1)
-
-
 def _gathered_values(local: LocalBasis, grids: Array) -> Array:
     """F in the generic form (any d, one sample a slot): each sample's ``4 ** d``
     coefficients gathered from the flat grid against its basis products, a block of
@@ -421,13 +350,14 @@ def _gathered_values(local: LocalBasis, grids: Array) -> Array:
     lead = grids.shape[: grids.ndim - local.ndim]
     flat = grids.reshape(lead + (-1,))
 
+    if local.group_position is not None:
+        return grouped_values(local, flat, shape)
+
     def values(cell, s):  # (n,) cells and (d, n) coordinates -> (..., n)
         block = LocalBasis(cell=cell, s=s)
         coeffs = jnp.take(flat, block.patch_index(shape), axis=-1)  # (..., n, 4 ** d)
         return jnp.sum(coeffs * block.products, axis=-1)
 
-    if local.group_position is not None:
-        return _grouped_values(local, flat, shape)
     count = local.cell.shape[0]
     parts = local.parts if local.parts > 1 and count % local.parts == 0 else 1
     per_part = count // parts
