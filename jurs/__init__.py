@@ -23,6 +23,7 @@ from ._fit.fit import fit
 from ._fit.progress import fit_in_chunks
 from ._fit.settings import Settings, auto_settings
 from ._model.adaptive import AdaptiveSpline
+from ._model.function import AbstractSpline
 from ._model.io import load_spline, save_spline
 from ._model.spline import ImplicitSpline
 from ._problem.energy import objective
@@ -66,6 +67,7 @@ __all__ = [
     "Settings",
     "Solution",
     "RESULTS",
+    "AbstractSpline",
     "ImplicitSpline",
     "AdaptiveSpline",
     "save_spline",

@@ -61,7 +61,7 @@ def _full_lattice_mesh(spline, resolution):
     lower, upper = np.asarray(spline.lower, float), np.asarray(spline.upper, float)
     axes = _meshing.lattice_axes(lower, upper, resolution)
     spacing = _meshing._spacing(axes)
-    nudge = _meshing.NUDGE * float(np.max(spacing * _meshing._slope_bound(spline)))
+    nudge = _meshing.NUDGE * float(np.max(spacing * spline.slope_bound()))
     vertices, faces = _meshing._march_in_slabs(spline, axes, 0.0, nudge, 1 << 16)
     return lower + vertices * spacing, faces
 

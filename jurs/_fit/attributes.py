@@ -43,6 +43,7 @@ from jaxtyping import ArrayLike, Float
 from .._linalg.coarsen import greville_transfer
 from .._linalg.normal import NormalEquations, normal_equations
 from .._model.adaptive import AdaptiveSpline
+from .._model.function import AbstractSpline
 from .._model.spline import ImplicitSpline, bspline_transpose, bspline_values, local_basis
 from .._problem.problem import build_problem
 from .._problem.validate import check_nonnegative, numeric_array
@@ -99,7 +100,7 @@ class AttributeField(eqx.Module):
         lower, upper: the box of the coefficient grid (g's box).
     """
 
-    geometry: ImplicitSpline | AdaptiveSpline
+    geometry: AbstractSpline
     coefficients: Array
     lower: Array
     upper: Array
@@ -155,7 +156,7 @@ def _spline_and_settings(fit):
         lam = fit.metrics.get("lam")
         offset = None if fit.settings is None else fit.settings.offset
         return fit.spline, (None if lam is None else float(lam)), offset
-    if isinstance(fit, (ImplicitSpline, AdaptiveSpline)):
+    if isinstance(fit, AbstractSpline):
         return fit, None, None
     raise TypeError(
         f"fit must be a jurs.Solution, ImplicitSpline or AdaptiveSpline, got {type(fit).__name__}"

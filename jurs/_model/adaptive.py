@@ -3,20 +3,23 @@
 ``g(x) = sum_tau w_tau c_tau tau(x) / sum_tau w_tau tau(x)`` over the active functions
 ``tau`` of a ``jurs._model.hierarchy.Hierarchy``; with every weight 1 the denominator is 1
 (the truncated basis is a partition of unity) and g is the hierarchical B-spline itself.
-It evaluates like [`jurs.ImplicitSpline`][] (``g(xy)``, ``g.grad(xy)``, ``lower``,
-``upper``), so the level-set tools and plots take either.
+Both are a [`jurs.AbstractSpline`][] (``g(xy)``, ``g.grad(xy)``, ``lower``, ``upper``,
+the host evaluations), so the level-set tools and plots take either.
 """
 
 from __future__ import annotations
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import Array
 from jaxtyping import ArrayLike, Float
 
-from .hierarchy import Hierarchy
+from .band import band_lattice
+from .finest import level_offsets
+from .function import AbstractSpline
+from .hierarchy import Hierarchy, _unravel
+from .lattice import FinestSpline, adaptive_lattice_values, finest_values_and_gradients
 from .leaves import (
     hierarchy_values,
     hierarchy_values_and_gradients,
@@ -33,7 +36,7 @@ _values = jax.jit(hierarchy_values)
 _values_and_gradients = jax.jit(hierarchy_values_and_gradients)
 
 
-class AdaptiveSpline(eqx.Module):
+class AdaptiveSpline(AbstractSpline):
     """A rational spline on a truncated hierarchical B-spline basis (fine cells near the
     data, coarse elsewhere; see [`jurs.fit_adaptive`][]).
 
@@ -72,11 +75,10 @@ class AdaptiveSpline(eqx.Module):
         return self.hierarchy.num_levels
 
     @property
-    def cell_width(self) -> float:
-        """The widest side of a finest-level cell, on the host: the length below which the
-        spline cannot follow a shape."""
+    def cell_widths(self) -> np.ndarray:
+        """The sides of a finest-level cell, on the host."""
         finest = self.hierarchy.num_levels - 1
-        return float(np.max(np.asarray(self.hierarchy.cell_width(finest))))
+        return np.asarray(self.hierarchy.cell_width(finest), np.float64)
 
     @property
     def finest_cells(self) -> tuple[int, ...]:
@@ -113,3 +115,55 @@ class AdaptiveSpline(eqx.Module):
         )
         out = rational_values_and_gradients(both, slopes)[1]
         return out[0] if single else out
+
+    def lattice(self, axes) -> np.ndarray:
+        """g on the tensor lattice ``axes`` through the finest level's coefficients, computed
+        only where the lattice needs them (``jurs._model.lattice.FinestSpline``)."""
+        return adaptive_lattice_values(self, axes)
+
+    def band_lattice(self, axes, level: float) -> tuple[np.ndarray, np.ndarray]:
+        """``(values, evaluated)``: g only on the blocks of the lattice where the level set
+        can be (``jurs._model.band.band_lattice``; see [`jurs.AbstractSpline`][])."""
+        values, evaluated, _ = band_lattice(FinestSpline(self), axes, float(level))
+        return values, evaluated
+
+    def values_and_gradients(
+        self, points: Float[ArrayLike, "n d"], *, chunk: int = 1 << 14
+    ) -> tuple[Float[np.ndarray, " n"], Float[np.ndarray, "n d"]]:
+        """g and its gradient at ``points`` on the host, through the finest level's
+        coefficients under them (nothing compiled)."""
+        return finest_values_and_gradients(self, points, chunk=chunk)
+
+    def slope_bound(self) -> Float[np.ndarray, " d"]:
+        """The grid's bound (``ImplicitSpline.slope_bound``) over the levels: on each leaf
+        of level ``l`` g is the level's B-spline with cascaded coefficients ``a^l``
+        (``jurs._model.hierarchy.cascade``), so the same bound holds with the differences of
+        ``a^l`` between neighbours over a leaf of level ``l`` (the regulariser's pairs,
+        ``Hierarchy.edges``), over ``h_l``, the largest over the levels."""
+        return finest_slope_bound(self)
+
+
+def finest_slope_bound(spline: AdaptiveSpline, evaluator: FinestSpline | None = None) -> np.ndarray:
+    """``AdaptiveSpline.slope_bound``, its cascaded coefficients read from ``evaluator``
+    where one was built already; ``(d,)``."""
+    hierarchy = spline.hierarchy
+    cascaded = (evaluator or FinestSpline(spline)).cascaded
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = cascaded[0] / cascaded[1]
+    starts = level_offsets(hierarchy)
+    _, weights = spline.coefficients()
+    bound = np.zeros(hierarchy.ndim)
+    for lev in range(hierarchy.num_levels):
+        pairs = np.asarray(hierarchy.edges[lev], np.int64)
+        if len(pairs) == 0:
+            continue
+        keys = np.asarray(hierarchy.function_keys[lev], np.int64)
+        multi = _unravel(keys[pairs], hierarchy.functions(lev))  # (p, 2, d)
+        axis = np.argmax(np.abs(multi[:, 1] - multi[:, 0]), axis=1)
+        step = np.abs(ratio[starts[lev] + pairs[:, 1]] - ratio[starts[lev] + pairs[:, 0]])
+        width = np.asarray(hierarchy.cell_width(lev), np.float64)
+        for a in range(hierarchy.ndim):
+            along = step[(axis == a) & np.isfinite(step)]
+            if along.size:
+                bound[a] = max(bound[a], float(along.max()) / width[a])
+    return weights.max() / weights.min() * bound

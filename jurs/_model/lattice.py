@@ -18,12 +18,12 @@ from __future__ import annotations
 
 import numpy as np
 
-from .adaptive import AdaptiveSpline
 from .basis import CENTRED_POWER, cubic_weights
+from .function import AbstractSpline
 from .hierarchy import cascade_matrix
 
 
-def adaptive_lattice_values(spline: AdaptiveSpline, axes) -> np.ndarray:
+def adaptive_lattice_values(spline, axes) -> np.ndarray:
     """[`lattice_values`][jurs._model.lattice.lattice_values] of an adaptive spline: g at
     every node, ``(len(xs), len(ys)(, len(zs)))``, through
     ``FinestSpline.lattice``."""
@@ -58,7 +58,9 @@ class FinestSpline:
     exactly (``jurs._model.band``).
     """
 
-    def __init__(self, spline: AdaptiveSpline):
+    def __init__(self, spline):
+        """``spline``: a [`jurs.AdaptiveSpline`][] (its ``hierarchy``, ``control`` and
+        ``weights`` are read)."""
         hierarchy = spline.hierarchy
         self.hierarchy = hierarchy
         self.ndim = hierarchy.ndim
@@ -264,13 +266,20 @@ def lattice_values(spline, axes, *, xp=np):
     For a 2D or 3D spline; ``len(axes)`` must match its dimension. Numerator ``F(w C)`` and
     denominator ``F(w)`` are each contracted with one band matrix per axis
     (``axis_basis``), then divided. ``xp=numpy`` (default) computes in float64;
-    ``xp=jax.numpy`` runs the same contractions in JAX (float64 when x64 is enabled).
-    Memory: the lattice values and the intermediates of the contractions, at most about
+    ``xp=jax.numpy`` runs the same contractions in JAX (float64 when x64 is enabled; a
+    uniform grid's only). A [`jurs.AdaptiveSpline`][] is read through its finest level
+    (``AbstractSpline.lattice``). Memory: the lattice values and the intermediates of the
+    contractions, at most about
     ``16 * max(N M K, M K X, K X Y, X Y Z)`` bytes for an ``(N, M, K)`` grid.
     """
-    if isinstance(spline, AdaptiveSpline):
-        values = adaptive_lattice_values(spline, axes)
-        return values if xp is np else xp.asarray(values)
+    if xp is np and isinstance(spline, AbstractSpline):
+        return spline.lattice(axes)
+    return grid_lattice_values(spline, axes, xp=xp)
+
+
+def grid_lattice_values(spline, axes, *, xp=np):
+    """[`lattice_values`][jurs._model.lattice.lattice_values] of a spline on a uniform
+    grid: any object with the fields ``control``, ``weights``, ``lower`` and ``upper``."""
     control, weights, lower, upper = spline_fields(spline)
     d = control.ndim
     if len(axes) != d:
@@ -298,19 +307,32 @@ def values_and_gradients(spline, points, *, chunk: int = 1 << 14):
     (peak memory about ``chunk * 4^d * 48`` bytes: 50 MB in 3D at the default). By the
     quotient rule ``grad g = (grad F(w C) - g grad F(w)) / F(w)``.
     """
-    if isinstance(spline, AdaptiveSpline):
-        points = np.asarray(points, dtype=np.float64)
-        if points.ndim != 2 or points.shape[1] != spline.ndim:
-            raise ValueError(f"points must have shape (n, {spline.ndim}), got {points.shape}")
-        if len(points) == 0:
-            return np.empty(0), np.empty((0, spline.ndim))
-        value, gradient = [], []
-        evaluator = FinestSpline(spline)
-        for start in range(0, len(points), int(chunk)):
-            v, g = evaluator.values_and_gradients(points[start : start + int(chunk)])
-            value.append(v)
-            gradient.append(g)
-        return np.concatenate(value), np.concatenate(gradient)
+    if isinstance(spline, AbstractSpline):
+        return spline.values_and_gradients(points, chunk=chunk)
+    return grid_values_and_gradients(spline, points, chunk=chunk)
+
+
+def finest_values_and_gradients(spline, points, *, chunk: int = 1 << 14):
+    """[`values_and_gradients`][jurs._model.lattice.values_and_gradients] of an adaptive
+    spline: its finest level's coefficients under the points (``FinestSpline``), in
+    chunks of ``chunk`` points."""
+    points = np.asarray(points, dtype=np.float64)
+    if points.ndim != 2 or points.shape[1] != spline.ndim:
+        raise ValueError(f"points must have shape (n, {spline.ndim}), got {points.shape}")
+    if len(points) == 0:
+        return np.empty(0), np.empty((0, spline.ndim))
+    value, gradient = [], []
+    evaluator = FinestSpline(spline)
+    for start in range(0, len(points), int(chunk)):
+        v, g = evaluator.values_and_gradients(points[start : start + int(chunk)])
+        value.append(v)
+        gradient.append(g)
+    return np.concatenate(value), np.concatenate(gradient)
+
+
+def grid_values_and_gradients(spline, points, *, chunk: int = 1 << 14):
+    """[`values_and_gradients`][jurs._model.lattice.values_and_gradients] of a spline on a
+    uniform grid (any object with ``control``, ``weights``, ``lower`` and ``upper``)."""
     control, weights, lower, upper = spline_fields(spline)
     d = control.ndim
     points = np.asarray(points, dtype=np.float64)

@@ -63,7 +63,9 @@ from .basis import (
     power_values,
     tensor_basis,
 )
+from .function import AbstractSpline
 from .groups import grouped_values
+from .lattice import grid_lattice_values, grid_values_and_gradients, spline_fields
 from .precision import full_precision
 
 
@@ -501,8 +503,9 @@ def rational_terms(local: LocalBasis, control: Array, weights: Array):
     return wb, denom, g
 
 
-class ImplicitSpline(eqx.Module):
-    """A uniform rational cubic spline function on the box ``[lower, upper]``.
+class ImplicitSpline(AbstractSpline):
+    """A uniform rational cubic spline function on the box ``[lower, upper]``: g of
+    eq. 14 on the uniform tensor grid (a [`jurs.AbstractSpline`][]).
 
     Fields: ``control`` (N, M) coefficients C, ``weights`` (N, M) positive weights w, and the
     box corners ``lower``/``upper`` (2,), which fix the uniform knots; for a surface the
@@ -545,11 +548,10 @@ class ImplicitSpline(eqx.Module):
         return self.control.ndim
 
     @property
-    def cell_width(self) -> float:
-        """The widest side of a knot span (the box over ``N - 3`` spans per axis), on the
-        host: the length below which the spline cannot follow a shape."""
+    def cell_widths(self) -> np.ndarray:
+        """The sides of a knot span (the box over ``N - 3`` spans per axis), on the host."""
         extent = np.asarray(self.upper, float) - np.asarray(self.lower, float)
-        return float(np.max(extent / (np.asarray(self.shape) - 3)))
+        return extent / (np.asarray(self.shape) - 3)
 
     @property
     def finest_cells(self) -> tuple[int, ...]:
@@ -587,3 +589,44 @@ class ImplicitSpline(eqx.Module):
         xy = jnp.asarray(xy)
         point_grad = jax.grad(lambda p: self(p))
         return point_grad(xy) if xy.ndim == 1 else jax.vmap(point_grad)(xy)
+
+    def lattice(self, axes) -> np.ndarray:
+        """g on the tensor lattice ``axes``, one band matrix per axis, on the host
+        (``jurs._model.lattice.lattice_values``)."""
+        return grid_lattice_values(self, axes)
+
+    def band_lattice(self, axes, level: float) -> tuple[np.ndarray, np.ndarray]:
+        """``(values, evaluated)``: the grid evaluates every node (see
+        [`jurs.AbstractSpline`][])."""
+        values = self.lattice(axes)
+        return values, np.ones(values.shape, bool)
+
+    def values_and_gradients(
+        self, points: Float[ArrayLike, "n d"], *, chunk: int = 1 << 14
+    ) -> tuple[Float[np.ndarray, " n"], Float[np.ndarray, "n d"]]:
+        """g and its gradient at ``points`` on the host, each point reading its cell's
+        ``4^d`` coefficients (``jurs._model.lattice.values_and_gradients``)."""
+        return grid_values_and_gradients(self, points, chunk=chunk)
+
+    def slope_bound(self) -> Float[np.ndarray, " d"]:
+        """``(max w / min w) max |C_(i+1) - C_i| / h_a`` per axis a: for weights 1 a bound,
+        the derivative being a quadratic spline with those coefficients."""
+        control, weights = self.coefficients()
+        steps = np.array([np.abs(np.diff(control, axis=a)).max() for a in range(self.ndim)])
+        return weights.max() / weights.min() * steps / self.cell_widths
+
+
+def grid_spline(spline, dims: tuple[int, ...] = (2, 3)) -> AbstractSpline:
+    """``spline`` itself where it is a [`jurs.AbstractSpline`][], else an
+    [`ImplicitSpline`][jurs.ImplicitSpline] of the fields ``control``, ``weights``,
+    ``lower`` and ``upper`` of any object holding them, checked (``spline_fields``: a grid
+    of a dimension in ``dims``); the level-set tools take either."""
+    if isinstance(spline, AbstractSpline):
+        if spline.ndim not in dims:
+            raise ValueError(
+                f"expected a spline of dimension {' or '.join(map(str, dims))}, got a "
+                f"{spline.ndim}D {type(spline).__name__}"
+            )
+        return spline
+    control, weights, lower, upper = spline_fields(spline, dims=dims)
+    return ImplicitSpline(control, weights, lower, upper)

@@ -9,10 +9,7 @@ import numpy.typing as npt
 from jaxtyping import Bool, Float
 from scipy.spatial import cKDTree  # pyright: ignore[reportAttributeAccessIssue]  # no stub
 
-from .._model.adaptive import AdaptiveSpline
-from .._model.lattice import values_and_gradients
-from .._model.spline import ImplicitSpline
-from ._curves import _evaluate, _gradient
+from .._model.function import AbstractSpline
 
 
 def distance_to_polyline(
@@ -65,15 +62,15 @@ def _central_gradient(fn, xy: np.ndarray, step: float) -> np.ndarray:
     return np.stack([values[0] - values[1], values[2] - values[3]], axis=1) / (2 * step)
 
 
-def _both_at_once(spline: AdaptiveSpline):
-    """``(value_of, gradient)`` of an adaptive spline that evaluate both in one pass: the
+def _both_at_once(spline: AbstractSpline):
+    """``(value_of, gradient)`` of a spline that evaluate both in one pass: the
     loop below asks for the value, then the gradient, at the same points."""
     last: dict = {}
 
     def both(xy):
         xy = np.asarray(xy, float).reshape(-1, 2)
         if "x" not in last or not np.array_equal(last["x"], xy):
-            last["x"], last["out"] = xy.copy(), values_and_gradients(spline, xy)
+            last["x"], last["out"] = xy.copy(), spline.values_and_gradients(xy)
         return last["out"]
 
     return (lambda xy: both(xy)[0]), (lambda xy: both(xy)[1])
@@ -94,8 +91,9 @@ def project_to_zero_set(
 
     ``fn`` maps ``(n, 2)`` points to ``(n,)`` values (an
     [`ImplicitSpline`][jurs.ImplicitSpline], an RBF interpolator, ...). ``grad`` maps them
-    to ``(n, 2)`` gradients; by default a spline's own (``ImplicitSpline.grad``; a spline
-    and its gradient run jitted), for other functions central differences with ``step``
+    to ``(n, 2)`` gradients; by default a spline's own (any [`jurs.AbstractSpline`][]: value
+    and gradient in one pass on the host, ``AbstractSpline.values_and_gradients``), for
+    other functions central differences with ``step``
     (default 1e-7 of the points' extent), four more evaluations each. A point has converged
     when its first-order distance ``|f| / |grad f|`` is at most ``tol`` (default 1e-11 of
     the extent) after the steps; points with a zero or non-finite gradient stay put.
@@ -109,16 +107,13 @@ def project_to_zero_set(
     extent = extent if extent > 0 else 1.0
     tol = 1e-11 * extent if tol is None else float(tol)
     step = 1e-7 * extent if step is None else float(step)
-    spline = isinstance(fn, ImplicitSpline)
-    value_of = (lambda xy: _evaluate(fn, xy)) if spline else fn
-    if grad is not None:
-        gradient = grad
-    elif spline:
-        gradient = lambda xy: _gradient(fn, xy)  # noqa: E731
-    elif isinstance(fn, AdaptiveSpline):  # on the host (FinestSpline): nothing compiled
+    if isinstance(fn, AbstractSpline):  # on the host, float64: nothing compiled
         value_of, gradient = _both_at_once(fn)
     else:
+        value_of = fn
         gradient = lambda xy: _central_gradient(value_of, xy, step)  # noqa: E731
+    if grad is not None:
+        gradient = grad
     for k in range(int(steps) + 1):  # the last round only checks
         value = np.asarray(value_of(x), float).reshape(-1)
         g = np.asarray(gradient(x), float).reshape(-1, 2)

@@ -11,12 +11,16 @@ is host-side NumPy/SciPy; see docs/surfaces.md for the definitions.
 
 from __future__ import annotations
 
+import functools
+
 import numpy as np
 from jaxtyping import Float, Int
 
-from .._model.adaptive import AdaptiveSpline
+from .._model.adaptive import AdaptiveSpline, finest_slope_bound
 from .._model.band import BATCH_BLOCKS, BLOCK_CELLS, BandPlan, BlockGrid, plan_band
-from .._model.lattice import FinestSpline, lattice_values, spline_fields, values_and_gradients
+from .._model.function import AbstractSpline
+from .._model.lattice import FinestSpline, lattice_values
+from .._model.spline import grid_spline
 from .._problem.memory import check_memory
 from ._trimming import check_points, check_rim, check_trim, trim_mesh
 
@@ -44,7 +48,7 @@ MAX_ADAPTIVE_RESOLUTION = 1025
 #: (docs/performance.md).
 SLAB_NODES = 1 << 20
 #: Lattice values closer to the level than this fraction of the largest value difference
-#: along a lattice edge (estimated by ``_slope_bound``) are moved to that distance
+#: along a lattice edge (estimated by ``AbstractSpline.slope_bound``) are moved to that distance
 #: above it. Marching cubes computes in float32: a node this close to the level would get
 #: the vertices of all its crossing edges on itself (a vertex ``t`` of an edge from a node
 #: at index ~1000 rounds onto it below t ~ 6e-5), and two such nodes in one cube, welded,
@@ -104,10 +108,22 @@ def default_resolution(
     ``MAX_ADAPTIVE_RESOLUTION``] (only the band is marched, and
     [`mesh`][jurs.levelset.mesh] lowers it further when the marched nodes exceed
     ``max_nodes``)."""
-    cell = float(np.min(_cell_widths(spline)))
+    spline = grid_spline(spline, dims=(3,))
+    cell = float(np.min(spline.cell_widths))
     nodes = int(np.ceil(SAMPLES_PER_CELL * np.max(upper - lower) / cell)) + 1
-    top = MAX_ADAPTIVE_RESOLUTION if isinstance(spline, AdaptiveSpline) else MAX_RESOLUTION
-    return int(np.clip(nodes, MIN_RESOLUTION, top))
+    return int(np.clip(nodes, MIN_RESOLUTION, _max_resolution(spline)))
+
+
+@functools.singledispatch
+def _max_resolution(spline: AbstractSpline) -> int:
+    """The largest default resolution: the whole lattice is marched."""
+    return MAX_RESOLUTION
+
+
+@_max_resolution.register
+def _(spline: AdaptiveSpline) -> int:
+    # Only the band is marched (and mesh lowers the resolution to fit max_nodes).
+    return MAX_ADAPTIVE_RESOLUTION
 
 
 def mesh(
@@ -195,6 +211,7 @@ def mesh(
     of the whole lattice alone would take 490 MiB. An adaptive spline's blocks are
     evaluated ``BATCH_BLOCKS`` (256) at a time, about 20 MiB of values.
     """
+    spline = grid_spline(spline, dims=(3,))
     lower, upper = _box(spline, box)
     _check_values(spline, float(level))
     spacings = check_trim(trim, points)  # before the lattice: a bad trim fails at once
@@ -207,16 +224,9 @@ def mesh(
         raise ValueError(f"newton_steps must be >= 0, got {newton_steps}")
     if int(chunk) < 1:
         raise ValueError(f"chunk must be >= 1, got {chunk}")
-    if isinstance(spline, AdaptiveSpline):
-        axes, spacing, vertices, faces = _mesh_band(
-            spline, lower, upper, resolution, float(level), max_nodes, chosen
-        )
-    else:
-        axes = lattice_axes(lower, upper, resolution)
-        check_lattice_size([len(a) for a in axes], int(resolution), int(chunk), max_nodes)
-        spacing = _spacing(axes)
-        nudge = NUDGE * float(np.max(spacing * _slope_bound(spline)))
-        vertices, faces = _march_in_slabs(spline, axes, float(level), nudge, int(chunk))
+    spacing, vertices, faces = _march(
+        spline, lower, upper, int(resolution), float(level), max_nodes, chosen, int(chunk)
+    )
     if len(faces) == 0:
         return _EMPTY
     vertices = lower + vertices * spacing
@@ -232,7 +242,7 @@ def _check_values(spline, level: float) -> None:
 
     Without it a NaN spline gave an empty mesh (read as "the level set misses the box") and
     a zero spline scikit-image's "No surface found"."""
-    control, weights = _coefficients(spline)
+    control, weights = spline.coefficients()
     if not np.isfinite(level):
         raise ValueError(f"level must be finite, got {level}")
     for name, values in (("control points", control), ("weights", weights)):
@@ -291,15 +301,10 @@ def _duration(seconds: float) -> str:
     return f"{seconds / 3600:.1f} hours"
 
 
-def _box(spline, box):
+def _box(spline: AbstractSpline, box):
     """``(lower, upper)`` of the box to mesh as float64 ``(3,)`` arrays, checked."""
-    if isinstance(spline, AdaptiveSpline):
-        if spline.ndim != 3:
-            raise ValueError(f"expected a 3D spline, got an adaptive spline in {spline.ndim}D")
-        s_lower = np.asarray(spline.lower, np.float64)
-        s_upper = np.asarray(spline.upper, np.float64)
-    else:
-        _, _, s_lower, s_upper = spline_fields(spline, dims=(3,))
+    s_lower = np.asarray(spline.lower, np.float64)
+    s_upper = np.asarray(spline.upper, np.float64)
     if box is None:
         return s_lower, s_upper
     lower, upper = (np.asarray(b, dtype=np.float64) for b in box)
@@ -313,38 +318,25 @@ def _box(spline, box):
     return lower, upper
 
 
-def _coefficients(spline):
-    """``(control, weights)`` as float64 arrays: grids, or an adaptive spline's vectors."""
-    if isinstance(spline, AdaptiveSpline):
-        return np.asarray(spline.control, np.float64), np.asarray(spline.weights, np.float64)
-    control, weights, _, _ = spline_fields(spline, dims=(3,))
-    return control, weights
+@functools.singledispatch
+def _march(spline: AbstractSpline, lower, upper, resolution, level, max_nodes, chosen, chunk):
+    """``(spacing, vertices in index units, faces)``: marching cubes over the whole lattice
+    of ``resolution`` nodes along the longest side, in slabs of ``chunk`` nodes."""
+    axes = lattice_axes(lower, upper, resolution)
+    check_lattice_size([len(a) for a in axes], resolution, chunk, max_nodes)
+    spacing = _spacing(axes)
+    nudge = NUDGE * float(np.max(spacing * spline.slope_bound()))
+    vertices, faces = _march_in_slabs(spline, axes, level, nudge, chunk)
+    return spacing, vertices, faces
 
 
-def _cell_widths(spline) -> np.ndarray:
-    """The spline's cell widths per axis (an adaptive spline's finest level's)."""
-    if isinstance(spline, AdaptiveSpline):
-        finest = spline.hierarchy.num_levels - 1
-        return np.asarray(spline.hierarchy.cell_width(finest), np.float64)
-    control, _, lower, upper = spline_fields(spline, dims=(3,))
-    return (upper - lower) / (np.asarray(control.shape) - 3.0)
-
-
-def _slope_bound(spline) -> np.ndarray:
-    """A scale of ``|dg/dx_a|`` per axis: ``(max w / min w) max |C_(i+1) - C_i| / h_a``
-    (for weights 1 a bound: the derivative is a quadratic spline with those coefficients).
-
-    An adaptive spline is, on each leaf of level ``l``, the level's B-spline with cascaded
-    coefficients ``a^l`` (``jurs._model.hierarchy.cascade``), so the same bound holds with
-    the differences of ``a^l`` between neighbours over a leaf of level ``l`` (the
-    regulariser's pairs, ``Hierarchy.edges``), over ``h_l``, the largest over the levels.
-    """
-    if isinstance(spline, AdaptiveSpline):
-        return _adaptive_slope_bound(spline)
-    control, weights, lower, upper = spline_fields(spline, dims=(3,))
-    h = (upper - lower) / (np.asarray(control.shape) - 3.0)
-    steps = np.array([np.abs(np.diff(control, axis=a)).max() for a in range(3)])
-    return weights.max() / weights.min() * steps / h
+@_march.register
+def _(spline: AdaptiveSpline, lower, upper, resolution, level, max_nodes, chosen, chunk):
+    # Only the blocks where g may reach the level (jurs._model.band).
+    _, spacing, vertices, faces = _mesh_band(
+        spline, lower, upper, resolution, level, max_nodes, chosen
+    )
+    return spacing, vertices, faces
 
 
 def _march_in_slabs(spline, axes, level: float, nudge: float, chunk: int):
@@ -407,43 +399,13 @@ def _newton(spline, vertices, level: float, steps: int, longest: float):
     gradient stay put."""
     x = vertices.copy()
     for _ in range(steps):
-        value, gradient = values_and_gradients(spline, x)
+        value, gradient = spline.values_and_gradients(x)
         norm2 = np.sum(gradient * gradient, axis=1)
         with np.errstate(divide="ignore", invalid="ignore"):
             move = -((value - level) / norm2)[:, None] * gradient
         ok = np.isfinite(move).all(axis=1) & (np.sum(move * move, axis=1) <= longest**2)
         x[ok] += move[ok]
     return x
-
-
-def _adaptive_slope_bound(
-    spline: AdaptiveSpline, evaluator: FinestSpline | None = None
-) -> np.ndarray:
-    """``_slope_bound`` of an adaptive spline (see there); ``(3,)``."""
-    from .._model.finest import level_offsets
-    from .._model.hierarchy import _unravel
-
-    hierarchy = spline.hierarchy
-    cascaded = (evaluator or FinestSpline(spline)).cascaded
-    with np.errstate(divide="ignore", invalid="ignore"):
-        ratio = cascaded[0] / cascaded[1]
-    starts = level_offsets(hierarchy)
-    control, weights = _coefficients(spline)
-    bound = np.zeros(hierarchy.ndim)
-    for lev in range(hierarchy.num_levels):
-        pairs = np.asarray(hierarchy.edges[lev], np.int64)
-        if len(pairs) == 0:
-            continue
-        keys = np.asarray(hierarchy.function_keys[lev], np.int64)
-        multi = _unravel(keys[pairs], hierarchy.functions(lev))  # (p, 2, d)
-        axis = np.argmax(np.abs(multi[:, 1] - multi[:, 0]), axis=1)
-        step = np.abs(ratio[starts[lev] + pairs[:, 1]] - ratio[starts[lev] + pairs[:, 0]])
-        width = np.asarray(hierarchy.cell_width(lev), np.float64)
-        for a in range(hierarchy.ndim):
-            along = step[(axis == a) & np.isfinite(step)]
-            if along.size:
-                bound[a] = max(bound[a], float(along.max()) / width[a])
-    return weights.max() / weights.min() * bound
 
 
 def _spacing(axes) -> np.ndarray:
@@ -457,7 +419,7 @@ def _mesh_band(spline, lower, upper, resolution: int, level: float, max_nodes, c
     ``max_nodes``; a given one is refused past it (``check_band_size``)."""
     evaluator = FinestSpline(spline)
     marching_cubes = _marching_cubes()
-    slope = _adaptive_slope_bound(spline, evaluator)
+    slope = finest_slope_bound(spline, evaluator)
     while True:
         axes = lattice_axes(lower, upper, int(resolution))
         spacing = _spacing(axes)
