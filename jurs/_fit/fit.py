@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import hashlib
 from collections import OrderedDict
 from typing import Callable
 
@@ -49,6 +50,13 @@ from .sharding import place_fit, spans_processes
 
 #: Problems a ``jurs.Cloud`` keeps, the latest first, for fits that repeat settings.
 KEPT_PROBLEMS = 4
+#: Clouds [`fit`][jurs.fit] keeps, by content, for fits that repeat their points (a loop
+#: over lambdas, solvers or grids): the same arrays are then checked, measured and laid
+#: out once. Only clouds of at most ``KEPT_CLOUD_POINTS`` points, where that host work
+#: is most of a fit, so that what is kept stays small.
+KEPT_CLOUDS = 4
+KEPT_CLOUD_POINTS = 1 << 15
+_kept_clouds: OrderedDict = OrderedDict()
 #: The bases [`fit`][jurs.fit] takes: chosen from the data, the uniform grid, the hierarchy.
 BASES = ("auto", "uniform", "adaptive")
 
@@ -67,6 +75,41 @@ def _estimated(points, mask) -> tuple[Cloud, dict]:
     given = points.given_points if isinstance(points, Cloud) else points
     normals, info = estimate_normals(given, return_info=True)
     return Cloud(given, normals), {k: v for k, v in info._asdict().items() if k != "confidence"}
+
+
+def _content_key(*arrays) -> tuple | None:
+    """A key naming the arrays by their content, dtype, shape and placement; None for
+    clouds past ``KEPT_CLOUD_POINTS`` points."""
+    key = []
+    for array in arrays:
+        if array is None:
+            key.append(None)
+            continue
+        shape = tuple(np.shape(array))
+        if not shape or shape[0] > KEPT_CLOUD_POINTS:
+            return None
+        host = np.ascontiguousarray(np.asarray(array))
+        digest = hashlib.blake2b(host.view(np.uint8).reshape(-1), digest_size=16).digest()
+        placement = str(getattr(array, "sharding", None))
+        key.append((type(array).__name__, shape, host.dtype.str, placement, digest))
+    return tuple(key)
+
+
+def _cloud_of(points, normals, mask) -> Cloud:
+    """``Cloud(points, normals, mask)``, the one built before where the same arrays were
+    fitted lately (``KEPT_CLOUDS``): its checks, measurements and laid-out problems are
+    then reused. A cloud whose points repeat is built anew each time, so that its warning
+    is given each time."""
+    key = _content_key(points, normals, mask)
+    if key is not None and key in _kept_clouds:
+        _kept_clouds.move_to_end(key)
+        return _kept_clouds[key]
+    cloud = Cloud(points, normals, mask)
+    if key is not None and cloud.repeated == 0:
+        _kept_clouds[key] = cloud
+        while len(_kept_clouds) > KEPT_CLOUDS:
+            _kept_clouds.popitem(last=False)
+    return cloud
 
 
 def _problem_of(cloud: Cloud, shape, offset, eps, domain, margin, bucket_size, dtype, settings):
@@ -398,7 +441,7 @@ def _fit(
         given_mask = points.given_mask if isinstance(points, Cloud) else mask
         cloud, estimated = _estimated(points, given_mask)
     else:
-        cloud = Cloud(points, normals, mask)
+        cloud = _cloud_of(points, normals, mask)
     check_values(offset=offset, eps=eps, margin=margin, domain=domain)
     validate_settings(cloud.points, cloud.normals, cloud.mask, offset=offset, domain=domain)
     shape = None if grid is None else normalise_grid(grid, cloud.ndim)
