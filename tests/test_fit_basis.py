@@ -116,12 +116,15 @@ def test_basis_arguments_are_checked(dense):
         jurs.fit(points, normals, basis="octree")
     extras: tuple[tuple[dict, str], ...] = (
         (dict(grid=(16, 12)), "grid"),
-        (dict(solver=jurs.LeastSquares(lam=1e-6)), "solver"),
         (dict(bucket_size=4), "bucket_size"),
     )
     for extra, name in extras:
         with pytest.raises(ValueError, match=f"takes no {name}"):
             jurs.fit(points, normals, basis="adaptive", **extra)
+    # The hierarchy takes LeastSquares and RobustLeastSquares (tests/test_hierarchy_solvers.py)
+    # and refuses the grid's other solvers with the reason.
+    with pytest.raises(ValueError, match="paper's iterations"):
+        jurs.fit(points, normals, basis="adaptive", solver=jurs.IPIA(max_steps=3))
     # A callback (a chunked run) keeps the uniform grid.
     calls = []
     sol = jurs.fit(points, normals, callback=lambda done, total: calls.append(done))

@@ -16,12 +16,14 @@ as levels are added (docs/design.md section 8).
 
 from __future__ import annotations
 
+import functools
 import math
 from typing import cast
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
+import lineax as lx
 import numpy as np
 from jax import lax
 from jaxtyping import ArrayLike, Float
@@ -44,6 +46,7 @@ from .._problem.adaptive import (
 from .._problem.sizes import round_size
 from .._solution.solution import RAISED_RESULTS, RESULTS, Solution, error_message
 from .._solution.verdicts import evaluate_bucketed, judge, judged_points
+from ..solvers import AbstractSolver, LeastSquares, RobustLeastSquares, RobustLeastSquaresState
 from .settings import Settings, auto_settings, scale_free_lam
 from .sharding import input_sharding, spans_processes
 
@@ -212,11 +215,13 @@ def _coo(matrix, nnz: int, dtype):
 
 
 @jax.jit
-def _assembled_cg(collocation, regulariser, targets, diagonal, lam, rtol, max_steps):
-    """CG on ``(D^T D + lam 2 G^T W G) c = D^T b`` from the padded COO entries of ``D``
-    and ``2 G^T W G``: every shape is a size class, so a new cloud of a similar size
-    compiles nothing. Padded functions have a zero row, right-hand side and diagonal,
-    and stay 0."""
+def _assembled_cg(
+    collocation, regulariser, targets, row_weights, diagonal, lam, rtol, max_steps, start
+):
+    """CG on ``(D^T S D + lam 2 G^T W G) c = D^T S b`` (``S`` the samples' row weights)
+    from the padded COO entries of ``D`` and ``2 G^T W G``, started at ``start``: every
+    shape is a size class, so a new cloud of a similar size compiles nothing. Padded
+    functions have a zero row, right-hand side and diagonal, and stay 0."""
     rows, cols, values = collocation
     reg_rows, reg_cols, reg_values = regulariser
     n, count = diagonal.shape[0], targets.shape[0]
@@ -229,56 +234,82 @@ def _assembled_cg(collocation, regulariser, targets, diagonal, lam, rtol, max_st
 
     def matvec(c):
         regular = jax.ops.segment_sum(reg_values * c[reg_cols], reg_rows, n)
-        return transpose(apply(c)) + lam * regular
+        return transpose(row_weights * apply(c)) + lam * regular
 
     inverse = jnp.where(diagonal > 0, 1.0 / jnp.where(diagonal > 0, diagonal, 1.0), 0.0)
     return conjugate_gradients(
         matvec,
-        transpose(targets),
+        transpose(row_weights * targets),
         precondition=lambda r: inverse * r,
+        start=start,
         rtol=rtol,
         max_steps=max_steps,
     )
 
 
-def normal_diagonal(problem: AdaptiveProblem, lam: float) -> np.ndarray:
-    """The diagonal of ``D^T D + lam 2 G^T W G`` (the CG's Jacobi preconditioner), on the
-    host, in float64."""
-    return np.asarray(problem.data_diagonal, float) + lam * np.asarray(
-        problem.regulariser_diagonal, float
-    )
+def normal_diagonal(
+    problem: AdaptiveProblem, lam: float, matrices=None, row_weights=None
+) -> np.ndarray:
+    """The diagonal of ``D^T S D + lam 2 G^T W G`` (the CG's Jacobi preconditioner), on the
+    host, in float64: ``S`` the samples' ``row_weights`` (None: all 1, the problem's own
+    diagonal; else read from the host ``matrices``)."""
+    if row_weights is None:
+        data = np.asarray(problem.data_diagonal, float)
+    else:
+        collocation = matrices[0]
+        data = np.asarray(collocation.multiply(collocation).T @ np.asarray(row_weights, float))
+    return data + lam * np.asarray(problem.regulariser_diagonal, float)
 
 
 def solve_assembled(
-    problem: AdaptiveProblem, matrices, lam: float, rtol: float, max_steps: int, dtype
+    problem: AdaptiveProblem,
+    matrices,
+    lam: float,
+    rtol: float,
+    max_steps: int,
+    dtype,
+    row_weights=None,
+    start=None,
 ) -> tuple[np.ndarray, int, float]:
     """``(control, steps, relative residual)``: ``solve_adaptive``'s CG (the same
     preconditioner, the same stop rule) on the host-assembled matrices ``(D, 2 G^T W G)``
     of ``assemble_adaptive_problem``, padded to size classes (``size_class``) so that the
     compiled solve is shared between clouds. Not differentiable; the answer agrees with
-    ``solve_adaptive``'s to the CG tolerance."""
+    ``solve_adaptive``'s to the CG tolerance. ``row_weights`` (S,) weigh the samples'
+    rows (None: 1); ``start`` (n,) is CG's first iterate (None: 0)."""
     collocation, regulariser = matrices
     count, n = collocation.shape
-    n_class = size_class(n)
-    diagonal = normal_diagonal(problem, lam)
+    n_class, count_class = size_class(n), size_class(count)
+    diagonal = normal_diagonal(problem, lam, matrices, row_weights)
+    weights = np.ones(count) if row_weights is None else np.asarray(row_weights, float)
+    first = np.zeros(n) if start is None else np.asarray(start, float)
     control, steps, residual = _assembled_cg(
         _coo(collocation, size_class(collocation.nnz), dtype),
         _coo(regulariser, size_class(regulariser.nnz), dtype),
-        on_device(_padded(np.asarray(problem.targets), size_class(count)), dtype),
+        on_device(_padded(np.asarray(problem.targets), count_class), dtype),
+        on_device(_padded(weights, count_class), dtype),
         on_device(_padded(diagonal, n_class), dtype),
         on_device(lam, dtype),
         on_device(rtol, dtype),
         on_device(max_steps, np.int32),
+        on_device(_padded(first, n_class), dtype),
     )
     return np.asarray(control)[:n], int(steps), float(residual)
 
 
 def solve_host_cg(
-    problem: AdaptiveProblem, matrices, lam: float, rtol: float, max_steps: int
+    problem: AdaptiveProblem,
+    matrices,
+    lam: float,
+    rtol: float,
+    max_steps: int,
+    row_weights=None,
+    start=None,
 ) -> tuple[np.ndarray, int, float]:
     """``(control, steps, relative residual)``: ``solve_assembled``'s CG (the exact
     diagonal as preconditioner, the stop rule ``|r| <= rtol |D^T b|``) run by SciPy on the
     host, on the host matrices ``(D, 2 G^T W G)`` in CSR. Not differentiable.
+    ``row_weights`` and ``start`` as ``solve_assembled``'s.
 
     On a CPU it is the faster of the two: a product with the CSR matrices took 9.5 ms
     where XLA's segment sums over the same entries took 26 ms (a 20000-point bunny,
@@ -290,16 +321,18 @@ def solve_host_cg(
     collocation, regulariser = (matrix.tocsr() for matrix in matrices)
     transposed = collocation.T.tocsr()
     n = collocation.shape[1]
-    diagonal = normal_diagonal(problem, lam)
+    diagonal = normal_diagonal(problem, lam, matrices, row_weights)
     inverse = np.where(diagonal > 0, 1.0 / np.where(diagonal > 0, diagonal, 1.0), 0.0)
+    # All weights 1 multiply exactly: the unweighted fit is unchanged by them.
+    weights = 1.0 if row_weights is None else np.asarray(row_weights, float)
 
     def matvec(c):
-        return transposed @ (collocation @ c) + lam * (regulariser @ c)
+        return transposed @ (weights * (collocation @ c)) + lam * (regulariser @ c)
 
     # LinearOperator(shape, matvec=...) builds a custom operator in __new__, which the
     # type stubs do not follow.
     normal = LinearOperator((n, n), matvec=matvec, dtype=float)  # pyright: ignore[reportCallIssue]
-    rhs = transposed @ np.asarray(problem.targets, float)
+    rhs = transposed @ (weights * np.asarray(problem.targets, float))
     steps = 0
 
     def count(_):
@@ -309,6 +342,7 @@ def solve_host_cg(
     control, _ = cg(
         normal,
         rhs,
+        x0=start,
         rtol=rtol,
         atol=0.0,
         maxiter=max_steps,
@@ -333,10 +367,11 @@ def _upper_triangle(matrix):
     return csc_matrix((matrix.data[keep], matrix.indices[keep], indptr), shape=matrix.shape)
 
 
-def solve_direct(problem: AdaptiveProblem, lam: float, matrices=None):
+def solve_direct(problem: AdaptiveProblem, lam: float, matrices=None, row_weights=None):
     """``(control, relative residual)`` by a sparse direct factorisation on the host: no
     derivative, concrete problems only. ``matrices``: the problem's ``(D, 2 G^T W G)``
-    (``assemble_adaptive_problem`` returns them), assembled here when None.
+    (``assemble_adaptive_problem`` returns them), assembled here when None;
+    ``row_weights`` (S,) weigh the samples' rows (None: 1).
 
     The normal matrix is symmetric positive definite, so an LDL^T without pivoting does:
     QDLDL (the ``qdldl`` package, OSQP's factorisation: a small pip wheel for every
@@ -350,8 +385,13 @@ def solve_direct(problem: AdaptiveProblem, lam: float, matrices=None):
         basis = np.asarray(sample_basis(problem))
         matrices = normal_matrices(problem.hierarchy, np.asarray(problem.positions), basis)
     collocation, regulariser = matrices
-    matrix = (collocation.T @ collocation + lam * regulariser).tocsc()
-    rhs = collocation.T @ np.asarray(problem.targets, float)
+    weighted = collocation
+    if row_weights is not None:
+        from scipy.sparse import diags
+
+        weighted = diags(np.asarray(row_weights, float)) @ collocation
+    matrix = (collocation.T @ weighted + lam * regulariser).tocsc()
+    rhs = weighted.T @ np.asarray(problem.targets, float)
     return solve_normal(matrix, rhs)
 
 
@@ -370,6 +410,112 @@ def solve_normal(matrix, rhs: np.ndarray) -> tuple[np.ndarray, float]:
         control = splu(matrix, permc_spec="COLAMD").solve(rhs)
     scale = max(float(np.linalg.norm(rhs)), np.finfo(float).tiny)
     return control, float(np.linalg.norm(matrix @ control - rhs)) / scale
+
+
+def exact_solve(method: str, problem: AdaptiveProblem, matrices, lam, rtol, max_steps, dtype):
+    """The hierarchy's normal equations solved by ``method`` (``"direct"``, ``"host_cg"``
+    or ``"cg"``), as a function ``solve(row_weights=None, start=None) -> (control, steps,
+    relative residual)`` of the samples' row weights and CG's first iterate, for the
+    solvers of ``solve_on_hierarchy``."""
+
+    def solve(row_weights=None, start=None):
+        if method == "direct":  # a factorisation needs no start
+            control, residual = solve_direct(problem, lam, matrices, row_weights)
+            return control, 0, residual
+        args = (problem, matrices, lam, rtol, max_steps)
+        if method == "host_cg":
+            return solve_host_cg(*args, row_weights=row_weights, start=start)
+        return solve_assembled(*args, dtype, row_weights=row_weights, start=start)
+
+    return solve
+
+
+@functools.singledispatch
+def solve_on_hierarchy(solver, problem: AdaptiveProblem, matrices, solve):
+    """``(control, steps, relative residual, state, converged)`` of ``solver``'s fit on the
+    hierarchy, its linear solves made by ``solve`` (``exact_solve``). Chosen by the
+    solver's type: the exact solve (``LeastSquares``) and its reweighting
+    (``RobustLeastSquares``); other solvers are refused (``check_hierarchy_solver``)."""
+    raise ValueError(hierarchy_refusal(solver))
+
+
+def hierarchy_refusal(solver) -> str:
+    """Why ``solver`` does not fit on the hierarchy, in one message."""
+    name = type(solver).__name__
+    if name in ("IPIA", "IURS", "NormalIPIA"):
+        why = (
+            "the paper's iterations update a uniform grid's control points and weights "
+            "step by step (its Laplacian, eq. 33), which the hierarchy has no grid for"
+        )
+    else:
+        why = f"{name} runs on the uniform grid's problem"
+    return (
+        f"basis='adaptive' fits with jurs.LeastSquares or jurs.RobustLeastSquares (the exact "
+        f"solve and its reweighting), or with no solver (the lambda chosen from the data); "
+        f"{why}: fit it with basis='uniform'"
+    )
+
+
+def check_hierarchy_solver(solver) -> None:
+    """TypeError unless ``solver`` is None or a jurs solver; ValueError for one that does
+    not fit on the hierarchy (``solve_on_hierarchy`` has no registration for it)."""
+    if solver is None:
+        return
+    if not isinstance(solver, AbstractSolver):
+        raise TypeError(f"solver must be a jurs solver, got {type(solver).__name__}")
+    if solve_on_hierarchy.dispatch(type(solver)) is solve_on_hierarchy.dispatch(object):
+        raise ValueError(hierarchy_refusal(solver))
+
+
+@solve_on_hierarchy.register
+def _(solver: LeastSquares, problem: AdaptiveProblem, matrices, solve):
+    control, steps, residual = solve()
+    return control, steps, residual, None, True
+
+
+@solve_on_hierarchy.register
+def _(solver: RobustLeastSquares, problem: AdaptiveProblem, matrices, solve):
+    # The uniform grid's IRLS (RobustLeastSquares.step) on the host: each step one exact
+    # solve with the points' weights on their three samples' rows, then the same
+    # reweighting (RobustLeastSquares.reweigh) and the same stop rule as the driver's.
+    collocation, regulariser = matrices
+    targets = np.asarray(problem.targets, float)
+    m = len(targets) // 3
+    real = jnp.ones(m, bool)
+
+    def reweighed(control, previous):
+        r = collocation @ control - targets  # samples [P, P + d n, P - d n] (eq. 4-5)
+        e = np.sqrt(np.sum((r * r).reshape(3, m), axis=0))
+        regularisation = float(control @ (regulariser @ control))
+        return solver.reweigh(jnp.asarray(e), real, problem.eps, regularisation, previous)
+
+    control = np.zeros(collocation.shape[1])
+    _, scale, energy = reweighed(control, None)
+    weights = jnp.ones(m, targets.dtype)  # the first solve is the plain fit
+    total, residual, settled, converged = 0, 0.0, False, False
+    for step in range(solver.max_steps):
+        start = None if step == 0 else control
+        control, steps, residual = solve(np.tile(np.asarray(weights, float), 3), start)
+        total += steps
+        weights, scale, new = reweighed(control, scale)
+        change = abs(float(new) - float(energy))
+        settled = change <= solver.rtol * abs(float(new))
+        energy = new
+        if not np.isfinite(float(new)):
+            break
+        if change < solver.tol or (settled and solver.rtol > 0):
+            converged = True
+            break
+    state = RobustLeastSquaresState(
+        control=jnp.asarray(control),
+        point_weights=weights,
+        scale=scale,
+        result=lx.RESULTS.successful,
+        energy=energy,
+        settled=jnp.asarray(settled),
+        solved=jnp.asarray(True),
+    )
+    return control, total, residual, state, converged
 
 
 def finest_cell_width(settings: Settings, ndim: int, finest: int | None) -> float:
@@ -424,6 +570,7 @@ def fit_adaptive(
     dtype=None,
     checks: bool = True,
     throw: bool = True,
+    solver: AbstractSolver | None = None,
 ) -> Solution:
     """Fit an implicit spline on an adaptive (THB) basis: fine cells in a band around the
     data, coarse ones elsewhere, so that the cost grows with the shape's boundary rather
@@ -464,6 +611,13 @@ def fit_adaptive(
         throw: raise ``equinox.EquinoxRuntimeError`` when the verdict says the fit is not a
             reconstruction (``nonfinite``, ``inconsistent_normals``; never for
             ``max_steps_reached`` or ``doubtful``), as [`jurs.fit`][] does.
+        solver: None (the exact solve with ``lam``), [`jurs.LeastSquares`][] (the same,
+            with its ``lam``) or [`jurs.RobustLeastSquares`][] (its reweighted solves:
+            outliers weighed down, ``sol.state.point_weights`` one per point fitted, in the
+            cloud's order without the points ``settings`` set aside). A solver keeps its
+            own ``lam``, the weight of the hierarchy's ``R`` (pass no ``lam`` beside it).
+            Other solvers run on the uniform grid only and are refused with the reason.
+            A robust fit runs in one process, on points not sharded.
 
     Returns:
         A [`jurs.Solution`][] whose ``spline`` is a [`jurs.AdaptiveSpline`][];
@@ -489,6 +643,18 @@ def fit_adaptive(
         raise ValueError(f"method must be 'direct', 'cg', 'host_cg' or None, got {method!r}")
     if band is not None and band < 1:
         raise ValueError(f"band must be at least 1 cell, got {band}")
+    check_hierarchy_solver(solver)
+    if solver is not None:
+        if lam is not None:
+            raise ValueError("pass lam or a solver, not both: a solver keeps its own lam")
+        if isinstance(solver, RobustLeastSquares) and (
+            spans_processes(points, normals) or input_sharding(points, normals) is not None
+        ):
+            raise ValueError(
+                "a robust fit on the hierarchy runs in one process on points that are not "
+                "sharded; gather them first, or fit with jurs.LeastSquares"
+            )
+        lam = float(solver.lam)
     if spans_processes(points, normals):  # each process assembles its own samples' rows
         from .adaptive_sharding import fit_adaptive_across_processes
 
@@ -535,14 +701,8 @@ def fit_adaptive(
         lam = scale_free_lam(strength, 3 * len(points_np), diagonal, lower, upper, finest_cell)
     if rtol is None:
         rtol = DEFAULT_RTOL if dtype == jnp.float64 else FLOAT32_RTOL
-    if method == "direct":
-        control_np, residual = solve_direct(problem, float(lam), matrices)
-        control, steps = on_device(control_np, dtype), 0
-        metrics = assembled_metrics(problem, matrices, control_np, float(lam))
-        # A direct solve is exact up to rounding; a residual far above it means the
-        # factorisation met a (numerically) singular matrix.
-        tolerance = max(rtol, DIRECT_RTOL)
-    elif method == "cg" and sharding is not None:
+    state, settled = None, True
+    if method == "cg" and sharding is not None:
         from .adaptive_sharding import solve_sharded
 
         control_np, steps, residual, metrics = solve_sharded(
@@ -550,18 +710,22 @@ def fit_adaptive(
         )
         control = on_device(control_np, dtype)
         tolerance = rtol
-    else:  # CG on the assembled matrices: SciPy on the host, or JAX (padded, compiled)
-        args = (problem, matrices, float(lam), float(rtol), int(max_steps))
+    else:  # a factorisation, or CG on the assembled matrices (SciPy, or JAX compiled)
         # host_cg reads every sample on the host, as a direct solve does.
-        control_np, steps, residual = (
-            solve_host_cg(*args) if method == "host_cg" else solve_assembled(*args, dtype)
+        solve = exact_solve(
+            method, problem, matrices, float(lam), float(rtol), int(max_steps), dtype
+        )
+        control_np, steps, residual, state, settled = solve_on_hierarchy(
+            LeastSquares(lam=float(lam)) if solver is None else solver, problem, matrices, solve
         )
         control = on_device(control_np, dtype)
         metrics = assembled_metrics(problem, matrices, control_np, float(lam))
-        tolerance = rtol
+        # A direct solve is exact up to rounding; a residual far above it means the
+        # factorisation met a (numerically) singular matrix.
+        tolerance = max(rtol, DIRECT_RTOL) if method == "direct" else rtol
     spline = AdaptiveSpline(hierarchy, control, on_device(np.ones(control.shape), dtype))
     finite = bool(np.all(np.isfinite(np.asarray(control))))
-    converged = float(residual) <= tolerance
+    converged = float(residual) <= tolerance and settled
     result = (
         RESULTS.successful
         if finite and converged
@@ -579,7 +743,7 @@ def fit_adaptive(
     }
     if sharding is not None:  # the devices the solve ran over (a direct solve: the host)
         stats["devices"] = len(sharding.device_set) if method == "cg" else 1
-    sol = Solution(spline, metrics, stats, result, None, settings)
+    sol = Solution(spline, metrics, stats, result, state, settings)
     if checks:
         sol = judge(sol, cloud, settings, layout["offset"])
     if throw and sol.status in RAISED_RESULTS:

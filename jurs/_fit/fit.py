@@ -38,6 +38,7 @@ from ..solvers import AbstractSolver
 from .adaptive import (
     UNIFORM_RESIDUAL_SPACINGS,
     auto_finest,
+    check_hierarchy_solver,
     fit_adaptive,
     uniform_residual,
     wants_adaptive,
@@ -201,6 +202,8 @@ def _uniform_only(
     ``jurs._fit.adaptive_sharding``); points split over processes are fitted on the
     adaptive basis only when it is asked for (``basis="adaptive"``)."""
     given = dict(grid=grid, solver=solver, init=init, mask=mask, bucket_size=bucket_size)
+    if basis == "adaptive":  # fit_adaptive takes a solver, or refuses it with the reason
+        del given["solver"]
     names = [name for name, value in given.items() if value is not None]
     if run is not None:
         names.append("callback")
@@ -315,8 +318,10 @@ def fit(
             process take the same choice as unsharded (the hierarchy then fitted with the
             sharded points: docs/sharding.md, "Adaptive fits"). ``"uniform"``: the uniform
             grid always. ``"adaptive"``: [`jurs.fit_adaptive`][] with the settings chosen here
-            (it takes none of the uniform-only arguments above, but points sharded over
-            devices or processes).
+            (it takes none of the uniform-only arguments above but ``solver``, and points
+            sharded over devices or processes): a [`jurs.LeastSquares`][] or
+            [`jurs.RobustLeastSquares`][] given fits the hierarchy with its own ``lam``
+            (the weight of the hierarchy's R); other solvers are refused with the reason.
 
     Returns:
         [`jurs.Solution`][]. Jit-compiled inside; traceable, so ``jax.grad`` and
@@ -371,13 +376,20 @@ def fit(
     return sol
 
 
-def _on_hierarchy(cloud, settings, checks, throw, estimated, residual=None) -> Solution:
+def _on_hierarchy(
+    cloud, settings, checks, throw, estimated, residual=None, solver=None
+) -> Solution:
     """The fit of ``cloud`` on the adaptive basis with ``settings`` (``jurs.fit_adaptive``),
-    its finest level chosen as ``basis="auto"`` does; ``estimated`` (where the normals were
-    estimated) and the capped grid's ``residual`` (where it was fitted first) recorded in
-    its stats."""
+    its finest level chosen as ``basis="auto"`` does, by ``solver`` where one was given;
+    ``estimated`` (where the normals were estimated) and the capped grid's ``residual``
+    (where it was fitted first) recorded in its stats."""
     sol = fit_adaptive(
-        cloud, settings=settings, finest=auto_finest(settings), checks=checks, throw=throw
+        cloud,
+        settings=settings,
+        finest=auto_finest(settings),
+        checks=checks,
+        throw=throw,
+        solver=solver,
     )
     noted = dict(estimated_normals=estimated, uniform_residual=residual)
     extra = {name: value for name, value in noted.items() if value is not None}
@@ -416,6 +428,9 @@ def _fit(
             "basis='adaptive' fits by exact least squares on a hierarchy chosen from the "
             f"data; it takes no {', '.join(uniform_only)} (leave them out, or basis='uniform')"
         )
+    given_solver = solver  # the hierarchy takes the caller's, not the default one
+    if basis == "adaptive":
+        check_hierarchy_solver(solver)
     if spans_processes(points, normals):  # each process lays out its own part (jurs._fit.sharding)
         if run is not None:
             raise ValueError("a fit over several processes runs in one call: no callback")
@@ -474,7 +489,8 @@ def _fit(
         and wants_adaptive(settings, len(cloud))
     )
     if settings is not None and basis == "adaptive":
-        return _on_hierarchy(cloud, settings, checks, throw, estimated), None
+        sol = _on_hierarchy(cloud, settings, checks, throw, estimated, solver=given_solver)
+        return sol, None
     check_start(shape, solver, init)
     dtype = jnp.result_type(float)
     problem = _problem_of(

@@ -67,8 +67,9 @@ def fit_across_processes(
         settings = settings_across_processes(
             points, normals, None, offset, eps, domain, margin, smoothing
         )
+        finest = auto_finest(settings)
         return fit_adaptive(
-            points, normals, settings=settings, finest=auto_finest(settings), throw=throw
+            points, normals, settings=settings, finest=finest, throw=throw, solver=solver
         )
     given = dict(grid=grid, offset=offset, eps=eps, domain=domain, solver=solver)
     settings = None

@@ -206,9 +206,19 @@ class RobustLeastSquares(AbstractSolver[RobustLeastSquaresState]):
         """``(weights, scale, E_rob)`` of the fit in ``control``; an estimated scale never
         exceeds the ``previous`` one."""
         e, real = self._point_residuals(problem, control)
+        return self.reweigh(e, real, problem.eps, regulariser(control), previous)
+
+    def reweigh(
+        self, e: Array, real: Array, eps, regularisation, previous: Array | None = None
+    ) -> tuple[Array, Array, Array]:
+        """``(weights, scale, E_rob)`` from the points' residuals ``e`` (m,) (``real``: the
+        points that are not padding) and ``R`` of the fit, whatever its basis: the IRLS
+        weights ``rho'(t) / (2 t)`` at ``t = e / s``, the scale ``s`` (given, or
+        ``1.4826 median e``, at least ``SCALE_FLOOR eps``, at most the ``previous``), and
+        the energy ``s^2 sum rho(t) + lam R``."""
         if self.scale is None:
             median = jnp.nanmedian(jnp.where(real, e, jnp.nan))
-            scale = jnp.maximum(MAD_TO_SIGMA * median, SCALE_FLOOR * problem.eps)
+            scale = jnp.maximum(MAD_TO_SIGMA * median, SCALE_FLOOR * eps)
             if previous is not None:
                 scale = jnp.minimum(scale, previous)
         else:
@@ -217,7 +227,7 @@ class RobustLeastSquares(AbstractSolver[RobustLeastSquaresState]):
         t = e / scale
         weights = jnp.where(real, robust_weight(self.loss, t), 0.0)
         rho = jnp.sum(jnp.where(real, robust_loss(self.loss, t), 0.0))
-        energy = scale * scale * rho + self.lam * regulariser(control)
+        energy = scale * scale * rho + self.lam * regularisation
         return weights, scale, energy
 
     def init(self, problem: Problem, spline: ImplicitSpline):

@@ -1,0 +1,86 @@
+"""The hierarchy takes the exact solve and its reweighting as solvers: jurs.fit(...,
+basis="adaptive", solver=LeastSquares / RobustLeastSquares), and refuses the others with
+the reason."""
+
+import numpy as np
+import pytest
+
+import jurs
+from jurs._fit import adaptive as adaptive_fit
+
+
+@pytest.fixture(scope="module")
+def flipped():
+    """Example 1 with the normals of 20 of its 400 points turned inward: gross errors
+    that a robust fit weighs down on any basis. ``(points, flipped normals, flipped rows,
+    the clean fit's lambda, the clean normals)``."""
+    points, normals = jurs.datasets.example1(400)
+    bad = np.random.default_rng(0).choice(len(points), 20, replace=False)
+    wrong = np.array(normals)
+    wrong[bad] *= -1
+    clean = jurs.fit(points, normals, basis="adaptive")
+    return points, wrong, bad, float(clean.metrics["lam"]), normals
+
+
+def _mean_distance(spline, points) -> float:
+    g = np.asarray(spline(points))
+    slope = np.linalg.norm(np.asarray(spline.grad(points)), axis=1)
+    return float(np.mean(np.abs(g) / slope))
+
+
+def test_least_squares_on_the_hierarchy_is_the_default_solve(flipped):
+    points, _, _, lam, normals = flipped
+    default = jurs.fit_adaptive(points, normals, lam=lam, checks=False)
+    given = jurs.fit(points, normals, basis="adaptive", solver=jurs.LeastSquares(lam=lam))
+    assert isinstance(given.spline, jurs.AdaptiveSpline)
+    np.testing.assert_array_equal(given.spline.control, default.spline.control)
+    assert float(given.metrics["lam"]) == lam
+
+
+def test_robust_least_squares_fits_a_hierarchy(flipped):
+    points, normals, bad, lam, _ = flipped
+    plain = jurs.fit(points, normals, basis="adaptive", checks=False, throw=False)
+    solver = jurs.RobustLeastSquares(lam=lam, loss="huber", rtol=1e-6)
+    sol = jurs.fit(points, normals, basis="adaptive", solver=solver, checks=False, throw=False)
+    assert isinstance(sol.spline, jurs.AdaptiveSpline)
+    assert sol.status == "successful"
+    weights = np.asarray(sol.state.point_weights)
+    assert weights.shape == (len(points),)
+    good = np.setdiff1d(np.arange(len(points)), bad)
+    assert weights[bad].max() < 0.1  # the flipped normals are set aside
+    assert np.median(weights[good]) > 0.9
+    # The zero set follows the data closer than the plain fit of the same cloud.
+    assert _mean_distance(sol.spline, points) < 0.8 * _mean_distance(plain.spline, points)
+
+
+@pytest.mark.parametrize("method", ["host_cg", "cg"])
+def test_row_weighted_solves_agree_with_the_factorisation(method):
+    points, normals = jurs.datasets.example1(150)
+    cloud = jurs.Cloud(points, normals)
+    settings = jurs.auto_settings(cloud)
+    layout = adaptive_fit.hierarchy_layout(settings, 2, None, None, None, None, None)
+    problem, matrices = adaptive_fit.assemble_adaptive_problem(points, normals, **layout)
+    weights = np.random.default_rng(1).uniform(0.1, 1.0, len(problem.targets))
+    lam = 1e-3
+    exact, _ = adaptive_fit.solve_direct(problem, lam, matrices, weights)
+    solve = adaptive_fit.exact_solve(method, problem, matrices, lam, 1e-12, 10_000, float)
+    control, steps, residual = solve(weights, start=exact * 0.5)
+    assert steps > 0 and residual <= 1e-12
+    np.testing.assert_allclose(control, exact, atol=1e-8 * np.abs(exact).max())
+    unweighted, _ = adaptive_fit.solve_direct(problem, lam, matrices)
+    assert np.abs(unweighted - exact).max() > 1e-6  # the weights took part
+
+
+def test_other_solvers_are_refused_with_the_reason():
+    points, normals = jurs.datasets.example1(100)
+    iurs = jurs.IURS(tau=1e-2, lam=0.0, max_steps=5)
+    with pytest.raises(ValueError, match="paper's iterations .* basis='uniform'"):
+        jurs.fit(points, normals, basis="adaptive", solver=iurs)
+    with pytest.raises(ValueError, match="HeldOutLeastSquares runs on the uniform grid"):
+        jurs.fit(
+            points, normals, basis="adaptive", solver=jurs.HeldOutLeastSquares(lam=(1e-4, 1e-3))
+        )
+    with pytest.raises(TypeError, match="jurs solver"):
+        jurs.fit_adaptive(points, normals, solver="cauchy")  # pyright: ignore[reportArgumentType]
+    with pytest.raises(ValueError, match="lam or a solver, not both"):
+        jurs.fit_adaptive(points, normals, lam=1e-3, solver=jurs.LeastSquares(lam=1e-3))
