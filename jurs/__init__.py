@@ -16,10 +16,10 @@ import importlib
 from typing import TYPE_CHECKING
 
 from ._cloud.cloud import Cloud
-from ._fit.adaptive import fit_adaptive
 from ._fit.attributes import AttributeField, fit_attributes
 from ._fit.compile import COMPILER_OPTIONS, enable_compilation_cache
 from ._fit.fit import fit
+from ._fit.fit_adaptive import fit_adaptive
 from ._fit.progress import fit_in_chunks
 from ._fit.settings import Settings, auto_settings
 from ._model.adaptive import AdaptiveSpline

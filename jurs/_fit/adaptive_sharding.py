@@ -32,7 +32,8 @@ import numpy as np
 from jax import lax
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from .._cloud.parts import agree, allgather, gather_ragged, normals_across_processes
+from .._cloud.normals import normals_across_processes
+from .._cloud.parts import agree, allgather, gather_ragged
 from .._linalg.pcg import conjugate_gradients
 from .._model.adaptive import AdaptiveSpline
 from .._model.precision import on_device

@@ -37,11 +37,11 @@ from ..solvers import AbstractSolver
 from .adaptive import (
     UNIFORM_RESIDUAL_SPACINGS,
     auto_finest,
-    fit_adaptive,
     uniform_residual,
     wants_adaptive,
 )
 from .call import as_arrays, check_start, solve_fit
+from .fit_adaptive import fit_adaptive
 from .processes import fit_across_processes
 from .progress import chunked_run
 from .settings import Settings, choose_settings, default_solver, set_aside_mask
