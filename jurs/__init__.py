@@ -18,9 +18,8 @@ from typing import TYPE_CHECKING
 from ._cloud.cloud import Cloud
 from ._fit.attributes import AttributeField, fit_attributes
 from ._fit.compile import COMPILER_OPTIONS, enable_compilation_cache
-from ._fit.fit import fit
+from ._fit.fit import fit, fit_in_chunks
 from ._fit.fit_adaptive import fit_adaptive
-from ._fit.progress import fit_in_chunks
 from ._fit.settings import Settings, auto_settings
 from ._model.adaptive import AdaptiveSpline
 from ._model.io import load_spline, save_spline

@@ -328,6 +328,64 @@ def fit(
     return sol
 
 
+def fit_in_chunks(
+    points,
+    normals,
+    *,
+    solver: AbstractSolver,
+    chunk: int | None = None,
+    checkpoints=(),
+    callback: Callable[[int, int], None] | None = None,
+    **fit_kwargs,
+):
+    """Run ``jurs.fit`` with ``solver`` in chunks of ``chunk`` steps.
+
+    The fit [`jurs.fit`][] makes of the same arguments (one cloud, one problem, the
+    same settings, checks and verdicts), its solve run by ``solve_in_chunks``
+    (``jurs._fit.progress``).
+
+    Args:
+        solver: the solver; its ``max_steps`` is the total number of steps.
+        chunk: steps per call at most (default ``chunk_size``); a chunk also ends at
+            each checkpoint.
+        checkpoints: step counts at which to keep the spline (e.g. ``(0, 10, 50, 200)``).
+        callback: called as ``callback(steps_done, max_steps)`` after every chunk.
+        **fit_kwargs: as for [`jurs.fit`][] (grid, offset, eps, domain, margin, init,
+            mask, bucket_size, settings, checks); ``throw`` (default True) applies to the
+            run's final verdict.
+
+    Returns:
+        ``(solution, snapshots)``: the final [`jurs.Solution`][], with ``num_steps`` and
+        ``energy_history`` of the whole run, and a dict ``{step: spline}`` for the
+        checkpoints reached (a run that converges early stops there).
+    """
+    unknown = set(fit_kwargs) - set(_CHUNKED_OPTIONS)
+    if unknown:
+        raise TypeError(f"fit_in_chunks got unexpected keyword arguments {sorted(unknown)}")
+    defaults = fit.__kwdefaults__ or {}
+    options = {name: fit_kwargs.get(name, defaults[name]) for name in _CHUNKED_OPTIONS}
+    run = functools.partial(chunked_run, chunk=chunk, checkpoints=checkpoints, callback=callback)
+    sol, snapshots = _fit(points, normals, solver=solver, run=run, **options)
+    return sol, snapshots
+
+
+#: The keywords fit_in_chunks passes on to jurs.fit (with jurs.fit's defaults).
+_CHUNKED_OPTIONS = (
+    "grid",
+    "offset",
+    "eps",
+    "domain",
+    "margin",
+    "init",
+    "mask",
+    "bucket_size",
+    "smoothing",
+    "settings",
+    "checks",
+    "throw",
+)
+
+
 def _on_hierarchy(cloud, settings, checks, throw, estimated, residual=None) -> Solution:
     """The fit of ``cloud`` on the adaptive basis with ``settings`` (``jurs.fit_adaptive``),
     its finest level chosen as ``basis="auto"`` does; ``estimated`` (where the normals were
