@@ -52,7 +52,7 @@ from jax.sharding import NamedSharding, PartitionSpec
 
 from .._cloud.parts import local_rows
 from .._model.basis import flat_cell, locate, num_cells
-from .._model.spline import LocalBasis
+from .._model.local import LocalBasis
 from .._problem.layout import choose_bucket_size
 from .._problem.memory import check_memory, fit_memory
 from .._problem.problem import Problem, _surface_bucket_size, make_problem, offset_samples

@@ -20,7 +20,7 @@ from jax import Array
 from .basis import cubic_weights, patch_corner, patch_offsets
 
 if TYPE_CHECKING:
-    from .spline import LocalBasis
+    from .local import LocalBasis
 
 #: Groups a kernel takes at once: bounds the per-entry products (``K x 4 ** d`` a group
 #: for F, ``K x 7 ** (d - 1)`` for the assembly: about 100 MB at K = 64 in 3D).

@@ -21,7 +21,8 @@ from jaxtyping import ArrayLike, Float
 
 from .._model.basis import flat_cell, locate, num_cells
 from .._model.groups import with_groups
-from .._model.spline import TABLE_MAX_SLOTS, LocalBasis, local_basis, with_table
+from .._model.local import LocalBasis
+from .._model.spline import TABLE_MAX_SLOTS, local_basis, with_table
 from .layout import (
     bucket_layout,
     cell_groups,
