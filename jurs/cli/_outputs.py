@@ -17,13 +17,8 @@ import shutil
 import signal
 import tempfile
 import threading
-from typing import TYPE_CHECKING
 
 from ._inputs import InputError, printable
-
-if TYPE_CHECKING:
-    from . import FitJob
-
 
 #: The outputs of a curve fit (a 2D cloud) ...
 OUTPUTS = ("metrics.json", "spline.npz", "fit.png", "zero_level.csv")
@@ -189,24 +184,6 @@ MESH_BYTES_PER_VERTEX, PLY_BYTES_PER_VERTEX = 450, 50
 
 #: The largest level-set grid side an adaptive curve gets without ``--resolution``.
 MAX_ADAPTIVE_RESOLUTION = 2049
-
-
-def _output_bytes(job: FitJob) -> int:
-    """Bytes the outputs take: the spline (two grids of float64 in the .npz), the figure
-    and the metrics, and in 2D the polylines (at most about resolution^2 / 2 vertices of
-    ~40 bytes as text), in 3D the mesh (``MESH_VERTICES_PER_PLANE_NODE``)."""
-    from ..levelset._meshing import MAX_RESOLUTION
-
-    # An adaptive spline's active functions are known after the fit; about 10 a point on
-    # traced outlines, 64 bounds them.
-    spline = 16 * (64 * len(job.points) if job.adaptive else math.prod(job.grid))
-    if job.dim == 2:
-        # prepare_fit gives a uniform 2D job the level-set default; an adaptive one's is
-        # at most MAX_ADAPTIVE_RESOLUTION.
-        r = job.resolution or MAX_ADAPTIVE_RESOLUTION
-        return OUTPUT_OVERHEAD + spline + 20 * min(r**2, 10 * r * len(job.points))
-    r = job.resolution or MAX_RESOLUTION
-    return OUTPUT_OVERHEAD + spline + PLY_BYTES_PER_VERTEX * MESH_VERTICES_PER_PLANE_NODE * r**2
 
 
 def _write_record_and_spline(folder: str, record: dict, spline) -> None:

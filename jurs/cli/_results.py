@@ -21,7 +21,7 @@ from ._outputs import (
 )
 
 if TYPE_CHECKING:
-    from . import FitJob
+    from ._job import FitJob
 
 
 def fit_record(job: FitJob, args, sol, seconds: float) -> dict:
