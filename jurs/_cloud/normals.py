@@ -58,10 +58,10 @@ from .parts import agree, gathered_probes, local_rows, spans_processes
 from .signs import forest_signs
 from .winding import (
     DENSE_PAIRS,
-    _dipole_kernel,
-    _patch_fields_clustered,
-    _patch_fields_dense,
-    _solve_signs,
+    dipole_kernel,
+    patch_fields_clustered,
+    patch_fields_dense,
+    solve_signs,
 )
 
 #: Candidate neighbour counts for PCA, per dimension (the smallest good one is taken).
@@ -456,14 +456,12 @@ def _orient(points, normals, values, noise, neighbours, tree, rng, confidence):
         np.arange(m) if m <= MAX_QUERIES else np.sort(rng.choice(m, MAX_QUERIES, replace=False))
     )
     if len(queries) * m <= DENSE_PAIRS:
-        fields = _patch_fields_dense(points[queries], points, dipoles, eps, patch, n_patch)
+        fields = patch_fields_dense(points[queries], points, dipoles, eps, patch, n_patch)
     else:
-        fields = _patch_fields_clustered(
-            points[queries], points, dipoles, eps, patch, n_patch, tree
-        )
+        fields = patch_fields_clustered(points[queries], points, dipoles, eps, patch, n_patch, tree)
     centre = np.stack([np.bincount(patch, points[:, a], n_patch) for a in range(d)], 1)
     centre /= np.bincount(patch, minlength=n_patch)[:, None]
-    signs = _solve_signs(fields, weight[queries], patch_tree, centre)
+    signs = solve_signs(fields, weight[queries], patch_tree, centre)
     residual = float(
         np.sqrt(np.average((fields @ signs - 0.5) ** 2, weights=weight[queries] + 1e-300))
     )
@@ -509,8 +507,8 @@ def _point_corrections(points, normals, area, eps, offset, tree, neighbours, rou
             near = near_all[idx]
             delta = (offset[idx, None] * normals[idx])[:, None, :]
             src, dip, e = points[near], dipoles[near], eps[near]
-            outside = _dipole_kernel(points[idx, None, :] + delta, src, dip, e).sum(1)
-            inside = _dipole_kernel(points[idx, None, :] - delta, src, dip, e).sum(1)
+            outside = dipole_kernel(points[idx, None, :] + delta, src, dip, e).sum(1)
+            inside = dipole_kernel(points[idx, None, :] - delta, src, dip, e).sum(1)
             rising[idx] = outside - inside > CHECK_MARGIN[d]
         if not rising.any():
             break

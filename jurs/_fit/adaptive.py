@@ -187,7 +187,7 @@ def size_class(count: int) -> int:
     return max(MIN_CLASS, round_size(count))
 
 
-def _padded(values: np.ndarray, length: int, fill=0) -> np.ndarray:
+def padded_to(values: np.ndarray, length: int, fill=0) -> np.ndarray:
     out = np.full((length,) + values.shape[1:], fill, values.dtype)
     out[: values.shape[0]] = values
     return out
@@ -198,9 +198,9 @@ def _coo(matrix, nnz: int, dtype):
     zeros at (0, 0), which add exactly nothing."""
     coo = matrix.tocoo()
     return (
-        on_device(_padded(coo.row.astype(np.int32), nnz)),
-        on_device(_padded(coo.col.astype(np.int32), nnz)),
-        on_device(_padded(coo.data, nnz), dtype),
+        on_device(padded_to(coo.row.astype(np.int32), nnz)),
+        on_device(padded_to(coo.col.astype(np.int32), nnz)),
+        on_device(padded_to(coo.data, nnz), dtype),
     )
 
 
@@ -257,8 +257,8 @@ def solve_assembled(
     control, steps, residual = _assembled_cg(
         _coo(collocation, size_class(collocation.nnz), dtype),
         _coo(regulariser, size_class(regulariser.nnz), dtype),
-        on_device(_padded(np.asarray(problem.targets), size_class(count)), dtype),
-        on_device(_padded(diagonal, n_class), dtype),
+        on_device(padded_to(np.asarray(problem.targets), size_class(count)), dtype),
+        on_device(padded_to(diagonal, n_class), dtype),
         on_device(lam, dtype),
         on_device(rtol, dtype),
         on_device(max_steps, np.int32),

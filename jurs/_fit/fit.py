@@ -25,10 +25,10 @@ from .._problem.padding import padded_problem
 from .._problem.problem import make_problem
 from .._problem.sizes import DEFAULT_MARGIN
 from .._problem.validate import (
-    _is_concrete,
-    _shape,
     check_values,
+    is_concrete,
     normalise_grid,
+    shape_of,
     validate_settings,
 )
 from .._solution.solution import RAISED_RESULTS, Solution, error_message
@@ -106,7 +106,7 @@ def _problem_of(cloud: Cloud, shape, offset, eps, domain, margin, bucket_size, d
         dtype,
         support,
     )
-    if key is not None and _is_concrete(problem):
+    if key is not None and is_concrete(problem):
         kept[key] = problem
         while len(kept) > KEPT_PROBLEMS:
             kept.popitem(last=False)
@@ -164,7 +164,7 @@ def _uniform_only(
     if spans_processes(points, normals):
         if basis != "adaptive":
             names.append("points split over processes")
-    elif not isinstance(points, Cloud) and not _is_concrete(points, normals):
+    elif not isinstance(points, Cloud) and not is_concrete(points, normals):
         names.append("traced points")
     return names
 
@@ -172,7 +172,7 @@ def _uniform_only(
 def _point_dimension(points) -> int:
     """The d of ``(m, d)`` points; 2 for anything else (make_problem names the error)."""
     try:
-        shape = _shape(points)
+        shape = shape_of(points)
     except (TypeError, ValueError):
         return 2
     return shape[1] if len(shape) == 2 and shape[1] in (2, 3) else 2
@@ -443,7 +443,7 @@ def _fit(
     if isinstance(points, Cloud):
         if normals is not None or mask is not None:
             raise ValueError("fit(cloud): the cloud holds its normals and mask; pass neither")
-    elif not _is_concrete(points, normals, mask):
+    elif not is_concrete(points, normals, mask):
         if run is not None:
             raise ValueError("a chunked run or a callback needs concrete points (on the host)")
         args = grid, solver, offset, eps, domain, margin, init, mask, bucket_size, throw

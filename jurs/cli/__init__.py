@@ -54,8 +54,8 @@ from typing import TYPE_CHECKING, cast
 from ._batch import is_batch, run_batch
 from ._inputs import (
     InputError,
-    _one_line,
     grid_for,
+    one_line,
     printable,
     read_input,
 )
@@ -73,7 +73,7 @@ from ._outputs import (
 )
 from ._parser import build_parser
 from ._results import (
-    _basis_shown,
+    basis_shown,
     curve_outputs,
     fit_record,
     mesh_record,
@@ -204,21 +204,21 @@ def _check_options(resolution, dim: int, out: str, names) -> None:
                 f"--resolution {resolution}", per_node * float(resolution) ** 2, device=False
             )
         except ValueError as exc:
-            raise InputError(_one_line(exc)) from None
+            raise InputError(one_line(exc)) from None
     check_output_folder(out, names=names)
 
 
 def _surface_libraries() -> None:
     """InputError unless the libraries a surface's outputs need are installed
     (scikit-image meshes, trimesh writes mesh.ply): found out before the fit, not after."""
-    from ..datasets._files import _trimesh
-    from ..levelset._meshing import _marching_cubes
+    from ..datasets._files import trimesh_module
+    from ..levelset._meshing import skimage_marching_cubes
 
     try:
-        _marching_cubes()
-        _trimesh()
+        skimage_marching_cubes()
+        trimesh_module()
     except ImportError as exc:
-        raise InputError(f"a 3D cloud needs the surface extras: {_one_line(exc)}") from None
+        raise InputError(f"a 3D cloud needs the surface extras: {one_line(exc)}") from None
 
 
 def _check_adaptive(args, adaptive: bool, finest, dim: int) -> None:
@@ -266,7 +266,7 @@ def prepare_fit(args) -> FitJob:
             # return_info=False: the normals alone, not the (normals, info) pair
             normals = cast("np.ndarray", jurs.estimate_normals(points))
         except (ValueError, TypeError) as exc:
-            raise InputError(f"{shown}: {_one_line(exc)}") from None
+            raise InputError(f"{shown}: {one_line(exc)}") from None
     basis = getattr(args, "basis", "auto")
     if getattr(args, "adaptive", False):
         if basis == "uniform":
@@ -290,7 +290,7 @@ def prepare_fit(args) -> FitJob:
             cloud, grid=grid, offset=args.offset, eps=args.eps, smoothing=args.smoothing
         )
     except (ValueError, TypeError) as exc:
-        raise InputError(f"{shown}: {_one_line(exc)}") from None
+        raise InputError(f"{shown}: {one_line(exc)}") from None
     solver = make_solver(
         args.solver, lam=args.lam, tau=args.tau, steps=args.steps, tol=args.tol, chosen=chosen
     )
@@ -357,7 +357,7 @@ def _solve(job: FitJob, args):
                 )
     except (ValueError, TypeError) as exc:
         bar.close()
-        raise InputError(f"{job.shown}: {_one_line(exc)}") from None
+        raise InputError(f"{job.shown}: {one_line(exc)}") from None
     except KeyboardInterrupt:
         bar.close()  # Ctrl-C's line on a line of its own
         raise
@@ -404,14 +404,14 @@ def run_fit(args) -> int:
     except OSError as exc:
         print(
             f"jurs: error: {printable(args.output)}: could not write the outputs "
-            f"({printable(_one_line(exc))}); the folder keeps its previous outputs",
+            f"({printable(one_line(exc))}); the folder keeps its previous outputs",
             file=sys.stderr,
         )
         return EXIT_FIT_FAILED
 
     if not args.quiet:
         print(
-            f"{job.shown}: {len(job.points)} points, {args.solver}, {_basis_shown(job, sol)}: "
+            f"{job.shown}: {len(job.points)} points, {args.solver}, {basis_shown(job, sol)}: "
             f"{int(sol.stats['num_steps'])} steps in "
             f"{seconds:.2f} s ({sol.status})"
         )
@@ -461,7 +461,7 @@ def _run_command(args) -> int:
         try:  # later runs load the compiled fit instead of compiling it (seconds)
             enable_compilation_cache()
         except OSError as exc:
-            print(f"jurs: warning: no compilation cache ({_one_line(exc)})", file=sys.stderr)
+            print(f"jurs: warning: no compilation cache ({one_line(exc)})", file=sys.stderr)
     if args.command == "demo":
         from ..demo import run
 

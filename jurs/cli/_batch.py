@@ -18,7 +18,7 @@ import os
 import sys
 import time
 
-from ._inputs import InputError, _one_line, printable
+from ._inputs import InputError, one_line, printable
 from ._job import EXIT_BAD_INPUT, EXIT_FIT_FAILED
 
 #: The suffixes of the clouds a folder given on the command line is searched for (those
@@ -141,7 +141,7 @@ def run_batch(args, run_one) -> int:
             code = EXIT_FIT_FAILED
         except (ValueError, TypeError, OSError, ArithmeticError) as exc:
             # Anything else one cloud can raise: said, and the rest go on.
-            print(f"jurs: error: {printable(path)}: {printable(_one_line(exc))}", file=sys.stderr)
+            print(f"jurs: error: {printable(path)}: {printable(one_line(exc))}", file=sys.stderr)
             code = EXIT_FIT_FAILED
         if code:
             failed.append((path, code))

@@ -12,7 +12,7 @@ from scipy.spatial import cKDTree  # pyright: ignore[reportAttributeAccessIssue]
 from .._model.adaptive import AdaptiveSpline
 from .._model.lattice import values_and_gradients
 from .._model.spline import ImplicitSpline
-from ._curves import _evaluate, _gradient
+from ._curves import evaluate_spline, spline_gradient
 
 
 def distance_to_polyline(
@@ -110,11 +110,11 @@ def project_to_zero_set(
     tol = 1e-11 * extent if tol is None else float(tol)
     step = 1e-7 * extent if step is None else float(step)
     spline = isinstance(fn, ImplicitSpline)
-    value_of = (lambda xy: _evaluate(fn, xy)) if spline else fn
+    value_of = (lambda xy: evaluate_spline(fn, xy)) if spline else fn
     if grad is not None:
         gradient = grad
     elif spline:
-        gradient = lambda xy: _gradient(fn, xy)  # noqa: E731
+        gradient = lambda xy: spline_gradient(fn, xy)  # noqa: E731
     elif isinstance(fn, AdaptiveSpline):  # on the host (FinestSpline): nothing compiled
         value_of, gradient = _both_at_once(fn)
     else:

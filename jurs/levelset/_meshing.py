@@ -71,7 +71,7 @@ BYTES_PER_SLAB_NODE, BYTES_PER_VERTEX, VERTICES_PER_PLANE_NODE = 16, 450, 8
 _EMPTY = (np.empty((0, 3)), np.empty((0, 3), dtype=np.int64))
 
 
-def _marching_cubes():
+def skimage_marching_cubes():
     try:
         from skimage.measure import marching_cubes
     except ImportError:
@@ -356,7 +356,7 @@ def _march_in_slabs(spline, axes, level: float, nudge: float, chunk: int):
     same values on the same edges); ``_weld`` merges them. Values within ``nudge`` of
     the level are set to ``level + nudge`` first (see ``NUDGE``).
     """
-    marching_cubes = _marching_cubes()
+    marching_cubes = skimage_marching_cubes()
     xs, ys, zs = axes
     planes = max(2, chunk // (len(ys) * len(zs)))
     vertex_parts, face_parts = [], []
@@ -421,7 +421,7 @@ def _adaptive_slope_bound(
 ) -> np.ndarray:
     """``_slope_bound`` of an adaptive spline (see there); ``(3,)``."""
     from .._model.finest import level_offsets
-    from .._model.hierarchy import _unravel
+    from .._model.hierarchy import unravel_keys
 
     hierarchy = spline.hierarchy
     cascaded = (evaluator or FinestSpline(spline)).cascaded
@@ -435,7 +435,7 @@ def _adaptive_slope_bound(
         if len(pairs) == 0:
             continue
         keys = np.asarray(hierarchy.function_keys[lev], np.int64)
-        multi = _unravel(keys[pairs], hierarchy.functions(lev))  # (p, 2, d)
+        multi = unravel_keys(keys[pairs], hierarchy.functions(lev))  # (p, 2, d)
         axis = np.argmax(np.abs(multi[:, 1] - multi[:, 0]), axis=1)
         step = np.abs(ratio[starts[lev] + pairs[:, 1]] - ratio[starts[lev] + pairs[:, 0]])
         width = np.asarray(hierarchy.cell_width(lev), np.float64)
@@ -456,7 +456,7 @@ def _mesh_band(spline, lower, upper, resolution: int, level: float, max_nodes, c
     faces)``. A default resolution (``chosen``) is lowered until the marched nodes fit in
     ``max_nodes``; a given one is refused past it (``check_band_size``)."""
     evaluator = FinestSpline(spline)
-    marching_cubes = _marching_cubes()
+    marching_cubes = skimage_marching_cubes()
     slope = _adaptive_slope_bound(spline, evaluator)
     while True:
         axes = lattice_axes(lower, upper, int(resolution))
