@@ -106,7 +106,7 @@ __all__ = [
 #: SciPy's KD-tree cost more to import than the core.
 _LAZY_SUBMODULES = ("datasets", "internal", "levelset", "plot", "shapes")
 #: Names loaded from their module on first access: the solver wrappers of optional or
-#: heavy libraries (optimistix alone takes about 0.1 s to import) and the normal estimation
+#: heavy libraries (optimistix alone is a noticeable share of the import) and the normal estimation
 #: (SciPy's sparse graphs and KD-tree).
 _LAZY_NAMES = {
     **{

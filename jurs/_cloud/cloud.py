@@ -160,7 +160,7 @@ class Cloud:
         """A KD-tree of the points that take part less those at the indices ``aside``
         (into ``points``): [`tree`][jurs.Cloud.tree] where there are none. Built once per
         set and kept (the settings measure the shape on it, the verdicts judge the fit on
-        it: a second tree of 1e6 points costs 0.4 s)."""
+        it: a second tree of a large cloud is a noticeable cost; docs/performance.md)."""
         if not aside:
             return self.tree
         kept: dict = self.__dict__.setdefault("_trees_without", {})

@@ -44,7 +44,7 @@ from .settings import Settings
 #: from the data, where a few cells suffice.
 BASE_CELLS = 8
 #: Finest cells along the longest side, at most (2D, 3D): the keys of a level are int32,
-#: and beyond these the band's functions outgrow a 2-core machine's memory.
+#: and beyond these the band's functions outgrow a workstation's memory (docs/performance.md).
 MAX_FINEST = {2: 4096, 3: 1024}
 #: The band, in cells of each level, around the cells that hold samples (curve, surface).
 #: On seven traced outlines (benchmarks/_realdata_cases.py, clean) a band of 1 gave the
@@ -75,12 +75,12 @@ AUTO_REFINEMENT = 1.5
 #: the uniform grid). At 1e5 points the hierarchy's fits (finest 64-384 cells, 87k-660k
 #: functions) beat screened Poisson at its best depth of 8, 9 and 10 in Chamfer and
 #: Hausdorff distance on all five shapes of benchmarks/surfaces.py, clean and noisy, where
-#: the uniform grid lost on the bunny and the airplane; its warm fit took 20-60 s and 1.4-3.5
-#: GB (benchmarks/results/surfaces_adaptive_1e5.md, 2-core CPU, CG on the host). Memory
-#: and time follow the active functions (3.0-3.5 GB and 49-60 s at 575k-660k), which grow
-#: with the points at three spacings a cell: at 1e6 points the cells the data ask for
-#: (about 3x finer) would hold some 6 million functions, tens of GB, so there the grid is
-#: kept (docs/design.md section 8).
+#: the uniform grid lost on the bunny and the airplane (their time and memory:
+#: benchmarks/results/surfaces_adaptive_1e5.md, docs/performance.md). Memory and time
+#: follow the active functions, which grow with the points at three spacings a cell: at
+#: 1e6 points the cells the data ask for (about 3x finer) would hold some 6 million
+#: functions, about ten times the largest measured, so there the grid is kept (docs/design.md
+#: section 8).
 AUTO_MAX_FINEST_3D = 384
 AUTO_MAX_SURFACE_POINTS = 150_000
 #: Where the uniform grid is capped, [`jurs.fit`][] fits it first and keeps it where its
@@ -273,9 +273,9 @@ def solve_host_cg(
     diagonal as preconditioner, the stop rule ``|r| <= rtol |D^T b|``) run by SciPy on the
     host, on the host matrices ``(D, 2 G^T W G)`` in CSR. Not differentiable.
 
-    On a CPU it is the faster of the two: a product with the CSR matrices took 9.5 ms
-    where XLA's segment sums over the same entries took 26 ms (a 20000-point bunny,
-    128k functions, 2-core CPU; docs/design.md section 8). On a GPU, ``solve_assembled``.
+    On a CPU it is the faster of the two: SciPy's products with the CSR matrices beat
+    XLA's segment sums over the same entries (docs/design.md section 8,
+    docs/performance.md). On a GPU, ``solve_assembled``.
     """
     from scipy.sparse import diags
     from scipy.sparse.linalg import LinearOperator, cg
@@ -334,7 +334,7 @@ def solve_direct(problem: AdaptiveProblem, lam: float, matrices=None):
     The normal matrix is symmetric positive definite, so an LDL^T without pivoting does:
     QDLDL (the ``qdldl`` package, OSQP's factorisation: a small pip wheel for every
     platform, AMD ordering). Measured on two traced outlines (23.9k and 34.6k functions),
-    it factorised and solved 1.3-2.5x faster than SciPy's SuperLU with COLAMD, the best
+    it factorised and solved faster than SciPy's SuperLU with COLAMD, the best
     of SuperLU's orderings here (docs/design.md section 8). A matrix QDLDL cannot factorise
     (a zero pivot: numerically singular, e.g. ``lam = 0`` with functions no sample
     reaches) goes to SuperLU, whose pivoting gives an answer whose residual says so.
@@ -355,7 +355,7 @@ def solve_normal(matrix, rhs: np.ndarray) -> tuple[np.ndarray, float]:
         import qdldl
 
         # QDLDL reads the upper triangle; cut here in one pass over the entries (its own
-        # cut goes through SciPy's triu, which sorts them again: 0.2-0.5 s at 24k functions).
+        # cut goes through SciPy's triu, which sorts them again; docs/performance.md).
         control = qdldl.Solver(_upper_triangle(matrix), upper=True).solve(rhs)
     except (ImportError, RuntimeError):
         from scipy.sparse.linalg import splu

@@ -26,9 +26,9 @@ from .packed import packed_gradients_at, packed_values_at
 
 # Traced evaluations (jurs._model.packed takes the others): one compiled program per
 # hierarchy and point count. Run eagerly, the leaf search and the
-# cascade compile each of their few dozen operations for every new shape (18 s against
-# 5.5 s for a first gradient on a 14k-function curve fit, a loaded 2-core CPU), and a warm
-# call is several times slower.
+# cascade compile each of their few dozen operations for every new shape (a first
+# gradient took over three times as long; docs/performance.md), and a warm call is
+# several times slower.
 _values = jax.jit(hierarchy_values)
 _values_and_gradients = jax.jit(hierarchy_values_and_gradients)
 

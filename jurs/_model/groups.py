@@ -70,7 +70,7 @@ def map_groups(fn, local: LocalBasis) -> Array:
 def grouped_values(local: LocalBasis, flat: Array, shape: tuple[int, ...]) -> Array:
     """F of the flat grids ``(..., size)`` by the slots' groups: each group's ``4 ** d``
     coefficients gathered once and contracted with each entry's per-axis basis values one
-    axis at a time (never the ``4 ** d`` products: 4x faster at 1e6 surface points), then
+    axis at a time (never the ``4 ** d`` products, which ran slower; docs/performance.md), then
     read back in slot order; ``(..., S)``."""
     assert local.group_position is not None  # the group fields are set together
     offsets = jnp.asarray(patch_offsets(shape))

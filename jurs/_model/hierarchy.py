@@ -75,7 +75,8 @@ def unravel_keys(key: np.ndarray, extent: tuple[int, ...]) -> np.ndarray:
 
 #: Key ranges up to this many entries are looked up in a table (``_KeySet``), larger ones
 #: by a sorted search. The table is allocated zeroed (untouched pages cost nothing) and
-#: read at random: on a 2D hierarchy it replaces a binary search per key, ten times faster.
+#: read at random: on a 2D hierarchy it replaces a slower binary search per key
+#: (docs/performance.md).
 TABLE_KEYS = 1 << 24
 
 
@@ -238,8 +239,8 @@ def _parents(
     one with weight 0.
 
     Built by broadcasting the per-axis ``(k, 3)`` keys and weights: a ``(k, 3^d, d)`` array
-    of multi-indices, raveled after, took a third of a fine 3D hierarchy's build (about
-    20 of 60 s at 1.3M active functions)."""
+    of multi-indices, raveled after, took a third of a fine 3D hierarchy's build
+    (docs/performance.md)."""
     ndim = functions.shape[1]
     key = np.zeros((functions.shape[0],) + (1,) * ndim, dtype=np.int64)
     weight = np.ones((functions.shape[0],) + (1,) * ndim)

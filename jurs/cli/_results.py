@@ -150,9 +150,9 @@ def adaptive_resolution(spline) -> int:
     """An adaptive curve's level-set grid (``--resolution`` not given): one node per finest
     cell along the longer side, at least ``DEFAULT_RESOLUTION`` (512) and at most
     ``MAX_ADAPTIVE_RESOLUTION``. An adaptive spline is evaluated point by point (a leaf
-    search, then its 16 terms): 769^2 nodes took 2.5 s and 2049^2 took 21 s on a 2-core
-    CPU running other jobs (load 11), so a finer default grid would cost more than the
-    fit."""
+    search, then its 16 terms), its time grows with the nodes, and a finer default grid
+    would cost more than the fit (docs/performance.md, "Measurements behind the level-set
+    and plotting defaults")."""
     from .. import levelset as ls
 
     finest = max(spline.finest_cells)
