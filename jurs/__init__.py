@@ -16,11 +16,10 @@ import importlib
 from typing import TYPE_CHECKING
 
 from ._cloud.cloud import Cloud
-from ._fit.adaptive import fit_adaptive
 from ._fit.attributes import AttributeField, fit_attributes
 from ._fit.compile import COMPILER_OPTIONS, enable_compilation_cache
-from ._fit.fit import fit
-from ._fit.progress import fit_in_chunks
+from ._fit.fit import fit, fit_in_chunks
+from ._fit.fit_adaptive import fit_adaptive
 from ._fit.settings import Settings, auto_settings
 from ._model.adaptive import AdaptiveSpline
 from ._model.function import AbstractSpline
@@ -109,7 +108,7 @@ __all__ = [
 #: SciPy's KD-tree cost more to import than the core.
 _LAZY_SUBMODULES = ("datasets", "internal", "levelset", "plot", "shapes")
 #: Names loaded from their module on first access: the solver wrappers of optional or
-#: heavy libraries (optimistix alone takes about 0.1 s to import) and the normal estimation
+#: heavy libraries (optimistix alone is a noticeable share of the import) and the normal estimation
 #: (SciPy's sparse graphs and KD-tree).
 _LAZY_NAMES = {
     **{

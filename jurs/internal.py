@@ -22,8 +22,8 @@ from ._model.hierarchy import (
     refine_near,
 )
 from ._model.leaves import hierarchy_gradient, hierarchy_values, leaf_terms, locate_leaves
+from ._model.local import LocalBasis
 from ._model.spline import (
-    LocalBasis,
     bspline_transpose,
     bspline_values,
     local_basis,

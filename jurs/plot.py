@@ -25,7 +25,7 @@ from jaxtyping import Float, Int
 
 from ._model.spline import ImplicitSpline
 from .levelset import evaluate_grid, sampling_grid
-from .levelset._mesh_analysis import _check_mesh
+from .levelset._faces import check_mesh
 
 if TYPE_CHECKING:  # matplotlib loads at the first figure
     from matplotlib.figure import Figure
@@ -374,7 +374,7 @@ def decimate_mesh(
         point anywhere); these keep the original surface's shading. A mesh with no more
         than ``max_faces`` faces comes back as it is, with its own face normals.
     """
-    vertices, faces = _check_mesh(vertices, faces)
+    vertices, faces = check_mesh(vertices, faces)
     flags = np.zeros(len(faces), bool) if flags is None else np.asarray(flags)
     if int(max_faces) < 1:
         raise ValueError(f"max_faces must be >= 1, got {max_faces}")
@@ -546,7 +546,7 @@ def plot_mesh(
 
     Returns the Figure.
     """
-    vertices, faces = _check_mesh(vertices, faces)
+    vertices, faces = check_mesh(vertices, faces)
     views = [tuple(map(float, v)) for v in views]
     if not views or any(len(v) != 2 for v in views):
         raise ValueError(f"views must be (elevation, azimuth) pairs, got {views}")

@@ -239,12 +239,12 @@ def test_command_line_carries_ply_colours_onto_the_mesh(tmp_path, monkeypatch):
     mesh.ply's vertices (red above the equator, blue below)."""
     trimesh = pytest.importorskip("trimesh")
     from jurs import cli
-    from jurs.datasets._files import _write_ply
+    from jurs.datasets._files import write_ply
 
     monkeypatch.setenv("JURS_NO_COMPILATION_CACHE", "1")  # as tests/test_cli_surfaces.py
     points, normals = jurs.datasets.sphere3d(1500)
     rgb = np.where(points[:, 2:] > 0, [[255, 0, 0]], [[0, 0, 255]]).astype(np.uint8)
-    _write_ply(str(tmp_path / "scan.ply"), points, normals=normals, colors=rgb)
+    write_ply(str(tmp_path / "scan.ply"), points, normals=normals, colors=rgb)
     out = tmp_path / "result"
     assert cli.main(["fit", str(tmp_path / "scan.ply"), "-o", str(out), "--grid", "12", "-q"]) == 0
     mesh = trimesh.load(out / "mesh.ply", process=False)

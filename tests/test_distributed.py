@@ -86,7 +86,7 @@ CHILD = textwrap.dedent(
     # Normals estimated over both processes: the gathered cloud's exactly; past the
     # gathered size (forced: 500 probes) each process's PCA signed by the probes'.
     from jax.experimental.multihost_utils import process_allgather
-    from jurs._cloud.parts import normals_across_processes
+    from jurs._cloud.normals import normals_across_processes
 
     gathered = lambda x: np.asarray(process_allgather(x, tiled=True))
     est = jurs.estimate_normals(gp)

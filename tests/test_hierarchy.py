@@ -9,7 +9,7 @@ import pytest
 
 import jurs
 from jurs._fit.adaptive import adaptive_layout, solve_adaptive, solve_direct
-from jurs._model.hierarchy import _offsets, _ravel, _unravel
+from jurs._model.hierarchy import cube_offsets, ravel_keys, unravel_keys
 from jurs._problem.adaptive import (
     adaptive_metrics,
     assemble_adaptive_problem,
@@ -94,7 +94,7 @@ def test_one_search_over_levels_equals_a_search_per_level(ndim, monkeypatch):
     x = _random_points(hierarchy, 300)
     level, cell = module.locate_leaves(hierarchy, x)
     positions, t = module.leaf_terms(hierarchy, x, level, cell)
-    monkeypatch.setattr(module, "_MAX_KEY", 0)
+    monkeypatch.setattr(module, "MAX_KEY", 0)
     per_level, t_per_level = module.leaf_terms(hierarchy, x, level, cell)
     np.testing.assert_array_equal(positions, per_level)
     np.testing.assert_array_equal(t, t_per_level)
@@ -111,8 +111,10 @@ def test_active_functions_are_linearly_independent(ndim):
     columns, start = [], 0
     for level in range(hierarchy.num_levels):
         cells, extent = hierarchy.cells(level), hierarchy.functions(level)
-        leaves = _unravel(np.asarray(hierarchy.leaf_keys[level]), cells)
-        over = _ravel((leaves[:, None, :] + _offsets(ndim, 4)[None]).reshape(-1, ndim), extent)
+        leaves = unravel_keys(np.asarray(hierarchy.leaf_keys[level]), cells)
+        over = ravel_keys(
+            (leaves[:, None, :] + cube_offsets(ndim, 4)[None]).reshape(-1, ndim), extent
+        )
         keys = np.asarray(hierarchy.function_keys[level])
         columns.append(np.searchsorted(keys, np.unique(over)) + start)
         start += hierarchy.level_sizes[level]

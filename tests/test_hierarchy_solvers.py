@@ -7,6 +7,7 @@ import pytest
 
 import jurs
 from jurs._fit import adaptive as adaptive_fit
+from jurs._problem.adaptive import assemble_adaptive_problem
 
 
 @pytest.fixture(scope="module")
@@ -59,7 +60,7 @@ def test_row_weighted_solves_agree_with_the_factorisation(method):
     cloud = jurs.Cloud(points, normals)
     settings = jurs.auto_settings(cloud)
     layout = adaptive_fit.hierarchy_layout(settings, 2, None, None, None, None, None)
-    problem, matrices = adaptive_fit.assemble_adaptive_problem(points, normals, **layout)
+    problem, matrices = assemble_adaptive_problem(points, normals, **layout)
     weights = np.random.default_rng(1).uniform(0.1, 1.0, len(problem.targets))
     lam = 1e-3
     exact, _ = adaptive_fit.solve_direct(problem, lam, matrices, weights)

@@ -31,11 +31,11 @@ def test_missing_scikit_image_says_to_install_from_the_checkout(monkeypatch):
     """jurs is not published: the hint installs the extra from the checkout."""
     import sys
 
-    from jurs.levelset._meshing import _marching_cubes
+    from jurs.levelset._meshing import skimage_marching_cubes
 
     monkeypatch.setitem(sys.modules, "skimage.measure", None)
     with pytest.raises(ImportError, match=r"pip install -e '\.\[surfaces\]'"):
-        _marching_cubes()
+        skimage_marching_cubes()
 
 
 def greville_nodes(lower, upper, shape):

@@ -11,7 +11,7 @@ import jax
 import numpy as np
 from jaxtyping import Float
 
-from .._problem.validate import _is_concrete, unit_normals, validate_points
+from .._problem.validate import is_concrete, unit_normals, validate_points
 from .measure import (
     PROBES,
     check_encloses,
@@ -62,7 +62,7 @@ class Cloud:
     """
 
     def __init__(self, points: Any, normals: Any = None, mask: Any = None):
-        if not _is_concrete(points, normals, mask):
+        if not is_concrete(points, normals, mask):
             raise ValueError(
                 "a Cloud holds concrete points (it is measured on the host); under jit, "
                 "grad or vmap pass the arrays to jurs.fit with every setting given"
@@ -160,7 +160,7 @@ class Cloud:
         """A KD-tree of the points that take part less those at the indices ``aside``
         (into ``points``): [`tree`][jurs.Cloud.tree] where there are none. Built once per
         set and kept (the settings measure the shape on it, the verdicts judge the fit on
-        it: a second tree of 1e6 points costs 0.4 s)."""
+        it: a second tree of a large cloud is a noticeable cost; docs/performance.md)."""
         if not aside:
             return self.tree
         kept: dict = self.__dict__.setdefault("_trees_without", {})

@@ -37,8 +37,8 @@ def query_all(tree: cKDTree, points: np.ndarray, k: int) -> tuple[np.ndarray, np
     tree's own ``points``, queried in the tree's leaf order and returned in theirs.
 
     Why: queries in a cloud's own order (random on a scan) walk the whole tree for each
-    point; in leaf order consecutive queries read the same nodes. On 1e6 surface points,
-    k = 9: 3.3 s against 1.3 s (2 cores), the same results. Any order gives the same
+    point; in leaf order consecutive queries read the same nodes: more than twice as fast
+    on a large scan, the same results (docs/performance.md). Any order gives the same
     answers, so ``points`` other than the tree's (of its size) are queried correctly too."""
     order = tree.indices if len(points) == tree.n else np.arange(len(points))
     dist, index = tree.query(points[order], k=k, workers=-1)

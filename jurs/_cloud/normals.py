@@ -38,6 +38,7 @@ from __future__ import annotations
 import functools
 from typing import NamedTuple
 
+import jax
 import numpy as np
 from jaxtyping import ArrayLike, Float
 from scipy import sparse
@@ -45,19 +46,22 @@ from scipy.sparse import csgraph
 from scipy.spatial import cKDTree  # pyright: ignore[reportAttributeAccessIssue]  # no stub
 
 from .measure import (
+    PROBES,
     check_encloses,
     check_narrow_type,
     check_rounding,
+    kd_tree,
     principal_widths,
     query_all,
 )
+from .parts import agree, gathered_probes, local_rows, spans_processes
 from .signs import forest_signs
 from .winding import (
     DENSE_PAIRS,
-    _dipole_kernel,
-    _patch_fields_clustered,
-    _patch_fields_dense,
-    _solve_signs,
+    dipole_kernel,
+    patch_fields_clustered,
+    patch_fields_dense,
+    solve_signs,
 )
 
 #: Candidate neighbour counts for PCA, per dimension (the smallest good one is taken).
@@ -357,11 +361,9 @@ def estimate_normals(
 
     Points held by several processes (a global ``jax.Array`` no process holds whole):
     every process calls this and gets a global array of the normals, split like the
-    points (``jurs._cloud.parts.normals_across_processes``, docs/sharding.md); no
+    points (``normals_across_processes``, below, docs/sharding.md); no
     ``return_info`` there.
     """
-    from .parts import normals_across_processes, spans_processes
-
     if spans_processes(points):
         if return_info:
             raise ValueError("return_info: not over several processes (docs/sharding.md)")
@@ -454,14 +456,12 @@ def _orient(points, normals, values, noise, neighbours, tree, rng, confidence):
         np.arange(m) if m <= MAX_QUERIES else np.sort(rng.choice(m, MAX_QUERIES, replace=False))
     )
     if len(queries) * m <= DENSE_PAIRS:
-        fields = _patch_fields_dense(points[queries], points, dipoles, eps, patch, n_patch)
+        fields = patch_fields_dense(points[queries], points, dipoles, eps, patch, n_patch)
     else:
-        fields = _patch_fields_clustered(
-            points[queries], points, dipoles, eps, patch, n_patch, tree
-        )
+        fields = patch_fields_clustered(points[queries], points, dipoles, eps, patch, n_patch, tree)
     centre = np.stack([np.bincount(patch, points[:, a], n_patch) for a in range(d)], 1)
     centre /= np.bincount(patch, minlength=n_patch)[:, None]
-    signs = _solve_signs(fields, weight[queries], patch_tree, centre)
+    signs = solve_signs(fields, weight[queries], patch_tree, centre)
     residual = float(
         np.sqrt(np.average((fields @ signs - 0.5) ** 2, weights=weight[queries] + 1e-300))
     )
@@ -507,8 +507,8 @@ def _point_corrections(points, normals, area, eps, offset, tree, neighbours, rou
             near = near_all[idx]
             delta = (offset[idx, None] * normals[idx])[:, None, :]
             src, dip, e = points[near], dipoles[near], eps[near]
-            outside = _dipole_kernel(points[idx, None, :] + delta, src, dip, e).sum(1)
-            inside = _dipole_kernel(points[idx, None, :] - delta, src, dip, e).sum(1)
+            outside = dipole_kernel(points[idx, None, :] + delta, src, dip, e).sum(1)
+            inside = dipole_kernel(points[idx, None, :] - delta, src, dip, e).sum(1)
             rising[idx] = outside - inside > CHECK_MARGIN[d]
         if not rising.any():
             break
@@ -516,3 +516,39 @@ def _point_corrections(points, normals, area, eps, offset, tree, neighbours, rou
         flipped ^= rising
         check = np.flatnonzero(rising[near_all].any(axis=1))  # only where something moved
     return normals, int(flipped.sum())
+
+
+def normals_across_processes(points, k=None, orient=True, seed=0, most: int = PROBES):
+    """[`jurs.estimate_normals`][] of a cloud whose rows the global array ``points``
+    spreads over several processes: a global array of outward unit normals, split like
+    the points. Every process calls it.
+
+    At most ``most`` (``PROBES``) points: the cloud is all-gathered and every process estimates its
+    normals as one process does (the same normals exactly), keeping its own rows'.
+    More: ``most`` strided points are gathered and their normals estimated and
+    oriented there (the whole shape, sparser); each process estimates the unsigned
+    normals of its own rows (local PCA over its own points: at the edge of its part a
+    neighbourhood holds only the points on its side, no halo) and takes each point's
+    sign from its nearest gathered point's oriented normal."""
+    rows, p = local_rows(points)
+    p = np.asarray(p, float)
+    total = int(points.shape[0])
+    held, sample = gathered_probes(rows, p, total, most)
+    oriented = estimate_normals(sample, k=k, orient=orient, seed=seed)
+    assert isinstance(oriented, np.ndarray)
+    if len(held) == total:  # the whole cloud: this process's rows of its normals
+        mine = oriented[np.searchsorted(held, rows)]
+    else:
+        failure, mine = None, None
+        try:  # this process's own rows: an error here is raised in every process
+            mine = estimate_normals(p, k=k, orient=False, seed=seed)
+        except (TypeError, ValueError) as error:
+            failure = type(error)(f"process {jax.process_index()}, its own part: {error}")
+        agree(failure, "estimating its normals")
+        assert isinstance(mine, np.ndarray)
+        if orient:
+            nearest = kd_tree(sample).query(p)[1]
+            flip = np.sum(mine * oriented[nearest], axis=1) < 0
+            mine = np.where(flip[:, None], -mine, mine)
+    mine = np.ascontiguousarray(mine.astype(points.dtype))
+    return jax.make_array_from_process_local_data(points.sharding, mine, tuple(points.shape))

@@ -1,6 +1,6 @@
 """A cloud held by several processes (``jax.distributed``): each process's own rows of the
-global arrays, small all-gathers of per-process values, and the normals of such a cloud
-(docs/sharding.md, "Normals over processes")."""
+global arrays, small all-gathers of per-process values (the normals of such a cloud:
+``normals.normals_across_processes``, docs/sharding.md, "Normals over processes")."""
 
 from __future__ import annotations
 
@@ -8,7 +8,7 @@ import jax
 import numpy as np
 from jax.core import Tracer
 
-from .measure import PROBES, kd_tree, strided_probes
+from .measure import strided_probes
 
 
 def spans_processes(x) -> bool:
@@ -71,41 +71,3 @@ def agree(failure: Exception | None, what: str) -> None:
         raise failure
     if failed.size:
         raise RuntimeError(f"process {failed.tolist()} failed {what} (see its error)")
-
-
-def normals_across_processes(points, k=None, orient=True, seed=0, most: int = PROBES):
-    """[`jurs.estimate_normals`][] of a cloud whose rows the global array ``points``
-    spreads over several processes: a global array of outward unit normals, split like
-    the points. Every process calls it.
-
-    At most ``most`` (``PROBES``) points: the cloud is all-gathered and every process estimates its
-    normals as one process does (the same normals exactly), keeping its own rows'.
-    More: ``most`` strided points are gathered and their normals estimated and
-    oriented there (the whole shape, sparser); each process estimates the unsigned
-    normals of its own rows (local PCA over its own points: at the edge of its part a
-    neighbourhood holds only the points on its side, no halo) and takes each point's
-    sign from its nearest gathered point's oriented normal."""
-    from .normals import estimate_normals
-
-    rows, p = local_rows(points)
-    p = np.asarray(p, float)
-    total = int(points.shape[0])
-    held, sample = gathered_probes(rows, p, total, most)
-    oriented = estimate_normals(sample, k=k, orient=orient, seed=seed)
-    assert isinstance(oriented, np.ndarray)
-    if len(held) == total:  # the whole cloud: this process's rows of its normals
-        mine = oriented[np.searchsorted(held, rows)]
-    else:
-        failure, mine = None, None
-        try:  # this process's own rows: an error here is raised in every process
-            mine = estimate_normals(p, k=k, orient=False, seed=seed)
-        except (TypeError, ValueError) as error:
-            failure = type(error)(f"process {jax.process_index()}, its own part: {error}")
-        agree(failure, "estimating its normals")
-        assert isinstance(mine, np.ndarray)
-        if orient:
-            nearest = kd_tree(sample).query(p)[1]
-            flip = np.sum(mine * oriented[nearest], axis=1) < 0
-            mine = np.where(flip[:, None], -mine, mine)
-    mine = np.ascontiguousarray(mine.astype(points.dtype))
-    return jax.make_array_from_process_local_data(points.sharding, mine, tuple(points.shape))

@@ -22,7 +22,7 @@ NEAR_NEIGHBOURS = 48
 DENSE_PAIRS = 1.5e7
 
 
-def _dipole_kernel(queries, sources, dipoles, eps):
+def dipole_kernel(queries, sources, dipoles, eps):
     """Regularised generalised winding number of dipoles at ``queries``, pairwise
     (broadcast): ``D . (p - x) / (omega_d (|p - x|^2 + eps^2)^(d/2))``, omega_2 = 2 pi,
     omega_3 = 4 pi. Outward dipoles (area x unit normal) on a closed surface sum to 1
@@ -35,7 +35,7 @@ def _dipole_kernel(queries, sources, dipoles, eps):
 
 
 def _dipole_matrix(queries, sources, dipoles, eps):
-    """``_dipole_kernel`` for every query-source pair, ``(Q, S)``, written with matrix
+    """``dipole_kernel`` for every query-source pair, ``(Q, S)``, written with matrix
     products (``D . (p - x) = D . p - D . x``, ``|p - x|^2 = |p|^2 + |x|^2 - 2 p . x``)
     so that no ``(Q, S, d)`` temporary is built."""
     d = queries.shape[1]
@@ -53,7 +53,7 @@ def _dipole_matrix(queries, sources, dipoles, eps):
     return flux
 
 
-def _patch_fields_dense(queries, points, dipoles, eps, patch, n_patches):
+def patch_fields_dense(queries, points, dipoles, eps, patch, n_patches):
     """Field of every patch at every query, exactly: ``(Q, P)``."""
     owner = sparse.csr_matrix(
         (np.ones(len(points)), (np.arange(len(points)), patch)), shape=(len(points), n_patches)
@@ -66,7 +66,7 @@ def _patch_fields_dense(queries, points, dipoles, eps, patch, n_patches):
     return out
 
 
-def _patch_fields_clustered(queries, points, dipoles, eps, patch, n_patches, tree):
+def patch_fields_clustered(queries, points, dipoles, eps, patch, n_patches, tree):
     """Field of every patch at every query: exact over each query's
     ``NEAR_NEIGHBOURS`` nearest points, the rest from clusters (a voxel of half the
     near radius, within one patch) summed into one dipole at their centroid."""
@@ -93,8 +93,8 @@ def _patch_fields_clustered(queries, points, dipoles, eps, patch, n_patches, tre
         out[s : s + step] = (owner.T @ kernel.T).T
     # Near points: exact minus their share of their cluster's centroid approximation.
     q = queries[:, None, :]
-    exact = _dipole_kernel(q, points[near], dipoles[near], eps[near])
-    approx = _dipole_kernel(q, centre[cluster[near]], dipoles[near], c_eps[cluster[near]])
+    exact = dipole_kernel(q, points[near], dipoles[near], eps[near])
+    approx = dipole_kernel(q, centre[cluster[near]], dipoles[near], c_eps[cluster[near]])
     rows = np.repeat(np.arange(len(queries)), near.shape[1])
     np.add.at(out, (rows, patch[near].ravel()), (exact - approx).ravel())
     return out
@@ -151,7 +151,7 @@ def _pair_moves(centre: np.ndarray, count: int = 4) -> np.ndarray:
     return np.unique(moves, axis=0)
 
 
-def _solve_signs(fields, weight, patch_tree, centre):
+def solve_signs(fields, weight, patch_tree, centre):
     """Patch signs ``s`` (+1/-1) minimising ``sum_q weight_q (fields_q . s - 1/2)^2``.
 
     A binary quadratic problem, solved exactly by enumeration up to

@@ -32,7 +32,8 @@ import numpy as np
 from jax import lax
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from .._cloud.parts import agree, allgather, gather_ragged, normals_across_processes
+from .._cloud.normals import normals_across_processes
+from .._cloud.parts import agree, allgather, gather_ragged
 from .._linalg.pcg import conjugate_gradients
 from .._model.adaptive import AdaptiveSpline
 from .._model.precision import on_device
@@ -43,19 +44,19 @@ from .adaptive import (
     DEFAULT_RTOL,
     DIRECT_RTOL,
     FLOAT32_RTOL,
-    _padded,
     hierarchy_layout,
+    padded_to,
     size_class,
     solve_normal,
 )
 from .process_settings import (
-    _bounds,
+    bounds_across_processes,
     check_global_arrays,
     local_cloud,
     settings_across_processes,
 )
 from .settings import Settings, scale_free_lam
-from .sharding import _axis_size, _process_positions, input_sharding
+from .sharding import input_sharding, point_axis_size, process_positions
 
 
 def device_rows(count: int, points: int, shards: int) -> np.ndarray:
@@ -71,9 +72,9 @@ def _host_coo(matrix, nnz: int, dtype) -> tuple[np.ndarray, np.ndarray, np.ndarr
     entries with zeros at (0, 0), which add exactly nothing."""
     coo = matrix.tocoo()
     return (
-        _padded(coo.row.astype(np.int32), nnz),
-        _padded(coo.col.astype(np.int32), nnz),
-        _padded(coo.data.astype(dtype), nnz),
+        padded_to(coo.row.astype(np.int32), nnz),
+        padded_to(coo.col.astype(np.int32), nnz),
+        padded_to(coo.data.astype(dtype), nnz),
     )
 
 
@@ -98,8 +99,8 @@ def split_rows(collocation, targets: np.ndarray, points: int, devices: int, dtyp
     entries, values, data = [], [], []
     for rows, block in zip(parts, blocks):
         entries.append(_host_coo(block, nnz, dtype))
-        values.append(_padded(np.asarray(targets, float)[rows], length))
-        data.append(_padded(rows < points, length, False))
+        values.append(padded_to(np.asarray(targets, float)[rows], length))
+        data.append(padded_to(rows < points, length, False))
     coo = tuple(np.concatenate([e[i] for e in entries]) for i in range(3))
     return coo, np.concatenate(values).astype(dtype), np.concatenate(data)
 
@@ -126,7 +127,7 @@ def _sharded_cg(
         rows, cols, values = entries
         return jax.ops.segment_sum(values * v[rows], cols, n)
 
-    local = targets.shape[0] // _axis_size(NamedSharding(mesh, split))  # rows a device
+    local = targets.shape[0] // point_axis_size(NamedSharding(mesh, split))  # rows a device
 
     @functools.partial(on_parts, in_specs=(split, whole), out_specs=whole)
     def data_normal(entries, c):  # D^T D c = sum_k D_k^T D_k c
@@ -180,7 +181,7 @@ def solve_sharded(
     process."""
     collocation, regulariser = matrices
     count, n = collocation.shape
-    shards = _axis_size(sharding)
+    shards = point_axis_size(sharding)
     mesh, names = sharding.mesh, sharding.spec[0]
     split = NamedSharding(mesh, PartitionSpec(names))
     replicated = NamedSharding(mesh, PartitionSpec())
@@ -190,7 +191,7 @@ def solve_sharded(
         )
         put_split = functools.partial(jax.device_put, device=split)
     else:
-        mine = len(_process_positions(sharding, shards))
+        mine = len(process_positions(sharding, shards))
         coo, targets, is_data = split_rows(
             collocation, np.asarray(problem.targets), count // 3, mine, dtype, _agreed_max
         )
@@ -204,7 +205,7 @@ def solve_sharded(
         return jax.make_array_from_process_local_data(replicated, x, x.shape)
 
     reg_coo = _host_coo(regulariser, size_class(regulariser.nnz), dtype)
-    regulariser_diagonal = _padded(np.asarray(problem.regulariser_diagonal, float), size_class(n))
+    regulariser_diagonal = padded_to(np.asarray(problem.regulariser_diagonal, float), size_class(n))
     control, steps, residual, data, largest = _sharded_cg(
         tuple(put_split(a) for a in coo),
         put_split(targets),
@@ -239,8 +240,8 @@ def _summed(local: np.ndarray, sharding: NamedSharding) -> np.ndarray:
     """Every process's ``local`` (one vector, the same length in all) summed: an
     all-reduce over the processes' devices (this process's vector on its first device,
     zeros on the others), the sum back on the host of every process."""
-    shards = _axis_size(sharding)
-    mine = len(_process_positions(sharding, shards))
+    shards = point_axis_size(sharding)
+    mine = len(process_positions(sharding, shards))
     rows = np.zeros((mine, local.shape[0]), local.dtype)
     rows[0] = local
     mesh, names = sharding.mesh, sharding.spec[0]
@@ -370,7 +371,7 @@ def fit_adaptive_across_processes(
     finest_width = float(np.max((upper - lower) / np.asarray(hierarchy.cells(finest_level))))
     if lam is None:
         strength = settings.smoothing if smoothing is None else float(smoothing)
-        lo, hi = _bounds(p)
+        lo, hi = bounds_across_processes(p)
         diagonal = float(np.linalg.norm(hi - lo))
         lam = scale_free_lam(strength, 3 * total, diagonal, lower, upper, finest_width)
     if rtol is None:

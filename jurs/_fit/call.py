@@ -14,7 +14,7 @@ from jax.core import Tracer
 
 from .._model.io import SPLINE_KEYS, check_spline_arrays
 from .._model.spline import ImplicitSpline
-from .._problem.validate import _is_concrete
+from .._problem.validate import is_concrete
 from ..solvers import AbstractSolver, solve
 from .compile import COMPILER_OPTIONS, call_stored
 from .sharding import is_sharded
@@ -37,7 +37,7 @@ def check_start(shape, solver, init) -> None:
         raise TypeError(f"init must be a jurs.ImplicitSpline, got {type(init).__name__}")
     if init is not None and tuple(init.shape) != shape:
         raise ValueError(f"init spline has grid {init.shape}, expected {shape}")
-    if init is not None and _is_concrete(init):  # a NaN start ran into RESULTS.nonfinite
+    if init is not None and is_concrete(init):  # a NaN start ran into RESULTS.nonfinite
         check_spline_arrays({k: np.asarray(getattr(init, k)) for k in SPLINE_KEYS}, "init: ")
 
 
@@ -144,7 +144,7 @@ def _trace_state_clean() -> bool:
 def at_top_level(tree) -> bool:
     """Whether no leaf of ``tree`` is traced and a jit called here runs as an outermost
     computation, not staged into a caller's jit (XLA takes compiler options only there)."""
-    if not _is_concrete(tree):
+    if not is_concrete(tree):
         return False
     if _trace_state_clean():  # nothing is tracing: the common, cheap answer
         return True

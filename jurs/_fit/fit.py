@@ -26,10 +26,10 @@ from .._problem.padding import padded_problem
 from .._problem.problem import make_problem
 from .._problem.sizes import DEFAULT_MARGIN
 from .._problem.validate import (
-    _is_concrete,
-    _shape,
     check_values,
+    is_concrete,
     normalise_grid,
+    shape_of,
     validate_settings,
 )
 from .._solution.solution import RAISED_RESULTS, Solution, error_message
@@ -39,11 +39,11 @@ from .adaptive import (
     UNIFORM_RESIDUAL_SPACINGS,
     auto_finest,
     check_hierarchy_solver,
-    fit_adaptive,
     uniform_residual,
     wants_adaptive,
 )
 from .call import as_arrays, check_start, solve_fit
+from .fit_adaptive import fit_adaptive
 from .processes import fit_across_processes
 from .progress import chunked_run
 from .settings import Settings, choose_settings, default_solver, set_aside_mask
@@ -150,7 +150,7 @@ def _problem_of(cloud: Cloud, shape, offset, eps, domain, margin, bucket_size, d
         dtype,
         support,
     )
-    if key is not None and _is_concrete(problem):
+    if key is not None and is_concrete(problem):
         kept[key] = problem
         while len(kept) > KEPT_PROBLEMS:
             kept.popitem(last=False)
@@ -210,7 +210,7 @@ def _uniform_only(
     if spans_processes(points, normals):
         if basis != "adaptive":
             names.append("points split over processes")
-    elif not isinstance(points, Cloud) and not _is_concrete(points, normals):
+    elif not isinstance(points, Cloud) and not is_concrete(points, normals):
         names.append("traced points")
     return names
 
@@ -218,7 +218,7 @@ def _uniform_only(
 def _point_dimension(points) -> int:
     """The d of ``(m, d)`` points; 2 for anything else (make_problem names the error)."""
     try:
-        shape = _shape(points)
+        shape = shape_of(points)
     except (TypeError, ValueError):
         return 2
     return shape[1] if len(shape) == 2 and shape[1] in (2, 3) else 2
@@ -376,6 +376,64 @@ def fit(
     return sol
 
 
+def fit_in_chunks(
+    points,
+    normals,
+    *,
+    solver: AbstractSolver,
+    chunk: int | None = None,
+    checkpoints=(),
+    callback: Callable[[int, int], None] | None = None,
+    **fit_kwargs,
+):
+    """Run ``jurs.fit`` with ``solver`` in chunks of ``chunk`` steps.
+
+    The fit [`jurs.fit`][] makes of the same arguments (one cloud, one problem, the
+    same settings, checks and verdicts), its solve run by ``solve_in_chunks``
+    (``jurs._fit.progress``).
+
+    Args:
+        solver: the solver; its ``max_steps`` is the total number of steps.
+        chunk: steps per call at most (default ``chunk_size``); a chunk also ends at
+            each checkpoint.
+        checkpoints: step counts at which to keep the spline (e.g. ``(0, 10, 50, 200)``).
+        callback: called as ``callback(steps_done, max_steps)`` after every chunk.
+        **fit_kwargs: as for [`jurs.fit`][] (grid, offset, eps, domain, margin, init,
+            mask, bucket_size, settings, checks); ``throw`` (default True) applies to the
+            run's final verdict.
+
+    Returns:
+        ``(solution, snapshots)``: the final [`jurs.Solution`][], with ``num_steps`` and
+        ``energy_history`` of the whole run, and a dict ``{step: spline}`` for the
+        checkpoints reached (a run that converges early stops there).
+    """
+    unknown = set(fit_kwargs) - set(_CHUNKED_OPTIONS)
+    if unknown:
+        raise TypeError(f"fit_in_chunks got unexpected keyword arguments {sorted(unknown)}")
+    defaults = fit.__kwdefaults__ or {}
+    options = {name: fit_kwargs.get(name, defaults[name]) for name in _CHUNKED_OPTIONS}
+    run = functools.partial(chunked_run, chunk=chunk, checkpoints=checkpoints, callback=callback)
+    sol, snapshots = _fit(points, normals, solver=solver, run=run, **options)
+    return sol, snapshots
+
+
+#: The keywords fit_in_chunks passes on to jurs.fit (with jurs.fit's defaults).
+_CHUNKED_OPTIONS = (
+    "grid",
+    "offset",
+    "eps",
+    "domain",
+    "margin",
+    "init",
+    "mask",
+    "bucket_size",
+    "smoothing",
+    "settings",
+    "checks",
+    "throw",
+)
+
+
 def _on_hierarchy(
     cloud, settings, checks, throw, estimated, residual=None, solver=None
 ) -> Solution:
@@ -443,7 +501,7 @@ def _fit(
     if isinstance(points, Cloud):
         if normals is not None or mask is not None:
             raise ValueError("fit(cloud): the cloud holds its normals and mask; pass neither")
-    elif not _is_concrete(points, normals, mask):
+    elif not is_concrete(points, normals, mask):
         if run is not None:
             raise ValueError("a chunked run or a callback needs concrete points (on the host)")
         args = grid, solver, offset, eps, domain, margin, init, mask, bucket_size, throw

@@ -45,11 +45,11 @@ from .settings import (
     FEATURE_CELLS,
     FEATURE_QUANTILE,
     Settings,
-    _held_out_smoothing,
     choose_grid,
     choose_settings,
     choose_smoothing,
     data_cell,
+    held_out_smoothing,
     scale_free_lam,
 )
 
@@ -66,7 +66,7 @@ def check_global_arrays(points, normals) -> None:
             )
 
 
-def _bounds(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+def bounds_across_processes(x: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """Lower and upper corner of every process's rows ``x`` together (an all-reduce)."""
     d = x.shape[1]
     local = np.stack([x.min(axis=0), x.max(axis=0)]) if len(x) else np.full((2, d), np.nan)
@@ -160,7 +160,7 @@ def _combined_settings(rows, p, n, total, shape, offset, eps, domain, margin, sm
     e = d if eps is None else float(eps)
     if domain is None:  # make_problem's box: the offset samples' bounds and the margin
         samples = offset_samples(p, n, d, e, np)[0]  # pyright: ignore[reportArgumentType]
-        lo, hi = _bounds(np.asarray(samples))
+        lo, hi = bounds_across_processes(np.asarray(samples))
         pad = margin * float(np.max(hi - lo))
         lower, upper = lo - pad, hi + pad
     else:
@@ -175,7 +175,7 @@ def _combined_settings(rows, p, n, total, shape, offset, eps, domain, margin, sm
     chosen = shape is None
     if chosen:
         shape = choose_grid(lower, upper, spacing, noise, max_grid, feature)
-    lo, hi = _bounds(p)
+    lo, hi = bounds_across_processes(p)
     diagonal = float(np.linalg.norm(hi - lo))
     cell = float(np.max((upper - lower) / (np.asarray(shape) - 3)))
     thin = 0.0 if width is None else float(np.mean(width < FEATURE_CELLS * cell))
@@ -185,7 +185,7 @@ def _combined_settings(rows, p, n, total, shape, offset, eps, domain, margin, sm
     if beta is None:  # chosen by held-out points of the gathered probes
         sample_unit = scale_free_lam(1.0, 3 * len(sample_p), diagonal, lower, upper, cell)
         cloud = Cloud(sample_p, sample_n)
-        beta, held_out = _held_out_smoothing(cloud, None, shape, d, e, (lower, upper), sample_unit)
+        beta, held_out = held_out_smoothing(cloud, None, shape, d, e, (lower, upper), sample_unit)
     return Settings(
         grid=tuple(shape),
         offset=d,

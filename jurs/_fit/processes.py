@@ -8,12 +8,14 @@ import dataclasses
 import equinox as eqx
 import jax.numpy as jnp
 
-from .._cloud.parts import normals_across_processes, spans_processes
+from .._cloud.normals import normals_across_processes
+from .._cloud.parts import spans_processes
 from .._problem.validate import normalise_grid
 from .._solution.solution import RAISED_RESULTS, error_message
 from ..solvers import LeastSquares
-from .adaptive import auto_finest, fit_adaptive
+from .adaptive import auto_finest
 from .call import as_arrays, check_start, solve_fit
+from .fit_adaptive import fit_adaptive
 from .process_settings import check_global_arrays, settings_across_processes
 from .sharding import (
     PROCESS_SETTINGS,
@@ -47,7 +49,7 @@ def fit_across_processes(
     are chosen by ``jurs._fit.process_settings.settings_across_processes`` (the default
     solver: ``jurs.LeastSquares`` with its lambda; points standing alone are not set
     aside) and returned in ``sol.settings``; normals None are estimated by
-    ``jurs._cloud.parts.normals_across_processes``. What reads the whole cloud on a host is not
+    ``jurs._cloud.normals.normals_across_processes``. What reads the whole cloud on a host is not
     run: the orientation and doubt checks, the padding to
     stable sizes and the store of exported fits (docs/sharding.md). ``basis="adaptive"``:
     [`jurs.fit_adaptive`][] over the processes with the settings chosen here

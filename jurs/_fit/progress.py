@@ -5,14 +5,13 @@ iterate after given step counts (the paper's Fig. 15), ``solve_in_chunks`` drive
 solver driver's pieces (``jurs.solvers._driver.start``, ``advance`` and ``finish``) on
 one problem, a chunk of steps per call, carrying the solver's state from chunk to chunk:
 the chunked run follows the same iterates as one [`jurs.solve`][] (to rounding; the tests
-check this). [`fit_in_chunks`][jurs.fit_in_chunks] is the same for points and normals, with
-the settings and checks of [`jurs.fit`][]. Solvers other than I-PIA and IURS are run in one
-call.
+check this). ``chunked_run`` is that solve as a step of [`jurs.fit`][]'s flow, which
+[`fit_in_chunks`][jurs.fit_in_chunks] (``fit.py``) and the progress callback of ``jurs.fit``
+run. Solvers other than I-PIA and IURS are run in one call.
 """
 
 from __future__ import annotations
 
-import functools
 from typing import Any, Callable, cast
 
 import equinox as eqx
@@ -21,7 +20,6 @@ import numpy as np
 
 from .._model.spline import ImplicitSpline
 from .._problem.problem import Problem
-from .._problem.sizes import DEFAULT_MARGIN
 from .._solution.solution import RAISED_RESULTS, Solution, error_message
 from ..solvers import IPIA, IURS, AbstractSolver, solve
 from ..solvers._driver import Carry, advance, finish, start
@@ -167,64 +165,6 @@ def solve_in_chunks(
     if throw and sol.status in RAISED_RESULTS:
         raise eqx.EquinoxRuntimeError(error_message(sol.status))
     return sol, snapshots
-
-
-def fit_in_chunks(
-    points,
-    normals,
-    *,
-    solver: AbstractSolver,
-    chunk: int | None = None,
-    checkpoints=(),
-    callback: Callable[[int, int], None] | None = None,
-    **fit_kwargs,
-):
-    """Run ``jurs.fit`` with ``solver`` in chunks of ``chunk`` steps.
-
-    The fit [`jurs.fit`][] makes of the same arguments (one cloud, one problem, the
-    same settings, checks and verdicts), its solve run by ``solve_in_chunks``.
-
-    Args:
-        solver: the solver; its ``max_steps`` is the total number of steps.
-        chunk: steps per call at most (default ``chunk_size``); a chunk also ends at
-            each checkpoint.
-        checkpoints: step counts at which to keep the spline (e.g. ``(0, 10, 50, 200)``).
-        callback: called as ``callback(steps_done, max_steps)`` after every chunk.
-        **fit_kwargs: as for [`jurs.fit`][] (grid, offset, eps, domain, margin, init,
-            mask, bucket_size, settings, checks); ``throw`` (default True) applies to the
-            run's final verdict.
-
-    Returns:
-        ``(solution, snapshots)``: the final [`jurs.Solution`][], with ``num_steps`` and
-        ``energy_history`` of the whole run, and a dict ``{step: spline}`` for the
-        checkpoints reached (a run that converges early stops there).
-    """
-    from .fit import _fit  # fit runs its callbacks through solve_in_chunks, below
-
-    unknown = set(fit_kwargs) - set(_FIT_OPTIONS)
-    if unknown:
-        raise TypeError(f"fit_in_chunks got unexpected keyword arguments {sorted(unknown)}")
-    options = {name: fit_kwargs.get(name, default) for name, default in _FIT_OPTIONS.items()}
-    run = functools.partial(chunked_run, chunk=chunk, checkpoints=checkpoints, callback=callback)
-    sol, snapshots = _fit(points, normals, solver=solver, run=run, **options)
-    return sol, snapshots
-
-
-#: The keywords fit_in_chunks passes on to jurs.fit, and their defaults there.
-_FIT_OPTIONS = dict(
-    grid=None,
-    offset=None,
-    eps=None,
-    domain=None,
-    margin=DEFAULT_MARGIN,
-    init=None,
-    mask=None,
-    bucket_size=None,
-    smoothing=None,
-    settings=None,
-    checks=True,
-    throw=True,
-)
 
 
 def chunked_run(problem, solver, init, throw, **options):

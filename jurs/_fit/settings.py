@@ -60,9 +60,9 @@ from .._problem.padding import padded_problem
 from .._problem.problem import auto_domain, offset_samples
 from .._problem.sizes import DEFAULT_MARGIN, round_octave, round_size
 from .._problem.validate import (
-    _is_concrete,
     check_nonnegative,
     check_values,
+    is_concrete,
     normalise_grid,
     validate_settings,
 )
@@ -381,7 +381,7 @@ def scale_free_lam(
     return float(smoothing * num_samples * diagonal**2 * per_length / volume)
 
 
-def _held_out_smoothing(cloud, support, shape, offset, eps, domain, unit: float):
+def held_out_smoothing(cloud, support, shape, offset, eps, domain, unit: float):
     """``(smoothing, record)``: the ``SMOOTHING_CANDIDATES`` entry chosen by held-out
     points (``jurs.solvers._held_out.select_lam``) on the fit's own problem (padded
     as [`jurs.fit`][] pads it, so clouds of similar size share the compiled selection),
@@ -426,7 +426,7 @@ def auto_settings(
     Returns:
         [`Settings`][jurs.Settings].
     """
-    if not _is_concrete(points, normals):
+    if not is_concrete(points, normals):
         raise ValueError(
             "automatic settings need concrete points (they are chosen on the host); inside "
             "jit/grad/vmap pass grid, offset and eps explicitly, e.g. from "
@@ -521,7 +521,7 @@ def choose_settings(
     held_out = None
     if beta is None:
         support = None if not isolated.any() else (~isolated).astype(float)
-        beta, held_out = _held_out_smoothing(cloud, support, shape, d, e, (lower, upper), unit)
+        beta, held_out = held_out_smoothing(cloud, support, shape, d, e, (lower, upper), unit)
     lam = beta * unit
     return Settings(
         grid=shape,

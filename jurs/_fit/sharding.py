@@ -52,10 +52,10 @@ from jax.sharding import NamedSharding, PartitionSpec
 
 from .._cloud.parts import local_rows
 from .._model.basis import flat_cell, locate, num_cells
-from .._model.spline import LocalBasis
+from .._model.local import LocalBasis
 from .._problem.layout import choose_bucket_size
 from .._problem.memory import check_memory, fit_memory
-from .._problem.problem import Problem, _surface_bucket_size, make_problem, offset_samples
+from .._problem.problem import Problem, make_problem, offset_samples, surface_bucket_size
 from .._problem.validate import unit_normals, validate_inputs
 
 
@@ -98,7 +98,7 @@ def input_sharding(points, normals) -> NamedSharding | None:
     return first
 
 
-def _axis_size(sharding: NamedSharding) -> int:
+def point_axis_size(sharding: NamedSharding) -> int:
     """The number of shards along the point axis."""
     names = sharding.spec[0]
     names = names if isinstance(names, tuple) else (names,)
@@ -180,7 +180,7 @@ def shard_problem(problem: Problem, sharding: NamedSharding) -> Problem:
     along the point axis's mesh axes, the data points too where their count divides, every
     other array (box, offset, eps) replicated. The fit of the result equals that of
     ``problem`` up to the order of its sums."""
-    shards = _axis_size(sharding)
+    shards = point_axis_size(sharding)
     problem, axes = _padded_problem(problem, shards)
     # Chunked sums over the slots run per device (jurs._linalg.normal.chunked_segment_sum);
     # the slots gathered by cell would read across devices: the assembly runs without them.
@@ -245,7 +245,7 @@ def spans_processes(points, normals) -> bool:
     )
 
 
-def _process_positions(sharding: NamedSharding, shards: int) -> list[int]:
+def process_positions(sharding: NamedSharding, shards: int) -> list[int]:
     """The positions along the point axis (``0 .. shards - 1``) held by this process's
     devices, in order. ValueError where devices of two processes hold one position (the
     points replicated across processes: both would count them)."""
@@ -315,8 +315,8 @@ def process_problem(
     release_freed()  # a previous fit's freed buffers, before this layout's
     sharding = input_sharding(points, normals)
     assert sharding is not None
-    shards = _axis_size(sharding)
-    positions = _process_positions(sharding, shards)
+    shards = point_axis_size(sharding)
+    positions = process_positions(sharding, shards)
     rows, p = local_rows(points)
     normal_rows, n = local_rows(normals)
     total = int(points.shape[0])
@@ -332,7 +332,7 @@ def process_problem(
             grid = "grid=" + "x".join(map(str, shape))
             check_memory(grid, fit_memory(shape, 3 * len(rows), solver))
         if surface:
-            k = _surface_bucket_size(bucket_size)
+            k = surface_bucket_size(bucket_size)
         elif bucket_size is not None:
             if int(bucket_size) != bucket_size or bucket_size < 2:
                 raise ValueError(

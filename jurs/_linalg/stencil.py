@@ -75,7 +75,7 @@ def stencil_matvec(stencil: Array, grid: Array) -> Array:
     ``_window_matvec`` (a stencil's worth of memory, as the stencil itself): the sum's own,
     transposed for reverse mode, set each of its 343 slices into a zero array of the
     stencil's (or padded grid's) size, and compiling ``jax.grad`` through a 3D fit took
-    minutes (about 1.5 on a 2-core CPU, against seconds)."""
+    minutes instead of seconds (docs/performance.md, "Measurements behind the defaults")."""
     d = grid.ndim
     padded = jnp.pad(grid, HALF)
     out = jnp.zeros_like(grid)

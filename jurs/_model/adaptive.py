@@ -18,7 +18,7 @@ from jaxtyping import ArrayLike, Float
 from .band import band_lattice
 from .finest import level_offsets
 from .function import AbstractSpline
-from .hierarchy import Hierarchy, _unravel
+from .hierarchy import Hierarchy, unravel_keys
 from .lattice import FinestSpline, adaptive_lattice_values, finest_values_and_gradients
 from .leaves import (
     hierarchy_values,
@@ -29,9 +29,9 @@ from .packed import packed_gradients_at, packed_values_at
 
 # Traced evaluations (jurs._model.packed takes the others): one compiled program per
 # hierarchy and point count. Run eagerly, the leaf search and the
-# cascade compile each of their few dozen operations for every new shape (18 s against
-# 5.5 s for a first gradient on a 14k-function curve fit, a loaded 2-core CPU), and a warm
-# call is several times slower.
+# cascade compile each of their few dozen operations for every new shape (a first
+# gradient took over three times as long; docs/performance.md), and a warm call is
+# several times slower.
 _values = jax.jit(hierarchy_values)
 _values_and_gradients = jax.jit(hierarchy_values_and_gradients)
 
@@ -158,7 +158,7 @@ def finest_slope_bound(spline: AdaptiveSpline, evaluator: FinestSpline | None = 
         if len(pairs) == 0:
             continue
         keys = np.asarray(hierarchy.function_keys[lev], np.int64)
-        multi = _unravel(keys[pairs], hierarchy.functions(lev))  # (p, 2, d)
+        multi = unravel_keys(keys[pairs], hierarchy.functions(lev))  # (p, 2, d)
         axis = np.argmax(np.abs(multi[:, 1] - multi[:, 0]), axis=1)
         step = np.abs(ratio[starts[lev] + pairs[:, 1]] - ratio[starts[lev] + pairs[:, 0]])
         width = np.asarray(hierarchy.cell_width(lev), np.float64)

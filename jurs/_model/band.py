@@ -39,7 +39,7 @@ from typing import Any
 import numpy as np
 
 from .finest import level_offsets
-from .hierarchy import _offsets, _position, _ravel, _unravel
+from .hierarchy import cube_offsets, index_in, ravel_keys, unravel_keys
 from .lattice import FinestSpline
 
 #: Lattice cells along each side of a block. Smaller blocks hug the surface closer (fewer
@@ -115,7 +115,7 @@ class BlockGrid:
         start, span = start[keep], span[keep]
         if len(start) == 0:
             return
-        for offset in _offsets(self.ndim, int(span.max())):
+        for offset in cube_offsets(self.ndim, int(span.max())):
             ok = np.all(offset < span, axis=1)
             if ok.any():
                 marked[tuple((start[ok] + offset).T)] = True
@@ -184,15 +184,15 @@ def plan_band(
     scale = float(np.max(np.abs(ratio_all), initial=0.0)) + abs(level)
     starts = level_offsets(hierarchy)
     for lev in range(finest + 1):
-        leaves = _unravel(np.asarray(hierarchy.leaf_keys[lev], np.int64), hierarchy.cells(lev))
+        leaves = unravel_keys(np.asarray(hierarchy.leaf_keys[lev], np.int64), hierarchy.cells(lev))
         if len(leaves) == 0:
             continue
         steps = finest - lev
         if lev < finest:
             keys = np.asarray(hierarchy.function_keys[lev], np.int64)
-            corner = _offsets(grid.ndim, 4)[None]
-            around = _ravel(leaves[:, None, :] + corner, hierarchy.functions(lev))
-            both = evaluator.cascaded[:, starts[lev] + _position(around.ravel(), keys)]
+            corner = cube_offsets(grid.ndim, 4)[None]
+            around = ravel_keys(leaves[:, None, :] + corner, hierarchy.functions(lev))
+            both = evaluator.cascaded[:, starts[lev] + index_in(around.ravel(), keys)]
             ratio, positive = _ratios(both.reshape(2, len(leaves), -1))
             hull = _straddles(ratio.min(axis=1), ratio.max(axis=1), level, nudge, scale)
             leaves = leaves[hull | ~positive.all(axis=1)]

@@ -16,11 +16,11 @@ from jaxtyping import Float, Int
 from .hierarchy import (
     SUBDIVISION,
     Hierarchy,
-    _member,
-    _offsets,
-    _position,
-    _ravel,
-    _unravel,
+    cube_offsets,
+    index_in,
+    is_member,
+    ravel_keys,
+    unravel_keys,
 )
 
 #: Entries of one group of leaves' subdivided coefficients in ``finest_coefficients``
@@ -108,12 +108,12 @@ def finest_coefficients(
         todo = np.flatnonzero(level < 0)
         if todo.size == 0 or leaves.size == 0:
             continue
-        key = _ravel(reference[todo] >> (finest - lev), hierarchy.cells(lev))
-        level[todo[_member(key, leaves)]] = lev
+        key = ravel_keys(reference[todo] >> (finest - lev), hierarchy.cells(lev))
+        level[todo[is_member(key, leaves)]] = lev
     if np.any(level < 0):
         raise AssertionError("hierarchy: a finest cell lies in no leaf")
     out = np.zeros((cascaded.shape[0], len(functions)))
-    corner = _offsets(ndim, 4)
+    corner = cube_offsets(ndim, 4)
     for lev in range(finest + 1):
         mine = np.flatnonzero(level == lev)
         if mine.size == 0:
@@ -122,14 +122,14 @@ def finest_coefficients(
         extent = hierarchy.functions(lev)
         steps = finest - lev
         if steps == 0:
-            at = _position(_ravel(functions[mine], extent), keys)
+            at = index_in(ravel_keys(functions[mine], extent), keys)
             out[:, mine] = cascaded[:, starts[lev] + at]
             continue
         leaf = reference[mine] >> steps
-        unique, which = np.unique(_ravel(leaf, hierarchy.cells(lev)), return_inverse=True)
-        leaf_cells = _unravel(unique, hierarchy.cells(lev))
-        around = _ravel(leaf_cells[:, None, :] + corner[None], extent)  # (u, 4^d)
-        values = cascaded[:, starts[lev] + _position(around.ravel(), keys)].reshape(
+        unique, which = np.unique(ravel_keys(leaf, hierarchy.cells(lev)), return_inverse=True)
+        leaf_cells = unravel_keys(unique, hierarchy.cells(lev))
+        around = ravel_keys(leaf_cells[:, None, :] + corner[None], extent)  # (u, 4^d)
+        values = cascaded[:, starts[lev] + index_in(around.ravel(), keys)].reshape(
             (cascaded.shape[0], len(unique)) + (4,) * ndim
         )
         relative = functions[mine] - (leaf << steps)  # in [0, 2^steps + 3)

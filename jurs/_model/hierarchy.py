@@ -48,11 +48,11 @@ SUBDIVISION = np.array([1.0, 4.0, 6.0, 4.0, 1.0]) / 8.0
 
 
 #: Largest flat key held in int32 (JAX without x64 has no int64).
-_MAX_KEY = 2**31 - 1
+MAX_KEY = 2**31 - 1
 
 
 @functools.cache
-def _offsets(ndim: int, count: int) -> np.ndarray:
+def cube_offsets(ndim: int, count: int) -> np.ndarray:
     """All ``count ** ndim`` integer offsets in ``[0, count)^d``, row-major; ``(k, d)``
     (cached, read-only)."""
     out = np.array(list(itertools.product(range(count), repeat=ndim)), dtype=np.int64)
@@ -61,7 +61,7 @@ def _offsets(ndim: int, count: int) -> np.ndarray:
     return out
 
 
-def _ravel(index: np.ndarray, extent: tuple[int, ...]) -> np.ndarray:
+def ravel_keys(index: np.ndarray, extent: tuple[int, ...]) -> np.ndarray:
     """Row-major flat keys of multi-indices ``(..., d)`` inside ``extent``."""
     key = index[..., 0].astype(np.int64)
     for axis in range(1, len(extent)):
@@ -69,13 +69,14 @@ def _ravel(index: np.ndarray, extent: tuple[int, ...]) -> np.ndarray:
     return key
 
 
-def _unravel(key: np.ndarray, extent: tuple[int, ...]) -> np.ndarray:
+def unravel_keys(key: np.ndarray, extent: tuple[int, ...]) -> np.ndarray:
     return np.stack(np.unravel_index(key, extent), axis=-1).astype(np.int64)
 
 
 #: Key ranges up to this many entries are looked up in a table (``_KeySet``), larger ones
 #: by a sorted search. The table is allocated zeroed (untouched pages cost nothing) and
-#: read at random: on a 2D hierarchy it replaces a binary search per key, ten times faster.
+#: read at random: on a 2D hierarchy it replaces a slower binary search per key
+#: (docs/performance.md).
 TABLE_KEYS = 1 << 24
 
 
@@ -95,12 +96,12 @@ class _KeySet:
         """Whether each key (in ``[0, span)``) is in the set."""
         if self.table is not None:
             return self.table[keys] > 0
-        return _member(keys, self.keys)
+        return is_member(keys, self.keys)
 
     def position(self, keys: np.ndarray) -> np.ndarray:
         """The index of each key in the set; every key must be present."""
         if self.table is None:
-            return _position(keys, self.keys)
+            return index_in(keys, self.keys)
         at = self.table[keys].astype(np.int64) - 1
         if np.any(at < 0):
             raise AssertionError("hierarchy: a function's key is missing from its level")
@@ -117,7 +118,7 @@ def _sorted_unique(keys: np.ndarray, span: int) -> np.ndarray:
     return np.unique(keys)
 
 
-def _member(keys: np.ndarray, sorted_set: np.ndarray) -> np.ndarray:
+def is_member(keys: np.ndarray, sorted_set: np.ndarray) -> np.ndarray:
     """Whether each key is in the sorted unique array ``sorted_set``."""
     if sorted_set.size == 0:
         return np.zeros(keys.shape, dtype=bool)
@@ -125,7 +126,7 @@ def _member(keys: np.ndarray, sorted_set: np.ndarray) -> np.ndarray:
     return sorted_set[at] == keys
 
 
-def _position(keys: np.ndarray, sorted_set: np.ndarray) -> np.ndarray:
+def index_in(keys: np.ndarray, sorted_set: np.ndarray) -> np.ndarray:
     """Index of each key in ``sorted_set``; every key must be present."""
     at = np.searchsorted(sorted_set, keys)
     if np.any(at >= sorted_set.size) or np.any(
@@ -218,7 +219,7 @@ def _support_inside(functions: np.ndarray, cells: tuple[int, ...], region: _KeyS
         in_box.append((cell >= 0) & (cell < cells[axis]))
         parts.append(np.clip(cell, 0, cells[axis] - 1) * strides[axis])
     inside = np.ones(functions.shape[0], dtype=bool)
-    for offset in _offsets(ndim, 4):
+    for offset in cube_offsets(ndim, 4):
         key = parts[0][:, offset[0]]
         box = in_box[0][:, offset[0]]
         for axis in range(1, ndim):
@@ -238,8 +239,8 @@ def _parents(
     one with weight 0.
 
     Built by broadcasting the per-axis ``(k, 3)`` keys and weights: a ``(k, 3^d, d)`` array
-    of multi-indices, raveled after, took a third of a fine 3D hierarchy's build (about
-    20 of 60 s at 1.3M active functions)."""
+    of multi-indices, raveled after, took a third of a fine 3D hierarchy's build
+    (docs/performance.md)."""
     ndim = functions.shape[1]
     key = np.zeros((functions.shape[0],) + (1,) * ndim, dtype=np.int64)
     weight = np.ones((functions.shape[0],) + (1,) * ndim)
@@ -289,19 +290,19 @@ def build_hierarchy(
     for level, asked in enumerate(refine):
         asked = np.asarray(asked, dtype=np.int64)
         if asked.ndim == 2:
-            asked = _ravel(asked, cells_at(level))
+            asked = ravel_keys(asked, cells_at(level))
         split = np.intersect1d(np.unique(asked), omega[level], assume_unique=True)
         if split.size == 0:
             break
         refined.append(split)
         children = (
-            _unravel(split, cells_at(level))[:, None, :] * 2 + _offsets(ndim, 2)[None]
+            unravel_keys(split, cells_at(level))[:, None, :] * 2 + cube_offsets(ndim, 2)[None]
         ).reshape(-1, ndim)
-        omega.append(np.unique(_ravel(children, cells_at(level + 1))))
+        omega.append(np.unique(ravel_keys(children, cells_at(level + 1))))
     levels = len(omega)
     refined.append(np.zeros(0, dtype=np.int64))
     finest = levels - 1
-    if (max(cells_at(finest)) + 3) ** ndim > _MAX_KEY:
+    if (max(cells_at(finest)) + 3) ** ndim > MAX_KEY:
         raise ValueError(
             f"a hierarchy of {levels} levels on {base} base cells needs keys beyond int32; "
             "use fewer levels or fewer base cells"
@@ -314,15 +315,18 @@ def build_hierarchy(
     for level in range(levels):
         cells = cells_at(level)
         extent = tuple(n + 3 for n in cells)
-        region = _unravel(omega[level], cells)
+        region = unravel_keys(omega[level], cells)
         # The 4^d functions over each cell, by flat keys: cell + offset stays inside the
         # function grid, so its key is the sum of the two keys (no (k, 4^d, d) array).
         funcs = _sorted_unique(
-            (_ravel(region, extent)[:, None] + _ravel(_offsets(ndim, 4), extent)[None]).ravel(),
+            (
+                ravel_keys(region, extent)[:, None]
+                + ravel_keys(cube_offsets(ndim, 4), extent)[None]
+            ).ravel(),
             int(np.prod(extent)),
         )
         function_set = _KeySet(funcs, int(np.prod(extent)))
-        multi = _unravel(funcs, extent)
+        multi = unravel_keys(funcs, extent)
         in_level = (
             _support_inside(multi, cells, _KeySet(omega[level], int(np.prod(cells))))
             if level
@@ -352,7 +356,7 @@ def build_hierarchy(
         # The pair sits between the two functions' centres (node i - 1 in cell units):
         # at the cell i_axis - 1 along the axis, the cell i - 1 across it (clamped into
         # the box). It belongs to the level whose leaf holds that cell.
-        on_leaf = leaf_set.member(_ravel(np.clip(multi - 1, 0, np.asarray(cells) - 1), cells))
+        on_leaf = leaf_set.member(ravel_keys(np.clip(multi - 1, 0, np.asarray(cells) - 1), cells))
         stride = 1
         for axis in reversed(range(ndim)):
             # The neighbour one step up along the axis has the key ``key + stride``.
@@ -397,11 +401,11 @@ def refined_cells(hierarchy: Hierarchy) -> list[np.ndarray]:
     for level in range(hierarchy.num_levels - 1):
         cells = hierarchy.cells(level)
         above = [
-            _unravel(np.asarray(hierarchy.leaf_keys[finer]), hierarchy.cells(finer))
+            unravel_keys(np.asarray(hierarchy.leaf_keys[finer]), hierarchy.cells(finer))
             >> (finer - level)
             for finer in range(level + 1, hierarchy.num_levels)
         ]
-        keys = _ravel(np.concatenate(above).reshape(-1, ndim), cells)
+        keys = ravel_keys(np.concatenate(above).reshape(-1, ndim), cells)
         out.append(np.unique(keys))
     return out
 
@@ -423,15 +427,15 @@ def refine_near(
     lower = np.asarray(lower, dtype=float)
     upper = np.asarray(upper, dtype=float)
     ndim = samples.shape[1]
-    around = _offsets(ndim, 2 * band + 1) - band
+    around = cube_offsets(ndim, 2 * band + 1) - band
     out = []
     for level in range(levels):
         cells = np.asarray([n << level for n in base])
         hit = np.clip(np.floor((samples - lower) / (upper - lower) * cells), 0, cells - 1)
-        hit = np.unique(_ravel(hit.astype(np.int64), tuple(cells)))
-        near = (_unravel(hit, tuple(cells))[:, None, :] + around[None]).reshape(-1, ndim)
+        hit = np.unique(ravel_keys(hit.astype(np.int64), tuple(cells)))
+        near = (unravel_keys(hit, tuple(cells))[:, None, :] + around[None]).reshape(-1, ndim)
         near = near[np.all((near >= 0) & (near < cells), axis=1)]
-        out.append(np.unique(_ravel(near, tuple(cells))))
+        out.append(np.unique(ravel_keys(near, tuple(cells))))
     return out
 
 

@@ -12,7 +12,7 @@ from jax import Array
 from jaxtyping import Float, Int
 
 from .basis import cubic_derivatives, cubic_weights, tensor_basis
-from .hierarchy import _MAX_KEY, Hierarchy, _offsets, cascade
+from .hierarchy import MAX_KEY, Hierarchy, cascade, cube_offsets
 
 
 def locate_leaves(
@@ -65,7 +65,7 @@ def leaf_terms(
     cascaded vector. (A search per level would cost ``levels * 4^d`` per point.) Where the
     shifted keys would leave int32, a search per level it is."""
     ndim = hierarchy.ndim
-    offsets = xp.asarray(_offsets(ndim, 4), xp.int32)
+    offsets = xp.asarray(cube_offsets(ndim, 4), xp.int32)
     levels = hierarchy.num_levels
     grids = [int(np.prod(hierarchy.functions(lev))) for lev in range(levels)]
     shifts = np.concatenate([[0], np.cumsum(grids)[:-1]]).astype(np.int64)
@@ -73,7 +73,7 @@ def leaf_terms(
     unit = (x - lower) / (upper - lower)
     cells = xp.asarray([hierarchy.cells(lev) for lev in range(levels)], unit.dtype)
     t = unit * cells[level] - cell.astype(unit.dtype)
-    if int(shifts[-1]) + grids[-1] > _MAX_KEY:
+    if int(shifts[-1]) + grids[-1] > MAX_KEY:
         return _leaf_positions_per_level(hierarchy, level, cell, offsets, xp), t
     combined = xp.concatenate(
         [xp.asarray(hierarchy.function_keys[lev]) + xp.int32(shifts[lev]) for lev in range(levels)]

@@ -36,7 +36,7 @@ from jax import Array
 from jax.core import Tracer
 from jaxtyping import Float
 
-from .hierarchy import _MAX_KEY, Hierarchy, _offsets, cascade_matrix
+from .hierarchy import MAX_KEY, Hierarchy, cascade_matrix, cube_offsets
 from .leaves import hierarchy_basis, local_values_and_gradients, rational_values_and_gradients
 from .precision import on_device
 
@@ -51,7 +51,7 @@ MIN_POINTS = 256
 CACHE_SIZE = 4
 #: The padding key, above every real key (the shifted keys stay below it; ``pack``
 #: refuses hierarchies whose keys would not).
-PAD_KEY = _MAX_KEY
+PAD_KEY = MAX_KEY
 
 
 class PackedSpline(eqx.Module):
@@ -158,7 +158,7 @@ def _terms(packed: PackedSpline, x: Array):
     its local coordinates ``t`` and its leaf's cell widths."""
     level, cell, unit = _leaves(packed, x)
     cells = packed.cells[level]
-    offsets = jnp.asarray(_offsets(x.shape[1], 4), jnp.int32)
+    offsets = jnp.asarray(cube_offsets(x.shape[1], 4), jnp.int32)
     key = _ravel(cell[:, None, :] + offsets[None], (cells + 3)[:, None, :])
     key = key + packed.function_shift[level][:, None]
     keys = packed.function_keys

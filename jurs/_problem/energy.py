@@ -18,9 +18,9 @@ import jax.numpy as jnp
 from jax import Array
 
 from .._model.basis import num_cells, patches_to_grid
+from .._model.local import LocalBasis
 from .._model.spline import (
     ImplicitSpline,
-    LocalBasis,
     bspline_transpose,
     bspline_values,
     rational_terms,

@@ -7,7 +7,7 @@ import numpy as np
 
 from .problem import build_problem
 from .sizes import padded_count
-from .validate import _is_concrete
+from .validate import is_concrete
 
 
 def padded_cloud(points, normals):
@@ -20,7 +20,7 @@ def padded_cloud(points, normals):
     compilation. Masked points take no part in the fit, so the result is the unpadded one
     up to rounding (the per-bucket sums group the samples differently).
     """
-    if not _is_concrete(points, normals):
+    if not is_concrete(points, normals):
         return None
     try:  # ragged lists: make_problem names them
         p, n = np.asarray(points), np.asarray(normals)

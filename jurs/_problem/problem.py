@@ -21,7 +21,8 @@ from jaxtyping import ArrayLike, Float
 
 from .._model.basis import flat_cell, locate, num_cells
 from .._model.groups import with_groups
-from .._model.spline import TABLE_MAX_SLOTS, LocalBasis, local_basis, with_table
+from .._model.local import LocalBasis
+from .._model.spline import TABLE_MAX_SLOTS, local_basis, with_table
 from .layout import (
     bucket_layout,
     cell_groups,
@@ -31,10 +32,10 @@ from .layout import (
 )
 from .sizes import DEFAULT_MARGIN
 from .validate import (
-    _is_concrete,
-    _shape,
     check_precision,
+    is_concrete,
     normalise_grid,
+    shape_of,
     unit_normals,
     validate_inputs,
 )
@@ -105,7 +106,7 @@ def auto_domain(samples: Array, margin: float = DEFAULT_MARGIN, mask: Array | No
 def _as_array(x, dtype=None):
     """``jnp.asarray(x, dtype)``; concrete values are converted on the host and transferred,
     which compiles nothing (an eager conversion compiles a small kernel on first use)."""
-    if isinstance(x, jax.Array) or not _is_concrete(x):
+    if isinstance(x, jax.Array) or not is_concrete(x):
         return jnp.asarray(x, dtype=dtype)
     return jax.device_put(np.asarray(x, dtype=dtype))
 
@@ -164,7 +165,7 @@ _geometry = eqx.filter_jit(_geometry_arrays)
 _slots = eqx.filter_jit(_slot_arrays)
 
 
-def _surface_bucket_size(bucket_size) -> int:
+def surface_bucket_size(bucket_size) -> int:
     """1, the one sample layout of 3D points; ValueError for any other ``bucket_size``."""
     # The buckets, the table and the power form are 2D kernels; a surface's samples
     # take the generic form, one sample a slot.
@@ -192,8 +193,8 @@ def _converted_geometry(
     else:
         convert, geometry = (lambda x: _as_array(x, dtype)), _geometry
     points = convert(points)
-    if mask is not None and _shape(mask) != (points.shape[0],):
-        raise ValueError(f"mask must have shape ({points.shape[0]},), got {_shape(mask)}")
+    if mask is not None and shape_of(mask) != (points.shape[0],):
+        raise ValueError(f"mask must have shape ({points.shape[0]},), got {shape_of(mask)}")
     # One sample a slot unless a concrete problem gets the bucketed layout (built on the
     # host between two compiled calls); otherwise the geometry builds the slots too.
     identity = bucket_size == 1 or not concrete or (bucket_size is None and small)
@@ -332,7 +333,7 @@ def make_problem(
     validate_inputs(
         points, normals, offset=offset, eps=eps, domain=domain, margin=margin, mask=mask
     )
-    shape = normalise_grid(grid, _shape(points)[1])
+    shape = normalise_grid(grid, shape_of(points)[1])
     return build_problem(
         points, normals, shape, offset, eps, domain, margin, mask, bucket_size, dtype, stable_shapes
     )
@@ -358,14 +359,14 @@ def build_problem(
     if bucket_size is not None and (int(bucket_size) != bucket_size or bucket_size < 1):
         raise ValueError(f"bucket_size must be a positive int, got {bucket_size!r}")
     dtype = dtype or jnp.result_type(float)
-    concrete = _is_concrete(points, normals, offset, eps, domain, mask)
+    concrete = is_concrete(points, normals, offset, eps, domain, mask)
     check_precision(points, offset, dtype, domain, eps)
     if concrete:
         # Unit length in float64 before any cast: 1e200-long normals overflow float32.
         normals = unit_normals(np.asarray(normals, float))
-    small = 3 * _shape(points)[0] <= TABLE_MAX_SLOTS
+    small = 3 * shape_of(points)[0] <= TABLE_MAX_SLOTS
     if ndim != 2:
-        bucket_size, small = _surface_bucket_size(bucket_size), False
+        bucket_size, small = surface_bucket_size(bucket_size), False
     convert, points, geometry = _converted_geometry(
         points,
         normals,

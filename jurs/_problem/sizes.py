@@ -37,8 +37,8 @@ def round_octave(n: int) -> int:
     """``n`` rounded up to a power of two (1, 2, 4, 8, ...): one size an octave.
 
     Point counts and occupied cells, the counts a compiled fit's sample arrays are sized
-    from, are rounded to it: a new shape costs a compilation, seconds (3-10 s for the
-    default fit on a 2-core CPU) against a warm fit's 0.1-0.2 s at 1000 points, while
+    from, are rounded to it: a new shape costs a compilation, many times a small warm
+    fit's time (docs/performance.md), while
     padding to a power of two costs at most twice the per-sample work (2 ln 2 = 1.39
     times on average over sizes), which in a default fit is a small share of the solve on
     its grid (docs/startup.md, "Shape-stable compiled fits")."""

@@ -33,7 +33,7 @@ def normalise_grid(grid, ndim: int = 2) -> tuple[int, ...]:
     return shape
 
 
-def _is_concrete(*xs) -> bool:
+def is_concrete(*xs) -> bool:
     return not any(isinstance(x, Tracer) for x in jax.tree_util.tree_leaves(xs))
 
 
@@ -43,7 +43,7 @@ def check_nonnegative(name: str, value, *, strict: bool = False) -> None:
 
     Traced values are not checked (their value is unknown at trace time).
     """
-    if not _is_concrete(value):
+    if not is_concrete(value):
         return
     if isinstance(value, (str, bytes)):  # NumPy would parse "1" as a number
         raise TypeError(f"{name} must be a number, got {value!r}")
@@ -70,7 +70,7 @@ def check_count(name: str, value, minimum: int = 0) -> None:
         raise ValueError(f"{name} must be >= {minimum}, got {value}")
 
 
-def _shape(x) -> tuple:
+def shape_of(x) -> tuple:
     """The shape of an array, or of a nested list on the host (``jnp.shape`` of a list is
     deprecated by JAX)."""
     return tuple(x.shape) if hasattr(x, "shape") else np.shape(x)
@@ -171,7 +171,7 @@ def check_offset_scale(points, offset, mask=None) -> None:
     the offset samples P +/- d n then lie beyond the whole shape, on every side of every
     other point, and no fit can read inside from outside (offset=1e6 on a unit cloud ran
     for a minute into 203 loops). Concrete values only."""
-    if not _is_concrete(points, offset, mask):
+    if not is_concrete(points, offset, mask):
         return
     p = np.asarray(points, float)
     if mask is not None:
@@ -197,7 +197,7 @@ def check_precision(points, offset, dtype, domain=None, eps=None) -> None:
     float32 at |x| = 1e7 steps by 1, so offsets of 0.01 collapse onto the points and the
     fit silently loses its zero set; or when the energy, a sum of 3m squares of about
     ``eps``, would overflow it (eps = 1e153 in float64). Concrete values only."""
-    if not _is_concrete(points, offset, domain, eps):
+    if not is_concrete(points, offset, domain, eps):
         return
     info = np.finfo(np.dtype(dtype))
     if eps is not None:
@@ -236,7 +236,7 @@ def validate_inputs(
     skips their checks.
     """
     check_values(offset=offset, eps=eps, margin=margin, domain=domain)
-    if not _is_concrete(points, normals, mask):
+    if not is_concrete(points, normals, mask):
         return
     validate_points(points, normals, mask)
     validate_settings(points, normals, mask, offset=offset, domain=domain)
@@ -251,7 +251,7 @@ def check_values(*, offset, eps, margin, domain) -> None:
     # A negative margin shrinks the box until it leaves out the data (below -1/2 the box
     # turns inside out); the fit then "succeeded" on samples the basis does not cover.
     check_nonnegative("margin", margin)
-    if domain is not None and _is_concrete(domain):
+    if domain is not None and is_concrete(domain):
         check_domain(domain)
 
 
@@ -262,7 +262,7 @@ def validate_settings(points, normals, mask, *, offset, domain) -> None:
     if offset is None:
         return
     check_offset_scale(points, offset, mask)
-    if domain is not None and _is_concrete(domain, offset):
+    if domain is not None and is_concrete(domain, offset):
         p = np.asarray(points, dtype=float)
         n = unit_normals(np.asarray(normals, dtype=float))
         d = float(offset)

@@ -38,12 +38,12 @@ one line on stderr and exit code 130; the output folder keeps its previous outpu
 
 This package holds the parser and the run (``main``, ``prepare_fit``, the fit); reading the
 input is in ``_inputs``, the output folder's checks and the atomic write in ``_outputs``,
-and what a curve fit and a surface fit write in ``_results``.
+the job a fit runs (``FitJob``) and the exit statuses in ``_job``, and what a curve fit and
+a surface fit write in ``_results``.
 """
 
 from __future__ import annotations
 
-import dataclasses
 import os
 import shutil  # noqa: F401  (cli.shutil: the tests patch cli.shutil.disk_usage)
 import sys
@@ -54,11 +54,12 @@ from typing import TYPE_CHECKING, cast
 from ._batch import is_batch, run_batch
 from ._inputs import (
     InputError,
-    _one_line,
     grid_for,
+    one_line,
     printable,
     read_input,
 )
+from ._job import EXIT_BAD_INPUT, EXIT_FIT_FAILED, FitJob, lattice_resolution, output_bytes
 from ._outputs import (
     MESH_BYTES_PER_VERTEX,
     MESH_VERTICES_PER_PLANE_NODE,
@@ -66,14 +67,13 @@ from ._outputs import (
     OUTPUTS,
     OUTPUTS_3D,
     PLY_BYTES_PER_VERTEX,
-    _output_bytes,
     check_output_folder,
     outputs_for,
     write_outputs,
 )
 from ._parser import build_parser
 from ._results import (
-    _basis_shown,
+    basis_shown,
     curve_outputs,
     fit_record,
     mesh_record,
@@ -114,11 +114,6 @@ __all__ = [
 
 if TYPE_CHECKING:  # the command line imports NumPy and jurs's modules when it runs them
     import numpy as np
-
-    from .. import AbstractSolver, Cloud, Settings
-
-EXIT_BAD_INPUT = 2
-EXIT_FIT_FAILED = 1
 
 
 #: Environment variable that turns the command line's compilation cache off ("1", "true").
@@ -190,81 +185,6 @@ class ProgressBar:
             self.drawn = False
 
 
-def lattice_resolution(resolution: int | None, dim: int, adaptive: bool) -> int | None:
-    """``--resolution``, or where not given a uniform curve fit's default lattice; None
-    for an adaptive curve (its lattice follows its finest level, known after the fit) and
-    for a surface (its mesh chooses)."""
-    from .. import levelset as ls
-
-    if dim == 2 and resolution is None and not adaptive:
-        return ls.DEFAULT_RESOLUTION
-    return resolution
-
-
-@dataclasses.dataclass(frozen=True)
-class FitJob:
-    """What ``jurs fit`` has read and checked before the fit: the cloud (``(m, 2)`` or
-    ``(m, 3)``, normals given or estimated), the absolute output folder, the settings
-    (``jurs.Settings``, with the options given), the solver and the level-set or
-    marching-cubes resolution (None: the 3D default)."""
-
-    path: str
-    points: np.ndarray
-    normals: np.ndarray
-    estimated: bool
-    out: str
-    chosen: Settings
-    solver: AbstractSolver | None  # None: jurs.fit's own, from ``chosen``
-    resolution: int | None
-    cloud: Cloud
-    adaptive: bool = False  # jurs.fit_adaptive instead of jurs.fit
-    finest: int | None = None  # its finest level's cells along the longest side
-    # jurs.fit chooses: the capped uniform grid where its fit follows the data, else the
-    # adaptive basis (``adaptive`` True until the fit says which; ``settled``).
-    chooses: bool = False
-
-    def settled(self, sol) -> FitJob:
-        """The job as ``sol`` was fitted: where ``jurs.fit`` chose (``chooses``) and kept
-        the uniform grid, a uniform job (a curve's lattice at its default resolution)."""
-        import jurs
-
-        if not self.chooses or isinstance(sol.spline, jurs.AdaptiveSpline):
-            return self
-        resolution = lattice_resolution(self.resolution, self.dim, adaptive=False)
-        return dataclasses.replace(
-            self, adaptive=False, finest=None, chooses=False, resolution=resolution
-        )
-
-    @property
-    def dim(self) -> int:
-        return int(self.points.shape[1])
-
-    @property
-    def shown(self) -> str:
-        return printable(self.path)
-
-    @property
-    def grid(self) -> tuple:
-        return tuple(self.chosen.grid)
-
-    @property
-    def basis(self) -> str:
-        """The basis in words: ``grid 96x96`` or ``adaptive``."""
-        if self.adaptive:
-            return "adaptive"
-        return f"grid {'x'.join(map(str, self.grid))}"
-
-    @property
-    def lam(self) -> float:
-        if self.solver is None:
-            return float(self.chosen.lam)
-        return float(getattr(self.solver, "lam", 0.0))
-
-    @property
-    def outputs(self) -> tuple:
-        return outputs_for(self.dim)
-
-
 def _check_options(resolution, dim: int, out: str, names) -> None:
     """The options checked before anything is computed: the level-set (2D) or
     marching-cubes (3D) resolution, also against memory, and the output folder."""
@@ -284,21 +204,21 @@ def _check_options(resolution, dim: int, out: str, names) -> None:
                 f"--resolution {resolution}", per_node * float(resolution) ** 2, device=False
             )
         except ValueError as exc:
-            raise InputError(_one_line(exc)) from None
+            raise InputError(one_line(exc)) from None
     check_output_folder(out, names=names)
 
 
 def _surface_libraries() -> None:
     """InputError unless the libraries a surface's outputs need are installed
     (scikit-image meshes, trimesh writes mesh.ply): found out before the fit, not after."""
-    from ..datasets._files import _trimesh
-    from ..levelset._meshing import _marching_cubes
+    from ..datasets._files import trimesh_module
+    from ..levelset._meshing import skimage_marching_cubes
 
     try:
-        _marching_cubes()
-        _trimesh()
+        skimage_marching_cubes()
+        trimesh_module()
     except ImportError as exc:
-        raise InputError(f"a 3D cloud needs the surface extras: {_one_line(exc)}") from None
+        raise InputError(f"a 3D cloud needs the surface extras: {one_line(exc)}") from None
 
 
 def _check_adaptive(args, adaptive: bool, finest, dim: int) -> None:
@@ -346,7 +266,7 @@ def prepare_fit(args) -> FitJob:
             # return_info=False: the normals alone, not the (normals, info) pair
             normals = cast("np.ndarray", jurs.estimate_normals(points))
         except (ValueError, TypeError) as exc:
-            raise InputError(f"{shown}: {_one_line(exc)}") from None
+            raise InputError(f"{shown}: {one_line(exc)}") from None
     basis = getattr(args, "basis", "auto")
     if getattr(args, "adaptive", False):
         if basis == "uniform":
@@ -370,7 +290,7 @@ def prepare_fit(args) -> FitJob:
             cloud, grid=grid, offset=args.offset, eps=args.eps, smoothing=args.smoothing
         )
     except (ValueError, TypeError) as exc:
-        raise InputError(f"{shown}: {_one_line(exc)}") from None
+        raise InputError(f"{shown}: {one_line(exc)}") from None
     solver = make_solver(
         args.solver, lam=args.lam, tau=args.tau, steps=args.steps, tol=args.tol, chosen=chosen
     )
@@ -399,7 +319,7 @@ def prepare_fit(args) -> FitJob:
         finest,
         chooses,
     )
-    check_output_folder(out, _output_bytes(job), job.outputs)
+    check_output_folder(out, output_bytes(job), job.outputs)
     return job
 
 
@@ -437,7 +357,7 @@ def _solve(job: FitJob, args):
                 )
     except (ValueError, TypeError) as exc:
         bar.close()
-        raise InputError(f"{job.shown}: {_one_line(exc)}") from None
+        raise InputError(f"{job.shown}: {one_line(exc)}") from None
     except KeyboardInterrupt:
         bar.close()  # Ctrl-C's line on a line of its own
         raise
@@ -484,14 +404,14 @@ def run_fit(args) -> int:
     except OSError as exc:
         print(
             f"jurs: error: {printable(args.output)}: could not write the outputs "
-            f"({printable(_one_line(exc))}); the folder keeps its previous outputs",
+            f"({printable(one_line(exc))}); the folder keeps its previous outputs",
             file=sys.stderr,
         )
         return EXIT_FIT_FAILED
 
     if not args.quiet:
         print(
-            f"{job.shown}: {len(job.points)} points, {args.solver}, {_basis_shown(job, sol)}: "
+            f"{job.shown}: {len(job.points)} points, {args.solver}, {basis_shown(job, sol)}: "
             f"{int(sol.stats['num_steps'])} steps in "
             f"{seconds:.2f} s ({sol.status})"
         )
@@ -541,7 +461,7 @@ def _run_command(args) -> int:
         try:  # later runs load the compiled fit instead of compiling it (seconds)
             enable_compilation_cache()
         except OSError as exc:
-            print(f"jurs: warning: no compilation cache ({_one_line(exc)})", file=sys.stderr)
+            print(f"jurs: warning: no compilation cache ({one_line(exc)})", file=sys.stderr)
     if args.command == "demo":
         from ..demo import run
 

@@ -18,7 +18,8 @@ import os
 import sys
 import time
 
-from ._inputs import InputError, _one_line, printable
+from ._inputs import InputError, one_line, printable
+from ._job import EXIT_BAD_INPUT, EXIT_FIT_FAILED
 
 #: The suffixes of the clouds a folder given on the command line is searched for (those
 #: ``jurs.datasets.load_points`` reads); other files in it are left alone.
@@ -107,8 +108,6 @@ def run_batch(args, run_one) -> int:
     stderr (and without ``--quiet``) each file gets a progress line. Returns 0 when every
     file was fitted, else the largest exit status of a file (2: bad input, 1: a fit
     failed), after a summary line naming the failures."""
-    from . import EXIT_BAD_INPUT, EXIT_FIT_FAILED
-
     paths = expand_inputs(args.files)
     if not paths:
         shown = ", ".join(printable(a) for a in args.files)
@@ -142,7 +141,7 @@ def run_batch(args, run_one) -> int:
             code = EXIT_FIT_FAILED
         except (ValueError, TypeError, OSError, ArithmeticError) as exc:
             # Anything else one cloud can raise: said, and the rest go on.
-            print(f"jurs: error: {printable(path)}: {printable(_one_line(exc))}", file=sys.stderr)
+            print(f"jurs: error: {printable(path)}: {printable(one_line(exc))}", file=sys.stderr)
             code = EXIT_FIT_FAILED
         if code:
             failed.append((path, code))

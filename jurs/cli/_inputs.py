@@ -18,7 +18,7 @@ class InputError(Exception):
     """A problem with the user's input file or options: one line, exit code 2."""
 
 
-def _grid(text: str) -> tuple:
+def grid_option(text: str) -> tuple:
     """``--grid``: one, two or three numbers >= 4 (``N``, ``NxM``, ``NxMxK``), as given;
     ``grid_for`` matches them to the cloud's dimension once the file is read."""
     try:
@@ -49,7 +49,7 @@ def grid_for(parts, dim: int, shown: str):
     )
 
 
-def _nonneg(text: str) -> float:
+def nonnegative(text: str) -> float:
     try:
         v = float(text)
     except ValueError:
@@ -59,8 +59,8 @@ def _nonneg(text: str) -> float:
     return v
 
 
-def _positive(text: str) -> float:
-    v = _nonneg(text)
+def positive_number(text: str) -> float:
+    v = nonnegative(text)
     if v == 0:
         raise argparse.ArgumentTypeError(f"must be > 0, got {text!r}")
     return v
@@ -91,7 +91,7 @@ def read_input(path: str):
         try:
             arr = np.load(path, allow_pickle=False, mmap_mode="r")
         except Exception as exc:
-            raise InputError(f"{shown}: not a readable .npy array ({_one_line(exc)})") from None
+            raise InputError(f"{shown}: not a readable .npy array ({one_line(exc)})") from None
         if arr.ndim != 2 or arr.shape[1] not in (2, 4):
             raise InputError(
                 f"{shown}: expected an (m, 4) array of rows x, y, nx, ny "
@@ -102,14 +102,14 @@ def read_input(path: str):
             warnings.simplefilter("always", UserWarning)
             points, normals = datasets.load_points(path)
     except (ValueError, OSError) as exc:
-        msg = printable(_one_line(exc))
+        msg = printable(one_line(exc))
         raise InputError(msg if msg.startswith(shown) else f"{shown}: {msg}") from None
     for note in notes:
-        print(f"jurs: note: {printable(_one_line(note.message))}", file=sys.stderr)
+        print(f"jurs: note: {printable(one_line(note.message))}", file=sys.stderr)
     if len(points) < 3:
         raise InputError(f"{shown}: need at least 3 data rows, got {len(points)}")
     return points, normals
 
 
-def _one_line(exc) -> str:
+def one_line(exc) -> str:
     return " ".join(str(exc).split())

@@ -17,13 +17,8 @@ import shutil
 import signal
 import tempfile
 import threading
-from typing import TYPE_CHECKING
 
 from ._inputs import InputError, printable
-
-if TYPE_CHECKING:
-    from . import FitJob
-
 
 #: The outputs of a curve fit (a 2D cloud) ...
 OUTPUTS = ("metrics.json", "spline.npz", "fit.png", "zero_level.csv")
@@ -31,14 +26,14 @@ OUTPUTS = ("metrics.json", "spline.npz", "fit.png", "zero_level.csv")
 OUTPUTS_3D = ("metrics.json", "spline.npz", "mesh.ply", "preview.png")
 
 
-def _json_safe(value):
+def json_safe(value):
     """Floats for 0-d arrays; non-finite numbers as null (strict JSON has no NaN/Inf)."""
     import numpy as np
 
     if isinstance(value, dict):
-        return {k: _json_safe(v) for k, v in value.items()}
+        return {k: json_safe(v) for k, v in value.items()}
     if isinstance(value, (list, tuple)):
-        return [_json_safe(v) for v in value]
+        return [json_safe(v) for v in value]
     if isinstance(value, (str, bool)) or value is None:
         return value
     arr = np.asarray(value)
@@ -47,7 +42,7 @@ def _json_safe(value):
             return int(arr)
         v = float(arr)
         return v if math.isfinite(v) else None
-    return [_json_safe(v) for v in arr.tolist()]
+    return [json_safe(v) for v in arr.tolist()]
 
 
 #: Bytes the outputs take beyond the spline and the polylines (the figure, the metrics).
@@ -191,35 +186,17 @@ MESH_BYTES_PER_VERTEX, PLY_BYTES_PER_VERTEX = 450, 50
 MAX_ADAPTIVE_RESOLUTION = 2049
 
 
-def _output_bytes(job: FitJob) -> int:
-    """Bytes the outputs take: the spline (two grids of float64 in the .npz), the figure
-    and the metrics, and in 2D the polylines (at most about resolution^2 / 2 vertices of
-    ~40 bytes as text), in 3D the mesh (``MESH_VERTICES_PER_PLANE_NODE``)."""
-    from ..levelset._meshing import MAX_RESOLUTION
-
-    # An adaptive spline's active functions are known after the fit; about 10 a point on
-    # traced outlines, 64 bounds them.
-    spline = 16 * (64 * len(job.points) if job.adaptive else math.prod(job.grid))
-    if job.dim == 2:
-        # prepare_fit gives a uniform 2D job the level-set default; an adaptive one's is
-        # at most MAX_ADAPTIVE_RESOLUTION.
-        r = job.resolution or MAX_ADAPTIVE_RESOLUTION
-        return OUTPUT_OVERHEAD + spline + 20 * min(r**2, 10 * r * len(job.points))
-    r = job.resolution or MAX_RESOLUTION
-    return OUTPUT_OVERHEAD + spline + PLY_BYTES_PER_VERTEX * MESH_VERTICES_PER_PLANE_NODE * r**2
-
-
-def _write_record_and_spline(folder: str, record: dict, spline) -> None:
+def write_record_and_spline(folder: str, record: dict, spline) -> None:
     """metrics.json and spline.npz into ``folder``: the outputs every fit writes."""
     import jurs
 
     with open(os.path.join(folder, "metrics.json"), "w", encoding="utf-8") as fh:
-        json.dump(_json_safe(record), fh, indent=2, allow_nan=False)
+        json.dump(json_safe(record), fh, indent=2, allow_nan=False)
         fh.write("\n")
     jurs.save_spline(os.path.join(folder, "spline.npz"), spline)
 
 
-def _save_figure(fig, path: str, dpi: int) -> None:
+def save_figure(fig, path: str, dpi: int) -> None:
     """Save ``fig``, a standalone figure on matplotlib's Agg canvas (``pyplot=False`` in
     [`jurs.plot`][]: pyplot and its backends never load, and nothing needs closing)."""
     fig.savefig(path, dpi=dpi)

@@ -6,7 +6,7 @@ from __future__ import annotations
 import argparse
 
 from ._batch import FilesAction
-from ._inputs import _grid, _nonneg, _positive
+from ._inputs import grid_option, nonnegative, positive_number
 
 
 def _solver_names():
@@ -67,7 +67,7 @@ def _fit_parser(sub) -> argparse.ArgumentParser:
     )
     f.add_argument(
         "--grid",
-        type=_grid,
+        type=grid_option,
         default=None,
         metavar="N[xM[xK]]",
         help="basis functions along x and y (and z: N or NxMxK for a 3D cloud); "
@@ -108,7 +108,7 @@ def _fit_parser(sub) -> argparse.ArgumentParser:
     )
     f.add_argument(
         "--lam",
-        type=_nonneg,
+        type=nonnegative,
         default=None,
         help="regularisation weight: eq. 33's lambda for iurs (keep it well below "
         "1/16; None is 0), the objective's lambda in E_d + lam R for lstsq "
@@ -116,22 +116,25 @@ def _fit_parser(sub) -> argparse.ArgumentParser:
     )
     f.add_argument(
         "--smoothing",
-        type=_nonneg,
+        type=nonnegative,
         default=None,
         help="auto only: the dimensionless strength the automatic lambda is made "
         "from (jurs.auto_settings; about 1e-6 on clean clouds to 1e-3 on "
         "noisy ones); None chooses",
     )
-    f.add_argument("--tau", type=_nonneg, default=1e-2, help="weight step size (iurs, eq. 20)")
+    f.add_argument("--tau", type=nonnegative, default=1e-2, help="weight step size (iurs, eq. 20)")
     f.add_argument(
         "-d",
         "--offset",
-        type=_positive,
+        type=positive_number,
         default=None,
         help="offset distance d; None chooses from the data",
     )
     f.add_argument(
-        "--eps", type=_positive, default=None, help="target value at the offsets; None takes d"
+        "--eps",
+        type=positive_number,
+        default=None,
+        help="target value at the offsets; None takes d",
     )
     f.add_argument(
         "--steps",
@@ -141,7 +144,7 @@ def _fit_parser(sub) -> argparse.ArgumentParser:
     )
     f.add_argument(
         "--tol",
-        type=_nonneg,
+        type=nonnegative,
         default=1e-7,
         help="stop when |E_new - E_old| < tol (eq. 38); 0 runs all steps",
     )
@@ -161,7 +164,7 @@ def _fit_parser(sub) -> argparse.ArgumentParser:
     )
     f.add_argument(
         "--threshold",
-        type=_positive,
+        type=positive_number,
         default=None,
         help="distance to the data above which a zero-level component is "
         "supplementary; None means 2 d (2D), or 3 point spacings and at "
@@ -169,7 +172,7 @@ def _fit_parser(sub) -> argparse.ArgumentParser:
     )
     f.add_argument(
         "--trim",
-        type=_positive,
+        type=positive_number,
         nargs="?",
         const=True,
         default=None,
@@ -183,7 +186,7 @@ def _fit_parser(sub) -> argparse.ArgumentParser:
     )
     f.add_argument(
         "--rim",
-        type=_nonneg,
+        type=nonnegative,
         default=None,
         metavar="SPACINGS",
         help="with --trim: the tolerance where the samples lie to one side of the zero set "

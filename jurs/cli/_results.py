@@ -15,13 +15,13 @@ from typing import TYPE_CHECKING
 from ._inputs import printable
 from ._outputs import (
     MAX_ADAPTIVE_RESOLUTION,
-    _json_safe,
-    _save_figure,
-    _write_record_and_spline,
+    json_safe,
+    save_figure,
+    write_record_and_spline,
 )
 
 if TYPE_CHECKING:
-    from . import FitJob
+    from ._job import FitJob
 
 
 def fit_record(job: FitJob, args, sol, seconds: float) -> dict:
@@ -39,7 +39,7 @@ def fit_record(job: FitJob, args, sol, seconds: float) -> dict:
         converged=bool(sol.succeeded),
         time_s=seconds,
         doubts=[str(d) for d in sol.stats.get("doubts") or ()],
-        extra_components=_json_safe(list(sol.stats.get("extra_components") or ())),
+        extra_components=json_safe(list(sol.stats.get("extra_components") or ())),
     )
     settings = {
         "solver": args.solver,
@@ -73,7 +73,7 @@ def _lam(job: FitJob, sol) -> float:
     return float(sol.metrics["lam"]) if job.adaptive else job.lam
 
 
-def _basis_shown(job: FitJob, sol) -> str:
+def basis_shown(job: FitJob, sol) -> str:
     """The basis of a finished fit in words: ``grid 96x96``, or ``adaptive, finest
     2048x1536`` (the finest level's cells over the box)."""
     if not job.adaptive:
@@ -84,7 +84,7 @@ def _basis_shown(job: FitJob, sol) -> str:
 def _fit_title(job: FitJob, args, sol) -> str:
     """First lines of the figures' titles: file, solver, grid, lambda, E_ave."""
     return (
-        f"{printable(os.path.basename(job.path))}: {args.solver}, {_basis_shown(job, sol)}, "
+        f"{printable(os.path.basename(job.path))}: {args.solver}, {basis_shown(job, sol)}, "
         f"lam = {_lam(job, sol):.3g}\nE_ave = "
         f"{float(sol.metrics['E_ave']):.3e}, "
     )
@@ -116,7 +116,7 @@ def curve_outputs(job: FitJob, args, sol, seconds: float):
     )
 
     def write(folder):
-        _write_record_and_spline(folder, record, sol.spline)
+        write_record_and_spline(folder, record, sol.spline)
         np.savetxt(
             os.path.join(folder, "zero_level.csv"),
             ls.polylines_table(report.components),
@@ -135,7 +135,7 @@ def curve_outputs(job: FitJob, args, sol, seconds: float):
             levelset=report,
             title=title,
         )
-        _save_figure(fig, os.path.join(folder, "fit.png"), dpi=130)
+        save_figure(fig, os.path.join(folder, "fit.png"), dpi=130)
 
     summary = (
         f"  E_ave = {float(sol.metrics['E_ave']):.4e}, E_max = "
@@ -150,9 +150,9 @@ def adaptive_resolution(spline) -> int:
     """An adaptive curve's level-set grid (``--resolution`` not given): one node per finest
     cell along the longer side, at least ``DEFAULT_RESOLUTION`` (512) and at most
     ``MAX_ADAPTIVE_RESOLUTION``. An adaptive spline is evaluated point by point (a leaf
-    search, then its 16 terms): 769^2 nodes took 2.5 s and 2049^2 took 21 s on a 2-core
-    CPU running other jobs (load 11), so a finer default grid would cost more than the
-    fit."""
+    search, then its 16 terms), its time grows with the nodes, and a finer default grid
+    would cost more than the fit (docs/performance.md, "Measurements behind the level-set
+    and plotting defaults")."""
     from .. import levelset as ls
 
     finest = max(spline.finest_cells)
@@ -290,7 +290,7 @@ def surface_outputs(job: FitJob, args, sol, seconds: float):
     )
 
     def write(folder):
-        _write_record_and_spline(folder, record, spline)
+        write_record_and_spline(folder, record, spline)
         datasets.save_mesh(os.path.join(folder, "mesh.ply"), vertices, faces, colors=colours)
         fig, axes = plot._mesh_axes(None, pyplot=False)
         plot.plot_mesh(
@@ -301,7 +301,7 @@ def surface_outputs(job: FitJob, args, sol, seconds: float):
             highlight_label="supplementary",
             title=_fit_title(job, args, sol) + counts,
         )
-        _save_figure(fig, os.path.join(folder, "preview.png"), dpi=110)
+        save_figure(fig, os.path.join(folder, "preview.png"), dpi=110)
 
     summary = (
         f"  E_ave = {float(sol.metrics['E_ave']):.4e}, E_max = "

@@ -20,7 +20,7 @@ from jaxtyping import Float
 COLUMNS = ("x", "y", "nx", "ny")
 
 
-def _from_table(rows: np.ndarray, path: str, row_numbers=None):
+def cloud_from_table(rows: np.ndarray, path: str, row_numbers=None):
     """``(points, normals)`` of a table of 4 columns, ``(points, None)`` of 2, checked;
     errors name the row by ``row_numbers`` (the file's 1-based line of each row; default
     1, 2, ...)."""
@@ -87,7 +87,7 @@ def load_points(
         raise FileNotFoundError(f"{path}: no such file")
     if mesh_samples is not None:
         _positive_count(mesh_samples, "mesh_samples")
-    if _suffix(path) in CLOUD_SUFFIXES + MESH_SUFFIXES:
+    if file_suffix(path) in CLOUD_SUFFIXES + MESH_SUFFIXES:
         return _load_cloud(path, mesh_samples)
     if path.lower().endswith(".npy"):
         try:
@@ -96,7 +96,7 @@ def load_points(
             raise ValueError(f"{path}: not a readable .npy array ({exc})") from None
         if not np.issubdtype(rows.dtype, np.number):
             raise ValueError(f"{path}: array dtype {rows.dtype} is not numeric")
-        return _from_table(np.asarray(rows, dtype=float), path)
+        return cloud_from_table(np.asarray(rows, dtype=float), path)
 
     text = _read_text(path)
     lines = [
@@ -139,7 +139,7 @@ def load_points(
             if _not_number(c):
                 raise ValueError(f"{path}: row {lineno}: {columns[j]} = {c!r} is not a number")
             values[k, j] = float(c)
-    return _from_table(values, path, [lineno for lineno, _ in lines])
+    return cloud_from_table(values, path, [lineno for lineno, _ in lines])
 
 
 def _read_text(path: str) -> str:
@@ -184,7 +184,7 @@ def save_points(
     lines, all digits, through trimesh) with vertex normals when given.
     """
     path = os.fspath(path)
-    if _suffix(path) in CLOUD_SUFFIXES:
+    if file_suffix(path) in CLOUD_SUFFIXES:
         _save_cloud(path, points, normals)
         return
     if np.ndim(points) == 2 and np.shape(points)[1] == 3:
@@ -226,7 +226,7 @@ MESH_SAMPLES = 20_000
 FLOAT32_RESOLUTION = 1e-4
 
 
-def _trimesh():
+def trimesh_module():
     """trimesh, imported on first use (an optional dependency)."""
     try:
         # ``import trimesh`` loads its exchange modules; named here for a type checker.
@@ -243,11 +243,11 @@ def _trimesh():
     return trimesh
 
 
-def _suffix(path: str) -> str:
+def file_suffix(path: str) -> str:
     return os.path.splitext(path)[1].lower()
 
 
-def _write_ply(path: str, vertices, faces=None, normals=None, colors=None) -> None:
+def write_ply(path: str, vertices, faces=None, normals=None, colors=None) -> None:
     """A binary little-endian PLY of float64 (``double``) vertices, with vertex normals
     where given, ``uchar`` red, green and blue where ``colors`` (uint8 ``(V, 3)``) are
     given, and triangle faces (``uchar`` count, ``int`` indices) where given. Written
@@ -286,18 +286,18 @@ def _load_cloud(path: str, mesh_samples: int | None = None):
     through trimesh a ``.ply``/``.obj`` cloud (vertices, and vertex normals where the file
     has them) or a ``.ply``/``.obj``/``.stl``/``.off`` mesh (points drawn on its faces,
     [`load_points`][jurs.datasets.load_points])."""
-    if _suffix(path) in (".xyz", ".pts"):
+    if file_suffix(path) in (".xyz", ".pts"):
         return _load_xyz(path)
-    if _suffix(path) == ".ply":
+    if file_suffix(path) == ".ply":
         _check_ply_rows(path)
     vertices, faces, normals = _read_vertices_and_faces(path)
     if len(vertices) == 0:
         raise ValueError(f"{path}: neither a point cloud nor a triangle mesh (no vertices)")
     if len(faces):
         return _points_on_faces(path, vertices, faces, mesh_samples)
-    if _suffix(path) not in CLOUD_SUFFIXES:  # .stl, .off: meshes only
-        raise ValueError(f"{path}: a {_suffix(path)[1:].upper()} file without faces")
-    points, normals = _checked_cloud(vertices.astype(np.float64), normals, path)
+    if file_suffix(path) not in CLOUD_SUFFIXES:  # .stl, .off: meshes only
+        raise ValueError(f"{path}: a {file_suffix(path)[1:].upper()} file without faces")
+    points, normals = checked_cloud(vertices.astype(np.float64), normals, path)
     _check_float32(path, vertices, points)
     return points, normals
 
@@ -307,7 +307,7 @@ def _read_vertices_and_faces(path: str):
     vertex normals (V, 3) float64 or None)`` of a PLY, OBJ, STL or OFF file, through
     trimesh's readers (an OBJ's groups joined); ValueError naming the file where trimesh
     cannot read it."""
-    trimesh = _trimesh()
+    trimesh = trimesh_module()
     readers = {
         ".ply": trimesh.exchange.ply.load_ply,
         ".obj": lambda fh: trimesh.exchange.obj.load_obj(fh, maintain_order=True),
@@ -316,10 +316,10 @@ def _read_vertices_and_faces(path: str):
     }
     try:
         with open(path, "rb") as fh:
-            data = readers[_suffix(path)](fh)
+            data = readers[file_suffix(path)](fh)
     except Exception as exc:  # trimesh raises many kinds for malformed files
         raise ValueError(
-            f"{path}: not a readable {_suffix(path)[1:].upper()} file ({_one_line(exc)})"
+            f"{path}: not a readable {file_suffix(path)[1:].upper()} file ({_one_line(exc)})"
         ) from None
     # An OBJ with faces comes back as named geometries; a cloud of "v" lines as one.
     parts = list(data["geometry"].values()) if "geometry" in data else [data]
@@ -488,10 +488,10 @@ def _load_xyz(path: str):
         except ValueError:
             raise ValueError(f"{path}: row {lineno}: not all numbers: {' '.join(cells)}") from None
     rows = [lineno for lineno, _ in lines]
-    return _checked_cloud(values[:, :3], values[:, 3:] if width == 6 else None, path, rows)
+    return checked_cloud(values[:, :3], values[:, 3:] if width == 6 else None, path, rows)
 
 
-def _checked_cloud(points, normals, path, row_numbers=None):
+def checked_cloud(points, normals, path, row_numbers=None):
     """``(points, normals)`` with the checks of
     [`load_points`][jurs.datasets.load_points], 3D."""
     if len(points) == 0:
@@ -518,21 +518,23 @@ def _save_cloud(path: str, points, normals) -> None:
     for the 3D suffixes."""
     points = np.asarray(points, dtype=np.float64)
     if points.ndim != 2 or points.shape[1] != 3:
-        raise ValueError(f"{path}: {_suffix(path)} files hold 3D points, got shape {points.shape}")
+        raise ValueError(
+            f"{path}: {file_suffix(path)} files hold 3D points, got shape {points.shape}"
+        )
     if normals is not None:
         normals = np.asarray(normals, dtype=np.float64)
         if normals.shape != points.shape:
             raise ValueError(
                 f"normals must have the shape of points {points.shape}, got {normals.shape}"
             )
-    if _suffix(path) in (".xyz", ".pts"):
+    if file_suffix(path) in (".xyz", ".pts"):
         table = points if normals is None else np.concatenate([points, normals], axis=1)
         np.savetxt(path, table, fmt="%.17g")
         return
-    if _suffix(path) == ".ply":
-        _write_ply(path, points, normals=normals)
+    if file_suffix(path) == ".ply":
+        write_ply(path, points, normals=normals)
         return
-    trimesh = _trimesh()
+    trimesh = trimesh_module()
     cloud = trimesh.Trimesh(
         points, np.empty((0, 3), dtype=np.int64), vertex_normals=normals, process=False
     )

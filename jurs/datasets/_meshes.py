@@ -12,7 +12,7 @@ import numpy.typing as npt
 from jaxtyping import Float, Int
 
 from ._examples import mesh_arrays
-from ._files import MESH_SUFFIXES, _suffix, _trimesh, _write_ply
+from ._files import MESH_SUFFIXES, file_suffix, trimesh_module, write_ply
 
 
 def load_mesh(
@@ -26,11 +26,11 @@ def load_mesh(
     ValueError naming the file for another suffix, an unreadable file or one without faces.
     """
     path = os.fspath(path)
-    if _suffix(path) not in MESH_SUFFIXES:
+    if file_suffix(path) not in MESH_SUFFIXES:
         raise ValueError(f"{path}: mesh files are {', '.join(MESH_SUFFIXES)}")
     if not os.path.exists(path):
         raise FileNotFoundError(f"{path}: no such file")
-    trimesh = _trimesh()
+    trimesh = trimesh_module()
     try:
         loaded = trimesh.load(path, process=False, force="mesh")
     except Exception as exc:  # trimesh raises many kinds for malformed files
@@ -39,7 +39,7 @@ def load_mesh(
     if faces.ndim != 2 or faces.shape[1] != 3 or len(faces) == 0:
         raise ValueError(f"{path}: no triangle faces")
     # force="mesh" makes it a Trimesh; trimesh.load is annotated as returning any Geometry.
-    if _suffix(path) == ".stl":
+    if file_suffix(path) == ".stl":
         loaded.merge_vertices()  # pyright: ignore[reportAttributeAccessIssue]
     return np.asarray(loaded.vertices, dtype=np.float64), np.asarray(loaded.faces, np.int64)  # pyright: ignore[reportAttributeAccessIssue]
 
@@ -61,7 +61,7 @@ def save_mesh(
     0-255 otherwise; values outside the range are clipped. ValueError for another
     shape, NaN or another format."""
     path = os.fspath(path)
-    suffix = _suffix(path)
+    suffix = file_suffix(path)
     if suffix not in MESH_SUFFIXES:
         raise ValueError(f"{path}: mesh files are {', '.join(MESH_SUFFIXES)}")
     vertices, faces = mesh_arrays(vertices, faces)
@@ -69,9 +69,9 @@ def save_mesh(
     if rgb is not None and suffix != ".ply":
         raise ValueError(f"{path}: vertex colours are written to PLY only")
     if suffix == ".ply":
-        _write_ply(path, vertices, faces=np.asarray(faces, dtype=np.int64), colors=rgb)
+        write_ply(path, vertices, faces=np.asarray(faces, dtype=np.int64), colors=rgb)
         return
-    trimesh = _trimesh()
+    trimesh = trimesh_module()
     # OBJ and OFF are text: all digits (trimesh's defaults keep 8 and 10).
     options = {"digits": 17} if suffix in (".obj", ".off") else {}
     trimesh.Trimesh(vertices, faces, process=False).export(path, file_type=suffix[1:], **options)
@@ -105,9 +105,9 @@ def ply_vertex_colors(path: str) -> np.ndarray | None:
     vertex in the file's order (the rows [`load_points`][jurs.datasets.load_points]
     returns); None where the file is not a PLY, has no vertex colours, or has faces (a
     mesh is read as points drawn on its faces, which carry no file colour)."""
-    if _suffix(path) != ".ply":
+    if file_suffix(path) != ".ply":
         return None
-    trimesh = _trimesh()
+    trimesh = trimesh_module()
     try:
         with open(path, "rb") as fh:
             data = trimesh.exchange.ply.load_ply(fh)

@@ -13,7 +13,7 @@ from collections.abc import Sequence
 import numpy as np
 from jaxtyping import Float
 
-from ._files import _checked_cloud, _from_table, load_points
+from ._files import checked_cloud, cloud_from_table, load_points
 
 #: Columns of a ``.npy`` read by rows, and what they hold: ``(dimension, with normals)``.
 NPY_COLUMNS = {2: (2, False), 3: (3, False), 4: (2, True), 6: (3, True)}
@@ -182,9 +182,9 @@ def _npy_rows(path: str, process_index: int, process_count: int):
     numbers = np.arange(rows.start, rows.stop) + 1  # 1-based rows of the whole file
     d, with_normals = NPY_COLUMNS[table.shape[1]]
     if d == 2:
-        return _from_table(mine, path, numbers)
+        return cloud_from_table(mine, path, numbers)
     normals = mine[:, 3:] if with_normals else None
-    points, normals = _checked_cloud(mine[:, :3], normals, path, numbers)
+    points, normals = checked_cloud(mine[:, :3], normals, path, numbers)
     return points, normals
 
 

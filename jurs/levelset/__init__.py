@@ -87,12 +87,12 @@ from ._curves import (
     zero_level_set,
 )
 from ._distances import distance_to_polyline, project_to_zero_set, refined_chamfer_hausdorff
+from ._faces import face_areas
 from ._mesh_analysis import (
     MeshComponent,
     MeshReport,
     analyze_mesh,
     boundary_loops,
-    face_areas,
     genus,
     mesh_components,
     mesh_distances,

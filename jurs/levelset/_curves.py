@@ -69,12 +69,12 @@ def sampling_grid(
 
 
 @eqx.filter_jit
-def _evaluate(spline, xy):
+def evaluate_spline(spline, xy):
     return spline(xy)
 
 
 @eqx.filter_jit
-def _gradient(spline, xy):
+def spline_gradient(spline, xy):
     return spline.grad(xy)
 
 
@@ -100,7 +100,10 @@ def evaluate_grid(
     n = len(xy)
     padded = np.concatenate([xy, np.repeat(xy[-1:], -n % chunk, axis=0)])
     out = np.concatenate(
-        [np.asarray(_evaluate(spline, padded[k : k + chunk])) for k in range(0, len(padded), chunk)]
+        [
+            np.asarray(evaluate_spline(spline, padded[k : k + chunk]))
+            for k in range(0, len(padded), chunk)
+        ]
     )
     return out[:n].reshape(gx.shape).astype(float)
 

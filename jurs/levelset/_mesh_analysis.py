@@ -20,6 +20,7 @@ from scipy.sparse import csgraph
 from scipy.spatial import cKDTree  # pyright: ignore[reportAttributeAccessIssue]  # no stub
 
 from ..datasets import sample_mesh
+from ._faces import boundary_edges, check_mesh, face_areas, face_components
 from ._trimming import DEFAULT_TRIM, UNSUPPORTED_FRACTION, Support, check_points
 
 #: Default supplementary threshold: this many median nearest-neighbour spacings of the
@@ -30,34 +31,6 @@ THRESHOLD_DIAGONAL = 0.01
 #: [`mesh_distances`][jurs.levelset.mesh_distances]: at least this many, and
 #: ``SAMPLES_PER_REFERENCE`` per reference point, at most ``MAX_SAMPLES``.
 MIN_SAMPLES, SAMPLES_PER_REFERENCE, MAX_SAMPLES = 10_000, 4, 1_000_000
-
-
-def _check_mesh(vertices, faces):
-    """``(vertices float64 (V, 3), faces int64 (F, 3))``, checked: shapes, finite vertices,
-    face indices in range. ValueError naming the input otherwise."""
-    vertices = np.asarray(vertices, dtype=np.float64)
-    faces = np.asarray(faces)
-    if vertices.ndim != 2 or vertices.shape[1] != 3:
-        raise ValueError(f"vertices must have shape (V, 3), got {vertices.shape}")
-    if (
-        faces.ndim != 2
-        or faces.shape[1] != 3
-        or (faces.size and not np.issubdtype(faces.dtype, np.integer))
-    ):
-        raise ValueError(
-            f"faces must be an integer array of shape (F, 3), got {faces.shape} {faces.dtype}"
-        )
-    if faces.size and (faces.min() < 0 or faces.max() >= len(vertices)):
-        raise ValueError(
-            f"faces index vertices 0..{len(vertices) - 1}, got indices {faces.min()}..{faces.max()}"
-        )
-    bad = ~np.isfinite(vertices).all(axis=1)
-    if bad.any():
-        raise ValueError(
-            f"vertices must be finite; {int(bad.sum())} of {len(vertices)} hold NaN or "
-            f"infinite coordinates (the first is vertex {int(np.flatnonzero(bad)[0])})"
-        )
-    return vertices, faces.astype(np.int64)
 
 
 def _check_points(points, name: str, minimum: int = 1) -> np.ndarray:
@@ -89,15 +62,6 @@ def clean_faces(faces: Int[np.ndarray, "F 3"]) -> tuple[Int[np.ndarray, " K"], t
     return kept, tuple(notes)
 
 
-def face_areas(
-    vertices: Float[npt.ArrayLike, "V 3"], faces: Int[npt.ArrayLike, "F 3"]
-) -> Float[np.ndarray, " F"]:
-    """Area of each triangle; ``(F,)``."""
-    vertices, faces = _check_mesh(vertices, faces)
-    a, b, c = (vertices[faces[:, k]] for k in range(3))
-    return 0.5 * np.linalg.norm(np.cross(b - a, c - a), axis=1)
-
-
 def mesh_components(
     vertices: Float[npt.ArrayLike, "V 3"], faces: Int[npt.ArrayLike, "F 3"]
 ) -> tuple[int, Int[np.ndarray, " F"]]:
@@ -106,39 +70,8 @@ def mesh_components(
     Returns ``(count, labels)``: ``labels (F,)`` numbers each face's component from 0, the
     components ordered by face count, largest first (ties by first face).
     """
-    vertices, faces = _check_mesh(vertices, faces)
-    return _face_components(faces, len(vertices))
-
-
-def _face_components(faces, num_vertices: int):
-    """[`mesh_components`][jurs.levelset.mesh_components] of checked int64 ``faces`` over
-    ``num_vertices`` vertices."""
-    if len(faces) == 0:
-        return 0, np.empty(0, dtype=np.int64)
-    # Each face links its first vertex to the other two: enough to connect all three.
-    rows = np.repeat(faces[:, 0], 2)
-    cols = faces[:, 1:].reshape(-1)
-    graph = sparse.coo_matrix(
-        (np.ones(len(rows), dtype=np.int8), (rows, cols)), shape=(num_vertices, num_vertices)
-    )
-    _, vertex_label = csgraph.connected_components(graph, directed=False)
-    raw = vertex_label[faces[:, 0]]
-    used, first, inverse, sizes = np.unique(
-        raw, return_index=True, return_inverse=True, return_counts=True
-    )
-    order = np.lexsort((first, -sizes))  # largest first, then by first face
-    rank = np.empty(len(used), dtype=np.int64)
-    rank[order] = np.arange(len(used))
-    return len(used), rank[inverse.reshape(-1)]
-
-
-def _boundary_edges(faces, labels):
-    """The boundary edges (edges of one face) as ``(B, 2)`` vertex pairs, and the
-    component label of each."""
-    edges = np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
-    edge_label = np.repeat(labels, 3)
-    unique, where, uses = np.unique(edges, axis=0, return_index=True, return_counts=True)
-    return unique[uses == 1], edge_label[where][uses == 1]
+    vertices, faces = check_mesh(vertices, faces)
+    return face_components(faces, len(vertices))
 
 
 def boundary_loops(
@@ -154,18 +87,18 @@ def boundary_loops(
     vertex count as one loop. Degenerate and repeated faces are left out first
     (``clean_faces``).
     """
-    vertices, faces = _check_mesh(vertices, faces)
+    vertices, faces = check_mesh(vertices, faces)
     faces = faces[clean_faces(faces)[0]]
     if len(faces) == 0:
         return np.empty(0, dtype=np.int64), np.empty(0)
-    _, labels = _face_components(faces, len(vertices))
+    _, labels = face_components(faces, len(vertices))
     return _loops(vertices, faces, labels)
 
 
 def _loops(vertices, faces, labels):
     """[`boundary_loops`][jurs.levelset.boundary_loops] of checked, cleaned faces with
     their component ``labels``."""
-    edges, owner = _boundary_edges(faces, labels)
+    edges, owner = boundary_edges(faces, labels)
     if len(edges) == 0:
         return np.empty(0, dtype=np.int64), np.empty(0)
     n = len(vertices)
@@ -225,7 +158,7 @@ def genus(faces: Int[npt.ArrayLike, "F 3"]) -> int:
     faces = faces[clean_faces(faces)[0]]
     if len(faces) == 0:
         raise ValueError("faces holds no proper triangle (every face names a vertex twice)")
-    count, labels = _face_components(faces, int(faces.max()) + 1)
+    count, labels = face_components(faces, int(faces.max()) + 1)
     if count != 1:
         raise ValueError(f"genus needs one connected component, got {count}")
     v, e, f, boundary = (int(x[0]) for x in _topology(faces, labels, 1))
@@ -407,7 +340,7 @@ def analyze_mesh(
     and ``MeshReport.notes`` says how many: they add no surface, and counted they made
     the genus false (a mesh with every face given twice read as genus -n).
     """
-    vertices, faces = _check_mesh(vertices, faces)
+    vertices, faces = check_mesh(vertices, faces)
     if points is not None:
         points = _check_points(points, "points")
         threshold = default_threshold(points) if threshold is None else float(threshold)
@@ -417,7 +350,7 @@ def analyze_mesh(
     faces = faces[kept]
     if len(faces) == 0:
         return MeshReport((), threshold if points is not None else None, notes)
-    count, labels = _face_components(faces, len(vertices))
+    count, labels = face_components(faces, len(vertices))
     num_v, num_e, num_f, boundary = _topology(faces, labels, count)
     area = face_areas(vertices, faces)
     component_area = np.bincount(labels, weights=area, minlength=count)
@@ -514,7 +447,7 @@ def mesh_distances(
     Returns:
         ``{"chamfer", "hausdorff", "normal_consistency", "samples"}``.
     """
-    vertices, faces = _check_mesh(vertices, faces)
+    vertices, faces = check_mesh(vertices, faces)
     faces = faces[clean_faces(faces)[0]]  # a repeated face would be sampled twice as often
     reference = _check_points(reference_points, "reference_points")
     if reference_normals is not None:

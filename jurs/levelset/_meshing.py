@@ -36,8 +36,8 @@ from ._trimming import check_points, check_rim, check_trim, trim_mesh
 #: side.
 SAMPLES_PER_CELL = 5
 #: Bounds of the default resolution (nodes along the longest side of the box). 256 keeps a
-#: default mesh at a few hundred thousand triangles, meshed in a couple of seconds
-#: (docs/performance.md); pass ``resolution`` for more.
+#: default mesh at a few hundred thousand triangles, quick to mesh (docs/performance.md,
+#: "Mesh lattice density"); pass ``resolution`` for more.
 MIN_RESOLUTION, MAX_RESOLUTION = 32, 256
 #: Bound of the default resolution of an adaptive spline, whose mesh marches only the
 #: blocks where g may reach the level (``jurs._model.band``): five nodes a finest cell
@@ -57,13 +57,13 @@ SLAB_NODES = 1 << 20
 #: the Newton steps take it back.
 NUDGE = 1e-3
 #: Lattice nodes a mesh samples at most unless ``max_nodes`` says otherwise: 2^27, a
-#: lattice of 512^3, about 15 s of meshing at ``NODES_PER_SECOND``. The time grows with the
+#: lattice of 512^3, eight times the default cap's nodes. The time grows with the
 #: cube of the resolution while the memory (bounded by the slabs) grows with its square, so
 #: a resolution of 1200-2000 fits in memory and runs for many minutes; it is refused in
 #: milliseconds instead (docs/robustness.md, "Meshing").
 MAX_NODES = 1 << 27
-#: Lattice nodes meshed a second, for the estimate in the refusal's message: 256^3 nodes in
-#: 1.7 s (docs/performance.md, "Mesh lattice density").
+#: Lattice nodes meshed a second, for the estimate in the refusal's message: measured on
+#: the default cap's 256^3 lattice (docs/performance.md, "Mesh lattice density").
 NODES_PER_SECOND = 1e7
 #: Peak bytes per lattice node of a slab, and per vertex of the mesh (measured about 16
 #: and 450: see [`mesh`][jurs.levelset.mesh], *Memory*), and the vertices a mesh has per
@@ -75,7 +75,7 @@ BYTES_PER_SLAB_NODE, BYTES_PER_VERTEX, VERTICES_PER_PLANE_NODE = 16, 450, 8
 _EMPTY = (np.empty((0, 3)), np.empty((0, 3), dtype=np.int64))
 
 
-def _marching_cubes():
+def skimage_marching_cubes():
     try:
         from skimage.measure import marching_cubes
     except ImportError:
@@ -162,7 +162,7 @@ def mesh(
             its marching-cubes position).
         chunk: lattice nodes per slab (at least two planes of the first axis per slab).
         max_nodes: lattice nodes above which the mesh is refused before any is sampled
-            (default ``MAX_NODES``, 2^27: a 512^3 lattice, about 15 s); None, or a larger
+            (default ``MAX_NODES``, 2^27: a 512^3 lattice); None, or a larger
             number, meshes anyway. For an adaptive spline the nodes counted are those of
             the marched blocks. The memory is checked too, against the host's
             available memory, and that check cannot be lifted.
@@ -348,7 +348,7 @@ def _march_in_slabs(spline, axes, level: float, nudge: float, chunk: int):
     same values on the same edges); ``_weld`` merges them. Values within ``nudge`` of
     the level are set to ``level + nudge`` first (see ``NUDGE``).
     """
-    marching_cubes = _marching_cubes()
+    marching_cubes = skimage_marching_cubes()
     xs, ys, zs = axes
     planes = max(2, chunk // (len(ys) * len(zs)))
     vertex_parts, face_parts = [], []
@@ -418,7 +418,7 @@ def _mesh_band(spline, lower, upper, resolution: int, level: float, max_nodes, c
     faces)``. A default resolution (``chosen``) is lowered until the marched nodes fit in
     ``max_nodes``; a given one is refused past it (``check_band_size``)."""
     evaluator = FinestSpline(spline)
-    marching_cubes = _marching_cubes()
+    marching_cubes = skimage_marching_cubes()
     slope = finest_slope_bound(spline, evaluator)
     while True:
         axes = lattice_axes(lower, upper, int(resolution))

@@ -62,6 +62,8 @@ import numpy.typing as npt
 from jaxtyping import Float, Int
 from scipy.spatial import cKDTree  # pyright: ignore[reportAttributeAccessIssue]  # no stub
 
+from ._faces import boundary_edges, face_areas, face_components
+
 #: Default trim amid the samples, in local spacings of the data. Random samples leave
 #: gaps: on a sphere sampled uniformly at random by area (1e3, 1e4, 1e5 points) 99.9 % of
 #: the sphere lay within 1.6-2.0 spacings of the data and all of it (2e5 random surface
@@ -317,8 +319,6 @@ def fill_holes(vertices, faces, level, support: Support, area: float) -> np.ndar
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
-    from ._mesh_analysis import face_areas  # here: the mesh analysis imports this module
-
     out = level >= 0
     if not out.any() or out[faces].all():
         return level
@@ -356,18 +356,15 @@ def fill_holes(vertices, faces, level, support: Support, area: float) -> np.ndar
 def drop_islands(vertices, faces, support: Support, area: float):
     """The mesh without its open connected pieces (a border edge) that cover less than
     ``area`` squared local spacings: slivers the clip leaves beside the rim."""
-    # Imported here: the mesh analysis imports this module (its trim and Support).
-    from ._mesh_analysis import _boundary_edges, _face_components, face_areas
-
     if len(faces) == 0:
         return vertices, faces
     faces = np.asarray(faces, dtype=np.int64)
-    count, owner = _face_components(faces, len(vertices))
+    count, owner = face_components(faces, len(vertices))
     if count == 1:
         return vertices, faces
     size = np.bincount(owner, weights=face_areas(vertices, faces), minlength=count)
     open_piece = np.zeros(count, dtype=bool)
-    open_piece[_boundary_edges(faces, owner)[1]] = True
+    open_piece[boundary_edges(faces, owner)[1]] = True
     _, nearest = support.tree.query(vertices)
     scale = np.zeros(count)
     np.maximum.at(scale, np.repeat(owner, 3), (support.spacing[nearest] ** 2)[faces].ravel())

@@ -5,7 +5,7 @@ The paper's iterations (I-PIA, IURS), the exact solve for fixed weights and its
 outlier-robust reweighting, a sparse joint Levenberg-Marquardt, and optimistix and jaxopt
 wrappers (jaxopt itself is imported only when one of its solvers runs). The two wrapper
 modules load on first access to one of their names (module ``__getattr__``, PEP 562):
-optimistix takes about 0.1 s to import.
+optimistix alone is a noticeable share of ``import jurs`` (docs/performance.md).
 """
 
 import importlib

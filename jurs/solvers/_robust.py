@@ -15,7 +15,7 @@ from .._linalg.normal import DEFAULT_CHUNK
 from .._model.spline import ImplicitSpline
 from .._problem.energy import bspline_residuals, regulariser
 from .._problem.problem import Problem
-from .._problem.validate import _is_concrete, check_count, check_nonnegative
+from .._problem.validate import check_count, check_nonnegative, is_concrete
 from ._base import AbstractSolver
 from ._least_squares import DEFAULT_RIDGE, LeastSquares, LeastSquaresState
 
@@ -42,7 +42,7 @@ def _check_scale_range(scale) -> None:
     of the float type (with four decades to spare): at 1e300 the energy overflowed, at
     1e-300 every weight fell to 0, and the fit ended ``nonfinite`` with nothing naming the
     scale. Traced scales pass unchecked."""
-    if not _is_concrete(scale):
+    if not is_concrete(scale):
         return
     info = jnp.finfo(jnp.result_type(float))
     low, high = 1e4 * float(np.sqrt(info.tiny)), 1e-4 * float(np.sqrt(info.max))
