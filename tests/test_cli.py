@@ -812,3 +812,22 @@ def test_fit_help_names_mesh_files(capsys):
         cli.main(["fit", "--help"])
     text = " ".join(capsys.readouterr().out.split())
     assert "STL" in text and "OFF" in text and "sampled on its faces" in text
+
+
+def test_fit_help_gives_the_exit_codes_and_3d_tables(capsys):
+    """`jurs fit --help` says what each exit status means (the verdicts that exit 1 named
+    as RAISED_RESULTS names them), what a folder of another kind's outputs becomes, and
+    that 3 or 6 columns make a 3D cloud; the epilog keeps its lines."""
+    from jurs._solution.solution import RAISED_RESULTS
+
+    with pytest.raises(SystemExit):
+        cli.main(["fit", "--help"])
+    out = capsys.readouterr().out
+    lines = out[out.index("exit status:") :].splitlines()
+    codes = [line.split()[0] for line in lines if line[:2] == "  " and line.split()[0].isdigit()]
+    assert codes == ["0", "1", "2", "130"]
+    text = " ".join(out.split())
+    assert all(name in text for name in RAISED_RESULTS)
+    assert "doubtful" in text and "the exit status is the worst" in text
+    assert "output folder:" in out and "zero_level.csv" in text
+    assert "x, y, z, nx, ny, nz" in text and "a 3D cloud" in text
