@@ -98,6 +98,8 @@ __all__ = [
     "EXIT_BAD_INPUT",
     "EXIT_FIT_FAILED",
     "EXIT_INTERRUPTED",
+    "VERDICT_LINES",
+    "not_a_reconstruction",
     "OUTPUTS",
     "OUTPUTS_3D",
     "OUTPUT_OVERHEAD",
@@ -452,8 +454,10 @@ def prepare_fit(args) -> FitJob:
 
 
 def _solve(job: FitJob, args):
-    """``(solution, seconds)`` of the fit, with a progress bar; None (said on stderr) when
-    it diverged. Settings the fit refuses (memory, precision) raise InputError."""
+    """``(solution, seconds)`` of the fit, with a progress bar; None (said on stderr in one
+    line, ``not_a_reconstruction``) where its verdict is not a reconstruction (diverged
+    included). A doubtful fit is returned, said in one short warning line. Settings the
+    fit refuses (memory, precision) raise InputError."""
     import jax
 
     import jurs
