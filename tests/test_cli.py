@@ -128,21 +128,71 @@ def test_summary_names_the_verdict_and_skips_pyplot(example1_csv, tmp_path, caps
     assert (tmp_path / "o" / "fit.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
-def test_other_verdicts_are_written_with_a_warning(tmp_path, capsys):
-    """A fit whose verdict is neither success nor max_steps (here half the normals flipped)
-    is written, and stderr names the verdict by its short name, then its sentence."""
+def _flipped_example1(path):
+    """Example 1 with half its normals flipped: the fit's verdict is inconsistent_normals."""
     points, normals = jurs.datasets.example1(120)
     normals = normals.copy()
     normals[:60] *= -1
-    path = tmp_path / "flipped.csv"
     jurs.datasets.save_points(path, points, normals)
+    return path
+
+
+def test_not_a_reconstruction_exits_1_and_writes_nothing(tmp_path, capsys):
+    """A fit whose verdict is not a reconstruction (here half the normals flipped:
+    inconsistent_normals) was written with a 771-character warning and exit status 0. Now:
+    exit 1, one short line on stderr naming the verdict, no output folder; into a folder of
+    earlier outputs, those stay as they were."""
+    path = _flipped_example1(tmp_path / "flipped.csv")
     out = tmp_path / "o"
-    assert cli.main(["fit", str(path), "-o", str(out), *PAPER_ARGS, *FIT_ARGS]) == 0
+    assert cli.main(["fit", str(path), "-o", str(out), *PAPER_ARGS, *FIT_ARGS]) == 1
     err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "verdict is inconsistent_normals: the normals are" in err[0], err
+    assert len(err) == 1 and len(err[0]) - len(str(path)) < 300, err  # was 771
+    assert err[0].startswith(f"jurs: error: {path}: the fit's verdict is inconsistent_normals")
+    assert err[0].endswith("nothing written"), err
+    assert not out.exists()
+    assert not [p for p in os.listdir(tmp_path) if p.startswith(".jurs-")]
+    _old_outputs(out)
+    assert cli.main(["fit", str(path), "-o", str(out), *PAPER_ARGS, *FIT_ARGS]) == 1
+    assert sorted(os.listdir(out)) == sorted(set(cli.OUTPUTS) - {"fit.png"})
+    assert all((out / n).read_text() == "old" for n in os.listdir(out))
+
+
+def test_every_verdict_that_is_not_a_reconstruction_has_its_line():
+    """The command line's lines cover exactly the verdicts throw=True raises."""
+    from jurs._solution.solution import RAISED_RESULTS
+
+    assert set(cli.VERDICT_LINES) == set(RAISED_RESULTS)
+    for name in RAISED_RESULTS:
+        line = cli.not_a_reconstruction(name)
+        assert name in line and "not a reconstruction" in line and len(line) < 260
+
+
+def test_a_doubtful_fit_is_written_with_one_short_line(example1_csv, tmp_path, capsys, monkeypatch):
+    """A doubtful fit is usable: written, exit 0, one short warning line; the doubts in
+    words are in metrics.json. (The fit is made doubtful here: a real one needs the
+    automatic settings' checks on a larger cloud.)"""
+    import dataclasses
+
+    real_fit = jurs.fit
+    doubts = ("a thin part " + "x" * 300, "a closed zero-set component away from the data")
+
+    def doubtful_fit(*args, **kwargs):
+        sol = real_fit(*args, **kwargs)
+        stats = dict(sol.stats, doubts=doubts)
+        return dataclasses.replace(sol, result=jurs.RESULTS.doubtful, stats=stats)
+
+    monkeypatch.setattr(jurs, "fit", doubtful_fit)
+    out = tmp_path / "o"
+    args = ["fit", str(example1_csv), "-o", str(out), *PAPER_ARGS, *FIT_ARGS]
+    assert cli.main([a for a in args if a != "-q"]) == 0
+    captured = capsys.readouterr()
+    err = captured.err.strip().splitlines()
+    assert len(err) == 1 and "doubtful fit (2 doubt(s)" in err[0] and len(err[0]) < 200, err
+    assert captured.out.splitlines()[0].endswith("(doubtful)"), captured.out
+    assert sorted(os.listdir(out)) == sorted(cli.OUTPUTS)
     record = json.loads((out / "metrics.json").read_text())
-    assert record["metrics"]["status"] == "inconsistent_normals"
-    assert record["metrics"]["converged"] is False
+    assert record["metrics"]["status"] == "doubtful"
+    assert record["metrics"]["doubts"] == list(doubts)
 
 
 def test_standalone_figures():
@@ -225,7 +275,7 @@ def test_bad_text_files(kind, tmp_path, capsys):
 @pytest.mark.parametrize(
     "kind, array, needle",
     [
-        ("three_columns", np.ones((5, 3)), "shape (5, 3)"),
+        ("five_columns", np.ones((5, 5)), "shape (5, 5)"),
         ("one_dimensional", np.ones(8), "shape (8,)"),
         ("three_dimensional", np.ones((2, 5, 4)), "shape (2, 5, 4)"),
         (
@@ -408,12 +458,47 @@ def test_progress_bar_only_after_delay():
     bar.close()
     assert quiet.getvalue() == ""
     loud = io.StringIO()
-    bar = cli.ProgressBar("fit", delay=0, width=10, stream=loud)
+    bar = cli.ProgressBar("fit", delay=0, width=10, stream=loud, tty=True)
     bar(5, 10)
     bar(10, 10)
     bar.close()
     text = loud.getvalue()
     assert "5/10 steps" in text and "[##########]" in text and text.endswith("\n")
+    assert text.count("\r") == 2
+
+
+def test_progress_in_a_log_is_a_few_plain_lines():
+    """Piped into a log, the bar wrote a carriage-return frame a chunk of steps: hundreds
+    of them. Not on a terminal, it writes a line when first shown, one a quarter, and one
+    where the run stopped."""
+    log = io.StringIO()  # isatty() is False
+    bar = cli.ProgressBar("iurs grid 9x9", delay=0, stream=log)
+    for done in range(1, 201):
+        bar(done, 200)
+    bar.close()
+    text = log.getvalue()
+    lines = text.splitlines()
+    assert "\r" not in text and text.endswith("\n")
+    assert [line.split(": ")[1].split(" steps")[0] for line in lines] == [
+        "1/200",
+        "50/200",
+        "100/200",
+        "150/200",
+        "200/200",
+    ]
+    assert all(line.startswith("iurs grid 9x9: ") and " %) " in line for line in lines)
+    # A run that stops early (tol met) says where it stopped; nothing after close.
+    log = io.StringIO()
+    bar = cli.ProgressBar("ipia", delay=0, stream=log)
+    for done in range(1, 71):
+        bar(done, 200)
+    bar.close()
+    bar.close()
+    assert [line.split(": ")[1].split(" steps")[0] for line in log.getvalue().splitlines()] == [
+        "1/200",
+        "50/200",
+        "70/200",
+    ]
 
 
 def _old_outputs(out):
@@ -659,7 +744,7 @@ def test_ctrl_c_to_the_process(tmp_path):
     rest, _ = proc.communicate(timeout=120)[::-1]
     err = (seen + rest).decode()
     assert proc.returncode == 130, err
-    # The bar redraws its one line with carriage returns, then ends it; then one line.
+    # Into a pipe the bar writes plain lines, each naming the steps; then one line.
     lines = [line for line in err.split("\n") if line.strip()]
     assert lines[-1].startswith("jurs: interrupted"), err
     assert all("steps" in line for line in lines[:-1]), err
@@ -727,3 +812,22 @@ def test_fit_help_names_mesh_files(capsys):
         cli.main(["fit", "--help"])
     text = " ".join(capsys.readouterr().out.split())
     assert "STL" in text and "OFF" in text and "sampled on its faces" in text
+
+
+def test_fit_help_gives_the_exit_codes_and_3d_tables(capsys):
+    """`jurs fit --help` says what each exit status means (the verdicts that exit 1 named
+    as RAISED_RESULTS names them), what a folder of another kind's outputs becomes, and
+    that 3 or 6 columns make a 3D cloud; the epilog keeps its lines."""
+    from jurs._solution.solution import RAISED_RESULTS
+
+    with pytest.raises(SystemExit):
+        cli.main(["fit", "--help"])
+    out = capsys.readouterr().out
+    lines = out[out.index("exit status:") :].splitlines()
+    codes = [line.split()[0] for line in lines if line[:2] == "  " and line.split()[0].isdigit()]
+    assert codes == ["0", "1", "2", "130"]
+    text = " ".join(out.split())
+    assert all(name in text for name in RAISED_RESULTS)
+    assert "doubtful" in text and "the exit status is the worst" in text
+    assert "output folder:" in out and "zero_level.csv" in text
+    assert "x, y, z, nx, ny, nz" in text and "a 3D cloud" in text

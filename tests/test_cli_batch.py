@@ -110,3 +110,25 @@ def test_progress_lines_on_a_terminal_and_the_worst_status(tmp_path, capsys, mon
     codes["c.csv"] = 0
     assert _batch.run_batch(quiet, run_one) == 1
     assert "[1/3]" not in capsys.readouterr().err
+
+
+def test_a_fit_that_is_not_a_reconstruction_among_good_ones(tmp_path, capsys):
+    """A cloud whose fit's verdict is inconsistent_normals (half its normals flipped)
+    among good ones: no sub-folder for it, the others written, exit status 1 (a failed
+    fit), its one line and the summary naming it."""
+    good = tmp_path / "good.csv"
+    jurs.datasets.save_points(good, *jurs.datasets.example1(120))
+    points, normals = jurs.datasets.example1(120)
+    normals = normals.copy()
+    normals[:60] *= -1
+    flipped = tmp_path / "flipped.csv"
+    jurs.datasets.save_points(flipped, points, normals)
+    out = tmp_path / "out"
+    rc = cli.main(["fit", str(flipped), str(good), "-o", str(out), *PAPER_ARGS, *FIT_ARGS])
+    err = capsys.readouterr().err
+    assert rc == 1, err
+    assert os.listdir(out) == ["good"]
+    assert sorted(os.listdir(out / "good")) == sorted(cli.OUTPUTS)
+    errors = [line for line in err.splitlines() if line.startswith("jurs: error:")]
+    assert len(errors) == 1 and "inconsistent_normals" in errors[0], err
+    assert "fitted 1 of 2" in err and str(flipped) in err.splitlines()[-1]

@@ -96,6 +96,32 @@ def test_surface_from_xyz_without_normals(sphere_files, tmp_path):
     assert float(jurs.load_spline(out / "spline.npz")(np.zeros(3))) < 0
 
 
+def test_surface_from_3d_tables_into_a_curve_fits_folder(sphere, tmp_path, capsys):
+    """A CSV of columns x, y, z was refused ("expected 4 columns x, y, nx, ny, got 3"): it
+    is a 3D cloud, fitted as a surface, as a 6-column .npy of points and normals is. And
+    fitted into a folder that holds a curve fit's outputs, it leaves only its own."""
+    out = tmp_path / "out"
+    curve = tmp_path / "ring.csv"
+    jurs.datasets.save_points(curve, *jurs.datasets.example1(120))
+    curve_args = ["--solver", "lstsq", "--lam", "1e-4", "--grid", "8", "--resolution", "64"]
+    assert cli.main(["fit", str(curve), "-o", str(out), *curve_args, "-q"]) == 0
+    assert sorted(os.listdir(out)) == sorted(cli.OUTPUTS)
+
+    path = tmp_path / "sphere.csv"
+    np.savetxt(path, sphere[0], delimiter=",", header="x,y,z", comments="", fmt="%.17g")
+    assert cli.main(["fit", str(path), "-o", str(out), *FIT_ARGS, "--resolution", "40"]) == 0
+    assert sorted(os.listdir(out)) == sorted(cli.OUTPUTS_3D)  # fit.png, zero_level.csv gone
+    record = _check_sphere_mesh(out)
+    assert record["normals"] == "estimated" and record["num_points"] == len(sphere[0])
+
+    npy = tmp_path / "sphere.npy"
+    np.save(npy, np.concatenate(sphere, axis=1))
+    out = tmp_path / "npy"
+    assert cli.main(["fit", str(npy), "-o", str(out), *FIT_ARGS, "--resolution", "40"]) == 0
+    assert _check_sphere_mesh(out)["normals"] == "given"
+    assert capsys.readouterr().err == ""
+
+
 BAD_XYZ = {
     "extra_column": ("1 0 0\n0 1 0\n0 0 1 5\n-1 0 0\n", "row 3"),
     "not_a_number": ("1 0 0\n0 x 0\n0 0 1\n-1 0 0\n", "row 2"),

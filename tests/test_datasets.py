@@ -86,7 +86,8 @@ def test_whitespace_without_header(tmp_path):
         ("x,y,nx,ny\n0,0,0,0\n", r"row 2 has a zero-length normal"),
         ("x,y,nx,ny\n", r"no data rows"),
         ("", r"no data rows"),
-        ("a,b,c,d\n0,0,1,0\n", r"row 1: header must be x, y, nx, ny"),
+        ("a,b,c,d\n0,0,1,0\n", r"row 1: header a, b, c, d is not one of x,y \| x,y,z"),
+        ("0,0,1,0,1\n", r"row 1: expected 2 \(x y\), 3 \(x y z\), 4 .* columns, got 5"),
     ],
 )
 def test_bad_csv(tmp_path, text, message):
@@ -99,8 +100,8 @@ def test_bad_csv(tmp_path, text, message):
 
 def test_bad_npy(tmp_path):
     path = tmp_path / "bad.npy"
-    np.save(path, np.ones((5, 3)))
-    with pytest.raises(ValueError, match=r"expected an \(m, 4\) table .* got shape \(5, 3\)"):
+    np.save(path, np.ones((5, 5)))
+    with pytest.raises(ValueError, match=r"expected an \(m, c\) table .* got shape \(5, 5\)"):
         datasets.load_points(path)
     np.save(path, np.ones(8))
     with pytest.raises(ValueError, match=r"got shape \(8,\)"):
@@ -123,10 +124,85 @@ def test_points_without_normals_round_trip(tmp_path, suffix):
     np.testing.assert_array_equal(loaded, points)
 
 
+def _table_text(columns, header):
+    """A table of the unit sphere's 40 points (3D) or the unit circle's (2D) with
+    ``columns`` columns, and the header naming them where ``header``."""
+    names = datasets.TABLE_COLUMNS[columns]
+    if "z" in names:
+        points, normals = datasets.sphere3d(40)
+    else:
+        t = np.linspace(0, 2 * np.pi, 40, endpoint=False)
+        points = normals = np.stack([np.cos(t), np.sin(t)], axis=1)
+    table = np.concatenate([points, normals], axis=1)[:, :columns]
+    rows = "\n".join(",".join(f"{v:.17g}" for v in row) for row in table)
+    return ((",".join(names) + "\n") if header else "") + rows + "\n", points, normals
+
+
+@pytest.mark.parametrize("header", [True, False])
+@pytest.mark.parametrize("columns", [2, 3, 4, 6])
+def test_table_columns_decide_the_dimension(tmp_path, columns, header):
+    """A CSV of x, y, z was refused ("expected 4 columns x, y, nx, ny, got 3"): 2 and 4
+    columns are 2D points (without and with normals), 3 and 6 3D ones, read from a header
+    naming them or, without one, from their number. The same for .npy and for text
+    separated by spaces."""
+    text, points, normals = _table_text(columns, header)
+    with_normals = columns in (4, 6)
+    csv = tmp_path / "cloud.csv"
+    csv.write_text(text)
+    txt = tmp_path / "cloud.txt"
+    txt.write_text(text.replace(",", " "))
+    npy = tmp_path / "cloud.npy"
+    np.save(npy, np.loadtxt(csv, delimiter=",", skiprows=int(header), ndmin=2))
+    for path in (csv, txt, npy):
+        p, n = datasets.load_points(path)
+        np.testing.assert_array_equal(p, points)
+        if with_normals:
+            assert n is not None
+            np.testing.assert_array_equal(n, normals)
+        else:
+            assert n is None
+
+
+@pytest.mark.parametrize(
+    "text, needles",
+    [
+        # A header that contradicts the rows: the header's reading and the row's.
+        ("x,y,z\n0,0,1,0\n", ["row 2: expected 3 columns x, y, z (3D points)", "x, y, nx, ny"]),
+        ("x,y,nx,ny\n0,0,1\n", ["row 2: expected 4 columns x, y, nx, ny", "x, y, z (3D"]),
+        # Names of neither set: what the names suggest and what the count reads as.
+        (
+            "x,y,nx\n0,0,1\n",
+            ["header x, y, nx is not one of", "2D points with normals", "x, y, z (3D points)"],
+        ),
+        ("x,y,z,nz\n0,0,1,1\n", ["names read as 3D points", "x, y, nx, ny (2D points with"]),
+    ],
+)
+def test_ambiguous_tables_name_both_readings(tmp_path, text, needles):
+    path = tmp_path / "cloud.csv"
+    path.write_text(text)
+    with pytest.raises(ValueError) as info:
+        datasets.load_points(path)
+    message = str(info.value)
+    assert str(path) in message
+    for needle in needles:
+        assert needle in message, message
+
+
+def test_3d_tables_are_checked_as_3d_clouds(tmp_path):
+    """A 3D table's rows get the 3D cloud's checks, named by the file's row."""
+    path = tmp_path / "cloud.csv"
+    path.write_text("x,y,z,nx,ny,nz\n0,0,1,0,0,1\n1,0,0,0,0,0\n")
+    with pytest.raises(ValueError, match="row 3 has a zero-length normal"):
+        datasets.load_points(path)
+    path.write_text("0 0 1\n# a comment\n1 nan 0\n")
+    with pytest.raises(ValueError, match="row 3 has NaN or Inf"):
+        datasets.load_points(path)
+
+
 def test_two_column_csv_checks_every_row(tmp_path):
     path = tmp_path / "xy.csv"
     path.write_text("x,y\n0,0\n1,1,0\n")
-    with pytest.raises(ValueError, match=r"row 3: expected 2 columns x, y, got 3"):
+    with pytest.raises(ValueError, match=r"row 3: expected 2 columns x, y .*, got 3"):
         datasets.load_points(path)
     path.write_text("0 0\n1 nan\n2 2\n")
     with pytest.raises(ValueError, match=r"row 2 has NaN or Inf"):

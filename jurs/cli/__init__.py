@@ -11,7 +11,8 @@
                                     zero_level.csv   zero-level polylines: component, closed,
                                                      supplementary, x, y (trimmed to
                                                      the data with --trim)
-    jurs fit SCAN [options]       fit a surface to a 3D cloud (PLY, OBJ, XYZ or PTS; vertex
+    jurs fit SCAN [options]       fit a surface to a 3D cloud (PLY, OBJ, XYZ or PTS, or a
+                                  CSV, TXT or NPY table of columns x, y, z [nx, ny, nz];
                                   normals where the file has them, else estimated; a PLY,
                                   OBJ, STL or OFF mesh with faces is sampled on its faces) and
                                   write, into --output:
@@ -27,14 +28,17 @@ JURS_NO_COMPILATION_CACHE=1 turns that off.
 
 Bad input files, options that do not fit the cloud's dimension, and output folders that
 cannot be written or lack the space, give one line on stderr naming the file (and the row),
-exit code 2, and write nothing; these are checked before the fit. A fit that diverges (NaN
-energy), or outputs that fail to write after all, exit with code 1; the output folder then
-keeps its whole previous set of outputs. A fit that ends with another verdict than success
-or max_steps (inconsistent normals, weights at their floor) is written, with a warning on
-stderr. A curve fit into a folder that holds a surface fit's outputs from jurs (told by its
-metrics.json), or the reverse, removes those outputs of the other kind with the same
-atomic write: the folder never mixes the files of two runs. Ctrl-C ends the command with
-one line on stderr and exit code 130; the output folder keeps its previous outputs.
+exit code 2, and write nothing; these are checked before the fit. A fit whose verdict is
+not a reconstruction (``RAISED_RESULTS``: failed, nonfinite (diverged), inconsistent_normals,
+weights_at_floor, weights_at_ceiling), or outputs that fail to write after all, exit with
+code 1 and one line on stderr; nothing is written, and the output folder keeps its whole
+previous set of outputs. A ``doubtful`` fit is written and exits 0, with one short warning
+line on stderr (its doubts in words in metrics.json). Several clouds exit with the worst
+code of their files. A curve fit into a folder that holds a surface fit's outputs from
+jurs (told by its metrics.json), or the reverse, removes those outputs of the other kind
+with the same atomic write: the folder never mixes the files of two runs. Ctrl-C ends the
+command with one line on stderr and exit code 130; the output folder keeps its previous
+outputs.
 
 This package holds the parser and the run (``main``, ``prepare_fit``, the fit); reading the
 input is in ``_inputs``, the output folder's checks and the atomic write in ``_outputs``,
@@ -94,6 +98,8 @@ __all__ = [
     "EXIT_BAD_INPUT",
     "EXIT_FIT_FAILED",
     "EXIT_INTERRUPTED",
+    "VERDICT_LINES",
+    "not_a_reconstruction",
     "OUTPUTS",
     "OUTPUTS_3D",
     "OUTPUT_OVERHEAD",
@@ -153,23 +159,48 @@ def make_solver(name: str, *, lam: float | None, tau: float, steps: int, tol: fl
 
 
 class ProgressBar:
-    """A one-line progress bar on stderr, drawn only once a run has taken over ``delay``
-    seconds (short fits print nothing)."""
+    """Progress of a fit on stderr, shown only once a run has taken over ``delay`` seconds
+    (short fits print nothing). On a terminal, one line redrawn in place (``\\r``); on
+    anything else (a pipe, a log file) a few plain lines: one when first shown, one as each
+    quarter of the steps is passed, and one at the end where that was not yet said, so a
+    log gets a handful of lines, not a frame a step. ``tty`` None asks the stream
+    (``isatty()``)."""
+
+    #: Plain lines (not a terminal): one as each of these fractions of the steps is passed.
+    PLAIN_STEPS = 4
 
     def __init__(
-        self, label: str, delay: float = 1.0, width: int = 30, stream=None, enabled: bool = True
+        self,
+        label: str,
+        delay: float = 1.0,
+        width: int = 30,
+        stream=None,
+        enabled: bool = True,
+        tty: bool | None = None,
     ):
         self.label, self.delay, self.width = label, delay, width
         self.stream = sys.stderr if stream is None else stream
         self.enabled = enabled
+        self.tty = _is_terminal(self.stream) if tty is None else bool(tty)
         self.start = time.perf_counter()
         self.drawn = False
+        self.last: tuple[int, int] | None = None  # the latest (done, total)
+        self.said: tuple[int, int] | None = None  # the latest plain line's (done, total)
+        self.quarter = -1  # the latest quarter a plain line was written for
 
     def __call__(self, done: int, total: int) -> None:
+        self.last = (done, total)
         elapsed = time.perf_counter() - self.start
         if not self.enabled or (elapsed < self.delay and not self.drawn):
             return
         frac = done / total if total else 1.0
+        if not self.tty:
+            quarter = int(frac * self.PLAIN_STEPS)
+            if quarter > self.quarter:
+                self._line(done, total, elapsed)
+                self.quarter = quarter
+            self.drawn = True
+            return
         bar = "#" * int(round(frac * self.width))
         self.stream.write(
             f"\r{self.label} [{bar:<{self.width}}] {done}/{total} steps {elapsed:5.1f} s"
@@ -177,12 +208,31 @@ class ProgressBar:
         self.stream.flush()
         self.drawn = True
 
+    def _line(self, done: int, total: int, elapsed: float) -> None:
+        percent = 100 * done / total if total else 100.0
+        self.stream.write(f"{self.label}: {done}/{total} steps ({percent:.0f} %) {elapsed:.1f} s\n")
+        self.stream.flush()
+        self.said = (done, total)
+
     def close(self) -> None:
-        """End the bar's line (once), so that what follows starts a line of its own."""
-        if self.drawn:
+        """End the bar's line (once), so that what follows starts a line of its own; in
+        plain lines, say where the run stopped if the last line did not."""
+        if not self.drawn:
+            return
+        if self.tty:
             self.stream.write("\n")
             self.stream.flush()
-            self.drawn = False
+        elif self.last is not None and self.last != self.said:
+            self._line(*self.last, time.perf_counter() - self.start)
+        self.drawn = False
+
+
+def _is_terminal(stream) -> bool:
+    """Whether ``stream`` is a terminal (a closed or odd stream counts as not)."""
+    try:
+        return bool(stream.isatty())
+    except (AttributeError, ValueError, OSError):
+        return False
 
 
 def _check_options(resolution, dim: int, out: str, names) -> None:
@@ -324,8 +374,10 @@ def prepare_fit(args) -> FitJob:
 
 
 def _solve(job: FitJob, args):
-    """``(solution, seconds)`` of the fit, with a progress bar; None (said on stderr) when
-    it diverged. Settings the fit refuses (memory, precision) raise InputError."""
+    """``(solution, seconds)`` of the fit, with a progress bar; None (said on stderr in one
+    line, ``not_a_reconstruction``) where its verdict is not a reconstruction (diverged
+    included). A doubtful fit is returned, said in one short warning line. Settings the
+    fit refuses (memory, precision) raise InputError."""
     import jax
 
     import jurs
@@ -364,21 +416,40 @@ def _solve(job: FitJob, args):
     jax.block_until_ready(sol.spline)
     seconds = time.perf_counter() - t0
     bar.close()
-    if sol.result == jurs.RESULTS.nonfinite:
+    if sol.status in VERDICT_LINES:  # RAISED_RESULTS: not a reconstruction, not written
         print(
-            f"jurs: error: {job.shown}: the fit diverged ({sol.message}); nothing written",
+            f"jurs: error: {job.shown}: {not_a_reconstruction(sol.status)}; nothing written",
             file=sys.stderr,
         )
         return None
-    if not sol.succeeded and sol.result != jurs.RESULTS.max_steps_reached:
-        # Written all the same (the figure shows what went wrong), but said on stderr too.
-        doubts = sol.stats.get("doubts") or ()
-        said = "; ".join(doubts) if doubts else sol.message
+    if sol.status == "doubtful":
+        # A usable fit, written; one short line here, the doubts in words in metrics.json.
+        doubts = len(sol.stats.get("doubts") or ())
         print(
-            f"jurs: warning: {job.shown}: the fit's verdict is {sol.status}: {said}",
+            f"jurs: warning: {job.shown}: doubtful fit ({doubts} doubt(s), in "
+            "metrics.json's metrics.doubts)",
             file=sys.stderr,
         )
     return sol, seconds
+
+
+#: What the command line says of each verdict that is not a reconstruction
+#: (``RAISED_RESULTS``), and what to change; ``jurs.RESULTS`` holds the whole sentence.
+VERDICT_LINES = {
+    "failed": "the solver's inner method failed (for example a singular linear system)",
+    "nonfinite": "the fit diverged (its energy became NaN or Inf): lower --tau or --lam",
+    "inconsistent_normals": "the normals disagree (part of the cloud flipped, or random), "
+    "or the fit cannot follow the data: orient them outward, or leave them out to have them "
+    "estimated",
+    "weights_at_floor": "the rational weights were driven to their floor: lower --tau",
+    "weights_at_ceiling": "the rational weights grew past their ceiling: lower --tau",
+}
+
+
+def not_a_reconstruction(status: str) -> str:
+    """The one line ``jurs fit`` prints (after ``jurs: error: FILE:``) for a fit whose
+    verdict ``status`` is one of ``RAISED_RESULTS``: its short name and ``VERDICT_LINES``."""
+    return f"the fit's verdict is {status}, not a reconstruction: {VERDICT_LINES[status]}"
 
 
 def run_fit(args) -> int:

@@ -83,6 +83,7 @@ def read_input(path: str):
     import numpy as np
 
     from .. import datasets
+    from ..datasets._files import TABLE_COLUMNS
 
     shown = printable(path)
     if os.path.isdir(path):
@@ -92,10 +93,10 @@ def read_input(path: str):
             arr = np.load(path, allow_pickle=False, mmap_mode="r")
         except Exception as exc:
             raise InputError(f"{shown}: not a readable .npy array ({one_line(exc)})") from None
-        if arr.ndim != 2 or arr.shape[1] not in (2, 4):
+        if arr.ndim != 2 or arr.shape[1] not in TABLE_COLUMNS:
             raise InputError(
-                f"{shown}: expected an (m, 4) array of rows x, y, nx, ny "
-                f"(or (m, 2): x, y), got shape {arr.shape}"
+                f"{shown}: expected an (m, c) array of c = 2 (x y), 3 (x y z), 4 "
+                f"(x y nx ny) or 6 (x y z nx ny nz) columns, got shape {arr.shape}"
             )
     try:
         with warnings.catch_warnings(record=True) as notes:

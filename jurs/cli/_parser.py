@@ -40,6 +40,37 @@ def build_parser() -> argparse.ArgumentParser:
     return parser
 
 
+#: ``jurs fit --help``'s last paragraphs: what the exit status says, and what an output
+#: folder holding another kind of run's outputs becomes.
+EXIT_CODES = """\
+exit status:
+  0    fitted and written: the verdict is successful, max_steps_reached or doubtful
+       (a doubtful fit: one warning line on stderr, its doubts in metrics.json)
+  1    the fit is not a reconstruction (verdict failed, nonfinite: diverged,
+       inconsistent_normals, weights_at_floor or weights_at_ceiling), or the outputs
+       could not be written: one line on stderr, nothing written
+  2    bad input file or options: one line on stderr, nothing written
+  130  interrupted (Ctrl-C)
+  Several files: each goes on after another fails; the exit status is the worst.
+
+output folder:
+  Written whole or not at all. Where it holds the outputs of the other kind of fit
+  (a curve's fit.png and zero_level.csv, a surface's mesh.ply and preview.png, told
+  by jurs's metrics.json there), those files are removed in the same write; no other
+  file is touched.
+"""
+
+
+class _HelpFormatter(argparse.ArgumentDefaultsHelpFormatter):
+    """Option defaults shown; a text of one paragraph (the description) reflowed to the
+    terminal, one laid out in lines (the epilog, ``EXIT_CODES``) kept as written."""
+
+    def _fill_text(self, text, width, indent):
+        if "\n" in text.strip():
+            return "".join(indent + line for line in text.splitlines(keepends=True))
+        return super()._fill_text(text, width, indent)
+
+
 def _fit_parser(sub) -> argparse.ArgumentParser:
     """The ``jurs fit`` subcommand and its options."""
     f = sub.add_parser(
@@ -49,17 +80,21 @@ def _fit_parser(sub) -> argparse.ArgumentParser:
         description="Fit an implicit spline to points with outward normals (columns x, y, "
         "nx, ny; or x, y alone, whose normals are then estimated) and write "
         "metrics.json, spline.npz, fit.png and zero_level.csv to --output. A 3D "
-        "cloud (PLY, OBJ, XYZ or PTS; normals estimated where the file has none) "
+        "cloud (PLY, OBJ, XYZ or PTS, or a CSV, TXT or NPY table of columns x, y, z or "
+        "x, y, z, nx, ny, nz; normals estimated where the file has none) "
         "gets a surface: metrics.json, spline.npz, mesh.ply and preview.png. A triangle "
         "mesh (PLY, OBJ, STL or OFF with faces) is read as the surface it describes: "
         "points and normals are drawn uniformly by area on its faces.",
-        formatter_class=argparse.ArgumentDefaultsHelpFormatter,
+        epilog=EXIT_CODES,
+        formatter_class=_HelpFormatter,
     )
     f.add_argument(
         "file",
         nargs="+",
         action=FilesAction,
         help="CSV/TXT (columns x, y, nx, ny; optional header) or NPY (m, 4); "
+        "x, y alone: normals estimated; 3 columns x, y, z or 6 x, y, z, nx, ny, nz: a "
+        "3D cloud (a header naming the columns decides, else their number); "
         "3D: PLY or OBJ (vertices, vertex normals) or XYZ/PTS (rows "
         "x y z [nx ny nz]); a PLY, OBJ, STL or OFF mesh with faces is sampled on its "
         "faces. Several files, a folder or a glob pattern: each "

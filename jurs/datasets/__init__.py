@@ -38,6 +38,7 @@ from ._files import (
     FLOAT32_RESOLUTION,
     MESH_SAMPLES,
     MESH_SUFFIXES,
+    TABLE_COLUMNS,
     load_points,
     save_points,
 )
@@ -52,6 +53,7 @@ __all__ = [
     "example9",
     "example10",
     "COLUMNS",
+    "TABLE_COLUMNS",
     "load_points",
     "save_points",
     "CLOUD_SUFFIXES",

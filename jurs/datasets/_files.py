@@ -18,21 +18,51 @@ import numpy.typing as npt
 from jaxtyping import Float
 
 COLUMNS = ("x", "y", "nx", "ny")
+#: The columns a table (CSV, TXT or ``.npy``) may hold, by their number: points in 2D or
+#: 3D, with their normals or without. A header naming them decides which; without one,
+#: the number of columns does.
+TABLE_COLUMNS = {
+    2: ("x", "y"),
+    3: ("x", "y", "z"),
+    4: ("x", "y", "nx", "ny"),
+    6: ("x", "y", "z", "nx", "ny", "nz"),
+}
+_READINGS = {
+    2: "2D points",
+    3: "3D points",
+    4: "2D points with normals",
+    6: "3D points with normals",
+}
+
+
+def _columns_said(count: int) -> str:
+    """``"x, y, z (3D points)"``: the columns of a table of ``count`` columns in words."""
+    return f"{', '.join(TABLE_COLUMNS[count])} ({_READINGS[count]})"
+
+
+def _all_readings() -> str:
+    """``"2 (x y), 3 (x y z), 4 (x y nx ny) or 6 (x y z nx ny nz)"``."""
+    said = [f"{n} ({' '.join(c)})" for n, c in TABLE_COLUMNS.items()]
+    return ", ".join(said[:-1]) + " or " + said[-1]
 
 
 def cloud_from_table(rows: np.ndarray, path: str, row_numbers=None):
-    """``(points, normals)`` of a table of 4 columns, ``(points, None)`` of 2, checked;
-    errors name the row by ``row_numbers`` (the file's 1-based line of each row; default
-    1, 2, ...)."""
-    if rows.ndim != 2 or rows.shape[1] not in (2, 4):
+    """``(points, normals)`` of a table of ``TABLE_COLUMNS`` columns, checked: 2 (x y) and
+    4 (x y nx ny) give 2D points, 3 (x y z) and 6 (x y z nx ny nz) 3D points; normals None
+    where the table has none. Errors name the row by ``row_numbers`` (the file's 1-based
+    line of each row; default 1, 2, ...)."""
+    if rows.ndim != 2 or rows.shape[1] not in TABLE_COLUMNS:
         raise ValueError(
-            f"{path}: expected an (m, 4) table with columns x, y, nx, ny "
-            f"(or (m, 2): x, y, without normals), got shape {rows.shape}"
+            f"{path}: expected an (m, c) table of c = {_all_readings()} columns, "
+            f"got shape {rows.shape}"
         )
     if rows.shape[0] == 0:
         raise ValueError(f"{path}: no data rows")
     if row_numbers is None:
         row_numbers = np.arange(1, rows.shape[0] + 1)
+    if rows.shape[1] in (3, 6):  # 3D: the checks of a 3D cloud file
+        normals = rows[:, 3:] if rows.shape[1] == 6 else None
+        return checked_cloud(rows[:, :3], normals, path, row_numbers)
     bad = ~np.isfinite(rows).all(axis=1)
     if bad.any():
         raise ValueError(f"{path}: row {row_numbers[int(np.argmax(bad))]} has NaN or Inf")
@@ -46,13 +76,44 @@ def cloud_from_table(rows: np.ndarray, path: str, row_numbers=None):
     return rows[:, :2].copy(), rows[:, 2:].copy()
 
 
+def _table_columns(path: str, first: list[str], lineno: int) -> tuple[tuple[str, ...], bool]:
+    """``(columns, header)`` of a text table whose first row (line ``lineno``) splits into
+    ``first``: a header of names decides the columns (``TABLE_COLUMNS``), else the number
+    of cells in the first row does. ValueError naming both readings (the header's and the
+    count's) where a header names other columns, and the readings there are for a count
+    that has none."""
+    names = tuple(c.lower() for c in first)
+    if names in TABLE_COLUMNS.values():
+        return names, True
+    count = len(first)
+    if all(_not_number(c) for c in first):
+        known = " | ".join(",".join(c) for c in TABLE_COLUMNS.values())
+        said = f"header {', '.join(first)} is not one of {known}"
+        if {"z", "nz"} & set(names):
+            said += " (its names read as 3D points)"
+        elif {"nx", "ny"} & set(names):
+            said += " (its names read as 2D points with normals)"
+        if count in TABLE_COLUMNS:
+            said += f"; without a header, {count} columns read as {_columns_said(count)}"
+        raise ValueError(f"{path}: row {lineno}: {said}")
+    if count not in TABLE_COLUMNS:
+        raise ValueError(f"{path}: row {lineno}: expected {_all_readings()} columns, got {count}")
+    # A row with a cell that is not a number is reported with its row when rows are read.
+    return TABLE_COLUMNS[count], False
+
+
 def load_points(
     path: str | os.PathLike[str],
     *,
     mesh_samples: int | None = None,
 ) -> tuple[Float[np.ndarray, "m d"], Float[np.ndarray, "m d"] | None]:
-    """Read points and normals from ``.npy`` (an (m, 4) array) or CSV/TXT (columns x, y, nx,
-    ny; comma, whitespace or semicolon separated; an optional header line of names).
+    """Read points and normals from ``.npy`` (an (m, c) array) or CSV/TXT (comma,
+    whitespace or semicolon separated; an optional header line of names) tables of
+    ``TABLE_COLUMNS``: 2 columns x, y or 4 x, y, nx, ny give 2D points, 3 columns x, y, z
+    or 6 x, y, z, nx, ny, nz 3D points (normals None where the table has none). A header
+    naming the columns decides; without one, the number of columns does. A header of other
+    names is refused, naming its reading and the count's (``x,y,nx`` is neither 2D with
+    normals nor 3D).
 
     3D clouds (``CLOUD_SUFFIXES``): ``.ply`` and ``.obj`` without faces give their
     vertices, and their vertex normals where the file has them (through trimesh, ``pip
@@ -72,9 +133,9 @@ def load_points(
     from the origin exceeds ``FLOAT32_RESOLUTION`` of its bounding-box diagonal (points
     far from the origin collapse onto a few).
 
-    A table of two columns (x, y; header ``x,y``) holds points without normals: the normals
-    come back as None ([`jurs.fit`][] then estimates them). The header, or else the first
-    data row, sets the number of columns for every row.
+    A table without normals (x, y or x, y, z) gives normals None ([`jurs.fit`][] then
+    estimates them). The header, or else the first data row, sets the number of columns
+    for every row.
 
     Raises ValueError naming the file and the (1-based, as in an editor) row for missing
     columns, non-numbers, NaN/Inf, zero normals or an empty table, for an ASCII PLY whose
@@ -114,26 +175,22 @@ def load_points(
         return [c.strip() for c in next(csv.reader([line], delimiter=delimiter))]
 
     first = split(lines[0][1])
-    names = [c.lower() for c in first]
-    columns = COLUMNS[: len(first)] if len(first) in (2, 4) else COLUMNS
-    if names in (list(COLUMNS), list(COLUMNS[:2])):
+    columns, header = _table_columns(path, first, lines[0][0])
+    if header:
         lines = lines[1:]
-    elif any(_not_number(c) for c in first) and not all(_not_number(c) for c in first):
-        pass  # a malformed data row: reported below with its row number
-    elif all(_not_number(c) for c in first):
-        raise ValueError(
-            f"{path}: row {lines[0][0]}: header must be x, y, nx, ny (or x, y "
-            f"without normals), got {first}"
-        )
     if not lines:
         raise ValueError(f"{path}: no data rows")
     values = np.empty((len(lines), len(columns)))
     for k, (lineno, line) in enumerate(lines):
         cells = split(line)
         if len(cells) != len(columns):
+            said = ", ".join(columns)
+            if header:  # the header's reading, and the row's where it has one
+                said = f"{_columns_said(len(columns))} as the header names them"
+                if len(cells) in TABLE_COLUMNS:
+                    said += f" (a row of {len(cells)} reads as {_columns_said(len(cells))})"
             raise ValueError(
-                f"{path}: row {lineno}: expected {len(columns)} columns "
-                f"{', '.join(columns)}, got {len(cells)}"
+                f"{path}: row {lineno}: expected {len(columns)} columns {said}, got {len(cells)}"
             )
         for j, c in enumerate(cells):
             if _not_number(c):
