@@ -5,7 +5,8 @@ The driver's loop ([`jurs.solve`][]) sets ``successful``, ``max_steps_reached``,
 ``inconsistent_normals`` where the fit reads its offsets the wrong way round
 (``offset_sign_disagreement``, traced with the fit). [`jurs.fit`][] then judges a
 fit made at top level against its cloud on the host (``judge``): normals flipped or
-lying along the shape make it ``inconsistent_normals`` (``check_orientation``); with
+lying along the shape, or all pointing inward (a closed zero set with g negative on the
+box's border), make it ``inconsistent_normals`` (``check_orientation``); with
 automatic settings, parts cut, gaps bridged or points left far from the zero set make it
 ``doubtful`` (``check_doubts``). The reasoning behind each threshold is in
 docs/robustness.md; the measurements in ``benchmarks/results/quality.md`` and
@@ -85,6 +86,56 @@ MAX_FLIPPED_FRACTION = 0.2
 MAX_TANGENTIAL_FRACTION = 0.2
 
 
+#: The inside-out check samples g on the box's border on a lattice of half-cells (two
+#: nodes a knot span), at most this many nodes (coarser beyond): a few planes of the grid,
+#: cheap beside the fit.
+BORDER_CHECK_NODES = 1 << 18
+
+
+def border_negative_fraction(spline: ImplicitSpline | AdaptiveSpline) -> float:
+    """The fraction of the box's border where ``g < 0``: 0 for a closed shape fitted as the
+    contract says (negative inside, positive outside, so positive on the border), 1 for the
+    same shape fitted inside out (every normal pointing inward: the fit follows its
+    offsets, and is positive inside), in between where the zero set reaches the border (an
+    open scan, a trimmed surface: no inside to check). NaN where g is not finite there.
+
+    g is sampled on a lattice of half-cells over each face (edge in 2D) of the box, at
+    most ``BORDER_CHECK_NODES`` nodes (``jurs._model.lattice.lattice_values``, float64 on
+    the host)."""
+    from .._model.lattice import lattice_values
+
+    lower, upper = np.asarray(spline.lower, float), np.asarray(spline.upper, float)
+    steps = 2.0 * np.asarray(spline.finest_cells, float)
+    d = len(steps)
+    # Each of the 2 d faces holds the lattice of the other d - 1 axes.
+    nodes = 2 * d * float(np.prod(steps + 1)) / float(np.min(steps + 1))
+    if nodes > BORDER_CHECK_NODES:
+        scale = (BORDER_CHECK_NODES / nodes) ** (1.0 / max(d - 1, 1))
+        steps = np.maximum(2.0, np.floor(steps * scale))
+    axes = [np.linspace(lo, hi, int(n) + 1) for lo, hi, n in zip(lower, upper, steps)]
+    negative = total = 0
+    with np.errstate(invalid="ignore", divide="ignore"):
+        for axis in range(d):
+            for end in (lower[axis], upper[axis]):
+                face = [*axes[:axis], np.array([end]), *axes[axis + 1 :]]
+                values = np.asarray(lattice_values(spline, face))
+                if not np.isfinite(values).all():
+                    return float("nan")
+                negative += int(np.sum(values < 0))
+                total += values.size
+    return negative / total
+
+
+def _inward_doubt(cloud) -> str:
+    what = "curve" if cloud.ndim == 2 else "surface"
+    return (
+        f"the fit is negative all along the box's border, outside the closed {what}: every "
+        "normal points inward, and g is positive inside, the opposite of the contract "
+        "(negative inside, positive outside). Pass -normals (normals pointing outward) "
+        "and fit again"
+    )
+
+
 def check_orientation(sol, cloud):
     """``sol`` with ``metrics["flipped_normal_fraction"]`` and
     ``metrics["tangential_normal_fraction"]`` (measured once per ``cloud``,
@@ -94,18 +145,32 @@ def check_orientation(sol, cloud):
     ``RESULTS.inconsistent_normals`` in place of success or max_steps (half-flipped or
     random normals fitted "successfully" into 2 or 20 loops). Host side. Unlike an input
     error this is a verdict, as optimistix reports a failed solve in ``sol.result``: the
-    fit ran; [`jurs.fit`][] raises it with ``throw=True`` and returns it otherwise."""
+    fit ran; [`jurs.fit`][] raises it with ``throw=True`` and returns it otherwise.
+
+    Normals that all point inward agree with each other, so the checks above and the
+    driver's offset-sign check pass them, and the fit, following its offsets, is positive
+    inside. Where g is negative on the whole border of the box
+    (``metrics["border_negative_fraction"]`` 1, ``border_negative_fraction``) the zero set
+    is closed and the fit inside out: ``RESULTS.inconsistent_normals`` too, with
+    ``stats["doubts"]`` saying so (and to pass ``-normals``). A zero set that reaches the
+    border (an open scan) has no inside, and is not judged by it."""
     flipped, along = cloud.orientation
+    negative = border_negative_fraction(sol.spline)
     metrics = dict(
         sol.metrics,
         flipped_normal_fraction=np.asarray(flipped),
         tangential_normal_fraction=np.asarray(along),
+        border_negative_fraction=np.asarray(negative),
     )
+    stats = dict(sol.stats)
     result = sol.result
-    bad = flipped > MAX_FLIPPED_FRACTION or along > MAX_TANGENTIAL_FRACTION
-    if bad and bool((result == RESULTS.successful) | (result == RESULTS.max_steps_reached)):
+    inward = negative == 1.0
+    if inward:
+        stats["doubts"] = (_inward_doubt(cloud),)
+    bad = flipped > MAX_FLIPPED_FRACTION or along > MAX_TANGENTIAL_FRACTION or inward
+    if bad and sol.status in ("successful", "max_steps_reached"):
         result = RESULTS.inconsistent_normals
-    return dataclasses.replace(sol, metrics=metrics, result=result)
+    return dataclasses.replace(sol, metrics=metrics, stats=stats, result=result)
 
 
 #: A fit is ``doubtful`` where more than this fraction of its points (and more than 2)
@@ -393,7 +458,7 @@ def check_doubts(sol, cloud, settings, offset):
         crossed, along, sheets, width = crossed_pairs(
             sol.spline, p[keep], cloud.normals[keep], settings.spacing, tree
         )
-    doubts = []
+    doubts = list(sol.stats.get("doubts", ()))  # check_orientation's, where it found one
     if cloud.ndim == 3 and sheets > MAX_SHEET_FRACTION:
         doubts.append(
             f"{sheets:.1%} of the points face another sheet less than a cell "
