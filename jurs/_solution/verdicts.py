@@ -340,17 +340,24 @@ def extra_components(spline: ImplicitSpline, tree, threshold: float) -> list[dic
     from one region to another hold that interface's piece of the zero set: each pair of
     regions that meet is one component. (Labelling the cells the zero set crosses
     instead merged nested shells a few cells apart into one.) A component is *closed*
-    when none of its edges lies on the box's border, and *away from the data* when the
-    median distance from its edges' midpoints to the nearest point of ``tree`` (the data
-    the fit keeps) exceeds ``threshold`` (``far_point_fraction``'s: at least half a knot
-    span) plus half a lattice step (how far a midpoint sits from the zero set at most).
-    ``area_share`` is the component's share of all the zero set's lattice edges (about its
-    share of the area, or of the length in 2D); ``distance`` is that median. One path
-    for curves and surfaces: the same lattice, regions and interfaces in 2D and 3D."""
+    when none of its edges lies on the box's border, and counted when less than half of
+    its edges' midpoints (``MIN_CARRIED_FRACTION``) lie by data it *carries*
+    (``jurs.levelset._curves.carried_samples``, jurs.levelset's supplementary rule): the
+    nearest point of ``tree`` (the data the fit keeps) within ``threshold``
+    (``far_point_fraction``'s: at least half a knot span) plus half a lattice step (how
+    far a midpoint sits from the zero set at most), and nearer to this component than to
+    any other. A component away from the data carries none, and neither does a small loop
+    beside data that the true zero set passes through. ``area_share`` is the
+    component's share of all the zero set's lattice edges (about its share of the area,
+    or of the length in 2D); ``distance`` the median distance from its midpoints to the
+    data, ``carried_share`` its share carried, ``away`` whether that median exceeds the
+    limit. One path for curves and surfaces: the same lattice, regions and interfaces in
+    2D and 3D."""
     from scipy import ndimage
 
     from .._model.band import band_lattice
     from .._model.lattice import FinestSpline, lattice_values
+    from ..levelset._curves import MIN_CARRIED_FRACTION, carried_samples
 
     lower, upper = np.asarray(spline.lower, float), np.asarray(spline.upper, float)
     spans = np.asarray(spline.finest_cells, float)
@@ -393,16 +400,19 @@ def extra_components(spline: ImplicitSpline, tree, threshold: float) -> list[dic
     key, at, border = np.concatenate(keys), np.concatenate(where), np.concatenate(on_border)
     step = (upper - lower) / steps
     points = lower + at * step
-    distance = tree.query(points)[0]
     pairs, group, sizes = np.unique(key, return_inverse=True, return_counts=True)
     group = group.reshape(-1)
+    limit = threshold + 0.5 * float(np.linalg.norm(step))
+    distance, carried = carried_samples(points, group, tree, limit)
     open_ = np.bincount(group, weights=border, minlength=len(pairs)) > 0
+    share = np.bincount(group, weights=carried, minlength=len(pairs)) / sizes
     order = np.lexsort((distance, group))
     first = np.cumsum(sizes) - sizes
     median = distance[order][first + sizes // 2]
-    limit = threshold + 0.5 * float(np.linalg.norm(step))
     found = []
-    for k in np.flatnonzero(~open_ & (median > limit)):
+    # Less than half carried: away from the data (the median beyond the limit) or beside
+    # data that another component passes through (jurs.levelset's supplementary rule).
+    for k in np.flatnonzero(~open_ & (share < MIN_CARRIED_FRACTION)):
         mine = points[order[first[k] : first[k] + sizes[k]]]
         found.append(
             {
@@ -411,21 +421,49 @@ def extra_components(spline: ImplicitSpline, tree, threshold: float) -> list[dic
                 "upper": (mine.max(axis=0) + 0.5 * step).tolist(),
                 "area_share": float(sizes[k]) / len(key),
                 "distance": float(median[k]),
+                "carried_share": float(share[k]),
+                "away": bool(median[k] > limit),
             }
         )
     return sorted(found, key=lambda c: -c["area_share"])
 
 
-def _describe_extra(component: dict) -> str:
-    centre = ", ".join(f"{x:.3g}" for x in component["centre"])
-    lower = ", ".join(f"{x:.3g}" for x in component["lower"])
-    upper = ", ".join(f"{x:.3g}" for x in component["upper"])
+#: Places are printed to this fraction of the extent they are compared with: a part
+#: centred at (5.97e+05, ...) in a cloud 30 m wide said nothing of where, at 3 digits.
+PLACE_RESOLUTION = 1e-3
+
+
+def format_place(coordinates, extent: float) -> str:
+    """``coordinates`` as ``"(x, y[, z])"`` with the decimals that resolve
+    ``PLACE_RESOLUTION`` of ``extent`` (the box's diagonal, say), however far from the
+    origin they lie: ``(597312.41, 5405123.87)`` for a part of a scan 30 m wide, not
+    ``(5.97e+05, 5.41e+06)``."""
+    coordinates = [float(x) for x in coordinates]
+    resolution = PLACE_RESOLUTION * float(extent)
+    if not (np.isfinite(resolution) and resolution > 0):
+        return "(" + ", ".join(f"{x:.6g}" for x in coordinates) + ")"
+    decimals = max(0, int(np.ceil(-np.log10(resolution))))
+    return "(" + ", ".join(f"{x:.{decimals}f}" for x in coordinates) + ")"
+
+
+def describe_extra(component: dict, extent: float) -> str:
+    """The doubt for one of ``extra_components``' components, its place and box printed
+    to the digits ``extent`` (the spline's box diagonal) needs (``format_place``)."""
+    centre = format_place(component["centre"], extent)
+    lower = format_place(component["lower"], extent)
+    upper = format_place(component["upper"], extent)
+    where = (
+        "away from the data"
+        if component.get("away", True)
+        else "beside data that another part of the zero set passes through"
+    )
     return (
-        f"a closed zero-set component away from the data, centred at ({centre}) within "
-        f"({lower}) .. ({upper}), {component['area_share']:.1%} of the zero set, its median "
-        f"distance to the points kept {component['distance']:.3g}: a shape the data do not "
-        "have (points set aside or with inconsistent normals leave such shells; "
-        "jurs.levelset marks them supplementary)"
+        f"a closed zero-set component {where}, centred at {centre} within {lower} .. "
+        f"{upper}, {component['area_share']:.1%} of the zero set, its median distance to "
+        f"the points kept {component['distance']:.3g}, "
+        f"{component.get('carried_share', 0.0):.0%} of it by points it carries: a shape "
+        "the data do not have (points set aside or with inconsistent normals leave such "
+        "shells, fits without normals small loops; jurs.levelset marks them supplementary)"
     )
 
 
@@ -495,7 +533,8 @@ def check_doubts(sol, cloud, settings, offset):
             "outliers or inconsistent normals)"
         )
     extra = extra_components(sol.spline, tree, threshold)
-    doubts.extend(_describe_extra(c) for c in extra)
+    extent = float(np.linalg.norm(np.asarray(sol.spline.upper) - np.asarray(sol.spline.lower)))
+    doubts.extend(describe_extra(c, extent) for c in extra)
     # device_put, not jnp.asarray: a Python number through jnp.asarray compiles a small
     # program of its own in each new process.
     metrics = dict(
