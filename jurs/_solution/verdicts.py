@@ -403,7 +403,10 @@ def extra_components(spline: ImplicitSpline, tree, threshold: float) -> list[dic
     pairs, group, sizes = np.unique(key, return_inverse=True, return_counts=True)
     group = group.reshape(-1)
     limit = threshold + 0.5 * float(np.linalg.norm(step))
-    distance, carried = carried_samples(points, group, tree, limit)
+    # Within a lattice diagonal of the nearest: a thin part pinched below the lattice's
+    # step splits its zero set into pieces side by side, not a loop beside the data.
+    diagonal = float(np.linalg.norm(step))
+    distance, carried = carried_samples(points, group, tree, limit, diagonal)
     open_ = np.bincount(group, weights=border, minlength=len(pairs)) > 0
     share = np.bincount(group, weights=carried, minlength=len(pairs)) / sizes
     order = np.lexsort((distance, group))

@@ -52,25 +52,31 @@ def carried_samples(
     labels: npt.ArrayLike,
     tree: cKDTree,
     threshold: float,
+    tolerance: float | Float[npt.ArrayLike, " k"] = 0.0,
 ) -> tuple[Float[np.ndarray, " k"], np.ndarray]:
     """``(distance, carried)`` for zero-set ``samples (k, d)`` of the components
     ``labels (k,)``: each sample's distance to the nearest data point of ``tree`` (a
     KD-tree of the data), and whether that point lies within ``threshold`` and is
     *carried* by the sample's own component: no sample of another component lies
-    nearer to it. A component's share of carried samples is how much of it the data
-    account for; a loop beside data that another part passes through carries none.
-    Curves (polyline segments' midpoints) and surfaces (face centroids, lattice
-    crossings) alike."""
+    nearer to it, or, with a ``tolerance`` (one, or one a sample), none nearer by more
+    than that: the step of the lattice the zero set was sampled on, where a thin part
+    pinched below that step splits its zero set into pieces side by side, both beside
+    the data and a step apart at most (a glyph's inner corner at 256 nodes a side). A
+    component's share of carried samples is how much of it the data account for; a loop
+    beside data that another part passes through carries none. Curves (polyline
+    segments' midpoints) and surfaces (face centroids, lattice crossings) alike."""
     samples = np.asarray(samples, float)
     labels = np.asarray(labels).reshape(-1)
     if len(samples) == 0:
         return np.empty(0), np.zeros(0, bool)
     distance, nearest = tree.query(samples)
     used, back = np.unique(nearest, return_inverse=True)
-    # The component each data point near a sample lies nearest to: its owner.
-    owner = labels[cKDTree(samples).query(np.asarray(tree.data)[used])[1]]
-    carried = (distance <= threshold) & (owner[back.reshape(-1)] == labels)
-    return distance, carried
+    back = back.reshape(-1)
+    # The component each data point near a sample lies nearest to (its owner), and how
+    # near.
+    closest, at = cKDTree(samples).query(np.asarray(tree.data)[used])
+    owned = (labels[at][back] == labels) | (distance <= closest[back] + tolerance)
+    return distance, (distance <= threshold) & owned
 
 
 def sampling_grid(
@@ -411,7 +417,9 @@ def classify(
     samples = [0.5 * (p[1:] + p[:-1]) if len(p) >= 2 else p for p in polys]
     labels = np.repeat(np.arange(len(polys)), [len(x) for x in samples])
     stacked = np.concatenate(samples) if samples else np.empty((0, 2))
-    distance, carried = carried_samples(stacked, labels, tree, threshold)
+    # A cell's diagonal: marching squares cuts a pinch below it into loops side by side.
+    diagonal = float(np.sqrt(2.0) * cell_size)
+    distance, carried = carried_samples(stacked, labels, tree, threshold, diagonal)
     starts = np.cumsum([0] + [len(x) for x in samples])
     out = []
     for k, (poly, (_, closed)) in enumerate(zip(polys, lines)):

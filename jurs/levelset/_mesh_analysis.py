@@ -434,7 +434,11 @@ def analyze_mesh(
     if points is not None:
         assert threshold is not None  # set above with the points
         centroids = vertices[faces].mean(axis=1)
-        distance, carried = carried_samples(centroids, labels, cKDTree(points), threshold)
+        # Each face's longest edge: the step of the lattice it was marched on, below which
+        # a pinch splits the surface into pieces side by side (carried_samples).
+        corners = vertices[faces]
+        edge = np.linalg.norm(corners - np.roll(corners, 1, axis=1), axis=2).max(axis=1)
+        distance, carried = carried_samples(centroids, labels, cKDTree(points), threshold, edge)
         median = _weighted_medians(distance, area, labels, component_area)
         carried_area = np.bincount(labels, weights=area * carried, minlength=count)
         share = carried_area / np.maximum(component_area, 1e-300)
