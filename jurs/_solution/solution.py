@@ -54,8 +54,8 @@ class RESULTS(eqx.Enumeration):
     doubtful = (
         "the solve succeeded, but checks of the data and of the fit doubt the zero set in "
         "places (features narrower than the grid resolves, data points left far from the "
-        "zero set, or closed parts of the zero set away from the data); sol.stats['doubts'] "
-        "says which and where, and what to change. The fit is "
+        "zero set, or closed parts of the zero set the data do not carry); "
+        "sol.stats['doubts'] says which and where, and what to change. The fit is "
         "returned as it is"
     )
     weights_at_ceiling = (
