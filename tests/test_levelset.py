@@ -77,8 +77,13 @@ def test_extra_closed_curve_far_from_data_is_supplementary():
     assert extra.far_fraction == 1.0  # all of it beyond 2 d = 0.1 (its nearest is 0.26)
     main = [c for c in report.components if not c.supplementary][0]
     assert main.length == pytest.approx(2 * np.pi, rel=0.01)
-    # A threshold above the extra loop's distance makes it ordinary.
-    assert ls.analyze(f, data, threshold=1.0).num_supplementary == 0
+    assert extra.carried_fraction == 0.0 and main.carried_fraction == 1.0
+    # A threshold above the extra loop's distance puts all of it near the data, but the
+    # data it is near lie on the unit circle: it carries none of them, and stays
+    # supplementary (it was counted ordinary).
+    near = ls.analyze(f, data, threshold=1.0)
+    (extra,) = near.supplementary
+    assert extra.far_fraction == 0.0 and extra.carried_fraction == 0.0
 
 
 def test_curve_bridging_a_sampling_gap_is_not_supplementary():

@@ -337,8 +337,11 @@ def test_far_small_bubble_is_supplementary():
     assert report.as_dict()["genera"] == [0, 0]
     count, labels = _mesh.mesh_components(vertices, faces)
     assert count == 2 and np.bincount(labels)[0] == sphere.num_faces
-    # A threshold above the bubble's distance keeps it.
-    assert not _mesh.analyze_mesh(vertices, faces, points, threshold=2.0).supplementary
+    assert bubble.carried_fraction == 0.0 and sphere.carried_fraction > 0.99
+    # A threshold above the bubble's distance puts it near the data, but they lie on the
+    # sphere: the bubble carries none of them and stays supplementary (it was kept).
+    (near,) = _mesh.analyze_mesh(vertices, faces, points, threshold=2.0).supplementary
+    assert near.median_distance < 2.0 and near.carried_fraction == 0.0
 
 
 # --- open scans: trimming and boundary loops ------------------------------------------------

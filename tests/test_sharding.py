@@ -180,7 +180,7 @@ ADAPTIVE_CHILD = textwrap.dedent(
             method=sol.stats["method"],
             metrics=max(
                 abs(float(sol.metrics[k]) - float(ref.metrics[k])) / abs(float(ref.metrics[k]))
-                for k in ("E_d", "E_max", "R")
+                for k in ("E_d", "E_ave", "E_max", "R")
             ),
         )
 

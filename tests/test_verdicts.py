@@ -173,14 +173,14 @@ def judged():
 
     base = jurs.fit(*jurs.datasets.example1(30), **CHEAP)
 
-    def judge(spline, points, normals, set_aside=()):
+    def judge(spline, points, normals, set_aside=(), offset=0.02):
         sol = dataclasses.replace(base, spline=spline, result=jurs.RESULTS.successful)
         settings = SimpleNamespace(
             set_aside=tuple(set_aside), spacing=point_spacing(points), thin_fraction=0.0
         )
         with warnings.catch_warnings():  # the doubt's warning, where there is one
             warnings.simplefilter("ignore")
-            return check_doubts(sol, jurs.Cloud(points, normals), settings, 0.02)
+            return check_doubts(sol, jurs.Cloud(points, normals), settings, offset)
 
     return judge
 
@@ -251,6 +251,62 @@ def test_extra_components_take_one_path_in_2d():
     np.testing.assert_allclose(loop["upper"], [1.3, -0.9], atol=0.1)
     line = _greville_spline(lambda p: np.minimum(_radius(p) - 1.0, 1.3 - p[:, 0]), 1.5, 40, d=2)
     assert extra_components(line, kd_tree(circle), 0.05) == []
+
+
+def test_a_loop_beside_the_data_is_an_extra_component():
+    """A loop near the data (within the threshold) that carries none of them, since the
+    true curve passes through them, is counted as a loop away from the data is: the
+    distance alone let it by. Far from the origin its place is printed with the digits
+    the box needs (it read "centred at (5.97e+05, ...)")."""
+    from jurs._cloud.measure import kd_tree
+    from jurs._solution.verdicts import describe_extra, extra_components
+
+    shift = np.array([597312.0, 5405123.0])
+    t = np.linspace(0, 2 * np.pi, 400, endpoint=False)
+    circle = np.stack([np.cos(t), np.sin(t)], axis=1)
+    holed = _greville_spline(
+        lambda p: np.maximum(_radius(p) - 1.0, 0.1 - _radius(p - [0.8, 0.0])), 1.5, 60, d=2
+    )
+    far = jurs.ImplicitSpline(
+        holed.control, holed.weights, holed.lower + shift, holed.upper + shift
+    )
+    (loop,) = extra_components(far, kd_tree(circle + shift), 0.3)
+    assert not loop["away"] and loop["distance"] < 0.3 and loop["carried_share"] == 0.0
+    np.testing.assert_allclose(np.asarray(loop["centre"]) - shift, [0.8, 0.0], atol=0.02)
+    # Its points lie on the circle: sampled, the loop carries its own and is not counted.
+    hole = 0.1 * np.stack([np.cos(t[::20]), np.sin(t[::20])], axis=1) + [0.8, 0.0]
+    assert extra_components(far, kd_tree(np.concatenate([circle, hole]) + shift), 0.3) == []
+    extent = float(np.linalg.norm(far.upper - far.lower))
+    doubt = describe_extra(loop, extent)
+    assert "beside data that another part" in doubt
+    printed = doubt.split("centred at (")[1].split(")")[0]
+    np.testing.assert_allclose(
+        [float(x) for x in printed.split(", ")], loop["centre"], rtol=0, atol=1e-3 * extent
+    )
+
+
+def test_format_place_prints_the_digits_the_extent_needs():
+    from jurs._solution.verdicts import format_place
+
+    assert format_place([597312.4123, 5405123.8712], 30.0) == "(597312.41, 5405123.87)"
+    assert format_place([0.12345, -1.5], 2.0) == "(0.123, -1.500)"
+    assert format_place([1.0e6, 2.0e6], 5.0e6) == "(1000000, 2000000)"
+
+
+def test_a_bubble_beside_the_data_is_doubtful(judged):
+    """3D: a closed void inside a sphere's solid, near its surface (as a CAD part's fit
+    grew one), within the threshold: `successful` before, though it carries no data."""
+    points, normals = jurs.datasets.sphere3d(1500, seed=1)
+    void = _greville_spline(
+        lambda p: np.maximum(_radius(p) - 1.0, 0.12 - _radius(p - [0.75, 0.0, 0.0])), 1.4, 40
+    )
+    sol = judged(void, points, normals, offset=0.15)
+    assert sol.result == jurs.RESULTS.doubtful
+    (found,) = sol.stats["extra_components"]
+    assert not found["away"] and found["carried_share"] == 0.0
+    np.testing.assert_allclose(found["centre"], [0.75, 0.0, 0.0], atol=0.05)
+    (doubt,) = sol.stats["doubts"]
+    assert "beside data that another part" in doubt
 
 
 def test_a_thin_plate_is_a_sheet_pair_doubt(judged):

@@ -110,7 +110,7 @@ def _sharded_cg(
     collocation, targets, is_data, regulariser, regulariser_diagonal, lam, rtol, max_steps,
     *, mesh: Mesh, names,
 ):  # fmt: skip
-    """``(control, steps, relative residual, E_d, E_max)``: ``_assembled_cg``'s solve
+    """``(control, steps, relative residual, E_d, sum of g(P)^2, E_max)``: ``_assembled_cg``'s solve
     with ``D``'s rows (``collocation``, local row indices), ``targets`` and ``is_data``
     split over ``mesh``'s ``names`` axis, everything else replicated. The data term runs
     per device under ``shard_map``; its sums onto the active functions are all-reduced."""
@@ -140,10 +140,12 @@ def _sharded_cg(
         return lax.psum(transpose(entries, b), names), lax.psum(diagonal, names)
 
     @functools.partial(on_parts, in_specs=(split, split, split, whole), out_specs=(whole, whole))
-    def data_metrics(entries, b, data, c):  # E_d and E_max
+    def data_metrics(entries, b, data, c):  # E_d, sum of g(P)^2 (for E_ave) and E_max
         r = apply(entries, c, b.shape[0]) - b
-        largest = jnp.max(jnp.where(data, jnp.abs(r), 0.0))
-        return lax.psum(jnp.sum(r * r), names), lax.pmax(largest, names)
+        on_data = jnp.where(data, r, 0.0)
+        largest = jnp.max(jnp.abs(on_data))
+        sums = lax.psum(jnp.stack([jnp.sum(r * r), jnp.sum(on_data * on_data)]), names)
+        return sums, lax.pmax(largest, names)
 
     def matvec(c):
         regular = jax.ops.segment_sum(reg_values * c[reg_cols], reg_rows, n)
@@ -155,8 +157,8 @@ def _sharded_cg(
     control, steps, residual = conjugate_gradients(
         matvec, rhs, precondition=lambda r: inverse * r, rtol=rtol, max_steps=max_steps
     )
-    data, largest = data_metrics(collocation, targets, is_data, control)
-    return control, steps, residual, data, largest
+    sums, largest = data_metrics(collocation, targets, is_data, control)
+    return control, steps, residual, sums[0], sums[1], largest
 
 
 def solve_sharded(
@@ -206,7 +208,7 @@ def solve_sharded(
 
     reg_coo = _host_coo(regulariser, size_class(regulariser.nnz), dtype)
     regulariser_diagonal = padded_to(np.asarray(problem.regulariser_diagonal, float), size_class(n))
-    control, steps, residual, data, largest = _sharded_cg(
+    control, steps, residual, data, on_data, largest = _sharded_cg(
         tuple(put_split(a) for a in coo),
         put_split(targets),
         put_split(is_data),
@@ -222,13 +224,16 @@ def solve_sharded(
     reg = float(c @ (regulariser @ c))
     data = float(data.addressable_data(0))
     samples = count if samples is None else samples
+    # E_ave is the mean of g^2 over the data points alone (a third of the samples), as on
+    # the uniform grid (jurs._problem.energy.metrics), not E_d over every sample.
+    on_data = float(on_data.addressable_data(0))
     metrics = {
         name: on_device(value, dtype)
         for name, value in (
             ("E", data + lam * reg),
             ("E_d", data),
             ("R", reg),
-            ("E_ave", data / samples),
+            ("E_ave", on_data / (samples // 3)),
             ("E_max", float(largest.addressable_data(0))),
             ("lam", lam),
         )
@@ -290,10 +295,14 @@ def solve_summed(
     control, residual = solve_normal((normal + lam * regulariser).tocsc(), values[len(union) :])
     r = collocation @ control - targets
     m = len(targets) // 3
-    table = allgather(np.array([r @ r, np.max(np.abs(r[:m]), initial=0.0)]))
-    data, largest = float(table[:, 0].sum()), float(table[:, 1].max())
+    on_data = r[:m]  # this process's data points' samples come first (targets 0)
+    largest = np.max(np.abs(on_data), initial=0.0)
+    table = allgather(np.array([r @ r, on_data @ on_data, largest]))
+    data, squares = float(table[:, 0].sum()), float(table[:, 1].sum())
+    largest = float(table[:, 2].max())
     reg = float(control @ (regulariser @ control))
-    metrics = dict(E=data + lam * reg, E_d=data, R=reg, E_ave=data / samples)
+    # E_ave: mean g^2 over all processes' data points, as on the uniform grid.
+    metrics = dict(E=data + lam * reg, E_d=data, R=reg, E_ave=squares / (samples // 3))
     return control, residual, dict(metrics, E_max=largest, lam=lam)
 
 

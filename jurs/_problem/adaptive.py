@@ -215,17 +215,20 @@ def adaptive_objective(problem: AdaptiveProblem, coeffs: Array, lam, basis=None)
 
 def adaptive_metrics(problem: AdaptiveProblem, coeffs: Array, lam, basis=None) -> dict:
     """``E``, ``E_d``, ``R``, ``E_ave``, ``E_max`` and ``lam`` of a fit on the hierarchy, as
-    [`jurs.internal.metrics`][] gives them for a uniform fit (eq. 16, 31, 35-36)."""
+    [`jurs.internal.metrics`][] gives them for a uniform fit (eq. 16, 31, 35-37):
+    ``E_ave = mean g(P_i)^2`` and ``E_max = max |g(P_i)|`` over the m data points only
+    (the first m samples, whose targets are 0), not over the offset samples."""
     r = adaptive_values(problem, coeffs, basis) - problem.targets
     data = jnp.sum(r * r)
     reg = hierarchy_regulariser(problem.hierarchy, coeffs)
     m = problem.samples.shape[0] // 3
+    on_data = r[:m]
     return {
         "E": data + lam * reg,
         "E_d": data,
         "R": reg,
-        "E_ave": data / problem.samples.shape[0],
-        "E_max": jnp.max(jnp.abs(r[:m])),
+        "E_ave": jnp.mean(on_data * on_data),
+        "E_max": jnp.max(jnp.abs(on_data)),
         "lam": jnp.asarray(lam, r.dtype),
     }
 
@@ -239,6 +242,7 @@ def assembled_metrics(problem: AdaptiveProblem, matrices, coeffs, lam: float) ->
     r = collocation @ c - np.asarray(problem.targets, np.float64)
     data, reg = float(r @ r), float(c @ (regulariser @ c))
     m = problem.samples.shape[0] // 3
+    on_data = r[:m]  # the data points' samples come first (targets 0)
     dtype = problem.targets.dtype
     return {
         name: on_device(value, dtype)
@@ -246,8 +250,8 @@ def assembled_metrics(problem: AdaptiveProblem, matrices, coeffs, lam: float) ->
             ("E", data + lam * reg),
             ("E_d", data),
             ("R", reg),
-            ("E_ave", data / problem.samples.shape[0]),
-            ("E_max", float(np.max(np.abs(r[:m])))),
+            ("E_ave", float(on_data @ on_data) / m),
+            ("E_max", float(np.max(np.abs(on_data)))),
             ("lam", lam),
         )
     }

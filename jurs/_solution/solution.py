@@ -36,9 +36,11 @@ class RESULTS(eqx.Enumeration):
     inconsistent_normals = (
         "the normals are not consistently oriented: neighbouring normals point to opposite "
         "sides of the curve (part of the cloud flipped), they lie along it (random "
-        "normals), or the fit's own sign disagrees with the inside/outside targets at many "
-        "offset samples (random normals, features narrower than the noise or the grid, or "
-        "a lambda so large that the fit cannot follow the data); the zero set is not a "
+        "normals), every one points inward (the fit of a closed shape is negative outside "
+        "it: pass -normals), or the fit's own sign disagrees with the inside/outside "
+        "targets at many offset samples (random normals, features narrower than the "
+        "noise or the grid, or a lambda so large that the fit cannot follow the data); the "
+        "zero set is not a "
         "reconstruction. Orient the normals (all outward) and fit again; see sol.metrics "
         "for the measured fractions: where few normals are flipped against their "
         "neighbours (flipped_normal_fraction, tangential_normal_fraction near 0), the "
@@ -52,8 +54,8 @@ class RESULTS(eqx.Enumeration):
     doubtful = (
         "the solve succeeded, but checks of the data and of the fit doubt the zero set in "
         "places (features narrower than the grid resolves, data points left far from the "
-        "zero set, or closed parts of the zero set away from the data); sol.stats['doubts'] "
-        "says which and where, and what to change. The fit is "
+        "zero set, or closed parts of the zero set the data do not carry); "
+        "sol.stats['doubts'] says which and where, and what to change. The fit is "
         "returned as it is"
     )
     weights_at_ceiling = (

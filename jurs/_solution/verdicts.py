@@ -5,7 +5,8 @@ The driver's loop ([`jurs.solve`][]) sets ``successful``, ``max_steps_reached``,
 ``inconsistent_normals`` where the fit reads its offsets the wrong way round
 (``offset_sign_disagreement``, traced with the fit). [`jurs.fit`][] then judges a
 fit made at top level against its cloud on the host (``judge``): normals flipped or
-lying along the shape make it ``inconsistent_normals`` (``check_orientation``); with
+lying along the shape, or all pointing inward (a closed zero set with g negative on the
+box's border), make it ``inconsistent_normals`` (``check_orientation``); with
 automatic settings, parts cut, gaps bridged or points left far from the zero set make it
 ``doubtful`` (``check_doubts``). The reasoning behind each threshold is in
 docs/robustness.md; the measurements in ``benchmarks/results/quality.md`` and
@@ -85,6 +86,56 @@ MAX_FLIPPED_FRACTION = 0.2
 MAX_TANGENTIAL_FRACTION = 0.2
 
 
+#: The inside-out check samples g on the box's border on a lattice of half-cells (two
+#: nodes a knot span), at most this many nodes (coarser beyond): a few planes of the grid,
+#: cheap beside the fit.
+BORDER_CHECK_NODES = 1 << 18
+
+
+def border_negative_fraction(spline: ImplicitSpline | AdaptiveSpline) -> float:
+    """The fraction of the box's border where ``g < 0``: 0 for a closed shape fitted as the
+    contract says (negative inside, positive outside, so positive on the border), 1 for the
+    same shape fitted inside out (every normal pointing inward: the fit follows its
+    offsets, and is positive inside), in between where the zero set reaches the border (an
+    open scan, a trimmed surface: no inside to check). NaN where g is not finite there.
+
+    g is sampled on a lattice of half-cells over each face (edge in 2D) of the box, at
+    most ``BORDER_CHECK_NODES`` nodes (``jurs._model.lattice.lattice_values``, float64 on
+    the host)."""
+    from .._model.lattice import lattice_values
+
+    lower, upper = np.asarray(spline.lower, float), np.asarray(spline.upper, float)
+    steps = 2.0 * np.asarray(spline.finest_cells, float)
+    d = len(steps)
+    # Each of the 2 d faces holds the lattice of the other d - 1 axes.
+    nodes = 2 * d * float(np.prod(steps + 1)) / float(np.min(steps + 1))
+    if nodes > BORDER_CHECK_NODES:
+        scale = (BORDER_CHECK_NODES / nodes) ** (1.0 / max(d - 1, 1))
+        steps = np.maximum(2.0, np.floor(steps * scale))
+    axes = [np.linspace(lo, hi, int(n) + 1) for lo, hi, n in zip(lower, upper, steps)]
+    negative = total = 0
+    with np.errstate(invalid="ignore", divide="ignore"):
+        for axis in range(d):
+            for end in (lower[axis], upper[axis]):
+                face = [*axes[:axis], np.array([end]), *axes[axis + 1 :]]
+                values = np.asarray(lattice_values(spline, face))
+                if not np.isfinite(values).all():
+                    return float("nan")
+                negative += int(np.sum(values < 0))
+                total += values.size
+    return negative / total
+
+
+def _inward_doubt(cloud) -> str:
+    what = "curve" if cloud.ndim == 2 else "surface"
+    return (
+        f"the fit is negative all along the box's border, outside the closed {what}: every "
+        "normal points inward, and g is positive inside, the opposite of the contract "
+        "(negative inside, positive outside). Pass -normals (normals pointing outward) "
+        "and fit again"
+    )
+
+
 def check_orientation(sol, cloud):
     """``sol`` with ``metrics["flipped_normal_fraction"]`` and
     ``metrics["tangential_normal_fraction"]`` (measured once per ``cloud``,
@@ -94,18 +145,32 @@ def check_orientation(sol, cloud):
     ``RESULTS.inconsistent_normals`` in place of success or max_steps (half-flipped or
     random normals fitted "successfully" into 2 or 20 loops). Host side. Unlike an input
     error this is a verdict, as optimistix reports a failed solve in ``sol.result``: the
-    fit ran; [`jurs.fit`][] raises it with ``throw=True`` and returns it otherwise."""
+    fit ran; [`jurs.fit`][] raises it with ``throw=True`` and returns it otherwise.
+
+    Normals that all point inward agree with each other, so the checks above and the
+    driver's offset-sign check pass them, and the fit, following its offsets, is positive
+    inside. Where g is negative on the whole border of the box
+    (``metrics["border_negative_fraction"]`` 1, ``border_negative_fraction``) the zero set
+    is closed and the fit inside out: ``RESULTS.inconsistent_normals`` too, with
+    ``stats["doubts"]`` saying so (and to pass ``-normals``). A zero set that reaches the
+    border (an open scan) has no inside, and is not judged by it."""
     flipped, along = cloud.orientation
+    negative = border_negative_fraction(sol.spline)
     metrics = dict(
         sol.metrics,
         flipped_normal_fraction=np.asarray(flipped),
         tangential_normal_fraction=np.asarray(along),
+        border_negative_fraction=np.asarray(negative),
     )
+    stats = dict(sol.stats)
     result = sol.result
-    bad = flipped > MAX_FLIPPED_FRACTION or along > MAX_TANGENTIAL_FRACTION
-    if bad and bool((result == RESULTS.successful) | (result == RESULTS.max_steps_reached)):
+    inward = negative == 1.0
+    if inward:
+        stats["doubts"] = (_inward_doubt(cloud),)
+    bad = flipped > MAX_FLIPPED_FRACTION or along > MAX_TANGENTIAL_FRACTION or inward
+    if bad and sol.status in ("successful", "max_steps_reached"):
         result = RESULTS.inconsistent_normals
-    return dataclasses.replace(sol, metrics=metrics, result=result)
+    return dataclasses.replace(sol, metrics=metrics, stats=stats, result=result)
 
 
 #: A fit is ``doubtful`` where more than this fraction of its points (and more than 2)
@@ -275,17 +340,24 @@ def extra_components(spline: ImplicitSpline, tree, threshold: float) -> list[dic
     from one region to another hold that interface's piece of the zero set: each pair of
     regions that meet is one component. (Labelling the cells the zero set crosses
     instead merged nested shells a few cells apart into one.) A component is *closed*
-    when none of its edges lies on the box's border, and *away from the data* when the
-    median distance from its edges' midpoints to the nearest point of ``tree`` (the data
-    the fit keeps) exceeds ``threshold`` (``far_point_fraction``'s: at least half a knot
-    span) plus half a lattice step (how far a midpoint sits from the zero set at most).
-    ``area_share`` is the component's share of all the zero set's lattice edges (about its
-    share of the area, or of the length in 2D); ``distance`` is that median. One path
-    for curves and surfaces: the same lattice, regions and interfaces in 2D and 3D."""
+    when none of its edges lies on the box's border, and counted when less than half of
+    its edges' midpoints (``MIN_CARRIED_FRACTION``) lie by data it *carries*
+    (``jurs.levelset._curves.carried_samples``, jurs.levelset's supplementary rule): the
+    nearest point of ``tree`` (the data the fit keeps) within ``threshold``
+    (``far_point_fraction``'s: at least half a knot span) plus half a lattice step (how
+    far a midpoint sits from the zero set at most), and nearer to this component than to
+    any other. A component away from the data carries none, and neither does a small loop
+    beside data that the true zero set passes through. ``area_share`` is the
+    component's share of all the zero set's lattice edges (about its share of the area,
+    or of the length in 2D); ``distance`` the median distance from its midpoints to the
+    data, ``carried_share`` its share carried, ``away`` whether that median exceeds the
+    limit. One path for curves and surfaces: the same lattice, regions and interfaces in
+    2D and 3D."""
     from scipy import ndimage
 
     from .._model.band import band_lattice
     from .._model.lattice import FinestSpline, lattice_values
+    from ..levelset._curves import MIN_CARRIED_FRACTION, carried_samples
 
     lower, upper = np.asarray(spline.lower, float), np.asarray(spline.upper, float)
     spans = np.asarray(spline.finest_cells, float)
@@ -328,16 +400,22 @@ def extra_components(spline: ImplicitSpline, tree, threshold: float) -> list[dic
     key, at, border = np.concatenate(keys), np.concatenate(where), np.concatenate(on_border)
     step = (upper - lower) / steps
     points = lower + at * step
-    distance = tree.query(points)[0]
     pairs, group, sizes = np.unique(key, return_inverse=True, return_counts=True)
     group = group.reshape(-1)
+    limit = threshold + 0.5 * float(np.linalg.norm(step))
+    # Within a lattice diagonal of the nearest: a thin part pinched below the lattice's
+    # step splits its zero set into pieces side by side, not a loop beside the data.
+    diagonal = float(np.linalg.norm(step))
+    distance, carried = carried_samples(points, group, tree, limit, diagonal)
     open_ = np.bincount(group, weights=border, minlength=len(pairs)) > 0
+    share = np.bincount(group, weights=carried, minlength=len(pairs)) / sizes
     order = np.lexsort((distance, group))
     first = np.cumsum(sizes) - sizes
     median = distance[order][first + sizes // 2]
-    limit = threshold + 0.5 * float(np.linalg.norm(step))
     found = []
-    for k in np.flatnonzero(~open_ & (median > limit)):
+    # Less than half carried: away from the data (the median beyond the limit) or beside
+    # data that another component passes through (jurs.levelset's supplementary rule).
+    for k in np.flatnonzero(~open_ & (share < MIN_CARRIED_FRACTION)):
         mine = points[order[first[k] : first[k] + sizes[k]]]
         found.append(
             {
@@ -346,21 +424,49 @@ def extra_components(spline: ImplicitSpline, tree, threshold: float) -> list[dic
                 "upper": (mine.max(axis=0) + 0.5 * step).tolist(),
                 "area_share": float(sizes[k]) / len(key),
                 "distance": float(median[k]),
+                "carried_share": float(share[k]),
+                "away": bool(median[k] > limit),
             }
         )
     return sorted(found, key=lambda c: -c["area_share"])
 
 
-def _describe_extra(component: dict) -> str:
-    centre = ", ".join(f"{x:.3g}" for x in component["centre"])
-    lower = ", ".join(f"{x:.3g}" for x in component["lower"])
-    upper = ", ".join(f"{x:.3g}" for x in component["upper"])
+#: Places are printed to this fraction of the extent they are compared with: a part
+#: centred at (5.97e+05, ...) in a cloud 30 m wide said nothing of where, at 3 digits.
+PLACE_RESOLUTION = 1e-3
+
+
+def format_place(coordinates, extent: float) -> str:
+    """``coordinates`` as ``"(x, y[, z])"`` with the decimals that resolve
+    ``PLACE_RESOLUTION`` of ``extent`` (the box's diagonal, say), however far from the
+    origin they lie: ``(597312.41, 5405123.87)`` for a part of a scan 30 m wide, not
+    ``(5.97e+05, 5.41e+06)``."""
+    coordinates = [float(x) for x in coordinates]
+    resolution = PLACE_RESOLUTION * float(extent)
+    if not (np.isfinite(resolution) and resolution > 0):
+        return "(" + ", ".join(f"{x:.6g}" for x in coordinates) + ")"
+    decimals = max(0, int(np.ceil(-np.log10(resolution))))
+    return "(" + ", ".join(f"{x:.{decimals}f}" for x in coordinates) + ")"
+
+
+def describe_extra(component: dict, extent: float) -> str:
+    """The doubt for one of ``extra_components``' components, its place and box printed
+    to the digits ``extent`` (the spline's box diagonal) needs (``format_place``)."""
+    centre = format_place(component["centre"], extent)
+    lower = format_place(component["lower"], extent)
+    upper = format_place(component["upper"], extent)
+    where = (
+        "away from the data"
+        if component.get("away", True)
+        else "beside data that another part of the zero set passes through"
+    )
     return (
-        f"a closed zero-set component away from the data, centred at ({centre}) within "
-        f"({lower}) .. ({upper}), {component['area_share']:.1%} of the zero set, its median "
-        f"distance to the points kept {component['distance']:.3g}: a shape the data do not "
-        "have (points set aside or with inconsistent normals leave such shells; "
-        "jurs.levelset marks them supplementary)"
+        f"a closed zero-set component {where}, centred at {centre} within {lower} .. "
+        f"{upper}, {component['area_share']:.1%} of the zero set, its median distance to "
+        f"the points kept {component['distance']:.3g}, "
+        f"{component.get('carried_share', 0.0):.0%} of it by points it carries: a shape "
+        "the data do not have (points set aside or with inconsistent normals leave such "
+        "shells, fits without normals small loops; jurs.levelset marks them supplementary)"
     )
 
 
@@ -393,7 +499,7 @@ def check_doubts(sol, cloud, settings, offset):
         crossed, along, sheets, width = crossed_pairs(
             sol.spline, p[keep], cloud.normals[keep], settings.spacing, tree
         )
-    doubts = []
+    doubts = list(sol.stats.get("doubts", ()))  # check_orientation's, where it found one
     if cloud.ndim == 3 and sheets > MAX_SHEET_FRACTION:
         doubts.append(
             f"{sheets:.1%} of the points face another sheet less than a cell "
@@ -430,7 +536,8 @@ def check_doubts(sol, cloud, settings, offset):
             "outliers or inconsistent normals)"
         )
     extra = extra_components(sol.spline, tree, threshold)
-    doubts.extend(_describe_extra(c) for c in extra)
+    extent = float(np.linalg.norm(np.asarray(sol.spline.upper) - np.asarray(sol.spline.lower)))
+    doubts.extend(describe_extra(c, extent) for c in extra)
     # device_put, not jnp.asarray: a Python number through jnp.asarray compiles a small
     # program of its own in each new process.
     metrics = dict(

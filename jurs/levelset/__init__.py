@@ -25,7 +25,13 @@ Definitions (all lengths in data units):
   gap in the sampling has the gap's large distances in its mean (a rose with 8 % of its
   outline unsampled, clean data: the mean was above 2 d and flagged the curve itself) but
   most of its length on the data, while an extra curve away from the data has most of its
-  length off it. The arc-length mean is kept too (``mean_distance``).
+  length off it. The arc-length mean is kept too (``mean_distance``). A **closed**
+  component is supplementary, too, when less than half of its length lies by data it
+  *carries* (``carried_fraction``): the nearest data point within ``threshold`` and no
+  other component nearer to that point. A small loop beside the data, whose points the
+  true curve passes through (a traced horse's tail grew one, 2 components and 0
+  supplementary before), carries none. Surfaces
+  ([`analyze_mesh`][jurs.levelset.analyze_mesh]) follow the same rules by area.
 * A **tiny loop** is a closed component shorter than ``tiny_cells * h`` (default 4 cells):
   a sign flip at one or two grid nodes, at the resolution limit of the grid.
 * **Chamfer and Hausdorff distances** between the zero set Z and a reference set Y: Z is

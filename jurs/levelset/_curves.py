@@ -40,6 +40,43 @@ BYTES_PER_NODE = 128
 DEFAULT_TINY_CELLS = 4.0
 #: Default supplementary threshold, as a multiple of the offset d.
 DEFAULT_THRESHOLD_FACTOR = 2.0
+#: A closed component is supplementary where less than this share of it (length, area)
+#: lies by data it carries (``carried_samples``): a loop or bubble beside the data whose
+#: points another part of the zero set passes through is as spurious as one away from
+#: them (a small loop at a traced horse's tail; a bubble inside a CAD part's solid).
+MIN_CARRIED_FRACTION = 0.5
+
+
+def carried_samples(
+    samples: Float[npt.ArrayLike, "k d"],
+    labels: npt.ArrayLike,
+    tree: cKDTree,
+    threshold: float,
+    tolerance: float | Float[npt.ArrayLike, " k"] = 0.0,
+) -> tuple[Float[np.ndarray, " k"], np.ndarray]:
+    """``(distance, carried)`` for zero-set ``samples (k, d)`` of the components
+    ``labels (k,)``: each sample's distance to the nearest data point of ``tree`` (a
+    KD-tree of the data), and whether that point lies within ``threshold`` and is
+    *carried* by the sample's own component: no sample of another component lies
+    nearer to it, or, with a ``tolerance`` (one, or one a sample), none nearer by more
+    than that: the step of the lattice the zero set was sampled on, where a thin part
+    pinched below that step splits its zero set into pieces side by side, both beside
+    the data and a step apart at most (a glyph's inner corner at 256 nodes a side). A
+    component's share of carried samples is how much of it the data account for; a loop
+    beside data that another part passes through carries none. Curves (polyline
+    segments' midpoints) and surfaces (face centroids, lattice crossings) alike."""
+    samples = np.asarray(samples, float)
+    labels = np.asarray(labels).reshape(-1)
+    if len(samples) == 0:
+        return np.empty(0), np.zeros(0, bool)
+    distance, nearest = tree.query(samples)
+    used, back = np.unique(nearest, return_inverse=True)
+    back = back.reshape(-1)
+    # The component each data point near a sample lies nearest to (its owner), and how
+    # near.
+    closest, at = cKDTree(samples).query(np.asarray(tree.data)[used])
+    owned = (labels[at][back] == labels) | (distance <= closest[back] + tolerance)
+    return distance, (distance <= threshold) & owned
 
 
 def sampling_grid(
@@ -259,8 +296,13 @@ class Component:
         mean_distance: arc-length mean distance to the nearest data point.
         far_fraction: fraction of its length farther than the threshold from the data.
         supplementary: ``far_fraction > 0.5`` (its arc-length median distance is above the
-            threshold).
+            threshold) or, for a closed loop, ``carried_fraction`` below
+            ``MIN_CARRIED_FRACTION`` (a half): a loop the data do not account for.
         tiny: a closed loop shorter than ``tiny_cells`` grid cells.
+        carried_fraction: fraction of its length whose nearest data point lies within the
+            threshold and nearer to this component than to any other
+            (``carried_samples``): 0 for a loop beside data that another curve passes
+            through, about 1 for a curve that follows its data.
     """
 
     polyline: np.ndarray
@@ -270,6 +312,7 @@ class Component:
     far_fraction: float
     supplementary: bool
     tiny: bool
+    carried_fraction: float = 1.0
 
     @property
     def ends(self) -> Float[np.ndarray, "2 2"] | None:
@@ -369,30 +412,41 @@ def classify(
     tiny_cells: float = DEFAULT_TINY_CELLS,
 ) -> list[Component]:
     """Turn ``(polyline, closed)`` pairs into [`Component`][jurs.levelset.Component] s,
-    longest first, measuring their distance to the data ``points (m, 2)`` with a KD-tree."""
+    longest first, measuring their distance to the data ``points (m, 2)`` with a KD-tree
+    and which data each carries (``carried_samples``, at segment midpoints)."""
     tree = cKDTree(np.asarray(points, float).reshape(-1, 2))
+    polys = [np.asarray(poly, float).reshape(-1, 2) for poly, _ in lines]
+    # Each component's samples: its segments' midpoints (a single point: itself).
+    samples = [0.5 * (p[1:] + p[:-1]) if len(p) >= 2 else p for p in polys]
+    labels = np.repeat(np.arange(len(polys)), [len(x) for x in samples])
+    stacked = np.concatenate(samples) if samples else np.empty((0, 2))
+    # A cell's diagonal: marching squares cuts a pinch below it into loops side by side.
+    diagonal = float(np.sqrt(2.0) * cell_size)
+    distance, carried = carried_samples(stacked, labels, tree, threshold, diagonal)
+    starts = np.cumsum([0] + [len(x) for x in samples])
     out = []
-    for poly, closed in lines:
-        poly = np.asarray(poly, float)
+    for k, (poly, (_, closed)) in enumerate(zip(polys, lines)):
+        dist, mine = distance[starts[k] : starts[k + 1]], carried[starts[k] : starts[k + 1]]
         if len(poly) >= 2:
             seg = np.linalg.norm(np.diff(poly, axis=0), axis=1)
-            dist = tree.query(0.5 * (poly[1:] + poly[:-1]))[0]  # at segment midpoints
             length = float(seg.sum())
         else:
-            seg, dist, length = None, tree.query(poly)[0], 0.0
+            seg, length = None, 0.0
         # Arc-length weighted; a curve of zero length weighs its points alike.
         weight = seg if length > 0 else None
         mean = float(np.average(dist, weights=weight))
         far = float(np.average(dist > threshold, weights=weight))
+        share = float(np.average(mine, weights=weight))
         out.append(
             Component(
                 poly,
-                closed,
+                bool(closed),
                 length,
                 mean,
                 far,
-                far > 0.5,
-                closed and length < tiny_cells * cell_size,
+                far > 0.5 or bool(closed and share < MIN_CARRIED_FRACTION),
+                bool(closed and length < tiny_cells * cell_size),
+                share,
             )
         )
     out.sort(key=lambda c: -c.length)

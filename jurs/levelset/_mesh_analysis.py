@@ -20,6 +20,7 @@ from scipy.sparse import csgraph
 from scipy.spatial import cKDTree  # pyright: ignore[reportAttributeAccessIssue]  # no stub
 
 from ..datasets import sample_mesh
+from ._curves import MIN_CARRIED_FRACTION, carried_samples
 from ._faces import boundary_edges, check_mesh, face_areas, face_components
 from ._trimming import DEFAULT_TRIM, UNSUPPORTED_FRACTION, Support, check_points
 
@@ -183,10 +184,16 @@ class MeshComponent:
         median_distance: area-weighted median of the distance from its face centroids to
             the nearest data point (NaN without data).
         supplementary: ``median_distance > threshold``: more than half of its area lies
-            farther than the threshold from the data.
+            farther than the threshold from the data; or, for a closed component,
+            ``carried_fraction`` below ``MIN_CARRIED_FRACTION`` (a half): a bubble the data
+            do not account for, also beside them (a closed bubble inside a CAD part's
+            solid, near both its faces, read 0 supplementary before).
         boundary_lengths: the length of each of its boundary loops, longest first
             (empty for a closed component); see
             [`boundary_loops`][jurs.levelset.boundary_loops].
+        carried_fraction: the share of its area (at face centroids) whose nearest data
+            point lies within the threshold and nearer to this component than to any
+            other (``jurs.levelset._curves.carried_samples``); NaN without data.
     """
 
     faces: np.ndarray
@@ -196,6 +203,7 @@ class MeshComponent:
     median_distance: float
     supplementary: bool
     boundary_lengths: tuple = ()
+    carried_fraction: float = float("nan")
 
     @property
     def num_faces(self) -> int:
@@ -354,12 +362,19 @@ def analyze_mesh(
     num_v, num_e, num_f, boundary = _topology(faces, labels, count)
     area = face_areas(vertices, faces)
     component_area = np.bincount(labels, weights=area, minlength=count)
-    median = np.full(count, np.nan)
+    median, share = np.full(count, np.nan), np.full(count, np.nan)
     unsupported = None
     if points is not None:
+        assert threshold is not None  # set above with the points
         centroids = vertices[faces].mean(axis=1)
-        distance = cKDTree(points).query(centroids)[0]
+        # Each face's longest edge: the step of the lattice it was marched on, below which
+        # a pinch splits the surface into pieces side by side (carried_samples).
+        corners = vertices[faces]
+        edge = np.linalg.norm(corners - np.roll(corners, 1, axis=1), axis=2).max(axis=1)
+        distance, carried = carried_samples(centroids, labels, cKDTree(points), threshold, edge)
         median = _weighted_medians(distance, area, labels, component_area)
+        carried_area = np.bincount(labels, weights=area * carried, minlength=count)
+        share = carried_area / np.maximum(component_area, 1e-300)
         unsupported = _unsupported_fraction(points, centroids, area)
         if unsupported is not None and unsupported > UNSUPPORTED_FRACTION:
             notes = (
@@ -381,8 +396,14 @@ def analyze_mesh(
             closed=bool(boundary[c] == 0),
             genus=int((2 - euler[c]) // 2) if boundary[c] == 0 and euler[c] % 2 == 0 else None,
             median_distance=float(median[c]),
-            supplementary=bool(points is not None and median[c] > threshold),
+            supplementary=bool(
+                points is not None
+                and (
+                    median[c] > threshold or (boundary[c] == 0 and share[c] < MIN_CARRIED_FRACTION)
+                )
+            ),
             boundary_lengths=tuple(float(x) for x in loop_length[loop_owner == c]),
+            carried_fraction=float(share[c]),
         )
         for c in order
     )
