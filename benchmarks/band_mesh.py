@@ -99,11 +99,7 @@ def measure(name: str, spline: AdaptiveSpline, resolution: int, full: bool) -> s
 
 
 def fitted_curve(name: str) -> AdaptiveSpline:
-    import os
-    import sys
-
-    sys.path.insert(0, os.path.dirname(__file__))
-    from _realdata_cases import build
+    from ._realdata_cases import build
 
     case = build(name)
     points, normals = jurs.shapes.sample_outline(list(case.components), case.m)

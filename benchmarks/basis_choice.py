@@ -41,8 +41,7 @@ from jurs._fit.adaptive import (  # noqa: E402
     wants_adaptive,
 )
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from _common import (  # noqa: E402
+from ._common import (  # noqa: E402
     RESULTS,
     machine,
     md_table,
@@ -50,8 +49,8 @@ from _common import (  # noqa: E402
     time_repeated,
     write_results,
 )
-from _quality_cases import CASES, choose_m, clean_outline  # noqa: E402
-from quality import noise_seed  # noqa: E402
+from ._quality_cases import CASES, choose_m, clean_outline  # noqa: E402
+from .quality import noise_seed  # noqa: E402
 
 BASES = ("uniform", "adaptive", "auto")
 #: Noise levels (over the outline's diagonal): the clean clouds, where the grid is capped

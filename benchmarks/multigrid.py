@@ -39,13 +39,11 @@ import argparse
 import datetime
 import json
 import os
-import sys
 import time
 
 import numpy as np
 
-sys.path.insert(0, os.path.dirname(__file__))
-from _common import RESULTS, machine, rerender_beside, write_results  # noqa: E402
+from ._common import RESULTS, machine, rerender_beside, write_results
 
 #: Square root of the objective gap asked of the multigrid solve, relative to the objective.
 RTOL = 1e-4

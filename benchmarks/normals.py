@@ -35,19 +35,16 @@ import argparse
 import datetime
 import os
 import platform
-import sys
 import time
 
 import numpy as np
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-import _surface_cases as surface_cases  # noqa: E402
-from _baselines import orient_mst  # noqa: E402
-from _common import RESULTS, optional, write_results  # noqa: E402
+import jurs
+import jurs.shapes
 
-import jurs  # noqa: E402
-import jurs.shapes  # noqa: E402
+from . import _surface_cases as surface_cases
+from ._baselines import orient_mst
+from ._common import RESULTS, optional, write_results
 
 NOISE = 0.005
 OUTLIERS = 0.02

@@ -60,17 +60,15 @@ import time
 
 import numpy as np
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-from _common import (  # noqa: E402
+from ._common import (
     RESULTS,
     elapsed_log,
     import_open3d,
     rerender_beside,
     write_results,
 )
-from _open_scan_rims import describe_rims, follow_rims  # noqa: E402
-from _surface_cases import (  # noqa: E402
+from ._open_scan_rims import describe_rims, follow_rims
+from ._surface_cases import (
     MeshDistance,
     Truth,
     diagonal,
@@ -1249,7 +1247,7 @@ def main(argv=None):
     import jax
 
     jax.config.update("jax_enable_x64", True)
-    from _common import machine
+    from ._common import machine
 
     log = elapsed_log()
     start, load_start = time.perf_counter(), os.getloadavg()[0]

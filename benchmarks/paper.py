@@ -33,7 +33,6 @@ import inspect
 import json
 import math
 import os
-import sys
 import time
 
 import jax
@@ -51,8 +50,7 @@ import jurs.levelset  # noqa: E402
 import jurs.plot  # noqa: E402
 import jurs.shapes  # noqa: E402
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from _common import RESULTS, machine  # noqa: E402
+from ._common import RESULTS, machine  # noqa: E402
 
 OFFSET = 0.1  # d: the paper's offsets, every example
 EPS = 0.01  # eps: the paper's function offsets (+-0.01)

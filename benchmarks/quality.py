@@ -28,7 +28,6 @@ from __future__ import annotations
 import argparse
 import os
 import platform
-import sys
 import time
 import zlib
 
@@ -42,10 +41,9 @@ import jurs.datasets  # noqa: E402
 import jurs.levelset  # noqa: E402
 import jurs.shapes  # noqa: E402
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from _baselines import evaluate_rbf_grid, rbf_fit, rbf_grid_values  # noqa: E402
-from _common import RESULTS, machine, write_results  # noqa: E402
-from _quality_cases import (  # noqa: E402  (the cases, shared with smoothing.py)
+from ._baselines import evaluate_rbf_grid, rbf_fit, rbf_grid_values  # noqa: E402
+from ._common import RESULTS, machine, write_results  # noqa: E402
+from ._quality_cases import (  # noqa: E402  (the cases, shared with smoothing.py)
     CASES,
     M_MAX,
     M_MIN,

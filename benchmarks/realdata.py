@@ -58,10 +58,9 @@ import jurs  # noqa: E402
 import jurs.levelset  # noqa: E402
 import jurs.shapes  # noqa: E402
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-import _realdata_cases as cases  # noqa: E402
-from _baselines import rbf_fit, rbf_grid_values  # noqa: E402
-from _common import RESULTS, machine, rerender_beside, time_repeated, write_results  # noqa: E402
+from . import _realdata_cases as cases  # noqa: E402
+from ._baselines import rbf_fit, rbf_grid_values  # noqa: E402
+from ._common import RESULTS, machine, rerender_beside, time_repeated, write_results  # noqa: E402
 
 # --------------------------------------------------------------------------- configuration
 

@@ -45,8 +45,7 @@ import subprocess
 import sys
 import textwrap
 
-sys.path.insert(0, os.path.dirname(__file__))
-from _common import RESULTS, write_results  # noqa: E402
+from ._common import RESULTS, write_results
 
 DEVICES = (1, 2, 4, 8)
 SIZES = (10_000, 100_000, 1_000_000, 10_000_000)
@@ -493,7 +492,7 @@ def main() -> None:
         processes_main(sys.argv[1:])
         return
     if sys.argv[1:2] == ["--render"]:  # re-render the committed JSON, no measuring
-        from _common import rerender_beside
+        from ._common import rerender_beside
 
         print(rerender_beside(os.path.join(RESULTS, "sharding.json"), render))
         return

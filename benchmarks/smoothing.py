@@ -36,9 +36,8 @@ import jurs  # noqa: E402
 import jurs.levelset  # noqa: E402
 import jurs.shapes  # noqa: E402
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from _common import RESULTS, machine, write_results  # noqa: E402
-from _quality_cases import CASES, RESOLUTION, choose_m, clean_outline  # noqa: E402
+from ._common import RESULTS, machine, write_results  # noqa: E402
+from ._quality_cases import CASES, RESOLUTION, choose_m, clean_outline  # noqa: E402
 
 SHAPES = (
     "example1",

@@ -64,8 +64,7 @@ import sys
 import tempfile
 import time
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from _common import elapsed_log, write_results  # noqa: E402
+from ._common import elapsed_log, write_results
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 SIZES = (100, 1000, 10_000, 100_000)

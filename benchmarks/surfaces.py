@@ -56,11 +56,9 @@ import time
 
 import numpy as np
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 # Nothing heavier at module level: each method runs in a spawned child that re-imports this
 # file, and importing JAX there would put JAX's resident set into Poisson's peak.
-from _common import (  # noqa: E402
+from ._common import (
     RESULTS,
     current_rss_bytes,
     elapsed_log,
@@ -70,7 +68,7 @@ from _common import (  # noqa: E402
     rerender_beside,
     write_results,
 )
-from _surface_cases import (  # noqa: E402  (the cases, their truth and the distances)
+from ._surface_cases import (  # the cases, their truth and the distances
     EVAL_SAMPLES,
     NOISE,
     SEEDS,
@@ -706,7 +704,7 @@ def main():
         open3d = import_open3d()
     except ImportError:
         sys.exit("this benchmark compares with Open3D: pip install -e '.[bench]'")
-    from _common import machine
+    from ._common import machine
 
     log = elapsed_log()
     start, load_start = time.perf_counter(), os.getloadavg()[0]

@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import argparse
 import datetime
-import os
 import sys
 import time
 
@@ -38,18 +37,16 @@ from scipy import sparse  # noqa: E402
 
 import jurs  # noqa: E402
 import jurs.levelset  # noqa: E402
-
-sys.path.insert(0, os.path.dirname(__file__))
-import _realdata_cases as cases  # noqa: E402
-import realdata  # noqa: E402
-from _common import machine, md_table, write_results  # noqa: E402
-from adaptive import _rings as rings  # noqa: E402
-
 from jurs._fit.adaptive import finest_cell_width, hierarchy_layout, solve_normal  # noqa: E402
 from jurs._fit.settings import scale_free_lam  # noqa: E402
 from jurs._model.basis import cubic_weights  # noqa: E402
 from jurs._model.hierarchy import refine_near  # noqa: E402
 from jurs._problem.problem import offset_samples  # noqa: E402
+
+from . import _realdata_cases as cases  # noqa: E402
+from . import realdata  # noqa: E402
+from ._common import machine, md_table, write_results  # noqa: E402
+from .adaptive import _rings as rings  # noqa: E402
 
 DEFAULT_CASES = ("camera", "coffee", "text", "terrain", "logo", "hubble")
 
