@@ -32,11 +32,11 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 import jurs  # noqa: E402
+from jurs import AdaptiveSpline  # noqa: E402
 from jurs._fit.adaptive import adaptive_layout  # noqa: E402
-from jurs._model.adaptive import AdaptiveSpline  # noqa: E402
 from jurs._model.band import plan_band  # noqa: E402
-from jurs._model.hierarchy import build_hierarchy, refine_near  # noqa: E402
 from jurs._model.lattice import FinestSpline  # noqa: E402
+from jurs.internal import build_hierarchy, refine_near  # noqa: E402
 from jurs.levelset import _meshing  # noqa: E402
 
 

@@ -431,7 +431,6 @@ def two_sheets() -> dict:
     import jurs
     import jurs.datasets
     import jurs.levelset as ls
-    from jurs._fit.attributes import AttributeField
 
     half = SHEETS_GAP * SHEETS_STEP / 2
     points, normals = jurs.datasets.thin_plate(step=SHEETS_STEP, thickness=2 * half)
@@ -445,7 +444,7 @@ def two_sheets() -> dict:
         np.min((np.asarray(sol.spline.upper) - np.asarray(sol.spline.lower)) / (np.array(grid) - 3))
     )
     field = jurs.fit_attributes(sol, points, colours)
-    single = AttributeField(
+    single = jurs.AttributeField(
         field.geometry, field.coefficients.at[1:].set(0.0), field.lower, field.upper
     )
     vertices = ls.mesh(sol.spline, resolution=64)[0]

@@ -39,9 +39,7 @@ import jurs  # noqa: E402
 import jurs.levelset  # noqa: E402
 from jurs._fit.adaptive import finest_cell_width, hierarchy_layout, solve_normal  # noqa: E402
 from jurs._fit.settings import scale_free_lam  # noqa: E402
-from jurs._model.basis import cubic_weights  # noqa: E402
-from jurs._model.hierarchy import refine_near  # noqa: E402
-from jurs._problem.problem import offset_samples  # noqa: E402
+from jurs.internal import cubic_weights, offset_samples, refine_near  # noqa: E402
 
 from . import _realdata_cases as cases  # noqa: E402
 from . import realdata  # noqa: E402
