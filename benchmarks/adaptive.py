@@ -22,7 +22,7 @@ Each scaling row runs in a fresh spawned process, so that its peak resident set 
 or ``--max-gb`` of resident memory, recorded with the bound it passed, and lists the rows
 above it as not run.
 
-Run ``python benchmarks/adaptive.py`` (``--cases camera text --finest 256 512
+Run ``python -m benchmarks.adaptive`` (``--cases camera text --finest 256 512
 --surface-finest 64 128``); writes ``benchmarks/results/adaptive.{md,json}``.
 """
 

@@ -9,7 +9,7 @@ node) at the same resolution. Splines: a ``jurs.fit_adaptive`` sphere at a fines
 kind of hierarchy (``--synthetic FINEST``: no fit, for finest levels whose fit takes too
 long here).
 
-Run ``python benchmarks/band_mesh.py --fit 128 --synthetic 256 --resolution 257 513``
+Run ``python -m benchmarks.band_mesh --fit 128 --synthetic 256 --resolution 257 513``
 (``--load FILE`` takes a fit saved by ``jurs.save_spline`` instead of fitting);
 prints a Markdown table (docs/design.md section 8 quotes one).
 

@@ -14,7 +14,7 @@ percentile of the points' distances to its zero set, in spacings: ``uniform_resi
 the basis it took, and the accuracy and time of each basis; ratios are against the uniform
 fit of the same run.
 
-    python benchmarks/basis_choice.py [--levels 0,0.002] [--cases a,b] [--markdown-only]
+    python -m benchmarks.basis_choice [--levels 0,0.002] [--cases a,b] [--markdown-only]
 """
 
 from __future__ import annotations
@@ -215,7 +215,7 @@ def main(argv=None):
     payload = {
         "date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
         "machine": machine(),
-        "command": "python benchmarks/basis_choice.py" + (" " + " ".join(argv) if argv else ""),
+        "command": "python -m benchmarks.basis_choice" + (" " + " ".join(argv) if argv else ""),
         "elapsed_s": time.perf_counter() - start,
         "load": load,
         "runs": runs,

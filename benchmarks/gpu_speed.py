@@ -1,7 +1,7 @@
 """The speed benchmark on an accelerator: jurs at 1e6 to 1e7 points on a GPU, beside the CPU run.
 
-    python benchmarks/gpu_speed.py [--quick] [--out DIR]
-    python benchmarks/gpu_speed.py --from-json benchmarks/results/speed_gpu.json   # re-render
+    python -m benchmarks.gpu_speed [--quick] [--out DIR]
+    python -m benchmarks.gpu_speed --from-json benchmarks/results/speed_gpu.json   # re-render
 
 Runs the measurements of ``benchmarks/speed.py`` that mean something on an accelerator,
 with the same workers, each in a fresh process, in float64:

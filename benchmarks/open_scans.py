@@ -42,9 +42,9 @@ One command measures everything, prints the ratio table and writes the dated res
   face. Score: the mean Euclidean RGB difference (colours in [0, 1]) from the planted
   colour there, also away from the stripe's edges (2 spacings either side).
 
-    python benchmarks/open_scans.py [--quick] [--cases a,b] [--points m] [--max-grid N]
+    python -m benchmarks.open_scans [--quick] [--cases a,b] [--points m] [--max-grid N]
                                     [--out DIR] [--name NAME]
-    python benchmarks/open_scans.py --from-json benchmarks/results/open_scans.json
+    python -m benchmarks.open_scans --from-json benchmarks/results/open_scans.json
 
 ``--quick``: 5000 points, two cases, a small grid (a development run).
 """
@@ -1279,7 +1279,7 @@ def main(argv=None):
         "quick": args.quick,
         "machine": f"{machine()}, Python {platform.python_version()}",
         "memory": f"{total_bytes / GB:.0f} GB RAM",
-        "command": ("python benchmarks/open_scans.py " + " ".join(sys.argv[1:])).strip(),
+        "command": ("python -m benchmarks.open_scans " + " ".join(sys.argv[1:])).strip(),
         "open3d": open3d.__version__,
         "max_grid": args.max_grid,
         "eval_samples": args.eval_samples,

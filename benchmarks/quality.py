@@ -18,7 +18,7 @@ written to the same files and marked as a quick subset):
 * **Ratios.** jurs's Chamfer over the reference RBF's (the unsmoothed one on clean cases,
   the best smoothed one on noisy cases) and the RBF's fit time over jurs's, per run.
 
-    python benchmarks/quality.py [--quick] [--markdown-only]
+    python -m benchmarks.quality [--quick] [--markdown-only]
 
 ``--markdown-only`` rewrites the markdown from the JSON of the last run (no measurement).
 """
@@ -600,7 +600,7 @@ def main(argv=None):
         "machine": machine(),
         "python": platform.python_version(),
         "load_average": os.getloadavg()[0],
-        "command": "python benchmarks/quality.py" + (" --quick" if args.quick else ""),
+        "command": "python -m benchmarks.quality" + (" --quick" if args.quick else ""),
         "note": args.note,
         "cases": list(cases),
         "noise_levels": list(levels),

@@ -18,7 +18,7 @@ default rests on a measurement anyone can repeat:
 Writes ``benchmarks/results/smoothing.{json,md}`` (about 2 minutes on 2 cores;
 ``--markdown-only`` rewrites the markdown from the JSON).
 
-    python benchmarks/smoothing.py [--markdown-only]
+    python -m benchmarks.smoothing [--markdown-only]
 """
 
 from __future__ import annotations

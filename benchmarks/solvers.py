@@ -1,6 +1,6 @@
 """Every jurs solver on Example 1 (9 x 9, 15 x 15) and Example 10: energy, time, compile.
 
-    .venv/bin/python benchmarks/solvers.py [--quick]
+    .venv/bin/python -m benchmarks.solvers [--quick]
 
 Writes ``benchmarks/results/solvers.{md,json}``. Each row is one ``jurs.fit`` call (input
 checks, jit dispatch, problem assembly and the solve): ``compile`` is the first call minus

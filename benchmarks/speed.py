@@ -22,8 +22,8 @@ Every measurement runs in a fresh subprocess (the workers of ``_speed_workers.py
 its peak resident set size (VmHWM) belongs to that measurement alone; the report gives the
 peak and the peak minus the RSS after imports, JAX start-up and data creation.
 
-    python benchmarks/speed.py [--quick]
-    python benchmarks/speed.py --from-json benchmarks/results/speed.json   # re-render only
+    python -m benchmarks.speed [--quick]
+    python -m benchmarks.speed --from-json benchmarks/results/speed.json   # re-render only
 
 Runs on whatever device JAX picks (CPU here; a GPU if JAX sees one), in float64, and
 records the device.

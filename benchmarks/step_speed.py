@@ -13,7 +13,7 @@ tol = 1e-7; cold = first call in this process, compilation included), and the ex
 regularised solve ``LeastSquares(lam=1e-4)`` on the cloud and grid above, end to end
 (problem building, D^T D stencil assembly, linear solve, metrics).
 
-    python benchmarks/step_speed.py [--points 100000] [--grid 64]
+    python -m benchmarks.step_speed [--points 100000] [--grid 64]
 """
 
 from __future__ import annotations

@@ -35,10 +35,10 @@ One command measures everything, prints the ratio table and writes the dated res
   set (``VmHWM``) is its own; jurs's fit runs twice, the second call is the warm time and
   the first includes compilation; wall and CPU seconds.
 
-    python benchmarks/surfaces.py [--quick] [--million] [--cases a,b] [--points m]
+    python -m benchmarks.surfaces [--quick] [--million] [--cases a,b] [--points m]
                                   [--max-grid N] [--depths D ...] [--fit F]
                                   [--out DIR] [--name NAME]
-    python benchmarks/surfaces.py --from-json benchmarks/results/surfaces.json  # re-render
+    python -m benchmarks.surfaces --from-json benchmarks/results/surfaces.json  # re-render
 
 ``--quick``: 2e4 points, torus and bunny, a smaller grid cap, fewer evaluation samples (a
 development run, not the issue's sizes).
@@ -733,7 +733,7 @@ def main():
                 )
     os.makedirs(args.out, exist_ok=True)
     caption = figure(shown, records, os.path.join(args.out, f"{args.name}.png")) if shown else None
-    command = "python benchmarks/surfaces.py " + " ".join(sys.argv[1:])
+    command = "python -m benchmarks.surfaces " + " ".join(sys.argv[1:])
     total_bytes = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
     payload = {
         "date": datetime.date.today().isoformat(),

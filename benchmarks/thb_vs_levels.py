@@ -16,7 +16,7 @@ ring matches as ``benchmarks/adaptive.py`` measures them (the zero set on the ca
 analysis lattice). Curves only: the point of the comparison is the basis, and the 2D
 solves are exact.
 
-    python benchmarks/thb_vs_levels.py [--cases camera text ...] [--sweeps N]
+    python -m benchmarks.thb_vs_levels [--cases camera text ...] [--sweeps N]
 
 writes ``benchmarks/results/thb_vs_levels.{md,json}``.
 """
@@ -293,7 +293,7 @@ def main(argv=None) -> None:
     payload = {
         "date": datetime.date.today().isoformat(),
         "machine": machine(),
-        "command": "python benchmarks/thb_vs_levels.py " + " ".join(sys.argv[1:]),
+        "command": "python -m benchmarks.thb_vs_levels " + " ".join(sys.argv[1:]),
         "note": args.note,
         "sweeps": args.sweeps,
         "rows": rows,

@@ -198,7 +198,7 @@ def test_markdown_counts_the_runs_meeting_each_target():
         "quick": True,
         "machine": "test",
         "load_average": 0.5,
-        "command": "python benchmarks/realdata.py --quick",
+        "command": "python -m benchmarks.realdata --quick",
         "cases": ["a", "b"],
         "variants": ["clean", "noisy"],
         "case_info": {k: {**info, "source": f"'il1{k}|' source"} for k in "ab"},
