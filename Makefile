@@ -49,7 +49,7 @@ lint: $(STAMP)
 	$(VENV)/bin/basedpyright --project .
 
 bench: $(STAMP)
-	$(PY) benchmarks/step_speed.py
+	$(PY) -m benchmarks.step_speed
 
 clean:
 	rm -rf $(VENV) .pytest_cache build *.egg-info site

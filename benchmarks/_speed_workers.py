@@ -1,7 +1,7 @@
 """The measurements of ``benchmarks/speed.py`` and ``benchmarks/gpu_speed.py``: the workers,
-each run in a fresh process (``run_worker`` starts ``python _speed_workers.py --worker SPEC``,
-which prints one ``RESULT`` JSON line), the settings both scripts measure with, and the
-Example-4 orchestration both run.
+each run in a fresh process (``run_worker`` starts ``python -m benchmarks._speed_workers
+--worker SPEC`` in the repository root, which prints one ``RESULT`` JSON line), the settings
+both scripts measure with, and the Example-4 orchestration both run.
 
 A worker's peak resident set size (VmHWM) belongs to that measurement alone. This module
 imports no JAX at module level: each worker starts JAX itself.
@@ -21,10 +21,10 @@ from functools import partial
 
 import numpy as np
 
-HERE = os.path.dirname(os.path.abspath(__file__))
-sys.path.insert(0, HERE)
+from ._common import time_repeated
 
-from _common import time_repeated  # noqa: E402
+#: The repository root: a worker runs there as ``python -m benchmarks._speed_workers``.
+ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 
 # --------------------------------------------------------------------------- settings
 
@@ -313,9 +313,9 @@ def work_fit_steps(spec: dict) -> dict:
 
 def work_port(spec: dict) -> dict:
     """One step of the dense NumPy port of Algorithm 1 (after one untimed step, as for jurs)."""
-    import _numpy_port as port
-
     import jurs.datasets
+
+    from . import _numpy_port as port
 
     points, normals = jurs.datasets.example1(spec["m"])
     base = _baseline()
@@ -451,9 +451,9 @@ def work_rbf(spec: dict) -> dict:
     also on the coarser grid of RBF_GRIDS with the same settings otherwise, and with
     ``RBF_GIVEN`` where ``spec["given"]``."""
     jax, jurs = _start_jax()
-    from _baselines import evaluate_rbf, evaluate_rbf_grid, rbf_fit
-
     import jurs.levelset as ls
+
+    from ._baselines import evaluate_rbf, evaluate_rbf_grid, rbf_fit
 
     points, normals = jurs.datasets.example1(spec["m"])
     reference = jurs.datasets.example1(REFERENCE_POINTS)[0]
@@ -545,7 +545,6 @@ WORKERS = {
 
 def worker_main(spec_json: str) -> None:
     """Entry point of a measuring subprocess: one JSON result line on stdout."""
-    sys.path.insert(0, HERE)
     spec = json.loads(spec_json)
     result = WORKERS[spec["kind"]](spec)
     print("RESULT " + json.dumps(result), flush=True)
@@ -560,11 +559,11 @@ def run_worker(spec: dict, log, env: dict | None = None) -> dict:
     t0 = time.perf_counter()
     try:
         proc = subprocess.run(
-            [sys.executable, os.path.abspath(__file__), "--worker", json.dumps(spec)],
+            [sys.executable, "-m", "benchmarks._speed_workers", "--worker", json.dumps(spec)],
             capture_output=True,
             text=True,
             timeout=WORKER_TIMEOUT_S,
-            cwd=HERE,
+            cwd=ROOT,
             env={**os.environ, **(env or {})},
         )
     except subprocess.TimeoutExpired:
@@ -646,5 +645,5 @@ def passes_floor_s(ex4) -> float | None:
 
 if __name__ == "__main__":
     if sys.argv[1:2] != ["--worker"] or len(sys.argv) != 3:
-        sys.exit("usage: python _speed_workers.py --worker SPEC_JSON (run by run_worker)")
+        sys.exit("usage: python -m benchmarks._speed_workers --worker SPEC (run by run_worker)")
     worker_main(sys.argv[2])

@@ -14,7 +14,8 @@ from collections.abc import Callable
 from typing import Any
 
 import numpy as np
-from _common import import_open3d, optional
+
+from ._common import import_open3d, optional
 
 #: Noise of the noisy variant: Gaussian, this fraction of the bounding-box diagonal on each
 #: coordinate of the positions.

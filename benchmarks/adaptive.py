@@ -22,7 +22,7 @@ Each scaling row runs in a fresh spawned process, so that its peak resident set 
 or ``--max-gb`` of resident memory, recorded with the bound it passed, and lists the rows
 above it as not run.
 
-Run ``python benchmarks/adaptive.py`` (``--cases camera text --finest 256 512
+Run ``python -m benchmarks.adaptive`` (``--cases camera text --finest 256 512
 --surface-finest 64 128``); writes ``benchmarks/results/adaptive.{md,json}``.
 """
 
@@ -32,7 +32,6 @@ import argparse
 import datetime
 import json
 import os
-import sys
 import time
 
 import jax
@@ -44,11 +43,10 @@ import numpy as np  # noqa: E402
 import jurs  # noqa: E402
 import jurs.levelset  # noqa: E402
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-import _realdata_cases as cases  # noqa: E402
-import realdata  # noqa: E402
-from _baselines import rbf_fit, rbf_grid_values  # noqa: E402
-from _common import (  # noqa: E402
+from . import _realdata_cases as cases  # noqa: E402
+from . import realdata  # noqa: E402
+from ._baselines import rbf_fit, rbf_grid_values  # noqa: E402
+from ._common import (  # noqa: E402
     RESULTS,
     current_rss_bytes,
     in_child,
@@ -57,7 +55,7 @@ from _common import (  # noqa: E402
     time_repeated,
     write_results,
 )
-from _surface_cases import SEEDS, make_truth  # noqa: E402
+from ._surface_cases import SEEDS, make_truth  # noqa: E402
 
 DEFAULT_CASES = ("camera", "coffee", "text", "serif")
 DEFAULT_FINEST = (256, 512, 1024, 2048, 4096)

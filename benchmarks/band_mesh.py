@@ -9,7 +9,7 @@ node) at the same resolution. Splines: a ``jurs.fit_adaptive`` sphere at a fines
 kind of hierarchy (``--synthetic FINEST``: no fit, for finest levels whose fit takes too
 long here).
 
-Run ``python benchmarks/band_mesh.py --fit 128 --synthetic 256 --resolution 257 513``
+Run ``python -m benchmarks.band_mesh --fit 128 --synthetic 256 --resolution 257 513``
 (``--load FILE`` takes a fit saved by ``jurs.save_spline`` instead of fitting);
 prints a Markdown table (docs/design.md section 8 quotes one).
 
@@ -32,11 +32,11 @@ import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
 import jurs  # noqa: E402
+from jurs import AdaptiveSpline  # noqa: E402
 from jurs._fit.adaptive import adaptive_layout  # noqa: E402
-from jurs._model.adaptive import AdaptiveSpline  # noqa: E402
 from jurs._model.band import plan_band  # noqa: E402
-from jurs._model.hierarchy import build_hierarchy, refine_near  # noqa: E402
 from jurs._model.lattice import FinestSpline  # noqa: E402
+from jurs.internal import build_hierarchy, refine_near  # noqa: E402
 from jurs.levelset import _meshing  # noqa: E402
 
 
@@ -99,11 +99,7 @@ def measure(name: str, spline: AdaptiveSpline, resolution: int, full: bool) -> s
 
 
 def fitted_curve(name: str) -> AdaptiveSpline:
-    import os
-    import sys
-
-    sys.path.insert(0, os.path.dirname(__file__))
-    from _realdata_cases import build
+    from ._realdata_cases import build
 
     case = build(name)
     points, normals = jurs.shapes.sample_outline(list(case.components), case.m)

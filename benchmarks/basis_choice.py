@@ -14,7 +14,7 @@ percentile of the points' distances to its zero set, in spacings: ``uniform_resi
 the basis it took, and the accuracy and time of each basis; ratios are against the uniform
 fit of the same run.
 
-    python benchmarks/basis_choice.py [--levels 0,0.002] [--cases a,b] [--markdown-only]
+    python -m benchmarks.basis_choice [--levels 0,0.002] [--cases a,b] [--markdown-only]
 """
 
 from __future__ import annotations
@@ -41,8 +41,7 @@ from jurs._fit.adaptive import (  # noqa: E402
     wants_adaptive,
 )
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from _common import (  # noqa: E402
+from ._common import (  # noqa: E402
     RESULTS,
     machine,
     md_table,
@@ -50,8 +49,8 @@ from _common import (  # noqa: E402
     time_repeated,
     write_results,
 )
-from _quality_cases import CASES, choose_m, clean_outline  # noqa: E402
-from quality import noise_seed  # noqa: E402
+from ._quality_cases import CASES, choose_m, clean_outline  # noqa: E402
+from .quality import noise_seed  # noqa: E402
 
 BASES = ("uniform", "adaptive", "auto")
 #: Noise levels (over the outline's diagonal): the clean clouds, where the grid is capped
@@ -216,7 +215,7 @@ def main(argv=None):
     payload = {
         "date": datetime.datetime.now(datetime.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
         "machine": machine(),
-        "command": "python benchmarks/basis_choice.py" + (" " + " ".join(argv) if argv else ""),
+        "command": "python -m benchmarks.basis_choice" + (" " + " ".join(argv) if argv else ""),
         "elapsed_s": time.perf_counter() - start,
         "load": load,
         "runs": runs,

@@ -1,7 +1,7 @@
 """The speed benchmark on an accelerator: jurs at 1e6 to 1e7 points on a GPU, beside the CPU run.
 
-    python benchmarks/gpu_speed.py [--quick] [--out DIR]
-    python benchmarks/gpu_speed.py --from-json benchmarks/results/speed_gpu.json   # re-render
+    python -m benchmarks.gpu_speed [--quick] [--out DIR]
+    python -m benchmarks.gpu_speed --from-json benchmarks/results/speed_gpu.json   # re-render
 
 Runs the measurements of ``benchmarks/speed.py`` that mean something on an accelerator,
 with the same workers, each in a fresh process, in float64:
@@ -28,14 +28,12 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import sys
 import time
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-sys.path.insert(0, HERE)
 
-import _speed_workers as workers  # noqa: E402  (the workers and their orchestration)
-from _common import (  # noqa: E402  (the report's helpers)
+from . import _speed_workers as workers  # noqa: E402  (the workers and their orchestration)
+from ._common import (  # noqa: E402  (the report's helpers)
     bytes_text,
     elapsed_log,
     error_text,
@@ -50,7 +48,7 @@ from _common import (  # noqa: E402  (the report's helpers)
     where_cells,
     write_results,
 )
-from _speed_workers import step_passes_s  # noqa: E402
+from ._speed_workers import step_passes_s  # noqa: E402
 
 #: Points -> grids of the step sweep (Example 1 clouds, 3m samples); sized so that the whole
 #: run takes minutes, not hours, on one accelerator (the report gives its duration).

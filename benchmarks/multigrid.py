@@ -21,12 +21,12 @@ measured as ``(x - x*) A (x - x*) - 2 (x - x*) r*`` over ``E*`` (no cancellation
 ``--memory N ...`` adds XLA's memory plans of 2D ``N x N`` solves, compiled but not run
 (abstract arguments: no system is built), with float64 and with float32 patch inverses.
 
-    python benchmarks/multigrid.py --quick   # 2D 128, 256 at three lam; 3D 32^3
-    python benchmarks/multigrid.py           # 2D 128..1024, 3D 32^3..64^3
-    python benchmarks/multigrid.py --quick --memory 512 1024
-    python benchmarks/multigrid.py --no-solves --memory 512   # memory plans only
-    python benchmarks/multigrid.py --append --no-solves --case 512 1e-4   # add a row
-    python benchmarks/multigrid.py --rerender   # multigrid.md from the JSON
+    python -m benchmarks.multigrid --quick   # 2D 128, 256 at three lam; 3D 32^3
+    python -m benchmarks.multigrid           # 2D 128..1024, 3D 32^3..64^3
+    python -m benchmarks.multigrid --quick --memory 512 1024
+    python -m benchmarks.multigrid --no-solves --memory 512   # memory plans only
+    python -m benchmarks.multigrid --append --no-solves --case 512 1e-4   # add a row
+    python -m benchmarks.multigrid --rerender   # multigrid.md from the JSON
 
 Results are rewritten after every case, so an interrupted run keeps what it measured;
 ``--append`` keeps the rows already there and adds a run (each row's ratios still come
@@ -39,13 +39,11 @@ import argparse
 import datetime
 import json
 import os
-import sys
 import time
 
 import numpy as np
 
-sys.path.insert(0, os.path.dirname(__file__))
-from _common import RESULTS, machine, rerender_beside, write_results  # noqa: E402
+from ._common import RESULTS, machine, rerender_beside, write_results
 
 #: Square root of the objective gap asked of the multigrid solve, relative to the objective.
 RTOL = 1e-4

@@ -23,8 +23,8 @@ One command measures everything, prints the tables and writes the dated results
   (``jurs.fit(points, normals)`` with defaults; Chamfer and Hausdorff to the clean outline)
   and on two surfaces of 1e5 points (the clouds of benchmarks/surfaces.py, meshed).
 
-    python benchmarks/normals.py [--quick] [--markdown-only]
-    python benchmarks/normals.py --cases text,horse/noise --only-2d   # a subset, not saved
+    python -m benchmarks.normals [--quick] [--markdown-only]
+    python -m benchmarks.normals --cases text,horse/noise --only-2d   # a subset, not saved
 
 Noise: Gaussian, standard deviation level x bounding-box diagonal on each coordinate.
 """
@@ -35,19 +35,16 @@ import argparse
 import datetime
 import os
 import platform
-import sys
 import time
 
 import numpy as np
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-import _surface_cases as surface_cases  # noqa: E402
-from _baselines import orient_mst  # noqa: E402
-from _common import RESULTS, optional, write_results  # noqa: E402
+import jurs
+import jurs.shapes
 
-import jurs  # noqa: E402
-import jurs.shapes  # noqa: E402
+from . import _surface_cases as surface_cases
+from ._baselines import orient_mst
+from ._common import RESULTS, optional, write_results
 
 NOISE = 0.005
 OUTLIERS = 0.02
@@ -527,7 +524,7 @@ def main():
         "load_end": os.getloadavg()[0],
         "machine": f"{platform.machine()}, {os.cpu_count()} cores, "
         f"{platform.processor() or 'cpu'}, Python {platform.python_version()}",
-        "command": "python benchmarks/normals.py" + (" --quick" if args.quick else ""),
+        "command": "python -m benchmarks.normals" + (" --quick" if args.quick else ""),
         "open3d": getattr(o3d, "__version__", "not installed"),
         "meshes": ", ".join(v for k, v in origins.items() if k in ("bunny", "cow"))
         or "pymeshlab/trimesh not installed",

@@ -42,9 +42,9 @@ One command measures everything, prints the ratio table and writes the dated res
   face. Score: the mean Euclidean RGB difference (colours in [0, 1]) from the planted
   colour there, also away from the stripe's edges (2 spacings either side).
 
-    python benchmarks/open_scans.py [--quick] [--cases a,b] [--points m] [--max-grid N]
+    python -m benchmarks.open_scans [--quick] [--cases a,b] [--points m] [--max-grid N]
                                     [--out DIR] [--name NAME]
-    python benchmarks/open_scans.py --from-json benchmarks/results/open_scans.json
+    python -m benchmarks.open_scans --from-json benchmarks/results/open_scans.json
 
 ``--quick``: 5000 points, two cases, a small grid (a development run).
 """
@@ -60,17 +60,15 @@ import time
 
 import numpy as np
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-from _common import (  # noqa: E402
+from ._common import (
     RESULTS,
     elapsed_log,
     import_open3d,
     rerender_beside,
     write_results,
 )
-from _open_scan_rims import describe_rims, follow_rims  # noqa: E402
-from _surface_cases import (  # noqa: E402
+from ._open_scan_rims import describe_rims, follow_rims
+from ._surface_cases import (
     MeshDistance,
     Truth,
     diagonal,
@@ -433,7 +431,6 @@ def two_sheets() -> dict:
     import jurs
     import jurs.datasets
     import jurs.levelset as ls
-    from jurs._fit.attributes import AttributeField
 
     half = SHEETS_GAP * SHEETS_STEP / 2
     points, normals = jurs.datasets.thin_plate(step=SHEETS_STEP, thickness=2 * half)
@@ -447,7 +444,7 @@ def two_sheets() -> dict:
         np.min((np.asarray(sol.spline.upper) - np.asarray(sol.spline.lower)) / (np.array(grid) - 3))
     )
     field = jurs.fit_attributes(sol, points, colours)
-    single = AttributeField(
+    single = jurs.AttributeField(
         field.geometry, field.coefficients.at[1:].set(0.0), field.lower, field.upper
     )
     vertices = ls.mesh(sol.spline, resolution=64)[0]
@@ -1249,7 +1246,7 @@ def main(argv=None):
     import jax
 
     jax.config.update("jax_enable_x64", True)
-    from _common import machine
+    from ._common import machine
 
     log = elapsed_log()
     start, load_start = time.perf_counter(), os.getloadavg()[0]
@@ -1282,7 +1279,7 @@ def main(argv=None):
         "quick": args.quick,
         "machine": f"{machine()}, Python {platform.python_version()}",
         "memory": f"{total_bytes / GB:.0f} GB RAM",
-        "command": ("python benchmarks/open_scans.py " + " ".join(sys.argv[1:])).strip(),
+        "command": ("python -m benchmarks.open_scans " + " ".join(sys.argv[1:])).strip(),
         "open3d": open3d.__version__,
         "max_grid": args.max_grid,
         "eval_samples": args.eval_samples,

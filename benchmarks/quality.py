@@ -18,7 +18,7 @@ written to the same files and marked as a quick subset):
 * **Ratios.** jurs's Chamfer over the reference RBF's (the unsmoothed one on clean cases,
   the best smoothed one on noisy cases) and the RBF's fit time over jurs's, per run.
 
-    python benchmarks/quality.py [--quick] [--markdown-only]
+    python -m benchmarks.quality [--quick] [--markdown-only]
 
 ``--markdown-only`` rewrites the markdown from the JSON of the last run (no measurement).
 """
@@ -28,7 +28,6 @@ from __future__ import annotations
 import argparse
 import os
 import platform
-import sys
 import time
 import zlib
 
@@ -42,10 +41,9 @@ import jurs.datasets  # noqa: E402
 import jurs.levelset  # noqa: E402
 import jurs.shapes  # noqa: E402
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from _baselines import evaluate_rbf_grid, rbf_fit, rbf_grid_values  # noqa: E402
-from _common import RESULTS, machine, write_results  # noqa: E402
-from _quality_cases import (  # noqa: E402  (the cases, shared with smoothing.py)
+from ._baselines import evaluate_rbf_grid, rbf_fit, rbf_grid_values  # noqa: E402
+from ._common import RESULTS, machine, write_results  # noqa: E402
+from ._quality_cases import (  # noqa: E402  (the cases, shared with smoothing.py)
     CASES,
     M_MAX,
     M_MIN,
@@ -602,7 +600,7 @@ def main(argv=None):
         "machine": machine(),
         "python": platform.python_version(),
         "load_average": os.getloadavg()[0],
-        "command": "python benchmarks/quality.py" + (" --quick" if args.quick else ""),
+        "command": "python -m benchmarks.quality" + (" --quick" if args.quick else ""),
         "note": args.note,
         "cases": list(cases),
         "noise_levels": list(levels),

@@ -30,9 +30,9 @@ and the figure ``benchmarks/results/realdata/worst_default.png``:
   (``match_rings``): a count of components can be right while one ring splits and two
   others merge, so every true ring is checked for the one component that follows it.
 
-    python benchmarks/realdata.py [--quick] [--cases a,b] [--variants clean,noisy]
+    python -m benchmarks.realdata [--quick] [--cases a,b] [--variants clean,noisy]
                                   [--fit uniform|default|adaptive]
-    python benchmarks/realdata.py --markdown-only [--fit ...]
+    python -m benchmarks.realdata --markdown-only [--fit ...]
 
 ``--markdown-only`` re-renders the markdown from the JSON (no measurement, no figure).
 """
@@ -58,10 +58,9 @@ import jurs  # noqa: E402
 import jurs.levelset  # noqa: E402
 import jurs.shapes  # noqa: E402
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-import _realdata_cases as cases  # noqa: E402
-from _baselines import rbf_fit, rbf_grid_values  # noqa: E402
-from _common import RESULTS, machine, rerender_beside, time_repeated, write_results  # noqa: E402
+from . import _realdata_cases as cases  # noqa: E402
+from ._baselines import rbf_fit, rbf_grid_values  # noqa: E402
+from ._common import RESULTS, machine, rerender_beside, time_repeated, write_results  # noqa: E402
 
 # --------------------------------------------------------------------------- configuration
 
@@ -966,7 +965,7 @@ def main(argv=None):
         "python": platform.python_version(),
         "load_average": os.getloadavg()[0],
         "command": " ".join(
-            ["python benchmarks/realdata.py", *(sys.argv[1:] if argv is None else argv)]
+            ["python -m benchmarks.realdata", *(sys.argv[1:] if argv is None else argv)]
         ),
         "cases": list(names),
         "variants": list(variants),

@@ -26,9 +26,9 @@ fit (its host builds the whole layout). Per process: its peak resident set
 (compiling) and a second fit; control points against the one-process fit's, all of them;
 the load average before and after each run (the host is shared).
 
-    python benchmarks/sharding.py [--quick]      # --quick: m = 1e4 only, not written
-    python benchmarks/sharding.py --processes [--sizes 1e6,1e7] [--counts 1,2,4] [--dry]
-    python benchmarks/sharding.py --render       # the report again from its JSON
+    python -m benchmarks.sharding [--quick]      # --quick: m = 1e4 only, not written
+    python -m benchmarks.sharding --processes [--sizes 1e6,1e7] [--counts 1,2,4] [--dry]
+    python -m benchmarks.sharding --render       # the report again from its JSON
 
 Writes ``benchmarks/results/sharding.{md,json}``; ``--processes`` adds its rows to the
 JSON's ``processes`` section (a row per size and process count, replaced when measured
@@ -45,8 +45,7 @@ import subprocess
 import sys
 import textwrap
 
-sys.path.insert(0, os.path.dirname(__file__))
-from _common import RESULTS, write_results  # noqa: E402
+from ._common import RESULTS, write_results
 
 DEVICES = (1, 2, 4, 8)
 SIZES = (10_000, 100_000, 1_000_000, 10_000_000)
@@ -150,7 +149,7 @@ def render(data: dict) -> str:
     lines = [
         "# Sharded fits: time and memory per device",
         "",
-        f"Run {data['date']} on {data['machine']}. `python benchmarks/sharding.py`; "
+        f"Run {data['date']} on {data['machine']}. `python -m benchmarks.sharding`; "
         f"Example 1 at m points, grid {data['grid'][0]} x {data['grid'][1]}, "
         "`LeastSquares(lam=1e-4)`, float64, the points split over a 1-D mesh of D forced "
         "CPU devices (D = 1: the plain fit), each configuration in a process of its own.",
@@ -365,7 +364,7 @@ def render_processes(section: dict, floor: float | None = None) -> list[str]:
     lines = [
         "## Several processes",
         "",
-        "`python benchmarks/sharding.py --processes`: Example 1 at m points, every setting "
+        "`python -m benchmarks.sharding --processes`: Example 1 at m points, every setting "
         f"given (grid {grid[0]} x {grid[1]}, offset = eps = {section['offset']}, the domain, "
         "`LeastSquares(lam=1e-4)`; nothing measured on the cloud), float64, by P CPU "
         "processes of one device each on this one 2-core host, started by "
@@ -493,7 +492,7 @@ def main() -> None:
         processes_main(sys.argv[1:])
         return
     if sys.argv[1:2] == ["--render"]:  # re-render the committed JSON, no measuring
-        from _common import rerender_beside
+        from ._common import rerender_beside
 
         print(rerender_beside(os.path.join(RESULTS, "sharding.json"), render))
         return

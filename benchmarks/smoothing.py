@@ -18,7 +18,7 @@ default rests on a measurement anyone can repeat:
 Writes ``benchmarks/results/smoothing.{json,md}`` (about 2 minutes on 2 cores;
 ``--markdown-only`` rewrites the markdown from the JSON).
 
-    python benchmarks/smoothing.py [--markdown-only]
+    python -m benchmarks.smoothing [--markdown-only]
 """
 
 from __future__ import annotations
@@ -36,9 +36,8 @@ import jurs  # noqa: E402
 import jurs.levelset  # noqa: E402
 import jurs.shapes  # noqa: E402
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from _common import RESULTS, machine, write_results  # noqa: E402
-from _quality_cases import CASES, RESOLUTION, choose_m, clean_outline  # noqa: E402
+from ._common import RESULTS, machine, write_results  # noqa: E402
+from ._quality_cases import CASES, RESOLUTION, choose_m, clean_outline  # noqa: E402
 
 SHAPES = (
     "example1",

@@ -1,6 +1,6 @@
 """Every jurs solver on Example 1 (9 x 9, 15 x 15) and Example 10: energy, time, compile.
 
-    .venv/bin/python benchmarks/solvers.py [--quick]
+    .venv/bin/python -m benchmarks.solvers [--quick]
 
 Writes ``benchmarks/results/solvers.{md,json}``. Each row is one ``jurs.fit`` call (input
 checks, jit dispatch, problem assembly and the solve): ``compile`` is the first call minus
@@ -23,7 +23,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import sys
 import time
 import warnings
 
@@ -32,15 +31,14 @@ import jax
 import numpy as np
 
 jax.config.update("jax_enable_x64", True)
-sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
 
 import lineax as lx  # noqa: E402
 import optax  # noqa: E402
 import optimistix as optx  # noqa: E402
-from _common import machine, write_results  # noqa: E402
 
 import jurs  # noqa: E402
+
+from ._common import machine, write_results  # noqa: E402
 
 warnings.filterwarnings("ignore", category=UserWarning, module="jaxopt")
 LAM = 1e-4

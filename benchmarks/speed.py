@@ -22,8 +22,8 @@ Every measurement runs in a fresh subprocess (the workers of ``_speed_workers.py
 its peak resident set size (VmHWM) belongs to that measurement alone; the report gives the
 peak and the peak minus the RSS after imports, JAX start-up and data creation.
 
-    python benchmarks/speed.py [--quick]
-    python benchmarks/speed.py --from-json benchmarks/results/speed.json   # re-render only
+    python -m benchmarks.speed [--quick]
+    python -m benchmarks.speed --from-json benchmarks/results/speed.json   # re-render only
 
 Runs on whatever device JAX picks (CPU here; a GPU if JAX sees one), in float64, and
 records the device.
@@ -33,16 +33,14 @@ from __future__ import annotations
 
 import argparse
 import os
-import sys
 import time
 
 HERE = os.path.dirname(os.path.abspath(__file__))
-sys.path.insert(0, HERE)
 
 # The timer, the result files and the table helpers live in _common, the workers and the
 # settings they share with gpu_speed.py in _speed_workers (next to this script; neither
 # imports JAX: each worker starts JAX itself).
-from _common import (  # noqa: E402
+from ._common import (  # noqa: E402
     LONG_CALL_S,
     bytes_text,
     elapsed_log,
@@ -61,7 +59,7 @@ from _common import (  # noqa: E402
     where_cells,
     write_results,
 )
-from _speed_workers import (  # noqa: E402
+from ._speed_workers import (  # noqa: E402
     ANALYSIS_RESOLUTION,
     EXAMPLE4_MAX_STEPS,
     EXAMPLE4_TOL,
@@ -137,8 +135,7 @@ def run_sweep(sweep: dict, log) -> list[dict]:
 
 def run_port(sweep_rows: list[dict], log) -> list[dict]:
     """The dense NumPy port at every sweep configuration where its matrices fit."""
-    sys.path.insert(0, HERE)
-    import _numpy_port as port
+    from . import _numpy_port as port
 
     rows = []
     for r in sweep_rows:

@@ -1,9 +1,9 @@
 """Start-up benchmark: what a new user meets first, as whole processes.
 
-    python benchmarks/startup.py              # about 3-6 minutes on 2 cores
-    python benchmarks/startup.py --quick      # smoke test: small clouds, one run each, no file
-    python benchmarks/startup.py --from-json  # re-render results/startup.md from its JSON
-    python benchmarks/startup.py --overhead   # host work of a warm call: results/overhead.md
+    python -m benchmarks.startup              # about 3-6 minutes on 2 cores
+    python -m benchmarks.startup --quick      # smoke test: small clouds, one run each, no file
+    python -m benchmarks.startup --from-json  # re-render results/startup.md from its JSON
+    python -m benchmarks.startup --overhead   # host work of a warm call: results/overhead.md
 
 Every measurement is a fresh Python process with a clean environment (PATH, HOME and
 XDG_CACHE_HOME in a temporary folder, JAX on the CPU, no JAX_* variables), running a
@@ -64,8 +64,7 @@ import sys
 import tempfile
 import time
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-from _common import elapsed_log, write_results  # noqa: E402
+from ._common import elapsed_log, write_results
 
 ROOT = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
 SIZES = (100, 1000, 10_000, 100_000)
@@ -685,7 +684,7 @@ def render_overhead(data: dict) -> str:
         f"{data['date']}, {data['machine']}, load {data['load']}.",
         "Example 1 (120 points), grid 9 x 9, `LeastSquares(lam=1e-6)`, every setting given;",
         f"per call, median of {OVERHEAD_ROUNDS} interleaved rounds of {OVERHEAD_CALLS} calls"
-        " (`python benchmarks/startup.py --overhead`).",
+        " (`python -m benchmarks.startup --overhead`).",
         "",
         "| call | ms | x inside jax.jit |",
         "|---|---|---|",

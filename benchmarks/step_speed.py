@@ -13,13 +13,12 @@ tol = 1e-7; cold = first call in this process, compilation included), and the ex
 regularised solve ``LeastSquares(lam=1e-4)`` on the cloud and grid above, end to end
 (problem building, D^T D stencil assembly, linear solve, metrics).
 
-    python benchmarks/step_speed.py [--points 100000] [--grid 64]
+    python -m benchmarks.step_speed [--points 100000] [--grid 64]
 """
 
 from __future__ import annotations
 
 import argparse
-import sys
 import time
 
 import jax
@@ -30,8 +29,7 @@ import jax.numpy as jnp  # noqa: E402
 import jurs  # noqa: E402
 import jurs.shapes  # noqa: E402
 
-sys.path.insert(0, __file__.rsplit("/", 1)[0])
-from _common import machine, time_repeated, write_results  # noqa: E402
+from ._common import machine, time_repeated, write_results  # noqa: E402
 
 #: No time budget: every timing takes its ``max_repeats`` warm calls (20 by default).
 INF = float("inf")

@@ -35,10 +35,10 @@ One command measures everything, prints the ratio table and writes the dated res
   set (``VmHWM``) is its own; jurs's fit runs twice, the second call is the warm time and
   the first includes compilation; wall and CPU seconds.
 
-    python benchmarks/surfaces.py [--quick] [--million] [--cases a,b] [--points m]
+    python -m benchmarks.surfaces [--quick] [--million] [--cases a,b] [--points m]
                                   [--max-grid N] [--depths D ...] [--fit F]
                                   [--out DIR] [--name NAME]
-    python benchmarks/surfaces.py --from-json benchmarks/results/surfaces.json  # re-render
+    python -m benchmarks.surfaces --from-json benchmarks/results/surfaces.json  # re-render
 
 ``--quick``: 2e4 points, torus and bunny, a smaller grid cap, fewer evaluation samples (a
 development run, not the issue's sizes).
@@ -56,11 +56,9 @@ import time
 
 import numpy as np
 
-sys.path.insert(0, os.path.dirname(os.path.abspath(__file__)))
-sys.path.insert(0, os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 # Nothing heavier at module level: each method runs in a spawned child that re-imports this
 # file, and importing JAX there would put JAX's resident set into Poisson's peak.
-from _common import (  # noqa: E402
+from ._common import (
     RESULTS,
     current_rss_bytes,
     elapsed_log,
@@ -70,7 +68,7 @@ from _common import (  # noqa: E402
     rerender_beside,
     write_results,
 )
-from _surface_cases import (  # noqa: E402  (the cases, their truth and the distances)
+from ._surface_cases import (  # the cases, their truth and the distances
     EVAL_SAMPLES,
     NOISE,
     SEEDS,
@@ -706,7 +704,7 @@ def main():
         open3d = import_open3d()
     except ImportError:
         sys.exit("this benchmark compares with Open3D: pip install -e '.[bench]'")
-    from _common import machine
+    from ._common import machine
 
     log = elapsed_log()
     start, load_start = time.perf_counter(), os.getloadavg()[0]
@@ -735,7 +733,7 @@ def main():
                 )
     os.makedirs(args.out, exist_ok=True)
     caption = figure(shown, records, os.path.join(args.out, f"{args.name}.png")) if shown else None
-    command = "python benchmarks/surfaces.py " + " ".join(sys.argv[1:])
+    command = "python -m benchmarks.surfaces " + " ".join(sys.argv[1:])
     total_bytes = os.sysconf("SC_PAGE_SIZE") * os.sysconf("SC_PHYS_PAGES")
     payload = {
         "date": datetime.date.today().isoformat(),

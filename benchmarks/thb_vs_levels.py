@@ -16,7 +16,7 @@ ring matches as ``benchmarks/adaptive.py`` measures them (the zero set on the ca
 analysis lattice). Curves only: the point of the comparison is the basis, and the 2D
 solves are exact.
 
-    python benchmarks/thb_vs_levels.py [--cases camera text ...] [--sweeps N]
+    python -m benchmarks.thb_vs_levels [--cases camera text ...] [--sweeps N]
 
 writes ``benchmarks/results/thb_vs_levels.{md,json}``.
 """
@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import argparse
 import datetime
-import os
 import sys
 import time
 
@@ -38,18 +37,14 @@ from scipy import sparse  # noqa: E402
 
 import jurs  # noqa: E402
 import jurs.levelset  # noqa: E402
-
-sys.path.insert(0, os.path.dirname(__file__))
-import _realdata_cases as cases  # noqa: E402
-import realdata  # noqa: E402
-from _common import machine, md_table, write_results  # noqa: E402
-from adaptive import _rings as rings  # noqa: E402
-
 from jurs._fit.adaptive import finest_cell_width, hierarchy_layout, solve_normal  # noqa: E402
 from jurs._fit.settings import scale_free_lam  # noqa: E402
-from jurs._model.basis import cubic_weights  # noqa: E402
-from jurs._model.hierarchy import refine_near  # noqa: E402
-from jurs._problem.problem import offset_samples  # noqa: E402
+from jurs.internal import cubic_weights, offset_samples, refine_near  # noqa: E402
+
+from . import _realdata_cases as cases  # noqa: E402
+from . import realdata  # noqa: E402
+from ._common import machine, md_table, write_results  # noqa: E402
+from .adaptive import _rings as rings  # noqa: E402
 
 DEFAULT_CASES = ("camera", "coffee", "text", "terrain", "logo", "hubble")
 
@@ -298,7 +293,7 @@ def main(argv=None) -> None:
     payload = {
         "date": datetime.date.today().isoformat(),
         "machine": machine(),
-        "command": "python benchmarks/thb_vs_levels.py " + " ".join(sys.argv[1:]),
+        "command": "python -m benchmarks.thb_vs_levels " + " ".join(sys.argv[1:]),
         "note": args.note,
         "sweeps": args.sweeps,
         "rows": rows,

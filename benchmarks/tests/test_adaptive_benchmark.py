@@ -3,9 +3,8 @@ bound, and the scaling table turns rows into ratios per doubling against the tar
 
 import time
 
-import adaptive  # pyright: ignore[reportMissingImports]  # benchmarks/ (conftest.py)
-from _common import in_child  # pyright: ignore[reportMissingImports]
-
+from .. import adaptive
+from .._common import in_child
 from ._tables import row_cells as _cells
 
 

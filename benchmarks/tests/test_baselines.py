@@ -3,11 +3,12 @@ Hoppe et al. 1992): it fails where nested rings need more than propagation, and 
 single convex curve, so the benchmark's planted cases can tell the methods apart."""
 
 import numpy as np
-from _baselines import orient_mst  # pyright: ignore[reportMissingImports]  # benchmarks/ (conftest.py)
 
 import jurs
 import jurs.datasets
 import jurs.shapes
+
+from .._baselines import orient_mst
 
 
 def correct_sign(normals, truth):

@@ -1,4 +1,5 @@
-"""Smoke test: ``benchmarks/paper.py --quick`` runs and writes its report, data and figures."""
+"""Smoke test: ``python -m benchmarks.paper --quick``, run in the repository root, writes its
+report, data and figures."""
 
 import json
 import os
@@ -7,15 +8,13 @@ import sys
 
 import pytest
 
-BENCHMARKS = os.path.dirname(os.path.dirname(os.path.abspath(__file__)))
-ROOT = os.path.dirname(BENCHMARKS)
-SCRIPT = os.path.join(BENCHMARKS, "paper.py")
+ROOT = os.path.dirname(os.path.dirname(os.path.dirname(os.path.abspath(__file__))))
 
 
 @pytest.mark.slow
 def test_paper_quick_writes_its_files(tmp_path):
     proc = subprocess.run(
-        [sys.executable, SCRIPT, "--quick", "--out", str(tmp_path)],
+        [sys.executable, "-m", "benchmarks.paper", "--quick", "--out", str(tmp_path)],
         capture_output=True,
         text=True,
         timeout=300,

@@ -4,10 +4,9 @@ re-render a saved run beside its JSON, and the GPU benchmark refuses a CPU-only 
 import json
 import os
 
-import gpu_speed  # pyright: ignore[reportMissingImports]  # benchmarks/ (conftest.py)
 import pytest
-import speed  # pyright: ignore[reportMissingImports]
 
+from .. import gpu_speed, speed
 from ._tables import row_cells as _cells
 
 RESULTS = os.path.join(os.path.dirname(os.path.dirname(os.path.abspath(__file__))), "results")

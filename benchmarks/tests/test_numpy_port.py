@@ -2,12 +2,13 @@
 the paper's Algorithm 1) takes the same iterates as ``jurs.IURS``, so its timings compare
 like with like."""
 
-import _numpy_port as port  # pyright: ignore[reportMissingImports]  # benchmarks/ (conftest.py)
 import jax
 import numpy as np
 import pytest
 
 import jurs
+
+from .. import _numpy_port as port
 
 STEPS = 5
 GRID = (9, 9)

@@ -6,14 +6,15 @@ import os
 
 import numpy as np
 import pytest
-from _common import RESULTS, optional  # pyright: ignore[reportMissingImports]  # benchmarks/
+
+from .._common import RESULTS, optional
 
 pytestmark = pytest.mark.skipif(
     optional("open3d") is None or optional("trimesh") is None,
     reason="the open-scan benchmark needs Open3D and trimesh (pip install -e '.[bench]')",
 )
 
-import open_scans  # noqa: E402  # pyright: ignore[reportMissingImports]  # benchmarks/
+from .. import open_scans  # noqa: E402
 
 
 def icosphere(subdivisions=3, centre=(0.0, 0.0, 0.0)):
@@ -80,7 +81,7 @@ def test_each_rim_is_described_and_followed_or_missed():
     """A cap with a hole at its pole: two rims, the hole's depth measured from the
     samples; a mesh that closes the hole misses its rim, the part itself misses none, and
     a stray piece off the part is an extra loop."""
-    from _open_scan_rims import follow_rims
+    from .._open_scan_rims import follow_rims
 
     vertices, faces = icosphere(4)
     centroids = vertices[faces].mean(axis=1)

@@ -1,12 +1,13 @@
 """The real-data benchmark's pieces: the ring-by-ring topology match on circles, a traced case
 (deterministic, pixel staircase kept), the variants' outliers, and the markdown renderer."""
 
-import _realdata_cases as cases  # pyright: ignore[reportMissingImports]  # benchmarks/ (conftest.py)
 import numpy as np
 import pytest
-import realdata  # pyright: ignore[reportMissingImports]
 
 import jurs.shapes
+
+from .. import _realdata_cases as cases
+from .. import realdata
 
 
 def circle(cx=0.0, cy=0.0, r=1.0, n=400):
@@ -197,7 +198,7 @@ def test_markdown_counts_the_runs_meeting_each_target():
         "quick": True,
         "machine": "test",
         "load_average": 0.5,
-        "command": "python benchmarks/realdata.py --quick",
+        "command": "python -m benchmarks.realdata --quick",
         "cases": ["a", "b"],
         "variants": ["clean", "noisy"],
         "case_info": {k: {**info, "source": f"'il1{k}|' source"} for k in "ab"},

@@ -2,9 +2,10 @@
 evaluation agree, and the cascade fits a circle as THB does."""
 
 import numpy as np
-import thb_vs_levels as levels  # pyright: ignore[reportMissingImports]  # benchmarks/ (conftest.py)
 
 import jurs
+
+from .. import thb_vs_levels as levels
 
 
 def _circle(m=200):
