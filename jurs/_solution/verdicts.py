@@ -16,6 +16,7 @@ docs/robustness.md; the measurements in ``benchmarks/results/quality.md`` and
 from __future__ import annotations
 
 import dataclasses
+import functools
 import warnings
 from typing import cast
 
@@ -25,6 +26,7 @@ import numpy as np
 
 from .._cloud.measure import PROBES, feature_width, strided_probes
 from .._model.adaptive import AdaptiveSpline
+from .._model.function import AbstractSpline
 from .._model.spline import ImplicitSpline
 from .._problem.energy import layout_residuals
 from .._problem.problem import Problem, values_by_point
@@ -92,7 +94,7 @@ MAX_TANGENTIAL_FRACTION = 0.2
 BORDER_CHECK_NODES = 1 << 18
 
 
-def border_negative_fraction(spline: ImplicitSpline | AdaptiveSpline) -> float:
+def border_negative_fraction(spline: AbstractSpline) -> float:
     """The fraction of the box's border where ``g < 0``: 0 for a closed shape fitted as the
     contract says (negative inside, positive outside, so positive on the border), 1 for the
     same shape fitted inside out (every normal pointing inward: the fit follows its
@@ -221,7 +223,8 @@ def values_and_distances(spline: ImplicitSpline, points: jax.Array) -> tuple[jax
     return jax.vmap(one)(points)
 
 
-def evaluate_bucketed(spline: ImplicitSpline, points) -> tuple[np.ndarray, np.ndarray]:
+@functools.singledispatch
+def evaluate_bucketed(spline: AbstractSpline, points) -> tuple[np.ndarray, np.ndarray]:
     """``values_and_distances(spline, points)`` on the host's ``(n, d)`` ``points``,
     padded with copies of the first to a power of two of at least ``MIN_CHECK_BUCKET``
     rows and cut back to ``n``: clouds of different sizes share one compiled
@@ -232,15 +235,19 @@ def evaluate_bucketed(spline: ImplicitSpline, points) -> tuple[np.ndarray, np.nd
     n = len(points)
     if n == 0:
         return np.empty(0), np.empty(0)
-    if isinstance(spline, AdaptiveSpline):
-        from .._model.lattice import values_and_gradients
-
-        value, gradient = values_and_gradients(spline, points)
-        return value, np.abs(value) / np.maximum(np.linalg.norm(gradient, axis=1), 1e-300)
     size = max(MIN_CHECK_BUCKET, 1 << (n - 1).bit_length())
     padded = np.concatenate([points, np.repeat(points[:1], size - n, axis=0)])
     value, distance = values_and_distances(spline, jnp.asarray(padded, spline.control.dtype))
     return np.asarray(value)[:n], np.asarray(distance)[:n]
+
+
+@evaluate_bucketed.register
+def _(spline: AdaptiveSpline, points) -> tuple[np.ndarray, np.ndarray]:
+    points = np.asarray(points, float)
+    if len(points) == 0:
+        return np.empty(0), np.empty(0)
+    value, gradient = spline.values_and_gradients(points)
+    return value, np.abs(value) / np.maximum(np.linalg.norm(gradient, axis=1), 1e-300)
 
 
 def far_point_fraction(spline: ImplicitSpline, points, offset: float) -> tuple[float, float]:
@@ -355,8 +362,6 @@ def extra_components(spline: ImplicitSpline, tree, threshold: float) -> list[dic
     2D and 3D."""
     from scipy import ndimage
 
-    from .._model.band import band_lattice
-    from .._model.lattice import FinestSpline, lattice_values
     from ..levelset._curves import MIN_CARRIED_FRACTION, carried_samples
 
     lower, upper = np.asarray(spline.lower, float), np.asarray(spline.upper, float)
@@ -368,12 +373,9 @@ def extra_components(spline: ImplicitSpline, tree, threshold: float) -> list[dic
         steps = np.maximum(2.0, np.floor(steps * scale))
     axes = [np.linspace(lo, hi, int(n) + 1) for lo, hi, n in zip(lower, upper, steps)]
     with np.errstate(invalid="ignore", divide="ignore"):
-        if isinstance(spline, AdaptiveSpline):
-            # Only the blocks where g may change sign are evaluated; the others take their
-            # region's sign, so the signs are the full lattice's (jurs._model.band).
-            positive = band_lattice(FinestSpline(spline), axes, 0.0)[0] > 0
-        else:
-            positive = lattice_values(spline, axes) > 0
+        # The hierarchy evaluates only the blocks where g may change sign; the others take
+        # their region's sign, so the signs are the full lattice's (jurs._model.band).
+        positive = spline.band_lattice(axes, 0.0)[0] > 0
     if positive.all() or not positive.any():
         return []
     faces_only = ndimage.generate_binary_structure(d, 1)

@@ -5,6 +5,7 @@ The definitions are in the docstring of [`jurs.levelset`][]."""
 from __future__ import annotations
 
 import dataclasses
+import functools
 from typing import TYPE_CHECKING, Sequence, cast
 
 import contourpy
@@ -128,9 +129,13 @@ def evaluate_grid(
     size reuse one compiled function per spline grid shape and dtype. An adaptive spline
     is evaluated on the host, nothing compiled (``jurs._model.lattice.FinestSpline``).
     """
-    if isinstance(spline, AdaptiveSpline):
-        axes = [np.asarray(xs, np.float64).reshape(-1), np.asarray(ys, np.float64).reshape(-1)]
-        return FinestSpline(spline).lattice(axes).T
+    return _grid_values(spline, xs, ys, chunk)
+
+
+@functools.singledispatch
+def _grid_values(spline, xs, ys, chunk: int) -> np.ndarray:
+    """``evaluate_grid``'s values of a spline on a grid, or of any function: fixed-size
+    chunks under one jit."""
     gx, gy = np.meshgrid(np.asarray(xs), np.asarray(ys))
     dtype = np.asarray(spline.control).dtype if hasattr(spline, "control") else np.float64
     xy = np.stack([gx.ravel(), gy.ravel()], axis=1).astype(dtype)
@@ -143,6 +148,13 @@ def evaluate_grid(
         ]
     )
     return out[:n].reshape(gx.shape).astype(float)
+
+
+@_grid_values.register
+def _(spline: AdaptiveSpline, xs, ys, chunk: int) -> np.ndarray:
+    # On the host through the finest level's coefficients: nothing compiled.
+    axes = [np.asarray(xs, np.float64).reshape(-1), np.asarray(ys, np.float64).reshape(-1)]
+    return spline.lattice(axes).T
 
 
 def _box(spline, box):
@@ -189,6 +201,7 @@ def zero_level_set(
     return contour_lines(xs, ys, _contour_values(spline, xs, ys, level), level)
 
 
+@functools.singledispatch
 def _contour_values(
     spline, xs: Float[npt.ArrayLike, " nx"], ys: Float[npt.ArrayLike, " ny"], level: float = 0.0
 ) -> Float[np.ndarray, "ny nx"]:
@@ -198,8 +211,11 @@ def _contour_values(
     where g may reach the level (``jurs/_model/band.py``; docs/design.md section 8,
     "Contouring the band"). The other nodes, in blocks with every node strictly on one
     side of the level, hold a value of g from their side: the lines are the full grid's."""
-    if not isinstance(spline, AdaptiveSpline):
-        return evaluate_grid(spline, xs, ys)
+    return evaluate_grid(spline, xs, ys)
+
+
+@_contour_values.register
+def _(spline: AdaptiveSpline, xs, ys, level: float = 0.0) -> np.ndarray:
     return _band_values(spline, xs, ys, level)[0]
 
 
@@ -216,6 +232,7 @@ def _zero_area(values: np.ndarray, zero_tol: float) -> float:
     return float(np.mean(np.abs(values) <= zero_tol * scale))
 
 
+@functools.singledispatch
 def _sampled(spline, xs, ys, zero_tol: float) -> tuple[np.ndarray, float]:
     """The values ``analyze`` contours (``_contour_values`` at level 0) and the zero-area
     fraction of the full grid's values.
@@ -228,9 +245,12 @@ def _sampled(spline, xs, ys, zero_tol: float) -> tuple[np.ndarray, float]:
     ``zero_tol`` times the band's ``max|g|`` (a lower bound of the grid's) and ``zero_tol``
     times an upper bound of it, the band's count is the grid's. Otherwise the whole grid
     is evaluated for it."""
-    if not isinstance(spline, AdaptiveSpline):
-        values = evaluate_grid(spline, xs, ys)
-        return values, _zero_area(values, zero_tol)
+    values = evaluate_grid(spline, xs, ys)
+    return values, _zero_area(values, zero_tol)
+
+
+@_sampled.register
+def _(spline: AdaptiveSpline, xs, ys, zero_tol: float) -> tuple[np.ndarray, float]:
     values, evaluated, _ = _band_values(spline, xs, ys, 0.0)
     ratio = _coefficient_ratio(spline)
     band = np.abs(values[evaluated])
@@ -529,10 +549,16 @@ def analyze(
     )
 
 
+@functools.singledispatch
 def _fit_cell(spline) -> float:
     """The width of the spline's cells (its box over its knot spans), 0 for a function that
     is not a [`jurs.ImplicitSpline`][]."""
-    return spline.cell_width if isinstance(spline, ImplicitSpline) else 0.0
+    return 0.0
+
+
+@_fit_cell.register
+def _(spline: ImplicitSpline) -> float:
+    return spline.cell_width
 
 
 def analyze_grid(
