@@ -28,7 +28,7 @@ from jax import lax
 
 from .._cloud.cloud import Cloud
 from .._cloud.measure import PROBES, strided_probes
-from .._linalg.pcg import conjugate_gradients
+from .._linalg.pcg import conjugate_gradients, jacobi_inverse
 from .._model.precision import on_device
 from .._problem.adaptive import (
     AdaptiveProblem,
@@ -171,7 +171,7 @@ def solve_adaptive(
     diagonal = lax.stop_gradient(problem.data_diagonal + lam * problem.regulariser_diagonal)
     # A function no sample and no counted neighbour pair reaches has a zero row: keep it
     # at 0 (its preconditioned residual is 0) instead of dividing by 0.
-    inverse = jnp.where(diagonal > 0, 1.0 / jnp.where(diagonal > 0, diagonal, 1.0), 0.0)
+    inverse = jacobi_inverse(diagonal)
     control, steps, residual = conjugate_gradients(
         matvec, rhs, precondition=lambda r: inverse * r, rtol=rtol, max_steps=max_steps
     )
@@ -229,7 +229,7 @@ def _assembled_cg(
         regular = jax.ops.segment_sum(reg_values * c[reg_cols], reg_rows, n)
         return transpose(row_weights * apply(c)) + lam * regular
 
-    inverse = jnp.where(diagonal > 0, 1.0 / jnp.where(diagonal > 0, diagonal, 1.0), 0.0)
+    inverse = jacobi_inverse(diagonal)
     return conjugate_gradients(
         matvec,
         transpose(row_weights * targets),
@@ -315,7 +315,7 @@ def solve_host_cg(
     transposed = collocation.T.tocsr()
     n = collocation.shape[1]
     diagonal = normal_diagonal(problem, lam, matrices, row_weights)
-    inverse = np.where(diagonal > 0, 1.0 / np.where(diagonal > 0, diagonal, 1.0), 0.0)
+    inverse = jacobi_inverse(diagonal, np)
     # All weights 1 multiply exactly: the unweighted fit is unchanged by them.
     weights = 1.0 if row_weights is None else np.asarray(row_weights, float)
 

@@ -25,7 +25,6 @@ from __future__ import annotations
 
 import functools
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -34,12 +33,16 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from .._cloud.normals import normals_across_processes
 from .._cloud.parts import agree, allgather, gather_ragged
-from .._linalg.pcg import conjugate_gradients
+from .._linalg.pcg import conjugate_gradients, jacobi_inverse
 from .._model.adaptive import AdaptiveSpline
 from .._model.precision import on_device
 from .._problem.adaptive import assemble_adaptive_problem
 from .._problem.validate import unit_normals, validate_inputs
-from .._solution.solution import RAISED_RESULTS, RESULTS, Solution, error_message
+from .._solution.solution import (
+    RESULTS,
+    Solution,
+    raise_unless_reconstruction,
+)
 from .adaptive import (
     DEFAULT_RTOL,
     DIRECT_RTOL,
@@ -153,7 +156,7 @@ def _sharded_cg(
 
     rhs, data_diagonal = once(collocation, targets)
     diagonal = data_diagonal + lam * regulariser_diagonal
-    inverse = jnp.where(diagonal > 0, 1.0 / jnp.where(diagonal > 0, diagonal, 1.0), 0.0)
+    inverse = jacobi_inverse(diagonal)
     control, steps, residual = conjugate_gradients(
         matvec, rhs, precondition=lambda r: inverse * r, rtol=rtol, max_steps=max_steps
     )
@@ -418,6 +421,5 @@ def fit_adaptive_across_processes(
         "processes": jax.process_count(),
     }
     sol = Solution(spline, metrics, stats, result, None, settings)
-    if throw and sol.status in RAISED_RESULTS:
-        raise eqx.EquinoxRuntimeError(error_message(sol.status))
+    raise_unless_reconstruction(sol, throw)
     return sol

@@ -14,7 +14,6 @@ import hashlib
 from collections import OrderedDict
 from typing import Callable
 
-import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import ArrayLike, Float
@@ -32,7 +31,10 @@ from .._problem.validate import (
     shape_of,
     validate_settings,
 )
-from .._solution.solution import RAISED_RESULTS, Solution, error_message
+from .._solution.solution import (
+    Solution,
+    raise_unless_reconstruction,
+)
 from .._solution.verdicts import judge
 from ..solvers import AbstractSolver
 from .adaptive import (
@@ -585,8 +587,7 @@ def _fit(
     if top_level:
         if checks:
             sol = judge(sol, cloud, settings if doubted else None, offset)
-        if throw and sol.status in RAISED_RESULTS:
-            raise eqx.EquinoxRuntimeError(error_message(sol.status))
+        raise_unless_reconstruction(sol, throw)
     if estimated is not None:
         sol = dataclasses.replace(sol, stats=dict(sol.stats, estimated_normals=estimated))
     return (sol if settings is None else dataclasses.replace(sol, settings=settings)), extra

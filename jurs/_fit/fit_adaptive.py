@@ -7,7 +7,6 @@ from __future__ import annotations
 
 from typing import cast
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -17,7 +16,11 @@ from .._cloud.cloud import Cloud
 from .._model.adaptive import AdaptiveSpline
 from .._model.precision import on_device
 from .._problem.adaptive import assemble_adaptive_problem, assembled_metrics
-from .._solution.solution import RAISED_RESULTS, RESULTS, Solution, error_message
+from .._solution.solution import (
+    RESULTS,
+    Solution,
+    raise_unless_reconstruction,
+)
 from .._solution.verdicts import judge, judged_points
 from ..solvers import AbstractSolver, LeastSquares, RobustLeastSquares
 from .adaptive import (
@@ -224,6 +227,5 @@ def fit_adaptive(
     sol = Solution(spline, metrics, stats, result, state, settings)
     if checks:
         sol = judge(sol, cloud, settings, layout["offset"])
-    if throw and sol.status in RAISED_RESULTS:
-        raise eqx.EquinoxRuntimeError(error_message(sol.status))
+    raise_unless_reconstruction(sol, throw)
     return sol

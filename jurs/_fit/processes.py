@@ -5,13 +5,12 @@ from __future__ import annotations
 
 import dataclasses
 
-import equinox as eqx
 import jax.numpy as jnp
 
 from .._cloud.normals import normals_across_processes
 from .._cloud.parts import spans_processes
 from .._problem.validate import normalise_grid
-from .._solution.solution import RAISED_RESULTS, error_message
+from .._solution.solution import raise_unless_reconstruction
 from ..solvers import LeastSquares
 from .adaptive import auto_finest
 from .call import as_arrays, check_start, solve_fit
@@ -93,8 +92,8 @@ def fit_across_processes(
     solver = replicate_across_processes(as_arrays(solver, dtype), sharding)
     init = replicate_across_processes(init, sharding)
     sol, top_level = solve_fit(problem, solver, init, throw)
-    if top_level and throw and sol.status in RAISED_RESULTS:
-        raise eqx.EquinoxRuntimeError(error_message(sol.status))
+    if top_level:
+        raise_unless_reconstruction(sol, throw)
     if settings is not None:
         sol = dataclasses.replace(sol, settings=settings)
     return sol

@@ -20,7 +20,10 @@ import numpy as np
 
 from .._model.spline import ImplicitSpline
 from .._problem.problem import Problem
-from .._solution.solution import RAISED_RESULTS, Solution, error_message
+from .._solution.solution import (
+    Solution,
+    raise_unless_reconstruction,
+)
 from ..solvers import IPIA, IURS, AbstractSolver, solve
 from ..solvers._driver import Carry, advance, finish, start
 from .call import reassociates
@@ -162,8 +165,7 @@ def solve_in_chunks(
             if callback:
                 callback(done, total)
         sol = _call(_finish, reassociate, problem, solver, carry)
-    if throw and sol.status in RAISED_RESULTS:
-        raise eqx.EquinoxRuntimeError(error_message(sol.status))
+    raise_unless_reconstruction(sol, throw)
     return sol, snapshots
 
 

@@ -14,6 +14,14 @@ import jax.numpy as jnp
 from jax import Array, lax
 
 
+def jacobi_inverse(diagonal, xp=jnp):
+    """``1 / diagonal``, and 0 where the diagonal is 0: the Jacobi preconditioner of a
+    normal matrix whose function no sample and no counted neighbour pair reaches (a zero
+    row) keeps that coefficient at 0 instead of dividing by 0. ``xp=numpy`` on the host."""
+    positive = diagonal > 0
+    return xp.where(positive, 1.0 / xp.where(positive, diagonal, 1.0), 0.0)
+
+
 def _pcg(matvec, rhs, precondition, start, rtol, max_steps):
     """``(x, steps, relative residual)`` of CG on ``matvec x = rhs`` from ``start``,
     stopping at ``|r| <= rtol |rhs|`` or after ``max_steps``."""

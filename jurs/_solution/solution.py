@@ -112,6 +112,15 @@ def error_message(name: str) -> str:
     )
 
 
+def raise_unless_reconstruction(sol: Solution, throw: bool = True) -> Solution:
+    """``sol``, after raising ``equinox.EquinoxRuntimeError`` (``error_message``) where
+    ``throw`` and its verdict says it is not a reconstruction (``RAISED_RESULTS``): the
+    one place every fit's ``throw=True`` acts. Needs a concrete verdict."""
+    if throw and sol.status in RAISED_RESULTS:
+        raise eqx.EquinoxRuntimeError(error_message(sol.status))
+    return sol
+
+
 class Solution(eqx.Module):
     """Result of [`jurs.fit`][] or [`jurs.solve`][].
 
