@@ -246,7 +246,9 @@ def normal_diagonal(
     """The diagonal of ``D^T S D + lam 2 G^T W G`` (the CG's Jacobi preconditioner), on the
     host, in float64: ``S`` the samples' ``row_weights`` (None: all 1, the problem's own
     diagonal; else read from the host ``matrices``)."""
-    if row_weights is None:
+    if row_weights is None or matrices is None:
+        if row_weights is not None:
+            raise ValueError("row weights need the host matrices (D, 2 G^T W G)")
         data = np.asarray(problem.data_diagonal, float)
     else:
         collocation = matrices[0]
@@ -424,7 +426,9 @@ def exact_solve(method: str, problem: AdaptiveProblem, matrices, lam, rtol, max_
 
 
 @functools.singledispatch
-def solve_on_hierarchy(solver, problem: AdaptiveProblem, matrices, solve):
+def solve_on_hierarchy(
+    solver, problem: AdaptiveProblem, matrices, solve
+) -> tuple[np.ndarray, int, float, RobustLeastSquaresState | None, bool]:
     """``(control, steps, relative residual, state, converged)`` of ``solver``'s fit on the
     hierarchy, its linear solves made by ``solve`` (``exact_solve``). Chosen by the
     solver's type: the exact solve (``LeastSquares``) and its reweighting
@@ -461,13 +465,17 @@ def check_hierarchy_solver(solver) -> None:
 
 
 @solve_on_hierarchy.register
-def _(solver: LeastSquares, problem: AdaptiveProblem, matrices, solve):
+def _(
+    solver: LeastSquares, problem: AdaptiveProblem, matrices, solve
+) -> tuple[np.ndarray, int, float, RobustLeastSquaresState | None, bool]:
     control, steps, residual = solve()
     return control, steps, residual, None, True
 
 
 @solve_on_hierarchy.register
-def _(solver: RobustLeastSquares, problem: AdaptiveProblem, matrices, solve):
+def _(
+    solver: RobustLeastSquares, problem: AdaptiveProblem, matrices, solve
+) -> tuple[np.ndarray, int, float, RobustLeastSquaresState | None, bool]:
     # The uniform grid's IRLS (RobustLeastSquares.step) on the host: each step one exact
     # solve with the points' weights on their three samples' rows, then the same
     # reweighting (RobustLeastSquares.reweigh) and the same stop rule as the driver's.

@@ -92,7 +92,7 @@ def _content_key(*arrays) -> tuple | None:
         if not shape or shape[0] > KEPT_CLOUD_POINTS:
             return None
         host = np.ascontiguousarray(np.asarray(array))
-        digest = hashlib.blake2b(host.view(np.uint8).reshape(-1), digest_size=16).digest()
+        digest = hashlib.blake2b(host.tobytes(), digest_size=16).digest()
         placement = str(getattr(array, "sharding", None))
         key.append((type(array).__name__, shape, host.dtype.str, placement, digest))
     return tuple(key)

@@ -9,6 +9,7 @@ never ask which basis they hold. What differs between the bases is a method here
 """
 
 import abc
+from typing import TYPE_CHECKING
 
 import equinox as eqx
 import numpy as np
@@ -32,10 +33,24 @@ class AbstractSpline(eqx.Module):
         lower, upper: ``(d,)`` corners of the box the basis spans.
     """
 
-    control: AbstractVar[Array]
-    weights: AbstractVar[Array]
-    lower: AbstractVar[Array]
-    upper: AbstractVar[Array]
+    # Declared for equinox (each subclass provides them, as fields or properties); hidden
+    # from the type checker, which would otherwise put them first among every subclass's
+    # fields, where the concrete classes order their own.
+    if not TYPE_CHECKING:
+        control: AbstractVar[Array]
+        weights: AbstractVar[Array]
+        lower: AbstractVar[Array]
+        upper: AbstractVar[Array]
+    else:
+
+        @property
+        def control(self) -> Array: ...
+        @property
+        def weights(self) -> Array: ...
+        @property
+        def lower(self) -> Array: ...
+        @property
+        def upper(self) -> Array: ...
 
     @property
     @abc.abstractmethod

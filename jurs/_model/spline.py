@@ -540,4 +540,6 @@ def grid_spline(spline, dims: tuple[int, ...] = (2, 3)) -> AbstractSpline:
             )
         return spline
     control, weights, lower, upper = spline_fields(spline, dims=dims)
-    return ImplicitSpline(control, weights, lower, upper)
+    # NumPy float64 fields, as read: the host evaluations take them as they are.
+    fields = (cast(Array, a) for a in (control, weights, lower, upper))
+    return ImplicitSpline(*fields)
