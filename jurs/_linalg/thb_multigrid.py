@@ -138,30 +138,64 @@ class _Level:
 
 class _Patches:
     """Additive Schwarz over overlapping patches of functions: ``sum_p E_p A_p^-1 E_p^T``,
-    each patch's principal submatrix inverted exactly (dense, batched)."""
+    each patch's principal submatrix inverted exactly (dense, batched). A patch is a box
+    of ``side^d`` functions of one level's grid; its slots are the box's positions, so a
+    matrix entry finds its slot by subtraction, with no search."""
 
-    def __init__(self, matrix, members: np.ndarray):
-        # members (P, k): the functions of each patch, -1 padding.
-        n = matrix.shape[0]
-        self.members = members
-        valid = members >= 0
-        index = np.where(valid, members, 0)
-        matrix = matrix.tocsr()
-        matrix.sort_indices()
-        rows = np.repeat(np.arange(n, dtype=np.int64), np.diff(matrix.indptr))
-        keys = rows * n + matrix.indices
-        count, k = members.shape
-        blocks = np.zeros((count, k, k))
-        for a in range(k):  # one row of every patch's block at a time (bounded memory)
-            query = index[:, a, None].astype(np.int64) * n + index
-            at = np.minimum(np.searchsorted(keys, query), keys.size - 1)
-            found = (keys[at] == query) & valid[:, a, None] & valid
-            blocks[:, a, :] = np.where(found, matrix.data[at], 0.0)
+    def __init__(self, matrix, homes: np.ndarray, multi: np.ndarray, stride: int, side: int):
+        n, ndim = multi.shape
+        starts = [(multi - offset) // stride for offset in range(0, side, stride)]
+        # Each function's patches: per axis the starts c with c stride <= i < c stride + side.
+        choices = list(itertools.product(range(len(starts)), repeat=ndim))
+        corner = np.stack(
+            [np.stack([starts[c][:, axis] for axis, c in enumerate(ch)], -1) for ch in choices], 1
+        )  # (n, M, d) patch corners (in strides)
+        origin = corner * stride
+        inside = np.all((multi[:, None] >= origin) & (multi[:, None] < origin + side), -1)
+        inside &= np.all(corner >= 0, -1)
+        span = int(corner.max()) + 1
+        key = np.broadcast_to(homes[:, None], inside.shape).astype(np.int64)
+        for axis in range(ndim):
+            key = key * span + corner[..., axis]
+        key = np.where(inside, key, -1)
+        unique, patch = np.unique(key, return_inverse=True)
+        patch = patch.reshape(key.shape) - (unique[0] < 0)  # -1 where not a member
+        count = unique.size - int(unique[0] < 0)
+        local = multi[:, None] - origin
+        slot = np.zeros(inside.shape, np.int64)
+        for axis in range(ndim):
+            slot = slot * side + local[..., axis]
+        patch_home = np.zeros(count, np.int64)
+        patch_origin = np.zeros((count, ndim), np.int64)
+        patch_home[patch[inside]] = np.broadcast_to(homes[:, None], inside.shape)[inside]
+        patch_origin[patch[inside]] = origin[inside]
+        size = side**ndim
+        members = np.full((count, size), -1, np.int64)
+        members[patch[inside], slot[inside]] = np.broadcast_to(np.arange(n)[:, None], inside.shape)[
+            inside
+        ]
+        # The blocks from the matrix's entries: row i's slot in each of its patches, the
+        # column's by its offset from the patch's origin.
+        coo = matrix.tocoo()
+        rows, cols, values = coo.row, coo.col, coo.data
+        blocks = np.zeros((count, size, size))
+        for m in range(inside.shape[1]):
+            p = patch[rows, m]
+            offset = multi[cols] - patch_origin[p]
+            ok = inside[rows, m] & (homes[cols] == patch_home[p])
+            ok &= np.all((offset >= 0) & (offset < side), -1)
+            column_slot = np.zeros(rows.size, np.int64)
+            for axis in range(ndim):
+                column_slot = column_slot * side + offset[:, axis]
+            blocks[p[ok], slot[rows[ok], m], column_slot[ok]] = values[ok]
         diagonal = np.einsum("pii->pi", blocks)
-        # Padding and functions nothing reaches: a unit diagonal (their residual is 0).
-        blocks[:, np.arange(k), np.arange(k)] = np.where(diagonal > 0, diagonal, 1.0)
+        # Empty slots and functions nothing reaches: a unit diagonal (their residual is 0).
+        blocks[:, np.arange(size), np.arange(size)] = np.where(diagonal > 0, diagonal, 1.0)
         self.inverses = np.linalg.inv(blocks)
-        self.index, self.valid, self.n = index, valid, n
+        del blocks
+        self.valid = members >= 0
+        self.index = np.where(self.valid, members, 0)
+        self.n = n
 
     def apply(self, r: np.ndarray) -> np.ndarray:
         local = np.where(self.valid, r[self.index], 0.0)
@@ -202,32 +236,6 @@ def space_functions(hierarchy: Hierarchy, level: int) -> tuple[np.ndarray, np.nd
     return np.concatenate(homes), np.concatenate(multis).reshape(-1, hierarchy.ndim)
 
 
-def patch_members(homes: np.ndarray, multi: np.ndarray, stride: int) -> np.ndarray:
-    """``(P, k)`` the functions of each patch, -1 padding: patches of ``2 stride``
-    functions a side starting every ``stride`` per axis in each level's function grid
-    (each function in ``2^d`` of them), one level's functions to a patch."""
-    ndim = multi.shape[1]
-    corner = multi // stride  # the last patch along each axis that holds the function
-    span = int(corner.max()) + 2
-    keys, owners = [], []
-    for choice in itertools.product((0, 1), repeat=ndim):
-        start = corner - np.asarray(choice) + 1  # >= 0
-        key = homes.copy()
-        for axis in range(ndim):
-            key = key * span + start[:, axis]
-        keys.append(key)
-        owners.append(np.arange(homes.size))
-    keys, owners = np.concatenate(keys), np.concatenate(owners)
-    order = np.argsort(keys, kind="stable")
-    keys, owners = keys[order], owners[order]
-    first = np.concatenate([[True], keys[1:] != keys[:-1]])
-    patch = np.cumsum(first) - 1
-    slot = np.arange(keys.size) - np.flatnonzero(first)[patch]
-    members = np.full((int(patch[-1]) + 1, int(slot.max()) + 1), -1, np.int64)
-    members[patch, slot] = owners
-    return members
-
-
 class ThbMultigrid:
     """A symmetric V-cycle over a THB hierarchy's nested spaces (module docstring), for the
     normal matrix ``matrix`` (SciPy sparse, symmetric positive semi-definite, over the
@@ -243,6 +251,7 @@ class ThbMultigrid:
         prolongations: list | None = None,
         smoother: str = "chebyshev",
         stride: int = 2,
+        side: int = 4,
     ):
         from scipy import sparse
 
@@ -261,7 +270,7 @@ class ThbMultigrid:
             level = _Level(a, inverse)
             if index and smoother == "schwarz":
                 homes, multi = space_functions(hierarchy, index)
-                level.patches = _Patches(a, patch_members(homes, multi, stride))
+                level.patches = _Patches(a, homes, multi, stride, side)
             if index:
                 rho = RHO_MARGIN * _largest_eigenvalue(level)
                 level.steps = _chebyshev_coefficients(degree, rho / ratio, rho)
