@@ -445,7 +445,10 @@ def fit_adaptive(
             1e-10 is below float32's rounding, and CG would run to ``max_steps``).
         method: ``"direct"`` (a sparse factorisation on the host, QDLDL), ``"cg"``
             (conjugate gradients in JAX, the path that runs on a GPU) or ``"host_cg"``
-            (the same conjugate gradients run by SciPy on the host, faster on a CPU);
+            (the same conjugate gradients run by SciPy on the host, faster on a CPU) or
+            ``"multigrid"`` (SciPy's conjugate gradients on the host preconditioned by a
+            V-cycle over the hierarchy's nested spaces: some 10 steps where Jacobi takes
+            hundreds; docs/multigrid.md, "The multilevel solve of the hierarchy");
             None takes ``"direct"`` for a curve; for a surface, whose factor fills in
             (3D nested dissection fill grows as n^(4/3)), ``"host_cg"`` where JAX's
             default device is a CPU and the points are not sharded, ``"cg"`` otherwise.
@@ -485,8 +488,10 @@ def fit_adaptive(
     through [`jurs.internal.make_adaptive_problem`][] and the solve is exact (the solve
     sits behind ``lax.custom_linear_solve``).
     """
-    if method not in (None, "direct", "cg", "host_cg"):
-        raise ValueError(f"method must be 'direct', 'cg', 'host_cg' or None, got {method!r}")
+    if method not in (None, "direct", "cg", "host_cg", "multigrid"):
+        raise ValueError(
+            f"method must be 'direct', 'cg', 'host_cg', 'multigrid' or None, got {method!r}"
+        )
     if band is not None and band < 1:
         raise ValueError(f"band must be at least 1 cell, got {band}")
     if spans_processes(points, normals):  # each process assembles its own samples' rows
@@ -553,9 +558,14 @@ def fit_adaptive(
     else:  # CG on the assembled matrices: SciPy on the host, or JAX (padded, compiled)
         args = (problem, matrices, float(lam), float(rtol), int(max_steps))
         # host_cg reads every sample on the host, as a direct solve does.
-        control_np, steps, residual = (
-            solve_host_cg(*args) if method == "host_cg" else solve_assembled(*args, dtype)
-        )
+        if method == "multigrid":
+            from .adaptive_multigrid import solve_host_multigrid
+
+            control_np, steps, residual = solve_host_multigrid(*args)
+        else:
+            control_np, steps, residual = (
+                solve_host_cg(*args) if method == "host_cg" else solve_assembled(*args, dtype)
+            )
         control = on_device(control_np, dtype)
         metrics = assembled_metrics(problem, matrices, control_np, float(lam))
         tolerance = rtol

@@ -36,7 +36,12 @@ from jaxtyping import Float
 from .._model.hierarchy import Hierarchy, cascade_matrix
 
 #: Chebyshev smoothing steps before and after the coarse correction of each level.
-DEFAULT_DEGREE = 3
+DEFAULT_DEGREE = 2
+#: The smoother's patches: boxes of ``PATCH_SIDE`` functions a side, one every
+#: ``PATCH_STRIDE`` per axis, in each level's function grid (docs/multigrid.md, "The
+#: multilevel solve of the hierarchy", for the sides measured).
+PATCH_SIDE = 4
+PATCH_STRIDE = 2
 #: The Chebyshev smoother damps the Jacobi-scaled spectrum in ``[rho / RATIO, rho]``.
 DEFAULT_RATIO = 8.0
 #: Power steps that estimate each level's largest Jacobi-scaled eigenvalue ``rho``.
@@ -249,12 +254,14 @@ class ThbMultigrid:
         degree: int = DEFAULT_DEGREE,
         ratio: float = DEFAULT_RATIO,
         prolongations: list | None = None,
-        smoother: str = "chebyshev",
-        stride: int = 2,
-        side: int = 4,
+        smoother: str = "schwarz",
+        stride: int = PATCH_STRIDE,
+        side: int = PATCH_SIDE,
     ):
         from scipy import sparse
 
+        if smoother not in ("schwarz", "chebyshev"):
+            raise ValueError(f"smoother must be 'schwarz' or 'chebyshev', got {smoother!r}")
         if prolongations is None:
             prolongations = nested_prolongations(hierarchy)
         self.prolongations = prolongations
