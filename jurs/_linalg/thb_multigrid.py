@@ -180,19 +180,29 @@ class _Patches:
             inside
         ]
         # The blocks from the matrix's entries: row i's slot in each of its patches, the
-        # column's by its offset from the patch's origin.
-        coo = matrix.tocoo()
-        rows, cols, values = coo.row, coo.col, coo.data
+        # column's by the entry's offset from the row (same level, within a patch's side).
+        matrix = matrix.tocsr()
+        rows = np.repeat(np.arange(n), np.diff(matrix.indptr))
+        cols, values = matrix.indices, matrix.data
+        near = homes[rows] == homes[cols]
+        delta = []
+        for axis in range(ndim):
+            delta.append(multi[cols, axis] - np.repeat(multi[:, axis], np.diff(matrix.indptr)))
+            near &= np.abs(delta[-1]) < side
+        counts = np.bincount(rows[near], minlength=n)  # rows stay sorted
+        rows, values = rows[near], values[near]
+        delta = [d[near] for d in delta]
         blocks = np.zeros((count, size, size))
+        flat = blocks.reshape(-1)
         for m in range(inside.shape[1]):
-            p = patch[rows, m]
-            offset = multi[cols] - patch_origin[p]
-            ok = inside[rows, m] & (homes[cols] == patch_home[p])
-            ok &= np.all((offset >= 0) & (offset < side), -1)
+            ok = np.repeat(inside[:, m], counts)
             column_slot = np.zeros(rows.size, np.int64)
             for axis in range(ndim):
-                column_slot = column_slot * side + offset[:, axis]
-            blocks[p[ok], slot[rows[ok], m], column_slot[ok]] = values[ok]
+                at = np.repeat(local[:, m, axis], counts) + delta[axis]
+                ok &= (at >= 0) & (at < side)
+                column_slot = column_slot * side + at
+            row_slot = np.repeat(patch[:, m] * size + slot[:, m], counts)
+            flat[row_slot[ok] * size + column_slot[ok]] = values[ok]
         diagonal = np.einsum("pii->pi", blocks)
         # Empty slots and functions nothing reaches: a unit diagonal (their residual is 0).
         blocks[:, np.arange(size), np.arange(size)] = np.where(diagonal > 0, diagonal, 1.0)
