@@ -170,10 +170,6 @@ class _Patches:
         slot = np.zeros(inside.shape, np.int64)
         for axis in range(ndim):
             slot = slot * side + local[..., axis]
-        patch_home = np.zeros(count, np.int64)
-        patch_origin = np.zeros((count, ndim), np.int64)
-        patch_home[patch[inside]] = np.broadcast_to(homes[:, None], inside.shape)[inside]
-        patch_origin[patch[inside]] = origin[inside]
         size = side**ndim
         members = np.full((count, size), -1, np.int64)
         members[patch[inside], slot[inside]] = np.broadcast_to(np.arange(n)[:, None], inside.shape)[
@@ -184,30 +180,42 @@ class _Patches:
         matrix = matrix.tocsr()
         rows = np.repeat(np.arange(n), np.diff(matrix.indptr))
         cols, values = matrix.indices, matrix.data
+        # An entry's offset (column less row, per axis) in -side < o < side, coded in
+        # base 2 side - 1; the column's slot is the row's plus a linear code of it, valid
+        # where the row's slot plus the offset stays in the box (a small table).
+        width = 2 * side - 1
         near = homes[rows] == homes[cols]
-        delta = []
+        code = np.zeros(rows.size, np.int64)
+        shift = np.zeros(rows.size, np.int64)
         for axis in range(ndim):
-            delta.append(multi[cols, axis] - np.repeat(multi[:, axis], np.diff(matrix.indptr)))
-            near &= np.abs(delta[-1]) < side
+            delta = multi[cols, axis] - np.repeat(multi[:, axis], np.diff(matrix.indptr))
+            near &= np.abs(delta) < side
+            code = code * width + delta + side - 1
+            shift = shift * side + delta
         counts = np.bincount(rows[near], minlength=n)  # rows stay sorted
-        rows, values = rows[near], values[near]
-        delta = [d[near] for d in delta]
+        code, shift, values = code[near], shift[near], values[near]
+        box = np.stack(np.unravel_index(np.arange(size), (side,) * ndim), -1)
+        offsets = np.stack(np.unravel_index(np.arange(width**ndim), (width,) * ndim), -1)
+        moved = box[:, None] + offsets[None] - (side - 1)
+        fits = np.all((moved >= 0) & (moved < side), -1).ravel()  # (slot, code)
         blocks = np.zeros((count, size, size))
         flat = blocks.reshape(-1)
         for m in range(inside.shape[1]):
-            ok = np.repeat(inside[:, m], counts)
-            column_slot = np.zeros(rows.size, np.int64)
-            for axis in range(ndim):
-                at = np.repeat(local[:, m, axis], counts) + delta[axis]
-                ok &= (at >= 0) & (at < side)
-                column_slot = column_slot * side + at
-            row_slot = np.repeat(patch[:, m] * size + slot[:, m], counts)
-            flat[row_slot[ok] * size + column_slot[ok]] = values[ok]
+            member = np.repeat(np.where(inside[:, m], slot[:, m], -1), counts)
+            ok = (member >= 0) & fits[np.maximum(member, 0) * width**ndim + code]
+            start = np.repeat((patch[:, m] * size + slot[:, m]) * size + slot[:, m], counts)
+            flat[start[ok] + shift[ok]] = values[ok]
         diagonal = np.einsum("pii->pi", blocks)
         # Empty slots and functions nothing reaches: a unit diagonal (their residual is 0).
-        blocks[:, np.arange(size), np.arange(size)] = np.where(diagonal > 0, diagonal, 1.0)
+        # Each block is scaled to a unit diagonal and given a ridge of k eps, so that a
+        # singular block (lam = 0) still inverts, its inverse below the exact one.
+        scale = 1.0 / np.sqrt(np.where(diagonal > 0, diagonal, 1.0))
+        blocks *= scale[:, :, None] * scale[:, None, :]
+        ridge = 1.0 + size * np.finfo(float).eps
+        blocks[:, np.arange(size), np.arange(size)] = np.where(diagonal > 0, ridge, 1.0)
         self.inverses = np.linalg.inv(blocks)
         del blocks
+        self.inverses *= scale[:, :, None] * scale[:, None, :]
         self.valid = members >= 0
         self.index = np.where(self.valid, members, 0)
         self.n = n
@@ -336,11 +344,17 @@ class ThbMultigrid:
 def _factorise(matrix):
     """A solve with the coarsest space's matrix: LU of it, with the zero rows (functions
     nothing reaches) kept at 0."""
+    from scipy import sparse
     from scipy.sparse.linalg import splu
 
     diagonal = matrix.diagonal()
     live = np.flatnonzero(diagonal > 0)
-    lu = splu(matrix[live][:, live].tocsc(), permc_spec="COLAMD")
+    kept = matrix[live][:, live].tocsc()
+    try:
+        lu = splu(kept, permc_spec="COLAMD")
+    except RuntimeError:  # exactly singular (lam = 0): a relative ridge
+        ridge = sparse.diags(diagonal[live] * live.size * np.finfo(float).eps)
+        lu = splu(sparse.csc_matrix(kept + ridge), permc_spec="COLAMD")
 
     def solve(rhs):
         out = np.zeros_like(rhs)
