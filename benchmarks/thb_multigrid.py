@@ -20,6 +20,7 @@ import argparse
 import datetime
 import os
 import time
+from typing import Any
 
 import jax
 
@@ -98,7 +99,7 @@ def measure(name: str, kind: str, finest: int) -> dict:
     points, normals = cloud_of(kind)
     problem, matrices, lam = fit_problem(points, normals, finest)
     hierarchy = problem.hierarchy
-    row = dict(
+    row: dict[str, Any] = dict(
         case=name, finest=finest, levels=hierarchy.num_levels, active=hierarchy.num_active,
         load_before=load(),
     )  # fmt: skip
@@ -138,7 +139,7 @@ def measure(name: str, kind: str, finest: int) -> dict:
     return row
 
 
-def report(rows: list[dict]) -> str:
+def report(rows: list[dict[str, Any]]) -> str:
     def s(value):
         return "-" if value is None else f"{value:.2f}"
 
