@@ -35,12 +35,14 @@ from jaxtyping import Float
 
 from .._model.hierarchy import Hierarchy, cascade_matrix
 
-#: Chebyshev smoothing steps before and after the coarse correction of each level.
-DEFAULT_DEGREE = 2
-#: The smoother's patches: boxes of ``PATCH_SIDE`` functions a side, one every
-#: ``PATCH_STRIDE`` per axis, in each level's function grid (docs/multigrid.md, "The
-#: multilevel solve of the hierarchy", for the sides measured).
-PATCH_SIDE = 4
+#: Chebyshev smoothing steps before and after the coarse correction of each level, and
+#: the smoother's patches: boxes of ``PATCH_SIDE`` functions a side, one every
+#: ``PATCH_STRIDE`` per axis, in each level's function grid; by dimension (curve,
+#: surface). A surface takes boxes of 3: its set-up (27 x 27 blocks instead of 64 x 64)
+#: costs far less for a few more steps (docs/multigrid.md, "The multilevel solve of the
+#: hierarchy").
+DEFAULT_DEGREE = {2: 2, 3: 3}
+PATCH_SIDE = {2: 4, 3: 3}
 PATCH_STRIDE = 2
 #: The Chebyshev smoother damps the Jacobi-scaled spectrum in ``[rho / RATIO, rho]``.
 DEFAULT_RATIO = 8.0
@@ -263,23 +265,37 @@ class ThbMultigrid:
     """A symmetric V-cycle over a THB hierarchy's nested spaces (module docstring), for the
     normal matrix ``matrix`` (SciPy sparse, symmetric positive semi-definite, over the
     hierarchy's active functions). Call ``cycle(r)`` (or use ``operator()`` as CG's
-    preconditioner). Functions with a zero row keep 0, as under Jacobi."""
+    preconditioner). Functions with a zero row keep 0, as under Jacobi.
+
+    Args:
+        hierarchy: the THB structure whose active functions ``matrix`` is over.
+        matrix: the normal matrix ``D^T D + lam 2 G^T W G``.
+        degree: Chebyshev steps before and after each coarse correction; None takes
+            ``DEFAULT_DEGREE``.
+        ratio: the smoother damps ``M^-1 A``'s spectrum in ``[rho / ratio, rho]``.
+        prolongations: ``nested_prolongations(hierarchy)``, built here when None.
+        smoother: ``"schwarz"`` (Chebyshev on additive Schwarz over patches) or
+            ``"chebyshev"`` (Chebyshev on Jacobi: cheaper cycles, several times the steps).
+        stride, side: the patches (``PATCH_STRIDE``; None takes ``PATCH_SIDE``).
+    """
 
     def __init__(
         self,
         hierarchy: Hierarchy,
         matrix,
-        degree: int = DEFAULT_DEGREE,
+        degree: int | None = None,
         ratio: float = DEFAULT_RATIO,
         prolongations: list | None = None,
         smoother: str = "schwarz",
         stride: int = PATCH_STRIDE,
-        side: int = PATCH_SIDE,
+        side: int | None = None,
     ):
         from scipy import sparse
 
         if smoother not in ("schwarz", "chebyshev"):
             raise ValueError(f"smoother must be 'schwarz' or 'chebyshev', got {smoother!r}")
+        degree = DEFAULT_DEGREE[hierarchy.ndim] if degree is None else degree
+        side = PATCH_SIDE[hierarchy.ndim] if side is None else side
         if prolongations is None:
             prolongations = nested_prolongations(hierarchy)
         self.prolongations = prolongations
