@@ -122,3 +122,15 @@ def test_unknown_smoother_is_refused():
     matrix, _ = normal_system(problem, matrices, lam)
     with pytest.raises(ValueError, match="smoother"):
         ThbMultigrid(problem.hierarchy, matrix, smoother="gauss-seidel")
+
+
+def test_a_hierarchy_of_one_level_is_solved_directly():
+    """No refinement: the only space is the coarsest, and one cycle is its exact solve."""
+    t = np.linspace(0, 2 * np.pi, 200, endpoint=False)
+    points = np.stack([np.cos(t), np.sin(t)], 1)
+    multigrid = jurs.fit_adaptive(points, points, finest=8, method="multigrid")
+    direct = jurs.fit_adaptive(points, points, finest=8, method="direct")
+    assert multigrid.stats["levels"] == 1 and multigrid.stats["num_steps"] == 1
+    np.testing.assert_allclose(
+        np.asarray(multigrid.spline.control), np.asarray(direct.spline.control), atol=1e-10
+    )
