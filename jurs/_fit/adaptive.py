@@ -41,6 +41,7 @@ from .._problem.adaptive import (
 from .._problem.sizes import round_size
 from .._solution.verdicts import evaluate_bucketed, judged_points
 from ..solvers import AbstractSolver, LeastSquares, RobustLeastSquares, RobustLeastSquaresState
+from .adaptive_multigrid import solve_host_multigrid
 from .settings import Settings
 
 #: Cells of the coarsest level along the longest side, at least: it fixes the sign of g far
@@ -408,10 +409,10 @@ def solve_normal(matrix, rhs: np.ndarray) -> tuple[np.ndarray, float]:
 
 
 def exact_solve(method: str, problem: AdaptiveProblem, matrices, lam, rtol, max_steps, dtype):
-    """The hierarchy's normal equations solved by ``method`` (``"direct"``, ``"host_cg"``
-    or ``"cg"``), as a function ``solve(row_weights=None, start=None) -> (control, steps,
-    relative residual)`` of the samples' row weights and CG's first iterate, for the
-    solvers of ``solve_on_hierarchy``."""
+    """The hierarchy's normal equations solved by ``method`` (``"direct"``, ``"host_cg"``,
+    ``"multigrid"`` or ``"cg"``), as a function ``solve(row_weights=None, start=None) ->
+    (control, steps, relative residual)`` of the samples' row weights and CG's first
+    iterate, for the solvers of ``solve_on_hierarchy``."""
 
     def solve(row_weights=None, start=None):
         if method == "direct":  # a factorisation needs no start
@@ -420,6 +421,8 @@ def exact_solve(method: str, problem: AdaptiveProblem, matrices, lam, rtol, max_
         args = (problem, matrices, lam, rtol, max_steps)
         if method == "host_cg":
             return solve_host_cg(*args, row_weights=row_weights, start=start)
+        if method == "multigrid":
+            return solve_host_multigrid(*args, row_weights=row_weights, start=start)
         return solve_assembled(*args, dtype, row_weights=row_weights, start=start)
 
     return solve

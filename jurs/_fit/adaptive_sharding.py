@@ -352,9 +352,9 @@ def fit_adaptive_across_processes(
     default) ``solve_summed``'s factorisation of the processes' summed normal equations
     in every process. What reads the whole cloud on a host (the orientation and doubt
     checks) is not run (docs/sharding.md, "Adaptive fits")."""
-    if method == "host_cg":
+    if method in ("host_cg", "multigrid"):
         raise ValueError(
-            "method='host_cg' reads every sample on one host; points split over processes "
+            f"method={method!r} reads every sample on one host; points split over processes "
             "fit with 'cg' (over every device) or 'direct'"
         )
     if normals is None:  # estimated over all processes' points, split like them
