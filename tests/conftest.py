@@ -144,3 +144,14 @@ def pytest_xdist_make_scheduler(config, log):
             return scope
 
     return ModuleFixtureScheduling(config, log)
+
+
+@pytest.fixture(autouse=True)
+def _fresh_kept_clouds():
+    """Each test starts with no cloud kept by ``jurs.fit`` from an earlier one (the clouds
+    it keeps by content for repeated fits): tests that count checks or problem builds see
+    their own fit's."""
+    from jurs._fit import fit as fit_module
+
+    fit_module._kept_clouds.clear()
+    yield

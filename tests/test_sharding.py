@@ -327,12 +327,14 @@ def test_sharded_adaptive_fit_equals_one_device_fit(adaptive_child, case):
 def test_sharded_adaptive_cg_reduces_only_function_sums(adaptive_child):
     """The compiled sharded CG splits the sample rows evenly over the devices and its only
     collectives are all-reduces of active-function-sized vectors (``D_k^T D_k c``, ``D^T
-    b``, the diagonal) and of scalars (the data term's metrics): no sample array travels."""
+    b``, the diagonal) and of scalars (the data term's metrics: E_d, the sum of g^2 at the
+    data points, the largest |g|): no sample array travels."""
     result = adaptive_child["collectives"]
     assert len(result["rows_per_device"]) == 1
     assert result["rows_per_device"][0] * 4 == result["rows"]
     assert result["kinds"] == ["all-reduce"]
-    assert result["sizes"] == [1, result["functions"]]
+    assert result["functions"] in result["sizes"]
+    assert all(size <= 2 for size in result["sizes"] if size != result["functions"])
     assert result["functions"] != result["rows"]  # the sizes tell the two apart
 
 

@@ -31,7 +31,6 @@ import numpy as np
 from jax import lax
 from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
-from .._cloud.normals import normals_across_processes
 from .._cloud.parts import agree, allgather, gather_ragged
 from .._linalg.pcg import conjugate_gradients, jacobi_inverse
 from .._model.adaptive import AdaptiveSpline
@@ -358,6 +357,9 @@ def fit_adaptive_across_processes(
             "fit with 'cg' (over every device) or 'direct'"
         )
     if normals is None:  # estimated over all processes' points, split like them
+        # SciPy's graphs and KD-trees: loaded when first needed, not on import jurs.
+        from .._cloud.normals import normals_across_processes
+
         normals = normals_across_processes(points)
     check_global_arrays(points, normals)
     sharding = input_sharding(points, normals)

@@ -88,10 +88,15 @@ def _content_key(*arrays) -> tuple | None:
         if array is None:
             key.append(None)
             continue
-        shape = tuple(np.shape(array))
+        try:
+            shape = tuple(np.shape(array))
+        except (TypeError, ValueError):  # ragged: the Cloud names what is wrong
+            return None
         if not shape or shape[0] > KEPT_CLOUD_POINTS:
             return None
         host = np.ascontiguousarray(np.asarray(array))
+        if host.dtype.kind not in "fiub":  # not numbers: the Cloud refuses them
+            return None
         digest = hashlib.blake2b(host.tobytes(), digest_size=16).digest()
         placement = str(getattr(array, "sharding", None))
         key.append((type(array).__name__, shape, host.dtype.str, placement, digest))

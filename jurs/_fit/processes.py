@@ -7,7 +7,6 @@ import dataclasses
 
 import jax.numpy as jnp
 
-from .._cloud.normals import normals_across_processes
 from .._cloud.parts import spans_processes
 from .._problem.validate import normalise_grid
 from .._solution.solution import raise_unless_reconstruction
@@ -56,6 +55,9 @@ def fit_across_processes(
     if normals is None:  # estimated over all processes' points, split like them
         if not spans_processes(points):
             raise ValueError("normals: pass them split like the points, or None")
+        # SciPy's graphs and KD-trees: loaded when first needed, not on import jurs.
+        from .._cloud.normals import normals_across_processes
+
         normals = normals_across_processes(points)
     if smoothing is not None and solver is not None:
         raise ValueError(
