@@ -121,6 +121,11 @@ class AdaptiveSpline(AbstractSpline):
         only where the lattice needs them (``jurs._model.lattice.FinestSpline``)."""
         return adaptive_lattice_values(self, axes)
 
+    def on_host(self) -> FinestSpline:
+        """The finest level's reader (``jurs._model.lattice.FinestSpline``: the cascade
+        done once; see [`jurs.AbstractSpline`][])."""
+        return FinestSpline(self)
+
     def band_lattice(self, axes, level: float) -> tuple[np.ndarray, np.ndarray]:
         """``(values, evaluated)``: g only on the blocks of the lattice where the level set
         can be (``jurs._model.band.band_lattice``; see [`jurs.AbstractSpline`][])."""

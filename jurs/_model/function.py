@@ -9,7 +9,7 @@ never ask which basis they hold. What differs between the bases is a method here
 """
 
 import abc
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, Any
 
 import equinox as eqx
 import numpy as np
@@ -87,6 +87,12 @@ class AbstractSpline(eqx.Module):
     def lattice(self, axes) -> np.ndarray:
         """g at every node of the tensor lattice ``axes = (xs, ys[, zs])``, "ij"
         indexing, float64 on the host."""
+
+    @abc.abstractmethod
+    def on_host(self) -> Any:
+        """An evaluator of g on the host, built once for many lattices: an object whose
+        ``lattice(axes)`` is this spline's (float64 NumPy), without converting the
+        coefficients (or cascading them to the finest level) again for each."""
 
     @abc.abstractmethod
     def band_lattice(self, axes, level: float) -> tuple[np.ndarray, np.ndarray]:

@@ -16,6 +16,8 @@ coefficients computed only where a lattice or a point needs them (``FinestSpline
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 
 from .basis import CENTRED_POWER, cubic_weights
@@ -298,6 +300,21 @@ def grid_lattice_values(spline, axes, *, xp=np):
         numerator = xp.tensordot(xp.asarray(numerator[window]), basis, axes=([0], [1]))
         denominator = xp.tensordot(xp.asarray(denominator[window]), basis, axes=([0], [1]))
     return numerator / denominator
+
+
+class HostGrid(NamedTuple):
+    """A uniform grid's spline as float64 NumPy fields, read by the host evaluations here
+    without a JAX array's conversion or a Module's attribute lookup on every call
+    (``ImplicitSpline.on_host``)."""
+
+    control: np.ndarray
+    weights: np.ndarray
+    lower: np.ndarray
+    upper: np.ndarray
+
+    def lattice(self, axes) -> np.ndarray:
+        """``grid_lattice_values`` of these fields."""
+        return grid_lattice_values(self, axes)
 
 
 def values_and_gradients(spline, points, *, chunk: int = 1 << 14):

@@ -62,7 +62,7 @@ from .basis import (
 )
 from .function import AbstractSpline
 from .groups import grouped_values
-from .lattice import grid_lattice_values, grid_values_and_gradients, spline_fields
+from .lattice import HostGrid, grid_lattice_values, grid_values_and_gradients, spline_fields
 from .local import LocalBasis
 from .precision import full_precision
 
@@ -505,6 +505,12 @@ class ImplicitSpline(AbstractSpline):
         """g on the tensor lattice ``axes``, one band matrix per axis, on the host
         (``jurs._model.lattice.lattice_values``)."""
         return grid_lattice_values(self, axes)
+
+    def on_host(self) -> HostGrid:
+        """Its fields as float64 NumPy arrays, whose ``lattice`` is this spline's (see
+        [`jurs.AbstractSpline`][])."""
+        fields = (self.control, self.weights, self.lower, self.upper)
+        return HostGrid(*(np.asarray(f, np.float64) for f in fields))
 
     def band_lattice(self, axes, level: float) -> tuple[np.ndarray, np.ndarray]:
         """``(values, evaluated)``: the grid evaluates every node (see

@@ -102,10 +102,8 @@ def border_negative_fraction(spline: AbstractSpline) -> float:
     open scan, a trimmed surface: no inside to check). NaN where g is not finite there.
 
     g is sampled on a lattice of half-cells over each face (edge in 2D) of the box, at
-    most ``BORDER_CHECK_NODES`` nodes (``jurs._model.lattice.lattice_values``, float64 on
-    the host)."""
-    from .._model.lattice import lattice_values
-
+    most ``BORDER_CHECK_NODES`` nodes (``AbstractSpline.on_host``, float64 on the host)."""
+    host = spline.on_host()
     lower, upper = np.asarray(spline.lower, float), np.asarray(spline.upper, float)
     steps = 2.0 * np.asarray(spline.finest_cells, float)
     d = len(steps)
@@ -120,7 +118,7 @@ def border_negative_fraction(spline: AbstractSpline) -> float:
         for axis in range(d):
             for end in (lower[axis], upper[axis]):
                 face = [*axes[:axis], np.array([end]), *axes[axis + 1 :]]
-                values = np.asarray(lattice_values(spline, face))
+                values = np.asarray(host.lattice(face))
                 if not np.isfinite(values).all():
                     return float("nan")
                 negative += int(np.sum(values < 0))
