@@ -495,7 +495,7 @@ def _(
 
     control = np.zeros(collocation.shape[1])
     _, scale, energy = reweighed(control, None)
-    weights = jnp.ones(m, targets.dtype)  # the first solve is the plain fit
+    weights = jnp.ones(m)  # the first solve is the plain fit (JAX's default float)
     total, residual, settled, converged = 0, 0.0, False, False
     for step in range(solver.max_steps):
         start = None if step == 0 else control
