@@ -29,14 +29,13 @@ jax.config.update("jax_enable_x64", True)
 import numpy as np  # noqa: E402
 
 import jurs  # noqa: E402
-from benchmarks._common import machine, md_table, write_results  # noqa: E402
-from jurs._cloud.cloud import Cloud  # noqa: E402
 from jurs._fit.adaptive import DEFAULT_RTOL, hierarchy_layout, solve_host_cg  # noqa: E402
-from jurs._fit.adaptive_multigrid import normal_system  # noqa: E402
 from jurs._fit.settings import auto_settings, scale_free_lam  # noqa: E402
 from jurs._linalg.thb_multigrid import ThbMultigrid  # noqa: E402
-from jurs._problem.adaptive import assemble_adaptive_problem  # noqa: E402
+from jurs._problem.adaptive import assemble_adaptive_problem, normal_system  # noqa: E402
 from jurs._solution.verdicts import judged_points  # noqa: E402
+
+from ._common import machine, md_table, write_results  # noqa: E402
 
 MAX_STEPS = 5000
 CASES = [
@@ -57,7 +56,7 @@ def cloud_of(kind: str):
 
 def fit_problem(points, normals, finest: int):
     """``(problem, matrices, lam)`` as ``fit_adaptive`` builds them for ``finest``."""
-    cloud = Cloud(points, normals)
+    cloud = jurs.Cloud(points, normals)
     settings = auto_settings(cloud)
     keep = judged_points(cloud, settings)
     points, normals = cloud.points[keep], np.asarray(cloud.normals, float)[keep]

@@ -7,11 +7,10 @@ import numpy as np
 import pytest
 
 import jurs
-from jurs._fit.adaptive import adaptive_layout, solve_direct, solve_host_cg
-from jurs._fit.adaptive_multigrid import normal_system, solve_host_multigrid
+from jurs._fit.adaptive import adaptive_layout, solve_direct, solve_host_cg, solve_host_multigrid
 from jurs._linalg.thb_multigrid import ThbMultigrid, multigrid_cg, nested_prolongations
 from jurs._model.hierarchy import refined_cells
-from jurs._problem.adaptive import assemble_adaptive_problem
+from jurs._problem.adaptive import assemble_adaptive_problem, normal_system
 from jurs.internal import build_hierarchy, hierarchy_values
 
 RTOL = 1e-10

@@ -29,6 +29,7 @@ from jax import lax
 from .._cloud.cloud import Cloud
 from .._cloud.measure import PROBES, strided_probes
 from .._linalg.pcg import conjugate_gradients, jacobi_inverse
+from .._linalg.thb_multigrid import multigrid_cg
 from .._model.precision import on_device
 from .._problem.adaptive import (
     AdaptiveProblem,
@@ -36,12 +37,20 @@ from .._problem.adaptive import (
     normal_matrices,
     normal_matvec,
     normal_rhs,
+    normal_system,
     sample_basis,
 )
 from .._problem.sizes import round_size
 from .._solution.verdicts import evaluate_bucketed, judged_points
-from ..solvers import AbstractSolver, LeastSquares, RobustLeastSquares, RobustLeastSquaresState
-from .adaptive_multigrid import solve_host_multigrid
+from ..solvers import (
+    IPIA,
+    IURS,
+    AbstractSolver,
+    LeastSquares,
+    NormalIPIA,
+    RobustLeastSquares,
+    RobustLeastSquaresState,
+)
 from .settings import Settings
 
 #: Cells of the coarsest level along the longest side, at least: it fixes the sign of g far
@@ -241,15 +250,11 @@ def _assembled_cg(
     )
 
 
-def normal_diagonal(
-    problem: AdaptiveProblem, lam: float, matrices=None, row_weights=None
-) -> np.ndarray:
+def normal_diagonal(problem: AdaptiveProblem, lam: float, matrices, row_weights=None) -> np.ndarray:
     """The diagonal of ``D^T S D + lam 2 G^T W G`` (the CG's Jacobi preconditioner), on the
     host, in float64: ``S`` the samples' ``row_weights`` (None: all 1, the problem's own
-    diagonal; else read from the host ``matrices``)."""
-    if row_weights is None or matrices is None:
-        if row_weights is not None:
-            raise ValueError("row weights need the host matrices (D, 2 G^T W G)")
+    diagonal; else read from ``D``, the first of the host ``matrices``)."""
+    if row_weights is None:
         data = np.asarray(problem.data_diagonal, float)
     else:
         collocation = matrices[0]
@@ -349,6 +354,30 @@ def solve_host_cg(
     return control, steps, float(np.linalg.norm(matvec(control) - rhs)) / scale
 
 
+def solve_host_multigrid(
+    problem: AdaptiveProblem,
+    matrices,
+    lam: float,
+    rtol: float,
+    max_steps: int,
+    row_weights=None,
+    start=None,
+    **options,
+) -> tuple[np.ndarray, int, float]:
+    """``(control, steps, relative residual)`` as ``solve_host_cg`` returns them (the stop
+    rule ``|r| <= rtol |D^T S b|``; ``row_weights`` and ``start`` as its), by CG on the
+    assembled normal equations (``normal_system``) preconditioned by one V-cycle a step
+    over the hierarchy's nested spaces (``jurs._linalg.thb_multigrid.ThbMultigrid``;
+    ``options`` go to it; docs/multigrid.md, "The multilevel solve of the hierarchy").
+    Not differentiable."""
+    from scipy.sparse import csr_matrix
+
+    matrix, rhs = normal_system(problem, matrices, lam, row_weights)
+    return multigrid_cg(
+        problem.hierarchy, csr_matrix(matrix), rhs, rtol, max_steps, start=start, **options
+    )
+
+
 def _upper_triangle(matrix):
     """The upper triangle (diagonal included) of a square CSC matrix, as CSC with sorted
     row indices."""
@@ -380,15 +409,8 @@ def solve_direct(problem: AdaptiveProblem, lam: float, matrices=None, row_weight
     if matrices is None:
         basis = np.asarray(sample_basis(problem))
         matrices = normal_matrices(problem.hierarchy, np.asarray(problem.positions), basis)
-    collocation, regulariser = matrices
-    weighted = collocation
-    if row_weights is not None:
-        from scipy.sparse import diags
-
-        weighted = diags(np.asarray(row_weights, float)) @ collocation
-    matrix = (collocation.T @ weighted + lam * regulariser).tocsc()
-    rhs = weighted.T @ np.asarray(problem.targets, float)
-    return solve_normal(matrix, rhs)
+    matrix, rhs = normal_system(problem, matrices, lam, row_weights)
+    return solve_normal(matrix.tocsc(), rhs)
 
 
 def solve_normal(matrix, rhs: np.ndarray) -> tuple[np.ndarray, float]:
@@ -442,7 +464,7 @@ def solve_on_hierarchy(
 def hierarchy_refusal(solver) -> str:
     """Why ``solver`` does not fit on the hierarchy, in one message."""
     name = type(solver).__name__
-    if name in ("IPIA", "IURS", "NormalIPIA"):
+    if isinstance(solver, (IPIA, IURS, NormalIPIA)):
         why = (
             "the paper's iterations update a uniform grid's control points and weights "
             "step by step (its Laplacian, eq. 33), which the hierarchy has no grid for"

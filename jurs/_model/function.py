@@ -23,9 +23,9 @@ class AbstractSpline(eqx.Module):
     positive outside.
 
     Calling it on ``(n, d)`` points (or one ``(d,)`` point) returns g there, in JAX: jit,
-    grad and vmap go through it. The ``host_*`` style methods (``lattice``,
-    ``band_lattice``, ``values_and_gradients``, ``slope_bound``) evaluate on the host in
-    float64 NumPy, compiling nothing, for meshing, contouring and verdicts.
+    grad and vmap go through it. The host methods (``lattice``, ``on_host``,
+    ``band_lattice``, ``values_and_gradients``, ``slope_bound``) evaluate in float64
+    NumPy, compiling nothing, for meshing, contouring and verdicts.
 
     Attributes:
         control: the coefficients C (a grid, or one per active function).

@@ -93,6 +93,21 @@ def normal_matrices(hierarchy: Hierarchy, positions: ArrayLike, basis: ArrayLike
     return collocation, regulariser
 
 
+def normal_system(problem: AdaptiveProblem, matrices, lam: float, row_weights=None):
+    """``(D^T S D + lam 2 G^T W G, D^T S b)`` on the host (SciPy sparse, float64) from the
+    matrices ``(D, 2 G^T W G)`` of ``assemble_adaptive_problem``, ``S`` the samples'
+    ``row_weights`` (None: 1): the assembled normal equations that a factorisation or a
+    multilevel solve reads."""
+    from scipy import sparse
+
+    collocation, regulariser = matrices
+    weighted = collocation
+    if row_weights is not None:
+        weighted = sparse.diags(np.asarray(row_weights, float)) @ collocation
+    matrix = collocation.T @ weighted + lam * regulariser
+    return matrix, weighted.T @ np.asarray(problem.targets, float)
+
+
 def make_adaptive_problem(
     points: Float[ArrayLike, "m d"],
     normals: Float[ArrayLike, "m d"],

@@ -24,6 +24,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from .._cloud.carried import MIN_CARRIED_FRACTION, carried_samples
 from .._cloud.measure import PROBES, feature_width, strided_probes
 from .._model.adaptive import AdaptiveSpline
 from .._model.function import AbstractSpline
@@ -347,7 +348,7 @@ def extra_components(spline: ImplicitSpline, tree, threshold: float) -> list[dic
     instead merged nested shells a few cells apart into one.) A component is *closed*
     when none of its edges lies on the box's border, and counted when less than half of
     its edges' midpoints (``MIN_CARRIED_FRACTION``) lie by data it *carries*
-    (``jurs.levelset._curves.carried_samples``, jurs.levelset's supplementary rule): the
+    (``jurs._cloud.carried.carried_samples``, jurs.levelset's supplementary rule): the
     nearest point of ``tree`` (the data the fit keeps) within ``threshold``
     (``far_point_fraction``'s: at least half a knot span) plus half a lattice step (how
     far a midpoint sits from the zero set at most), and nearer to this component than to
@@ -359,8 +360,6 @@ def extra_components(spline: ImplicitSpline, tree, threshold: float) -> list[dic
     limit. One path for curves and surfaces: the same lattice, regions and interfaces in
     2D and 3D."""
     from scipy import ndimage
-
-    from ..levelset._curves import MIN_CARRIED_FRACTION, carried_samples
 
     lower, upper = np.asarray(spline.lower, float), np.asarray(spline.upper, float)
     spans = np.asarray(spline.finest_cells, float)

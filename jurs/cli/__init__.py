@@ -416,7 +416,9 @@ def _solve(job: FitJob, args):
     jax.block_until_ready(sol.spline)
     seconds = time.perf_counter() - t0
     bar.close()
-    if sol.status in VERDICT_LINES:  # RAISED_RESULTS: not a reconstruction, not written
+    from .._solution.solution import RAISED_RESULTS  # jax is loaded by now
+
+    if sol.status in RAISED_RESULTS:  # not a reconstruction: not written
         print(
             f"jurs: error: {job.shown}: {not_a_reconstruction(sol.status)}; nothing written",
             file=sys.stderr,

@@ -15,6 +15,7 @@ import numpy.typing as npt
 from jaxtyping import Float
 from scipy.spatial import cKDTree  # pyright: ignore[reportAttributeAccessIssue]  # no stub
 
+from .._cloud.carried import MIN_CARRIED_FRACTION, carried_samples
 from .._model.adaptive import AdaptiveSpline
 from .._model.band import HULL_TOLERANCE, band_lattice
 from .._model.lattice import FinestSpline
@@ -41,43 +42,6 @@ BYTES_PER_NODE = 128
 DEFAULT_TINY_CELLS = 4.0
 #: Default supplementary threshold, as a multiple of the offset d.
 DEFAULT_THRESHOLD_FACTOR = 2.0
-#: A closed component is supplementary where less than this share of it (length, area)
-#: lies by data it carries (``carried_samples``): a loop or bubble beside the data whose
-#: points another part of the zero set passes through is as spurious as one away from
-#: them (a small loop at a traced horse's tail; a bubble inside a CAD part's solid).
-MIN_CARRIED_FRACTION = 0.5
-
-
-def carried_samples(
-    samples: Float[npt.ArrayLike, "k d"],
-    labels: npt.ArrayLike,
-    tree: cKDTree,
-    threshold: float,
-    tolerance: float | Float[npt.ArrayLike, " k"] = 0.0,
-) -> tuple[Float[np.ndarray, " k"], np.ndarray]:
-    """``(distance, carried)`` for zero-set ``samples (k, d)`` of the components
-    ``labels (k,)``: each sample's distance to the nearest data point of ``tree`` (a
-    KD-tree of the data), and whether that point lies within ``threshold`` and is
-    *carried* by the sample's own component: no sample of another component lies
-    nearer to it, or, with a ``tolerance`` (one, or one a sample), none nearer by more
-    than that: the step of the lattice the zero set was sampled on, where a thin part
-    pinched below that step splits its zero set into pieces side by side, both beside
-    the data and a step apart at most (a glyph's inner corner at 256 nodes a side). A
-    component's share of carried samples is how much of it the data account for; a loop
-    beside data that another part passes through carries none. Curves (polyline
-    segments' midpoints) and surfaces (face centroids, lattice crossings) alike."""
-    samples = np.asarray(samples, float)
-    labels = np.asarray(labels).reshape(-1)
-    if len(samples) == 0:
-        return np.empty(0), np.zeros(0, bool)
-    distance, nearest = tree.query(samples)
-    used, back = np.unique(nearest, return_inverse=True)
-    back = back.reshape(-1)
-    # The component each data point near a sample lies nearest to (its owner), and how
-    # near.
-    closest, at = cKDTree(samples).query(np.asarray(tree.data)[used])
-    owned = (labels[at][back] == labels) | (distance <= closest[back] + tolerance)
-    return distance, (distance <= threshold) & owned
 
 
 def sampling_grid(
@@ -219,10 +183,12 @@ def _(spline: AdaptiveSpline, xs, ys, level: float = 0.0) -> np.ndarray:
     return _band_values(spline, xs, ys, level)[0]
 
 
-def _band_values(spline: AdaptiveSpline, xs, ys, level: float):
-    """``(values (ny, nx), evaluated (ny, nx), plan)`` of ``band_lattice``."""
+def _band_values(spline: AdaptiveSpline, xs, ys, level: float, evaluator=None):
+    """``(values (ny, nx), evaluated (ny, nx), plan)`` of ``band_lattice``, through
+    ``evaluator`` (the spline's ``on_host()``) where one was built already."""
     axes = [np.asarray(xs, np.float64).reshape(-1), np.asarray(ys, np.float64).reshape(-1)]
-    values, evaluated, plan = band_lattice(FinestSpline(spline), axes, float(level))
+    evaluator = spline.on_host() if evaluator is None else evaluator
+    values, evaluated, plan = band_lattice(evaluator, axes, float(level))
     return values.T, evaluated.T, plan
 
 
@@ -251,8 +217,9 @@ def _sampled(spline, xs, ys, zero_tol: float) -> tuple[np.ndarray, float]:
 
 @_sampled.register
 def _(spline: AdaptiveSpline, xs, ys, zero_tol: float) -> tuple[np.ndarray, float]:
-    values, evaluated, _ = _band_values(spline, xs, ys, 0.0)
-    ratio = _coefficient_ratio(spline)
+    evaluator = spline.on_host()  # the cascade once, for the band and the bound
+    values, evaluated, _ = _band_values(spline, xs, ys, 0.0, evaluator)
+    ratio = _coefficient_ratio(evaluator)
     band = np.abs(values[evaluated])
     if ratio is not None and band.size and np.isfinite(band).all():
         # Outside the spline's box (a larger ``box``) g extrapolates past R: those nodes
@@ -263,10 +230,11 @@ def _(spline: AdaptiveSpline, xs, ys, zero_tol: float) -> tuple[np.ndarray, floa
     return values, _zero_area(evaluate_grid(spline, xs, ys), zero_tol)
 
 
-def _coefficient_ratio(spline: AdaptiveSpline) -> float | None:
-    """``max |A_num / A_den|`` over the cascaded coefficients (``FinestSpline``); None
-    when a denominator is not positive (no bound on ``|g|`` then)."""
-    numerator, denominator = FinestSpline(spline).cascaded
+def _coefficient_ratio(evaluator: FinestSpline) -> float | None:
+    """``max |A_num / A_den|`` over an adaptive spline's cascaded coefficients (its
+    ``FinestSpline``); None when a denominator is not positive (no bound on ``|g|``
+    then)."""
+    numerator, denominator = evaluator.cascaded
     if not np.all(denominator > 0):
         return None
     return float(np.max(np.abs(numerator / denominator), initial=0.0))

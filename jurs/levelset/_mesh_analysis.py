@@ -19,8 +19,8 @@ from scipy import sparse
 from scipy.sparse import csgraph
 from scipy.spatial import cKDTree  # pyright: ignore[reportAttributeAccessIssue]  # no stub
 
+from .._cloud.carried import MIN_CARRIED_FRACTION, carried_samples
 from ..datasets import sample_mesh
-from ._curves import MIN_CARRIED_FRACTION, carried_samples
 from ._faces import boundary_edges, check_mesh, face_areas, face_components
 from ._trimming import DEFAULT_TRIM, UNSUPPORTED_FRACTION, Support, check_points
 
@@ -193,7 +193,7 @@ class MeshComponent:
             [`boundary_loops`][jurs.levelset.boundary_loops].
         carried_fraction: the share of its area (at face centroids) whose nearest data
             point lies within the threshold and nearer to this component than to any
-            other (``jurs.levelset._curves.carried_samples``); NaN without data.
+            other (``jurs._cloud.carried.carried_samples``); NaN without data.
     """
 
     faces: np.ndarray
