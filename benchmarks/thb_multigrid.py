@@ -1,8 +1,9 @@
 """CG on the THB hierarchy's normal equations: Jacobi (``solve_host_cg``, the default on a
 CPU) against the multilevel V-cycle over the hierarchy's nested spaces
-(``jurs._linalg.thb_multigrid``, ``fit_adaptive(method="multigrid")``) and against pyamg's
-smoothed aggregation (when pyamg is installed), on the same assembled problems, back to
-back in one process: steps to ``DEFAULT_RTOL``, set-up and solve time.
+(``jurs._linalg.thb_multigrid``) run on the host (``fit_adaptive(method="host_multigrid")``)
+and in JAX (``method="multigrid"``: its first call, compilation included, and a warm one),
+and against pyamg's smoothed aggregation (when pyamg is installed), on the same assembled
+problems, back to back in one process: steps to ``DEFAULT_RTOL``, set-up and solve time.
 
 The problems are ``fit_adaptive``'s: its settings, layout, samples and lambda
 (``hierarchy_layout``, ``assemble_adaptive_problem``, ``scale_free_lam``). Curves: Example 1
@@ -29,7 +30,12 @@ jax.config.update("jax_enable_x64", True)
 import numpy as np  # noqa: E402
 
 import jurs  # noqa: E402
-from jurs._fit.adaptive import DEFAULT_RTOL, hierarchy_layout, solve_host_cg  # noqa: E402
+from jurs._fit.adaptive import (  # noqa: E402
+    DEFAULT_RTOL,
+    hierarchy_layout,
+    solve_host_cg,
+    solve_multigrid,
+)
 from jurs._fit.settings import auto_settings, scale_free_lam  # noqa: E402
 from jurs._linalg.thb_multigrid import ThbMultigrid  # noqa: E402
 from jurs._problem.adaptive import assemble_adaptive_problem, normal_system  # noqa: E402
@@ -119,6 +125,11 @@ def measure(name: str, kind: str, finest: int) -> dict:
         multigrid_difference=float(np.linalg.norm(x - reference) / scale),
     )  # fmt: skip
     del multigrid
+    for call in ("first", "warm"):  # set-up on the host, transfer and the compiled solve
+        start = time.perf_counter()
+        x, steps, _ = solve_multigrid(problem, matrices, lam, DEFAULT_RTOL, MAX_STEPS, np.float64)
+        row[f"jax_{call}_s"] = time.perf_counter() - start
+    row.update(jax_steps=steps, jax_difference=float(np.linalg.norm(x - reference) / scale))
     try:
         import pyamg  # pyright: ignore[reportMissingImports]
     except ImportError:
@@ -145,7 +156,8 @@ def report(rows: list[dict[str, Any]]) -> str:
     table = md_table(
         [
             "case", "finest", "levels", "active", "spaces", "Jacobi steps", "Jacobi s",
-            "MG steps", "MG set-up s", "MG solve s", "pyamg steps", "pyamg set-up s",
+            "MG steps", "MG set-up s", "MG solve s", "MG in JAX steps",
+            "MG in JAX first s", "MG in JAX warm s", "pyamg steps", "pyamg set-up s",
             "pyamg solve s", "load (1 min) before / after",
         ],
         [
@@ -153,6 +165,7 @@ def report(rows: list[dict[str, Any]]) -> str:
                 r["case"], r["finest"], r["levels"], r["active"],
                 " / ".join(str(n) for n in r["spaces"]), r["jacobi_steps"], s(r["jacobi_s"]),
                 r["multigrid_steps"], s(r["multigrid_setup_s"]), s(r["multigrid_solve_s"]),
+                r["jax_steps"], s(r["jax_first_s"]), s(r["jax_warm_s"]),
                 r.get("pyamg_steps", "-"), s(r.get("pyamg_setup_s")),
                 s(r.get("pyamg_solve_s")),
                 f"{r['load_before'].split(',')[0]} / {r['load_after'].split(',')[0]}",
@@ -160,25 +173,28 @@ def report(rows: list[dict[str, Any]]) -> str:
             for r in rows
         ],
     )  # fmt: skip
-    worst = max(r["multigrid_difference"] for r in rows)
+    worst = max(max(r["multigrid_difference"], r["jax_difference"]) for r in rows)
     lines = [
         "# CG on the THB hierarchy: Jacobi, the nested-space V-cycle, pyamg",
         "",
         f"{datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M} UTC, {machine()}, "
         f"OPENBLAS_NUM_THREADS={os.environ.get('OPENBLAS_NUM_THREADS', 'unset')}; "
-        "written by `python -m benchmarks.thb_multigrid`. All three solves of a row ran "
+        "written by `python -m benchmarks.thb_multigrid`. All four solves of a row ran "
         "back to back in one process; the machine was shared (its load average beside "
         "each row), so compare steps first and times only within a row.",
         "",
         "Stop rule `|r| <= 1e-10 |D^T b|`. *spaces*: unknowns of the nested spaces "
         "V_0 .. V_L. *MG set-up*: the normal matrix, the prolongations, the Galerkin "
         "operators and the patch inverses; Jacobi's CG needs none of them (it applies "
-        "`D^T D + lam G` by products with D). pyamg: `smoothed_aggregation_solver(A)"
-        ".aspreconditioner()` on the same matrix, defaults.",
+        "`D^T D + lam G` by products with D). *MG in JAX*: the same cycle and CG run in "
+        "JAX (`solve_multigrid`: the host set-up, the transfer and the compiled solve), "
+        "its first call with compilation and a warm one. pyamg: "
+        "`smoothed_aggregation_solver(A).aspreconditioner()` on the same matrix, "
+        "defaults.",
         "",
         *table,
         "",
-        f"Largest relative difference of the V-cycle's solution from Jacobi's: {worst:.1e}.",
+        f"Largest relative difference of the V-cycles' solutions from Jacobi's: {worst:.1e}.",
         "",
     ]
     return "\n".join(lines)

@@ -4,12 +4,14 @@ What [`jurs.fit`][] and the solvers are made of, for tests, benchmarks and users
 build their own solvers or losses (the optimistix pattern): the cubic B-spline basis and
 its sample layouts, the rational function and its transposes (eq. 14, 22-23), the energies
 and their hand-derived gradients (eq. 16-19, 31-33; docs/design.md section 2), the metrics
-(eq. 35-37) and the normal equations of the exact solve (docs/design.md section 3).
+(eq. 35-37), the normal equations of the exact solve (docs/design.md section 3), and the
+hierarchy's differentiable solve with its multilevel preconditioner.
 
 These names may change between versions without notice; ``jurs.__all__`` is the stable
 surface. Importing this module costs nothing beyond ``import jurs``.
 """
 
+from ._fit.adaptive import multilevel_preconditioner, solve_adaptive
 from ._linalg.normal import NormalEquations, normal_equations
 from ._model.basis import cubic_derivatives, cubic_weights
 from ._model.groups import with_groups
@@ -69,6 +71,7 @@ __all__ = [
     "leaf_terms",
     "locate_leaves",
     "make_adaptive_problem",
+    "multilevel_preconditioner",
     "refine_near",
     "LocalBasis",
     "NormalEquations",
@@ -95,6 +98,7 @@ __all__ = [
     "regulariser",
     "regulariser_grad",
     "residuals",
+    "solve_adaptive",
     "step_size",
     "transpose_apply",
     "weight_gradient",

@@ -54,7 +54,7 @@ def test_robust_least_squares_fits_a_hierarchy(flipped):
     assert _mean_distance(sol.spline, points) < 0.8 * _mean_distance(plain.spline, points)
 
 
-@pytest.mark.parametrize("method", ["host_cg", "multigrid", "cg"])
+@pytest.mark.parametrize("method", ["host_cg", "multigrid", "host_multigrid", "cg"])
 def test_row_weighted_solves_agree_with_the_factorisation(method):
     points, normals = jurs.datasets.example1(150)
     cloud = jurs.Cloud(points, normals)

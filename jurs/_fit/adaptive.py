@@ -19,17 +19,18 @@ from __future__ import annotations
 
 import functools
 import math
+from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
 import lineax as lx
 import numpy as np
-from jax import lax
+from jax import Array, lax
 
 from .._cloud.cloud import Cloud
 from .._cloud.measure import PROBES, strided_probes
 from .._linalg.pcg import conjugate_gradients, jacobi_inverse
-from .._linalg.thb_multigrid import multigrid_cg
+from .._linalg.thb_multigrid import ThbMultigrid, VCycle, multigrid_cg
 from .._model.precision import on_device
 from .._problem.adaptive import (
     AdaptiveProblem,
@@ -71,6 +72,10 @@ DEFAULT_BAND = {2: 1, 3: 2}
 #: 1.5 to 1.0 and 2-4 % more at 0.75, for 50 % more active functions. A surface keeps the
 #: uniform grid's 3 (not yet measured on the hierarchy).
 CELL_SPACINGS = {2: 1.0, 3: 3.0}
+#: The hierarchy's linear solves (``exact_solve``): a factorisation on the host; CG with
+#: Jacobi in JAX or on the host (SciPy); CG with a V-cycle over the nested spaces in JAX or
+#: on the host.
+METHODS = ("direct", "cg", "host_cg", "multigrid", "host_multigrid")
 #: CG stops at this residual, relative to ``|D^T b|``.
 DEFAULT_RTOL = 1e-10
 #: CG's stop rule in float32, where ``DEFAULT_RTOL`` is below rounding.
@@ -169,23 +174,50 @@ def adaptive_layout(
 
 
 def solve_adaptive(
-    problem: AdaptiveProblem, lam, rtol: float = DEFAULT_RTOL, max_steps: int = 10_000
+    problem: AdaptiveProblem,
+    lam,
+    rtol: float = DEFAULT_RTOL,
+    max_steps: int = 10_000,
+    precondition: Callable[[Array], Array] | None = None,
 ):
     """``(control, steps, relative residual, metrics)``: the minimiser of ``E_d + lam R``
     on the problem's hierarchy (w = 1) by preconditioned CG; pure JAX, differentiable in
-    the problem's samples and targets and in ``lam``."""
+    the problem's samples and targets and in ``lam``. ``precondition``: CG's
+    preconditioner, e.g. the V-cycle of ``multilevel_preconditioner`` (None: Jacobi)."""
     basis = sample_basis(problem)
     matvec = normal_matvec(problem, lam, basis)
     rhs = normal_rhs(problem, basis)
-    # The preconditioner changes the path, not the solution: no derivative through it.
-    diagonal = lax.stop_gradient(problem.data_diagonal + lam * problem.regulariser_diagonal)
-    # A function no sample and no counted neighbour pair reaches has a zero row: keep it
-    # at 0 (its preconditioned residual is 0) instead of dividing by 0.
-    inverse = jacobi_inverse(diagonal)
+    if precondition is None:
+        # The preconditioner changes the path, not the solution: no derivative through it.
+        diagonal = lax.stop_gradient(problem.data_diagonal + lam * problem.regulariser_diagonal)
+        # A function no sample and no counted neighbour pair reaches has a zero row: keep
+        # it at 0 (its preconditioned residual is 0) instead of dividing by 0.
+        inverse = jacobi_inverse(diagonal)
+        preconditioner = lambda r: inverse * r  # noqa: E731
+    else:
+        preconditioner = precondition
     control, steps, residual = conjugate_gradients(
-        matvec, rhs, precondition=lambda r: inverse * r, rtol=rtol, max_steps=max_steps
+        matvec, rhs, precondition=preconditioner, rtol=rtol, max_steps=max_steps
     )
     return control, steps, residual, adaptive_metrics(problem, control, lam, basis)
+
+
+def multilevel_preconditioner(
+    problem: AdaptiveProblem, lam: float, dtype=None, **options
+) -> VCycle:
+    """The V-cycle over the hierarchy's nested spaces for the normal matrix of a concrete
+    ``problem`` with ``lam`` (``jurs._linalg.thb_multigrid``), as a JAX function for
+    ``solve_adaptive(precondition=...)``: set up on the host from the problem's values at
+    the time, it is a constant of the solve (no derivative flows through a
+    preconditioner, only through the system it preconditions). ``options`` go to
+    ``ThbMultigrid``."""
+    from scipy.sparse import csr_matrix
+
+    basis = np.asarray(sample_basis(problem))
+    matrices = normal_matrices(problem.hierarchy, np.asarray(problem.positions), basis)
+    matrix, _ = normal_system(problem, matrices, float(lam))
+    multigrid = ThbMultigrid(problem.hierarchy, csr_matrix(matrix), **options)
+    return multigrid.on_device(jnp.result_type(float) if dtype is None else dtype)
 
 
 #: Smallest padded length of the arrays of an assembled CG solve (``size_class``).
@@ -354,6 +386,55 @@ def solve_host_cg(
     return control, steps, float(np.linalg.norm(matvec(control) - rhs)) / scale
 
 
+@jax.jit
+def _multigrid_cg(normal, rhs, cycle, rtol, max_steps, start):
+    """CG on ``normal c = rhs`` (``normal``: the padded COO entries of the assembled normal
+    matrix) from ``start``, preconditioned by one V-cycle a step."""
+    rows, cols, values = normal
+    n = rhs.shape[0]
+
+    def matvec(c):
+        return jax.ops.segment_sum(values * c[cols], rows, n)
+
+    return conjugate_gradients(
+        matvec, rhs, precondition=cycle, start=start, rtol=rtol, max_steps=max_steps
+    )
+
+
+def solve_multigrid(
+    problem: AdaptiveProblem,
+    matrices,
+    lam: float,
+    rtol: float,
+    max_steps: int,
+    dtype,
+    row_weights=None,
+    start=None,
+    **options,
+) -> tuple[np.ndarray, int, float]:
+    """``(control, steps, relative residual)`` as ``solve_host_multigrid`` returns them,
+    the CG and its V-cycles run in JAX (``ThbMultigrid.on_device``): the set-up on the
+    host, the solve one compiled loop on JAX's default device. Every array is padded to a
+    size class (``size_class``), so that hierarchies of similar sizes share one compiled
+    solve. Not differentiable in the problem (``solve_adaptive`` with
+    ``multilevel_preconditioner`` is)."""
+    from scipy.sparse import csr_matrix
+
+    matrix, rhs = normal_system(problem, matrices, lam, row_weights)
+    n = matrix.shape[0]
+    multigrid = ThbMultigrid(problem.hierarchy, csr_matrix(matrix), **options)
+    first = np.zeros(n) if start is None else np.asarray(start, float)
+    control, steps, residual = _multigrid_cg(
+        _coo(matrix, size_class(matrix.nnz), dtype),
+        on_device(padded_to(rhs, size_class(n)), dtype),
+        multigrid.on_device(dtype, pad=size_class),
+        on_device(rtol, dtype),
+        on_device(max_steps, np.int32),
+        on_device(padded_to(first, size_class(n)), dtype),
+    )
+    return np.asarray(control)[:n], int(steps), float(residual)
+
+
 def solve_host_multigrid(
     problem: AdaptiveProblem,
     matrices,
@@ -431,10 +512,10 @@ def solve_normal(matrix, rhs: np.ndarray) -> tuple[np.ndarray, float]:
 
 
 def exact_solve(method: str, problem: AdaptiveProblem, matrices, lam, rtol, max_steps, dtype):
-    """The hierarchy's normal equations solved by ``method`` (``"direct"``, ``"host_cg"``,
-    ``"multigrid"`` or ``"cg"``), as a function ``solve(row_weights=None, start=None) ->
-    (control, steps, relative residual)`` of the samples' row weights and CG's first
-    iterate, for the solvers of ``solve_on_hierarchy``."""
+    """The hierarchy's normal equations solved by ``method`` (one of ``METHODS``), as a
+    function ``solve(row_weights=None, start=None) -> (control, steps, relative
+    residual)`` of the samples' row weights and CG's first iterate, for the solvers of
+    ``solve_on_hierarchy``."""
 
     def solve(row_weights=None, start=None):
         if method == "direct":  # a factorisation needs no start
@@ -443,8 +524,10 @@ def exact_solve(method: str, problem: AdaptiveProblem, matrices, lam, rtol, max_
         args = (problem, matrices, lam, rtol, max_steps)
         if method == "host_cg":
             return solve_host_cg(*args, row_weights=row_weights, start=start)
-        if method == "multigrid":
+        if method == "host_multigrid":
             return solve_host_multigrid(*args, row_weights=row_weights, start=start)
+        if method == "multigrid":
+            return solve_multigrid(*args, dtype, row_weights=row_weights, start=start)
         return solve_assembled(*args, dtype, row_weights=row_weights, start=start)
 
     return solve

@@ -351,7 +351,7 @@ def fit_adaptive_across_processes(
     default) ``solve_summed``'s factorisation of the processes' summed normal equations
     in every process. What reads the whole cloud on a host (the orientation and doubt
     checks) is not run (docs/sharding.md, "Adaptive fits")."""
-    if method in ("host_cg", "multigrid"):
+    if method in ("host_cg", "multigrid", "host_multigrid"):
         raise ValueError(
             f"method={method!r} reads every sample on one host; points split over processes "
             "fit with 'cg' (over every device) or 'direct'"

@@ -27,6 +27,7 @@ from .adaptive import (
     DEFAULT_RTOL,
     DIRECT_RTOL,
     FLOAT32_RTOL,
+    METHODS,
     check_hierarchy_solver,
     exact_solve,
     hierarchy_layout,
@@ -77,11 +78,11 @@ def fit_adaptive(
             1e-10 is below float32's rounding, and CG would run to ``max_steps``).
         method: ``"direct"`` (a sparse factorisation on the host, QDLDL), ``"cg"``
             (conjugate gradients in JAX, the path that runs on a GPU), ``"host_cg"``
-            (the same conjugate gradients run by SciPy on the host, faster on a CPU) or
-            ``"multigrid"`` (SciPy's conjugate gradients on the host preconditioned by a
-            V-cycle over the hierarchy's nested spaces: 10-30 steps where Jacobi takes
-            hundreds, each dearer; docs/multigrid.md, "The multilevel solve of the
-            hierarchy");
+            (the same conjugate gradients run by SciPy on the host, faster on a CPU),
+            ``"multigrid"`` (conjugate gradients in JAX preconditioned by a V-cycle over
+            the hierarchy's nested spaces: 10-30 steps where Jacobi takes hundreds, each
+            dearer; docs/multigrid.md, "The multilevel solve of the hierarchy") or
+            ``"host_multigrid"`` (the same solve run by SciPy on the host);
             None takes ``"direct"`` for a curve; for a surface, whose factor fills in
             (3D nested dissection fill grows as n^(4/3)), ``"host_cg"`` where JAX's
             default device is a CPU and the points are not sharded, ``"cg"`` otherwise.
@@ -128,9 +129,9 @@ def fit_adaptive(
     through [`jurs.internal.make_adaptive_problem`][] and the solve is exact (the solve
     sits behind ``lax.custom_linear_solve``).
     """
-    if method not in (None, "direct", "cg", "host_cg", "multigrid"):
+    if method is not None and method not in METHODS:
         raise ValueError(
-            f"method must be 'direct', 'cg', 'host_cg', 'multigrid' or None, got {method!r}"
+            f"method must be one of {', '.join(map(repr, METHODS))} or None, got {method!r}"
         )
     if band is not None and band < 1:
         raise ValueError(f"band must be at least 1 cell, got {band}")

@@ -23,14 +23,25 @@ with a Chebyshev smoother on the Jacobi-scaled operator (the same polynomial bef
 after, so the cycle is a symmetric positive definite preconditioner) and an exact solve
 of the coarsest space; conjugate gradients on the full system, preconditioned by one
 cycle (docs/multigrid.md, "The multilevel solve of the hierarchy").
+
+**Two places to run it.** ``ThbMultigrid`` sets the cycle up on the host (Galerkin
+products, patch blocks, eigenvalue estimates: SciPy and NumPy) and applies it there;
+``ThbMultigrid.on_device`` hands the same cycle to JAX as a ``VCycle``, a pure function of
+arrays, so that conjugate gradients preconditioned by it run in one compiled loop on any
+device and ``jax.grad`` passes through the solve (``lax.custom_linear_solve``).
 """
 
 from __future__ import annotations
 
 import itertools
+from collections.abc import Callable
 from dataclasses import dataclass, field
 
+import equinox as eqx
+import jax
+import jax.numpy as jnp
 import numpy as np
+from jax import Array
 from jaxtyping import Float
 
 from .._model.hierarchy import Hierarchy, cascade_matrix
@@ -349,12 +360,168 @@ class ThbMultigrid:
         """One symmetric V-cycle from 0 for ``matrix x = residual``."""
         return np.where(self.mask, self._cycle(len(self.levels) - 1, residual), 0.0)
 
+    def on_device(self, dtype, pad: Callable[[int], int] | None = None) -> VCycle:
+        """The same cycle as a ``VCycle`` of JAX arrays in ``dtype``: every level's matrix,
+        Jacobi scaling, patch blocks and Chebyshev steps, the prolongations, and the
+        coarsest space's inverse (dense: it has at most ``(BASE_CELLS + 3)^d``
+        functions). ``pad(n)``: the length each level's vectors are padded to (None: none),
+        with zero rows that stay 0, so that a compiled solve serves every hierarchy whose
+        levels fall in the same padded sizes."""
+        pad = pad or (lambda n: n)
+        lengths = [pad(size) for size in self.sizes]
+
+        def entries(matrix, rows: int, cols: int):
+            coo = matrix.tocoo()  # pyright: ignore[reportAttributeAccessIssue]
+            count = pad(max(coo.nnz, 1))
+            return _Coo(
+                jnp.asarray(_padded(coo.row.astype(np.int32), count)),
+                jnp.asarray(_padded(coo.col.astype(np.int32), count)),
+                jnp.asarray(_padded(coo.data, count), dtype),
+                rows,
+                cols,
+            )
+
+        levels = []
+        for level, length in zip(self.levels, lengths):
+            patches = level.patches
+            blocks = None
+            if patches is not None:
+                count = pad(patches.index.shape[0])
+                blocks = _Blocks(
+                    jnp.asarray(_padded(patches.index.astype(np.int32), count)),
+                    jnp.asarray(_padded(patches.valid, count, False)),
+                    jnp.asarray(_padded(patches.inverses, count), dtype),
+                )
+            steps = np.asarray(level.steps, float).reshape(-1, 2)
+            levels.append(
+                _DeviceLevel(
+                    entries(level.matrix, length, length),
+                    jnp.asarray(_padded(level.inverse, length), dtype),
+                    jnp.asarray(steps, dtype),
+                    blocks,
+                )
+            )
+        prolongations = tuple(
+            entries(p, lengths[k + 1], lengths[k]) for k, p in enumerate(self.prolongations)
+        )
+        coarse = np.zeros((lengths[0], lengths[0]))
+        size = self.sizes[0]
+        coarse[:size, :size] = _dense_inverse(self.levels[0].matrix)
+        mask = _padded(self.mask, lengths[-1], False)
+        return VCycle(tuple(levels), prolongations, jnp.asarray(coarse, dtype), jnp.asarray(mask))
+
     def operator(self):
         """The cycle as a SciPy ``LinearOperator`` (CG's ``M``)."""
         from scipy.sparse.linalg import LinearOperator
 
         n = self.levels[-1].matrix.shape[0]  # pyright: ignore[reportAttributeAccessIssue]
         return LinearOperator((n, n), matvec=self.cycle, dtype=float)  # pyright: ignore[reportCallIssue]
+
+
+def _padded(values: np.ndarray, length: int, fill=0) -> np.ndarray:
+    """``values`` followed by ``fill`` up to ``length`` along the first axis."""
+    out = np.full((length,) + values.shape[1:], fill, values.dtype)
+    out[: values.shape[0]] = values
+    return out
+
+
+def _dense_inverse(matrix) -> np.ndarray:
+    """The inverse of the coarsest space's matrix as a dense array, its zero rows and
+    columns (functions nothing reaches) kept at 0: ``_factorise``'s solve as a matrix,
+    with the same ridge where the matrix is exactly singular."""
+    dense = np.asarray(matrix.todense())
+    diagonal = np.diag(dense).copy()
+    live = np.flatnonzero(diagonal > 0)
+    kept = dense[np.ix_(live, live)]
+    out = np.zeros_like(dense)
+    try:
+        inverse = np.linalg.inv(kept)
+        if not np.all(np.isfinite(inverse)):
+            raise np.linalg.LinAlgError
+    except np.linalg.LinAlgError:  # exactly singular (lam = 0): a relative ridge
+        ridge = diagonal[live] * live.size * np.finfo(float).eps
+        inverse = np.linalg.inv(kept + np.diag(ridge))
+    out[np.ix_(live, live)] = inverse
+    return out
+
+
+class _Coo(eqx.Module):
+    """A sparse matrix as padded COO entries (padding: zeros at (0, 0), which add
+    nothing), its shape static."""
+
+    rows: Array
+    cols: Array
+    values: Array
+    num_rows: int = eqx.field(static=True)
+    num_cols: int = eqx.field(static=True)
+
+    def __matmul__(self, x: Array) -> Array:
+        return jax.ops.segment_sum(self.values * x[self.cols], self.rows, self.num_rows)
+
+    def transpose_apply(self, y: Array) -> Array:
+        return jax.ops.segment_sum(self.values * y[self.rows], self.cols, self.num_cols)
+
+
+class _Blocks(eqx.Module):
+    """Additive Schwarz over patches (``_Patches.apply``) on the device."""
+
+    index: Array  # (patches, size) functions of each patch's slots
+    valid: Array  # (patches, size) slots that hold a function
+    inverses: Array  # (patches, size, size) the patches' inverse blocks
+
+    def __call__(self, r: Array) -> Array:
+        local = jnp.where(self.valid, r[self.index], 0.0)
+        solved = jnp.einsum("pab,pb->pa", self.inverses, local)
+        return jax.ops.segment_sum(
+            jnp.where(self.valid, solved, 0.0).ravel(), self.index.ravel(), r.shape[0]
+        )
+
+
+class _DeviceLevel(eqx.Module):
+    matrix: _Coo
+    inverse: Array  # Jacobi scaling, 0 on zero and padded rows
+    steps: Array  # (degree, 2) the Chebyshev recurrence's (alpha, beta)
+    patches: _Blocks | None
+
+    def precondition(self, r: Array) -> Array:
+        return self.inverse * r if self.patches is None else self.patches(r)
+
+    def smooth(self, rhs: Array, x: Array | None) -> Array:
+        """``ThbMultigrid._smooth``: the Chebyshev steps on the scaled residual."""
+        r = rhs if x is None else rhs - self.matrix @ x
+        d = jnp.zeros_like(rhs)
+        for step in range(self.steps.shape[0]):
+            alpha, beta = self.steps[step, 0], self.steps[step, 1]
+            d = alpha * self.precondition(r) + beta * d
+            x = d if x is None else x + d
+            r = r - self.matrix @ d
+        assert x is not None
+        return x
+
+
+class VCycle(eqx.Module):
+    """``ThbMultigrid``'s symmetric V-cycle in JAX (``ThbMultigrid.on_device``): call it on
+    a residual for the cycle's correction from 0. A pure function of its arrays, so it
+    runs inside ``jax.jit``, on any device, as the preconditioner of
+    ``jurs._linalg.pcg.conjugate_gradients``."""
+
+    levels: tuple[_DeviceLevel, ...]  # coarsest first
+    prolongations: tuple[_Coo, ...]  # V_l -> V_{l+1}
+    coarse: Array  # the coarsest space's inverse, dense
+    mask: Array  # functions of the finest space with a nonzero row
+
+    def _cycle(self, index: int, rhs: Array) -> Array:
+        if index == 0:
+            return self.coarse @ rhs
+        level = self.levels[index]
+        x = level.smooth(rhs, None)
+        residual = rhs - level.matrix @ x
+        prolongation = self.prolongations[index - 1]
+        coarse = self._cycle(index - 1, prolongation.transpose_apply(residual))
+        return level.smooth(rhs, x + prolongation @ coarse)
+
+    def __call__(self, residual: Float[Array, " n"]) -> Float[Array, " n"]:
+        return jnp.where(self.mask, self._cycle(len(self.levels) - 1, residual), 0.0)
 
 
 def _factorise(matrix):
