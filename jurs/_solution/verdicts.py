@@ -116,14 +116,13 @@ def border_negative_fraction(spline: AbstractSpline) -> float:
     axes = [np.linspace(lo, hi, int(n) + 1) for lo, hi, n in zip(lower, upper, steps)]
     negative = total = 0
     with np.errstate(invalid="ignore", divide="ignore"):
-        for axis in range(d):
-            for end in (lower[axis], upper[axis]):
-                face = [*axes[:axis], np.array([end]), *axes[axis + 1 :]]
-                values = np.asarray(host.lattice(face))
-                if not np.isfinite(values).all():
-                    return float("nan")
-                negative += int(np.sum(values < 0))
-                total += values.size
+        for axis in range(d):  # both faces across ``axis``: one lattice of two planes
+            faces = [*axes[:axis], np.array([lower[axis], upper[axis]]), *axes[axis + 1 :]]
+            values = np.asarray(host.lattice(faces))
+            if not np.isfinite(values).all():
+                return float("nan")
+            negative += int(np.sum(values < 0))
+            total += values.size
     return negative / total
 
 
