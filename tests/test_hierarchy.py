@@ -479,19 +479,17 @@ def test_a_curve_fit_keeps_a_band_of_one_cell_by_default():
 
 
 @pytest.mark.parametrize("ndim", [2, 3])
-def test_packed_evaluation_equals_the_hierarchys(ndim):
-    """Outside a transformation a rational adaptive spline evaluates by its packed arrays
-    (keys shifted and padded, levels padded); inside one, through its hierarchy. Values
-    and gradients agree to rounding, for many points and for one."""
-    from jurs._model.packed import pack
-
+def test_host_evaluation_equals_the_hierarchys(ndim):
+    """Outside a transformation a rational adaptive spline evaluates on the host, by its
+    finest level's coefficients (``AdaptiveSpline.on_host``, kept while the spline
+    lives); inside one, through its hierarchy. Values and gradients agree to rounding,
+    for many points and for one."""
     hierarchy = _hierarchy(ndim)
     rng = np.random.default_rng(5)
     control = jnp.asarray(rng.normal(size=hierarchy.num_active))
     weights = jnp.asarray(rng.uniform(0.5, 2.0, hierarchy.num_active))
     spline = jurs.AdaptiveSpline(hierarchy, control, weights)
-    packed = pack(hierarchy, control, weights)
-    assert packed is not None and packed.cells.shape[0] % 4 == 0
+    assert spline.on_host() is spline.on_host()  # one evaluator for the spline's life
     x = _random_points(hierarchy, 300)
     traced = jax.jit(lambda s, p: (s(p), s.grad(p)))(spline, x)
     np.testing.assert_allclose(spline(x), traced[0], rtol=1e-12, atol=1e-13)
@@ -501,8 +499,8 @@ def test_packed_evaluation_equals_the_hierarchys(ndim):
     # jax.grad with respect to the coefficients goes through the hierarchy, as before.
     slope = jax.grad(lambda c: jnp.sum(jurs.AdaptiveSpline(hierarchy, c, weights)(x)))(control)
     assert slope.shape == control.shape and np.isfinite(np.asarray(slope)).all()
-    # A spline and points closed over by a jitted function are concrete there, but the
-    # trace is not: the hierarchy's path, the same values.
+    # A spline and points closed over by a jitted function are concrete there: evaluated
+    # on the host, constants of the trace, the same values.
     closed = jax.jit(lambda w: w * spline(np.asarray(x)))(2.0)
     np.testing.assert_allclose(closed, 2.0 * np.asarray(spline(x)), rtol=1e-12, atol=1e-13)
 

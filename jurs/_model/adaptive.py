@@ -9,10 +9,13 @@ the host evaluations), so the level-set tools and plots take either.
 
 from __future__ import annotations
 
+import weakref
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import Array
+from jax.core import Tracer
 from jaxtyping import ArrayLike, Float
 
 from .band import band_lattice
@@ -25,15 +28,38 @@ from .leaves import (
     hierarchy_values_and_gradients,
     rational_values_and_gradients,
 )
-from .packed import packed_gradients_at, packed_values_at
+from .precision import on_device
 
-# Traced evaluations (jurs._model.packed takes the others): one compiled program per
-# hierarchy and point count. Run eagerly, the leaf search and the
-# cascade compile each of their few dozen operations for every new shape (a first
-# gradient took over three times as long; docs/performance.md), and a warm call is
-# several times slower.
+# Traced evaluations (concrete ones run on the host, ``_on_host``): one compiled program
+# per hierarchy and point count. Run eagerly, the leaf search and the cascade compile
+# each of their few dozen operations for every new shape (a first gradient took over
+# three times as long; docs/performance.md), and a warm call is several times slower.
 _values = jax.jit(hierarchy_values)
 _values_and_gradients = jax.jit(hierarchy_values_and_gradients)
+
+#: The host evaluator (``FinestSpline``: the cascade to the finest level, done once) of
+#: each live AdaptiveSpline, by identity: a spline is immutable, and its meshing,
+#: verdicts and evaluations at points all read the same one. An entry goes with its
+#: spline.
+_evaluators: dict[int, tuple] = {}
+
+
+def _host_points(spline: AdaptiveSpline, xy) -> np.ndarray | None:
+    """``xy`` as a float64 ``(n, d)`` or ``(d,)`` host array where ``spline(xy)`` can run
+    on the host: no leaf traced (``jax.grad``, ``vmap`` or ``jit`` of the spline or the
+    points go through the hierarchy, differentiably), a shape it takes, not empty. None
+    otherwise (then the traced path evaluates, and reports bad shapes as it does)."""
+    leaves = (spline.control, spline.weights, xy)
+    if any(isinstance(leaf, Tracer) for leaf in leaves):
+        return None
+    try:
+        x = np.asarray(xy, np.float64)
+    except (TypeError, ValueError):
+        return None
+    d = spline.ndim
+    if x.shape == (d,) or (x.ndim == 2 and x.shape[1] == d and len(x) > 0):
+        return x
+    return None
 
 
 class AdaptiveSpline(AbstractSpline):
@@ -86,10 +112,14 @@ class AdaptiveSpline(AbstractSpline):
         hierarchy stands in for)."""
         return self.hierarchy.cells(self.hierarchy.num_levels - 1)
 
+    def _result_dtype(self, xy):
+        return jnp.result_type(self.control.dtype, getattr(xy, "dtype", float))
+
     def __call__(self, xy: Float[ArrayLike, "*n d"]) -> Float[Array, "*n"]:
-        packed = packed_values_at(self.hierarchy, self.control, self.weights, xy)
-        if packed is not None:  # outside any transformation: one program per size class
-            return packed
+        x = _host_points(self, xy)
+        if x is not None:  # concrete: on the host, nothing to compile for a new fit
+            g, _ = finest_values_and_gradients(self.on_host(), np.atleast_2d(x), gradients=False)
+            return on_device(g[0] if x.ndim == 1 else g, self._result_dtype(xy))
         xy = jnp.asarray(xy)
         single = xy.ndim == 1
         both = _values(
@@ -103,9 +133,11 @@ class AdaptiveSpline(AbstractSpline):
     def grad(self, xy: Float[ArrayLike, "*n d"]) -> Float[Array, "*n d"]:
         """Spatial gradient of g at ``xy (n, d)``; ``(n, d)`` (or ``(d,)`` for one point):
         the quotient rule on eq. 14."""
-        packed = packed_gradients_at(self.hierarchy, self.control, self.weights, xy)
-        if packed is not None:
-            return packed
+        x = _host_points(self, xy)
+        if x is not None:
+            _, slope = finest_values_and_gradients(self.on_host(), np.atleast_2d(x))
+            assert slope is not None
+            return on_device(slope[0] if x.ndim == 1 else slope, self._result_dtype(xy))
         xy = jnp.asarray(xy)
         single = xy.ndim == 1
         x = jnp.atleast_2d(xy)
@@ -123,13 +155,25 @@ class AdaptiveSpline(AbstractSpline):
 
     def on_host(self) -> FinestSpline:
         """The finest level's reader (``jurs._model.lattice.FinestSpline``: the cascade
-        done once; see [`jurs.AbstractSpline`][])."""
-        return FinestSpline(self)
+        done once; see [`jurs.AbstractSpline`][]), kept while the spline lives: every
+        host evaluation of this spline (points, lattices, band meshes, verdicts) reads
+        the same one."""
+        key = id(self)
+        entry = _evaluators.get(key)
+        if entry is not None and entry[0]() is self:
+            return entry[1]
+        evaluator = FinestSpline(self)
+        try:
+            ref = weakref.ref(self, lambda _, key=key: _evaluators.pop(key, None))
+        except TypeError:  # not weakly referenceable: not kept
+            return evaluator
+        _evaluators[key] = (ref, evaluator)
+        return evaluator
 
     def band_lattice(self, axes, level: float) -> tuple[np.ndarray, np.ndarray]:
         """``(values, evaluated)``: g only on the blocks of the lattice where the level set
         can be (``jurs._model.band.band_lattice``; see [`jurs.AbstractSpline`][])."""
-        values, evaluated, _ = band_lattice(FinestSpline(self), axes, float(level))
+        values, evaluated, _ = band_lattice(self.on_host(), axes, float(level))
         return values, evaluated
 
     def values_and_gradients(
@@ -137,7 +181,9 @@ class AdaptiveSpline(AbstractSpline):
     ) -> tuple[Float[np.ndarray, " n"], Float[np.ndarray, "n d"]]:
         """g and its gradient at ``points`` on the host, through the finest level's
         coefficients under them (nothing compiled)."""
-        return finest_values_and_gradients(self, points, chunk=chunk)
+        values, gradients = finest_values_and_gradients(self.on_host(), points, chunk=chunk)
+        assert gradients is not None
+        return values, gradients
 
     def slope_bound(self) -> Float[np.ndarray, " d"]:
         """The grid's bound (``ImplicitSpline.slope_bound``) over the levels: on each leaf
@@ -152,7 +198,7 @@ def finest_slope_bound(spline: AdaptiveSpline, evaluator: FinestSpline | None = 
     """``AdaptiveSpline.slope_bound``, its cascaded coefficients read from ``evaluator``
     where one was built already; ``(d,)``."""
     hierarchy = spline.hierarchy
-    cascaded = (evaluator or FinestSpline(spline)).cascaded
+    cascaded = (evaluator or spline.on_host()).cascaded
     with np.errstate(divide="ignore", invalid="ignore"):
         ratio = cascaded[0] / cascaded[1]
     starts = level_offsets(hierarchy)

@@ -33,7 +33,7 @@ def adaptive_lattice_values(spline, axes) -> np.ndarray:
         raise ValueError(
             f"a {spline.ndim}D spline needs {spline.ndim} lattice axes, got {len(axes)}"
         )
-    return FinestSpline(spline).lattice(axes)
+    return spline.on_host().lattice(axes)
 
 
 #: Finest-level coefficients a window of ``FinestSpline.lattice`` holds at most: about
@@ -161,17 +161,28 @@ class FinestSpline:
             start = stop
         return np.concatenate(parts, axis=0)
 
-    def values_and_gradients(self, points) -> tuple[np.ndarray, np.ndarray]:
-        """g and its gradient at scattered ``points (n, d)``: each point reads the ``4^d``
-        finest coefficients over its finest cell (the distinct ones computed once) and
-        contracts them axis by axis, last axis first."""
+    def values_and_gradients(
+        self, points, gradients: bool = True
+    ) -> tuple[np.ndarray, np.ndarray | None]:
+        """g and its gradient (None unless ``gradients``) at scattered ``points (n, d)``:
+        each point's leaf is found (``locate_leaves`` in NumPy, the traced evaluation's
+        own search), its ``4^d`` cascaded coefficients read, and contracted axis by axis,
+        last axis first: the leaf's own piece, with no subdivision to the finest level."""
+        from .leaves import leaf_terms, locate_leaves
+
         points = np.asarray(points, np.float64)
         n, d = points.shape
-        located = [self.axis(points[:, a], a) for a in range(d)]
-        corner = np.stack(np.meshgrid(*[np.arange(4)] * d, indexing="ij"), -1).reshape(-1, d)
-        cell = np.stack([c for c, _, _ in located], -1)
-        coeffs = self.coefficients(cell[:, None, :] + corner[None])
-        coeffs = coeffs.reshape((2, n) + (4,) * d)
+        hierarchy = self.hierarchy
+        level, cell = locate_leaves(hierarchy, points, xp=np)
+        positions, t = leaf_terms(hierarchy, points, level, cell, xp=np)
+        coeffs = self.cascaded[:, positions].reshape((2, n) + (4,) * d)
+        # Each level's cell on the host (NumPy: a jitted caller's trace reaches no array).
+        cells = np.asarray([hierarchy.cells(lev) for lev in range(hierarchy.num_levels)], float)
+        widths = ((self.upper - self.lower) / cells)[level]
+        located = [
+            (None, cubic_weights(t[:, a], xp=np), cubic_slopes(t[:, a]) / widths[:, a, None])
+            for a in range(d)
+        ]
         # Contract the last axis, then the others; `parts[k]` holds the contraction with
         # the slope along axis k (and values along the rest), `parts[d]` values only.
         parts: list = [None] * d + [coeffs]
@@ -179,11 +190,14 @@ class FinestSpline:
             _, weights, slopes = located[a]
             shape = (1, n) + (1,) * a + (4,)
             w, s = weights.reshape(shape), slopes.reshape(shape)
-            parts[a] = np.sum(parts[d] * s, axis=-1)  # before parts[d] loses axis a
-            for k in range(a + 1, d + 1):
+            if gradients:
+                parts[a] = np.sum(parts[d] * s, axis=-1)  # before parts[d] loses axis a
+            for k in range(a + 1 if gradients else d, d + 1):
                 parts[k] = np.sum(parts[k] * w, axis=-1)
         numerator, denominator = parts[d]
         g = numerator / denominator
+        if not gradients:
+            return g, None
         gradient = np.stack([(p[0] - g * p[1]) / denominator for p in parts[:d]], axis=-1)
         return g, gradient
 
@@ -329,22 +343,24 @@ def values_and_gradients(spline, points, *, chunk: int = 1 << 14):
     return grid_values_and_gradients(spline, points, chunk=chunk)
 
 
-def finest_values_and_gradients(spline, points, *, chunk: int = 1 << 14):
+def finest_values_and_gradients(
+    evaluator: FinestSpline, points, *, chunk: int = 1 << 14, gradients: bool = True
+):
     """[`values_and_gradients`][jurs._model.lattice.values_and_gradients] of an adaptive
-    spline: its finest level's coefficients under the points (``FinestSpline``), in
-    chunks of ``chunk`` points."""
+    spline by its host ``evaluator``: its finest level's coefficients under the points,
+    in chunks of ``chunk`` points; the gradients None unless ``gradients``."""
+    d = evaluator.ndim
     points = np.asarray(points, dtype=np.float64)
-    if points.ndim != 2 or points.shape[1] != spline.ndim:
-        raise ValueError(f"points must have shape (n, {spline.ndim}), got {points.shape}")
+    if points.ndim != 2 or points.shape[1] != d:
+        raise ValueError(f"points must have shape (n, {d}), got {points.shape}")
     if len(points) == 0:
-        return np.empty(0), np.empty((0, spline.ndim))
+        return np.empty(0), (np.empty((0, d)) if gradients else None)
     value, gradient = [], []
-    evaluator = FinestSpline(spline)
     for start in range(0, len(points), int(chunk)):
-        v, g = evaluator.values_and_gradients(points[start : start + int(chunk)])
+        v, g = evaluator.values_and_gradients(points[start : start + int(chunk)], gradients)
         value.append(v)
         gradient.append(g)
-    return np.concatenate(value), np.concatenate(gradient)
+    return np.concatenate(value), (np.concatenate(gradient) if gradients else None)
 
 
 def grid_values_and_gradients(spline, points, *, chunk: int = 1 << 14):

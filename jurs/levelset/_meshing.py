@@ -417,7 +417,7 @@ def _mesh_band(spline, lower, upper, resolution: int, level: float, max_nodes, c
     the level (``jurs._model.band``); ``(axes, spacing, vertices in index units,
     faces)``. A default resolution (``chosen``) is lowered until the marched nodes fit in
     ``max_nodes``; a given one is refused past it (``check_band_size``)."""
-    evaluator = FinestSpline(spline)
+    evaluator = spline.on_host()
     marching_cubes = skimage_marching_cubes()
     slope = finest_slope_bound(spline, evaluator)
     while True:
