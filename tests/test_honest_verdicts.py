@@ -143,3 +143,41 @@ def test_a_bubble_beside_the_data_is_supplementary():
     on_bubble = np.asarray(bubble.vertices) + [0.92, 0.0, 0.0]
     report = levelset.analyze_mesh(vertices, faces, np.concatenate([points, on_bubble]))
     assert report.as_dict()["num_supplementary"] == 0
+
+
+def test_a_robust_fit_at_given_settings_is_judged_by_its_closed_components():
+    """Half a cloud of outliers (random places, random normals) beside a circle, fitted
+    with ``RobustLeastSquares(loss="tukey")`` at the clean circle's settings: the solve
+    cannot weigh down points it can fit, and drew a loop around each, which was
+    ``successful``. With every setting given, a solver that expects outliers is still
+    judged by its closed components away from the data; the clean circle's robust fit
+    at the same settings stays ``successful``."""
+    rng = np.random.default_rng(0)
+    t = rng.uniform(0, 2 * np.pi, 200)
+    circle = np.stack([np.cos(t), np.sin(t)], 1)
+    outliers = rng.uniform(-2, 2, (200, 2))
+    directions = rng.normal(size=(200, 2))
+    directions /= np.linalg.norm(directions, axis=1, keepdims=True)
+    settings = jurs.auto_settings(jurs.Cloud(circle, circle))
+    given = dict(grid=settings.grid, offset=settings.offset, eps=settings.eps, throw=False)
+    solver = jurs.RobustLeastSquares(loss="tukey", lam=1e-5)
+    clean = jurs.fit(circle, circle, solver=solver, **given)
+    assert clean.status == "successful", clean.stats.get("doubts")
+    with pytest.warns(UserWarning, match="doubtful"):
+        mixed = jurs.fit(
+            np.concatenate([circle, outliers]),
+            np.concatenate([circle, directions]),
+            solver=solver,
+            **given,
+        )
+    assert mixed.status == "doubtful"
+    assert mixed.stats["extra_components"]
+    assert all("closed zero-set component" in doubt for doubt in mixed.stats["doubts"])
+    # The plain solve at given settings is the user's to judge, as before.
+    plain = jurs.fit(
+        np.concatenate([circle, outliers]),
+        np.concatenate([circle, directions]),
+        solver=jurs.LeastSquares(lam=1e-5),
+        **given,
+    )
+    assert plain.status == "successful"

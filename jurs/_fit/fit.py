@@ -591,7 +591,8 @@ def _fit(
         sol = dataclasses.replace(sol, stats=dict(sol.stats, uniform_residual=residual))
     if top_level:
         if checks:
-            sol = judge(sol, cloud, settings if doubted else None, offset)
+            outliers = type(solver).expects_outliers
+            sol = judge(sol, cloud, settings if doubted else None, offset, outliers)
         raise_unless_reconstruction(sol, throw)
     if estimated is not None:
         sol = dataclasses.replace(sol, stats=dict(sol.stats, estimated_normals=estimated))

@@ -559,9 +559,38 @@ def check_doubts(sol, cloud, settings, offset):
     return dataclasses.replace(sol, metrics=metrics, stats=stats, result=result)
 
 
-def judge(sol, cloud, settings, offset):
+def check_components(sol, cloud, offset):
+    """``sol`` judged by its closed components away from the data alone
+    (``extra_components``, ``describe_extra``): ``doubtful`` in place of success, and a
+    warning, where there are any. What a fit by a robust solver with every setting given
+    is judged by: outliers the solve did not weigh down leave such loops (half a cloud of
+    outliers at a clean cloud's settings drew one around each), the check needs no
+    settings, and the points such a fit does weigh down may rightly lie far from its
+    zero set, so ``check_doubts``' far-point rule does not apply."""
+    tree = cloud.tree_without(())
+    _, threshold = far_point_fraction(sol.spline, cloud.points[cloud.kept], offset)
+    extra = extra_components(sol.spline, tree, threshold)
+    extent = float(np.linalg.norm(np.asarray(sol.spline.upper) - np.asarray(sol.spline.lower)))
+    found = [describe_extra(c, extent) for c in extra]
+    stats = dict(sol.stats, extra_components=tuple(extra))
+    if not found:
+        return dataclasses.replace(sol, stats=stats)
+    doubts = (*sol.stats.get("doubts", ()), *found)
+    result = sol.result
+    if sol.status == "successful":
+        result = RESULTS.doubtful
+        warnings.warn("jurs.fit: doubtful fit: " + "; ".join(found), stacklevel=4)
+    return dataclasses.replace(sol, stats=dict(stats, doubts=doubts), result=result)
+
+
+def judge(sol, cloud, settings, offset, components: bool = False):
     """The host's verdicts on a fit of ``cloud`` made at top level: the orientation of the
     normals (``check_orientation``) and, where the settings were chosen automatically
-    (the data were not looked at by a person), the doubts (``check_doubts``)."""
+    (the data were not looked at by a person), the doubts (``check_doubts``); with
+    settings given, its closed components away from the data (``check_components``)
+    where ``components`` (a fit by a solver that expects outliers, which can draw loops
+    around them)."""
     sol = check_orientation(sol, cloud)
-    return sol if settings is None else check_doubts(sol, cloud, settings, offset)
+    if settings is not None:
+        return check_doubts(sol, cloud, settings, offset)
+    return check_components(sol, cloud, offset) if components else sol

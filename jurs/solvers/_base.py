@@ -41,6 +41,10 @@ class AbstractSolver(eqx.Module, Generic[State]):
     #: Whether the solver works sample by sample and holds a few grids, never the
     #: normal equations' stencil (its memory estimate, ``jurs._problem.problem.fit_memory``).
     per_sample_iterations: ClassVar[bool] = False
+    #: Whether the solver expects outliers in its data: a fit by it with every setting
+    #: given is still judged by its closed components away from the data, such as loops
+    #: around outliers it did not weigh down (``jurs._solution.verdicts.check_components``).
+    expects_outliers: ClassVar[bool] = False
 
     @abc.abstractmethod
     def init(self, problem: Problem, spline: ImplicitSpline) -> tuple[State, Array]:

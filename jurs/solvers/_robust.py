@@ -171,6 +171,7 @@ class RobustLeastSquares(AbstractSolver[RobustLeastSquaresState]):
 
     # Not measured under reassociation: a hard loss's cut can turn rounding into a weight.
     reassociation_safe: ClassVar[bool] = False
+    expects_outliers: ClassVar[bool] = True
 
     def __check_init__(self):
         if self.loss not in TUNING:
