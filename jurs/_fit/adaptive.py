@@ -31,6 +31,7 @@ from .._cloud.cloud import Cloud
 from .._cloud.measure import PROBES, strided_probes
 from .._linalg.pcg import conjugate_gradients, jacobi_inverse
 from .._linalg.thb_multigrid import ThbMultigrid, VCycle, multigrid_cg
+from .._model.adaptive import AdaptiveSpline
 from .._model.precision import on_device
 from .._problem.adaptive import (
     AdaptiveProblem,
@@ -42,6 +43,7 @@ from .._problem.adaptive import (
     sample_basis,
 )
 from .._problem.sizes import round_size
+from .._solution.solution import RESULTS, Solution
 from .._solution.verdicts import evaluate_bucketed, judged_points
 from ..solvers import (
     IPIA,
@@ -52,7 +54,8 @@ from ..solvers import (
     RobustLeastSquares,
     RobustLeastSquaresState,
 )
-from .settings import Settings
+from .settings import Settings, scale_free_lam
+from .sharding import input_sharding, spans_processes
 
 #: Cells of the coarsest level along the longest side, at least: it fixes the sign of g far
 #: from the data, where a few cells suffice.
@@ -659,3 +662,69 @@ def hierarchy_layout(settings: Settings, ndim: int, finest, band, offset, eps, d
         eps=settings.eps if eps is None else float(eps),
         dtype=jnp.dtype(dtype or jnp.result_type(float)),
     )
+
+
+def solver_lam(solver, lam=None, points=None, normals=None) -> float | None:
+    """The ``lam`` of a fit on the hierarchy by ``solver``: the solver's own, else ``lam``
+    (None: made from the smoothing, ``hierarchy_lam``). Refuses a solver the hierarchy
+    does not take (``check_hierarchy_solver``), a ``lam`` beside a solver, and a robust fit
+    of ``points`` sharded over devices or processes (it reweighs on one host)."""
+    check_hierarchy_solver(solver)
+    if solver is None:
+        return lam
+    if lam is not None:
+        raise ValueError("pass lam or a solver, not both: a solver keeps its own lam")
+    if isinstance(solver, RobustLeastSquares) and (
+        spans_processes(points, normals) or input_sharding(points, normals) is not None
+    ):
+        raise ValueError(
+            "a robust fit on the hierarchy runs in one process on points that are not "
+            "sharded; gather them first, or fit with jurs.LeastSquares"
+        )
+    return float(solver.lam)
+
+
+def hierarchy_lam(settings: Settings, smoothing, samples: int, diagonal: float, layout, hierarchy):
+    """The lambda of a hierarchy fit given none: ``scale_free_lam`` of the ``smoothing``
+    (None: ``settings.smoothing``) for ``samples`` samples, the data's bounding-box
+    ``diagonal``, the box of ``layout`` (``hierarchy_layout``) and the ``hierarchy``'s
+    finest cell, so that one smoothing weighs the same on any hierarchy."""
+    lower, upper = layout["lower"], layout["upper"]
+    cell = float(np.max((upper - lower) / np.asarray(hierarchy.cells(hierarchy.num_levels - 1))))
+    strength = settings.smoothing if smoothing is None else float(smoothing)
+    return scale_free_lam(strength, samples, diagonal, lower, upper, cell)
+
+
+def hierarchy_rtol(rtol, dtype) -> float:
+    """CG's stop rule: ``rtol``, else ``DEFAULT_RTOL`` in float64 and ``FLOAT32_RTOL`` in
+    float32 (where a residual of ``DEFAULT_RTOL`` is below rounding)."""
+    return rtol if rtol is not None else DEFAULT_RTOL if dtype == jnp.float64 else FLOAT32_RTOL
+
+
+def hierarchy_solution(
+    hierarchy, control: np.ndarray, metrics: dict, settings: Settings, *, method: str,
+    steps: int, residual: float, rtol: float, dtype, settled=True, state=None, **stats,
+) -> Solution:  # fmt: skip
+    """The [`jurs.Solution`][] of a hierarchy solve by ``method`` that left ``control``
+    (w = 1) after ``steps`` steps at the relative ``residual``: ``successful`` where finite,
+    within ``rtol`` (a direct solve: ``DIRECT_RTOL``; far above rounding, its matrix was
+    singular) and ``settled`` (the solver's own rule), else ``max_steps_reached`` where
+    finite, else ``nonfinite``. Its stats: the solve's, the hierarchy's, then ``stats``."""
+    coefficients = on_device(control, dtype)
+    spline = AdaptiveSpline(hierarchy, coefficients, on_device(np.ones(control.shape), dtype))
+    tolerance = max(rtol, DIRECT_RTOL) if method == "direct" else rtol
+    finite = bool(np.all(np.isfinite(np.asarray(coefficients))))
+    if finite and float(residual) <= tolerance and settled:
+        result = RESULTS.successful
+    else:
+        result = RESULTS.max_steps_reached if finite else RESULTS.nonfinite
+    stats = {
+        "method": method,
+        "num_steps": int(steps),
+        "residual": float(residual),
+        "levels": hierarchy.num_levels,
+        "active": hierarchy.active_counts,
+        "finest": hierarchy.cells(hierarchy.num_levels - 1),
+        **stats,
+    }
+    return Solution(spline, metrics, stats, result, state, settings)

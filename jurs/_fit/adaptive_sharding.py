@@ -33,20 +33,15 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from .._cloud.parts import agree, allgather, gather_ragged
 from .._linalg.pcg import conjugate_gradients, jacobi_inverse
-from .._model.adaptive import AdaptiveSpline
 from .._model.precision import on_device
 from .._problem.adaptive import assemble_adaptive_problem
 from .._problem.validate import unit_normals, validate_inputs
-from .._solution.solution import (
-    RESULTS,
-    Solution,
-    raise_unless_reconstruction,
-)
+from .._solution.solution import Solution, raise_unless_reconstruction
 from .adaptive import (
-    DEFAULT_RTOL,
-    DIRECT_RTOL,
-    FLOAT32_RTOL,
+    hierarchy_lam,
     hierarchy_layout,
+    hierarchy_rtol,
+    hierarchy_solution,
     padded_to,
     size_class,
     solve_normal,
@@ -57,7 +52,7 @@ from .process_settings import (
     local_cloud,
     settings_across_processes,
 )
-from .settings import Settings, scale_free_lam
+from .settings import Settings
 from .sharding import input_sharding, point_axis_size, process_positions
 
 
@@ -378,50 +373,28 @@ def fit_adaptive_across_processes(
     n = unit_normals(n)
     ndim = p.shape[1]
     layout = hierarchy_layout(settings, ndim, finest, band, offset, eps, dtype)
-    lower, upper, dtype = layout["lower"], layout["upper"], layout["dtype"]
+    dtype = layout["dtype"]
     problem, matrices = assemble_adaptive_problem(p, n, **layout, combine_refined=_union)
-    hierarchy = problem.hierarchy
-    finest_level = hierarchy.num_levels - 1
-    finest_width = float(np.max((upper - lower) / np.asarray(hierarchy.cells(finest_level))))
     if lam is None:
-        strength = settings.smoothing if smoothing is None else float(smoothing)
         lo, hi = bounds_across_processes(p)
         diagonal = float(np.linalg.norm(hi - lo))
-        lam = scale_free_lam(strength, 3 * total, diagonal, lower, upper, finest_width)
-    if rtol is None:
-        rtol = DEFAULT_RTOL if dtype == jnp.float64 else FLOAT32_RTOL
+        lam = hierarchy_lam(settings, smoothing, 3 * total, diagonal, layout, problem.hierarchy)
+    rtol = hierarchy_rtol(rtol, dtype)
     method = method or ("direct" if ndim == 2 else "cg")
     if method == "direct":
-        control_np, residual, metrics = solve_summed(
+        control, residual, metrics = solve_summed(
             problem, matrices, float(lam), sharding, 3 * total
         )
         metrics = {name: on_device(value, dtype) for name, value in metrics.items()}
-        steps, tolerance = 0, max(rtol, DIRECT_RTOL)  # as fit_adaptive's direct solve
+        steps = 0
     else:
-        control_np, steps, residual, metrics = solve_sharded(
+        control, steps, residual, metrics = solve_sharded(
             problem, matrices, float(lam), float(rtol), int(max_steps), dtype, sharding, 3 * total
         )
-        tolerance = rtol
-    control = on_device(control_np, dtype)
-    spline = AdaptiveSpline(hierarchy, control, on_device(np.ones(control.shape), dtype))
-    finite = bool(np.all(np.isfinite(control_np)))
-    result = (
-        RESULTS.successful
-        if finite and residual <= tolerance
-        else RESULTS.max_steps_reached
-        if finite
-        else RESULTS.nonfinite
-    )
-    stats = {
-        "method": method,
-        "num_steps": steps,
-        "residual": residual,
-        "levels": hierarchy.num_levels,
-        "active": hierarchy.active_counts,
-        "finest": hierarchy.cells(finest_level),
-        "devices": len(sharding.device_set),
-        "processes": jax.process_count(),
-    }
-    sol = Solution(spline, metrics, stats, result, None, settings)
+    sol = hierarchy_solution(
+        problem.hierarchy, control, metrics, settings, method=method, steps=steps,
+        residual=residual, rtol=rtol, dtype=dtype, devices=len(sharding.device_set),
+        processes=jax.process_count(),
+    )  # fmt: skip
     raise_unless_reconstruction(sol, throw)
     return sol

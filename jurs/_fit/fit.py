@@ -4,7 +4,9 @@ The flow, each step once: the cloud checked and measured (``jurs.Cloud``), norma
 estimated where none are given, the settings chosen where not given
 (``jurs._fit.settings.choose_settings``), the problem laid out (padded to the size
 ladder), the compiled solve (``jurs._fit.call``), then the host's verdicts
-(``jurs._solution.verdicts.judge``)."""
+(``jurs._solution.verdicts.judge``). On the hierarchy (``on_hierarchy``) the layout and
+solve are ``jurs._fit.adaptive``'s; [`jurs.fit_adaptive`][] takes its cloud
+(``fit_cloud``), settings (``fit_settings``) and fit from here too."""
 
 from __future__ import annotations
 
@@ -14,12 +16,14 @@ import hashlib
 from collections import OrderedDict
 from typing import Callable
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jaxtyping import ArrayLike, Float
 
 from .._cloud.cloud import Cloud
 from .._model.spline import ImplicitSpline
+from .._problem.adaptive import assemble_adaptive_problem, assembled_metrics
 from .._problem.memory import check_fit_memory
 from .._problem.padding import padded_problem
 from .._problem.problem import make_problem
@@ -35,21 +39,28 @@ from .._solution.solution import (
     Solution,
     raise_unless_reconstruction,
 )
-from .._solution.verdicts import judge
-from ..solvers import AbstractSolver
+from .._solution.verdicts import judge, judged_points
+from ..solvers import AbstractSolver, LeastSquares
 from .adaptive import (
     UNIFORM_RESIDUAL_SPACINGS,
     auto_finest,
     check_hierarchy_solver,
+    exact_solve,
+    hierarchy_lam,
+    hierarchy_layout,
+    hierarchy_rtol,
+    hierarchy_solution,
+    solve_on_hierarchy,
+    solver_lam,
     uniform_residual,
     wants_adaptive,
 )
+from .adaptive_sharding import solve_sharded
 from .call import as_arrays, check_start, solve_fit
-from .fit_adaptive import fit_adaptive
 from .processes import fit_across_processes
 from .progress import chunked_run
 from .settings import Settings, choose_settings, default_solver, set_aside_mask
-from .sharding import place_fit, spans_processes
+from .sharding import input_sharding, place_fit, spans_processes
 
 #: Problems a ``jurs.Cloud`` keeps, the latest first, for fits that repeat settings.
 KEPT_PROBLEMS = 4
@@ -62,22 +73,10 @@ KEPT_CLOUD_POINTS = 1 << 15
 _kept_clouds: OrderedDict = OrderedDict()
 #: The bases [`fit`][jurs.fit] takes: chosen from the data, the uniform grid, the hierarchy.
 BASES = ("auto", "uniform", "adaptive")
-
-
-def _estimated(points, mask) -> tuple[Cloud, dict]:
-    """``(cloud, info)`` for [`fit`][jurs.fit] called without normals: the cloud with
-    outward normals from [`jurs.estimate_normals`][], and what the estimation found (a
-    dict, without the per-point confidence)."""
-    if mask is not None:
-        raise ValueError(
-            "normals=None estimates normals from the whole cloud: it takes no "
-            "mask (estimate them with jurs.estimate_normals, then pad)"
-        )
-    from .._cloud.normals import estimate_normals  # SciPy's graphs: loaded when first needed
-
-    given = points.given_points if isinstance(points, Cloud) else points
-    normals, info = estimate_normals(given, return_info=True)
-    return Cloud(given, normals), {k: v for k, v in info._asdict().items() if k != "confidence"}
+#: Why a ``jurs.Cloud`` is refused on the hierarchy (``on_hierarchy``, ``jurs.fit_adaptive``).
+CLOUD_REFUSAL = (
+    "fit_adaptive(cloud): pass a jurs.Cloud with its normals and no mask, and no normals beside it"
+)
 
 
 def _content_key(*arrays) -> tuple | None:
@@ -118,6 +117,54 @@ def _cloud_of(points, normals, mask) -> Cloud:
         while len(_kept_clouds) > KEPT_CLOUDS:
             _kept_clouds.popitem(last=False)
     return cloud
+
+
+def fit_cloud(points, normals, mask=None) -> tuple[Cloud, dict | None]:
+    """``(cloud, estimated)``: the cloud a fit of concrete ``points`` is made on, checked
+    once: a ``jurs.Cloud`` with normals as it is; the one built lately for the same arrays
+    (``_cloud_of``); or, without normals, one with outward normals from
+    [`jurs.estimate_normals`][], ``estimated`` then what the estimation found (a dict,
+    without the per-point confidence; else None)."""
+    if isinstance(points, Cloud) and points.normals is not None:
+        return points, None
+    if normals is not None:
+        return _cloud_of(points, normals, mask), None
+    if (points.given_mask if isinstance(points, Cloud) else mask) is not None:
+        raise ValueError(
+            "normals=None estimates normals from the whole cloud: it takes no "
+            "mask (estimate them with jurs.estimate_normals, then pad)"
+        )
+    from .._cloud.normals import estimate_normals  # SciPy's graphs: loaded when first needed
+
+    given = points.given_points if isinstance(points, Cloud) else points
+    normals, info = estimate_normals(given, return_info=True)
+    return Cloud(given, normals), {k: v for k, v in info._asdict().items() if k != "confidence"}
+
+
+def fit_settings(
+    cloud: Cloud, settings: Settings | None, grid, offset, eps, domain,
+    margin: float = DEFAULT_MARGIN, smoothing=None, solver: AbstractSolver | None = None,
+) -> tuple[Settings | None, tuple[int, ...]]:  # fmt: skip
+    """``(settings, shape)`` of a fit of ``cloud``, the values given checked first
+    (``check_values``, ``validate_settings``): ``settings`` where given (chosen before, by
+    the caller), else chosen here (``choose_settings``) where any of ``grid``, ``offset``,
+    ``eps`` and ``solver`` is missing, else None (every setting given); ``shape`` the
+    uniform grid, given or the settings', on which the fit's memory is checked once."""
+    check_values(offset=offset, eps=eps, margin=margin, domain=domain)
+    validate_settings(cloud.points, cloud.normals, cloud.mask, offset=offset, domain=domain)
+    shape = None if grid is None else normalise_grid(grid, cloud.ndim)
+    if settings is not None:
+        shape = settings.grid if shape is None else shape
+        check_fit_memory(shape, len(cloud), default_solver(settings) if solver is None else solver)
+    elif shape is None or offset is None or eps is None or solver is None:
+        # The memory on the chosen grid is checked there, before its first solve.
+        settings = choose_settings(
+            cloud, shape, offset, eps, domain, margin, smoothing, solver=solver
+        )
+        shape = settings.grid
+    else:
+        check_fit_memory(shape, len(cloud), solver)
+    return settings, shape
 
 
 def _problem_of(cloud: Cloud, shape, offset, eps, domain, margin, bucket_size, dtype, settings):
@@ -441,24 +488,62 @@ _CHUNKED_OPTIONS = (
 )
 
 
-def _on_hierarchy(
-    cloud, settings, checks, throw, estimated, residual=None, solver=None
-) -> Solution:
-    """The fit of ``cloud`` on the adaptive basis with ``settings`` (``jurs.fit_adaptive``),
-    its finest level chosen as ``basis="auto"`` does, by ``solver`` where one was given;
-    ``estimated`` (where the normals were estimated) and the capped grid's ``residual``
-    (where it was fitted first) recorded in its stats."""
-    sol = fit_adaptive(
-        cloud,
-        settings=settings,
-        finest=auto_finest(settings),
-        checks=checks,
-        throw=throw,
-        solver=solver,
+def on_hierarchy(
+    cloud: Cloud, settings: Settings, *, finest=None, band=None, offset=None, eps=None,
+    smoothing=None, lam=None, rtol=None, max_steps: int = 10_000, method=None, dtype=None,
+    checks: bool = True, throw: bool = True, solver: AbstractSolver | None = None,
+    noted: dict | None = None,
+) -> Solution:  # fmt: skip
+    """The fit of ``cloud`` (with normals, no mask) on the adaptive basis with
+    ``settings``, in this process: [`jurs.fit_adaptive`][]'s, with its arguments, and
+    [`jurs.fit`][]'s on the hierarchy. ``lam``: the solver's (``solver_lam``), or None
+    for the lambda made from the smoothing (``hierarchy_lam``). ``noted``: entries for
+    ``sol.stats`` (None values left out), e.g. what the normal estimation found."""
+    if cloud.mask is not None:  # jurs.fit(cloud, settings=..., basis="adaptive")
+        raise ValueError(CLOUD_REFUSAL)
+    keep = judged_points(cloud, settings)  # the cloud has no mask: all but those set aside
+    points = cloud.points[keep]
+    normals = np.asarray(cloud.normals, float)[keep]
+    ndim = points.shape[1]
+    # Points sharded over devices (one process): CG keeps each device's samples there.
+    sharding = input_sharding(cloud.given_points, cloud.given_normals)
+    if method is None:
+        on_cpu = sharding is None and jax.default_backend() == "cpu"
+        method = "direct" if ndim == 2 else "host_cg" if on_cpu else "cg"
+    layout = hierarchy_layout(settings, ndim, finest, band, offset, eps, dtype)
+    dtype = layout["dtype"]
+    problem, matrices = assemble_adaptive_problem(points, normals, **layout)
+    if lam is None:
+        diagonal = float(np.linalg.norm(points.max(0) - points.min(0)))
+        lam = hierarchy_lam(
+            settings, smoothing, 3 * len(points), diagonal, layout, problem.hierarchy
+        )
+    lam, rtol = float(lam), hierarchy_rtol(rtol, dtype)
+    state, settled = None, True
+    if method == "cg" and sharding is not None:
+        control, steps, residual, metrics = solve_sharded(
+            problem, matrices, lam, float(rtol), int(max_steps), dtype, sharding
+        )
+    else:  # a factorisation, or CG on the assembled matrices (SciPy, or JAX compiled)
+        # host_cg reads every sample on the host, as a direct solve does.
+        solve = exact_solve(method, problem, matrices, lam, float(rtol), int(max_steps), dtype)
+        control, steps, residual, state, settled = solve_on_hierarchy(
+            LeastSquares(lam=lam) if solver is None else solver, problem, matrices, solve
+        )
+        metrics = assembled_metrics(problem, matrices, control, lam)
+    # The devices the solve ran over, where the points are sharded (a direct solve: the host).
+    stats = (
+        {} if sharding is None else {"devices": len(sharding.device_set) if method == "cg" else 1}
     )
-    noted = dict(estimated_normals=estimated, uniform_residual=residual)
-    extra = {name: value for name, value in noted.items() if value is not None}
-    return dataclasses.replace(sol, stats=dict(sol.stats, **extra)) if extra else sol
+    sol = hierarchy_solution(
+        problem.hierarchy, control, metrics, settings, method=method, steps=steps,
+        residual=residual, rtol=rtol, dtype=dtype, settled=settled, state=state, **stats,
+    )  # fmt: skip
+    if checks:
+        sol = judge(sol, cloud, settings, layout["offset"])
+    raise_unless_reconstruction(sol, throw)
+    noted = {name: value for name, value in (noted or {}).items() if value is not None}
+    return dataclasses.replace(sol, stats=dict(sol.stats, **noted)) if noted else sol
 
 
 def _fit(
@@ -514,36 +599,19 @@ def _fit(
         args = grid, solver, offset, eps, domain, margin, init, mask, bucket_size, throw
         return _traced_fit(points, normals, *args), None
     # The cloud, checked once; its measurements are kept for every fit of it.
-    estimated = None
-    if isinstance(points, Cloud) and points.normals is not None:
-        cloud = points
-    elif normals is None:  # a Cloud without normals keeps its mask: refused there
-        given_mask = points.given_mask if isinstance(points, Cloud) else mask
-        cloud, estimated = _estimated(points, given_mask)
-    else:
-        cloud = _cloud_of(points, normals, mask)
-    check_values(offset=offset, eps=eps, margin=margin, domain=domain)
-    validate_settings(cloud.points, cloud.normals, cloud.mask, offset=offset, domain=domain)
-    shape = None if grid is None else normalise_grid(grid, cloud.ndim)
-    offset_given = offset
+    cloud, estimated = fit_cloud(points, normals, mask)
     automatic = solver is None and cloud.mask is None
     doubted = settings is None or solver is None  # chosen here, or the solver with them
-    if settings is not None:  # chosen before, by the caller
-        shape = settings.grid if shape is None else shape
+    offset_given = offset
+    args = grid, offset, eps, domain, margin, smoothing, solver
+    settings, shape = fit_settings(cloud, settings, *args)
+    if settings is not None:  # chosen before (by the caller) or here: the values not given
         offset = settings.offset if offset is None else offset
         eps = settings.eps if eps is None else eps
         solver = default_solver(settings) if solver is None else solver
-        check_fit_memory(shape, len(cloud), solver)
-    elif shape is None or offset is None or eps is None or solver is None:
-        # The memory on the chosen grid is checked there, before its first solve.
-        settings = choose_settings(
-            cloud, shape, offset, eps, domain, margin, smoothing, solver=solver
-        )
-        shape, offset, eps = settings.grid, settings.offset, settings.eps
-        solver = default_solver(settings) if solver is None else solver
-    else:
-        check_fit_memory(shape, len(cloud), solver)
-    if domain is not None and offset_given is None:  # the chosen offset, in the box given
+    # The chosen offset, in the box given (fit_adaptive, which fits settings.domain, does
+    # not check it).
+    if domain is not None and offset_given is None:
         validate_settings(cloud.points, cloud.normals, cloud.mask, offset=offset, domain=domain)
     # Where the automatic uniform grid is capped below what the data ask for, it is fitted
     # first and kept if its zero set follows the data; otherwise the hierarchy is fitted.
@@ -554,7 +622,12 @@ def _fit(
         and wants_adaptive(settings, len(cloud))
     )
     if settings is not None and basis == "adaptive":
-        sol = _on_hierarchy(cloud, settings, checks, throw, estimated, solver=given_solver)
+        lam = solver_lam(given_solver)  # a robust solver: also on points sharded in one process
+        noted = dict(estimated_normals=estimated)
+        sol = on_hierarchy(
+            cloud, settings, finest=auto_finest(settings), lam=lam, checks=checks, throw=throw,
+            solver=given_solver, noted=noted,
+        )  # fmt: skip
         return sol, None
     check_start(shape, solver, init)
     dtype = jnp.result_type(float)
@@ -586,8 +659,12 @@ def _fit(
             else float("inf")
         )
         if residual > UNIFORM_RESIDUAL_SPACINGS:
-            hierarchy = _on_hierarchy(cloud, settings, checks, throw, estimated, residual)
-            return hierarchy, None
+            noted = dict(estimated_normals=estimated, uniform_residual=residual)
+            finest = auto_finest(settings)
+            sol = on_hierarchy(
+                cloud, settings, finest=finest, checks=checks, throw=throw, noted=noted
+            )
+            return sol, None
         sol = dataclasses.replace(sol, stats=dict(sol.stats, uniform_residual=residual))
     if top_level:
         if checks:

@@ -1,41 +1,23 @@
 """[`jurs.fit_adaptive`][]: the fit on a THB hierarchy, in one process or sharded over
-several devices or processes. Its layout and host solves are ``adaptive.py``'s (with the
-reasoning), the sharded ones ``adaptive_sharding.py``'s; this module chooses between them.
+several devices or processes. This module checks its options; points over several
+processes go to ``adaptive_sharding.fit_adaptive_across_processes``, others take
+[`jurs.fit`][]'s flow (``fit.py``: the cloud, the settings, then ``on_hierarchy``). The
+layout and host solves are ``adaptive.py``'s (with the reasoning), the sharded ones
+``adaptive_sharding.py``'s.
 """
 
 from __future__ import annotations
 
-from typing import cast
-
-import jax
-import jax.numpy as jnp
-import numpy as np
 from jaxtyping import ArrayLike, Float
 
 from .._cloud.cloud import Cloud
-from .._model.adaptive import AdaptiveSpline
-from .._model.precision import on_device
-from .._problem.adaptive import assemble_adaptive_problem, assembled_metrics
-from .._solution.solution import (
-    RESULTS,
-    Solution,
-    raise_unless_reconstruction,
-)
-from .._solution.verdicts import judge, judged_points
-from ..solvers import AbstractSolver, LeastSquares, RobustLeastSquares
-from .adaptive import (
-    DEFAULT_RTOL,
-    DIRECT_RTOL,
-    FLOAT32_RTOL,
-    METHODS,
-    check_hierarchy_solver,
-    exact_solve,
-    hierarchy_layout,
-    solve_on_hierarchy,
-)
-from .adaptive_sharding import fit_adaptive_across_processes, solve_sharded
-from .settings import Settings, auto_settings, scale_free_lam
-from .sharding import input_sharding, spans_processes
+from .._solution.solution import Solution
+from ..solvers import AbstractSolver
+from .adaptive import METHODS, solver_lam
+from .adaptive_sharding import fit_adaptive_across_processes
+from .fit import CLOUD_REFUSAL, fit_cloud, fit_settings, on_hierarchy
+from .settings import Settings
+from .sharding import spans_processes
 
 
 def fit_adaptive(
@@ -135,104 +117,28 @@ def fit_adaptive(
         )
     if band is not None and band < 1:
         raise ValueError(f"band must be at least 1 cell, got {band}")
-    check_hierarchy_solver(solver)
-    if solver is not None:
-        if lam is not None:
-            raise ValueError("pass lam or a solver, not both: a solver keeps its own lam")
-        if isinstance(solver, RobustLeastSquares) and (
-            spans_processes(points, normals) or input_sharding(points, normals) is not None
-        ):
-            raise ValueError(
-                "a robust fit on the hierarchy runs in one process on points that are not "
-                "sharded; gather them first, or fit with jurs.LeastSquares"
-            )
-        lam = float(solver.lam)
+    lam = solver_lam(solver, lam, points, normals)
     if spans_processes(points, normals):  # each process assembles its own samples' rows
         return fit_adaptive_across_processes(
             points, normals, finest=finest, band=band, offset=offset, eps=eps, domain=domain,
             smoothing=smoothing, lam=lam, rtol=rtol, max_steps=max_steps, settings=settings,
             method=method, dtype=dtype, throw=throw,
         )  # fmt: skip
-    if isinstance(points, Cloud):
-        if normals is not None or points.normals is None or points.mask is not None:
-            raise ValueError(
-                "fit_adaptive(cloud): pass a jurs.Cloud with its normals and no mask, "
-                "and no normals beside it"
-            )
-        cloud = points
-    else:
-        if normals is None:
-            from .._cloud.normals import estimate_normals
-
-            normals = cast(np.ndarray, estimate_normals(points))
-        # Checked once (NaN, shapes, zero normals, degenerate clouds) and exact repeats
-        # merged, whether or not the settings are given.
-        cloud = Cloud(points, normals)
-    if settings is None:
-        settings = auto_settings(cloud, offset=offset, eps=eps, domain=domain)
-    keep = judged_points(cloud, settings)  # the cloud has no mask: all but those set aside
-    points_np = cloud.points[keep]
-    normals_np = np.asarray(cloud.normals, float)[keep]
-    ndim = points_np.shape[1]
-    # Points sharded over devices (one process): CG keeps each device's samples there.
-    sharding = input_sharding(cloud.given_points, cloud.given_normals)
-    if method is None:
-        on_cpu = sharding is None and jax.default_backend() == "cpu"
-        method = "direct" if ndim == 2 else "host_cg" if on_cpu else "cg"
-    layout = hierarchy_layout(settings, ndim, finest, band, offset, eps, dtype)
-    lower, upper, dtype = layout["lower"], layout["upper"], layout["dtype"]
-    problem, matrices = assemble_adaptive_problem(points_np, normals_np, **layout)
-    hierarchy = problem.hierarchy
-    finest_level = hierarchy.num_levels - 1
-    finest_cell = float(np.max((upper - lower) / np.asarray(hierarchy.cells(finest_level))))
-    if lam is None:
-        strength = settings.smoothing if smoothing is None else float(smoothing)
-        diagonal = float(np.linalg.norm(points_np.max(0) - points_np.min(0)))
-        lam = scale_free_lam(strength, 3 * len(points_np), diagonal, lower, upper, finest_cell)
-    if rtol is None:
-        rtol = DEFAULT_RTOL if dtype == jnp.float64 else FLOAT32_RTOL
-    state, settled = None, True
-    if method == "cg" and sharding is not None:
-        control_np, steps, residual, metrics = solve_sharded(
-            problem, matrices, float(lam), float(rtol), int(max_steps), dtype, sharding
-        )
-        control = on_device(control_np, dtype)
-        tolerance = rtol
-    else:  # a factorisation, or CG on the assembled matrices (SciPy, or JAX compiled)
-        # host_cg reads every sample on the host, as a direct solve does.
-        solve = exact_solve(
-            method, problem, matrices, float(lam), float(rtol), int(max_steps), dtype
-        )
-        control_np, steps, residual, state, settled = solve_on_hierarchy(
-            LeastSquares(lam=float(lam)) if solver is None else solver, problem, matrices, solve
-        )
-        control = on_device(control_np, dtype)
-        metrics = assembled_metrics(problem, matrices, control_np, float(lam))
-        # A direct solve is exact up to rounding; a residual far above it means the
-        # factorisation met a (numerically) singular matrix.
-        tolerance = max(rtol, DIRECT_RTOL) if method == "direct" else rtol
-    spline = AdaptiveSpline(hierarchy, control, on_device(np.ones(control.shape), dtype))
-    finite = bool(np.all(np.isfinite(np.asarray(control))))
-    converged = float(residual) <= tolerance and settled
-    result = (
-        RESULTS.successful
-        if finite and converged
-        else RESULTS.max_steps_reached
-        if finite
-        else RESULTS.nonfinite
-    )
-    stats = {
-        "method": method,
-        "num_steps": int(steps),
-        "residual": float(residual),
-        "levels": hierarchy.num_levels,
-        "active": hierarchy.active_counts,
-        "finest": hierarchy.cells(finest_level),
-    }
-    if sharding is not None:  # the devices the solve ran over (a direct solve: the host)
-        stats["devices"] = len(sharding.device_set) if method == "cg" else 1
-    sol = Solution(spline, metrics, stats, result, state, settings)
-    if checks:
-        sol = judge(sol, cloud, settings, layout["offset"])
-    raise_unless_reconstruction(sol, throw)
-    return sol
+    if isinstance(points, Cloud) and (
+        normals is not None or points.normals is None or points.mask is not None
+    ):
+        raise ValueError(CLOUD_REFUSAL)
+    # Checked once (NaN, shapes, zero normals, degenerate clouds) and exact repeats
+    # merged, whether or not the settings are given; kept as jurs.fit keeps its clouds.
+    cloud, estimated = fit_cloud(points, normals)
+    if settings is None:  # as jurs.auto_settings chooses them, where jurs.fit differs:
+        # ``smoothing`` makes the hierarchy's lambda only (settings.smoothing is chosen),
+        # and the offset chosen is not checked against a ``domain`` given.
+        settings = fit_settings(cloud, None, None, offset, eps, domain)[0]
+        assert settings is not None  # chosen
+    return on_hierarchy(
+        cloud, settings, finest=finest, band=band, offset=offset, eps=eps,
+        smoothing=smoothing, lam=lam, rtol=rtol, max_steps=max_steps, method=method,
+        dtype=dtype, checks=checks, throw=throw, solver=solver,
+        noted=dict(estimated_normals=estimated),
+    )  # fmt: skip

@@ -11,9 +11,9 @@ from .._cloud.parts import spans_processes
 from .._problem.validate import normalise_grid
 from .._solution.solution import raise_unless_reconstruction
 from ..solvers import LeastSquares
-from .adaptive import auto_finest
+from .adaptive import auto_finest, solver_lam
+from .adaptive_sharding import fit_adaptive_across_processes
 from .call import as_arrays, check_start, solve_fit
-from .fit_adaptive import fit_adaptive
 from .process_settings import check_global_arrays, settings_across_processes
 from .sharding import (
     PROCESS_SETTINGS,
@@ -50,8 +50,8 @@ def fit_across_processes(
     ``jurs._cloud.normals.normals_across_processes``. What reads the whole cloud on a host is not
     run: the orientation and doubt checks, the padding to
     stable sizes and the store of exported fits (docs/sharding.md). ``basis="adaptive"``:
-    [`jurs.fit_adaptive`][] over the processes with the settings chosen here
-    (``jurs._fit.adaptive_sharding``)."""
+    [`jurs.fit_adaptive`][]'s fit over the processes with the settings chosen here
+    (``jurs._fit.adaptive_sharding.fit_adaptive_across_processes``)."""
     if normals is None:  # estimated over all processes' points, split like them
         if not spans_processes(points):
             raise ValueError("normals: pass them split like the points, or None")
@@ -70,9 +70,9 @@ def fit_across_processes(
         settings = settings_across_processes(
             points, normals, None, offset, eps, domain, margin, smoothing
         )
-        finest = auto_finest(settings)
-        return fit_adaptive(
-            points, normals, settings=settings, finest=finest, throw=throw, solver=solver
+        lam = solver_lam(solver, None, points, normals)  # refuses a robust solver here
+        return fit_adaptive_across_processes(
+            points, normals, finest=auto_finest(settings), lam=lam, settings=settings, throw=throw
         )
     given = dict(grid=grid, offset=offset, eps=eps, domain=domain, solver=solver)
     settings = None

@@ -16,7 +16,7 @@ from .hierarchy import MAX_KEY, Hierarchy, cascade, cube_offsets
 
 
 def locate_leaves(
-    hierarchy: Hierarchy, x: Float[Array, "n d"], xp=jnp
+    hierarchy: Hierarchy, x: Float[Array, "n d"] | Float[np.ndarray, "n d"], xp=jnp
 ) -> tuple[Int[Array, " n"], Int[Array, "n d"]]:
     """The level of each point's leaf and the leaf's cell (multi-index at that level).
     Points outside the box take the border leaf (the basis extrapolates there, as the
@@ -50,9 +50,9 @@ def _jnp_ravel(index: Array, extent: tuple[int, ...]) -> Array:
 
 def leaf_terms(
     hierarchy: Hierarchy,
-    x: Float[Array, "n d"],
-    level: Int[Array, " n"],
-    cell: Int[Array, "n d"],
+    x: Float[Array, "n d"] | Float[np.ndarray, "n d"],
+    level: Int[Array, " n"] | Int[np.ndarray, " n"],
+    cell: Int[Array, "n d"] | Int[np.ndarray, "n d"],
     xp=jnp,
 ) -> tuple[Int[Array, "n k"], Array]:
     """For points in the given leaves: the positions, in the cascaded vector of
