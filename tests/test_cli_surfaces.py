@@ -176,6 +176,28 @@ def test_options_of_the_other_dimension(sphere_files, tmp_path, capsys):
     with pytest.raises(SystemExit):  # argparse: more than three numbers
         cli.main(["fit", str(sphere_files[0]), "-o", str(out), "--grid", "8x8x8x8"])
     assert not out.exists()
+    capsys.readouterr()  # argparse's usage
+    _refused(
+        capsys,
+        ["fit", str(curve), "-o", str(out), "--faces", "500"],
+        out,
+        "--faces sets the face budget of a surface's mesh; this cloud is 2D",
+    )
+    for bad in ("3", "1e3", "many"):  # argparse: an integer >= 4
+        with pytest.raises(SystemExit):
+            cli.main(["fit", str(sphere_files[0]), "-o", str(out), "--faces", bad])
+    assert not out.exists()
+
+
+def test_surface_with_a_face_budget(sphere_files, tmp_path):
+    """--faces N: mesh.ply decimated to N faces, still the closed sphere; metrics.json
+    records the budget."""
+    out = tmp_path / "result"
+    args = ["fit", str(sphere_files[0]), "-o", str(out), *FIT_ARGS, "--faces", "1000"]
+    assert cli.main(args) == 0
+    record = _check_sphere_mesh(out)
+    assert 999 <= record["mesh"]["num_faces"] <= 1000
+    assert record["mesh"]["face_budget"] == 1000
 
 
 def test_spline_files_3d(tmp_path):

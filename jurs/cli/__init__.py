@@ -258,15 +258,18 @@ def _check_options(resolution, dim: int, out: str, names) -> None:
     check_output_folder(out, names=names)
 
 
-def _surface_libraries() -> None:
+def _surface_libraries(decimate: bool = False) -> None:
     """InputError unless the libraries a surface's outputs need are installed
-    (scikit-image meshes, trimesh writes mesh.ply): found out before the fit, not after."""
+    (scikit-image meshes, trimesh writes mesh.ply, fast-simplification decimates for
+    ``--faces``): found out before the fit, not after."""
     from ..datasets._files import trimesh_module
-    from ..levelset._meshing import skimage_marching_cubes
+    from ..levelset._meshing import fast_simplification_simplify, skimage_marching_cubes
 
     try:
         skimage_marching_cubes()
         trimesh_module()
+        if decimate:
+            fast_simplification_simplify()
     except ImportError as exc:
         raise InputError(f"a 3D cloud needs the surface extras: {one_line(exc)}") from None
 
@@ -308,8 +311,13 @@ def prepare_fit(args) -> FitJob:
     points, normals = read_input(path)
     dim = int(points.shape[1])
     grid = grid_for(args.grid, dim, shown)
+    faces = getattr(args, "faces", None)
     if dim == 3:
-        _surface_libraries()
+        _surface_libraries(decimate=faces is not None)
+    elif faces is not None:
+        raise InputError(
+            f"{shown}: --faces sets the face budget of a surface's mesh; this cloud is 2D"
+        )
     estimated = normals is None
     if estimated:  # no normals in the file: outward ones estimated first, as jurs.fit does
         try:

@@ -66,6 +66,17 @@ def positive_number(text: str) -> float:
     return v
 
 
+def face_count(text: str) -> int:
+    """``--faces``: an integer >= 4 (``jurs.levelset.mesh``'s face budget)."""
+    try:
+        v = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"not an integer: {text!r}") from None
+    if v < 4:
+        raise argparse.ArgumentTypeError(f"must be at least 4, got {text!r}")
+    return v
+
+
 def printable(text) -> str:
     """``text`` safe to print and to draw: a file name that is not UTF-8 reaches Python with
     its bytes as lone surrogates, which stdout, JSON and the figure's title cannot encode;

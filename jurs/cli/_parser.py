@@ -6,7 +6,7 @@ from __future__ import annotations
 import argparse
 
 from ._batch import FilesAction
-from ._inputs import grid_option, nonnegative, positive_number
+from ._inputs import face_count, grid_option, nonnegative, positive_number
 
 
 def _solver_names():
@@ -227,6 +227,15 @@ def _fit_parser(sub) -> argparse.ArgumentParser:
         help="with --trim: the tolerance where the samples lie to one side of the zero set "
         "(past the data's rim), in local point spacings (default jurs.levelset.DEFAULT_RIM, "
         "1); a rim as large as the trim is the distance-only rule",
+    )
+    f.add_argument(
+        "--faces",
+        type=face_count,
+        default=None,
+        metavar="N",
+        help="3D: decimate mesh.ply to N faces (N >= 4, after --trim), its vertices moved "
+        "back onto the zero set (jurs.levelset.mesh's faces=; needs fast-simplification, "
+        "in the surfaces extra); without it every marching-cubes face is kept",
     )
     f.add_argument("-q", "--quiet", action="store_true", help="no progress bar or summary")
     return f

@@ -244,19 +244,26 @@ def surface_outputs(job: FitJob, args, sol, seconds: float):
 
     spline = sol.spline
     trim, rim = _trim(args), _rim(args)
+    budget = getattr(args, "faces", None)  # --faces: decimated to it, None keeps every face
     t0 = time.perf_counter()
     if job.adaptive and job.resolution is None:
         # The band mesh chooses its resolution (five nodes a finest cell, lowered until
         # the marched nodes fit in its node limit); metrics.json records it as None.
         resolution = None
-        vertices, faces = ls.mesh(spline, points=job.points, trim=trim, rim=rim)
+        vertices, faces = ls.mesh(spline, points=job.points, trim=trim, rim=rim, faces=budget)
     else:
         resolution = job.resolution or default_resolution(
             spline, np.asarray(spline.lower, np.float64), np.asarray(spline.upper, np.float64)
         )
         # The user chose --resolution, its memory checked before the fit: no node limit.
         vertices, faces = ls.mesh(
-            spline, resolution, max_nodes=None, points=job.points, trim=trim, rim=rim
+            spline,
+            resolution,
+            max_nodes=None,
+            points=job.points,
+            trim=trim,
+            rim=rim,
+            faces=budget,
         )
     t1 = time.perf_counter()
     report = ls.analyze_mesh(vertices, faces, job.points, threshold=args.threshold)
@@ -282,6 +289,7 @@ def surface_outputs(job: FitJob, args, sol, seconds: float):
         rim=None if trim is None else rim,
     )
     record["mesh"] = mesh_record(vertices, faces, report, distances, resolution)
+    record["mesh"]["face_budget"] = budget
     record["mesh"]["vertex_colors"] = colours is not None
     record["timings"] = {"fit_s": seconds, "mesh_s": t1 - t0, "analysis_s": t2 - t1}
     counts = _mesh_counts(report)

@@ -2,7 +2,9 @@
 
 [`mesh`][jurs.levelset.mesh] samples g on a lattice slab by slab
 (``jurs._model.lattice.lattice_values``), runs marching cubes (scikit-image) on each slab,
-stitches the slabs and moves the vertices onto {g = 0} by Newton steps. An adaptive spline
+stitches the slabs and moves the vertices onto {g = 0} by Newton steps; with a face budget
+(``faces=``) fast-simplification decimates the mesh and the same Newton steps put the kept
+vertices back on {g = 0}. An adaptive spline
 ([`jurs.AdaptiveSpline`][]) is marched only in the blocks of the lattice where g may reach
 the level (``jurs/_model/band.py``; docs/design.md section 8). What to measure on
 a mesh (components, genus, distances) is in ``jurs/levelset/_mesh_analysis.py``. Everything
@@ -71,6 +73,18 @@ NODES_PER_SECOND = 1e7
 #: its box has about 2 (docs/surfaces.md, "Meshing a spline"); four times that leaves room
 #: for folded surfaces.
 BYTES_PER_SLAB_NODE, BYTES_PER_VERTEX, VERTICES_PER_PLANE_NODE = 16, 450, 8
+#: Fewest faces a face budget may ask for: a closed surface needs four (a tetrahedron).
+MIN_FACES = 4
+#: Longest side of the box a mesh is scaled into before fast-simplification decimates it.
+#: The library collapses edges in up to 100 passes, each taking the edges whose quadric
+#: error (a sum of squared distances to the planes of the faces merged into a vertex) is
+#: under ``1e-9 (pass + 3)^7``: an absolute schedule, so the result depends on the
+#: mesh's units. Measured on an icosphere of 82 000 faces: scaled into a box of side 1,
+#: its vertices ended up to 2.2 % of the radius off the sphere at 500 faces; of side 10,
+#: 0.9 % (equal at 5000 faces and more); of side 1e4, the target was not reached (1056
+#: faces for 500). At 1.3 M faces even side 10 stops short of the smallest budgets (24
+#: faces for 8), so a result above the budget is decimated once more in a box of side 1.
+DECIMATION_BOX = 10.0
 
 _EMPTY = (np.empty((0, 3)), np.empty((0, 3), dtype=np.int64))
 
@@ -83,6 +97,32 @@ def skimage_marching_cubes():
             "meshing needs scikit-image: from the jurs checkout, pip install -e '.[surfaces]'"
         ) from None
     return marching_cubes
+
+
+def fast_simplification_simplify():
+    """fast-simplification's ``simplify``, imported when a face budget is asked for."""
+    try:
+        from fast_simplification import simplify
+    except ImportError:
+        raise ImportError(
+            "mesh(..., faces=) decimates with fast-simplification: from the jurs checkout, "
+            "pip install -e '.[surfaces]'"
+        ) from None
+    return simplify
+
+
+def check_faces(faces) -> int | None:
+    """``faces`` (a face budget of [`mesh`][jurs.levelset.mesh]) as an int, or None; a
+    ValueError for anything but None or an integer >= ``MIN_FACES``."""
+    if faces is None:
+        return None
+    if isinstance(faces, bool) or not isinstance(faces, (int, np.integer)):
+        raise ValueError(f"faces must be an integer (a face count) or None, got {faces!r}")
+    if int(faces) < MIN_FACES:
+        raise ValueError(
+            f"faces must be at least {MIN_FACES} (a closed surface has at least 4), got {faces}"
+        )
+    return int(faces)
 
 
 def lattice_axes(
@@ -138,6 +178,7 @@ def mesh(
     points: Float[np.ndarray, "m 3"] | None = None,
     trim: float | bool | None = None,
     rim: float | bool | None = True,
+    faces: int | None = None,
 ) -> tuple[Float[np.ndarray, "V 3"], Int[np.ndarray, "F 3"]]:
     """Triangle mesh of ``{g = level}`` of a 3D spline over ``box``.
 
@@ -184,6 +225,26 @@ def mesh(
             (1), a number >= 0 that many (at most ``trim``), None or False the
             distance rule alone (``trim`` spacings everywhere). See
             [`trim_mesh`][jurs.levelset.trim_mesh].
+        faces: a face budget: None (default) keeps every face marching cubes gives (about
+            two a vertex; 1.19 M on a default fit of the 1e5-point bunny); an integer >=
+            ``MIN_FACES`` (4) decimates the mesh (after any trim) to that many faces, and
+            then the same ``newton_steps`` move its vertices back onto the level set, each
+            step no longer than the vertex's longest edge (or a lattice spacing, where
+            that is longer). A mesh with no more faces is returned as it is. The
+            decimation is fast-simplification's (pyvista's wrapper of Fast Quadric Mesh
+            Simplification, the library trimesh's ``simplify_quadric_decimation`` calls;
+            optional extra ``surfaces``), chosen because its quadric error metric
+            collapses first the edges whose removal moves the surface least, so the faces
+            that remain go where it curves and flat parts take few; it keeps the faces'
+            orientation (a collapse that would turn a face over is not made); and it is a
+            small compiled wheel taking and returning NumPy arrays. It stops at ``faces``
+            faces (or one fewer), or short of them where no collapse is left that keeps
+            every face's orientation, so the result can have more faces than asked on a
+            small budget: an edge from an open mesh's boundary inwards is never collapsed
+            (the boundary itself is decimated, along itself), so a trimmed mesh keeps a
+            ring of faces along its rim. The library stops on a face count, not on a
+            distance, so there is no error tolerance to ask for; the distances measured
+            at several budgets are in docs/surfaces.md, "Face budgets".
 
     Raises:
         ValueError: a spline with non-finite control points or weights, a weight <= 0
@@ -194,7 +255,10 @@ def mesh(
             and memory) or one whose estimated memory exceeds what is available; a
             ``trim`` that is not positive and finite, or given without ``points``; a
             ``rim`` that is negative or not finite;
-            ``points`` not ``(m, 3)``, not finite, or with fewer than 2 distinct rows.
+            ``points`` not ``(m, 3)``, not finite, or with fewer than 2 distinct rows;
+            ``faces`` not None nor an integer >= 4 (before anything is sampled).
+        ImportError: ``faces`` given without fast-simplification installed (before
+            anything is sampled).
 
     Returns:
         ``(vertices (V, 3) float64, faces (F, 3) int64)``; every face's normal (right-hand
@@ -211,6 +275,8 @@ def mesh(
     of the whole lattice alone would take 490 MiB. An adaptive spline's blocks are
     evaluated ``BATCH_BLOCKS`` (256) at a time, about 20 MiB of values.
     """
+    budget = check_faces(faces)
+    simplify = None if budget is None else fast_simplification_simplify()
     spline = grid_spline(spline, dims=(3,))
     lower, upper = _box(spline, box)
     _check_values(spline, float(level))
@@ -224,16 +290,49 @@ def mesh(
         raise ValueError(f"newton_steps must be >= 0, got {newton_steps}")
     if int(chunk) < 1:
         raise ValueError(f"chunk must be >= 1, got {chunk}")
-    spacing, vertices, faces = _march(
+    spacing, vertices, triangles = _march(
         spline, lower, upper, int(resolution), float(level), max_nodes, chosen, int(chunk)
     )
-    if len(faces) == 0:
+    if len(triangles) == 0:
         return _EMPTY
     vertices = lower + vertices * spacing
     vertices = _newton(spline, vertices, float(level), int(newton_steps), spacing.max())
-    if spacings is None or data is None:
-        return vertices, faces
-    return trim_mesh(vertices, faces, data, spacings, rim)
+    if spacings is not None and data is not None:
+        vertices, triangles = trim_mesh(vertices, triangles, data, spacings, rim)
+    if simplify is None or budget is None or len(triangles) <= budget:
+        return vertices, triangles
+    vertices, triangles = _decimate(simplify, vertices, triangles, budget)
+    # Decimation places a vertex where it best fits the planes of the faces merged into it,
+    # off the level set by up to the sagitta of its edges: the same Newton steps take it
+    # back, each no longer than its longest edge (a lattice spacing at least).
+    reach = np.maximum(spacing.max(), _longest_edges(vertices, triangles))
+    return _newton(spline, vertices, float(level), int(newton_steps), reach), triangles
+
+
+def _decimate(simplify, vertices, faces, budget: int):
+    """fast-simplification's decimation of a mesh to ``budget`` faces, in a box of side
+    ``DECIMATION_BOX`` (see there), and once more in a box of side 1 where its schedule
+    stopped above the budget. ``(vertices, faces int64)``; orientation kept."""
+    lowest, highest = vertices.min(axis=0), vertices.max(axis=0)
+    centre, size = (lowest + highest) / 2, float(np.max(highest - lowest))
+    scaled = (vertices - centre) * (DECIMATION_BOX / size)
+    points, triangles = simplify(scaled, faces, target_count=budget)[:2]
+    if len(triangles) > budget:
+        points = np.asarray(points) / DECIMATION_BOX
+        points, triangles = simplify(points, triangles, target_count=budget)[:2]
+        points = np.asarray(points) * DECIMATION_BOX
+    points = centre + np.asarray(points, np.float64) * (size / DECIMATION_BOX)
+    return points, np.asarray(triangles, np.int64).reshape(-1, 3)
+
+
+def _longest_edges(vertices, faces) -> np.ndarray:
+    """The length of each vertex's longest edge ``(V,)`` (0 for a vertex no face uses)."""
+    ends = faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2)
+    lengths = np.linalg.norm(vertices[ends[:, 0]] - vertices[ends[:, 1]], axis=1)
+    longest = np.zeros(len(vertices))
+    np.maximum.at(longest, ends[:, 0], lengths)
+    np.maximum.at(longest, ends[:, 1], lengths)
+    return longest
 
 
 def _check_values(spline, level: float) -> None:
@@ -393,10 +492,10 @@ def _weld(vertices, faces):
     return vertices[used], faces.reshape(-1, 3)
 
 
-def _newton(spline, vertices, level: float, steps: int, longest: float):
+def _newton(spline, vertices, level: float, steps: int, longest):
     """``steps`` Newton steps onto ``{g = level}`` along the gradient, each no longer than
-    ``longest`` (see [`mesh`][jurs.levelset.mesh]); points with a zero or non-finite
-    gradient stay put."""
+    ``longest`` (a length, or one per vertex; see [`mesh`][jurs.levelset.mesh]); points
+    with a zero or non-finite gradient stay put."""
     x = vertices.copy()
     for _ in range(steps):
         value, gradient = spline.values_and_gradients(x)
