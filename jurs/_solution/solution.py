@@ -35,7 +35,7 @@ class RESULTS(eqx.Enumeration):
     )
     inconsistent_normals = (
         "the normals are not consistently oriented: neighbouring normals point to opposite "
-        "sides of the curve (part of the cloud flipped), they lie along it (random "
+        "sides of the curve or surface (part of the cloud flipped), they lie along it (random "
         "normals), every one points inward (the fit of a closed shape is negative outside "
         "it: pass -normals), or the fit's own sign disagrees with the inside/outside "
         "targets at many offset samples (random normals, features narrower than the "
