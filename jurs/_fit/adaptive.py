@@ -42,7 +42,7 @@ from .._problem.adaptive import (
     normal_system,
     sample_basis,
 )
-from .._problem.sizes import round_size
+from .._problem.sizes import padded_to, round_size
 from .._solution.solution import RESULTS, Solution
 from .._solution.verdicts import evaluate_bucketed, judged_points
 from ..solvers import (
@@ -233,12 +233,6 @@ def size_class(count: int) -> int:
     padding), at least ``MIN_CLASS``. A solve compiled for one class serves every problem
     whose arrays fall in it."""
     return max(MIN_CLASS, round_size(count))
-
-
-def padded_to(values: np.ndarray, length: int, fill=0) -> np.ndarray:
-    out = np.full((length,) + values.shape[1:], fill, values.dtype)
-    out[: values.shape[0]] = values
-    return out
 
 
 def _coo(matrix, nnz: int, dtype):

@@ -35,6 +35,7 @@ from .._cloud.parts import agree, allgather, gather_ragged
 from .._linalg.pcg import conjugate_gradients, jacobi_inverse
 from .._model.precision import on_device
 from .._problem.adaptive import assemble_adaptive_problem
+from .._problem.sizes import padded_to
 from .._problem.validate import unit_normals, validate_inputs
 from .._solution.solution import Solution, raise_unless_reconstruction
 from .adaptive import (
@@ -42,7 +43,6 @@ from .adaptive import (
     hierarchy_layout,
     hierarchy_rtol,
     hierarchy_solution,
-    padded_to,
     size_class,
     solve_normal,
 )

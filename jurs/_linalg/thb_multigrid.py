@@ -45,6 +45,7 @@ from jax import Array
 from jaxtyping import Float
 
 from .._model.hierarchy import Hierarchy, cascade_matrix
+from .._problem.sizes import padded_to
 
 #: Chebyshev smoothing steps before and after the coarse correction of each level, and
 #: the smoother's patches: boxes of ``PATCH_SIDE`` functions a side, one every
@@ -374,9 +375,9 @@ class ThbMultigrid:
             coo = matrix.tocoo()  # pyright: ignore[reportAttributeAccessIssue]
             count = pad(max(coo.nnz, 1))
             return _Coo(
-                jnp.asarray(_padded(coo.row.astype(np.int32), count)),
-                jnp.asarray(_padded(coo.col.astype(np.int32), count)),
-                jnp.asarray(_padded(coo.data, count), dtype),
+                jnp.asarray(padded_to(coo.row.astype(np.int32), count)),
+                jnp.asarray(padded_to(coo.col.astype(np.int32), count)),
+                jnp.asarray(padded_to(coo.data, count), dtype),
                 rows,
                 cols,
             )
@@ -388,15 +389,15 @@ class ThbMultigrid:
             if patches is not None:
                 count = pad(patches.index.shape[0])
                 blocks = _Blocks(
-                    jnp.asarray(_padded(patches.index.astype(np.int32), count)),
-                    jnp.asarray(_padded(patches.valid, count, False)),
-                    jnp.asarray(_padded(patches.inverses, count), dtype),
+                    jnp.asarray(padded_to(patches.index.astype(np.int32), count)),
+                    jnp.asarray(padded_to(patches.valid, count, False)),
+                    jnp.asarray(padded_to(patches.inverses, count), dtype),
                 )
             steps = np.asarray(level.steps, float).reshape(-1, 2)
             levels.append(
                 _DeviceLevel(
                     entries(level.matrix, length, length),
-                    jnp.asarray(_padded(level.inverse, length), dtype),
+                    jnp.asarray(padded_to(level.inverse, length), dtype),
                     jnp.asarray(steps, dtype),
                     blocks,
                 )
@@ -407,7 +408,7 @@ class ThbMultigrid:
         coarse = np.zeros((lengths[0], lengths[0]))
         size = self.sizes[0]
         coarse[:size, :size] = _dense_inverse(self.levels[0].matrix)
-        mask = _padded(self.mask, lengths[-1], False)
+        mask = padded_to(self.mask, lengths[-1], False)
         return VCycle(tuple(levels), prolongations, jnp.asarray(coarse, dtype), jnp.asarray(mask))
 
     def operator(self):
@@ -416,13 +417,6 @@ class ThbMultigrid:
 
         n = self.levels[-1].matrix.shape[0]  # pyright: ignore[reportAttributeAccessIssue]
         return LinearOperator((n, n), matvec=self.cycle, dtype=float)  # pyright: ignore[reportCallIssue]
-
-
-def _padded(values: np.ndarray, length: int, fill=0) -> np.ndarray:
-    """``values`` followed by ``fill`` up to ``length`` along the first axis."""
-    out = np.full((length,) + values.shape[1:], fill, values.dtype)
-    out[: values.shape[0]] = values
-    return out
 
 
 def _dense_inverse(matrix) -> np.ndarray:

@@ -55,5 +55,15 @@ def padded_count(num_points: int) -> int:
     return max(MIN_PADDED_POINTS, round_octave(num_points))
 
 
+def padded_to(values, length: int, fill=0):
+    """``values`` (a NumPy array) followed by ``fill`` up to ``length`` along its first
+    axis: host arrays padded to a size class, so that one compiled program serves them."""
+    import numpy as np
+
+    out = np.full((length,) + values.shape[1:], fill, values.dtype)
+    out[: values.shape[0]] = values
+    return out
+
+
 #: Default margin added around the samples' bounding box, as a fraction of its longest side.
 DEFAULT_MARGIN = 0.1
