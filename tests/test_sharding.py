@@ -189,6 +189,17 @@ ADAPTIVE_CHILD = textwrap.dedent(
     compare("curve_cg", jurs.fit_adaptive, p, n, finest=64, method="cg")
     compare("sphere", jurs.fit_adaptive, *jurs.datasets.sphere3d(800), finest=16)
 
+    # A robust fit reweighs on one host: refused on sharded points by either entry.
+    robust = jurs.RobustLeastSquares(lam=1e-4)
+    refusals = []
+    for fit, kw in ((jurs.fit, dict(basis="adaptive")), (jurs.fit_adaptive, {})):
+        try:
+            fit(jax.device_put(p, split), jax.device_put(n, split), solver=robust, **kw)
+            refusals.append(None)
+        except ValueError as error:
+            refusals.append(str(error))
+    out["robust_refusals"] = refusals
+
     # The compiled sharded CG of the sphere: which collectives, of what sizes.
     args, kw = ran[-1]
     hlo = solve.lower(*args, **kw).compile().as_text()
@@ -367,3 +378,11 @@ def test_split_rows_gives_each_device_its_points_samples():
         assert is_data[k * length : (k + 1) * length].tolist() == (
             (mine < points).tolist() + [False] * (length - len(mine))
         )
+
+
+def test_a_robust_hierarchy_fit_of_sharded_points_is_refused(adaptive_child):
+    """``RobustLeastSquares`` on the hierarchy reweighs on one host: ``jurs.fit(...,
+    basis="adaptive")`` of sharded points took the sharded CG and fitted plain least
+    squares without a word; both entries now refuse it, saying why."""
+    refusals = adaptive_child["robust_refusals"]
+    assert all(r is not None and "robust fit on the hierarchy" in r for r in refusals), refusals

@@ -622,7 +622,8 @@ def _fit(
         and wants_adaptive(settings, len(cloud))
     )
     if settings is not None and basis == "adaptive":
-        lam = solver_lam(given_solver)  # a robust solver: also on points sharded in one process
+        # A robust solver is refused on points sharded over devices, as fit_adaptive refuses it.
+        lam = solver_lam(given_solver, None, cloud.given_points, cloud.given_normals)
         noted = dict(estimated_normals=estimated)
         sol = on_hierarchy(
             cloud, settings, finest=auto_finest(settings), lam=lam, checks=checks, throw=throw,
