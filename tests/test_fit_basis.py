@@ -193,3 +193,22 @@ def test_new_dense_clouds_compile_nothing(detailed):
         jax.monitoring.unregister_event_duration_listener(count)
     assert counts == []
     assert all(isinstance(sol.spline, jurs.AdaptiveSpline) and sol.succeeded for sol in sols)
+
+
+def test_an_offset_given_beside_settings_reaches_the_hierarchy():
+    """``jurs.fit(..., basis="adaptive", settings=s, offset=o)`` fitted with ``s.offset``
+    on the hierarchy, where the grid takes ``o``: the hierarchy now takes it too, as
+    ``jurs.fit_adaptive(..., settings=s, offset=o)`` does."""
+    points, normals = jurs.datasets.example1(300)
+    settings = jurs.auto_settings(jurs.Cloud(points, normals))
+    offset = 2.0 * settings.offset
+    given = jurs.fit(points, normals, basis="adaptive", settings=settings, offset=offset)
+    alone = jurs.fit(points, normals, basis="adaptive", settings=settings)
+    direct = jurs.fit_adaptive(
+        points, normals, settings=settings, offset=offset, finest=auto_finest(settings)
+    )
+    np.testing.assert_allclose(
+        np.asarray(given.spline.control), np.asarray(direct.spline.control), rtol=0, atol=1e-12
+    )
+    probe = points + 0.5 * settings.offset * normals  # g there follows the offset's target
+    assert np.abs(np.asarray(given.spline(probe)) - np.asarray(alone.spline(probe))).max() > 1e-6

@@ -626,8 +626,8 @@ def _fit(
         lam = solver_lam(given_solver, None, cloud.given_points, cloud.given_normals)
         noted = dict(estimated_normals=estimated)
         sol = on_hierarchy(
-            cloud, settings, finest=auto_finest(settings), lam=lam, checks=checks, throw=throw,
-            solver=given_solver, noted=noted,
+            cloud, settings, finest=auto_finest(settings), offset=offset, eps=eps, lam=lam,
+            checks=checks, throw=throw, solver=given_solver, noted=noted,
         )  # fmt: skip
         return sol, None
     check_start(shape, solver, init)
