@@ -90,9 +90,9 @@ class AbstractSpline(eqx.Module):
 
     @abc.abstractmethod
     def on_host(self) -> Any:
-        """An evaluator of g on the host, built once for many lattices: an object whose
-        ``lattice(axes)`` is this spline's (float64 NumPy), without converting the
-        coefficients (or cascading them to the finest level) again for each."""
+        """An evaluator of g on the host, built once for many evaluations: an object whose
+        ``lattice(axes)`` and ``values(points)`` are this spline's (float64 NumPy), without
+        converting the coefficients (or cascading them) again for each."""
 
     @abc.abstractmethod
     def band_lattice(self, axes, level: float) -> tuple[np.ndarray, np.ndarray]:

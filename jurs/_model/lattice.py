@@ -161,6 +161,10 @@ class FinestSpline:
             start = stop
         return np.concatenate(parts, axis=0)
 
+    def values(self, points) -> np.ndarray:
+        """g at scattered ``points (n, d)``, each from its leaf (``values_and_gradients``)."""
+        return finest_values_and_gradients(self, points, gradients=False)[0]
+
     def values_and_gradients(
         self, points, gradients: bool = True
     ) -> tuple[np.ndarray, np.ndarray | None]:
@@ -330,6 +334,10 @@ class HostGrid(NamedTuple):
         """``grid_lattice_values`` of these fields."""
         return grid_lattice_values(self, axes)
 
+    def values(self, points) -> np.ndarray:
+        """g at scattered ``points (n, d)`` (``grid_values_and_gradients``)."""
+        return grid_values_and_gradients(self, points, gradients=False)[0]
+
 
 def values_and_gradients(spline, points, *, chunk: int = 1 << 14):
     """g and its spatial gradient at scattered ``points (n, d)``; ``((n,), (n, d))``.
@@ -363,9 +371,10 @@ def finest_values_and_gradients(
     return np.concatenate(value), (np.concatenate(gradient) if gradients else None)
 
 
-def grid_values_and_gradients(spline, points, *, chunk: int = 1 << 14):
+def grid_values_and_gradients(spline, points, *, chunk: int = 1 << 14, gradients: bool = True):
     """[`values_and_gradients`][jurs._model.lattice.values_and_gradients] of a spline on a
-    uniform grid (any object with ``control``, ``weights``, ``lower`` and ``upper``)."""
+    uniform grid (any object with ``control``, ``weights``, ``lower`` and ``upper``); the
+    gradients None unless ``gradients``."""
     control, weights, lower, upper = spline_fields(spline)
     d = control.ndim
     points = np.asarray(points, dtype=np.float64)
@@ -394,9 +403,9 @@ def grid_values_and_gradients(spline, points, *, chunk: int = 1 << 14):
         den = np.einsum(contract, den_patch, *factors, optimize=True)
         g = num / den
         value[start : start + len(p)] = g
-        for k in range(d):
+        for k in range(d if gradients else 0):
             along = factors[:k] + [slopes[k]] + factors[k + 1 :]
             d_num = np.einsum(contract, num_patch, *along, optimize=True)
             d_den = np.einsum(contract, den_patch, *along, optimize=True)
             gradient[start : start + len(p), k] = (d_num - g * d_den) / den
-    return value, gradient
+    return value, (gradient if gradients else None)

@@ -523,7 +523,9 @@ class ImplicitSpline(AbstractSpline):
     ) -> tuple[Float[np.ndarray, " n"], Float[np.ndarray, "n d"]]:
         """g and its gradient at ``points`` on the host, each point reading its cell's
         ``4^d`` coefficients (``jurs._model.lattice.values_and_gradients``)."""
-        return grid_values_and_gradients(self, points, chunk=chunk)
+        values, gradients = grid_values_and_gradients(self, points, chunk=chunk)
+        assert gradients is not None
+        return values, gradients
 
     def slope_bound(self) -> Float[np.ndarray, " d"]:
         """``(max w / min w) max |C_(i+1) - C_i| / h_a`` per axis a: for weights 1 a bound,

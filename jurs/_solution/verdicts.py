@@ -102,8 +102,10 @@ def border_negative_fraction(spline: AbstractSpline) -> float:
     offsets, and is positive inside), in between where the zero set reaches the border (an
     open scan, a trimmed surface: no inside to check). NaN where g is not finite there.
 
-    g is sampled on a lattice of half-cells over each face (edge in 2D) of the box, at
-    most ``BORDER_CHECK_NODES`` nodes (``AbstractSpline.on_host``, float64 on the host)."""
+    g is sampled at the nodes of a lattice of half-cells over each face (edge in 2D) of the
+    box, at most ``BORDER_CHECK_NODES`` nodes, as scattered points (``AbstractSpline.on_host``'s
+    ``values``, float64 on the host): a hierarchy evaluates each at its own leaf, where a
+    lattice would refine its coarse border cells to the finest level."""
     host = spline.on_host()
     lower, upper = np.asarray(spline.lower, float), np.asarray(spline.upper, float)
     steps = 2.0 * np.asarray(spline.finest_cells, float)
@@ -114,16 +116,15 @@ def border_negative_fraction(spline: AbstractSpline) -> float:
         scale = (BORDER_CHECK_NODES / nodes) ** (1.0 / max(d - 1, 1))
         steps = np.maximum(2.0, np.floor(steps * scale))
     axes = [np.linspace(lo, hi, int(n) + 1) for lo, hi, n in zip(lower, upper, steps)]
-    negative = total = 0
+    nodes = []
+    for axis in range(d):  # both faces across ``axis``
+        faces = [*axes[:axis], np.array([lower[axis], upper[axis]]), *axes[axis + 1 :]]
+        nodes.append(np.stack(np.meshgrid(*faces, indexing="ij"), -1).reshape(-1, d))
     with np.errstate(invalid="ignore", divide="ignore"):
-        for axis in range(d):  # both faces across ``axis``: one lattice of two planes
-            faces = [*axes[:axis], np.array([lower[axis], upper[axis]]), *axes[axis + 1 :]]
-            values = np.asarray(host.lattice(faces))
-            if not np.isfinite(values).all():
-                return float("nan")
-            negative += int(np.sum(values < 0))
-            total += values.size
-    return negative / total
+        values = np.asarray(host.values(np.concatenate(nodes)))
+    if not np.isfinite(values).all():
+        return float("nan")
+    return float(np.mean(values < 0))
 
 
 def _inward_doubt(cloud) -> str:
