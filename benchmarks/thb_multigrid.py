@@ -12,7 +12,7 @@ at 4000 points, finest 256 to 2048 cells; surfaces: the torus at 20k points, fin
 
     python -m benchmarks.thb_multigrid [--quick]
 
-writes ``benchmarks/results/thb_multigrid.{md,json}``.
+writes ``benchmarks/results/thb_multigrid.{md,json}`` (``--name``: another name).
 """
 
 from __future__ import annotations
@@ -20,6 +20,7 @@ from __future__ import annotations
 import argparse
 import datetime
 import os
+import sys
 import time
 from typing import Any
 
@@ -149,7 +150,7 @@ def measure(name: str, kind: str, finest: int) -> dict:
     return row
 
 
-def report(rows: list[dict[str, Any]]) -> str:
+def report(rows: list[dict[str, Any]], options: str = "") -> str:
     def s(value):
         return "-" if value is None else f"{value:.2f}"
 
@@ -179,7 +180,8 @@ def report(rows: list[dict[str, Any]]) -> str:
         "",
         f"{datetime.datetime.now(datetime.timezone.utc):%Y-%m-%d %H:%M} UTC, {machine()}, "
         f"OPENBLAS_NUM_THREADS={os.environ.get('OPENBLAS_NUM_THREADS', 'unset')}; "
-        "written by `python -m benchmarks.thb_multigrid`. All four solves of a row ran "
+        f"written by `python -m benchmarks.thb_multigrid{' ' + options if options else ''}`. "
+        "All four solves of a row ran "
         "back to back in one process; the machine was shared (its load average beside "
         "each row), so compare steps first and times only within a row.",
         "",
@@ -203,12 +205,13 @@ def report(rows: list[dict[str, Any]]) -> str:
 def main():
     parser = argparse.ArgumentParser(description="THB multigrid against Jacobi and pyamg")
     parser.add_argument("--quick", action="store_true", help="two sizes a case")
+    parser.add_argument("--name", default="thb_multigrid", help="results file names")
     args = parser.parse_args()
     rows = []
     for name, kind, sizes in QUICK if args.quick else CASES:
         for finest in sizes:
             rows.append(measure(name, kind, finest))
-    write_results("thb_multigrid", {"rows": rows}, report(rows))
+    write_results(args.name, {"rows": rows}, report(rows, " ".join(sys.argv[1:])))
 
 
 if __name__ == "__main__":
