@@ -13,7 +13,6 @@ import equinox as eqx
 import jax.numpy as jnp
 import numpy as np
 import pytest
-from scipy.spatial import cKDTree
 
 import jurs
 from jurs import datasets
@@ -143,6 +142,26 @@ def test_lattice_values_match_pointwise_evaluation_in_3d():
         np.testing.assert_allclose(gradient[:, k], numeric, atol=1e-6)
 
 
+def test_a_node_has_the_same_value_in_every_lattice_that_holds_it():
+    """The slabs of a mesh evaluate the lattice piece by piece: a node's value must not
+    depend on the piece (a BLAS product's summation order does, in the last bits)."""
+    from jurs.levelset._meshing import lattice_axes
+
+    rng = np.random.default_rng(1)
+    shape = (27, 27, 27)
+    spline = Spline(rng.normal(size=shape), rng.uniform(0.5, 2.0, shape), -np.ones(3), np.ones(3))
+    xs, ys, zs = lattice_axes(spline.lower, spline.upper, 131)
+    whole = _lattice.lattice_values(spline, (xs, ys, zs))
+    for planes in (1, 2, 7):
+        pieces = [
+            _lattice.lattice_values(spline, (xs[a : a + planes], ys, zs))
+            for a in range(0, len(xs), planes)
+        ]
+        np.testing.assert_array_equal(np.concatenate(pieces), whole)
+    sub = _lattice.lattice_values(spline, (xs[40:47], ys[3:90], zs[60:61]))
+    np.testing.assert_array_equal(sub, whole[40:47, 3:90, 60:61])
+
+
 def test_lattice_checks_its_input():
     spline = exact_sphere()
     with pytest.raises(ValueError, match="needs 3 lattice axes"):
@@ -190,20 +209,63 @@ def test_slabs_give_the_same_mesh_as_one_slab():
     spline = sampled_spline(torus_distance, [-1.6, -1.6, -0.6], [1.6, 1.6, 0.6], (19, 19, 9))
     whole = _mesh.mesh(spline, 40, chunk=1 << 30)
     slabs = _mesh.mesh(spline, 40, chunk=1)  # two planes a slab: every plane is a seam
-    assert whole[0].shape == slabs[0].shape and whole[1].shape == slabs[1].shape
-    # Marching cubes works in float32, so a vertex may move by ~1e-8 between the two (the
-    # lattice values differ in their last bits); match vertices by position, then compare
-    # the faces as index triples from their smallest index (orientation kept).
-    distance, match = cKDTree(whole[0]).query(slabs[0])
-    assert distance.max() < 1e-6 and len(np.unique(match)) == len(match)
-
-    def canonical(faces):
-        turn = (np.argmin(faces, axis=1)[:, None] + np.arange(3)) % 3
-        rows = np.take_along_axis(faces, turn, axis=1)
-        return rows[np.lexsort(rows.T[::-1])]
-
-    np.testing.assert_array_equal(canonical(match[slabs[1]]), canonical(whole[1]))
+    # Bit for bit: the same lattice values and vertex coordinates in any slab
+    # (_meshing.lattice_vertices), so the same welded vertices in the same order.
+    np.testing.assert_array_equal(slabs[0], whole[0])
+    np.testing.assert_array_equal(slabs[1], whole[1])
     assert _mesh.analyze_mesh(*slabs).components[0].closed
+
+
+def test_mesh_does_not_depend_on_the_slab_size():
+    """Issue 54, item 13: random control points on a 10^3 grid (several components, open
+    at the box). With the default slab this lattice is one slab; with smaller ones
+    marching cubes rounded a vertex to float32 counted from its slab's first plane: the
+    vertices moved by ~1e-7, which reordered some of them, so the arrays returned
+    differed by up to 1.8 on a box of side 2 (and their faces' indices)."""
+    rng = np.random.default_rng(8)
+    spline = Spline(rng.normal(size=(10, 10, 10)), np.ones((10, 10, 10)), -np.ones(3), np.ones(3))
+    whole = _mesh.mesh(spline)
+    assert _mesh.analyze_mesh(*whole).num_components > 1
+    for chunk in (5000, 2000, 1):
+        vertices, faces = _mesh.mesh(spline, chunk=chunk)
+        np.testing.assert_array_equal(vertices, whole[0])
+        np.testing.assert_array_equal(faces, whole[1])
+    # Without Newton steps: the vertices marching cubes gives, at a finer lattice.
+    whole = _mesh.mesh(spline, 90, newton_steps=0)
+    for chunk in (30_000, 1):
+        np.testing.assert_array_equal(
+            _mesh.mesh(spline, 90, newton_steps=0, chunk=chunk)[0], whole[0]
+        )
+
+
+def test_slab_vertices_are_those_of_marching_cubes_over_the_whole_volume():
+    """``lattice_vertices`` reproduces scikit-image's own coordinates at the whole
+    volume's indices, centre vertices of ambiguous cubes included (white noise is full of
+    them), so a volume marched in slabs of any thickness gives the whole volume's mesh."""
+    from skimage.measure import marching_cubes
+
+    from jurs.levelset import _meshing
+
+    values = np.random.default_rng(0).normal(size=(30, 20, 15))
+    level = 0.1
+    verts, faces, _, _ = marching_cubes(values, level, gradient_direction="descent")
+    inside = (verts != np.floor(verts)).sum(axis=1) >= 2
+    assert inside.sum() > 100  # centre vertices
+    np.testing.assert_array_equal(
+        _meshing.lattice_vertices(verts, values, level, (0, 0, 0)), verts.astype(np.float64)
+    )
+    whole = _meshing._weld(verts.astype(np.float64), faces.astype(np.int64))
+    for planes in (2, 3, 8):
+        parts, part_faces, count = [], [], 0
+        for start in range(0, len(values) - 1, planes - 1):
+            slab = values[start : start + planes]
+            v, f, _, _ = marching_cubes(slab, level, gradient_direction="descent")
+            parts.append(_meshing.lattice_vertices(v, slab, level, (start, 0, 0)))
+            part_faces.append(f.astype(np.int64) + count)
+            count += len(v)
+        slabs = _meshing._weld(np.concatenate(parts), np.concatenate(part_faces))
+        np.testing.assert_array_equal(slabs[0], whole[0])
+        np.testing.assert_array_equal(slabs[1], whole[1])
 
 
 def test_empty_level_set_and_bad_input():

@@ -25,10 +25,11 @@ blocks where marching the full lattice would put no triangle: the band's mesh is
 lattice's mesh, surface far from the data included.
 
 Neighbouring blocks share their boundary nodes, and ``jurs._model.lattice.FinestSpline``
-gives a node bitwise the same value in every block that holds it, so marching cubes puts
-bitwise equal vertices on the shared lattice edges (an edge along axis ``a`` lies in
-blocks with the same start along ``a``, so its vertex's float32 local coordinate is the
-same too) and ``jurs.levelset._meshing``'s ``_weld`` stitches the blocks into one watertight mesh.
+gives a node bitwise the same value in every block that holds it; ``jurs.levelset._meshing``'s
+``lattice_vertices`` puts each block's vertices where marching cubes over the whole
+lattice puts them (it rounds them to float32 in the block's own index units), so the
+vertices on shared lattice edges are bitwise equal and ``_weld`` stitches the blocks into
+one watertight mesh.
 """
 
 from __future__ import annotations

@@ -1,11 +1,11 @@
 """Host-side evaluation of g on tensor lattices and at scattered points, for any dimension.
 
 g is a tensor-product rational spline, ``g = F(w C) / F(w)`` with ``F`` a plain B-spline
-evaluation (see ``jurs._model.spline``). On a lattice ``xs x ys (x zs)`` every axis sees its
-own ``(len(xs), N)`` matrix of basis values (four non-zero entries a row), so ``F`` is one
-contraction per axis: ``(N, M, K) -> (M, K, X) -> (K, X, Y) -> (X, Y, Z)``. That costs
-``N M K X + M K X Y + K X Y Z`` multiply-adds instead of ``64 X Y Z`` for per-point
-evaluation, and needs no array of per-point patches.
+evaluation (see ``jurs._model.spline``). On a lattice ``xs x ys (x zs)`` a node sees four
+basis functions along each axis, so ``F`` is one contraction per axis, four terms a node:
+``(N, M, K) -> (X, M, K) -> (X, M, Z) -> (X, Y, Z)``. That costs ``4 (X M K + X M Z +
+X Y Z)`` multiply-adds instead of ``64 X Y Z`` for per-point evaluation, and needs no array
+of per-point patches.
 
 Everything here reads only the fields ``control``, ``weights``, ``lower`` and ``upper`` of
 the spline it is given (any object with them works) and computes in float64 NumPy, so
@@ -284,32 +284,96 @@ def lattice_values(spline, axes, *, xp=np):
     (, zs[k]))``, shape ``(len(xs), len(ys)(, len(zs)))`` ("ij" indexing).
 
     For a 2D or 3D spline; ``len(axes)`` must match its dimension. Numerator ``F(w C)`` and
-    denominator ``F(w)`` are each contracted with one band matrix per axis
-    (``axis_basis``), then divided. ``xp=numpy`` (default) computes in float64;
-    ``xp=jax.numpy`` runs the same contractions in JAX (float64 when x64 is enabled; a
+    denominator ``F(w)`` are contracted axis by axis, then divided. ``xp=numpy`` (default)
+    computes in float64, four products a node and axis added in a fixed order, so a node's
+    value is bitwise the same in every lattice that holds it (``grid_lattice_values``);
+    ``xp=jax.numpy`` runs band-matrix contractions in JAX (float64 when x64 is enabled; a
     uniform grid's only). A [`jurs.AdaptiveSpline`][] is read through its finest level
-    (``AbstractSpline.lattice``). Memory: the lattice values and the intermediates of the
-    contractions, at most about
-    ``16 * max(N M K, M K X, K X Y, X Y Z)`` bytes for an ``(N, M, K)`` grid.
+    (``AbstractSpline.lattice``). Memory: the lattice values, 8 bytes a node, and
+    intermediates of about ``16 M Z`` bytes a node of ``xs`` in 3D (``M``: the
+    coefficients along y; ``Z = len(zs)``).
     """
     if xp is np and isinstance(spline, AbstractSpline):
         return spline.lattice(axes)
     return grid_lattice_values(spline, axes, xp=xp)
 
 
+#: Order of the per-axis contractions of ``grid_lattice_values``. Each but the last reads
+#: a small array; the last writes the lattice and gathers whole contiguous rows (never
+#: single elements along the last axis). In 3D the first axis goes first, so the
+#: intermediates of a thin slab of [`mesh`][jurs.levelset.mesh] stay as thin as it.
+CONTRACTION_ORDER = {2: (1, 0), 3: (0, 2, 1)}
+#: Lattice nodes whose numerator and denominator the last contraction holds at once.
+CONTRACTION_BLOCK = 1 << 15
+
+
 def grid_lattice_values(spline, axes, *, xp=np):
     """[`lattice_values`][jurs._model.lattice.lattice_values] of a spline on a uniform
-    grid: any object with the fields ``control``, ``weights``, ``lower`` and ``upper``."""
+    grid: any object with the fields ``control``, ``weights``, ``lower`` and ``upper``.
+
+    In NumPy each axis is contracted element-wise: a node's partial sum is the four
+    products of its cell's coefficients with its basis values, added in order
+    (``CONTRACTION_ORDER``), the same arithmetic whatever the other nodes of the lattice.
+    A node's value is therefore bitwise the same in any lattice that holds it: the slabs
+    of [`mesh`][jurs.levelset.mesh] give the values of the whole lattice whatever their
+    size, as ``FinestSpline`` does for an adaptive spline's blocks. (A band-matrix product
+    by BLAS does not: its summation order changes with the matrix's shape, and a slab of
+    one plane is a matrix-vector product.)"""
     control, weights, lower, upper = spline_fields(spline)
     d = control.ndim
     if len(axes) != d:
         raise ValueError(f"a {d}D spline needs {d} lattice axes, got {len(axes)}")
+    if xp is not np:
+        return _band_matrix_values(control, weights, lower, upper, axes, xp)
+    located = [
+        locate_axis(coords, lower[k], upper[k], control.shape[k]) for k, coords in enumerate(axes)
+    ]
+    counts = tuple(len(cell) for cell, _, _ in located)
+    if 0 in counts:
+        return np.empty(counts)
+    # Only the coefficients under the nodes' cells take part: a thin slab of a large grid
+    # reads a few planes of it, not all (docs/performance.md, "Measurements behind the
+    # defaults").
+    first = [int(cell.min()) for cell, _, _ in located]
+    window = tuple(slice(f, int(cell.max()) + 4) for f, (cell, _, _) in zip(first, located))
+    both = np.stack([(weights * control)[window], weights[window]])
+    cells = [cell - f for f, (cell, _, _) in zip(first, located)]
+    factors = [cubic_weights(t, xp=np) for _, t, _ in located]
+    *early, last = CONTRACTION_ORDER[d]
+    for k in early:
+        both = _contract_axis(both, k + 1, cells[k], factors[k])
+    out = np.empty(counts)
+    rows = max(1, CONTRACTION_BLOCK // (int(np.prod(counts)) // counts[last]))
+    for start in range(0, counts[last], rows):
+        part = _contract_axis(
+            both, last + 1, cells[last][start : start + rows], factors[last][start : start + rows]
+        )
+        where = [slice(None)] * d
+        where[last] = slice(start, start + rows)
+        np.divide(part[0], part[1], out=out[tuple(where)])
+    return out
+
+
+def _contract_axis(values, axis: int, cell, factors) -> np.ndarray:
+    """``sum_m factors[:, m] values[cell + m]`` along ``axis``: ``values`` with that axis
+    (coefficients) replaced by the nodes' (``cell (n,)``, ``factors (n, 4)``). Element-wise,
+    the four terms added in order."""
+    shape = [1] * values.ndim
+    shape[axis] = len(cell)
+    total = np.take(values, cell, axis=axis)
+    total *= factors[:, 0].reshape(shape)
+    for m in range(1, 4):
+        term = np.take(values, cell + m, axis=axis)
+        term *= factors[:, m].reshape(shape)
+        total += term
+    return total
+
+
+def _band_matrix_values(control, weights, lower, upper, axes, xp):
+    """``grid_lattice_values`` in ``xp`` (JAX): one band matrix of basis values per axis."""
     numerator, denominator = weights * control, weights
     for k, coords in enumerate(axes):
         basis = axis_basis(coords, lower[k], upper[k], control.shape[k])
-        # Only the coefficients under the coordinates' cells take part: a thin slab of a
-        # large grid reads a few planes of it, not all (docs/performance.md, "Measurements
-        # behind the defaults").
         used = np.flatnonzero(basis.any(axis=0))
         window = slice(used[0], used[-1] + 1) if len(used) else slice(0, 0)
         basis = xp.asarray(basis[:, window])

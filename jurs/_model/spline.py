@@ -502,8 +502,8 @@ class ImplicitSpline(AbstractSpline):
         return point_grad(xy) if xy.ndim == 1 else jax.vmap(point_grad)(xy)
 
     def lattice(self, axes) -> np.ndarray:
-        """g on the tensor lattice ``axes``, one band matrix per axis, on the host
-        (``jurs._model.lattice.lattice_values``)."""
+        """g on the tensor lattice ``axes``, contracted axis by axis on the host
+        (``jurs._model.lattice.grid_lattice_values``)."""
         return grid_lattice_values(self, axes)
 
     def on_host(self) -> HostGrid:

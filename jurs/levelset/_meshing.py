@@ -189,8 +189,8 @@ def mesh(
             marched only in the blocks of ``BLOCK_CELLS`` (16) lattice cells where g may
             reach the level (over the finest cells, or where the convex hull of its
             coefficients straddles the level: surface far from the data is meshed too).
-            The result is the full lattice's mesh at the same resolution (vertices to
-            marching cubes' float32 rounding), without evaluating the full lattice.
+            The result is the full lattice's mesh at the same resolution, bit for bit,
+            without evaluating the full lattice.
         resolution: lattice nodes along the longest side of the box (the other sides get
             the same spacing). Default: 5 per spline cell, between 32 and 256; for an
             adaptive spline 5 per finest cell, between 32 and 1025, lowered until the
@@ -202,6 +202,8 @@ def mesh(
             (near a critical point of g the linearisation says nothing; the vertex keeps
             its marching-cubes position).
         chunk: lattice nodes per slab (at least two planes of the first axis per slab).
+            It bounds memory only: the mesh is the same, bit for bit, for any ``chunk``
+            (``_march_in_slabs``). An adaptive spline's blocks do not use it.
         max_nodes: lattice nodes above which the mesh is refused before any is sampled
             (default ``MAX_NODES``, 2^27: a 512^3 lattice); None, or a larger
             number, meshes anyway. For an adaptive spline the nodes counted are those of
@@ -445,7 +447,11 @@ def _march_in_slabs(spline, axes, level: float, nudge: float, chunk: int):
     Consecutive slabs share one plane of nodes, evaluated once and handed on, so the
     vertices marching cubes puts on that plane come out bitwise equal in both slabs (the
     same values on the same edges); ``_weld`` merges them. Values within ``nudge`` of
-    the level are set to ``level + nudge`` first (see ``NUDGE``).
+    the level are set to ``level + nudge`` first (see ``NUDGE``). A node's value does not
+    depend on the slab that holds it (``jurs._model.lattice.grid_lattice_values``;
+    ``FinestSpline``), and ``lattice_vertices`` puts each vertex where marching cubes over
+    the whole lattice at once puts it, so the mesh is the same, bit for bit, for any
+    ``chunk``.
     """
     marching_cubes = skimage_marching_cubes()
     xs, ys, zs = axes
@@ -465,14 +471,88 @@ def _march_in_slabs(spline, axes, level: float, nudge: float, chunk: int):
         # "descent": scikit-image's default orientation, whose faces (right-hand rule) face
         # the larger values, i.e. g > level. It computes in float32.
         verts, tris, _, _ = marching_cubes(values, level, gradient_direction="descent")
-        verts = verts.astype(np.float64)
-        verts[:, 0] += start
-        vertex_parts.append(verts)
+        vertex_parts.append(lattice_vertices(verts, values, level, (start, 0, 0)))
         face_parts.append(tris.astype(np.int64) + count)
         count += len(verts)
     if not face_parts:
         return _EMPTY
     return _weld(np.concatenate(vertex_parts), np.concatenate(face_parts))
+
+
+#: scikit-image's marching cubes (``_marching_cubes_lewiner_cy``) weighs a cube corner of
+#: value ``v`` (level subtracted) by ``1 / (FLT_EPSILON + |v|)``, its FLT_EPSILON being
+#: float64's epsilon.
+MC_EPSILON = float(np.spacing(1.0))
+#: The corners of a cube in scikit-image's order (its ``v0`` .. ``v7``), as offsets along
+#: the array's axes (0, 1, 2), which it calls (z, y, x).
+MC_CORNERS = np.array(
+    [[0, 0, 0], [0, 0, 1], [0, 1, 1], [0, 1, 0], [1, 0, 0], [1, 0, 1], [1, 1, 1], [1, 1, 0]]
+)
+
+
+def lattice_vertices(verts, values, level: float, first) -> np.ndarray:
+    """Marching cubes' vertices ``verts (V, 3)`` (float32, index units of ``values``, a
+    part of the lattice whose node 0 is the lattice's node ``first``) in the whole
+    lattice's index units, float64: where scikit-image's marching cubes puts them when it
+    marches the whole lattice at once, bit for bit.
+
+    It places a vertex at ``i + f`` in float64 (``i`` a corner's index in the array it
+    marches, ``f`` in [0, 1] from the corner values rounded to float32, weighted as
+    ``MC_EPSILON`` says) and rounds that to float32, whose spacing grows with ``i``.
+    Shifted by ``first`` after the rounding, a vertex of a slab starting at plane ``s``
+    was ``fl32(i - s + f) + s``, not ``fl32(i + f)``: meshes of one spline with two slab
+    sizes differed by about 1e-7 on a box of side 2, which reordered some of the welded
+    vertices (sorted by position), so the arrays returned differed far more (issue 54).
+    So each coordinate off the lattice's planes is computed again from the corner values
+    with ``i`` counted from the whole lattice's first node: the one coordinate of a vertex
+    on a lattice edge (the other two are integers), all three of a vertex inside a cube
+    (Lewiner's centre vertex, every coordinate off the planes). A coordinate on a plane is
+    an integer, exact in both.
+
+    A vertex stays off the planes by at least a fraction of a spacing that ``NUDGE``
+    bounds (about 3e-4 of a spacing inside a cube, 1e-3 on an edge), so a coordinate
+    integral in float32 is on a plane, and the floor of the others is the cube's, for
+    lattices below several thousand nodes a side (float32 rounds ``i + f`` by up to 6e-8
+    times ``i``)."""
+    local = verts.astype(np.float64)
+    out = local + np.asarray(first, np.float64)
+    off = local != np.floor(local)
+    along = off.sum(axis=1)
+    corner = np.floor(local).astype(np.int64)
+    level = float(level)
+
+    def weights(nodes):
+        # scikit-image's arithmetic: the float32 value, the level subtracted in float64.
+        v = values[nodes[:, 0], nodes[:, 1], nodes[:, 2]].astype(np.float32).astype(np.float64)
+        return 1.0 / (MC_EPSILON + np.abs(v - level))
+
+    # On an edge along `axis`: i + w1 / (w0 + w1), w1 the weight of the node at i + 1.
+    for axis in range(3):
+        rows = np.flatnonzero((along == 1) & off[:, axis])
+        if not len(rows):
+            continue
+        step = np.zeros(3, np.int64)
+        step[axis] = 1
+        w0, w1 = weights(corner[rows]), weights(corner[rows] + step)
+        index = (corner[rows, axis] + int(first[axis])).astype(np.float64)
+        out[rows, axis] = (index + w1 / (w0 + w1)).astype(np.float32)
+    # Inside a cube: i + (sum of the weights of the corners at i + 1) / (sum of all eight),
+    # each sum added one by one in scikit-image's corner order.
+    rows = np.flatnonzero(along >= 2)
+    if len(rows):
+        cube = np.minimum(corner[rows], np.array(values.shape) - 2)
+        w = [weights(cube + offset) for offset in MC_CORNERS]
+        total = w[0]
+        for term in w[1:]:
+            total = total + term
+        for axis in range(3):
+            upper = [term for term, offset in zip(w, MC_CORNERS) if offset[axis]]
+            part = upper[0]
+            for term in upper[1:]:
+                part = part + term
+            index = (cube[:, axis] + int(first[axis])).astype(np.float64)
+            out[rows, axis] = (index + part / total).astype(np.float32)
+    return out
 
 
 def _weld(vertices, faces):
@@ -586,10 +666,8 @@ def march_band(
                 continue
             # "descent": faces (right-hand rule) towards g > level, as on the full lattice.
             verts, tris, _, _ = marching_cubes(block_values, level, gradient_direction="descent")
-            verts = verts.astype(np.float64) + np.array(
-                [grid.first[k][where[k]] for k in range(grid.ndim)], np.float64
-            )
-            vertex_parts.append(verts)
+            first = [int(grid.first[k][where[k]]) for k in range(grid.ndim)]
+            vertex_parts.append(lattice_vertices(verts, block_values, level, first))
             face_parts.append(tris.astype(np.int64) + count)
             count += len(verts)
     if not face_parts:
