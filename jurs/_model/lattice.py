@@ -460,7 +460,8 @@ def grid_values_and_gradients(spline, points, *, chunk: int = 1 << 14, gradients
             shape = (len(p),) + (1,) * k + (4,) + (1,) * (d - k - 1)
             index.append((cell[:, None] + np.arange(4)).reshape(shape))
             factors.append(cubic_weights(t, xp=np))
-            slopes.append(cubic_slopes(t) / h)
+            if gradients:
+                slopes.append(cubic_slopes(t) / h)
         index = tuple(index)
         num_patch, den_patch = weighted[index], weights[index]
         num = np.einsum(contract, num_patch, *factors, optimize=True)
