@@ -30,7 +30,7 @@ from .leaves import (
 )
 from .precision import on_device
 
-# Traced evaluations (concrete ones run on the host, ``_on_host``): one compiled program
+# Traced evaluations (concrete ones run on the host: ``_host_points``): one compiled program
 # per hierarchy and point count. Run eagerly, the leaf search and the cascade compile
 # each of their few dozen operations for every new shape (a first gradient took over
 # three times as long; docs/performance.md), and a warm call is several times slower.
@@ -38,8 +38,9 @@ _values = jax.jit(hierarchy_values)
 _values_and_gradients = jax.jit(hierarchy_values_and_gradients)
 
 #: The host evaluator (``FinestSpline``: the cascade to the finest level, done once) of
-#: each live AdaptiveSpline, by identity: a spline is immutable, and its meshing,
-#: verdicts and evaluations at points all read the same one. An entry goes with its
+#: each live AdaptiveSpline, by identity: a spline of JAX arrays is immutable, and its
+#: meshing, verdicts and evaluations at points all read the same one (one of NumPy
+#: arrays, which can change in place, gets a new one each time). An entry goes with its
 #: spline.
 _evaluators: dict[int, tuple] = {}
 
@@ -158,6 +159,8 @@ class AdaptiveSpline(AbstractSpline):
         done once; see [`jurs.AbstractSpline`][]), kept while the spline lives: every
         host evaluation of this spline (points, lattices, band meshes, verdicts) reads
         the same one."""
+        if not all(isinstance(a, jax.Array) for a in (self.control, self.weights)):
+            return FinestSpline(self)
         key = id(self)
         entry = _evaluators.get(key)
         if entry is not None and entry[0]() is self:
