@@ -30,6 +30,7 @@ from jax import Array, lax
 from .._cloud.cloud import Cloud
 from .._cloud.measure import PROBES, strided_probes
 from .._linalg.pcg import conjugate_gradients, jacobi_inverse
+from .._linalg.sparse import PaddedCoo
 from .._linalg.thb_multigrid import ThbMultigrid, VCycle, multigrid_cg
 from .._model.adaptive import AdaptiveSpline
 from .._model.precision import on_device
@@ -235,43 +236,31 @@ def size_class(count: int) -> int:
     return max(MIN_CLASS, round_size(count))
 
 
-def _coo(matrix, nnz: int, dtype):
-    """``(rows, cols, values)`` of a SciPy sparse matrix padded to ``nnz`` entries with
-    zeros at (0, 0), which add exactly nothing."""
-    coo = matrix.tocoo()
-    return (
-        on_device(padded_to(coo.row.astype(np.int32), nnz)),
-        on_device(padded_to(coo.col.astype(np.int32), nnz)),
-        on_device(padded_to(coo.data, nnz), dtype),
-    )
-
-
 @jax.jit
 def _assembled_cg(
-    collocation, regulariser, targets, row_weights, diagonal, lam, rtol, max_steps, start
+    collocation: PaddedCoo,
+    regulariser: PaddedCoo,
+    targets,
+    row_weights,
+    diagonal,
+    lam,
+    rtol,
+    max_steps,
+    start,
 ):
     """CG on ``(D^T S D + lam 2 G^T W G) c = D^T S b`` (``S`` the samples' row weights)
-    from the padded COO entries of ``D`` and ``2 G^T W G``, started at ``start``: every
-    shape is a size class, so a new cloud of a similar size compiles nothing. Padded
-    functions have a zero row, right-hand side and diagonal, and stay 0."""
-    rows, cols, values = collocation
-    reg_rows, reg_cols, reg_values = regulariser
-    n, count = diagonal.shape[0], targets.shape[0]
-
-    def apply(c):  # D c
-        return jax.ops.segment_sum(values * c[cols], rows, count)
-
-    def transpose(v):  # D^T v
-        return jax.ops.segment_sum(values * v[rows], cols, n)
+    from the padded ``D`` and ``2 G^T W G``, started at ``start``: every shape is a size
+    class, so a new cloud of a similar size compiles nothing. Padded functions have a zero
+    row, right-hand side and diagonal, and stay 0."""
 
     def matvec(c):
-        regular = jax.ops.segment_sum(reg_values * c[reg_cols], reg_rows, n)
-        return transpose(row_weights * apply(c)) + lam * regular
+        weighted = row_weights * (collocation @ c)
+        return collocation.transpose_apply(weighted) + lam * (regulariser @ c)
 
     inverse = jacobi_inverse(diagonal)
     return conjugate_gradients(
         matvec,
-        transpose(row_weights * targets),
+        collocation.transpose_apply(row_weights * targets),
         precondition=lambda r: inverse * r,
         start=start,
         rtol=rtol,
@@ -314,8 +303,10 @@ def solve_assembled(
     weights = np.ones(count) if row_weights is None else np.asarray(row_weights, float)
     first = np.zeros(n) if start is None else np.asarray(start, float)
     control, steps, residual = _assembled_cg(
-        _coo(collocation, size_class(collocation.nnz), dtype),
-        _coo(regulariser, size_class(regulariser.nnz), dtype),
+        PaddedCoo.from_scipy(
+            collocation, size_class(collocation.nnz), (count_class, n_class), dtype
+        ),
+        PaddedCoo.from_scipy(regulariser, size_class(regulariser.nnz), (n_class, n_class), dtype),
         on_device(padded_to(np.asarray(problem.targets), count_class), dtype),
         on_device(padded_to(weights, count_class), dtype),
         on_device(padded_to(diagonal, n_class), dtype),
@@ -384,17 +375,11 @@ def solve_host_cg(
 
 
 @jax.jit
-def _multigrid_cg(normal, rhs, cycle, rtol, max_steps, start):
-    """CG on ``normal c = rhs`` (``normal``: the padded COO entries of the assembled normal
-    matrix) from ``start``, preconditioned by one V-cycle a step."""
-    rows, cols, values = normal
-    n = rhs.shape[0]
-
-    def matvec(c):
-        return jax.ops.segment_sum(values * c[cols], rows, n)
-
+def _multigrid_cg(normal: PaddedCoo, rhs, cycle, rtol, max_steps, start):
+    """CG on ``normal c = rhs`` (the padded assembled normal matrix) from ``start``,
+    preconditioned by one V-cycle a step."""
     return conjugate_gradients(
-        matvec, rhs, precondition=cycle, start=start, rtol=rtol, max_steps=max_steps
+        normal.__matmul__, rhs, precondition=cycle, start=start, rtol=rtol, max_steps=max_steps
     )
 
 
@@ -419,15 +404,16 @@ def solve_multigrid(
 
     matrix, rhs = normal_system(problem, matrices, lam, row_weights)
     n = matrix.shape[0]
+    n_class = size_class(n)
     multigrid = ThbMultigrid(problem.hierarchy, csr_matrix(matrix), **options)
     first = np.zeros(n) if start is None else np.asarray(start, float)
     control, steps, residual = _multigrid_cg(
-        _coo(matrix, size_class(matrix.nnz), dtype),
-        on_device(padded_to(rhs, size_class(n)), dtype),
+        PaddedCoo.from_scipy(matrix, size_class(matrix.nnz), (n_class, n_class), dtype),
+        on_device(padded_to(rhs, n_class), dtype),
         multigrid.on_device(dtype, pad=size_class),
         on_device(rtol, dtype),
         on_device(max_steps, np.int32),
-        on_device(padded_to(first, size_class(n)), dtype),
+        on_device(padded_to(first, n_class), dtype),
     )
     return np.asarray(control)[:n], int(steps), float(residual)
 

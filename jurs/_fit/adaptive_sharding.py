@@ -33,6 +33,7 @@ from jax.sharding import Mesh, NamedSharding, PartitionSpec
 
 from .._cloud.parts import agree, allgather, gather_ragged
 from .._linalg.pcg import conjugate_gradients, jacobi_inverse
+from .._linalg.sparse import padded_entries
 from .._model.precision import on_device
 from .._problem.adaptive import assemble_adaptive_problem
 from .._problem.sizes import padded_to
@@ -64,17 +65,6 @@ def device_rows(count: int, points: int, shards: int) -> np.ndarray:
     return (np.arange(count) % points) // block
 
 
-def _host_coo(matrix, nnz: int, dtype) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``(rows, cols, values)`` of a SciPy sparse matrix on the host, padded to ``nnz``
-    entries with zeros at (0, 0), which add exactly nothing."""
-    coo = matrix.tocoo()
-    return (
-        padded_to(coo.row.astype(np.int32), nnz),
-        padded_to(coo.col.astype(np.int32), nnz),
-        padded_to(coo.data.astype(dtype), nnz),
-    )
-
-
 def split_rows(collocation, targets: np.ndarray, points: int, devices: int, dtype, agree=None):
     """``((rows, cols, values), targets, is_data)``: host arrays of the rows of
     ``collocation`` (SciPy, ``(3 points, n)``) and of ``targets`` split over ``devices``
@@ -95,7 +85,7 @@ def split_rows(collocation, targets: np.ndarray, points: int, devices: int, dtyp
     length, nnz = (size_class(int(x)) for x in sizes)
     entries, values, data = [], [], []
     for rows, block in zip(parts, blocks):
-        entries.append(_host_coo(block, nnz, dtype))
+        entries.append(padded_entries(block, nnz, dtype))
         values.append(padded_to(np.asarray(targets, float)[rows], length))
         data.append(padded_to(rows < points, length, False))
     coo = tuple(np.concatenate([e[i] for e in entries]) for i in range(3))
@@ -203,7 +193,7 @@ def solve_sharded(
         x = np.asarray(x)
         return jax.make_array_from_process_local_data(replicated, x, x.shape)
 
-    reg_coo = _host_coo(regulariser, size_class(regulariser.nnz), dtype)
+    reg_coo = padded_entries(regulariser, size_class(regulariser.nnz), dtype)
     regulariser_diagonal = padded_to(np.asarray(problem.regulariser_diagonal, float), size_class(n))
     control, steps, residual, data, on_data, largest = _sharded_cg(
         tuple(put_split(a) for a in coo),

@@ -46,6 +46,7 @@ from jaxtyping import Float
 
 from .._model.hierarchy import Hierarchy, cascade_matrix
 from .._problem.sizes import padded_to
+from .sparse import PaddedCoo
 
 #: Chebyshev smoothing steps before and after the coarse correction of each level, and
 #: the smoother's patches: boxes of ``PATCH_SIDE`` functions a side, one every
@@ -371,16 +372,9 @@ class ThbMultigrid:
         pad = pad or (lambda n: n)
         lengths = [pad(size) for size in self.sizes]
 
-        def entries(matrix, rows: int, cols: int):
-            coo = matrix.tocoo()  # pyright: ignore[reportAttributeAccessIssue]
-            count = pad(max(coo.nnz, 1))
-            return _Coo(
-                jnp.asarray(padded_to(coo.row.astype(np.int32), count)),
-                jnp.asarray(padded_to(coo.col.astype(np.int32), count)),
-                jnp.asarray(padded_to(coo.data, count), dtype),
-                rows,
-                cols,
-            )
+        def entries(matrix, rows: int, cols: int) -> PaddedCoo:
+            count = pad(max(matrix.nnz, 1))
+            return PaddedCoo.from_scipy(matrix, count, (rows, cols), dtype)
 
         levels = []
         for level, length in zip(self.levels, lengths):
@@ -439,23 +433,6 @@ def _dense_inverse(matrix) -> np.ndarray:
     return out
 
 
-class _Coo(eqx.Module):
-    """A sparse matrix as padded COO entries (padding: zeros at (0, 0), which add
-    nothing), its shape static."""
-
-    rows: Array
-    cols: Array
-    values: Array
-    num_rows: int = eqx.field(static=True)
-    num_cols: int = eqx.field(static=True)
-
-    def __matmul__(self, x: Array) -> Array:
-        return jax.ops.segment_sum(self.values * x[self.cols], self.rows, self.num_rows)
-
-    def transpose_apply(self, y: Array) -> Array:
-        return jax.ops.segment_sum(self.values * y[self.rows], self.cols, self.num_cols)
-
-
 class _Blocks(eqx.Module):
     """Additive Schwarz over patches (``_Patches.apply``) on the device."""
 
@@ -472,7 +449,7 @@ class _Blocks(eqx.Module):
 
 
 class _DeviceLevel(eqx.Module):
-    matrix: _Coo
+    matrix: PaddedCoo
     inverse: Array  # Jacobi scaling, 0 on zero and padded rows
     steps: Array  # (degree, 2) the Chebyshev recurrence's (alpha, beta)
     patches: _Blocks | None
@@ -500,7 +477,7 @@ class VCycle(eqx.Module):
     ``jurs._linalg.pcg.conjugate_gradients``."""
 
     levels: tuple[_DeviceLevel, ...]  # coarsest first
-    prolongations: tuple[_Coo, ...]  # V_l -> V_{l+1}
+    prolongations: tuple[PaddedCoo, ...]  # V_l -> V_{l+1}
     coarse: Array  # the coarsest space's inverse, dense
     mask: Array  # functions of the finest space with a nonzero row
 
