@@ -271,3 +271,108 @@ def band_lattice(evaluator: FinestSpline, axes, level: float, block: int = BLOCK
             values[target] = block_values[(b,) + tuple(slice(0, n) for n in real[b])]
             evaluated[target] = True
     return values, evaluated, plan
+
+
+def band_regions(
+    evaluator: FinestSpline,
+    axes,
+    level: float,
+    block: int = BLOCK_CELLS,
+    plan: BandPlan | None = None,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """The lattice edges ``axes`` where g crosses ``level``, and the sign regions at
+    their ends, evaluating only the band's blocks: ``(low, high, at)``, for each such
+    edge the regions of its end nodes below and above the level (ids, one a region of the
+    whole lattice) and its midpoint ``(k, d)`` in lattice index units. The regions are
+    the full lattice's: nodes above the level joined across lattice edges, nodes at or
+    below it across edges and the diagonals of cells, so that the two never cross.
+
+    Each evaluated block (``plan``, default ``plan_band`` without nudge) is labelled on
+    its own; every lattice edge and cell lies in one block, and blocks share their
+    boundary nodes, so joining the labels a shared node gets in each of its blocks gives
+    the lattice's regions. A connected group of skipped blocks (touching at a side, an
+    edge or a corner: blocks that touch share nodes) lies on one side and is one region.
+    The memory and work grow with the band's blocks, not the lattice: the fit's verdict
+    sees one-cell shells on a hierarchy whose full lattice would not fit."""
+    from scipy import ndimage
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    d = len(axes)
+    if plan is None:
+        plan = plan_band(evaluator, axes, level, 0.0, block)
+    grid = BlockGrid(evaluator, axes, block)
+    skipped = np.ones(grid.grid, bool)
+    skipped[tuple(plan.blocks.T)] = False
+    labelled: Any = ndimage.label(skipped, structure=np.ones((3,) * d, bool))
+    block_region, next_id = np.asarray(labelled[0], np.int64) - 1, int(labelled[1])
+    counts = np.asarray(grid.counts)
+    faces_only = ndimage.generate_binary_structure(d, 1)
+    every = np.ones((3,) * d, bool)
+    shared_nodes, shared_ids, joins = [], [], []
+    edge_keys, lows, highs, mids = [], [], [], []
+    for begin in range(0, len(plan.blocks), grid.batch):
+        batch = plan.blocks[begin : begin + grid.batch]
+        values, real = grid.values(evaluator, batch)
+        for b, where in enumerate(batch):
+            above = values[(b,) + tuple(slice(0, n) for n in real[b])] > level
+            up: Any = ndimage.label(above, structure=faces_only)
+            down: Any = ndimage.label(~above, structure=every)
+            local = np.where(above, up[0], down[0] + int(up[1])) - 1 + next_id
+            next_id += int(up[1]) + int(down[1])
+            start = np.array([grid.first[k][where[k]] for k in range(d)])
+            for axis in range(d):
+                head = tuple(slice(0, -1) if a == axis else slice(None) for a in range(d))
+                tail = tuple(slice(1, None) if a == axis else slice(None) for a in range(d))
+                index = np.nonzero(above[head] != above[tail])
+                if len(index[0]) == 0:
+                    continue
+                node = np.stack(index, axis=1) + start
+                first_above = above[head][index]
+                a, c = local[head][index], local[tail][index]
+                lows.append(np.where(first_above, c, a))
+                highs.append(np.where(first_above, a, c))
+                edge_keys.append(np.ravel_multi_index(tuple(node.T), counts) * d + axis)
+                at = node.astype(float)
+                at[:, axis] += 0.5
+                mids.append(at)
+            # The block's boundary nodes, shared with its neighbours.
+            border = np.zeros(above.shape, bool)
+            for axis in range(d):
+                first = tuple(0 if a == axis else slice(None) for a in range(d))
+                last = tuple(-1 if a == axis else slice(None) for a in range(d))
+                border[first] = border[last] = True
+            node = np.argwhere(border) + start
+            ids = local[border]
+            shared_nodes.append(np.ravel_multi_index(tuple(node.T), counts))
+            shared_ids.append(ids)
+            # Skipped blocks holding these nodes: node i lies in block i // B and, at a
+            # block's first node, in the block before too.
+            for corner in cube_offsets(d, 2):
+                holder = np.empty_like(node)
+                ok = np.ones(len(node), bool)
+                for k in range(d):
+                    primary = np.minimum(node[:, k] // grid.block, grid.grid[k] - 1)
+                    if corner[k]:
+                        ok &= (node[:, k] % grid.block == 0) & (node[:, k] > 0)
+                        holder[:, k] = node[:, k] // grid.block - 1
+                    else:
+                        holder[:, k] = primary
+                holder = np.clip(holder, 0, np.asarray(grid.grid) - 1)
+                region = block_region[tuple(holder.T)]
+                ok &= region >= 0
+                joins.append(np.stack([ids[ok], region[ok]], 1))
+    if not lows:
+        empty = np.zeros(0, np.int64)
+        return empty, empty, np.zeros((0, d))
+    nodes, ids = np.concatenate(shared_nodes), np.concatenate(shared_ids)
+    order = np.argsort(nodes, kind="stable")
+    nodes, ids = nodes[order], ids[order]
+    same = nodes[1:] == nodes[:-1]
+    pairs = np.concatenate([np.stack([ids[:-1][same], ids[1:][same]], 1), *joins])
+    graph = coo_matrix((np.ones(len(pairs)), (pairs[:, 0], pairs[:, 1])), shape=(next_id, next_id))
+    root = connected_components(graph, directed=False)[1]
+    # An edge on two blocks' shared side was found in both.
+    _, unique = np.unique(np.concatenate(edge_keys), return_index=True)
+    low, high = np.concatenate(lows)[unique], np.concatenate(highs)[unique]
+    return root[low].astype(np.int64), root[high].astype(np.int64), np.concatenate(mids)[unique]

@@ -24,9 +24,15 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from .._cloud.carried import MIN_CARRIED_FRACTION, carried_samples
+from .._cloud.carried import (
+    MIN_CARRIED_FRACTION,
+    SHELL_REACH,
+    carried_samples,
+    surface_shells,
+)
 from .._cloud.measure import PROBES, feature_width, strided_probes
 from .._model.adaptive import AdaptiveSpline
+from .._model.band import band_regions, plan_band
 from .._model.function import AbstractSpline
 from .._model.spline import ImplicitSpline
 from .._problem.energy import layout_residuals
@@ -333,14 +339,87 @@ def crossed_features(spline: ImplicitSpline, points, normals, spacing: float) ->
 #: at most this many nodes (coarser beyond): under a second on the host, small beside a fit
 #: of a grid that large (docs/robustness.md, "Verdicts, after the fit").
 EXTRA_CHECK_NODES = 1 << 20
+#: On a hierarchy the check labels the same half-cell lattice of its finest level, but
+#: evaluates and labels only the band's blocks (``jurs._model.band.band_regions``), at
+#: most this many nodes (coarser beyond): the work grows with the surface, not the box,
+#: and a shell one finest cell wide still holds lattice nodes.
+EXTRA_BAND_NODES = 1 << 24
+
+
+def _lattice_axes(lower, upper, steps) -> list[np.ndarray]:
+    return [np.linspace(lo, hi, int(n) + 1) for lo, hi, n in zip(lower, upper, steps)]
+
+
+@functools.singledispatch
+def sign_interfaces(
+    spline: AbstractSpline,
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """The lattice edges of the zero-set check where g changes sign: ``(low, high, at,
+    steps)``, each edge's regions at its two ends (ids), its midpoint ``(k, d)`` in
+    lattice index units, and the lattice's steps per axis. Regions: the nodes of one sign
+    that touch, across faces where g > 0, across faces, edges and corners where g <= 0, so
+    that the two never cross each other. The grid labels its whole lattice of half-cells
+    (at most ``EXTRA_CHECK_NODES`` nodes); the hierarchy only its band's blocks."""
+    from scipy import ndimage
+
+    lower, upper = np.asarray(spline.lower, float), np.asarray(spline.upper, float)
+    steps = 2.0 * np.asarray(spline.finest_cells, float)
+    d = len(steps)
+    scale = (EXTRA_CHECK_NODES / float(np.prod(steps + 1))) ** (1.0 / d)
+    if scale < 1.0:
+        steps = np.maximum(2.0, np.floor(steps * scale))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        positive = spline.band_lattice(_lattice_axes(lower, upper, steps), 0.0)[0] > 0
+    empty = np.zeros(0, np.int64)
+    if positive.all() or not positive.any():
+        return empty, empty, np.zeros((0, d)), steps
+    faces_only = ndimage.generate_binary_structure(d, 1)
+    # (SciPy's stub types label's result as an int too: it is a tuple without output=.)
+    region, count = cast("tuple[np.ndarray, int]", ndimage.label(positive, structure=faces_only))
+    negative = cast(
+        "tuple[np.ndarray, int]", ndimage.label(~positive, structure=np.ones((3,) * d, bool))
+    )[0]
+    region = np.where(positive, region, negative + count).astype(np.int64)
+    lows, highs, where = [], [], []
+    for axis in range(d):
+        head = tuple(slice(0, -1) if a == axis else slice(None) for a in range(d))
+        tail = tuple(slice(1, None) if a == axis else slice(None) for a in range(d))
+        index = np.nonzero(positive[head] != positive[tail])
+        a, b = region[head][index], region[tail][index]
+        first_above = positive[head][index]
+        lows.append(np.where(first_above, b, a))
+        highs.append(np.where(first_above, a, b))
+        at = np.stack(index, axis=1).astype(float)
+        at[:, axis] += 0.5
+        where.append(at)
+    return np.concatenate(lows), np.concatenate(highs), np.concatenate(where), steps
+
+
+@sign_interfaces.register
+def _(spline: AdaptiveSpline) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    lower, upper = np.asarray(spline.lower, float), np.asarray(spline.upper, float)
+    steps = 2.0 * np.asarray(spline.finest_cells, float)
+    evaluator = spline.on_host()
+    axes = _lattice_axes(lower, upper, steps)
+    with np.errstate(invalid="ignore", divide="ignore"):
+        plan = plan_band(evaluator, axes, 0.0, 0.0)
+        if plan.nodes > EXTRA_BAND_NODES:
+            # The band's nodes grow with the square of the lattice's density.
+            steps = np.maximum(2.0, np.floor(steps * np.sqrt(EXTRA_BAND_NODES / plan.nodes)))
+            axes = _lattice_axes(lower, upper, steps)
+            plan = plan_band(evaluator, axes, 0.0, 0.0)
+        low, high, at = band_regions(evaluator, axes, 0.0, plan=plan)
+    return low, high, at, steps
 
 
 def extra_components(spline: ImplicitSpline, tree, threshold: float) -> list[dict]:
-    """The closed components of the zero set away from the data: each a dict with its
-    ``centre``, bounding box (``lower``, ``upper``), ``area_share`` and ``distance``.
+    """The closed components of the zero set away from the data, or lying on another
+    component: each a dict with its ``centre``, bounding box (``lower``, ``upper``),
+    ``area_share`` and ``distance``.
 
-    g is sampled on a lattice of half-cells over the spline's box (at most
-    ``EXTRA_CHECK_NODES`` nodes, ``jurs._model.lattice.lattice_values``). The nodes of
+    g is sampled on a lattice of half-cells over the spline's box (``sign_interfaces``:
+    the grid's whole lattice, at most ``EXTRA_CHECK_NODES`` nodes; the hierarchy's
+    finest half-cells over the band's blocks, at most ``EXTRA_BAND_NODES``). The nodes of
     one sign that touch make a region (across faces where g > 0, across faces, edges and
     corners where g <= 0, so that the two never cross each other), and the lattice edges
     from one region to another hold that interface's piece of the zero set: each pair of
@@ -353,50 +432,24 @@ def extra_components(spline: ImplicitSpline, tree, threshold: float) -> list[dic
     (``far_point_fraction``'s: at least half a knot span) plus half a lattice step (how
     far a midpoint sits from the zero set at most), and nearer to this component than to
     any other. A component away from the data carries none, and neither does a small loop
-    beside data that the true zero set passes through. ``area_share`` is the
-    component's share of all the zero set's lattice edges (about its share of the area,
-    or of the length in 2D); ``distance`` the median distance from its midpoints to the
-    data, ``carried_share`` its share carried, ``away`` whether that median exceeds the
-    limit. One path for curves and surfaces: the same lattice, regions and interfaces in
-    2D and 3D."""
-    from scipy import ndimage
-
+    beside data that the true zero set passes through. A closed component that carries
+    its data but lies on another one (``jurs._cloud.carried.surface_shells``: most of it
+    within two lattice diagonals) is counted too, with ``shell`` true: g dips across the
+    surface and back there, over a tunnel or pit narrower than a cell. ``area_share`` is
+    the component's share of all the zero set's lattice edges (about its share of the
+    area, or of the length in 2D); ``distance`` the median distance from its midpoints to
+    the data, ``carried_share`` its share carried, ``away`` whether that median exceeds
+    the limit. One path for curves and surfaces: the same lattice, regions and
+    interfaces in 2D and 3D."""
     lower, upper = np.asarray(spline.lower, float), np.asarray(spline.upper, float)
-    spans = np.asarray(spline.finest_cells, float)
-    d = len(spans)
-    steps = 2.0 * spans
-    scale = (EXTRA_CHECK_NODES / float(np.prod(steps + 1))) ** (1.0 / d)
-    if scale < 1.0:
-        steps = np.maximum(2.0, np.floor(steps * scale))
-    axes = [np.linspace(lo, hi, int(n) + 1) for lo, hi, n in zip(lower, upper, steps)]
-    with np.errstate(invalid="ignore", divide="ignore"):
-        # The hierarchy evaluates only the blocks where g may change sign; the others take
-        # their region's sign, so the signs are the full lattice's (jurs._model.band).
-        positive = spline.band_lattice(axes, 0.0)[0] > 0
-    if positive.all() or not positive.any():
+    low, high, at, steps = sign_interfaces(spline)
+    if len(at) == 0:
         return []
-    faces_only = ndimage.generate_binary_structure(d, 1)
-    # (SciPy's stub types label's result as an int too: it is a tuple without output=.)
-    region, count = cast("tuple[np.ndarray, int]", ndimage.label(positive, structure=faces_only))
-    negative = cast(
-        "tuple[np.ndarray, int]", ndimage.label(~positive, structure=np.ones((3,) * d, bool))
-    )[0]
-    region = np.where(positive, region, negative + count).astype(np.int64)
-    shape = np.asarray(positive.shape)
-    keys, where, on_border = [], [], []
-    for axis in range(d):
-        head = tuple(slice(0, -1) if a == axis else slice(None) for a in range(d))
-        tail = tuple(slice(1, None) if a == axis else slice(None) for a in range(d))
-        index = np.nonzero(positive[head] != positive[tail])
-        a, b = region[head][index], region[tail][index]
-        keys.append(np.minimum(a, b) * (int(region.max()) + 1) + np.maximum(a, b))
-        at = np.stack(index, axis=1).astype(float)
-        at[:, axis] += 0.5
-        where.append(at)
-        others = [k for k in range(d) if k != axis]
-        edge = at[:, others]
-        on_border.append(((edge == 0) | (edge == shape[others] - 1)).any(axis=1))
-    key, at, border = np.concatenate(keys), np.concatenate(where), np.concatenate(on_border)
+    shape = steps + 1
+    key = np.minimum(low, high) * (int(max(low.max(), high.max())) + 1) + np.maximum(low, high)
+    # An edge lies on the box's border where one of its whole coordinates is an end.
+    whole = at == np.floor(at)
+    border = (whole & ((at == 0) | (at == shape - 1))).any(axis=1)
     step = (upper - lower) / steps
     points = lower + at * step
     pairs, group, sizes = np.unique(key, return_inverse=True, return_counts=True)
@@ -411,11 +464,15 @@ def extra_components(spline: ImplicitSpline, tree, threshold: float) -> list[dic
     order = np.lexsort((distance, group))
     first = np.cumsum(sizes) - sizes
     median = distance[order][first + sizes // 2]
+    shells = surface_shells(points, group, ~open_, SHELL_REACH * diagonal, tree=tree)
     found = []
     # Less than half carried: away from the data (the median beyond the limit) or beside
-    # data that another component passes through (jurs.levelset's supplementary rule).
-    for k in np.flatnonzero(~open_ & (share < MIN_CARRIED_FRACTION)):
+    # data that another component passes through (jurs.levelset's supplementary rule);
+    # or carried but lying on another component.
+    counted = ~open_ & ((share < MIN_CARRIED_FRACTION) | shells)
+    for k in np.flatnonzero(counted):
         mine = points[order[first[k] : first[k] + sizes[k]]]
+        shell = bool(share[k] >= MIN_CARRIED_FRACTION)
         found.append(
             {
                 "centre": mine.mean(axis=0).tolist(),
@@ -424,7 +481,10 @@ def extra_components(spline: ImplicitSpline, tree, threshold: float) -> list[dic
                 "area_share": float(sizes[k]) / len(key),
                 "distance": float(median[k]),
                 "carried_share": float(share[k]),
-                "away": bool(median[k] > limit),
+                "away": bool(median[k] > limit) and not shell,
+                "shell": shell,
+                "cell": float(spline.cell_width),
+                "finest": int(np.max(np.asarray(spline.finest_cells))),
             }
         )
     return sorted(found, key=lambda c: -c["area_share"])
@@ -454,6 +514,18 @@ def describe_extra(component: dict, extent: float) -> str:
     centre = format_place(component["centre"], extent)
     lower = format_place(component["lower"], extent)
     upper = format_place(component["upper"], extent)
+    if component.get("shell", False):
+        cell, finest = component.get("cell", float("nan")), component.get("finest", 0)
+        return (
+            f"a closed zero-set shell lying on the surface, centred at {centre} within "
+            f"{lower} .. {upper}, {component['area_share']:.1%} of the zero set: g dips "
+            "across the surface and back there, as over a tunnel, handle or pit narrower "
+            f"than a cell ({cell:.3g}) that the fit filled in, so the surface's genus and "
+            "components may be wrong there (the data carry it only because the surface "
+            "beside it passes through them). A finer grid (finest= above "
+            f"{finest} cells along the longest side on the hierarchy, grid= on a uniform "
+            "one) or denser samples there resolve it"
+        )
     where = (
         "away from the data"
         if component.get("away", True)

@@ -19,7 +19,13 @@ from scipy import sparse
 from scipy.sparse import csgraph
 from scipy.spatial import cKDTree  # pyright: ignore[reportAttributeAccessIssue]  # no stub
 
-from .._cloud.carried import MIN_CARRIED_FRACTION, carried_samples
+from .._cloud.carried import (
+    MIN_CARRIED_FRACTION,
+    SHELL_EDGES,
+    carried_samples,
+    surface_shells,
+)
+from .._solution.verdicts import format_place
 from ..datasets import sample_mesh
 from ._faces import boundary_edges, check_mesh, face_areas, face_components
 from ._trimming import DEFAULT_TRIM, UNSUPPORTED_FRACTION, Support, check_points
@@ -187,7 +193,12 @@ class MeshComponent:
             farther than the threshold from the data; or, for a closed component,
             ``carried_fraction`` below ``MIN_CARRIED_FRACTION`` (a half): a bubble the data
             do not account for, also beside them (a closed bubble inside a CAD part's
-            solid, near both its faces, read 0 supplementary before).
+            solid, near both its faces, read 0 supplementary before); or a closed shell
+            lying on another component (``jurs._cloud.carried.surface_shells``: most of
+            its area within four of its longest edges of another component), which the
+            data beside it seem to carry: g dips across the surface and back there, over
+            a tunnel or pit narrower than a cell that the fit filled in, and ``notes``
+            names its place.
         boundary_lengths: the length of each of its boundary loops, longest first
             (empty for a closed component); see
             [`boundary_loops`][jurs.levelset.boundary_loops].
@@ -371,7 +382,8 @@ def analyze_mesh(
         # a pinch splits the surface into pieces side by side (carried_samples).
         corners = vertices[faces]
         edge = np.linalg.norm(corners - np.roll(corners, 1, axis=1), axis=2).max(axis=1)
-        distance, carried = carried_samples(centroids, labels, cKDTree(points), threshold, edge)
+        data = cKDTree(points)
+        distance, carried = carried_samples(centroids, labels, data, threshold, edge)
         median = _weighted_medians(distance, area, labels, component_area)
         carried_area = np.bincount(labels, weights=area * carried, minlength=count)
         share = carried_area / np.maximum(component_area, 1e-300)
@@ -384,6 +396,28 @@ def analyze_mesh(
                 "where an open scan was fitted; trim the mesh to the data "
                 "(levelset.mesh(..., points=, trim=True), jurs fit --trim)",
             )
+        # A shell on the surface: the carried rule lets it by, the data beside it
+        # being carried within a step; it marks a feature the fit did not resolve.
+        shells = surface_shells(
+            centroids, labels, boundary == 0, SHELL_EDGES * edge, weights=area, tree=data
+        )
+        extent = float(np.linalg.norm(vertices.max(axis=0) - vertices.min(axis=0)))
+        for c in np.flatnonzero(shells):
+            mine = labels == c
+            box = vertices[faces[mine].ravel()]
+            notes = (
+                *notes,
+                "a closed shell lying on the surface, centred at "
+                f"{format_place(np.average(centroids[mine], axis=0, weights=area[mine]), extent)}"
+                f" within {format_place(box.min(axis=0), extent)} .. "
+                f"{format_place(box.max(axis=0), extent)} (marked supplementary): g dips "
+                "across the surface and back there, as over a tunnel, handle or pit "
+                "narrower than a cell that the fit filled in, so the genus and components "
+                "may be wrong there; a finer fit (finest=, grid=) or denser samples there "
+                "resolve it",
+            )
+    else:
+        shells = np.zeros(count, bool)
     loop_owner, loop_length = _loops(vertices, faces, labels)
     euler = num_v - num_e + num_f
     order = np.argsort(-component_area, kind="stable")
@@ -399,7 +433,9 @@ def analyze_mesh(
             supplementary=bool(
                 points is not None
                 and (
-                    median[c] > threshold or (boundary[c] == 0 and share[c] < MIN_CARRIED_FRACTION)
+                    median[c] > threshold
+                    or (boundary[c] == 0 and share[c] < MIN_CARRIED_FRACTION)
+                    or shells[c]
                 )
             ),
             boundary_lengths=tuple(float(x) for x in loop_length[loop_owner == c]),
