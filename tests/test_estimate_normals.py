@@ -189,6 +189,33 @@ def test_fit_of_an_open_scan_without_normals():
     assert sol.stats["estimated_normals"]["open_components"] == 5
 
 
+@pytest.mark.slow
+def test_estimated_normals_refused_say_so():
+    """A cloud whose normals jurs estimates and the fit then refuses (points filling a
+    ball: no surface to orient) was told to "orient them all outward (jurs.estimate_normals)
+    and fit again", which is what had been done. The error and the command line now say
+    the estimate could not orient the cloud, and to give its own normals."""
+    import equinox as eqx
+    import jax
+
+    from jurs import cli
+
+    jax.config.update("jax_enable_x64", True)
+    points = np.random.default_rng(0).uniform(-1.0, 1.0, (800, 3))
+    with pytest.raises(eqx.EquinoxRuntimeError, match="estimated by jurs") as info:
+        jurs.fit(points)
+    assert "inconsistent_normals" in str(info.value) and "own normals" in str(info.value)
+    sol = jurs.fit(points, throw=False)
+    assert sol.status == "inconsistent_normals"
+    assert "estimated by jurs" in sol.stats["doubts"][-1]
+    line = cli.not_a_reconstruction(sol.status, "estimated_normals" in sol.stats)
+    assert "jurs estimated" in line and "leave them out" not in line
+    # Normals given: the doubt is not added, and the line keeps its advice.
+    given = jurs.fit(points, points / np.linalg.norm(points, axis=1, keepdims=True), throw=False)
+    assert not any("estimated by jurs" in d for d in given.stats.get("doubts") or ())
+    assert "leave them out" in cli.not_a_reconstruction("inconsistent_normals")
+
+
 @pytest.mark.parametrize("d", [2, 3])
 def test_slab_noise_reads_the_noise_that_near_neighbours_cut_off(d):
     """A flat sheet with noise about as wide as its spacing (2 spacings on a line, 0.3 on

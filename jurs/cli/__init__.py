@@ -356,7 +356,9 @@ def _solve(job: FitJob, args):
 
     if sol.status in RAISED_RESULTS:  # not a reconstruction: not written
         print(
-            f"jurs: error: {job.shown}: {not_a_reconstruction(sol.status)}; nothing written",
+            f"jurs: error: {job.shown}: "
+            f"{not_a_reconstruction(sol.status, 'estimated_normals' in sol.stats)}; "
+            "nothing written",
             file=sys.stderr,
         )
         return None
@@ -384,10 +386,22 @@ VERDICT_LINES = {
 }
 
 
-def not_a_reconstruction(status: str) -> str:
+#: The line for ``inconsistent_normals`` on normals that jurs estimated itself, where
+#: "leave them out to have them estimated" is what was done.
+ESTIMATED_NORMALS_LINE = (
+    "the normals jurs estimated for this cloud disagree (the estimate could not orient "
+    "it): give the file's own normals (x, y, nx, ny or x, y, z, nx, ny, nz; a mesh's faces)"
+)
+
+
+def not_a_reconstruction(status: str, estimated: bool = False) -> str:
     """The one line ``jurs fit`` prints (after ``jurs: error: FILE:``) for a fit whose
-    verdict ``status`` is one of ``RAISED_RESULTS``: its short name and ``VERDICT_LINES``."""
-    return f"the fit's verdict is {status}, not a reconstruction: {VERDICT_LINES[status]}"
+    verdict ``status`` is one of ``RAISED_RESULTS``: its short name and ``VERDICT_LINES``
+    (``ESTIMATED_NORMALS_LINE`` for inconsistent normals that jurs ``estimated``)."""
+    why = VERDICT_LINES[status]
+    if estimated and status == "inconsistent_normals":
+        why = ESTIMATED_NORMALS_LINE
+    return f"the fit's verdict is {status}, not a reconstruction: {why}"
 
 
 def run_fit(args) -> int:
