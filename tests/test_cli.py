@@ -9,6 +9,7 @@ import json  # noqa: E402
 import os  # noqa: E402
 import subprocess  # noqa: E402
 import sys  # noqa: E402
+import time  # noqa: E402
 from pathlib import Path  # noqa: E402
 from types import SimpleNamespace  # noqa: E402
 
@@ -499,6 +500,34 @@ def test_progress_in_a_log_is_a_few_plain_lines():
         "50/200",
         "70/200",
     ]
+
+
+def test_stage_clock_says_a_long_stage_and_nothing_of_a_short_one():
+    """A stage with no steps to count (an adaptive fit's solve, a fine mesh) printed
+    nothing however long it ran. The clock says it once its delay has passed, again as the
+    elapsed time doubles, and how long it took; a short stage stays silent."""
+    from jurs.cli._progress import StageClock
+
+    log = io.StringIO()
+    with StageClock("bunny.ply: meshing", delay=0.05, stream=log) as clock:
+        time.sleep(0.35)  # lines at about 0.05, 0.1 and 0.2 s (fewer on a loaded machine)
+    lines = log.getvalue().splitlines()
+    assert 2 <= clock.lines <= 5 and len(lines) == clock.lines
+    assert all(line.startswith("bunny.ply: meshing: ") for line in lines)
+    assert lines[0].endswith(" s so far") and lines[-1].split(": ")[-1].startswith("done in ")
+    quiet = io.StringIO()
+    with StageClock("x", delay=60, stream=quiet):
+        pass
+    with StageClock("x", delay=0.0, stream=quiet, enabled=False):
+        time.sleep(0.05)
+    assert quiet.getvalue() == ""
+    # A stage that raises says no "done"; the error is the caller's.
+    log = io.StringIO()
+    with pytest.raises(KeyboardInterrupt):
+        with StageClock("fit", delay=0.01, stream=log):
+            time.sleep(0.05)
+            raise KeyboardInterrupt
+    assert "done" not in log.getvalue()
 
 
 def _old_outputs(out):

@@ -346,6 +346,21 @@ def test_closed_mesh_wound_inward_gets_outward_normals(tmp_path):
     assert (np.einsum("ij,ij->i", normals, points) > 0).all()
 
 
+@pytest.mark.parametrize("first_inward", [False, True])
+def test_closed_mesh_wound_both_ways_is_rewound(tmp_path, first_inward):
+    """A closed box whose faces are wound half one way, half the other, was read as an
+    open mesh with its faces' normals pointing both ways, and its fit refused. Its
+    windings are made consistent, then outward."""
+    vertices, faces = _box(inward=first_inward)
+    faces = faces.copy()
+    faces[1::2] = faces[1::2, ::-1]
+    path = tmp_path / "mixed.ply"
+    datasets.save_mesh(path, vertices, faces)
+    with pytest.warns(UserWarning, match="outward .*re-wound"):
+        points, normals = datasets.load_points(path, mesh_samples=300)
+    assert (np.einsum("ij,ij->i", normals, points) > 0).all()
+
+
 def test_open_mesh_says_its_normals_follow_the_winding(tmp_path):
     vertices, faces = _box()
     path = tmp_path / "open.obj"

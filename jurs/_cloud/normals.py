@@ -21,6 +21,10 @@
    starts). Nested rings, holes and components inside components come out right because
    the field counts enclosure. In 2D the sources are weighted so that noise shrinks the
    field less (a field biased below 1/2 makes the solve flip patches to raise it).
+   **Open surfaces** (scans seen from one side) have no inside: a component whose own
+   field on its points stays far below 1/2 keeps its propagated signs, with the one
+   global sign that makes its own field positive (``_open_parts``); the objective would
+   otherwise read pieces under another piece's concave side as enclosed.
 5. **Per-point check** against the near field: a point whose field rises outward flips;
    the probes sit outside the noise band (at least three local noise levels away).
 
@@ -115,6 +119,10 @@ CHECK_NOISE_OFFSET = 3.0
 #: raw confidence discounts; the geometric mean kept both. In 3D the raw weights did
 #: slightly better (docs/normals.md, "Method", step 4, "Weights").
 NORMALISED_SOURCES = {2: True, 3: False}
+#: A surface component whose own winding field on its points, with its propagated signs,
+#: averages under this (relative to its mean source weight; 1/2 on a closed surface) is
+#: an open sheet: it keeps the propagated signs with one global sign (``_open_parts``).
+OPEN_FIELD = 0.3
 
 
 class NormalsInfo(NamedTuple):
@@ -131,6 +139,8 @@ class NormalsInfo(NamedTuple):
             (about 0 on a clean closed surface; larger on noisy or open data).
         confidence: ``(m,)`` per point in [0, 1]: the planarity of its neighbourhood,
             ``1 - lambda_min / lambda_next`` (near 0 where the normal is ill-defined).
+        open_components: components read as open sheets (surfaces only): oriented by
+            the spanning tree with one sign each, not by the closed-surface objective.
     """
 
     k: int
@@ -140,6 +150,7 @@ class NormalsInfo(NamedTuple):
     corrected: int
     residual: float
     confidence: np.ndarray
+    open_components: int = 0
 
 
 # --------------------------------------------------------------------------- input
@@ -332,7 +343,9 @@ def estimate_normals(
     return_info: bool = False,
     seed: int = 0,
 ) -> Float[np.ndarray, "m d"] | tuple[Float[np.ndarray, "m d"], NormalsInfo]:
-    """Outward unit normals of a point cloud sampling closed curves (2D) or surfaces (3D).
+    """Outward unit normals of a point cloud sampling closed curves (2D) or surfaces (3D),
+    or open surfaces (scans seen from one side: one consistent side each, pointing away
+    from the side their curvature encloses).
 
     Local PCA over ``k`` nearest neighbours, a sign propagated along a minimum spanning tree
     of a tangential neighbour graph (no edges across thin parts), then patch signs chosen
@@ -462,6 +475,9 @@ def _orient(points, normals, values, noise, neighbours, tree, rng, confidence):
     centre = np.stack([np.bincount(patch, points[:, a], n_patch) for a in range(d)], 1)
     centre /= np.bincount(patch, minlength=n_patch)[:, None]
     signs = solve_signs(fields, weight[queries], patch_tree, centre)
+    signs, open_parts = _open_parts(
+        fields, weight[queries], signs, patch, component, source, queries, d
+    )
     residual = float(
         np.sqrt(np.average((fields @ signs - 0.5) ** 2, weights=weight[queries] + 1e-300))
     )
@@ -476,7 +492,44 @@ def _orient(points, normals, values, noise, neighbours, tree, rng, confidence):
         patches=n_patch,
         flipped=int(np.sum(signs < 0)),
         residual=residual,
+        open_components=open_parts,
     )
+
+
+def _open_parts(fields, weight, signs, patch, component, source, queries, d):
+    """Components that are open sheets (scans seen from one side), and their signs:
+    ``(patch signs, number of open components)``.
+
+    The winding-number objective assumes closed surfaces: a closed one's own field is 1/2
+    on its points, whatever else is around. An open sheet's own field there is well
+    below 1/2 (0 on a flat sheet, about 0.15 on the top of a scanned body), and another
+    open piece's field adds to it: a piece lying under the concave side of a larger one
+    (legs under a body scanned from above) reads as enclosed and comes out flipped, and
+    within a sheet patches flip to pull the field towards 1/2. So a component whose own
+    field, with its propagated (consistent) signs, averages under ``OPEN_FIELD`` of its
+    mean source weight (the weights shrink the field of a noisy cloud; relative to them
+    closed surfaces read 0.44-0.51 and open scans 0.01-0.2, docs/normals.md) keeps the
+    propagated signs, with the one global sign that makes its own field positive:
+    outward on the side its curvature turns away from (the dipoles of a cap point away
+    from its centre). A flat sheet's field is about 0 either way and its sign arbitrary.
+    Curves (``d`` = 2) are left to the closed objective. ``fields`` ``(Q, P)``: each
+    patch's field at the ``queries``; ``weight``: the queries'; ``signs``: the closed
+    solve's; ``source``: each point's source weight."""
+    n_comp, n_patch = int(component.max()) + 1, int(patch.max()) + 1
+    if d != 3:
+        return signs, 0
+    comp_of_patch = np.zeros(n_patch, np.int64)
+    comp_of_patch[patch] = component
+    at = component[queries]
+    own = np.sum(np.where(comp_of_patch[None, :] == at[:, None], fields, 0.0), axis=1)
+    total = np.bincount(at, weight, n_comp)
+    mean_field = np.bincount(at, weight * own, n_comp) / np.maximum(total, 1e-300)
+    strength = np.bincount(component, source, n_comp) / np.bincount(component, minlength=n_comp)
+    level = np.abs(mean_field) / np.maximum(strength, 1e-300)
+    is_open = (level < OPEN_FIELD) & (total > 0)
+    outward = np.where(mean_field < 0, -1.0, 1.0)
+    signs = np.where(is_open[comp_of_patch], outward[comp_of_patch], signs)
+    return signs, int(is_open.sum())
 
 
 def _point_corrections(points, normals, area, eps, offset, tree, neighbours, rounds: int = 6):

@@ -488,6 +488,26 @@ _CHUNKED_OPTIONS = (
 )
 
 
+def estimate_doubt(sol: Solution, estimated: dict | None) -> Solution:
+    """``sol`` with one more doubt where its verdict is ``inconsistent_normals`` on normals
+    that jurs estimated itself (``estimated``: what ``fit_cloud`` found, None for normals
+    given): the verdict's general advice, to orient the normals and fit again, is
+    circular there, and the way out is other normals."""
+    if estimated is None or sol.status != "inconsistent_normals":
+        return sol
+    doubt = (
+        f"the normals were estimated by jurs (jurs.estimate_normals, {estimated['k']} "
+        "neighbours a point) and the fit finds them inconsistent: the estimate could not "
+        "orient this cloud (parts thinner or sparser than its neighbourhoods, pieces of "
+        "an open scan seen from both sides, a nearly flat sheet). Estimating them again "
+        "gives the same: pass the cloud's own normals (a scanner's or a mesh's), or "
+        "normals estimated with another k (jurs.estimate_normals(points, k=...)) once "
+        "checked"
+    )
+    doubts = tuple(sol.stats.get("doubts") or ()) + (doubt,)
+    return dataclasses.replace(sol, stats=dict(sol.stats, doubts=doubts))
+
+
 def on_hierarchy(
     cloud: Cloud, settings: Settings, *, finest=None, band=None, offset=None, eps=None,
     smoothing=None, lam=None, rtol=None, max_steps: int = 10_000, method=None, dtype=None,
@@ -541,6 +561,7 @@ def on_hierarchy(
     )  # fmt: skip
     if checks:
         sol = judge(sol, cloud, settings, layout["offset"])
+    sol = estimate_doubt(sol, (noted or {}).get("estimated_normals"))
     raise_unless_reconstruction(sol, throw)
     noted = {name: value for name, value in (noted or {}).items() if value is not None}
     return dataclasses.replace(sol, stats=dict(sol.stats, **noted)) if noted else sol
@@ -671,6 +692,7 @@ def _fit(
         if checks:
             outliers = type(solver).expects_outliers
             sol = judge(sol, cloud, settings if doubted else None, offset, outliers)
+        sol = estimate_doubt(sol, estimated)
         raise_unless_reconstruction(sol, throw)
     if estimated is not None:
         sol = dataclasses.replace(sol, stats=dict(sol.stats, estimated_normals=estimated))

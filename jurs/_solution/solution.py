@@ -113,11 +113,15 @@ def error_message(name: str) -> str:
 
 
 def raise_unless_reconstruction(sol: Solution, throw: bool = True) -> Solution:
-    """``sol``, after raising ``equinox.EquinoxRuntimeError`` (``error_message``) where
-    ``throw`` and its verdict says it is not a reconstruction (``RAISED_RESULTS``): the
-    one place every fit's ``throw=True`` acts. Needs a concrete verdict."""
+    """``sol``, after raising ``equinox.EquinoxRuntimeError`` (``error_message``, then
+    each of ``sol.stats["doubts"]`` on a line of its own) where ``throw`` and its verdict
+    says it is not a reconstruction (``RAISED_RESULTS``): the one place every fit's
+    ``throw=True`` acts. Needs a concrete verdict."""
     if throw and sol.status in RAISED_RESULTS:
-        raise eqx.EquinoxRuntimeError(error_message(sol.status))
+        # The doubts say what this fit's checks found (inward normals, normals jurs
+        # estimated itself), which the verdict's general text cannot.
+        doubts = "".join(f"\n- {doubt}" for doubt in sol.stats.get("doubts") or ())
+        raise eqx.EquinoxRuntimeError(error_message(sol.status) + doubts)
     return sol
 
 

@@ -76,6 +76,7 @@ from ._outputs import (
     write_outputs,
 )
 from ._parser import build_parser
+from ._progress import ProgressBar, StageClock
 from ._results import (
     basis_shown,
     curve_outputs,
@@ -156,83 +157,6 @@ def make_solver(name: str, *, lam: float | None, tau: float, steps: int, tol: fl
     if name == "lstsq":
         return jurs.LeastSquares(lam=lam)
     raise InputError(f"unknown solver {name!r}")
-
-
-class ProgressBar:
-    """Progress of a fit on stderr, shown only once a run has taken over ``delay`` seconds
-    (short fits print nothing). On a terminal, one line redrawn in place (``\\r``); on
-    anything else (a pipe, a log file) a few plain lines: one when first shown, one as each
-    quarter of the steps is passed, and one at the end where that was not yet said, so a
-    log gets a handful of lines, not a frame a step. ``tty`` None asks the stream
-    (``isatty()``)."""
-
-    #: Plain lines (not a terminal): one as each of these fractions of the steps is passed.
-    PLAIN_STEPS = 4
-
-    def __init__(
-        self,
-        label: str,
-        delay: float = 1.0,
-        width: int = 30,
-        stream=None,
-        enabled: bool = True,
-        tty: bool | None = None,
-    ):
-        self.label, self.delay, self.width = label, delay, width
-        self.stream = sys.stderr if stream is None else stream
-        self.enabled = enabled
-        self.tty = _is_terminal(self.stream) if tty is None else bool(tty)
-        self.start = time.perf_counter()
-        self.drawn = False
-        self.last: tuple[int, int] | None = None  # the latest (done, total)
-        self.said: tuple[int, int] | None = None  # the latest plain line's (done, total)
-        self.quarter = -1  # the latest quarter a plain line was written for
-
-    def __call__(self, done: int, total: int) -> None:
-        self.last = (done, total)
-        elapsed = time.perf_counter() - self.start
-        if not self.enabled or (elapsed < self.delay and not self.drawn):
-            return
-        frac = done / total if total else 1.0
-        if not self.tty:
-            quarter = int(frac * self.PLAIN_STEPS)
-            if quarter > self.quarter:
-                self._line(done, total, elapsed)
-                self.quarter = quarter
-            self.drawn = True
-            return
-        bar = "#" * int(round(frac * self.width))
-        self.stream.write(
-            f"\r{self.label} [{bar:<{self.width}}] {done}/{total} steps {elapsed:5.1f} s"
-        )
-        self.stream.flush()
-        self.drawn = True
-
-    def _line(self, done: int, total: int, elapsed: float) -> None:
-        percent = 100 * done / total if total else 100.0
-        self.stream.write(f"{self.label}: {done}/{total} steps ({percent:.0f} %) {elapsed:.1f} s\n")
-        self.stream.flush()
-        self.said = (done, total)
-
-    def close(self) -> None:
-        """End the bar's line (once), so that what follows starts a line of its own; in
-        plain lines, say where the run stopped if the last line did not."""
-        if not self.drawn:
-            return
-        if self.tty:
-            self.stream.write("\n")
-            self.stream.flush()
-        elif self.last is not None and self.last != self.said:
-            self._line(*self.last, time.perf_counter() - self.start)
-        self.drawn = False
-
-
-def _is_terminal(stream) -> bool:
-    """Whether ``stream`` is a terminal (a closed or odd stream counts as not)."""
-    try:
-        return bool(stream.isatty())
-    except (AttributeError, ValueError, OSError):
-        return False
 
 
 def _check_options(resolution, dim: int, out: str, names) -> None:
@@ -390,8 +314,10 @@ def _solve(job: FitJob, args):
 
     import jurs
 
-    # An adaptive fit is one solve: no steps to show.
+    # An adaptive fit is one solve: no steps to show. Where the bar gets no steps (that
+    # fit, and jurs.fit choosing its own solver), a long fit is said by the clock.
     bar = ProgressBar(f"{args.solver} {job.basis}", enabled=not (args.quiet or job.adaptive))
+    stage = StageClock(f"{job.shown}: fitting ({job.basis})", enabled=not args.quiet)
     t0 = time.perf_counter()
     try:
         # The automatic settings as chosen up front: with solver None jurs.fit takes their
@@ -400,17 +326,19 @@ def _solve(job: FitJob, args):
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", UserWarning)
             if job.chooses:
-                sol = jurs.fit(job.cloud, settings=job.chosen, throw=False)
+                with stage:
+                    sol = jurs.fit(job.cloud, settings=job.chosen, throw=False)
             elif job.adaptive:
-                sol = jurs.fit_adaptive(
-                    job.cloud.points,
-                    job.cloud.normals,
-                    settings=job.chosen,
-                    # lstsq's lambda is 0 unless given, as on the uniform grid
-                    lam=0.0 if args.lam is None and args.solver == "lstsq" else args.lam,
-                    finest=job.finest,
-                    throw=False,
-                )
+                with stage:
+                    sol = jurs.fit_adaptive(
+                        job.cloud.points,
+                        job.cloud.normals,
+                        settings=job.chosen,
+                        # lstsq's lambda is 0 unless given, as on the uniform grid
+                        lam=0.0 if args.lam is None and args.solver == "lstsq" else args.lam,
+                        finest=job.finest,
+                        throw=False,
+                    )
             else:
                 sol = jurs.fit(
                     job.cloud, settings=job.chosen, solver=job.solver, callback=bar, throw=False
@@ -428,7 +356,9 @@ def _solve(job: FitJob, args):
 
     if sol.status in RAISED_RESULTS:  # not a reconstruction: not written
         print(
-            f"jurs: error: {job.shown}: {not_a_reconstruction(sol.status)}; nothing written",
+            f"jurs: error: {job.shown}: "
+            f"{not_a_reconstruction(sol.status, 'estimated_normals' in sol.stats)}; "
+            "nothing written",
             file=sys.stderr,
         )
         return None
@@ -456,10 +386,22 @@ VERDICT_LINES = {
 }
 
 
-def not_a_reconstruction(status: str) -> str:
+#: The line for ``inconsistent_normals`` on normals that jurs estimated itself, where
+#: "leave them out to have them estimated" is what was done.
+ESTIMATED_NORMALS_LINE = (
+    "the normals jurs estimated for this cloud disagree (the estimate could not orient "
+    "it): give the file's own normals (x, y, nx, ny or x, y, z, nx, ny, nz; a mesh's faces)"
+)
+
+
+def not_a_reconstruction(status: str, estimated: bool = False) -> str:
     """The one line ``jurs fit`` prints (after ``jurs: error: FILE:``) for a fit whose
-    verdict ``status`` is one of ``RAISED_RESULTS``: its short name and ``VERDICT_LINES``."""
-    return f"the fit's verdict is {status}, not a reconstruction: {VERDICT_LINES[status]}"
+    verdict ``status`` is one of ``RAISED_RESULTS``: its short name and ``VERDICT_LINES``
+    (``ESTIMATED_NORMALS_LINE`` for inconsistent normals that jurs ``estimated``)."""
+    why = VERDICT_LINES[status]
+    if estimated and status == "inconsistent_normals":
+        why = ESTIMATED_NORMALS_LINE
+    return f"the fit's verdict is {status}, not a reconstruction: {why}"
 
 
 def run_fit(args) -> int:

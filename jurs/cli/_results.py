@@ -19,6 +19,7 @@ from ._outputs import (
     save_figure,
     write_record_and_spline,
 )
+from ._progress import StageClock
 
 if TYPE_CHECKING:
     from ._job import FitJob
@@ -250,23 +251,29 @@ def surface_outputs(job: FitJob, args, sol, seconds: float):
         # The band mesh chooses its resolution (five nodes a finest cell, lowered until
         # the marched nodes fit in its node limit); metrics.json records it as None.
         resolution = None
-        vertices, faces = ls.mesh(spline, points=job.points, trim=trim, rim=rim, faces=budget)
+        with StageClock(f"{job.shown}: meshing", enabled=not args.quiet):
+            vertices, faces = ls.mesh(spline, points=job.points, trim=trim, rim=rim, faces=budget)
     else:
         resolution = job.resolution or default_resolution(
             spline, np.asarray(spline.lower, np.float64), np.asarray(spline.upper, np.float64)
         )
         # The user chose --resolution, its memory checked before the fit: no node limit.
-        vertices, faces = ls.mesh(
-            spline,
-            resolution,
-            max_nodes=None,
-            points=job.points,
-            trim=trim,
-            rim=rim,
-            faces=budget,
-        )
+        label = f"{job.shown}: meshing ({resolution} nodes along the longest side)"
+        with StageClock(label, enabled=not args.quiet):
+            vertices, faces = ls.mesh(
+                spline,
+                resolution,
+                max_nodes=None,
+                points=job.points,
+                trim=trim,
+                rim=rim,
+                faces=budget,
+            )
     t1 = time.perf_counter()
-    report = ls.analyze_mesh(vertices, faces, job.points, threshold=args.threshold)
+    with StageClock(f"{job.shown}: measuring the mesh", enabled=not args.quiet):
+        report = ls.analyze_mesh(vertices, faces, job.points, threshold=args.threshold)
+        colours = _vertex_colours(job, sol, vertices)
+        distances = ls.mesh_distances(vertices, faces, job.points, job.normals)
     if report.mostly_unsupported and trim is None:
         fraction = report.unsupported_fraction or 0.0
         print(
@@ -276,8 +283,6 @@ def surface_outputs(job: FitJob, args, sol, seconds: float):
             "is fitted; --trim keeps the part the data support",
             file=sys.stderr,
         )
-    colours = _vertex_colours(job, sol, vertices)
-    distances = ls.mesh_distances(vertices, faces, job.points, job.normals)
     t2 = time.perf_counter()
     record = fit_record(job, args, sol, seconds)
     record["metrics"].update(
@@ -298,18 +303,20 @@ def surface_outputs(job: FitJob, args, sol, seconds: float):
     )
 
     def write(folder):
-        write_record_and_spline(folder, record, spline)
-        datasets.save_mesh(os.path.join(folder, "mesh.ply"), vertices, faces, colors=colours)
-        fig, axes = plot._mesh_axes(None, pyplot=False)
-        plot.plot_mesh(
-            vertices,
-            faces,
-            ax=axes,
-            highlight=highlight,
-            highlight_label="supplementary",
-            title=_fit_title(job, args, sol) + counts,
-        )
-        save_figure(fig, os.path.join(folder, "preview.png"), dpi=110)
+        with StageClock(f"{job.shown}: writing", enabled=not args.quiet):
+            write_record_and_spline(folder, record, spline)
+            path = os.path.join(folder, "mesh.ply")
+            datasets.save_mesh(path, vertices, faces, colors=colours)
+            fig, axes = plot._mesh_axes(None, pyplot=False)
+            plot.plot_mesh(
+                vertices,
+                faces,
+                ax=axes,
+                highlight=highlight,
+                highlight_label="supplementary",
+                title=_fit_title(job, args, sol) + counts,
+            )
+            save_figure(fig, os.path.join(folder, "preview.png"), dpi=110)
 
     summary = (
         f"  E_ave = {float(sol.metrics['E_ave']):.4e}, E_max = "

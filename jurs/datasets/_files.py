@@ -292,6 +292,7 @@ def trimesh_module():
         import trimesh.exchange.off
         import trimesh.exchange.ply
         import trimesh.exchange.stl
+        import trimesh.repair
     except ImportError:
         raise ImportError(
             "3D point-cloud and mesh files need trimesh: from a clone of jurs, "
@@ -484,18 +485,23 @@ def _points_on_faces(path: str, vertices, faces, mesh_samples: int | None):
     unique, inverse = np.unique(float64, axis=0, return_inverse=True)
     faces = inverse.reshape(-1)[faces]
     count = max(len(unique), MESH_SAMPLES) if mesh_samples is None else mesh_samples
+    closed, volume = _closed_volume(unique, faces)
+    rewound = None if closed else _rewound(unique, faces)
+    if rewound is not None:
+        faces = rewound
+        closed, volume = _closed_volume(unique, faces)
     try:
         points, normals = sample_mesh(unique, faces, count, seed=0)
     except ValueError:
         raise ValueError(f"{path}: a triangle mesh whose faces have no area") from None
-    closed, volume = _closed_volume(unique, faces)
     if closed and volume < 0:
         normals = -normals  # wound inward: the faces' normals point into the solid
-    orientation = (
-        "outward (the mesh is closed)"
-        if closed
-        else "as its faces are wound (the mesh is not closed: check that they point out)"
-    )
+    if rewound is not None and closed:
+        orientation = "outward (the mesh is closed; its faces, wound both ways, were re-wound)"
+    elif closed:
+        orientation = "outward (the mesh is closed)"
+    else:
+        orientation = "as its faces are wound (the mesh is not closed: check that they point out)"
     warnings.warn(
         f"{path}: a triangle mesh ({len(unique)} vertices, {len(faces)} faces), read as "
         f"{count} points drawn uniformly by area on its faces (seed 0), with the faces' "
@@ -504,6 +510,20 @@ def _points_on_faces(path: str, vertices, faces, mesh_samples: int | None):
         stacklevel=4,
     )
     return points, normals
+
+
+def _rewound(vertices, faces):
+    """The faces of a closed mesh whose windings disagree (some faces listed clockwise,
+    some anticlockwise), wound one way by trimesh's ``repair.fix_winding`` (a traversal of
+    faces across their shared edges); None where that cannot make the mesh closed and
+    consistent: a border edge, an edge of more than two faces, a non-orientable surface.
+    Without it such a mesh's face normals point both ways, and a fit of them is refused."""
+    trimesh = trimesh_module()
+    mesh = trimesh.Trimesh(vertices, faces, process=False)
+    if not mesh.is_watertight:  # each edge in exactly two faces, whatever their winding
+        return None
+    trimesh.repair.fix_winding(mesh)
+    return np.asarray(mesh.faces, np.int64) if mesh.is_winding_consistent else None
 
 
 def _closed_volume(vertices, faces) -> tuple[bool, float]:
