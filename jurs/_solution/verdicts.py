@@ -397,6 +397,10 @@ def sign_interfaces(
 
 @sign_interfaces.register
 def _(spline: AdaptiveSpline) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    if spline.ndim == 2:
+        # A curve's whole lattice stays cheap to label, and its band's blocks cost more
+        # to plan than they save: the grid's path, which evaluates only the band anyway.
+        return sign_interfaces.dispatch(AbstractSpline)(spline)
     lower, upper = np.asarray(spline.lower, float), np.asarray(spline.upper, float)
     steps = 2.0 * np.asarray(spline.finest_cells, float)
     evaluator = spline.on_host()
