@@ -117,8 +117,11 @@ def test_band_regions_are_the_full_lattice_regions():
     )
 
 
-def test_a_torus_and_a_sphere_fit_have_no_shell():
-    for points, normals in (jurs.datasets.torus(3000), jurs.datasets.sphere3d(3000, seed=2)):
-        sol = jurs.fit(points, normals)
-        assert sol.status == "successful", sol.stats["doubts"]
-        assert sol.stats["extra_components"] == ()
+def test_a_torus_fit_has_no_shell():
+    """A default fit of a torus (its hole: the zero set's two sides of the tube come
+    close there) is not doubted for a shell (a sphere's default fits on both bases are
+    checked successful in tests/test_honest_verdicts.py)."""
+    points, normals = jurs.datasets.torus(3000)
+    sol = jurs.fit(points, normals)
+    assert sol.status == "successful", sol.stats["doubts"]
+    assert sol.stats["extra_components"] == ()
