@@ -61,8 +61,9 @@ def test_a_one_cell_bubble_on_a_large_hierarchy_is_seen():
 
 def test_a_shell_carried_by_the_surface_beside_it_is_a_shell():
     """The rule shared by the verdict and analyze_mesh: a small closed component within
-    reach of the surface, whose nearest data the surface passes through, is a shell; the
-    same component with data of its own is not."""
+    reach of the surface, whose nearest data the surface passes through or which stands
+    off its nearest data, is a shell; the same component with data of its own (passing
+    through them) is not."""
     t = np.linspace(0, 2 * np.pi, 400, endpoint=False)
     circle = np.stack([np.cos(t), np.sin(t)], 1)
     small = 0.02 * np.stack([np.cos(t[::10]), np.sin(t[::10])], 1) + [1.04, 0.0]
@@ -73,6 +74,11 @@ def test_a_shell_carried_by_the_surface_beside_it_is_a_shell():
     assert shells.tolist() == [False, True]
     own = kd_tree(np.concatenate([circle, small]))
     assert surface_shells(samples, labels, closed, 0.06, tree=own).tolist() == [False, False]
+    # Data around it that it stands off (a filled pit's data lie nearer to the pocket
+    # than to the surface: the femur's head): still a shell.
+    beside = 0.04 * np.stack([np.cos(t[::10]), np.sin(t[::10])], 1) + [1.04, 0.0]
+    off = kd_tree(np.concatenate([circle, beside]))
+    assert surface_shells(samples, labels, closed, 0.06, tree=off).tolist() == [False, True]
     far = np.concatenate([circle, small + [0.5, 0.0]])
     assert surface_shells(far, labels, closed, 0.06, tree=kd_tree(circle)).tolist() == [
         False,

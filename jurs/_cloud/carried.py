@@ -67,6 +67,9 @@ SHELL_REACH = 2.0
 #: mesh has three to five lattice nodes a finest cell, so four edges are about the same
 #: cell and a half.
 SHELL_EDGES = 4.0
+#: A shell's sample stands off the data where its nearest data point is farther than this
+#: share of the reach (half a lattice diagonal in the verdict, one edge in a mesh).
+OFF_DATA = 0.25
 
 
 def surface_shells(
@@ -83,8 +86,9 @@ def surface_shells(
     ``SHELL_FRACTION`` of it (by ``weights``, default one a sample) lies within ``reach``
     (one, or one a sample: ``SHELL_REACH`` lattice diagonals, ``SHELL_EDGES`` of a face's
     longest edges) of a sample of another component and, given the data's KD-``tree``,
-    of which the nearest data point lies nearer to another component than to it (the
-    data are the surface's: a small sphere sampled beside the surface is data). Such a
+    of which the nearest data point lies nearer to another component than to it, or
+    farther from it than ``OFF_DATA`` of the reach (the data are not its own: a small
+    sphere sampled beside the surface passes through its data and is data). Such a
     shell carries the data the surface beside it passes through, so the carried rule
     lets it by; it is where g dips across the surface and back, as it does over a tunnel
     or pit narrower than a cell that the fit filled in: the genus there may be wrong. One
@@ -117,8 +121,14 @@ def surface_shells(
         owner = np.repeat(np.arange(len(mine)), lengths)
         other = np.bincount(owner, weights=labels[found] != c, minlength=len(mine)) > 0
         if tree is not None:
-            nearest = np.asarray(tree.data)[tree.query(samples[mine])[1]]
-            other &= labels[tree_of_samples.query(nearest)[1]] != c
+            gap, at = tree.query(samples[mine])
+            nearest = np.asarray(tree.data)[at]
+            # Data of its own: the nearest data point is nearer to it than to the others
+            # and it passes through them (a small sphere sampled beside a surface). A
+            # component standing off the data it seems to carry is g's pocket beside
+            # them, whichever component they are nearer to.
+            off = gap > OFF_DATA * reach[mine]
+            other &= (labels[tree_of_samples.query(nearest)[1]] != c) | off
         total = weights[mine].sum()
         shells[c] = total > 0 and weights[mine][other].sum() > SHELL_FRACTION * total
     return shells
