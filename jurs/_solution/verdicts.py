@@ -512,6 +512,12 @@ def format_place(coordinates, extent: float) -> str:
     return "(" + ", ".join(f"{x:.{decimals}f}" for x in coordinates) + ")"
 
 
+def _share(fraction: float) -> str:
+    """A share in percent, with the digits a small one needs ("0.004%", not "0.0%")."""
+    percent = 100.0 * float(fraction)
+    return f"{percent:.1f}%" if percent >= 1.0 else f"{percent:.2g}%"
+
+
 def describe_extra(component: dict, extent: float) -> str:
     """The doubt for one of ``extra_components``' components, its place and box printed
     to the digits ``extent`` (the spline's box diagonal) needs (``format_place``)."""
@@ -522,7 +528,7 @@ def describe_extra(component: dict, extent: float) -> str:
         cell, finest = component.get("cell", float("nan")), component.get("finest", 0)
         return (
             f"a closed zero-set shell lying on the surface, centred at {centre} within "
-            f"{lower} .. {upper}, {component['area_share']:.1%} of the zero set: g dips "
+            f"{lower} .. {upper}, {_share(component['area_share'])} of the zero set: g dips "
             "across the surface and back there, as over a tunnel, handle or pit narrower "
             f"than a cell ({cell:.3g}) that the fit filled in, so the surface's genus and "
             "components may be wrong there (the data carry it only because the surface "
@@ -537,7 +543,7 @@ def describe_extra(component: dict, extent: float) -> str:
     )
     return (
         f"a closed zero-set component {where}, centred at {centre} within {lower} .. "
-        f"{upper}, {component['area_share']:.1%} of the zero set, its median distance to "
+        f"{upper}, {_share(component['area_share'])} of the zero set, its median distance to "
         f"the points kept {component['distance']:.3g}, "
         f"{component.get('carried_share', 0.0):.0%} of it by points it carries: a shape "
         "the data do not have (points set aside or with inconsistent normals leave such "
