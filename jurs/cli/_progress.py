@@ -118,7 +118,9 @@ class StageClock:
         while not self._stop.wait(wait):
             elapsed = time.perf_counter() - self._start
             self._write(f"{self.label}: {elapsed:.0f} s so far")
-            wait = elapsed  # the next line when the elapsed time has doubled
+            # The next line when the elapsed time has doubled (a tenth of a second at
+            # the least, so that a zero delay does not spin).
+            wait = max(elapsed, self.delay, 0.1)
 
     def _write(self, line: str) -> None:
         try:
