@@ -518,6 +518,33 @@ def _share(fraction: float) -> str:
     return f"{percent:.1f}%" if percent >= 1.0 else f"{percent:.2g}%"
 
 
+def describe_shell(centre, lower, upper, extent: float, share=None, cell=None, finest=None) -> str:
+    """The words for a shell lying on the surface (``jurs._cloud.carried.surface_shells``),
+    the fit's doubt and ``analyze_mesh``'s note alike: its place and box (``format_place``
+    to the digits ``extent`` needs), its ``share`` of the zero set where known, what it
+    means and the fix (with the fit's ``cell`` width and ``finest`` cells where known)."""
+    where = (
+        f"centred at {format_place(centre, extent)} within {format_place(lower, extent)} .. "
+        f"{format_place(upper, extent)}"
+    )
+    if share is not None:
+        where += f", {_share(share)} of the zero set"
+    width = "a cell" if cell is None else f"a cell ({float(cell):.3g})"
+    finer = (
+        "A finer fit (finest=, grid=)"
+        if finest is None
+        else f"A finer grid (finest= above {int(finest)} cells along the longest side on the "
+        "hierarchy, grid= on a uniform one)"
+    )
+    return (
+        f"a closed zero-set shell lying on the surface, {where}: g dips across the surface "
+        f"and back there, as over a tunnel, handle or pit narrower than {width} that the fit "
+        "filled in, so the surface's genus and components may be wrong there (the data "
+        f"beside it seem carried, lying within a step of it). {finer} or denser samples "
+        "there resolve it"
+    )
+
+
 def describe_extra(component: dict, extent: float) -> str:
     """The doubt for one of ``extra_components``' components, its place and box printed
     to the digits ``extent`` (the spline's box diagonal) needs (``format_place``)."""
@@ -525,16 +552,14 @@ def describe_extra(component: dict, extent: float) -> str:
     lower = format_place(component["lower"], extent)
     upper = format_place(component["upper"], extent)
     if component.get("shell", False):
-        cell, finest = component.get("cell", float("nan")), component.get("finest", 0)
-        return (
-            f"a closed zero-set shell lying on the surface, centred at {centre} within "
-            f"{lower} .. {upper}, {_share(component['area_share'])} of the zero set: g dips "
-            "across the surface and back there, as over a tunnel, handle or pit narrower "
-            f"than a cell ({cell:.3g}) that the fit filled in, so the surface's genus and "
-            "components may be wrong there (the data carry it only because the surface "
-            "beside it passes through them). A finer grid (finest= above "
-            f"{finest} cells along the longest side on the hierarchy, grid= on a uniform "
-            "one) or denser samples there resolve it"
+        return describe_shell(
+            component["centre"],
+            component["lower"],
+            component["upper"],
+            extent,
+            share=component["area_share"],
+            cell=component.get("cell"),
+            finest=component.get("finest"),
         )
     where = (
         "away from the data"

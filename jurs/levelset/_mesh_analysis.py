@@ -25,7 +25,7 @@ from .._cloud.carried import (
     carried_samples,
     surface_shells,
 )
-from .._solution.verdicts import format_place
+from .._solution.verdicts import describe_shell
 from ..datasets import sample_mesh
 from ._faces import boundary_edges, check_mesh, face_areas, face_components
 from ._trimming import DEFAULT_TRIM, UNSUPPORTED_FRACTION, Support, check_points
@@ -405,17 +405,9 @@ def analyze_mesh(
         for c in np.flatnonzero(shells):
             mine = labels == c
             box = vertices[faces[mine].ravel()]
-            notes = (
-                *notes,
-                "a closed shell lying on the surface, centred at "
-                f"{format_place(np.average(centroids[mine], axis=0, weights=area[mine]), extent)}"
-                f" within {format_place(box.min(axis=0), extent)} .. "
-                f"{format_place(box.max(axis=0), extent)} (marked supplementary): g dips "
-                "across the surface and back there, as over a tunnel, handle or pit "
-                "narrower than a cell that the fit filled in, so the genus and components "
-                "may be wrong there; a finer fit (finest=, grid=) or denser samples there "
-                "resolve it",
-            )
+            centre = np.average(centroids[mine], axis=0, weights=area[mine])
+            shell = describe_shell(centre, box.min(axis=0), box.max(axis=0), extent)
+            notes = (*notes, f"{shell} (marked supplementary)")
     else:
         shells = np.zeros(count, bool)
     loop_owner, loop_length = _loops(vertices, faces, labels)
