@@ -85,7 +85,7 @@ def test_a_new_small_cloud_compiles_no_new_fit():
     jax.clear_caches()
     counts = []
     for points, normals in _cloud_pair():
-        with _CompileCounter() as counter:
+        with _CompileCounter(name="") as counter:
             jax.block_until_ready(jurs.fit(points, normals).spline)
         counts.append(counter.count)
     assert counts[0] >= 1 and counts[1] == 0, counts

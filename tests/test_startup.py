@@ -89,18 +89,21 @@ def test_command_line_cache_folder_and_its_switches(tmp_path):
 
 
 FIT_WITH_THE_STORE = """
-import functools, json, sys
+import json, sys
 import jax
 jax.config.update("jax_enable_x64", True)
-import jurs, jurs._fit.call
+import functools
+import jurs, jurs.solvers._parts as parts
 folder = jurs.enable_compilation_cache(sys.argv[1])
 traced = []
-run = jurs._fit.call._run
-@functools.wraps(run)
-def counting(*args):
-    traced.append(1)
-    return run(*args)
-jurs._fit.call._run = counting
+def counting(fn):
+    @functools.wraps(fn)
+    def run(*args):
+        traced.append(fn.__name__)
+        return fn(*args)
+    return run
+for name in ("_assembled_part", "_solved", "_measured_part", "_concluded"):
+    setattr(parts, name, counting(getattr(parts, name)))
 points, normals = jurs.datasets.example1(90)
 sol = jurs.fit(points, normals, grid=9, offset=0.1, eps=0.01, solver=jurs.LeastSquares(lam=1e-4))
 again = jurs.fit(points[:85], normals[:85], grid=9, offset=0.1, eps=0.01,
@@ -112,13 +115,14 @@ print(json.dumps([folder, len(traced), float(sol.metrics["E_ave"]), sol.message,
 
 @pytest.mark.slow
 def test_a_new_process_loads_the_exported_fit_without_tracing(tmp_path):
-    """The first process traces the fit once (the second fit, 85 points and another lambda,
-    is in the same band); the next process traces nothing and gets the same result."""
+    """The first process traces each of the fit's four programs once (the second fit, 85
+    points and another lambda, reuses them); the next process traces none of them and
+    gets the same result."""
     env = dict(os.environ, JAX_PLATFORMS="cpu")
     code = FIT_WITH_THE_STORE.replace("sys.argv[1]", repr(str(tmp_path / "cache")))
     first = json.loads(_run_python(code, env).splitlines()[-1])
     second = json.loads(_run_python(code, env).splitlines()[-1])
     assert first[0] == second[0] == str(tmp_path / "cache")
-    assert first[1] == 1 and second[1] == 0
+    assert first[1] == 4 and second[1] == 0, (first, second)
     assert first[2:] == second[2:] and first[4] == "ImplicitSpline"
-    assert len(os.listdir(tmp_path / "cache" / "jurs-exported-fits")) == 1
+    assert len(os.listdir(tmp_path / "cache" / "jurs-exported-fits")) == 4

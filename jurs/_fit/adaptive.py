@@ -45,7 +45,7 @@ from .._problem.adaptive import (
 )
 from .._problem.sizes import padded_to, round_size
 from .._solution.solution import RESULTS, Solution
-from .._solution.verdicts import evaluate_bucketed, judged_points
+from .._solution.verdicts import values_and_distances, judged_points
 from ..solvers import (
     IPIA,
     IURS,
@@ -139,7 +139,7 @@ def uniform_residual(spline, cloud: Cloud, settings: Settings) -> float:
     otherwise."""
     points = cloud.points[judged_points(cloud, settings)]
     at = strided_probes(len(points), PROBES)
-    _, distance = evaluate_bucketed(spline, points if at is None else points[at])
+    _, distance = values_and_distances(spline, points if at is None else points[at])
     # A nonfinite distance (a fit that failed) counts as far.
     distance = np.where(np.isfinite(distance), distance, np.inf)
     return float(np.quantile(distance, 0.9) / settings.spacing)

@@ -16,6 +16,7 @@ from .._model.io import SPLINE_KEYS, check_spline_arrays
 from .._model.spline import ImplicitSpline
 from .._problem.validate import is_concrete
 from ..solvers import AbstractSolver, solve
+from ..solvers._parts import solve_in_parts, solves_in_parts
 from .compile import COMPILER_OPTIONS, call_stored
 from .sharding import is_sharded
 
@@ -183,6 +184,14 @@ def solve_fit(problem, solver, init, throw: bool):
     # cache, and without one a new process loads the fit instead of compiling it.
     # With jurs.enable_compilation_cache, the plain compilation also goes through the
     # store of exported fits: a new process skips its tracing too (call_stored).
-    if run is _solve_reassociating or is_sharded(problem):  # the store is one-device
+    if is_sharded(problem):  # the store and the parts are one-device
+        return run(problem, solver, init, False), True
+    if solves_in_parts(problem, solver, init):
+        # Programs compiled per grid, not per number of points: a new cloud on a grid
+        # seen before compiles nothing (jurs/solvers/_parts.py).
+        solution = solve_in_parts(problem, solver, call_stored)
+        if solution is not None:
+            return solution, True
+    if run is _solve_reassociating:
         return run(problem, solver, init, False), True
     return call_stored(_run, _solve_top_level, problem, solver, init, False), True

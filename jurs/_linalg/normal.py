@@ -87,11 +87,9 @@ def _product_bernstein() -> np.ndarray:
 
 
 def _bernstein(t: Array, degree: int) -> Array:
-    """Bernstein basis of ``degree`` at ``t``; ``(..., degree + 1)``."""
-    k = np.arange(degree + 1)
-    binom = np.array([comb(degree, int(i)) for i in k], float)
-    t = t[..., None]
-    return jnp.asarray(binom, t.dtype) * t**k * (1.0 - t) ** (degree - k)
+    """Bernstein basis of ``degree`` at ``t``; ``(..., degree + 1)``, from products only
+    (``_bernstein_terms``: a power would cost the assembly more than the rest of it)."""
+    return jnp.stack(_bernstein_terms(t, degree), axis=-1)
 
 
 def _bernstein_terms(t: Array, degree: int) -> list:
@@ -112,8 +110,10 @@ def chunked_segment_sum(
     num_segments: int,
     chunk_size: int = DEFAULT_CHUNK,
     parts: int = 1,
+    into: Array | None = None,
 ) -> Array:
-    """``segment_sum(rows_fn(*inputs), segments)`` computed ``chunk_size`` rows at a time.
+    """``segment_sum(rows_fn(*inputs), segments)`` computed ``chunk_size`` rows at a time,
+    added to ``into`` where given (in its buffer, where the caller donates it).
 
     ``rows_fn`` maps a block of the ``inputs`` (arrays sharing a leading axis) to
     ``(block, ...)`` rows; it must return 0 rows for zero-padded inputs whose weight
@@ -130,6 +130,8 @@ def chunked_segment_sum(
     parts = parts if parts > 1 and n % parts == 0 else 1
     per_part = n // parts
     if per_part <= chunk_size:
+        if into is not None:  # scattered into it: no segment-sized zeros, no second pass
+            return into.at[segments].add(rows_fn(*inputs))
         return jax.ops.segment_sum(rows_fn(*inputs), segments, num_segments=num_segments)
     pad = (-per_part) % chunk_size
     blocks = (per_part + pad) // chunk_size
@@ -151,7 +153,7 @@ def chunked_segment_sum(
 
     total0 = jnp.zeros((parts, num_segments) + out_struct.shape[1:], out_struct.dtype)
     total, _ = jax.lax.scan(body, total0, [split_segments, *split_inputs])
-    return total.sum(axis=0)
+    return total.sum(axis=0) if into is None else into + total.sum(axis=0)
 
 
 def _cells_to_stencil(blocks: Array, shape: tuple[int, ...]) -> Array:
@@ -191,12 +193,17 @@ def _local_coordinates(problem: Problem) -> Array:
     return problem.local.t.T
 
 
-def _bernstein_moments(problem: Problem, chunk_size: int) -> Array:
+def bernstein_moments(
+    problem: Problem, chunk_size: int = DEFAULT_CHUNK, into: Array | None = None
+) -> Array:
     """Per-cell sums ``(cells, 7 ** d + 4 ** d)``: ``sum_k mask Bern6_p(tx) Bern6_q(ty)`` and
     ``sum_k b_k Bern3_p(tx) Bern3_q(ty)`` over the samples of each cell (with a third
-    factor per term in 3D)."""
+    factor per term in 3D); added to ``into``, the sums of other samples, where given
+    (scattered into its buffer on the one-sample-a-slot layout)."""
     local = problem.local
     count = num_cells(problem.shape)
+    if into is not None and (local.group_slot is not None or local.bucket_size > 1):
+        return into + bernstein_moments(problem, chunk_size)
     if local.group_slot is not None:
         return _grouped_moments(problem, count)
     if local.bucket_size > 1:
@@ -226,7 +233,7 @@ def _bernstein_moments(problem: Problem, chunk_size: int) -> Array:
         return jnp.concatenate([gram, rhs], axis=1) * mask[:, None]
 
     inputs = [t, problem.mask, problem.targets]
-    return chunked_segment_sum(moments, inputs, local.cell, count, chunk_size, local.parts)
+    return chunked_segment_sum(moments, inputs, local.cell, count, chunk_size, local.parts, into)
 
 
 def _group_tensor_sums(t: Array, weight: Array, degree: int) -> Array:
@@ -245,7 +252,7 @@ def _group_tensor_sums(t: Array, weight: Array, degree: int) -> Array:
 
 
 def _grouped_moments(problem: Problem, count: int) -> Array:
-    """``_bernstein_moments`` from the slots gathered by cell
+    """``bernstein_moments`` from the slots gathered by cell
     ([`jurs.internal.with_groups`][]): each group's moments in one batched product
     (``_group_tensor_sums``), ``GROUP_CHUNK`` groups at a time, then one sorted scatter
     of a row a group. A slot's mask and target are read here, so a mask changed after
@@ -294,24 +301,30 @@ def _fold_axes(cells: Array, kernel: Array) -> Array:
 
 def bspline_normal_equations(problem: Problem, chunk_size: int = DEFAULT_CHUNK):
     """``(stencil, D^T b)`` for the B-spline collocation (w = 1) from per-cell Bernstein
-    moments: 7 ** d + 4 ** d channels a sample (49 + 16 in 2D), never the ``16 ** d``
-    products. Any grid dimension d.
+    moments (``bernstein_moments``, folded by ``moments_to_stencil``). Any grid dimension
+    d."""
+    return moments_to_stencil(bernstein_moments(problem, chunk_size), problem.shape)
+
+
+def moments_to_stencil(sums: Array, shape: tuple[int, ...]):
+    """``(stencil, D^T b)`` from per-cell Bernstein moments ``(cells, 7 ** d + 4 ** d)``
+    (``bernstein_moments``; the moments of several sets of samples are their sums):
+    7 ** d + 4 ** d channels a cell, never the ``16 ** d`` products.
 
     Coefficient ``(i, j)`` couples to ``(i + da - 3, j + db - 3)`` through every cell
     ``(i - a, j - b)`` both touch, with ``sum_pq P[a, da, p] P[b, db, q] moment[p, q]``;
     that sum factorises by axis, so the fold runs as one pass over the grid an axis
     with 7 channels each, never a ``(cells, 16, 7, 7)`` array, which would dominate the
     assembly's time (docs/multigrid.md, "Measurements behind the constants")."""
-    dtype = problem.local.s.dtype
-    ndim = problem.ndim
-    sums = _bernstein_moments(problem, chunk_size)
-    cells = cell_shape(problem.shape)
+    dtype = sums.dtype
+    ndim = len(shape)
+    cells = cell_shape(shape)
     gram_moments = sums[:, : 7**ndim].reshape(cells + (7,) * ndim)  # [cells..., p, q(, r)]
     rhs_moments = sums[:, 7**ndim :].reshape(cells + (4,) * ndim)
     stencil = _fold_axes(gram_moments, jnp.asarray(_product_bernstein(), dtype))  # [a, da, p]
     cubic = jnp.asarray(_cubic_bernstein(), dtype)[:, None, :]  # [a, 1, p]: B_a in Bern3
     rhs = _fold_axes(rhs_moments, cubic)
-    return stencil, rhs.reshape(problem.shape)
+    return stencil, rhs.reshape(shape)
 
 
 def rational_normal_equations(problem: Problem, weights: Array, chunk_size: int = DEFAULT_CHUNK):

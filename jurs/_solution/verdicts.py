@@ -65,22 +65,55 @@ def offset_sign_disagreement(problem: Problem, spline: ImplicitSpline):
     from the data, so an offset can sit on the wrong side of it while the fit still
     rises outward through the point (1e6 points of a circle: a third of the offsets on the
     wrong side of an accurate fit). Above ``SIGN_CHECK_POINTS`` points, an evenly
-    strided subset of them is read."""
+    strided subset of them is read (``offset_sign_counts``)."""
+    wrong, counted = offset_sign_counts(problem, spline, sign_check_stride(problem.num_points))
+    return wrong / jnp.maximum(counted, 1)
+
+
+def sign_check_stride(num_points: int) -> int:
+    """The stride of ``offset_sign_disagreement`` over ``num_points`` points: every
+    point up to ``SIGN_CHECK_POINTS``."""
+    return -(-num_points // SIGN_CHECK_POINTS)
+
+
+def offset_sign_counts(
+    problem: Problem,
+    spline: ImplicitSpline,
+    stride,
+    first=0,
+    in_order: bool = False,
+    residuals: Array | None = None,
+):
+    """``(wrong, counted)`` of ``offset_sign_disagreement``, reading the points whose
+    index ``first + i`` (``i`` the point's own in ``problem``, ``first`` that of its first
+    point in a larger cloud taken in parts) is a multiple of ``stride``: the counts of a
+    cloud's parts add up to the whole cloud's. ``stride`` and ``first`` may be traced.
+    ``in_order``: the problem's slots are the paper's order, one sample a slot (as
+    [`jurs.make_problem`][] lays out traced points with ``bucket_size=1``), read as
+    they are instead of gathered by point. ``residuals``: ``r`` in the kernels' layout,
+    where the caller has them."""
     local = problem.local
     mask, targets = local.to_layout(problem.mask), local.to_layout(problem.targets)
-    r, _, _ = layout_residuals(local, mask, targets, spline.control, spline.weights)
+    if residuals is None:
+        r, _, _ = layout_residuals(local, mask, targets, spline.control, spline.weights)
+    else:
+        r = residuals
     m = problem.num_points
+    if in_order:
+        g = (r + targets).reshape(3, m)  # r = g - b where real
+        read = (mask.reshape(3, m)[1] > 0) & ((first + jnp.arange(m)) % stride == 0)
+        return jnp.sum(read & (g[1] <= g[2])), jnp.sum(read)
     # (The table form, for small problems only, carries it as floats: exact there.)
     index = local.to_layout(problem.sample_index).astype(jnp.int32)
-    stride = -(-m // SIGN_CHECK_POINTS)  # every point up to SIGN_CHECK_POINTS
-    size = -(-m // stride)
     point, kind = index % m, index // m
-    real = (mask > 0) & (point % stride == 0)
+    real = (mask > 0) & ((first + point) % stride == 0)
+    # The points read have distinct ``point // stride``: m // stride + 1 slots each kind.
+    size = m // stride + 1 if isinstance(stride, int) else m
     index = kind * size + point // stride
     _, g_out, g_in = values_by_point(r + targets, index, real, size)  # r = g - b where real
     counted = values_by_point(jnp.ones_like(r), index, real, size)[1] > 0
     wrong = counted & (g_out <= g_in)
-    return jnp.sum(wrong) / jnp.maximum(jnp.sum(counted), 1)
+    return jnp.sum(wrong), jnp.sum(counted)
 
 
 #: More than this fraction of the points with normals flipped against their neighbours
@@ -205,49 +238,14 @@ MAX_FAR_FRACTION = 0.02
 FAR_SPREAD = 4.0
 
 
-#: The checks evaluate the fit at point counts rounded up to a power of two (at least
-#: this), so that a new cloud reuses their compiled evaluations: with a count of its
-#: own, each new cloud spent most of its fit compiling them (docs/startup.md, "Shape-stable
-#: compiled fits"). Powers of two, as the fit's own point counts
-#: (``jurs._problem.sizes.padded_count``): padding these evaluations costs far less than
-#: a compilation, and the count of pairs across thin parts varies from cloud to cloud.
-MIN_CHECK_BUCKET = 1024
-
-
-@jax.jit
-def values_and_distances(spline: ImplicitSpline, points: jax.Array) -> tuple[jax.Array, jax.Array]:
-    """``(g(p), |g(p)| / |grad g(p)|)`` at each point: the value and the first-order
-    distance to the zero set. One compiled program serves both checks of a fit (the
-    distances of ``far_point_fraction``, the signs of ``crossed_features``): two
-    programs of their own cost a second compilation for a gradient that is cheap."""
-
-    def one(p):
-        value, gradient = jax.value_and_grad(lambda x: spline(x[None])[0])(p)
-        return value, jnp.abs(value) / jnp.maximum(jnp.linalg.norm(gradient), 1e-300)
-
-    return jax.vmap(one)(points)
-
-
-@functools.singledispatch
-def evaluate_bucketed(spline: AbstractSpline, points) -> tuple[np.ndarray, np.ndarray]:
-    """``values_and_distances(spline, points)`` on the host's ``(n, d)`` ``points``,
-    padded with copies of the first to a power of two of at least ``MIN_CHECK_BUCKET``
-    rows and cut back to ``n``: clouds of different sizes share one compiled
-    evaluation (for one grid). An adaptive spline is evaluated on the host instead
-    (``jurs._model.lattice.values_and_gradients``, float64 NumPy): its hierarchy's arrays
-    have shapes of their own, and a compiled evaluation per new cloud cost seconds."""
-    points = np.asarray(points, float)
-    n = len(points)
-    if n == 0:
-        return np.empty(0), np.empty(0)
-    size = max(MIN_CHECK_BUCKET, 1 << (n - 1).bit_length())
-    padded = np.concatenate([points, np.repeat(points[:1], size - n, axis=0)])
-    value, distance = values_and_distances(spline, jnp.asarray(padded, spline.control.dtype))
-    return np.asarray(value)[:n], np.asarray(distance)[:n]
-
-
-@evaluate_bucketed.register
-def _(spline: AdaptiveSpline, points) -> tuple[np.ndarray, np.ndarray]:
+def values_and_distances(spline: AbstractSpline, points) -> tuple[np.ndarray, np.ndarray]:
+    """``(g(p), |g(p)| / |grad g(p)|)`` at the host's ``(n, d)`` ``points``: the value and
+    the first-order distance to the zero set, float64 NumPy, for either basis. One host
+    evaluation (the spline's ``values_and_gradients``) serves both checks of a fit (the
+    distances of ``far_point_fraction``, the signs of ``crossed_features``). Evaluated on
+    the host, not compiled: a compiled evaluation took a program per grid and per count
+    of points, which a new cloud paid in compilation, where the host's evaluation of a
+    check's points is about as fast (docs/startup.md, "Shape-stable compiled fits")."""
     points = np.asarray(points, float)
     if len(points) == 0:
         return np.empty(0), np.empty(0)
@@ -267,7 +265,7 @@ def far_point_fraction(spline: ImplicitSpline, points, offset: float) -> tuple[f
     at = strided_probes(len(p), PROBES)
     p = p if at is None else p[at]
     cell = spline.cell_width
-    _, distance = evaluate_bucketed(spline, p)
+    _, distance = values_and_distances(spline, p)
     spread = 1.4826 * float(np.nanmedian(distance)) if np.isfinite(distance).any() else 0.0
     threshold = max(2.0 * float(offset), 0.5 * cell, FAR_SPREAD * spread)
     return float(np.mean(~(distance <= threshold))), threshold
@@ -318,7 +316,7 @@ def crossed_pairs(
     a, b, normal = p[own[paired]], p[partner[paired]], n[own[paired]]
     offset = np.sum((b - a) * normal, axis=1)
     inside = offset < 0  # a thin part, not a gap
-    value, _ = evaluate_bucketed(spline, 0.5 * (a + b))
+    value, _ = values_and_distances(spline, 0.5 * (a + b))
     wrong = np.where(inside, value > 0, value < 0)
     along = np.abs(offset) < ALONG_COSINE * np.linalg.norm(b - a, axis=1)
     across = width[paired][~along]

@@ -139,6 +139,27 @@ def finish(solver: AbstractSolver, problem: Problem, carry: Carry, throw: bool =
     ``throw``). Traceable."""
     state = carry.state
     _, solver_result = solver.terminate(problem, state)
+    fitted = solver.to_spline(problem, state)
+    lam = solver.fitted_lam(state)
+    metrics = compute_metrics(problem, fitted, lam)
+    # (Points a robust solver set aside are not read: their offsets are not fitted.)
+    disagreement = offset_sign_disagreement(solver.judged_problem(problem, state), fitted)
+    return concluded(carry, solver_result, fitted, lam, metrics, disagreement, throw)
+
+
+def concluded(
+    carry: Carry,
+    solver_result: RESULTS,
+    fitted: ImplicitSpline,
+    lam,
+    metrics: dict[str, Array],
+    disagreement: Array,
+    throw: bool = True,
+) -> Solution:
+    """The [`jurs.Solution`][] of a run that reached ``carry``, from the solver's own
+    verdict on its state (``solver_result``), its spline, lambda, metrics and
+    offset-sign disagreement, however they were computed (``finish``, or from a cloud
+    taken in parts: ``jurs._fit.call``). Traceable."""
     # The solver's own verdict on its state, when it is not success, stands whether or not
     # the loop stopped (IURS's weights at their floor after max_steps); success needs the
     # stop rule met.
@@ -151,14 +172,9 @@ def finish(solver: AbstractSolver, problem: Problem, carry: Carry, throw: bool =
             RESULTS.where(carry.stopped, RESULTS.successful, RESULTS.max_steps_reached),
         ),
     )
-    fitted = solver.to_spline(problem, state)
-    lam = solver.fitted_lam(state)
-    metrics = compute_metrics(problem, fitted, lam)
-    metrics["lam"] = jnp.asarray(lam, dtype=carry.energy.dtype)
+    metrics = dict(metrics, lam=jnp.asarray(lam, dtype=carry.energy.dtype))
     # A converged fit is "successful" only if it also reads inside from outside where its
     # targets say so; random normals converge to a fit that does not.
-    # (Points a robust solver set aside are not read: their offsets are not fitted.)
-    disagreement = offset_sign_disagreement(solver.judged_problem(problem, state), fitted)
     metrics["offset_sign_disagreement"] = disagreement
     result = RESULTS.where(
         (result == RESULTS.successful) & (disagreement > MAX_OFFSET_SIGN_DISAGREEMENT),
@@ -171,7 +187,7 @@ def finish(solver: AbstractSolver, problem: Problem, carry: Carry, throw: bool =
             fitted, bad, which, [error_message(name) for name in RAISED_RESULTS]
         )
     stats = {"num_steps": carry.step, "energy_history": carry.history}
-    return Solution(spline=fitted, metrics=metrics, stats=stats, result=result, state=state)
+    return Solution(spline=fitted, metrics=metrics, stats=stats, result=result, state=carry.state)
 
 
 @full_precision

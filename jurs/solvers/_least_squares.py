@@ -300,30 +300,7 @@ class LeastSquares(AbstractSolver[LeastSquaresState]):
         ``normal`` equations ([`jurs.internal.NormalEquations`][] of ``problem``), by
         this solver's linear solver (see the class docstring), started from ``start``;
         on a surface from the cascade's start unless ``warm`` (see ``minimise``)."""
-        system = (normal.regularised(lam), normal.rhs, start)
-        n, m = sorted(problem.shape, reverse=True)[:2]
-        if (
-            self.linear_solver is None
-            and problem.ndim == 2
-            and n * m > DENSE_MAX_COEFFICIENTS
-            and n * m * m <= DIRECT_MAX_ENTRIES
-        ):
-            # lam > 0: the regulariser makes the system positive definite, and a direct
-            # solve beats the tens of thousands of CG steps that sparse data need
-            # (docs/multigrid.md, "Measurements behind the constants"). lam = 0:
-            # numerically singular systems, where CG's early stop acts as a further
-            # regulariser (see ``ridge``). CG also where the factorisation breaks down.
-            cg = stencil_cg(problem.shape)
-            return jax.lax.cond(
-                jnp.asarray(lam) > 0,
-                lambda: solve_normal_equations(*system, BlockCholesky(), self.ridge, cg),
-                lambda: solve_normal_equations(*system, cg, self.ridge),
-            )
-        if (
-            self.linear_solver is None
-            and problem.ndim == 3
-            and np.prod(problem.shape) > DENSE_MAX_COEFFICIENTS
-        ):
+        if self.needs_samples_to_solve(problem.shape):
             # Surfaces: CG from the cascade's start (jurs/solvers/_cascade.py), which
             # carries the far field that CG from 0 leaves behind; a warm start (the
             # previous fit of a reweighted problem) has it already.
@@ -332,16 +309,54 @@ class LeastSquares(AbstractSolver[LeastSquaresState]):
                 start = start if warm else cascade()
             else:
                 start = jax.lax.cond(warm, lambda: start, cascade)
+            system = (normal.regularised(lam), normal.rhs, start)
             return solve_normal_equations(
-                *system[:2], start, surface_linear_solver(normal.rhs), self.ridge
+                *system, surface_linear_solver(normal.rhs), self.ridge
+            )
+        return self.solve_without_samples(normal, lam, start)
+
+    def solve_without_samples(self, normal, lam, start: Array):
+        """``solve_assembled`` where it needs no samples: every solve but a surface's
+        default one, whose cascade resamples the problem on coarser grids. The grid's shape
+        is ``start``'s."""
+        system = (normal.regularised(lam), normal.rhs, start)
+        shape = start.shape
+        n, m = sorted(shape, reverse=True)[:2]
+        if (
+            self.linear_solver is None
+            and len(shape) == 2
+            and n * m > DENSE_MAX_COEFFICIENTS
+            and n * m * m <= DIRECT_MAX_ENTRIES
+        ):
+            # lam > 0: the regulariser makes the system positive definite, and a direct
+            # solve beats the tens of thousands of CG steps that sparse data need
+            # (docs/multigrid.md, "Measurements behind the constants"). lam = 0:
+            # numerically singular systems, where CG's early stop acts as a further
+            # regulariser (see ``ridge``). CG also where the factorisation breaks down.
+            cg = stencil_cg(shape)
+            return jax.lax.cond(
+                jnp.asarray(lam) > 0,
+                lambda: solve_normal_equations(*system, BlockCholesky(), self.ridge, cg),
+                lambda: solve_normal_equations(*system, cg, self.ridge),
             )
         if self.linear_solver is None:
             return solve_by_default(*system, self.ridge)
         return solve_normal_equations(*system, self.linear_solver, self.ridge)
 
+    def needs_samples_to_solve(self, shape: tuple[int, ...]) -> bool:
+        """Whether ``solve_assembled`` reads the problem's samples beyond its normal
+        equations (a surface's default solve: the cascade), or ``solve_without_samples``
+        serves."""
+        ndim = len(shape)
+        return self.linear_solver is None and ndim == 3 and np.prod(shape) > DENSE_MAX_COEFFICIENTS
+
     def terminate(self, problem: Problem, state: LeastSquaresState):
+        return state.done, self.verdict(state)
+
+    def verdict(self, state: LeastSquaresState) -> RESULTS:
+        """The solver's verdict on ``state`` (``terminate``'s), which reads no problem."""
         # A CG that hits its step cap still leaves a usable iterate; other failures do not.
-        result = RESULTS.where(
+        return RESULTS.where(
             state.result == lx.RESULTS.successful,
             RESULTS.successful,
             RESULTS.where(
@@ -350,7 +365,6 @@ class LeastSquares(AbstractSolver[LeastSquaresState]):
                 RESULTS.failed,
             ),
         )
-        return state.done, result
 
     def to_spline(self, problem: Problem, state: LeastSquaresState) -> ImplicitSpline:
         return ImplicitSpline(state.control, state.weights, problem.lower, problem.upper)

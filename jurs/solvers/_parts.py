@@ -1,0 +1,238 @@
+"""[`jurs.LeastSquares`][] run on a cloud taken in parts of a fixed size, so that what it
+compiles depends on the grid only, never on the number of points.
+
+[`jurs.solve`][] compiles one program over the whole problem, whose sample arrays are
+part of every compiled shape: a cloud in a new octave of points compiled the whole fit
+again, seconds for a fit that runs in a tenth of one (docs/performance.md, "A new
+cloud's first fit"). The exact solve needs the samples only through sums: the normal
+equations are a sum over the samples, and so are the metrics and the offset-sign check.
+``solve_in_parts`` therefore runs four compiled programs:
+
+1. ``_assembled_part``: the normal equations of ``PART_POINTS`` points (their three
+   samples each), added to the running total; compiled per grid;
+2. ``_solved``: the solve of the summed equations; per grid and solver;
+3. ``_measured_part``: the sums of [`jurs.internal.metrics`][] and of the offset-sign
+   check over a part, for the solved spline; per grid;
+4. ``_concluded``: the verdict and the [`jurs.Solution`][] from the sums; per grid.
+
+The parts are the problem's own points, three samples each, in one sample a slot; the
+solution equals ``solve(LeastSquares(...), problem)``'s to rounding (the sums run in
+another order). [`jurs.fit`][] takes this path at top level where it applies
+(``solves_in_parts``).
+"""
+
+from __future__ import annotations
+
+import functools
+import weakref
+
+import equinox as eqx
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax import Array
+
+from .._linalg.normal import NormalEquations, bernstein_moments, moments_to_stencil
+from .._model.basis import num_cells
+from .._model.spline import ImplicitSpline, bspline_values
+from .._problem.energy import metric_sums, metrics_from_sums
+from .._problem.problem import Problem, build_problem
+from .._solution.solution import Solution
+from .._solution.verdicts import offset_sign_counts, sign_check_stride
+from ._driver import Carry, concluded
+from ._least_squares import LeastSquares, LeastSquaresState, singular_solve
+
+#: Points in a part: every compiled part has this many, the last one padded with masked
+#: copies. Small enough that a small cloud's padding costs little beside its solve, large
+#: enough that a large cloud's parts are few calls.
+PART_POINTS = 1 << 11
+
+
+#: The largest (padded) cloud solved in parts. Above it the whole compiled problem's
+#: layout (buckets of samples sharing a cell and their coefficients) evaluates the
+#: spline faster than parts of one sample a slot can, and its compilation is a smaller
+#: share of the fit (measured: docs/performance.md, "A new cloud's first fit").
+PARTS_MAX_POINTS = 1 << 16
+
+
+def solves_in_parts(problem: Problem, solver, init) -> bool:
+    """Whether ``solve_in_parts`` serves this solve: [`jurs.LeastSquares`][] with the
+    B-spline (``keep_weights`` False) from the default start, on a cloud of at most
+    ``PARTS_MAX_POINTS`` (padded) points, on a curve or a surface whose solve reads no
+    samples beyond the normal equations (``LeastSquares.needs_samples_to_solve``)."""
+    return (
+        problem.num_points <= PARTS_MAX_POINTS
+        and type(solver) is LeastSquares
+        and not solver.keep_weights
+        and init is None
+        and not solver.needs_samples_to_solve(problem.shape)
+    )
+
+
+#: The parts of the problems solved lately, by identity (``_parts``): a fit repeated on a
+#: kept problem (``jurs.fit``'s kept clouds) reuses them on the device. An entry goes
+#: when its problem does.
+_KEPT_PARTS: dict[int, tuple] = {}
+
+
+def _parts(problem: Problem) -> list[tuple[Array, ...]] | None:
+    """``(points, normals, mask)`` of each part, ``PART_POINTS`` rows each, on the device;
+    None where a point's three samples do not share one mask (then the problem is solved
+    whole)."""
+    kept = _KEPT_PARTS.get(id(problem))
+    if kept is not None and kept[0]() is problem:
+        return kept[1]
+    parts = _split(problem)
+    key = id(problem)
+    try:
+        ref = weakref.ref(problem, lambda _, key=key: _KEPT_PARTS.pop(key, None))
+    except TypeError:  # not weakly referenceable: not kept
+        return parts
+    _KEPT_PARTS[key] = (ref, parts)
+    return parts
+
+
+def _split(problem: Problem) -> list[tuple[Array, ...]] | None:
+    """``_parts``, made."""
+    m = problem.num_points
+    mask, index = np.asarray(problem.mask), np.asarray(problem.sample_index)
+    real = mask > 0
+    by_kind = np.zeros((3, m), mask.dtype)
+    by_kind[index[real] // m, index[real] % m] = mask[real]
+    if not (np.array_equal(by_kind[0], by_kind[1]) and np.array_equal(by_kind[0], by_kind[2])):
+        return None
+    points, normals = np.asarray(problem.points), np.asarray(problem.normals)
+    pad = -m % PART_POINTS
+    points = np.pad(points, ((0, pad), (0, 0)), mode="edge")
+    normals = np.pad(normals, ((0, pad), (0, 0)), mode="edge")
+    point_mask = np.pad(by_kind[0], (0, pad))
+    parts = [
+        (points[i : i + PART_POINTS], normals[i : i + PART_POINTS], point_mask[i : i + PART_POINTS])
+        for i in range(0, m + pad, PART_POINTS)
+    ]
+    return jax.device_put(parts)
+
+
+def _part_problem(points, normals, mask, offset, eps, lower, upper, shape) -> Problem:
+    """The problem of one part: its points' samples, one a slot, in the whole cloud's box."""
+    return build_problem(
+        points, normals, shape, offset, eps, (lower, upper), mask=mask, bucket_size=1
+    )
+
+
+def _assembled_part(
+    total: tuple[Array, Array], points, normals, mask, offset, eps, lower, upper, shape, chunk_size
+) -> tuple[Array, Array]:
+    """``total`` plus one part's per-cell Bernstein moments and sum of squared targets:
+    sums that the normal equations are folded from once (``moments_to_stencil``)."""
+    part = _part_problem(points, normals, mask, offset, eps, lower, upper, shape)
+    target = part.mask * part.targets
+    moments = bernstein_moments(part, chunk_size, into=total[0])
+    return moments, total[1] + jnp.sum(target * target)
+
+
+# The running sums are donated: each part scatters into their buffer in place.
+_assembled_part_jit = jax.jit(_assembled_part, static_argnums=(8, 9), donate_argnums=0)
+
+
+def _solved(solver: LeastSquares, moments: Array, target_norm2: Array, shape: tuple[int, ...]):
+    """``(C, lineax result, D's column sums)``: ``LeastSquares.minimise`` from the summed
+    moments."""
+    stencil, rhs = moments_to_stencil(moments, shape)
+    normal = NormalEquations(stencil=stencil, rhs=rhs, target_norm2=target_norm2)
+    start = jnp.zeros(shape, rhs.dtype)
+    control, result = solver.solve_without_samples(normal, solver.lam, start)
+    # D's column sums (eq. 25's norm, w = 1): D 1 = 1, the partition of unity, so
+    # D^T 1 = D^T D 1, read off the stencil instead of a pass over the samples.
+    column_sums = normal.matvec(jnp.ones_like(control))
+    return control, singular_solve(normal, solver.lam, control, result), column_sums
+
+
+_solved_jit = eqx.filter_jit(_solved)
+
+
+def _measured_part(
+    total: dict, control, points, normals, mask, offset, eps, lower, upper, stride, first, shape
+) -> dict:
+    """``total`` plus the metrics' sums and the offset-sign counts of one part."""
+    part = _part_problem(points, normals, mask, offset, eps, lower, upper, shape)
+    spline = ImplicitSpline(control, jnp.ones_like(control), lower, upper)
+    # The B-spline's residuals in one evaluation: W = 1 (the partition of unity).
+    r = part.mask * (bspline_values(part.local, control) - part.targets)
+    sums = metric_sums(part, spline, columns=False, residuals=r)
+    wrong, counted = offset_sign_counts(part, spline, stride, first, in_order=True, residuals=r)
+    sums = dict(sums, wrong=wrong.astype(control.dtype), counted=counted.astype(control.dtype))
+    return {
+        key: jnp.maximum(total[key], value) if key == "E_max" else total[key] + value
+        for key, value in sums.items()
+    }
+
+
+_measured_part_jit = jax.jit(_measured_part, static_argnums=11)
+
+
+def _concluded(solver: LeastSquares, control, linear_result, start_energy, sums, lower, upper):
+    """The [`jurs.Solution`][] of the one step of [`jurs.LeastSquares`][], as
+    [`jurs.solve`][] concludes it, from the parts' sums."""
+    weights = jnp.ones_like(control)
+    state = LeastSquaresState(control, weights, jnp.array(True), linear_result)
+    lam = solver.fitted_lam(state)
+    metrics = metrics_from_sums(sums, control, lam)
+    energy = metrics["E"]
+    carry = Carry(
+        step=jnp.array(1),
+        state=state,
+        energy=energy,
+        nonfinite=~jnp.isfinite(energy),
+        history=jnp.stack([start_energy, energy]),
+        stopped=jnp.array(True),
+    )
+    disagreement = sums["wrong"] / jnp.maximum(sums["counted"], 1)
+    fitted = ImplicitSpline(control, weights, lower, upper)
+    return concluded(carry, solver.verdict(state), fitted, lam, metrics, disagreement, False)
+
+
+_concluded_jit = eqx.filter_jit(_concluded)
+
+
+def _jitted(fn, jitted, *args):
+    """``jitted(*args)``: the default way ``solve_in_parts`` calls each program."""
+    del fn
+    return jitted(*args)
+
+
+def solve_in_parts(problem: Problem, solver: LeastSquares, call=_jitted) -> Solution | None:
+    """``solve(solver, problem, throw=False)`` for a concrete ``problem`` where
+    ``solves_in_parts`` says so, run in parts (see the module's docstring); None where
+    it cannot be (a point's samples with masks of their own, or a solve that ends
+    non-finite, which [`jurs.solve`][] keeps at its start: the caller then solves whole).
+
+    ``call(fn, jitted, *args)`` runs each program: ``jitted(*args)`` by default, or a
+    stored export of ``fn`` (``jurs._fit.compile.call_stored``)."""
+    parts = _parts(problem)
+    if parts is None:
+        return None
+    shape, dtype = problem.shape, problem.samples.dtype
+    box = (problem.offset, problem.eps, problem.lower, problem.upper)
+    zeros = functools.partial(np.zeros, dtype=dtype)
+    channels = 7 ** len(shape) + 4 ** len(shape)
+    total = zeros((num_cells(shape), channels)), zeros(())
+    for part in parts:
+        args = (total, *part, *box, shape, solver.chunk_size)
+        total = call(_assembled_part, _assembled_part_jit, *args)
+    moments, target_norm2 = total
+    control, linear_result, column_sums = call(
+        _solved, _solved_jit, solver, moments, target_norm2, shape
+    )
+    sums = {key: zeros(()) for key in ("E_d", "on_data2", "count", "E_max", "wrong", "counted")}
+    stride = np.int32(sign_check_stride(problem.num_points))
+    for k, part in enumerate(parts):
+        args = (sums, control, *part, *box, stride, np.int32(k * PART_POINTS), shape)
+        sums = call(_measured_part, _measured_part_jit, *args)
+    sums["column_sums"] = column_sums
+    # E at C = 0, the start's: the targets' sum of squares.
+    args = (solver, control, linear_result, target_norm2, sums, problem.lower, problem.upper)
+    solution = call(_concluded, _concluded_jit, *args)
+    if not np.isfinite(np.asarray(solution.metrics["E"])):
+        return None
+    return solution

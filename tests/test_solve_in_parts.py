@@ -1,0 +1,89 @@
+"""The exact solve run on a cloud taken in parts (jurs/solvers/_parts.py) against the same
+solve compiled whole: the same solution to rounding, the same verdicts."""
+
+import jax
+import numpy as np
+import pytest
+
+import jurs
+from jurs._solution.verdicts import offset_sign_counts
+from jurs.solvers._parts import PART_POINTS, solve_in_parts, solves_in_parts
+
+
+def _compare(problem, solver):
+    whole = jurs.solve(solver, problem, throw=False)
+    parts = solve_in_parts(problem, solver)
+    assert parts is not None
+    assert jax.tree_util.tree_structure(parts) == jax.tree_util.tree_structure(whole)
+    assert parts.message == whole.message
+    control = np.asarray(whole.spline.control)
+    np.testing.assert_allclose(
+        np.asarray(parts.spline.control), control, rtol=0, atol=1e-8 * np.abs(control).max()
+    )
+    for key, value in whole.metrics.items():
+        np.testing.assert_allclose(np.asarray(parts.metrics[key]), np.asarray(value), rtol=1e-8)
+    np.testing.assert_allclose(
+        np.asarray(parts.stats["energy_history"]), np.asarray(whole.stats["energy_history"]),
+        rtol=1e-8,
+    )  # fmt: skip
+    assert int(parts.stats["num_steps"]) == int(whole.stats["num_steps"]) == 1
+    return whole, parts
+
+
+@pytest.mark.parametrize(
+    "points, grid, lam, mask_every",
+    [
+        (120, 9, 0.0, None),  # the dense solve, one part
+        (PART_POINTS + 1500, 40, 1e-5, None),  # the block Cholesky, two parts
+        (PART_POINTS + 1500, 40, 1e-5, 3),  # a mask: every third point left out
+    ],
+)
+def test_parts_give_the_whole_solve(points, grid, lam, mask_every):
+    p, n = jurs.datasets.example1(points)
+    mask = None
+    if mask_every:
+        mask = np.ones(points)
+        mask[::mask_every] = 0.0
+    problem = jurs.make_problem(p, n, grid=grid, offset=0.05, eps=0.01, mask=mask)
+    solver = jurs.LeastSquares(lam=lam)
+    assert solves_in_parts(problem, solver, None)
+    _compare(problem, solver)
+
+
+def test_parts_read_inconsistent_normals_as_the_whole_solve_does():
+    p, n = jurs.datasets.example1(600)
+    n = n * np.where(np.random.default_rng(0).random(len(n)) < 0.5, -1.0, 1.0)[:, None]
+    problem = jurs.make_problem(p, n, grid=24, offset=0.05, eps=0.01)
+    whole, _ = _compare(problem, jurs.LeastSquares(lam=1e-5))
+    assert whole.status == "inconsistent_normals"
+
+
+def test_the_offset_sign_counts_of_parts_add_up():
+    """Read with a stride (a cloud above ``SIGN_CHECK_POINTS`` points), the counts of a
+    cloud's parts, each told the index of its first point, are the whole cloud's."""
+    p, n = jurs.datasets.example1(900)
+    whole = jurs.make_problem(p, n, grid=20, offset=0.05, eps=0.01)
+    spline = jurs.solve(jurs.LeastSquares(lam=1e-5), whole, throw=False).spline
+    expected = [int(x) for x in offset_sign_counts(whole, spline, 3)]
+    box = ((np.asarray(whole.lower), np.asarray(whole.upper)),)
+    total = np.zeros(2, int)
+    for first in (0, 350, 700):
+        part = jurs.make_problem(
+            p[first : first + 350], n[first : first + 350], grid=20, offset=0.05, eps=0.01,
+            domain=box[0],
+        )  # fmt: skip
+        total += [int(x) for x in offset_sign_counts(part, spline, np.int32(3), np.int32(first))]
+    assert list(total) == expected
+    assert expected[1] == 300  # every third of 900 points
+
+
+def test_solves_that_read_samples_are_solved_whole():
+    p, n = jurs.datasets.example1(200)
+    problem = jurs.make_problem(p, n, grid=12, offset=0.05, eps=0.01)
+    assert not solves_in_parts(problem, jurs.LeastSquares(keep_weights=True), None)
+    assert not solves_in_parts(problem, jurs.IPIA(), None)
+    start = jurs.ImplicitSpline(
+        np.zeros(problem.shape), np.ones(problem.shape), problem.lower, problem.upper
+    )
+    assert not solves_in_parts(problem, jurs.LeastSquares(), start)
+    assert solves_in_parts(problem, jurs.LeastSquares(), None)
