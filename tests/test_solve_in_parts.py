@@ -87,3 +87,23 @@ def test_solves_that_read_samples_are_solved_whole():
     )
     assert not solves_in_parts(problem, jurs.LeastSquares(), start)
     assert solves_in_parts(problem, jurs.LeastSquares(), None)
+
+
+@pytest.mark.parametrize("grid, linear_solver", [(6, None), (10, "cg")])
+def test_parts_give_the_whole_solve_of_a_surface(grid, linear_solver):
+    """A surface's dense solve (6^3 coefficients), and one whose CG is given (so no
+    cascade reads the samples), in parts as whole."""
+    import lineax as lx
+
+    p, n = jurs.datasets.sphere3d(1500)
+    problem = jurs.make_problem(p, n, grid=grid, offset=0.05, eps=0.01)
+    given = None if linear_solver is None else lx.CG(rtol=1e-12, atol=1e-14, max_steps=2000)
+    solver = jurs.LeastSquares(lam=1e-5, linear_solver=given)
+    assert solves_in_parts(problem, solver, None)
+    _compare(problem, solver)
+
+
+def test_a_surface_s_default_solve_is_solved_whole():
+    p, n = jurs.datasets.sphere3d(300)
+    problem = jurs.make_problem(p, n, grid=12, offset=0.05, eps=0.01)
+    assert not solves_in_parts(problem, jurs.LeastSquares(lam=1e-5), None)  # the cascade

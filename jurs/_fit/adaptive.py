@@ -45,7 +45,7 @@ from .._problem.adaptive import (
 )
 from .._problem.sizes import padded_to, round_size
 from .._solution.solution import RESULTS, Solution
-from .._solution.verdicts import values_and_distances, judged_points
+from .._solution.verdicts import judged_points, values_and_distances
 from ..solvers import (
     IPIA,
     IURS,
@@ -654,7 +654,8 @@ def solver_lam(solver, lam=None, points=None, normals=None) -> float | None:
         return lam
     if lam is not None:
         raise ValueError("pass lam or a solver, not both: a solver keeps its own lam")
-    if isinstance(solver, RobustLeastSquares) and (
+    # A solver that reweighs its points (expects outliers) reweighs them on one host.
+    if type(solver).expects_outliers and (
         spans_processes(points, normals) or input_sharding(points, normals) is not None
     ):
         raise ValueError(

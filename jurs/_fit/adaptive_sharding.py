@@ -36,6 +36,7 @@ from .._linalg.pcg import conjugate_gradients, jacobi_inverse
 from .._linalg.sparse import padded_entries
 from .._model.precision import on_device
 from .._problem.adaptive import assemble_adaptive_problem
+from .._problem.energy import metrics_from_sums
 from .._problem.sizes import padded_to
 from .._problem.validate import unit_normals, validate_inputs
 from .._solution.solution import Solution, raise_unless_reconstruction
@@ -209,22 +210,17 @@ def solve_sharded(
     )
     c = np.asarray(control.addressable_data(0))[:n]  # replicated: every device holds it
     reg = float(c @ (regulariser @ c))
-    data = float(data.addressable_data(0))
     samples = count if samples is None else samples
     # E_ave is the mean of g^2 over the data points alone (a third of the samples), as on
     # the uniform grid (jurs._problem.energy.metrics), not E_d over every sample.
-    on_data = float(on_data.addressable_data(0))
-    metrics = {
-        name: on_device(value, dtype)
-        for name, value in (
-            ("E", data + lam * reg),
-            ("E_d", data),
-            ("R", reg),
-            ("E_ave", on_data / (samples // 3)),
-            ("E_max", float(largest.addressable_data(0))),
-            ("lam", lam),
-        )
-    }
+    sums = dict(
+        E_d=float(data.addressable_data(0)),
+        on_data2=float(on_data.addressable_data(0)),
+        count=samples // 3,
+        E_max=float(largest.addressable_data(0)),
+    )
+    metrics = dict(metrics_from_sums(sums, reg, lam), lam=lam)
+    metrics = {name: on_device(value, dtype) for name, value in metrics.items()}
     return c, int(steps.addressable_data(0)), float(residual.addressable_data(0)), metrics
 
 

@@ -29,6 +29,7 @@ from .._model.hierarchy import (
 )
 from .._model.leaves import hierarchy_basis, leaf_terms, locate_leaves
 from .._model.precision import on_device
+from .energy import metrics_from_sums
 from .problem import offset_samples
 
 
@@ -234,18 +235,16 @@ def adaptive_metrics(problem: AdaptiveProblem, coeffs: Array, lam, basis=None) -
     ``E_ave = mean g(P_i)^2`` and ``E_max = max |g(P_i)|`` over the m data points only
     (the first m samples, whose targets are 0), not over the offset samples."""
     r = adaptive_values(problem, coeffs, basis) - problem.targets
-    data = jnp.sum(r * r)
     reg = hierarchy_regulariser(problem.hierarchy, coeffs)
     m = problem.samples.shape[0] // 3
     on_data = r[:m]
-    return {
-        "E": data + lam * reg,
-        "E_d": data,
-        "R": reg,
-        "E_ave": jnp.mean(on_data * on_data),
-        "E_max": jnp.max(jnp.abs(on_data)),
-        "lam": jnp.asarray(lam, r.dtype),
-    }
+    sums = dict(
+        E_d=jnp.sum(r * r),
+        on_data2=jnp.sum(on_data * on_data),
+        count=m,
+        E_max=jnp.max(jnp.abs(on_data)),
+    )
+    return dict(metrics_from_sums(sums, reg, lam), lam=jnp.asarray(lam, r.dtype))
 
 
 def assembled_metrics(problem: AdaptiveProblem, matrices, coeffs, lam: float) -> dict:
@@ -255,21 +254,16 @@ def assembled_metrics(problem: AdaptiveProblem, matrices, coeffs, lam: float) ->
     collocation, regulariser = matrices
     c = np.asarray(coeffs, np.float64)
     r = collocation @ c - np.asarray(problem.targets, np.float64)
-    data, reg = float(r @ r), float(c @ (regulariser @ c))
     m = problem.samples.shape[0] // 3
     on_data = r[:m]  # the data points' samples come first (targets 0)
-    dtype = problem.targets.dtype
-    return {
-        name: on_device(value, dtype)
-        for name, value in (
-            ("E", data + lam * reg),
-            ("E_d", data),
-            ("R", reg),
-            ("E_ave", float(on_data @ on_data) / m),
-            ("E_max", float(np.max(np.abs(on_data)))),
-            ("lam", lam),
-        )
-    }
+    sums = dict(
+        E_d=float(r @ r),
+        on_data2=float(on_data @ on_data),
+        count=m,
+        E_max=float(np.max(np.abs(on_data))),
+    )
+    metrics = dict(metrics_from_sums(sums, float(c @ (regulariser @ c)), lam), lam=lam)
+    return {name: on_device(value, problem.targets.dtype) for name, value in metrics.items()}
 
 
 def normal_matvec(problem: AdaptiveProblem, lam, basis=None):

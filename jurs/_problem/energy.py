@@ -205,18 +205,22 @@ def metric_sums(
     return sums
 
 
-def metrics_from_sums(sums: dict[str, Array], control: Array, lam=0.0) -> dict[str, Array]:
-    """[`metrics`][jurs.internal.metrics] from ``metric_sums`` (of all the samples, or
-    their parts' sums added) and the spline's coefficients ``control``."""
-    reg = regulariser(control)
-    return {
+def metrics_from_sums(sums: dict, reg, lam=0.0) -> dict:
+    """The metrics of eq. 35-37 from the sums over the samples (``metric_sums``'s: of all
+    the samples, or their parts' sums added) and the regulariser's value ``reg``: ``E``,
+    ``E_d``, ``R``, ``E_ave``, ``E_max``, and ``mu`` (eq. 25) where the sums hold D's
+    ``column_sums``. The one place these are built, for either basis: plain arithmetic,
+    so host floats stay host floats (nothing compiled) and arrays stay arrays."""
+    out = {
         "E": sums["E_d"] + lam * reg,
         "E_d": sums["E_d"],
         "R": reg,
         "E_ave": sums["on_data2"] / sums["count"],
         "E_max": sums["E_max"],
-        "mu": step_size_from_column_sums(sums["column_sums"]),
     }
+    if "column_sums" in sums:
+        out["mu"] = step_size_from_column_sums(sums["column_sums"])
+    return out
 
 
 def metrics(problem: Problem, spline: ImplicitSpline, lam=0.0) -> dict[str, Array]:
@@ -227,7 +231,7 @@ def metrics(problem: Problem, spline: ImplicitSpline, lam=0.0) -> dict[str, Arra
     also returned, and ``mu`` of eq. 25 for the spline's weights. Padding (``mask`` 0) is
     left out of every sum.
     """
-    return metrics_from_sums(metric_sums(problem, spline), spline.control, lam)
+    return metrics_from_sums(metric_sums(problem, spline), regulariser(spline.control), lam)
 
 
 def eta(value_without, value_with):

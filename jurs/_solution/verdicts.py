@@ -23,6 +23,7 @@ from typing import cast
 import jax
 import jax.numpy as jnp
 import numpy as np
+from jax import Array
 
 from .._cloud.carried import (
     MIN_CARRIED_FRACTION,

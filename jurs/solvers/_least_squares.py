@@ -310,9 +310,7 @@ class LeastSquares(AbstractSolver[LeastSquaresState]):
             else:
                 start = jax.lax.cond(warm, lambda: start, cascade)
             system = (normal.regularised(lam), normal.rhs, start)
-            return solve_normal_equations(
-                *system, surface_linear_solver(normal.rhs), self.ridge
-            )
+            return solve_normal_equations(*system, surface_linear_solver(normal.rhs), self.ridge)
         return self.solve_without_samples(normal, lam, start)
 
     def solve_without_samples(self, normal, lam, start: Array):
@@ -347,8 +345,8 @@ class LeastSquares(AbstractSolver[LeastSquaresState]):
         """Whether ``solve_assembled`` reads the problem's samples beyond its normal
         equations (a surface's default solve: the cascade), or ``solve_without_samples``
         serves."""
-        ndim = len(shape)
-        return self.linear_solver is None and ndim == 3 and np.prod(shape) > DENSE_MAX_COEFFICIENTS
+        large = int(np.prod(shape)) > DENSE_MAX_COEFFICIENTS
+        return self.linear_solver is None and len(shape) == 3 and large
 
     def terminate(self, problem: Problem, state: LeastSquaresState):
         return state.done, self.verdict(state)

@@ -35,7 +35,7 @@ from jax import Array
 from .._linalg.normal import NormalEquations, bernstein_moments, moments_to_stencil
 from .._model.basis import num_cells
 from .._model.spline import ImplicitSpline, bspline_values
-from .._problem.energy import metric_sums, metrics_from_sums
+from .._problem.energy import metric_sums, metrics_from_sums, regulariser
 from .._problem.problem import Problem, build_problem
 from .._solution.solution import Solution
 from .._solution.verdicts import offset_sign_counts, sign_check_stride
@@ -177,7 +177,7 @@ def _concluded(solver: LeastSquares, control, linear_result, start_energy, sums,
     weights = jnp.ones_like(control)
     state = LeastSquaresState(control, weights, jnp.array(True), linear_result)
     lam = solver.fitted_lam(state)
-    metrics = metrics_from_sums(sums, control, lam)
+    metrics = metrics_from_sums(sums, regulariser(control), lam)
     energy = metrics["E"]
     carry = Carry(
         step=jnp.array(1),
