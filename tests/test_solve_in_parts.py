@@ -33,7 +33,8 @@ def _compare(problem, solver):
 @pytest.mark.parametrize(
     "points, grid, lam, mask_every",
     [
-        (120, 9, 0.0, None),  # the dense solve, one part
+        (120, 9, 0.0, None),  # the dense solve, one small part
+        (400, 20, 1e-5, None),  # four small parts
         (PART_POINTS + 1500, 40, 1e-5, None),  # the block Cholesky, two parts
         (PART_POINTS + 1500, 40, 1e-5, 3),  # a mask: every third point left out
     ],

@@ -4,14 +4,13 @@ staged into a caller's jit, grad or vmap as it is."""
 
 from __future__ import annotations
 
-import weakref
-
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.core import Tracer
 
+from .._jit import FlatJit
 from .._model.io import SPLINE_KEYS, check_spline_arrays
 from .._model.spline import ImplicitSpline
 from .._problem.validate import is_concrete
@@ -49,84 +48,8 @@ def _run(problem, solver, init, throw):
 _solve = eqx.filter_jit(_run)
 
 
-class _FlatJit:
-    """``fn`` jit-compiled over the flat array leaves of its arguments, one program per
-    tree structure and static part. What equinox's ``filter_jit`` does, with the per-call
-    work cut to a partition, a flatten and a dictionary look-up: at top level that per-call
-    work is what a warm fit of a small cloud pays beyond its compiled solve
-    (``benchmarks/startup.py``, the overhead case)."""
-
-    def __init__(self, fn):
-        self.fn = fn
-        self.programs: dict = {}
-        # The split of a Module argument seen before (a Cloud's kept Problem), by identity:
-        # the same immutable Module splits the same way. The entry goes when the Module
-        # does (Modules holding arrays cannot be hashed, so no WeakKeyDictionary).
-        self.splits: dict = {}
-
-    def _split(self, arg) -> tuple:
-        """``(leaves, tree, static)`` of one argument."""
-        entry = self.splits.get(id(arg))
-        if entry is not None and entry[0]() is arg:
-            return entry[1]
-        dynamic, static = eqx.partition(arg, eqx.is_array)
-        leaves, tree = jax.tree_util.tree_flatten(dynamic)
-        split = (leaves, tree, static)
-        if isinstance(arg, eqx.Module):
-            key = id(arg)
-            try:
-                ref = weakref.ref(arg, lambda _, key=key: self.splits.pop(key, None))
-            except TypeError:  # not weakly referenceable: not kept
-                return split
-            self.splits[key] = (ref, split)
-        return split
-
-    def __call__(self, *args):
-        splits = [self._split(arg) for arg in args]
-        leaves = [leaf for split in splits for leaf in split[0]]
-        trees = tuple(split[1] for split in splits)
-        static = tuple(split[2] for split in splits)
-        static_leaves, static_tree = jax.tree_util.tree_flatten(static)
-        key = (trees, static_tree, tuple(static_leaves))
-        try:
-            program = self.programs.get(key)
-        except TypeError:  # an unhashable static part: equinox handles it
-            return eqx.filter_jit(self.fn)(*args)
-        if program is None:
-            program = self.programs[key] = self._compile(trees, static)
-        out_leaves, (out_tree, others, at) = program(leaves)
-        # The output's leaves: its arrays where they were, its other leaves kept as traced.
-        full = list(others)
-        for position, leaf in zip(at, out_leaves):
-            full[position] = leaf
-        return jax.tree_util.tree_unflatten(out_tree, full)
-
-    def _compile(self, trees, static):
-        # The output's static part is known once traced; kept beside the program.
-        kept: list = []
-        sizes = [tree.num_leaves for tree in trees]
-
-        def flat(leaves):
-            args, start = [], 0
-            for tree, size, part in zip(trees, sizes, static):
-                dynamic = jax.tree_util.tree_unflatten(tree, leaves[start : start + size])
-                args.append(eqx.combine(dynamic, part))
-                start += size
-            out = self.fn(*args)
-            out_all, out_tree = jax.tree_util.tree_flatten(out)
-            at = [i for i, leaf in enumerate(out_all) if eqx.is_array(leaf)]
-            others = [None if eqx.is_array(leaf) else leaf for leaf in out_all]
-            kept[:] = [(out_tree, others, at)]
-            return [out_all[i] for i in at]
-
-        # Named as the function it runs: JAX's cache files and compile events say ``_run``.
-        flat.__name__ = flat.__qualname__ = getattr(self.fn, "__name__", "flat")
-        jitted = jax.jit(flat)
-        return lambda leaves: (jitted(leaves), kept[0])
-
-
 # The top-level plain compilation of a fit.
-_solve_top_level = _FlatJit(_run)
+_solve_top_level = FlatJit(_run)
 # The same compiled with COMPILER_OPTIONS, for large problems at top level (see fit).
 # (filter_jit passes jax.jit's keywords on; its stub lists none of them.)
 _solve_reassociating = eqx.filter_jit(_run, compiler_options=COMPILER_OPTIONS)  # pyright: ignore[reportCallIssue]

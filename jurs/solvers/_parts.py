@@ -8,7 +8,7 @@ cloud's first fit"). The exact solve needs the samples only through sums: the no
 equations are a sum over the samples, and so are the metrics and the offset-sign check.
 ``solve_in_parts`` therefore runs four compiled programs:
 
-1. ``_assembled_part``: the normal equations of ``PART_POINTS`` points (their three
+1. ``_assembled_part``: the normal equations of ``part_points`` points (their three
    samples each), added to the running total; compiled per grid;
 2. ``_solved``: the solve of the summed equations; per grid and solver;
 3. ``_measured_part``: the sums of [`jurs.internal.metrics`][] and of the offset-sign
@@ -26,12 +26,12 @@ from __future__ import annotations
 import functools
 import weakref
 
-import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
+from .._jit import FlatJit
 from .._linalg.normal import NormalEquations, bernstein_moments, moments_to_stencil
 from .._model.basis import num_cells
 from .._model.spline import ImplicitSpline, bspline_values
@@ -43,9 +43,19 @@ from ._driver import Carry, concluded
 from ._least_squares import LeastSquares, LeastSquaresState, singular_solve
 
 #: Points in a part: every compiled part has this many, the last one padded with masked
-#: copies. Small enough that a small cloud's padding costs little beside its solve, large
-#: enough that a large cloud's parts are few calls.
+#: copies. Large enough that a large cloud's parts are few calls, small enough that a
+#: cloud of a few thousand points pads little.
 PART_POINTS = 1 << 11
+#: Points in a part of a small cloud (at most ``4 * SMALL_PART_POINTS`` points, padded):
+#: a cloud of a hundred points padded to ``PART_POINTS`` would cost its fit several times
+#: its own work. A second size compiles the two per-part programs once more a grid, not
+#: the solve.
+SMALL_PART_POINTS = 1 << 7
+
+
+def part_points(num_points: int) -> int:
+    """The points of each part of a cloud of ``num_points`` (padded) points."""
+    return SMALL_PART_POINTS if num_points <= 4 * SMALL_PART_POINTS else PART_POINTS
 
 
 #: The largest (padded) cloud solved in parts. Above it the whole compiled problem's
@@ -76,7 +86,7 @@ _KEPT_PARTS: dict[int, tuple] = {}
 
 
 def _parts(problem: Problem) -> list[tuple[Array, ...]] | None:
-    """``(points, normals, mask)`` of each part, ``PART_POINTS`` rows each, on the device;
+    """``(points, normals, mask)`` of each part, ``part_points`` rows each, on the device;
     None where a point's three samples do not share one mask (then the problem is solved
     whole)."""
     kept = _KEPT_PARTS.get(id(problem))
@@ -102,13 +112,14 @@ def _split(problem: Problem) -> list[tuple[Array, ...]] | None:
     if not (np.array_equal(by_kind[0], by_kind[1]) and np.array_equal(by_kind[0], by_kind[2])):
         return None
     points, normals = np.asarray(problem.points), np.asarray(problem.normals)
-    pad = -m % PART_POINTS
+    size = part_points(m)
+    pad = -m % size
     points = np.pad(points, ((0, pad), (0, 0)), mode="edge")
     normals = np.pad(normals, ((0, pad), (0, 0)), mode="edge")
     point_mask = np.pad(by_kind[0], (0, pad))
     parts = [
-        (points[i : i + PART_POINTS], normals[i : i + PART_POINTS], point_mask[i : i + PART_POINTS])
-        for i in range(0, m + pad, PART_POINTS)
+        (points[i : i + size], normals[i : i + size], point_mask[i : i + size])
+        for i in range(0, m + pad, size)
     ]
     return jax.device_put(parts)
 
@@ -148,7 +159,7 @@ def _solved(solver: LeastSquares, moments: Array, target_norm2: Array, shape: tu
     return control, singular_solve(normal, solver.lam, control, result), column_sums
 
 
-_solved_jit = eqx.filter_jit(_solved)
+_solved_jit = FlatJit(_solved)
 
 
 def _measured_part(
@@ -192,7 +203,7 @@ def _concluded(solver: LeastSquares, control, linear_result, start_energy, sums,
     return concluded(carry, solver.verdict(state), fitted, lam, metrics, disagreement, False)
 
 
-_concluded_jit = eqx.filter_jit(_concluded)
+_concluded_jit = FlatJit(_concluded)
 
 
 def _jitted(fn, jitted, *args):
@@ -227,7 +238,7 @@ def solve_in_parts(problem: Problem, solver: LeastSquares, call=_jitted) -> Solu
     sums = {key: zeros(()) for key in ("E_d", "on_data2", "count", "E_max", "wrong", "counted")}
     stride = np.int32(sign_check_stride(problem.num_points))
     for k, part in enumerate(parts):
-        args = (sums, control, *part, *box, stride, np.int32(k * PART_POINTS), shape)
+        args = (sums, control, *part, *box, stride, np.int32(k * len(part[0])), shape)
         sums = call(_measured_part, _measured_part_jit, *args)
     sums["column_sums"] = column_sums
     # E at C = 0, the start's: the targets' sum of squares.
