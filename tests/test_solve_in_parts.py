@@ -34,7 +34,7 @@ def _compare(problem, solver):
     "points, grid, lam, mask_every",
     [
         (120, 9, 0.0, None),  # the dense solve, one small part
-        (400, 20, 1e-5, None),  # four small parts
+        (400, 20, 1e-5, None),  # one part of 2048 points
         (PART_POINTS + 1500, 40, 1e-5, None),  # the block Cholesky, two parts
         (PART_POINTS + 1500, 40, 1e-5, 3),  # a mask: every third point left out
     ],

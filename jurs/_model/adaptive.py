@@ -103,9 +103,11 @@ class AdaptiveSpline(AbstractSpline):
 
     @property
     def cell_widths(self) -> np.ndarray:
-        """The sides of a finest-level cell, on the host."""
-        finest = self.hierarchy.num_levels - 1
-        return np.asarray(self.hierarchy.cell_width(finest), np.float64)
+        """The sides of a finest-level cell, on the host (in NumPy: the hierarchy's own
+        ``cell_width``, called on concrete arrays, compiles its arithmetic)."""
+        hierarchy = self.hierarchy
+        extent = np.asarray(hierarchy.upper, np.float64) - np.asarray(hierarchy.lower, np.float64)
+        return extent / np.asarray(hierarchy.cells(hierarchy.num_levels - 1), np.float64)
 
     @property
     def finest_cells(self) -> tuple[int, ...]:

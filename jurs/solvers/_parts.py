@@ -46,16 +46,17 @@ from ._least_squares import LeastSquares, LeastSquaresState, singular_solve
 #: copies. Large enough that a large cloud's parts are few calls, small enough that a
 #: cloud of a few thousand points pads little.
 PART_POINTS = 1 << 11
-#: Points in a part of a small cloud (at most ``4 * SMALL_PART_POINTS`` points, padded):
-#: a cloud of a hundred points padded to ``PART_POINTS`` would cost its fit several times
-#: its own work. A second size compiles the two per-part programs once more a grid, not
-#: the solve.
+#: The one part of a cloud of at most this many (padded) points: a cloud of a hundred
+#: points padded to ``PART_POINTS`` would cost its fit several times its own work. A
+#: second size compiles the two per-part programs once more a grid, not the solve; kept
+#: to the smallest clouds, whose grids are small, so that clouds from a few hundred
+#: points up share one size.
 SMALL_PART_POINTS = 1 << 7
 
 
 def part_points(num_points: int) -> int:
     """The points of each part of a cloud of ``num_points`` (padded) points."""
-    return SMALL_PART_POINTS if num_points <= 4 * SMALL_PART_POINTS else PART_POINTS
+    return SMALL_PART_POINTS if num_points <= SMALL_PART_POINTS else PART_POINTS
 
 
 #: The largest (padded) cloud solved in parts. Above it the whole compiled problem's
