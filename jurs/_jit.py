@@ -4,10 +4,10 @@ dispatch costs as much as a small fit's compiled work."""
 
 from __future__ import annotations
 
-import weakref
-
 import equinox as eqx
 import jax
+
+from ._kept import KeptByIdentity
 
 
 class FlatJit:
@@ -20,27 +20,13 @@ class FlatJit:
     def __init__(self, fn):
         self.fn = fn
         self.programs: dict = {}
-        # The split of a Module argument seen before (a Cloud's kept Problem), by identity:
-        # the same immutable Module splits the same way. The entry goes when the Module
-        # does (Modules holding arrays cannot be hashed, so no WeakKeyDictionary).
-        self.splits: dict = {}
+        # The split of a Module argument seen before (a Cloud's kept Problem): the same
+        # immutable Module splits the same way.
+        self.splits = KeptByIdentity()
 
     def _split(self, arg) -> tuple:
         """``(leaves, tree, static)`` of one argument."""
-        entry = self.splits.get(id(arg))
-        if entry is not None and entry[0]() is arg:
-            return entry[1]
-        dynamic, static = eqx.partition(arg, eqx.is_array)
-        leaves, tree = jax.tree_util.tree_flatten(dynamic)
-        split = (leaves, tree, static)
-        if isinstance(arg, eqx.Module):
-            key = id(arg)
-            try:
-                ref = weakref.ref(arg, lambda _, key=key: self.splits.pop(key, None))
-            except TypeError:  # not weakly referenceable: not kept
-                return split
-            self.splits[key] = (ref, split)
-        return split
+        return self.splits.get(arg, _split) if isinstance(arg, eqx.Module) else _split(arg)
 
     def __call__(self, *args):
         splits = [self._split(arg) for arg in args]
@@ -84,3 +70,10 @@ class FlatJit:
         flat.__name__ = flat.__qualname__ = getattr(self.fn, "__name__", "flat")
         jitted = jax.jit(flat)
         return lambda leaves: (jitted(leaves), kept[0])
+
+
+def _split(arg) -> tuple:
+    """``(leaves, tree, static)``: ``arg``'s array leaves, their tree and the rest."""
+    dynamic, static = eqx.partition(arg, eqx.is_array)
+    leaves, tree = jax.tree_util.tree_flatten(dynamic)
+    return leaves, tree, static

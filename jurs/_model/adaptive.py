@@ -9,8 +9,6 @@ the host evaluations), so the level-set tools and plots take either.
 
 from __future__ import annotations
 
-import weakref
-
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -18,6 +16,7 @@ from jax import Array
 from jax.core import Tracer
 from jaxtyping import ArrayLike, Float
 
+from .._kept import KeptByIdentity
 from .band import band_lattice
 from .finest import level_offsets
 from .function import AbstractSpline
@@ -42,7 +41,7 @@ _values_and_gradients = jax.jit(hierarchy_values_and_gradients)
 #: meshing, verdicts and evaluations at points all read the same one (one of NumPy
 #: arrays, which can change in place, gets a new one each time). An entry goes with its
 #: spline.
-_evaluators: dict[int, tuple] = {}
+_EVALUATORS = KeptByIdentity()
 
 
 def _host_points(spline: AdaptiveSpline, xy) -> np.ndarray | None:
@@ -163,17 +162,7 @@ class AdaptiveSpline(AbstractSpline):
         the same one."""
         if not all(isinstance(a, jax.Array) for a in (self.control, self.weights)):
             return FinestSpline(self)
-        key = id(self)
-        entry = _evaluators.get(key)
-        if entry is not None and entry[0]() is self:
-            return entry[1]
-        evaluator = FinestSpline(self)
-        try:
-            ref = weakref.ref(self, lambda _, key=key: _evaluators.pop(key, None))
-        except TypeError:  # not weakly referenceable: not kept
-            return evaluator
-        _evaluators[key] = (ref, evaluator)
-        return evaluator
+        return _EVALUATORS.get(self, FinestSpline)
 
     def band_lattice(self, axes, level: float) -> tuple[np.ndarray, np.ndarray]:
         """``(values, evaluated)``: g only on the blocks of the lattice where the level set

@@ -24,7 +24,6 @@ another order). [`jurs.fit`][] takes this path at top level where it applies
 from __future__ import annotations
 
 import functools
-import weakref
 
 import jax
 import jax.numpy as jnp
@@ -32,6 +31,7 @@ import numpy as np
 from jax import Array
 
 from .._jit import FlatJit
+from .._kept import KeptByIdentity
 from .._linalg.normal import NormalEquations, bernstein_moments, moments_to_stencil
 from .._model.basis import num_cells
 from .._model.spline import ImplicitSpline, bspline_values
@@ -80,27 +80,16 @@ def solves_in_parts(problem: Problem, solver, init) -> bool:
     )
 
 
-#: The parts of the problems solved lately, by identity (``_parts``): a fit repeated on a
-#: kept problem (``jurs.fit``'s kept clouds) reuses them on the device. An entry goes
-#: when its problem does.
-_KEPT_PARTS: dict[int, tuple] = {}
+#: The parts of the problems solved lately (``_parts``): a fit repeated on a kept problem
+#: (``jurs.fit``'s kept clouds) reuses them on the device.
+_KEPT_PARTS = KeptByIdentity()
 
 
 def _parts(problem: Problem) -> list[tuple[Array, ...]] | None:
     """``(points, normals, mask)`` of each part, ``part_points`` rows each, on the device;
     None where a point's three samples do not share one mask (then the problem is solved
     whole)."""
-    kept = _KEPT_PARTS.get(id(problem))
-    if kept is not None and kept[0]() is problem:
-        return kept[1]
-    parts = _split(problem)
-    key = id(problem)
-    try:
-        ref = weakref.ref(problem, lambda _, key=key: _KEPT_PARTS.pop(key, None))
-    except TypeError:  # not weakly referenceable: not kept
-        return parts
-    _KEPT_PARTS[key] = (ref, parts)
-    return parts
+    return _KEPT_PARTS.get(problem, _split)
 
 
 def _split(problem: Problem) -> list[tuple[Array, ...]] | None:
