@@ -645,11 +645,11 @@ def hierarchy_layout(settings: Settings, ndim: int, finest, band, offset, eps, d
 
 
 def solver_lam(solver, lam=None, points=None, normals=None) -> float | None:
-    """The ``lam`` of a fit on the hierarchy by ``solver``: the solver's own, else ``lam``
-    (None: made from the smoothing, ``hierarchy_lam``). Refuses a solver the hierarchy
-    does not take (``check_hierarchy_solver``), a ``lam`` beside a solver, and a robust fit
-    of ``points`` sharded over devices or processes (it reweighs on one host)."""
-    check_hierarchy_solver(solver)
+    """The ``lam`` of a fit on the hierarchy by ``solver`` (one ``check_hierarchy_solver``
+    has passed: each entry checks its solver first): the solver's own, else ``lam``
+    (None: made from the smoothing, ``hierarchy_lam``). Refuses a ``lam`` beside a
+    solver, and a robust fit of ``points`` sharded over devices or processes (it
+    reweighs on one host)."""
     if solver is None:
         return lam
     if lam is not None:

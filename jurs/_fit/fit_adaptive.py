@@ -13,7 +13,7 @@ from jaxtyping import ArrayLike, Float
 from .._cloud.cloud import Cloud
 from .._solution.solution import Solution
 from ..solvers import AbstractSolver
-from .adaptive import METHODS, solver_lam
+from .adaptive import METHODS, check_hierarchy_solver, solver_lam
 from .adaptive_sharding import fit_adaptive_across_processes
 from .fit import CLOUD_REFUSAL, fit_cloud, fit_settings, on_hierarchy
 from .settings import Settings
@@ -117,6 +117,7 @@ def fit_adaptive(
         )
     if band is not None and band < 1:
         raise ValueError(f"band must be at least 1 cell, got {band}")
+    check_hierarchy_solver(solver)
     lam = solver_lam(solver, lam, points, normals)
     if spans_processes(points, normals):  # each process assembles its own samples' rows
         return fit_adaptive_across_processes(
