@@ -303,6 +303,21 @@ def test_a_ladder_of_cloud_sizes_compiles_once_a_grid():
 
 
 @pytest.mark.slow
+def test_a_new_cloud_above_the_host_layout_compiles_nothing():
+    """Clouds too large for the table form (above 21 845 points) are laid out on the host
+    for the solve in parts, one sample a slot: a new one in another octave on the same grid
+    compiles nothing, not even its layout's geometry."""
+    settings = dict(grid=(20, 21), offset=0.05, eps=0.01, solver=jurs.LeastSquares(lam=1e-5))
+    counts = []
+    for m in (25_000, 40_000):
+        points, normals = jurs.datasets.example1(m)
+        with _CompileCounter(name="") as counter:
+            jax.block_until_ready(jurs.fit(points, normals, **settings).spline)
+        counts.append(counter.count)
+    assert counts[0] >= 1 and counts[1] == 0, counts
+
+
+@pytest.mark.slow
 def test_a_new_cloud_reuses_the_compiled_checks_of_automatic_settings():
     """With automatic settings the fit is checked on the host (orientation, doubts), which
     evaluates the spline at the cloud's points: a new cloud of another size (in the same

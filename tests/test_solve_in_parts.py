@@ -48,7 +48,7 @@ def test_parts_give_the_whole_solve(points, grid, lam, mask_every):
         mask[::mask_every] = 0.0
     problem = jurs.make_problem(p, n, grid=grid, offset=0.05, eps=0.01, mask=mask)
     solver = jurs.LeastSquares(lam=lam)
-    assert solves_in_parts(problem, solver, None)
+    assert solves_in_parts(problem.num_points, problem.shape, solver, None)
     _compare(problem, solver)
 
 
@@ -83,13 +83,14 @@ def test_the_offset_sign_counts_of_parts_add_up():
 def test_solves_that_read_samples_are_solved_whole():
     p, n = jurs.datasets.example1(200)
     problem = jurs.make_problem(p, n, grid=12, offset=0.05, eps=0.01)
-    assert not solves_in_parts(problem, jurs.LeastSquares(keep_weights=True), None)
-    assert not solves_in_parts(problem, jurs.IPIA(), None)
+    size = problem.num_points, problem.shape
+    assert not solves_in_parts(*size, jurs.LeastSquares(keep_weights=True), None)
+    assert not solves_in_parts(*size, jurs.IPIA(), None)
     start = jurs.ImplicitSpline(
         np.zeros(problem.shape), np.ones(problem.shape), problem.lower, problem.upper
     )
-    assert not solves_in_parts(problem, jurs.LeastSquares(), start)
-    assert solves_in_parts(problem, jurs.LeastSquares(), None)
+    assert not solves_in_parts(*size, jurs.LeastSquares(), start)
+    assert solves_in_parts(*size, jurs.LeastSquares(), None)
 
 
 @pytest.mark.parametrize("grid, linear_solver", [(6, None), (8, "cg")])
@@ -102,11 +103,13 @@ def test_parts_give_the_whole_solve_of_a_surface(grid, linear_solver):
     problem = jurs.make_problem(p, n, grid=grid, offset=0.05, eps=0.01)
     given = None if linear_solver is None else lx.CG(rtol=1e-12, atol=1e-14, max_steps=2000)
     solver = jurs.LeastSquares(lam=1e-5, linear_solver=given)
-    assert solves_in_parts(problem, solver, None)
+    assert solves_in_parts(problem.num_points, problem.shape, solver, None)
     _compare(problem, solver)
 
 
 def test_a_surface_s_default_solve_is_solved_whole():
     p, n = jurs.datasets.sphere3d(300)
     problem = jurs.make_problem(p, n, grid=12, offset=0.05, eps=0.01)
-    assert not solves_in_parts(problem, jurs.LeastSquares(lam=1e-5), None)  # the cascade
+    assert not solves_in_parts(
+        problem.num_points, problem.shape, jurs.LeastSquares(lam=1e-5), None
+    )  # the cascade

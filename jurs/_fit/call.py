@@ -109,7 +109,7 @@ def solve_fit(problem, solver, init, throw: bool):
     # store of exported fits: a new process skips its tracing too (call_stored).
     if is_sharded(problem):  # the store and the parts are one-device
         return run(problem, solver, init, False), True
-    if solves_in_parts(problem, solver, init):
+    if solves_in_parts(problem.num_points, problem.shape, solver, init):
         # Programs compiled per grid, not per number of points: a new cloud on a grid
         # seen before compiles nothing (jurs/solvers/_parts.py).
         solution = solve_in_parts(problem, solver, call_stored)

@@ -41,6 +41,7 @@ from .._solution.solution import (
 )
 from .._solution.verdicts import judge, judged_points
 from ..solvers import AbstractSolver, LeastSquares
+from ..solvers._parts import solves_in_parts
 from .adaptive import (
     UNIFORM_RESIDUAL_SPACINGS,
     auto_finest,
@@ -167,10 +168,13 @@ def fit_settings(
     return settings, shape
 
 
-def _problem_of(cloud: Cloud, shape, offset, eps, domain, margin, bucket_size, dtype, settings):
+def _problem_of(
+    cloud: Cloud, shape, offset, eps, domain, margin, bucket_size, dtype, settings, on_host=False
+):
     """The cloud's problem, padded to the size ladder (points set aside by ``settings``
     masked out), built on the host once per set of settings and kept on the cloud
-    (``KEPT_PROBLEMS``): a fit that repeats its settings lays nothing out again."""
+    (``KEPT_PROBLEMS``): a fit that repeats its settings lays nothing out again.
+    ``on_host``: one sample a slot, laid out in NumPy (for the exact solve in parts)."""
     support = set_aside_mask(cloud.points, settings)
     if support is not None:  # the box that holds the points set aside too
         domain = settings.domain
@@ -184,6 +188,7 @@ def _problem_of(cloud: Cloud, shape, offset, eps, domain, margin, bucket_size, d
             bucket_size,
             np.dtype(dtype).name,
             None if settings is None else settings.set_aside,
+            on_host,
         )
     except (TypeError, ValueError):  # traced settings (under grad): nothing to keep
         key = None
@@ -203,6 +208,7 @@ def _problem_of(cloud: Cloud, shape, offset, eps, domain, margin, bucket_size, d
         bucket_size,
         dtype,
         support,
+        on_host,
     )
     if key is not None and is_concrete(problem):
         kept[key] = problem
@@ -653,6 +659,15 @@ def _fit(
         return sol, None
     check_start(shape, solver, init)
     dtype = jnp.result_type(float)
+    # The exact solve in parts reads one sample a slot: laid out on the host, nothing
+    # compiled for the layout of a new count of points (a fit that does not take the
+    # parts after all, e.g. under a transformation, solves this layout whole).
+    in_parts = (
+        run is None
+        and bucket_size is None
+        and input_sharding(cloud.given_points, cloud.given_normals) is None
+        and solves_in_parts(len(cloud), shape, solver, init)
+    )
     problem = _problem_of(
         cloud,
         shape,
@@ -663,6 +678,7 @@ def _fit(
         bucket_size,
         dtype,
         settings if automatic else None,
+        in_parts,
     )
     # Points sharded over several devices: the problem split over them (jurs._fit.sharding).
     problem, solver, init = place_fit(

@@ -39,13 +39,25 @@ def padded_cloud(points, normals):
 
 
 def padded_problem(
-    points, normals, mask, shape, offset, eps, domain, margin, bucket_size, dtype, support=None
+    points,
+    normals,
+    mask,
+    shape,
+    offset,
+    eps,
+    domain,
+    margin,
+    bucket_size,
+    dtype,
+    support=None,
+    on_host: bool = False,
 ):
     """The problem of a checked cloud (``jurs._problem.problem.build_problem``) on the
     normalised grid ``shape``, padded (``padded_cloud``) when it has no mask.
 
     ``support``: optional ``(m,)`` weights of the caller's points (0 sets a point aside,
-    ``jurs._fit.settings.isolated_points``), multiplied into the mask."""
+    ``jurs._fit.settings.isolated_points``), multiplied into the mask. ``on_host``: laid
+    out on the host, one sample a slot (``build_problem``'s)."""
     # The problem is built outside the solver's jit: its sample layout is chosen on the
     # host from concrete data (see make_problem); under a caller's jit/grad/vmap it is traced.
     padded = padded_cloud(points, normals) if mask is None else None
@@ -68,4 +80,5 @@ def padded_problem(
         bucket_size,
         dtype,
         stable_shapes=padded is not None,
+        on_host=on_host,
     )

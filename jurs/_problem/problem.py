@@ -351,10 +351,16 @@ def build_problem(
     bucket_size: int | None = None,
     dtype=None,
     stable_shapes: bool = False,
+    on_host: bool = False,
 ) -> Problem:
     """[`make_problem`][jurs.make_problem] of inputs already checked
     (``jurs._problem.validate.validate_inputs``) on a normalised grid ``shape``: what
-    [`jurs.fit`][] calls, having checked its cloud once."""
+    [`jurs.fit`][] calls, having checked its cloud once.
+
+    ``on_host``: concrete inputs laid out on the host in NumPy whatever their size, one
+    sample a slot in the paper's order (``bucket_size`` 1, no table or groups): what the
+    exact solve in parts reads (``jurs.solvers._parts``), built without compiling the
+    geometry for each new count of points."""
     ndim = len(shape)
     if bucket_size is not None and (int(bucket_size) != bucket_size or bucket_size < 1):
         raise ValueError(f"bucket_size must be a positive int, got {bucket_size!r}")
@@ -367,6 +373,9 @@ def build_problem(
     small = 3 * shape_of(points)[0] <= TABLE_MAX_SLOTS
     if ndim != 2:
         bucket_size, small = surface_bucket_size(bucket_size), False
+    on_host = on_host and concrete
+    if on_host:
+        bucket_size, stable_shapes = 1, False
     convert, points, geometry = _converted_geometry(
         points,
         normals,
@@ -379,9 +388,11 @@ def build_problem(
         dtype,
         bucket_size,
         concrete,
-        small,
+        small or on_host,
     )
-    slots = _laid_out_slots(geometry, shape, bucket_size, concrete, small, stable_shapes)
+    slots = _laid_out_slots(
+        geometry, shape, bucket_size, concrete, small and not on_host, stable_shapes
+    )
     # On the host the fields hold NumPy arrays until the device_put below.
     problem = Problem(
         points=points,  # pyright: ignore[reportArgumentType]

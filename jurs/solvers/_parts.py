@@ -66,17 +66,19 @@ def part_points(num_points: int) -> int:
 PARTS_MAX_POINTS = 1 << 16
 
 
-def solves_in_parts(problem: Problem, solver, init) -> bool:
-    """Whether ``solve_in_parts`` serves this solve: [`jurs.LeastSquares`][] with the
-    B-spline (``keep_weights`` False) from the default start, on a cloud of at most
-    ``PARTS_MAX_POINTS`` (padded) points, on a curve or a surface whose solve reads no
-    samples beyond the normal equations (``LeastSquares.needs_samples_to_solve``)."""
+def solves_in_parts(num_points: int, shape: tuple[int, ...], solver, init) -> bool:
+    """Whether ``solve_in_parts`` serves the solve of ``num_points`` points (padded, or
+    not: ``PARTS_MAX_POINTS`` is a padded size) on the grid ``shape``:
+    [`jurs.LeastSquares`][] with the B-spline (``keep_weights`` False) from the default
+    start, on a cloud of at most ``PARTS_MAX_POINTS`` points, on a curve or a surface whose
+    solve reads no samples beyond the normal equations
+    (``LeastSquares.needs_samples_to_solve``)."""
     return (
-        problem.num_points <= PARTS_MAX_POINTS
+        num_points <= PARTS_MAX_POINTS
         and type(solver) is LeastSquares
         and not solver.keep_weights
         and init is None
-        and not solver.needs_samples_to_solve(problem.shape)
+        and not solver.needs_samples_to_solve(shape)
     )
 
 
