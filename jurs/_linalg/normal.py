@@ -110,10 +110,8 @@ def chunked_segment_sum(
     num_segments: int,
     chunk_size: int = DEFAULT_CHUNK,
     parts: int = 1,
-    into: Array | None = None,
 ) -> Array:
-    """``segment_sum(rows_fn(*inputs), segments)`` computed ``chunk_size`` rows at a time,
-    added to ``into`` where given (in its buffer, where the caller donates it).
+    """``segment_sum(rows_fn(*inputs), segments)`` computed ``chunk_size`` rows at a time.
 
     ``rows_fn`` maps a block of the ``inputs`` (arrays sharing a leading axis) to
     ``(block, ...)`` rows; it must return 0 rows for zero-padded inputs whose weight
@@ -130,8 +128,6 @@ def chunked_segment_sum(
     parts = parts if parts > 1 and n % parts == 0 else 1
     per_part = n // parts
     if per_part <= chunk_size:
-        if into is not None:  # scattered into it: no segment-sized zeros, no second pass
-            return into.at[segments].add(rows_fn(*inputs))
         return jax.ops.segment_sum(rows_fn(*inputs), segments, num_segments=num_segments)
     pad = (-per_part) % chunk_size
     blocks = (per_part + pad) // chunk_size
@@ -153,7 +149,7 @@ def chunked_segment_sum(
 
     total0 = jnp.zeros((parts, num_segments) + out_struct.shape[1:], out_struct.dtype)
     total, _ = jax.lax.scan(body, total0, [split_segments, *split_inputs])
-    return total.sum(axis=0) if into is None else into + total.sum(axis=0)
+    return total.sum(axis=0)
 
 
 def _cells_to_stencil(blocks: Array, shape: tuple[int, ...]) -> Array:
@@ -193,17 +189,12 @@ def _local_coordinates(problem: Problem) -> Array:
     return problem.local.t.T
 
 
-def bernstein_moments(
-    problem: Problem, chunk_size: int = DEFAULT_CHUNK, into: Array | None = None
-) -> Array:
+def bernstein_moments(problem: Problem, chunk_size: int = DEFAULT_CHUNK) -> Array:
     """Per-cell sums ``(cells, 7 ** d + 4 ** d)``: ``sum_k mask Bern6_p(tx) Bern6_q(ty)`` and
     ``sum_k b_k Bern3_p(tx) Bern3_q(ty)`` over the samples of each cell (with a third
-    factor per term in 3D); added to ``into``, the sums of other samples, where given
-    (scattered into its buffer on the one-sample-a-slot layout)."""
+    factor per term in 3D). Sums: the moments of several sets of samples add up."""
     local = problem.local
     count = num_cells(problem.shape)
-    if into is not None and (local.group_slot is not None or local.bucket_size > 1):
-        return into + bernstein_moments(problem, chunk_size)
     if local.group_slot is not None:
         return _grouped_moments(problem, count)
     if local.bucket_size > 1:
@@ -233,7 +224,7 @@ def bernstein_moments(
         return jnp.concatenate([gram, rhs], axis=1) * mask[:, None]
 
     inputs = [t, problem.mask, problem.targets]
-    return chunked_segment_sum(moments, inputs, local.cell, count, chunk_size, local.parts, into)
+    return chunked_segment_sum(moments, inputs, local.cell, count, chunk_size, local.parts)
 
 
 def _group_tensor_sums(t: Array, weight: Array, degree: int) -> Array:

@@ -102,11 +102,9 @@ class AdaptiveSpline(AbstractSpline):
 
     @property
     def cell_widths(self) -> np.ndarray:
-        """The sides of a finest-level cell, on the host (in NumPy: the hierarchy's own
-        ``cell_width``, called on concrete arrays, compiles its arithmetic)."""
-        hierarchy = self.hierarchy
-        extent = np.asarray(hierarchy.upper, np.float64) - np.asarray(hierarchy.lower, np.float64)
-        return extent / np.asarray(hierarchy.cells(hierarchy.num_levels - 1), np.float64)
+        """The sides of a finest-level cell, on the host."""
+        finest = self.hierarchy.num_levels - 1
+        return np.asarray(self.hierarchy.cell_width(finest, np), np.float64)
 
     @property
     def finest_cells(self) -> tuple[int, ...]:
@@ -206,7 +204,7 @@ def finest_slope_bound(spline: AdaptiveSpline, evaluator: FinestSpline | None = 
         multi = unravel_keys(keys[pairs], hierarchy.functions(lev))  # (p, 2, d)
         axis = np.argmax(np.abs(multi[:, 1] - multi[:, 0]), axis=1)
         step = np.abs(ratio[starts[lev] + pairs[:, 1]] - ratio[starts[lev] + pairs[:, 0]])
-        width = np.asarray(hierarchy.cell_width(lev), np.float64)
+        width = np.asarray(hierarchy.cell_width(lev, np), np.float64)
         for a in range(hierarchy.ndim):
             along = step[(axis == a) & np.isfinite(step)]
             if along.size:

@@ -188,8 +188,11 @@ class Hierarchy(eqx.Module):
         """The extent of the level's full function grid (``n_l + 3`` per axis)."""
         return tuple(n + 3 for n in self.cells(level))
 
-    def cell_width(self, level: int) -> Array:
-        return (self.upper - self.lower) / jnp.asarray(self.cells(level), self.lower.dtype)
+    def cell_width(self, level: int, xp=jnp) -> Array:
+        """The sides of a cell of ``level``; ``xp=numpy`` on the host (the same arithmetic
+        on concrete JAX arrays would compile it)."""
+        lower, upper = xp.asarray(self.lower), xp.asarray(self.upper)
+        return (upper - lower) / xp.asarray(self.cells(level), lower.dtype)
 
     @property
     def num_active(self) -> int:

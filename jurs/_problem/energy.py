@@ -173,36 +173,31 @@ def transpose_apply(problem: Problem, rows: Array) -> Array:
     return patches_to_grid(jnp.moveaxis(per_cell, 0, -2), problem.shape)
 
 
-def metric_sums(
-    problem: Problem, spline: ImplicitSpline, columns: bool = True, residuals: Array | None = None
-) -> dict[str, Array]:
-    """The sums over the samples that [`metrics`][jurs.internal.metrics] reads: ``E_d``
-    (eq. 16), ``on_data2`` (the sum of ``g(P_i)^2``), ``count`` (the data points),
-    ``E_max`` (eq. 37) and, with ``columns``, ``column_sums`` (D's column sums for eq.
-    25, a grid). Each is a sum over the samples (``E_max`` a maximum), so the metrics of
-    samples taken in parts follow from the parts' sums added (``metrics_from_sums``).
-    Padding counts 0. ``residuals``: ``r`` in the kernels' layout, where the caller has
-    them (without ``columns``, which read W)."""
+def metric_sums(problem: Problem, spline: ImplicitSpline) -> dict[str, Array]:
+    """The sums over the samples that [`metrics`][jurs.internal.metrics] reads:
+    ``residual_sums`` of the spline's residuals and ``column_sums`` (D's column sums for
+    eq. 25, a grid). Each is a sum over the samples (``E_max`` a maximum), so the metrics
+    of samples taken in parts follow from the parts' sums added (``metrics_from_sums``).
+    Padding counts 0."""
     local = problem.local
     # In the kernels' layout (padding 0), as the solvers' steps work: no per-slot reorder.
-    mask, targets, is_data = (
-        local.to_layout(x) for x in (problem.mask, problem.targets, problem.is_data)
-    )
+    mask, targets = local.to_layout(problem.mask), local.to_layout(problem.targets)
     weights = spline.weights
-    if residuals is None or columns:
-        r, inv_denom, _ = layout_residuals(local, mask, targets, spline.control, weights)
-    else:
-        r, inv_denom = residuals, None
+    r, inv_denom, _ = layout_residuals(local, mask, targets, spline.control, weights)
+    # eq. 25 from the W above: D's column sums w * T(1 / W).
+    col_sums, _ = transpose_and_sum(local, inv_denom[None], problem.shape, layout=True)
+    return dict(residual_sums(problem, r), column_sums=weights * col_sums[0])
+
+
+def residual_sums(problem: Problem, r: Array) -> dict[str, Array]:
+    """``E_d`` (eq. 16), ``on_data2`` (the sum of ``g(P_i)^2``), ``count`` (the data
+    points) and ``E_max`` (eq. 37) of the residuals ``r`` in the kernels' layout (0 at
+    padding)."""
+    is_data = problem.local.to_layout(problem.is_data)
     on_data = is_data * r  # targets there are 0, so r = g(P_i)
     # The three totals in one reduction (each is a few kernels of its own otherwise).
     e_d, on_data2, count = jnp.sum(jnp.stack([r * r, on_data * on_data, is_data]), axis=-1)
-    sums = {"E_d": e_d, "on_data2": on_data2, "count": count, "E_max": jnp.max(jnp.abs(on_data))}
-    if columns:
-        # eq. 25 from the W above: D's column sums w * T(1 / W).
-        assert inv_denom is not None
-        col_sums, _ = transpose_and_sum(local, inv_denom[None], problem.shape, layout=True)
-        sums["column_sums"] = weights * col_sums[0]
-    return sums
+    return {"E_d": e_d, "on_data2": on_data2, "count": count, "E_max": jnp.max(jnp.abs(on_data))}
 
 
 def metrics_from_sums(sums: dict, reg, lam=0.0) -> dict:

@@ -77,28 +77,25 @@ def sign_check_stride(num_points: int) -> int:
     return -(-num_points // SIGN_CHECK_POINTS)
 
 
-def offset_sign_counts(
-    problem: Problem,
-    spline: ImplicitSpline,
-    stride,
-    first=0,
-    in_order: bool = False,
-    residuals: Array | None = None,
-):
-    """``(wrong, counted)`` of ``offset_sign_disagreement``, reading the points whose
-    index ``first + i`` (``i`` the point's own in ``problem``, ``first`` that of its first
-    point in a larger cloud taken in parts) is a multiple of ``stride``: the counts of a
-    cloud's parts add up to the whole cloud's. ``stride`` and ``first`` may be traced.
-    ``in_order``: the problem's slots are the paper's order, one sample a slot (as
-    [`jurs.make_problem`][] lays out traced points with ``bucket_size=1``), read as
-    they are instead of gathered by point. ``residuals``: ``r`` in the kernels' layout,
-    where the caller has them."""
+def offset_sign_counts(problem: Problem, spline: ImplicitSpline, stride, first=0):
+    """``(wrong, counted)`` of ``offset_sign_disagreement`` (``sign_counts`` of the
+    spline's residuals)."""
     local = problem.local
     mask, targets = local.to_layout(problem.mask), local.to_layout(problem.targets)
-    if residuals is None:
-        r, _, _ = layout_residuals(local, mask, targets, spline.control, spline.weights)
-    else:
-        r = residuals
+    r, _, _ = layout_residuals(local, mask, targets, spline.control, spline.weights)
+    return sign_counts(problem, r, stride, first)
+
+
+def sign_counts(problem: Problem, r: Array, stride, first=0, in_order: bool = False):
+    """``(wrong, counted)`` of ``offset_sign_disagreement`` from the residuals ``r`` in
+    the kernels' layout, reading the points whose index ``first + i`` (``i`` the point's
+    own in ``problem``, ``first`` that of its first point in a larger cloud taken in
+    parts) is a multiple of ``stride``: the counts of a cloud's parts add up to the whole
+    cloud's. ``stride`` and ``first`` may be traced. ``in_order``: the problem's slots are
+    the paper's order, one sample a slot (as [`jurs.make_problem`][] lays out traced
+    points with ``bucket_size=1``), read as they are instead of gathered by point."""
+    local = problem.local
+    mask, targets = local.to_layout(problem.mask), local.to_layout(problem.targets)
     m = problem.num_points
     if in_order:
         g = (r + targets).reshape(3, m)  # r = g - b where real

@@ -35,10 +35,10 @@ from .._kept import KeptByIdentity
 from .._linalg.normal import NormalEquations, bernstein_moments, moments_to_stencil
 from .._model.basis import num_cells
 from .._model.spline import ImplicitSpline, bspline_values
-from .._problem.energy import metric_sums, metrics_from_sums, regulariser
+from .._problem.energy import metrics_from_sums, regulariser, residual_sums
 from .._problem.problem import Problem, build_problem
 from .._solution.solution import Solution
-from .._solution.verdicts import offset_sign_counts, sign_check_stride
+from .._solution.verdicts import sign_check_stride, sign_counts
 from ._driver import Carry, concluded
 from ._least_squares import LeastSquares, LeastSquaresState, singular_solve
 
@@ -130,12 +130,11 @@ def _assembled_part(
     sums that the normal equations are folded from once (``moments_to_stencil``)."""
     part = _part_problem(points, normals, mask, offset, eps, lower, upper, shape)
     target = part.mask * part.targets
-    moments = bernstein_moments(part, chunk_size, into=total[0])
-    return moments, total[1] + jnp.sum(target * target)
+    moments = bernstein_moments(part, chunk_size)
+    return total[0] + moments, total[1] + jnp.sum(target * target)
 
 
-# The running sums are donated: each part scatters into their buffer in place.
-_assembled_part_jit = jax.jit(_assembled_part, static_argnums=(8, 9), donate_argnums=0)
+_assembled_part_jit = jax.jit(_assembled_part, static_argnums=(8, 9))
 
 
 def _solved(solver: LeastSquares, moments: Array, target_norm2: Array, shape: tuple[int, ...]):
@@ -159,11 +158,10 @@ def _measured_part(
 ) -> dict:
     """``total`` plus the metrics' sums and the offset-sign counts of one part."""
     part = _part_problem(points, normals, mask, offset, eps, lower, upper, shape)
-    spline = ImplicitSpline(control, jnp.ones_like(control), lower, upper)
     # The B-spline's residuals in one evaluation: W = 1 (the partition of unity).
     r = part.mask * (bspline_values(part.local, control) - part.targets)
-    sums = metric_sums(part, spline, columns=False, residuals=r)
-    wrong, counted = offset_sign_counts(part, spline, stride, first, in_order=True, residuals=r)
+    sums = residual_sums(part, r)
+    wrong, counted = sign_counts(part, r, stride, first, in_order=True)
     sums = dict(sums, wrong=wrong.astype(control.dtype), counted=counted.astype(control.dtype))
     return {
         key: jnp.maximum(total[key], value) if key == "E_max" else total[key] + value
