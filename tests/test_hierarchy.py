@@ -48,6 +48,33 @@ def test_partition_of_unity_and_nonnegative(ndim):
 
 
 @pytest.mark.parametrize("ndim", [2, 3])
+def test_parent_weights_are_the_subdivision_rule_and_not_stored(ndim):
+    """A function takes from its parents the cubic subdivision weights of its index's
+    parity along each axis (``(1, 6, 1) / 8`` or ``(4, 4) / 8``, products over the axes),
+    computed from its key on the host and in JAX alike; the hierarchy stores no float per
+    parent (that was most of a fine hierarchy's memory)."""
+    hierarchy = _hierarchy(ndim, levels=2)
+    for level in range(1, hierarchy.num_levels):
+        keys = np.asarray(hierarchy.function_keys[level])
+        index = unravel_keys(keys, hierarchy.functions(level))
+        odd = (index + 3) % 2 == 1
+        one_axis = np.where(odd[..., None], [0.5, 0.5, 0.0], [0.125, 0.75, 0.125])  # (k, d, 3)
+        expected = one_axis[:, 0]
+        for axis in range(1, ndim):
+            expected = (expected[:, :, None] * one_axis[:, axis, None, :]).reshape(len(keys), -1)
+        host = hierarchy.parent_weights(level, np)
+        np.testing.assert_array_equal(host, expected)
+        np.testing.assert_array_equal(
+            np.asarray(jax.jit(lambda h: h.parent_weights(level))(hierarchy)), expected
+        )
+    floats = [
+        leaf for leaf in jax.tree.leaves(hierarchy) if jnp.issubdtype(leaf.dtype, jnp.floating)
+    ]
+    relevant = sum(int(k.size) for k in hierarchy.function_keys)
+    assert sum(int(leaf.size) for leaf in floats) < 3**ndim * relevant // 2  # keep, edges
+
+
+@pytest.mark.parametrize("ndim", [2, 3])
 def test_table_and_sorted_key_lookups_build_the_same_hierarchy(ndim, monkeypatch):
     """``build_hierarchy`` looks keys up in tables where their range is small and by a
     sorted search beyond: both build the same arrays."""

@@ -25,14 +25,13 @@ in normal-equation form costs nothing per sample), and
 
 from __future__ import annotations
 
-from math import comb
-from typing import cast
+from math import comb, prod
 
 import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax import Array
+from jax import Array, lax
 
 from .._model.basis import (
     NUM_LOCAL,
@@ -263,30 +262,39 @@ def _grouped_moments(problem: Problem, count: int) -> Array:
     return jax.ops.segment_sum(per_group, group_cell, num_segments=count, indices_are_sorted=True)
 
 
-def _fold_axis(cells: Array, kernel: Array, axis: int) -> Array:
-    """One axis of the moment-to-stencil fold: ``out[i] = sum_a kernel[a] . cells[i - a]``
-    along ``axis`` (cells outside the range are 0), contracting the cell array's channel
-    axis ``-1`` (moment degree) with ``kernel[a]``'s last axis and putting the offset
-    channel (``kernel``'s middle axis) in its place. ``cells`` has ``n - 3`` entries along
-    ``axis``, the result ``n``."""
-    out = 0.0
-    for a in range(4):
-        part = jnp.tensordot(cells, kernel[a], axes=[[-1], [1]])  # (..., offset)
-        pad = [(0, 0)] * part.ndim
-        pad[axis] = (a, 3 - a)
-        out = out + jnp.pad(part, pad)
-    return cast(Array, out)  # the loop runs: never the float 0.0
-
-
 def _fold_axes(cells: Array, kernel: Array) -> Array:
     """The moment-to-stencil fold over every axis: ``cells`` is ``cell_grid + (channels,) *
     d`` (channel axis ``d + a`` the moment degree along axis ``a``), the result
-    ``grid + (7,) * d`` (or ``(1,) * d`` for the right-hand side's kernel). One axis at a
-    time: its degree channel moved last, folded, its offset channel put back."""
-    d = (cells.ndim) // 2
+    ``grid + (offsets,) * d`` (``kernel`` is ``(4, offsets, channels)``: 7 offsets for
+    the Gram moments, 1 for the right-hand side's).
+
+    Along axis ``a``, ``out[i] = sum_b kernel[b] . cells[i - b]`` (cells outside the range
+    are 0): a one-dimensional convolution of width 4 from the degree channels to the
+    offset channels, with the other channel axes as its batch. One convolution an axis
+    writes one array, where four shifted products summed kept four grid-sized arrays
+    alive at once, the largest buffers of a surface's fit. The first channel axis is
+    the one folded, and the new offset axis goes last, so after ``d`` folds the offsets
+    are in axis order."""
+    d = cells.ndim // 2
+    grid = tuple(range(d))
+    taps = jnp.flip(kernel, 0).transpose(1, 2, 0)  # (offsets, channels, 4): correlation
     for axis in range(d):
-        folded = _fold_axis(jnp.moveaxis(cells, d + axis, -1), kernel, axis)
-        cells = jnp.moveaxis(folded, -1, d + axis)
+        rest = cells.shape[d + 1 :]
+        merged = cells.reshape(cells.shape[: d + 1] + (prod(rest),))
+        width = tuple(4 if a == axis else 1 for a in grid)
+        numbers = lax.ConvDimensionNumbers(
+            lhs_spec=(d + 1, d) + grid, rhs_spec=(0, 1) + tuple(range(2, 2 + d)),
+            out_spec=(d, d + 1) + grid,
+        )  # fmt: skip
+        folded = lax.conv_general_dilated(
+            merged,
+            taps.reshape(taps.shape[:2] + width),
+            (1,) * d,
+            [(3, 3) if a == axis else (0, 0) for a in grid],
+            dimension_numbers=numbers,
+            precision=lax.Precision.HIGHEST,
+        )
+        cells = folded.reshape(folded.shape[:d] + rest + (kernel.shape[1],))
     return cells
 
 

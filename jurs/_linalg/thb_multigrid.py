@@ -71,7 +71,7 @@ def _refinement(hierarchy: Hierarchy, level: int):
     from scipy import sparse
 
     parents = np.asarray(hierarchy.parents[level])
-    weights = np.asarray(hierarchy.parent_weights[level], float)
+    weights = hierarchy.parent_weights(level, np).astype(float)
     size = hierarchy.level_sizes[level]
     return sparse.csr_matrix(
         (weights.ravel(), (np.repeat(np.arange(size), parents.shape[1]), parents.ravel())),

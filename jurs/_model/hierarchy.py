@@ -102,20 +102,36 @@ class _KeySet:
         """The index of each key in the set; every key must be present."""
         if self.table is None:
             return index_in(keys, self.keys)
-        at = self.table[keys].astype(np.int64) - 1
+        at = self.table[keys] - 1  # int32, as the hierarchy stores positions
         if np.any(at < 0):
             raise AssertionError("hierarchy: a function's key is missing from its level")
         return at
 
 
-def _sorted_unique(keys: np.ndarray, span: int) -> np.ndarray:
-    """``np.unique`` of flat keys in ``[0, span)``: marked in a table where the span is
-    small beside the keys (no sort), ``np.unique`` otherwise."""
-    if span <= TABLE_KEYS and span <= 8 * keys.size:
+#: Offsets of a cell's ``4^d`` functions merged at a time by ``_functions_over``'s sort.
+OFFSETS_AT_ONCE = 8
+
+
+def _functions_over(cells: np.ndarray, extent: tuple[int, ...]) -> np.ndarray:
+    """The sorted flat keys, in the function grid ``extent``, of the ``4^d`` functions over
+    each of ``cells`` (``(k, d)`` multi-indices). A cell plus an offset stays inside the
+    function grid, so its key is the sum of the two keys. Marked in a table one offset at
+    a time where the span is small beside the keys (no sort), else merged by
+    ``np.unique`` ``OFFSETS_AT_ONCE`` offsets at a time: never a ``(k, 4^d)`` array of
+    keys, which was the largest array of a fine hierarchy's build."""
+    span = int(np.prod(extent))
+    base = ravel_keys(cells, extent)
+    offsets = ravel_keys(cube_offsets(len(extent), 4), extent)
+    if span <= TABLE_KEYS and span <= 8 * base.size * offsets.size:
         table = np.zeros(span, dtype=bool)
-        table[keys] = True
+        for offset in offsets:
+            table[base + offset] = True
         return np.flatnonzero(table)
-    return np.unique(keys)
+    out = np.zeros(0, base.dtype)
+    for start in range(0, offsets.size, OFFSETS_AT_ONCE):
+        chunk = base[:, None] + offsets[None, start : start + OFFSETS_AT_ONCE]
+        out = np.unique(np.concatenate([out, chunk.ravel()]))
+    return out
 
 
 def is_member(keys: np.ndarray, sorted_set: np.ndarray) -> np.ndarray:
@@ -147,9 +163,9 @@ class Hierarchy(eqx.Module):
     * ``leaf_keys[l]``: sorted flat keys (in the ``n_l^d`` cell grid) of the leaves;
     * ``active[l]``: positions, in ``function_keys[l]``, of the active functions; the
       coefficient vector of a spline is the active functions of level 0, then 1, ...;
-    * ``parents[l]``, ``parent_weights[l]`` (``l >= 1``): for each relevant function, the
-      ``3^d`` level-``l - 1`` positions and subdivision weights it is refined from (weight
-      0 pads where an axis has two parents);
+    * ``parents[l]`` (``l >= 1``): for each relevant function, the ``3^d`` level-``l - 1``
+      positions it is refined from; their subdivision weights (0 pads where an axis has
+      two parents) are ``parent_weights(l)``, computed from the keys;
     * ``keep[l]``: 1 where the refined coefficient survives truncation, 0 where the
       function's support lies in ``Omega_l``;
     * ``edges[l]``, ``edge_weights[l]``: the regulariser's neighbour pairs of level ``l``
@@ -166,7 +182,6 @@ class Hierarchy(eqx.Module):
     leaf_keys: tuple[Array, ...]
     active: tuple[Array, ...]
     parents: tuple[Array, ...]
-    parent_weights: tuple[Array, ...]
     keep: tuple[Array, ...]
     edges: tuple[Array, ...]
     edge_weights: tuple[Array, ...]
@@ -193,6 +208,23 @@ class Hierarchy(eqx.Module):
         on concrete JAX arrays would compile it)."""
         lower, upper = xp.asarray(self.lower), xp.asarray(self.upper)
         return (upper - lower) / xp.asarray(self.cells(level), lower.dtype)
+
+    def parent_weights(self, level: int, xp=jnp) -> Array:
+        """``(k, 3^d)``: the subdivision weights each relevant function of ``level`` (>= 1)
+        takes from its ``parents[level]``, in the hierarchy's float dtype; ``xp=numpy`` on
+        the host. They follow from the parity of the function's index along each axis
+        (``subdivision_weights``), so they are computed here from its key rather than
+        stored: a float per parent of every function was most of a fine hierarchy's
+        memory."""
+        keys = xp.asarray(self.function_keys[level])
+        code = xp.zeros(keys.shape, keys.dtype)
+        stride = 1
+        for axis, extent in reversed(list(enumerate(self.functions(level)))):
+            odd = ((keys // stride) % extent + 3) % 2
+            code = code + odd * (1 << (self.ndim - 1 - axis))
+            stride *= extent
+        table = xp.asarray(parity_weights(self.ndim), xp.asarray(self.lower).dtype)
+        return table[code]
 
     @property
     def num_active(self) -> int:
@@ -232,34 +264,55 @@ def _support_inside(functions: np.ndarray, cells: tuple[int, ...], region: _KeyS
     return inside
 
 
-def _parents(
-    functions: np.ndarray, coarse_extent: tuple[int, ...]
-) -> tuple[np.ndarray, np.ndarray]:
-    """The ``3^d`` coarser functions each function is refined from, as flat keys in the
-    coarser level's function grid ``coarse_extent``, and the weights: child
-    ``j = 2 i - 3 + k`` of parent ``i`` takes ``SUBDIVISION[k]``. ``((k, 3^d), (k, 3^d))``,
-    parents in row-major order of their per-axis offsets; an axis with two parents repeats
-    one with weight 0.
+def subdivision_weights(odd: np.ndarray) -> np.ndarray:
+    """``(k, 3^d)``: the weights a function takes from its ``3^d`` parents (``_parents``'
+    order), given whether its index ``j + 3`` is odd along each axis (``odd (k, d)``):
+    child ``j = 2 i - 3 + k`` of parent ``i`` takes ``SUBDIVISION[k]``, even ``j + 3``
+    from ``k = 0, 2, 4``, odd from ``k = 1, 3`` (and a padding parent of weight 0). They
+    depend on that parity alone, so a hierarchy computes them (``Hierarchy.parent_weights``)
+    instead of storing a float per parent of every function."""
+    odd = np.asarray(odd, bool)
+    count, ndim = odd.shape
+    weight = np.ones((count,) + (1,) * ndim)
+    for axis in range(ndim):
+        ks = np.where(odd[:, axis, None], np.array([1, 3, 1]), np.array([0, 2, 4]))
+        axis_weight = SUBDIVISION[ks] * np.where(odd[:, axis, None], np.array([1.0, 1.0, 0.0]), 1.0)
+        shape = [count] + [1] * ndim
+        shape[1 + axis] = 3
+        weight = weight * axis_weight.reshape(shape)
+    return weight.reshape(count, -1)
 
-    Built by broadcasting the per-axis ``(k, 3)`` keys and weights: a ``(k, 3^d, d)`` array
-    of multi-indices, raveled after, took a third of a fine 3D hierarchy's build
+
+@functools.cache
+def parity_weights(ndim: int) -> np.ndarray:
+    """``subdivision_weights`` of every parity pattern, ``(2^d, 3^d)``, row ``sum_a odd_a
+    2^(d-1-a)``."""
+    return subdivision_weights(cube_offsets(ndim, 2).astype(bool))
+
+
+def _parents(functions: np.ndarray, coarse_extent: tuple[int, ...]) -> np.ndarray:
+    """The ``3^d`` coarser functions each function is refined from, as flat keys in the
+    coarser level's function grid ``coarse_extent``, ``(k, 3^d)``, in row-major order of
+    their per-axis offsets; an axis with two parents repeats its first one, with weight 0
+    (``subdivision_weights``).
+
+    Built by broadcasting the per-axis ``(k, 3)`` keys: a ``(k, 3^d, d)`` array of
+    multi-indices, raveled after, took a third of a fine 3D hierarchy's build
     (docs/performance.md)."""
     ndim = functions.shape[1]
-    key = np.zeros((functions.shape[0],) + (1,) * ndim, dtype=np.int64)
-    weight = np.ones((functions.shape[0],) + (1,) * ndim)
+    # int32: every key of a hierarchy fits (MAX_KEY), and the array is (k, 3^d).
+    key = np.zeros((functions.shape[0],) + (1,) * ndim, dtype=np.int32)
     stride = 1
     for axis in reversed(range(ndim)):
         j = functions[:, axis]
         odd = (j + 3) % 2 == 1
-        # j + 3 even: k = 0, 2, 4; odd: k = 1, 3 (and a dummy copy of k = 1).
+        # j + 3 even: k = 0, 2, 4; odd: k = 1, 3, and the first parent again (weight 0).
         ks = np.where(odd[:, None], np.array([1, 3, 1]), np.array([0, 2, 4]))
         shape = [functions.shape[0]] + [1] * ndim
         shape[1 + axis] = 3
-        key = key + (((j[:, None] + 3 - ks) // 2) * stride).reshape(shape)
-        axis_weight = SUBDIVISION[ks] * np.where(odd[:, None], np.array([1.0, 1.0, 0.0]), 1.0)
-        weight = weight * axis_weight.reshape(shape)
+        key = key + (((j[:, None] + 3 - ks) // 2) * stride).astype(np.int32).reshape(shape)
         stride *= coarse_extent[axis]
-    return key.reshape(functions.shape[0], -1), weight.reshape(functions.shape[0], -1)
+    return key.reshape(functions.shape[0], -1)
 
 
 def build_hierarchy(
@@ -311,23 +364,13 @@ def build_hierarchy(
             "use fewer levels or fewer base cells"
         )
 
-    function_keys, leaf_keys, active, parents, weights, keep, edges, edge_weights = (
-        [] for _ in range(8)
-    )
+    function_keys, leaf_keys, active, parents, keep, edges, edge_weights = ([] for _ in range(7))
     previous = None
     for level in range(levels):
         cells = cells_at(level)
         extent = tuple(n + 3 for n in cells)
         region = unravel_keys(omega[level], cells)
-        # The 4^d functions over each cell, by flat keys: cell + offset stays inside the
-        # function grid, so its key is the sum of the two keys (no (k, 4^d, d) array).
-        funcs = _sorted_unique(
-            (
-                ravel_keys(region, extent)[:, None]
-                + ravel_keys(cube_offsets(ndim, 4), extent)[None]
-            ).ravel(),
-            int(np.prod(extent)),
-        )
+        funcs = _functions_over(region, extent)
         function_set = _KeySet(funcs, int(np.prod(extent)))
         multi = unravel_keys(funcs, extent)
         in_level = (
@@ -343,16 +386,13 @@ def build_hierarchy(
         active.append(np.flatnonzero(in_level & ~in_finer))
         keep.append((~in_level).astype(float))
         if level:
-            flat, weight = _parents(multi, tuple(n + 3 for n in cells_at(level - 1)))
-            # Padding entries (weight 0) may name a function the coarser level does not
-            # keep: point them at a real one.
-            flat = np.where(weight > 0, flat, flat[:, :1])
+            # Padding parents (weight 0) name the first parent again, a function the
+            # coarser level has.
+            flat = _parents(multi, tuple(n + 3 for n in cells_at(level - 1)))
             assert previous is not None
             parents.append(previous.position(flat))
-            weights.append(weight)
         else:
             parents.append(np.zeros((funcs.size, 0), dtype=np.int64))
-            weights.append(np.zeros((funcs.size, 0)))
         previous = function_set
         pairs, pair_weight = [], []
         scale = 2.0 ** ((finest - level) * (ndim - 2))  # (h_l / h_finest)^(d - 2)
@@ -387,7 +427,6 @@ def build_hierarchy(
         leaf_keys=ints(leaf_keys),
         active=ints(active),
         parents=ints(parents),
-        parent_weights=floats(weights),
         keep=floats(keep),
         edges=ints(edges),
         edge_weights=floats(edge_weights),
@@ -442,11 +481,15 @@ def refine_near(
     return out
 
 
-def cascade(hierarchy: Hierarchy, coeffs: Float[Array, "*lead n"]) -> Float[Array, "*lead s"]:
+def cascade(
+    hierarchy: Hierarchy, coeffs: Float[Array, "*lead n"] | np.ndarray, xp=jnp
+) -> Float[Array, "*lead s"]:
     """The cascaded coefficients ``a^0, ..., a^L`` of a THB spline, concatenated level by
     level over each level's relevant functions (module docstring). ``coeffs`` is the
     active functions' vector (leading axes carry several splines at once). Linear in
-    ``coeffs``: its transpose (by JAX) spreads values back to the active functions."""
+    ``coeffs``: its transpose (by JAX) spreads values back to the active functions.
+    ``xp=numpy`` on the host: the same products, with nothing compiled and no cascade
+    matrix built (``cascade_matrix`` costs about as much as assembling the fit)."""
     lead = coeffs.shape[:-1]
     out = []
     start = 0
@@ -456,17 +499,21 @@ def cascade(hierarchy: Hierarchy, coeffs: Float[Array, "*lead n"]) -> Float[Arra
         mine = coeffs[..., start : start + count]
         start += count
         size = hierarchy.level_sizes[level]
-        placed = jnp.zeros(lead + (size,), coeffs.dtype).at[..., hierarchy.active[level]].add(mine)
+        active = xp.asarray(hierarchy.active[level])
+        if xp is np:  # NumPy arrays have no .at; the active positions are distinct
+            placed = np.zeros(lead + (size,), coeffs.dtype)
+            placed[..., active] = mine
+        else:
+            placed = jnp.zeros(lead + (size,), coeffs.dtype).at[..., active].add(mine)
         if previous is None:
             current = placed
         else:
-            refined = jnp.sum(
-                previous[..., hierarchy.parents[level]] * hierarchy.parent_weights[level], axis=-1
-            )
-            current = hierarchy.keep[level] * refined + placed
+            parents = xp.asarray(hierarchy.parents[level])
+            refined = xp.sum(previous[..., parents] * hierarchy.parent_weights(level, xp), axis=-1)
+            current = xp.asarray(hierarchy.keep[level]) * refined + placed
         out.append(current)
         previous = current
-    return jnp.concatenate(out, axis=-1)
+    return xp.concatenate(out, axis=-1)
 
 
 def cascade_matrix(hierarchy: Hierarchy):
@@ -491,10 +538,14 @@ def cascade_matrix(hierarchy: Hierarchy):
             current = placed
         else:
             parents = np.asarray(hierarchy.parents[level])
-            weights = np.asarray(hierarchy.parent_weights[level], float)
-            weights = weights * np.asarray(hierarchy.keep[level], float)[:, None]
+            weights = hierarchy.parent_weights(level, np).astype(float)
+            weights *= np.asarray(hierarchy.keep[level], float)[:, None]
+            # CSR from the arrays as they are, 3^d entries a row: no (row, column) pairs
+            # to sort (they were most of this function's memory on fine hierarchies).
+            # Repeated padding parents have weight 0 and add nothing.
+            width = parents.shape[1]
             refine = sparse.csr_matrix(
-                (weights.ravel(), (np.repeat(np.arange(size), parents.shape[1]), parents.ravel())),
+                (weights.ravel(), parents.ravel(), np.arange(0, size * width + 1, width)),
                 shape=(size, hierarchy.level_sizes[level - 1]),
             )
             current = sparse.csr_matrix(refine @ previous + placed)

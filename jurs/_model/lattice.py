@@ -22,7 +22,7 @@ import numpy as np
 
 from .basis import CENTRED_POWER, cubic_weights
 from .function import AbstractSpline
-from .hierarchy import cascade_matrix
+from .hierarchy import cascade
 
 
 def adaptive_lattice_values(spline, axes) -> np.ndarray:
@@ -73,8 +73,8 @@ class FinestSpline:
         self.width = (self.upper - self.lower) / self.cells
         weights = np.asarray(spline.weights, np.float64)
         stacked = np.stack([weights * np.asarray(spline.control, np.float64), weights])
-        # The cascade on the host (SciPy): no program to compile for a new hierarchy.
-        self.cascaded = np.asarray((cascade_matrix(hierarchy) @ stacked.T).T)
+        # The cascade on the host: no program to compile for a new hierarchy.
+        self.cascaded = np.asarray(cascade(hierarchy, stacked, np))
 
     def axis(self, coords, axis: int):
         """``(cell, weights (n, 4), slopes (n, 4))`` of 1D ``coords`` along ``axis`` at

@@ -67,11 +67,15 @@ def normal_matrices(hierarchy: Hierarchy, positions: ArrayLike, basis: ArrayLike
     cascaded = cascade_matrix(hierarchy)
     total = sum(hierarchy.level_sizes)
     count, local = positions.shape
-    rows = np.repeat(np.arange(count), local)
-    collocation = sparse.csr_matrix(
-        sparse.csr_matrix((basis.ravel(), (rows, positions.ravel())), shape=(count, total))
-        @ cascaded
+    index = np.int32 if count * local < 2**31 else np.int64  # one index type: no upcast copy
+    # Each sample's row holds its 4^d distinct terms: CSR from the arrays as they are,
+    # with no (row, column) pairs to sort and no copy of the entries.
+    terms = sparse.csr_matrix(
+        (basis.ravel(), positions.ravel(), np.arange(0, count * local + 1, local, dtype=index)),
+        shape=(count, total),
     )
+    collocation = sparse.csr_matrix(terms @ cascaded)
+    del terms
     pairs, weights, start = [], [], 0
     for level in range(hierarchy.num_levels):
         pairs.append(np.asarray(hierarchy.edges[level]) + start)
@@ -79,18 +83,18 @@ def normal_matrices(hierarchy: Hierarchy, positions: ArrayLike, basis: ArrayLike
         start += hierarchy.level_sizes[level]
     pairs, weights = np.concatenate(pairs), np.concatenate(weights)
     edges = len(pairs)
-    difference = sparse.csr_matrix(
-        sparse.csr_matrix(
-            (
-                np.stack([np.ones(edges), -np.ones(edges)], 1).ravel(),
-                (np.repeat(np.arange(edges), 2), pairs.ravel()),
-            ),
-            shape=(edges, total),
-        )
-        @ cascaded
+    # R = 2 sum w (G a)^2 over the pairs' cascaded coefficients a = M c: lam R adds
+    # lam * 2 G^T W G = lam M^T (2 G0^T W G0) M to the normal matrix, G0 the pairs'
+    # differences. 2 G0^T W G0 is a graph Laplacian of a few entries a row, so M^T (L M)
+    # is cheaper than G = G0 M and G^T G (G has a row a pair). G0's rows carry sqrt(2 w)
+    # (the weights are positive): no weighted copy.
+    root = np.sqrt(2.0 * weights)
+    pair_differences = sparse.csr_matrix(
+        (np.stack([root, -root], 1).ravel(), pairs.ravel(), np.arange(0, 2 * edges + 1, 2)),
+        shape=(edges, total),
     )
-    # R = 2 sum w (G a)^2: lam R adds lam * 2 G^T W G to the normal matrix.
-    regulariser = sparse.csr_matrix(2.0 * difference.T @ sparse.diags(weights) @ difference)
+    laplacian = sparse.csr_matrix(pair_differences.T @ pair_differences)
+    regulariser = sparse.csr_matrix(cascaded.T @ sparse.csr_matrix(laplacian @ cascaded))
     return collocation, regulariser
 
 
@@ -176,7 +180,10 @@ def assemble_adaptive_problem(
     level, cell = locate_leaves(hierarchy, samples_np, xp=np)
     positions, local = leaf_terms(hierarchy, samples_np, level, cell, xp=np)
     collocation, regulariser = normal_matrices(hierarchy, positions, hierarchy_basis(local, xp=np))
-    data_diagonal = np.asarray(collocation.multiply(collocation).sum(axis=0)).ravel()
+    # The column sums of D's squared entries, without a squared copy of D.
+    data_diagonal = np.bincount(
+        collocation.indices, collocation.data**2, minlength=hierarchy.num_active
+    )
     regulariser_diagonal = regulariser.diagonal()
     problem = AdaptiveProblem(
         hierarchy=hierarchy,
