@@ -1,6 +1,6 @@
-"""The hierarchy takes the exact solve and its reweighting as solvers: jurs.fit(...,
-basis="adaptive", solver=LeastSquares / RobustLeastSquares), and refuses the others with
-the reason."""
+"""The hierarchy takes the exact solve, its reweighting and its held-out choice of lambda
+as solvers: jurs.fit(..., basis="adaptive", solver=LeastSquares / RobustLeastSquares /
+HeldOutLeastSquares), and refuses the others with the reason."""
 
 import numpy as np
 import pytest
@@ -77,11 +77,53 @@ def test_other_solvers_are_refused_with_the_reason():
     iurs = jurs.IURS(tau=1e-2, lam=0.0, max_steps=5)
     with pytest.raises(ValueError, match="paper's iterations .* basis='uniform'"):
         jurs.fit(points, normals, basis="adaptive", solver=iurs)
-    with pytest.raises(ValueError, match="HeldOutLeastSquares runs on the uniform grid"):
-        jurs.fit(
-            points, normals, basis="adaptive", solver=jurs.HeldOutLeastSquares(lam=(1e-4, 1e-3))
-        )
+    with pytest.raises(ValueError, match="JointLevenbergMarquardt runs on the uniform grid"):
+        jurs.fit(points, normals, basis="adaptive", solver=jurs.JointLevenbergMarquardt())
     with pytest.raises(TypeError, match="jurs solver"):
         jurs.fit_adaptive(points, normals, solver="cauchy")  # pyright: ignore[reportArgumentType]
     with pytest.raises(ValueError, match="lam or a solver, not both"):
         jurs.fit_adaptive(points, normals, lam=1e-3, solver=jurs.LeastSquares(lam=1e-3))
+
+
+def _held_out_fit(points, normals, candidates, **kwargs):
+    solver = jurs.HeldOutLeastSquares(lam=candidates, **kwargs)
+    return jurs.fit(points, normals, basis="adaptive", solver=solver, checks=False, throw=False)
+
+
+def test_held_out_lambda_on_the_hierarchy_tells_noise_from_structure(flipped):
+    """HeldOutLeastSquares runs its search on the hierarchy: around the default lambda of
+    the clean outline, the clean cloud keeps a small one and the same cloud with noise a
+    far larger one; the fit is the exact solve of all points at the lambda it reports."""
+    points, _, _, lam, normals = flipped
+    candidates = tuple(lam * 10.0**k for k in range(-3, 4))
+    clean = _held_out_fit(points, normals, candidates)
+    noisy_points = points + np.random.default_rng(1).normal(0, 0.01, points.shape)
+    noisy = _held_out_fit(noisy_points, normals, candidates)
+    for sol in (clean, noisy):
+        assert isinstance(sol.spline, jurs.AdaptiveSpline)
+        assert sol.status == "successful"
+        chosen = float(sol.state.lam)
+        assert chosen in candidates and float(sol.metrics["lam"]) == chosen
+        scores = np.asarray(sol.state.scores)
+        assert np.nanargmin(scores) == candidates.index(chosen)
+    assert float(noisy.state.lam) >= 100 * float(clean.state.lam)
+    exact = jurs.fit(
+        points, normals, basis="adaptive", checks=False,
+        solver=jurs.LeastSquares(lam=float(clean.state.lam)),
+    )  # fmt: skip
+    np.testing.assert_allclose(clean.spline.control, exact.spline.control, rtol=1e-9, atol=1e-12)
+
+
+def test_held_out_search_on_the_hierarchy_stops_early_as_on_the_grid(flipped):
+    """Past the first rise of more than 5 % the candidates are not tried (NaN), unless
+    ``early_stop=False``."""
+    points, _, _, lam, normals = flipped
+    candidates = tuple(lam * 10.0**k for k in range(0, 7))
+    stopped = np.asarray(_held_out_fit(points, normals, candidates).state.scores)
+    tried = ~np.isnan(stopped)
+    assert tried[0] and not tried[-1]
+    last = np.flatnonzero(tried)[-1]
+    assert stopped[last] > 1.05 * stopped[last - 1]
+    every = np.asarray(_held_out_fit(points, normals, candidates, early_stop=False).state.scores)
+    assert not np.isnan(every).any()
+    np.testing.assert_allclose(every[tried], stopped[tried], rtol=1e-6)

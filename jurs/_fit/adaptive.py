@@ -20,6 +20,7 @@ from __future__ import annotations
 import functools
 import math
 from collections.abc import Callable
+from typing import Any
 
 import jax
 import jax.numpy as jnp
@@ -50,11 +51,14 @@ from ..solvers import (
     IPIA,
     IURS,
     AbstractSolver,
+    HeldOutLeastSquares,
+    HeldOutLeastSquaresState,
     LeastSquares,
     NormalIPIA,
     RobustLeastSquares,
     RobustLeastSquaresState,
 )
+from ..solvers._held_out import capped_distance, held_out_points, stops_search
 from .settings import Settings, scale_free_lam
 from .sharding import input_sharding, spans_processes
 
@@ -496,11 +500,13 @@ def solve_normal(matrix, rhs: np.ndarray) -> tuple[np.ndarray, float]:
 
 def exact_solve(method: str, problem: AdaptiveProblem, matrices, lam, rtol, max_steps, dtype):
     """The hierarchy's normal equations solved by ``method`` (one of ``METHODS``), as a
-    function ``solve(row_weights=None, start=None) -> (control, steps, relative
-    residual)`` of the samples' row weights and CG's first iterate, for the solvers of
-    ``solve_on_hierarchy``."""
+    function ``solve(row_weights=None, start=None, lam=None) -> (control, steps, relative
+    residual)`` of the samples' row weights, CG's first iterate and the lambda (None:
+    ``lam``), for the solvers of ``solve_on_hierarchy``."""
+    bound = lam
 
-    def solve(row_weights=None, start=None):
+    def solve(row_weights=None, start=None, lam=None):
+        lam = bound if lam is None else float(lam)
         if method == "direct":  # a factorisation needs no start
             control, residual = solve_direct(problem, lam, matrices, row_weights)
             return control, 0, residual
@@ -519,11 +525,13 @@ def exact_solve(method: str, problem: AdaptiveProblem, matrices, lam, rtol, max_
 @functools.singledispatch
 def solve_on_hierarchy(
     solver, problem: AdaptiveProblem, matrices, solve
-) -> tuple[np.ndarray, int, float, RobustLeastSquaresState | None, bool]:
+) -> tuple[np.ndarray, int, float, Any, bool]:
     """``(control, steps, relative residual, state, converged)`` of ``solver``'s fit on the
     hierarchy, its linear solves made by ``solve`` (``exact_solve``). Chosen by the
-    solver's type: the exact solve (``LeastSquares``) and its reweighting
-    (``RobustLeastSquares``); other solvers are refused (``check_hierarchy_solver``)."""
+    solver's type: the exact solve (``LeastSquares``), its reweighting
+    (``RobustLeastSquares``) and its lambda chosen by held-out points
+    (``HeldOutLeastSquares``); other solvers are refused (``check_hierarchy_solver``).
+    The fit's lambda is ``solver.fitted_lam(state)``."""
     raise ValueError(hierarchy_refusal(solver))
 
 
@@ -538,8 +546,9 @@ def hierarchy_refusal(solver) -> str:
     else:
         why = f"{name} runs on the uniform grid's problem"
     return (
-        f"basis='adaptive' fits with jurs.LeastSquares or jurs.RobustLeastSquares (the exact "
-        f"solve and its reweighting), or with no solver (the lambda chosen from the data); "
+        f"basis='adaptive' fits with jurs.LeastSquares, jurs.RobustLeastSquares or "
+        f"jurs.HeldOutLeastSquares (the exact solve, its reweighting, its lambda chosen by "
+        f"held-out points), or with no solver (the lambda chosen from the data); "
         f"{why}: fit it with basis='uniform'"
     )
 
@@ -558,7 +567,7 @@ def check_hierarchy_solver(solver) -> None:
 @solve_on_hierarchy.register
 def _(
     solver: LeastSquares, problem: AdaptiveProblem, matrices, solve
-) -> tuple[np.ndarray, int, float, RobustLeastSquaresState | None, bool]:
+) -> tuple[np.ndarray, int, float, Any, bool]:
     control, steps, residual = solve()
     return control, steps, residual, None, True
 
@@ -566,7 +575,7 @@ def _(
 @solve_on_hierarchy.register
 def _(
     solver: RobustLeastSquares, problem: AdaptiveProblem, matrices, solve
-) -> tuple[np.ndarray, int, float, RobustLeastSquaresState | None, bool]:
+) -> tuple[np.ndarray, int, float, Any, bool]:
     # The uniform grid's IRLS (RobustLeastSquares.step) on the host: each step one exact
     # solve with the points' weights on their three samples' rows, then the same
     # reweighting (RobustLeastSquares.reweigh) and the same stop rule as the driver's.
@@ -610,6 +619,45 @@ def _(
     return control, total, residual, state, converged
 
 
+@solve_on_hierarchy.register
+def _(
+    solver: HeldOutLeastSquares, problem: AdaptiveProblem, matrices, solve
+) -> tuple[np.ndarray, int, float, Any, bool]:
+    # The uniform grid's search (HeldOutLeastSquares.step) on the host: the same points
+    # held out (held_out_points), each candidate fitted to the kept points (the held-out
+    # points' three rows weighted 0) at its lambda scaled by the kept share, scored by the
+    # held-out points' capped distance to its zero set (capped_distance), the same early
+    # stop; then the best candidate refitted on all points. Each solve starts from the
+    # last (a factorisation ignores it).
+    collocation, _ = matrices
+    m = collocation.shape[0] // 3  # samples [P, P + d n, P - d n] (eq. 4-5)
+    held = np.asarray(held_out_points(m, float(solver.holdout), np))
+    kept_rows = np.tile((~held).astype(float), 3)
+    share = float(np.sum(~held)) / max(m, 1)
+    offset = float(problem.offset)
+    candidates = np.asarray(solver.lam, float)
+    scores = np.full(candidates.shape, np.nan)
+    control, total = None, 0
+    for i, lam in enumerate(candidates):
+        control, steps, _ = solve(kept_rows, control, lam * share)
+        total += steps
+        g = (collocation @ control).reshape(3, m)
+        distance = capped_distance(g[0], g[1], g[2], offset, np)
+        scores[i] = np.mean(distance[held] ** 2) if held.any() else 0.0
+        if solver.early_stop and i >= 1 and stops_search(scores[i], scores[i - 1]):
+            break
+    lam = candidates[int(np.argmin(np.where(np.isnan(scores), np.inf, scores)))]
+    control, steps, residual = solve(None, control, lam)
+    state = HeldOutLeastSquaresState(
+        control=jnp.asarray(control),
+        lam=jnp.asarray(lam),
+        scores=jnp.asarray(scores),
+        done=jnp.asarray(True),
+        result=lx.RESULTS.successful,
+    )
+    return control, total + steps, residual, state, True
+
+
 def finest_cell_width(settings: Settings, ndim: int, finest: int | None) -> float:
     """The finest level's cell in ``settings.domain``: ``fit_adaptive``'s ``finest``
     cells along the longest side, or where None the data's (``data_finest_cell``), at
@@ -647,22 +695,26 @@ def hierarchy_layout(settings: Settings, ndim: int, finest, band, offset, eps, d
 def solver_lam(solver, lam=None, points=None, normals=None) -> float | None:
     """The ``lam`` of a fit on the hierarchy by ``solver`` (one ``check_hierarchy_solver``
     has passed: each entry checks its solver first): the solver's own, else ``lam``
-    (None: made from the smoothing, ``hierarchy_lam``). Refuses a ``lam`` beside a
-    solver, and a robust fit of ``points`` sharded over devices or processes (it
-    reweighs on one host)."""
+    (None: made from the smoothing, ``hierarchy_lam``); None for a solver that chooses
+    among candidates (``HeldOutLeastSquares``: the fit reports its choice). Refuses a
+    ``lam`` beside a solver, and a robust fit or a held-out choice of ``points`` sharded
+    over devices or processes (they run on one host)."""
     if solver is None:
         return lam
     if lam is not None:
         raise ValueError("pass lam or a solver, not both: a solver keeps its own lam")
-    # A solver that reweighs its points (expects outliers) reweighs them on one host.
-    if type(solver).expects_outliers and (
+    # A solver that reweighs its points (expects outliers), or that chooses its lambda
+    # among candidates, does so on one host.
+    candidates = np.ndim(solver.lam) > 0
+    if (type(solver).expects_outliers or candidates) and (
         spans_processes(points, normals) or input_sharding(points, normals) is not None
     ):
+        what = "a robust fit" if type(solver).expects_outliers else "a held-out choice of lambda"
         raise ValueError(
-            "a robust fit on the hierarchy runs in one process on points that are not "
+            f"{what} on the hierarchy runs in one process on points that are not "
             "sharded; gather them first, or fit with jurs.LeastSquares"
         )
-    return float(solver.lam)
+    return None if candidates else float(solver.lam)
 
 
 def hierarchy_lam(settings: Settings, smoothing, samples: int, diagonal: float, layout, hierarchy):

@@ -379,9 +379,10 @@ def fit(
             sharded points: docs/sharding.md, "Adaptive fits"). ``"uniform"``: the uniform
             grid always. ``"adaptive"``: [`jurs.fit_adaptive`][] with the settings chosen here
             (it takes none of the uniform-only arguments above but ``solver``, and points
-            sharded over devices or processes): a [`jurs.LeastSquares`][] or
-            [`jurs.RobustLeastSquares`][] given fits the hierarchy with its own ``lam``
-            (the weight of the hierarchy's R); other solvers are refused with the reason.
+            sharded over devices or processes): a [`jurs.LeastSquares`][],
+            [`jurs.RobustLeastSquares`][] or [`jurs.HeldOutLeastSquares`][] given fits the
+            hierarchy with its own ``lam`` (the weight of the hierarchy's R); other solvers
+            are refused with the reason.
 
     Returns:
         [`jurs.Solution`][]. Jit-compiled inside; traceable, so ``jax.grad`` and
@@ -553,9 +554,11 @@ def on_hierarchy(
     else:  # a factorisation, or CG on the assembled matrices (SciPy, or JAX compiled)
         # host_cg reads every sample on the host, as a direct solve does.
         solve = exact_solve(method, problem, matrices, lam, float(rtol), int(max_steps), dtype)
+        chosen: AbstractSolver = LeastSquares(lam=lam) if solver is None else solver
         control, steps, residual, state, settled = solve_on_hierarchy(
-            LeastSquares(lam=lam) if solver is None else solver, problem, matrices, solve
+            chosen, problem, matrices, solve
         )
+        lam = lam if state is None else float(chosen.fitted_lam(state))
         metrics = assembled_metrics(problem, matrices, control, lam)
     # The devices the solve ran over, where the points are sharded (a direct solve: the host).
     stats = (

@@ -84,12 +84,14 @@ def fit_adaptive(
             reconstruction (``nonfinite``, ``inconsistent_normals``; never for
             ``max_steps_reached`` or ``doubtful``), as [`jurs.fit`][] does.
         solver: None (the exact solve with ``lam``), [`jurs.LeastSquares`][] (the same,
-            with its ``lam``) or [`jurs.RobustLeastSquares`][] (its reweighted solves:
+            with its ``lam``), [`jurs.RobustLeastSquares`][] (its reweighted solves:
             outliers weighed down, ``sol.state.point_weights`` one per point fitted, in the
-            cloud's order without the points ``settings`` set aside). A solver keeps its
+            cloud's order without the points ``settings`` set aside) or
+            [`jurs.HeldOutLeastSquares`][] (its ``lam`` chosen among the candidates by
+            held-out points: ``sol.state.lam``, ``sol.state.scores``). A solver keeps its
             own ``lam``, the weight of the hierarchy's ``R`` (pass no ``lam`` beside it).
             Other solvers run on the uniform grid only and are refused with the reason.
-            A robust fit runs in one process, on points not sharded.
+            A robust fit and a held-out choice run in one process, on points not sharded.
 
     Returns:
         A [`jurs.Solution`][] whose ``spline`` is a [`jurs.AdaptiveSpline`][];

@@ -94,7 +94,9 @@ def normal_matrices(hierarchy: Hierarchy, positions: ArrayLike, basis: ArrayLike
         shape=(edges, total),
     )
     laplacian = sparse.csr_matrix(pair_differences.T @ pair_differences)
-    regulariser = sparse.csr_matrix(cascaded.T @ sparse.csr_matrix(laplacian @ cascaded))
+    # M^T as a CSR view of M in CSC: a product of two CSR matrices, with no conversion
+    # of the (larger) L M or of the result.
+    regulariser = cascaded.tocsc().T @ sparse.csr_matrix(laplacian @ cascaded)
     return collocation, regulariser
 
 

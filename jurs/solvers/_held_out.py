@@ -61,12 +61,21 @@ def held_out_distance(problem: Problem, values: Array, point_held: Array) -> Arr
     g_point, g_out, g_in = jax.vmap(lambda v: values_by_point(v, problem.sample_index, real, m))(
         values
     )
-    slope = (g_out - g_in) / (2.0 * d)
-    distance = jnp.where(slope > 0, jnp.abs(g_point) / jnp.where(slope > 0, slope, 1.0), d)
-    distance = jnp.minimum(distance, d)
+    distance = capped_distance(g_point, g_out, g_in, d)
     counted = point_held & (jax.ops.segment_sum(problem.is_data * problem.mask, point, m) > 0)
     total = jnp.sum(jnp.where(counted, distance * distance, 0.0), axis=-1)
     return total / jnp.maximum(jnp.sum(counted), 1)
+
+
+def capped_distance(g_point, g_out, g_in, offset, xp=jnp):
+    """Each point's first-order distance to the zero set, ``|g(P)| / slope`` with the
+    slope across the curve read off its offset samples, ``(g(P + d n) - g(P - d n)) /
+    2d``, capped at the offset d; a slope <= 0 (inside and outside read the wrong way
+    round) counts d. ``held_out_distance``'s measure on either basis; ``xp=numpy`` on
+    the host."""
+    slope = (g_out - g_in) / (2.0 * offset)
+    distance = xp.where(slope > 0, xp.abs(g_point) / xp.where(slope > 0, slope, 1.0), offset)
+    return xp.minimum(distance, offset)
 
 
 def select_lam(
@@ -207,7 +216,9 @@ class HeldOutLeastSquares(AbstractSolver[HeldOutLeastSquaresState]):
         chunk_size, ridge, linear_solver: as [`LeastSquares`][jurs.LeastSquares].
 
     Polynomial B-splines (w = 1); one driver step. The choice is discrete: gradients flow
-    through the final solve at the chosen lambda, not through the choice.
+    through the final solve at the chosen lambda, not through the choice. On the adaptive
+    basis (``jurs.fit(..., basis="adaptive", solver=...)``) the same search runs on the
+    host with the hierarchy's solves (not differentiated there).
     """
 
     lam: Any = eqx.field(converter=jnp.asarray)
