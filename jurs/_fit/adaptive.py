@@ -30,8 +30,8 @@ from jax import Array, lax
 
 from .._cloud.cloud import Cloud
 from .._cloud.measure import PROBES, strided_probes
-from .._linalg.pcg import conjugate_gradients, jacobi_inverse
-from .._linalg.sparse import PaddedCoo
+from .._linalg.pcg import conjugate_gradients, host_conjugate_gradients, jacobi_inverse
+from .._linalg.sparse import PaddedCoo, normal_product
 from .._linalg.thb_multigrid import ThbMultigrid, VCycle, multigrid_cg
 from .._model.adaptive import AdaptiveSpline
 from .._model.precision import on_device
@@ -332,50 +332,33 @@ def solve_host_cg(
     start=None,
 ) -> tuple[np.ndarray, int, float]:
     """``(control, steps, relative residual)``: ``solve_assembled``'s CG (the exact
-    diagonal as preconditioner, the stop rule ``|r| <= rtol |D^T b|``) run by SciPy on the
-    host, on the host matrices ``(D, 2 G^T W G)`` in CSR. Not differentiable.
+    diagonal as preconditioner, the stop rule ``|r| <= rtol |D^T b|``) run on the host
+    (``host_conjugate_gradients``), on the host matrices ``(D, 2 G^T W G)`` in CSR, their
+    products split over the host's threads (``normal_product``). Not differentiable.
     ``row_weights`` and ``start`` as ``solve_assembled``'s.
 
     On a CPU it is the faster of the two: SciPy's products with the CSR matrices beat
     XLA's segment sums over the same entries (docs/design.md section 8,
     docs/performance.md). On a GPU, ``solve_assembled``.
     """
-    from scipy.sparse import diags
-    from scipy.sparse.linalg import LinearOperator, cg
-
     collocation, regulariser = (matrix.tocsr() for matrix in matrices)
-    transposed = collocation.T.tocsr()
-    n = collocation.shape[1]
     diagonal = normal_diagonal(problem, lam, matrices, row_weights)
     inverse = jacobi_inverse(diagonal, np)
     # All weights 1 multiply exactly: the unweighted fit is unchanged by them.
     weights = 1.0 if row_weights is None else np.asarray(row_weights, float)
-
-    def matvec(c):
-        return transposed @ (weights * (collocation @ c)) + lam * (regulariser @ c)
-
-    # LinearOperator(shape, matvec=...) builds a custom operator in __new__, which the
-    # type stubs do not follow.
-    normal = LinearOperator((n, n), matvec=matvec, dtype=float)  # pyright: ignore[reportCallIssue]
-    rhs = transposed @ (weights * np.asarray(problem.targets, float))
-    steps = 0
-
-    def count(_):
-        nonlocal steps
-        steps += 1
-
-    control, _ = cg(
-        normal,
-        rhs,
-        x0=start,
-        rtol=rtol,
-        atol=0.0,
-        maxiter=max_steps,
-        M=diags(inverse),
-        callback=count,
-    )
+    rhs = collocation.T @ (weights * np.asarray(problem.targets, float))
+    with normal_product(collocation, regulariser, lam, row_weights) as matvec:
+        control, steps, _ = host_conjugate_gradients(
+            matvec,
+            rhs,
+            precondition=lambda r: inverse * r,
+            start=start,
+            rtol=rtol,
+            max_steps=max_steps,
+        )
+        residual = matvec(control) - rhs  # the true residual, not the recurrence's
     scale = max(float(np.linalg.norm(rhs)), np.finfo(float).tiny)
-    return control, steps, float(np.linalg.norm(matvec(control) - rhs)) / scale
+    return control, steps, float(np.linalg.norm(residual)) / scale
 
 
 @jax.jit

@@ -3,7 +3,8 @@
 matrix is symmetric), not a differentiation of the loop.
 
 A ``lax.while_loop``, with no host work inside, so the same program runs on a GPU; the
-step count comes back for the solution's statistics.
+step count comes back for the solution's statistics. ``host_conjugate_gradients`` is the
+same recurrence and stop rule in NumPy, for the hierarchy's host solves.
 """
 
 from __future__ import annotations
@@ -11,6 +12,7 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import jax.numpy as jnp
+import numpy as np
 from jax import Array, lax
 
 
@@ -80,3 +82,44 @@ def conjugate_gradients(
         matvec, rhs, solve, transpose_solve, symmetric=True, has_aux=True
     )
     return x, steps, residual
+
+
+def _host_dot(a: np.ndarray, b: np.ndarray) -> float:
+    """``a . b`` without BLAS: OpenBLAS threads a long dot product and its threads then
+    spin between calls, taking the cores from the threads of the host's sparse products
+    (``jurs._linalg.sparse.normal_product``)."""
+    return float(np.add.reduce(a * b))
+
+
+def host_conjugate_gradients(
+    matvec: Callable[[np.ndarray], np.ndarray],
+    rhs: np.ndarray,
+    *,
+    precondition: Callable[[np.ndarray], np.ndarray] = lambda r: r,
+    start: np.ndarray | None = None,
+    rtol: float = 1e-10,
+    max_steps: int = 10_000,
+) -> tuple[np.ndarray, int, float]:
+    """``conjugate_gradients`` on the host, in NumPy float64: the same recurrence, stop
+    rule (``|r| <= rtol |rhs|``, or ``max_steps``) and ``(x, steps, relative residual)``
+    (the recurrence's residual). No derivative."""
+    rhs = np.asarray(rhs, float)
+    x = np.zeros_like(rhs) if start is None else np.array(start, float)
+    bound = rtol * np.sqrt(_host_dot(rhs, rhs))
+    r = rhs - matvec(x)
+    z = precondition(r)
+    rz = _host_dot(r, z)
+    p = z
+    steps = 0
+    while np.sqrt(_host_dot(r, r)) > bound and steps < max_steps:
+        q = matvec(p)
+        alpha = rz / _host_dot(p, q)
+        x += alpha * p
+        r -= alpha * q
+        z = precondition(r)
+        rz_new = _host_dot(r, z)
+        p = z + (rz_new / rz) * p
+        rz = rz_new
+        steps += 1
+    scale = max(np.sqrt(_host_dot(rhs, rhs)), np.finfo(float).tiny)
+    return x, steps, float(np.sqrt(_host_dot(r, r)) / scale)

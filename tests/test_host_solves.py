@@ -1,0 +1,62 @@
+"""The hierarchy's host solves: the normal product split over threads, and conjugate
+gradients in NumPy, against their plain forms."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import scipy.sparse as sp
+
+from jurs._linalg.pcg import conjugate_gradients, host_conjugate_gradients
+from jurs._linalg.sparse import normal_product, row_blocks
+
+jax.config.update("jax_enable_x64", True)
+
+
+def _matrices(seed=0, rows=900, n=400):
+    rng = np.random.default_rng(seed)
+    collocation = sp.random(rows, n, density=0.03, format="csr", random_state=seed)
+    half = sp.random(n, n, density=0.01, format="csr", random_state=seed + 1)
+    regulariser = (half @ half.T + sp.identity(n)).tocsr()
+    return collocation, regulariser, rng
+
+
+def test_row_blocks_are_views_that_cover_the_rows():
+    collocation, _, _ = _matrices()
+    blocks = row_blocks(collocation, 3)
+    assert len(blocks) == 3
+    assert all(np.shares_memory(block.data, collocation.data) for _, block in blocks)
+    stacked = sp.vstack([block for _, block in blocks]).tocsr()
+    assert [first for first, _ in blocks][0] == 0
+    assert (stacked != collocation).nnz == 0
+
+
+@pytest.mark.parametrize("threads", [1, 2, 3, 7])
+@pytest.mark.parametrize("weighted", [False, True])
+def test_threaded_normal_product_is_the_normal_matrix(threads, weighted):
+    collocation, regulariser, rng = _matrices()
+    weights = rng.uniform(0.0, 2.0, collocation.shape[0]) if weighted else None
+    scale = np.ones(collocation.shape[0]) if weights is None else weights
+    matrix = collocation.T @ sp.diags(scale) @ collocation + 0.3 * regulariser
+    c = rng.standard_normal(collocation.shape[1])
+    with normal_product(collocation, regulariser, 0.3, weights, threads) as product:
+        np.testing.assert_allclose(product(c), matrix @ c, rtol=1e-12, atol=1e-12)
+
+
+def test_host_cg_is_the_jax_recurrence():
+    """The same steps and solution as ``conjugate_gradients`` on the same system and
+    preconditioner, and the solution of the system."""
+    collocation, regulariser, rng = _matrices(seed=3)
+    matrix = (collocation.T @ collocation + 1e-2 * regulariser).tocsr()
+    rhs = rng.standard_normal(matrix.shape[0])
+    inverse = 1.0 / matrix.diagonal()
+    x, steps, residual = host_conjugate_gradients(
+        lambda v: matrix @ v, rhs, precondition=lambda r: inverse * r, rtol=1e-10
+    )
+    dense = jnp.asarray(matrix.toarray())
+    y, jax_steps, _ = conjugate_gradients(
+        lambda v: dense @ v, jnp.asarray(rhs), precondition=lambda r: jnp.asarray(inverse) * r
+    )
+    assert steps == int(jax_steps) and residual <= 1e-10
+    np.testing.assert_allclose(x, np.asarray(y), rtol=1e-8, atol=1e-10)
+    np.testing.assert_allclose(x, np.linalg.solve(matrix.toarray(), rhs), rtol=1e-7, atol=1e-9)
