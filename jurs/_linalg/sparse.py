@@ -58,12 +58,20 @@ class PaddedCoo(eqx.Module):
         return jax.ops.segment_sum(self.values * y[self.rows], self.cols, self.num_cols)
 
 
+#: At most this many threads for the host's sparse products (``normal_product``): each
+#: thread's transposed product writes a whole coefficient-length vector, so more threads
+#: cost memory and a longer sum for products that shrink; measured on two cores only.
+MAX_HOST_THREADS = 8
+
+
 def host_threads() -> int:
-    """The threads the host's sparse products use: the CPUs this process may run on."""
+    """The threads the host's sparse products use: the CPUs this process may run on, at
+    most ``MAX_HOST_THREADS``."""
     try:
-        return max(1, len(os.sched_getaffinity(0)))
+        cpus = len(os.sched_getaffinity(0))
     except AttributeError:  # no affinity on this platform
-        return max(1, os.cpu_count() or 1)
+        cpus = os.cpu_count() or 1
+    return max(1, min(cpus, MAX_HOST_THREADS))
 
 
 def row_blocks(matrix, count: int) -> list:
