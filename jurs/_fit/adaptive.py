@@ -688,7 +688,7 @@ def solver_lam(solver, lam=None, points=None, normals=None) -> float | None:
         raise ValueError("pass lam or a solver, not both: a solver keeps its own lam")
     # A solver that reweighs its points (expects outliers), or that chooses its lambda
     # among candidates, does so on one host.
-    candidates = np.ndim(solver.lam) > 0
+    candidates = type(solver).chooses_lam
     if (type(solver).expects_outliers or candidates) and (
         spans_processes(points, normals) or input_sharding(points, normals) is not None
     ):

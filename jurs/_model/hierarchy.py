@@ -264,6 +264,13 @@ def _support_inside(functions: np.ndarray, cells: tuple[int, ...], region: _KeyS
     return inside
 
 
+def _subdivision_terms(odd: np.ndarray) -> np.ndarray:
+    """``(k, 3)``: the subdivision terms ``k`` (``SUBDIVISION[k]``) of a function's three
+    parents along one axis, child ``j = 2 i - 3 + k`` of parent ``i``: ``j + 3`` even
+    takes ``k = 0, 2, 4``, odd ``k = 1, 3`` and the first parent again (weight 0)."""
+    return np.where(np.asarray(odd)[:, None], np.array([1, 3, 1]), np.array([0, 2, 4]))
+
+
 def subdivision_weights(odd: np.ndarray) -> np.ndarray:
     """``(k, 3^d)``: the weights a function takes from its ``3^d`` parents (``_parents``'
     order), given whether its index ``j + 3`` is odd along each axis (``odd (k, d)``):
@@ -275,7 +282,7 @@ def subdivision_weights(odd: np.ndarray) -> np.ndarray:
     count, ndim = odd.shape
     weight = np.ones((count,) + (1,) * ndim)
     for axis in range(ndim):
-        ks = np.where(odd[:, axis, None], np.array([1, 3, 1]), np.array([0, 2, 4]))
+        ks = _subdivision_terms(odd[:, axis])
         axis_weight = SUBDIVISION[ks] * np.where(odd[:, axis, None], np.array([1.0, 1.0, 0.0]), 1.0)
         shape = [count] + [1] * ndim
         shape[1 + axis] = 3
@@ -305,9 +312,7 @@ def _parents(functions: np.ndarray, coarse_extent: tuple[int, ...]) -> np.ndarra
     stride = 1
     for axis in reversed(range(ndim)):
         j = functions[:, axis]
-        odd = (j + 3) % 2 == 1
-        # j + 3 even: k = 0, 2, 4; odd: k = 1, 3, and the first parent again (weight 0).
-        ks = np.where(odd[:, None], np.array([1, 3, 1]), np.array([0, 2, 4]))
+        ks = _subdivision_terms((j + 3) % 2 == 1)
         shape = [functions.shape[0]] + [1] * ndim
         shape[1 + axis] = 3
         key = key + (((j[:, None] + 3 - ks) // 2) * stride).astype(np.int32).reshape(shape)

@@ -45,6 +45,9 @@ class AbstractSolver(eqx.Module, Generic[State]):
     #: given is still judged by its closed components away from the data, such as loops
     #: around outliers it did not weigh down (``jurs._solution.verdicts.check_components``).
     expects_outliers: ClassVar[bool] = False
+    #: Whether the solver chooses its lambda among candidates during the fit (``lam`` an
+    #: array; ``fitted_lam`` reports the choice).
+    chooses_lam: ClassVar[bool] = False
 
     @abc.abstractmethod
     def init(self, problem: Problem, spline: ImplicitSpline) -> tuple[State, Array]:

@@ -231,6 +231,7 @@ class HeldOutLeastSquares(AbstractSolver[HeldOutLeastSquaresState]):
     max_steps: ClassVar[int] = 1
     tol: ClassVar[float] = 0.0
     reassociation_safe: ClassVar[bool] = True
+    chooses_lam: ClassVar[bool] = True
 
     def __check_init__(self):
         lam = self.lam
