@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import equinox as eqx
 import jax
+import numpy as np
 
 from ._kept import KeptByIdentity
 
@@ -31,16 +32,13 @@ class FlatJit:
     def __call__(self, *args):
         splits = [self._split(arg) for arg in args]
         leaves = [leaf for split in splits for leaf in split[0]]
-        trees = tuple(split[1] for split in splits)
-        static = tuple(split[2] for split in splits)
-        static_leaves, static_tree = jax.tree_util.tree_flatten(static)
-        key = (trees, static_tree, tuple(static_leaves))
+        key = tuple((split[1], split[2]) for split in splits)
         try:
             program = self.programs.get(key)
-        except TypeError:  # an unhashable static part: equinox handles it
+        except TypeError:  # an unhashable static leaf: equinox handles it
             return eqx.filter_jit(self.fn)(*args)
         if program is None:
-            program = self.programs[key] = self._compile(trees, static)
+            program = self.programs[key] = self._compile(key)
         out_leaves, (out_tree, others, at) = program(leaves)
         # The output's leaves: its arrays where they were, its other leaves kept as traced.
         full = list(others)
@@ -48,16 +46,15 @@ class FlatJit:
             full[position] = leaf
         return jax.tree_util.tree_unflatten(out_tree, full)
 
-    def _compile(self, trees, static):
+    def _compile(self, key):
         # The output's static part is known once traced; kept beside the program.
         kept: list = []
-        sizes = [tree.num_leaves for tree in trees]
+        sizes = [tree.num_leaves - len(static) for tree, static in key]
 
         def flat(leaves):
             args, start = [], 0
-            for tree, size, part in zip(trees, sizes, static):
-                dynamic = jax.tree_util.tree_unflatten(tree, leaves[start : start + size])
-                args.append(eqx.combine(dynamic, part))
+            for (tree, static), size in zip(key, sizes):
+                args.append(_joined(tree, static, leaves[start : start + size]))
                 start += size
             out = self.fn(*args)
             out_all, out_tree = jax.tree_util.tree_flatten(out)
@@ -73,7 +70,26 @@ class FlatJit:
 
 
 def _split(arg) -> tuple:
-    """``(leaves, tree, static)``: ``arg``'s array leaves, their tree and the rest."""
-    dynamic, static = eqx.partition(arg, eqx.is_array)
-    leaves, tree = jax.tree_util.tree_flatten(dynamic)
-    return leaves, tree, static
+    """``(arrays, tree, static)``: ``arg``'s array leaves, the tree of all its leaves and
+    its other leaves with their places: one flatten, where ``eqx.partition`` maps the tree
+    and flattens it again."""
+    if isinstance(arg, jax.Array | np.ndarray):
+        return [arg], _ARRAY_TREE, ()
+    everything, tree = jax.tree_util.tree_flatten(arg)
+    arrays = [leaf for leaf in everything if eqx.is_array(leaf)]
+    static = tuple((i, leaf) for i, leaf in enumerate(everything) if not eqx.is_array(leaf))
+    return arrays, tree, static
+
+
+_ARRAY_TREE = jax.tree_util.tree_structure(0)
+
+
+def _joined(tree, static: tuple, arrays: list):
+    """The argument that ``_split`` split, with ``arrays`` (traced) in its arrays' places."""
+    everything: list = [None] * tree.num_leaves
+    for i, leaf in static:
+        everything[i] = leaf
+    places = sorted(set(range(tree.num_leaves)).difference(i for i, _ in static))
+    for i, array in zip(places, arrays, strict=True):
+        everything[i] = array
+    return jax.tree_util.tree_unflatten(tree, everything)

@@ -34,7 +34,7 @@ def _compare(problem, solver):
 @pytest.mark.parametrize(
     "points, grid, lam, mask_every",
     [
-        (120, 9, 0.0, None),  # the dense solve, one small part
+        (120, 9, 0.0, None),  # the dense solve, one small part: the four steps in one program
         (400, 24, 1e-5, None),  # one part of 2048 points
         (PART_POINTS + 1500, 24, 1e-5, None),  # the block Cholesky, two parts
         (PART_POINTS + 1500, 24, 1e-5, 3),  # a mask: every third point left out

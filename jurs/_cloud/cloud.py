@@ -11,7 +11,7 @@ import jax
 import numpy as np
 from jaxtyping import Float
 
-from .._problem.validate import is_concrete, unit_normals, validate_points
+from .._problem.validate import bounding_diagonal, is_concrete, unit_normals, validate_points
 from .measure import (
     PROBES,
     check_encloses,
@@ -132,6 +132,12 @@ class Cloud:
         """The median distance between nearest points (``point_spacing``) of the points
         that take part, at the probes."""
         return point_spacing(self.points[self.kept], self.tree, self.probes)
+
+    @functools.cached_property
+    def extent(self) -> float:
+        """The diagonal of the bounding box of the points that take part: the largest
+        offset a fit of them may take (``check_offset_scale``)."""
+        return bounding_diagonal(self.points, self.mask)
 
     @property
     def ndim(self) -> int:

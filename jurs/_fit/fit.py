@@ -152,7 +152,9 @@ def fit_settings(
     ``eps`` and ``solver`` is missing, else None (every setting given); ``shape`` the
     uniform grid, given or the settings', on which the fit's memory is checked once."""
     check_values(offset=offset, eps=eps, margin=margin, domain=domain)
-    validate_settings(cloud.points, cloud.normals, cloud.mask, offset=offset, domain=domain)
+    validate_settings(
+        cloud.points, cloud.normals, cloud.mask, offset=offset, domain=domain, extent=cloud.extent
+    )
     shape = None if grid is None else normalise_grid(grid, cloud.ndim)
     if settings is not None:
         shape = settings.grid if shape is None else shape
@@ -642,7 +644,8 @@ def _fit(
     # The chosen offset, in the box given (fit_adaptive, which fits settings.domain, does
     # not check it).
     if domain is not None and offset_given is None:
-        validate_settings(cloud.points, cloud.normals, cloud.mask, offset=offset, domain=domain)
+        args = cloud.points, cloud.normals, cloud.mask
+        validate_settings(*args, offset=offset, domain=domain, extent=cloud.extent)
     # Where the automatic uniform grid is capped below what the data ask for, it is fitted
     # first and kept if its zero set follows the data; otherwise the hierarchy is fitted.
     escalate = (

@@ -3,10 +3,10 @@ with a ValueError naming the setting, before anything is allocated."""
 
 from __future__ import annotations
 
+import math
 import os
 
 import jax
-import numpy as np
 
 
 def available_memory(device: bool = True) -> int | None:
@@ -93,7 +93,7 @@ def fit_memory(shape, num_samples: int, solver) -> float:
     else:
         per_coefficient = BYTES_PER_COEFFICIENT_3D if surface else BYTES_PER_COEFFICIENT
     per_sample = BYTES_PER_SAMPLE_3D if surface else BYTES_PER_SAMPLE
-    return float(per_coefficient * np.prod(shape) + per_sample * num_samples)
+    return float(per_coefficient * math.prod(shape) + per_sample * num_samples)
 
 
 def check_fit_memory(shape, num_points: int, solver) -> None:

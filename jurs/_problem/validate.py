@@ -5,6 +5,8 @@ number) that names the argument, before anything is computed from it. Traced val
 
 from __future__ import annotations
 
+import math
+
 import jax
 import numpy as np
 from jax.core import Tracer
@@ -34,7 +36,14 @@ def normalise_grid(grid, ndim: int = 2) -> tuple[int, ...]:
 
 
 def is_concrete(*xs) -> bool:
+    """Whether no leaf of ``xs`` is traced."""
+    if all(type(x) in _PLAIN for x in xs):  # the common case, without a flatten
+        return True
     return not any(isinstance(x, Tracer) for x in jax.tree_util.tree_leaves(xs))
+
+
+#: Types that are never traced and hold nothing that is.
+_PLAIN = frozenset({np.ndarray, float, int, bool, type(None), str})
 
 
 def check_nonnegative(name: str, value, *, strict: bool = False) -> None:
@@ -43,6 +52,8 @@ def check_nonnegative(name: str, value, *, strict: bool = False) -> None:
 
     Traced values are not checked (their value is unknown at trace time).
     """
+    if type(value) is float and math.isfinite(value) and (value > 0 or not strict and value == 0):
+        return  # the common case, without NumPy
     if not is_concrete(value):
         return
     if isinstance(value, (str, bytes)):  # NumPy would parse "1" as a number
@@ -166,17 +177,16 @@ def _validate_domain(domain, samples, m: int):
         )
 
 
-def check_offset_scale(points, offset, mask=None) -> None:
+def check_offset_scale(points, offset, mask=None, extent: float | None = None) -> None:
     """ValueError when the offset d exceeds the cloud's extent (its bounding-box diagonal):
     the offset samples P +/- d n then lie beyond the whole shape, on every side of every
     other point, and no fit can read inside from outside (offset=1e6 on a unit cloud ran
-    for a minute into 203 loops). Concrete values only."""
+    for a minute into 203 loops). Concrete values only. ``extent``: that diagonal, where
+    the caller knows it (``jurs.Cloud.extent``)."""
     if not is_concrete(points, offset, mask):
         return
-    p = np.asarray(points, float)
-    if mask is not None:
-        p = p[np.asarray(mask).astype(bool)]
-    extent = float(np.linalg.norm(np.ptp(p, axis=0)))
+    if extent is None:
+        extent = bounding_diagonal(points, mask)
     if float(offset) > extent:
         raise ValueError(
             f"offset d = {float(offset):.4g} exceeds the cloud's extent (its "
@@ -184,6 +194,14 @@ def check_offset_scale(points, offset, mask=None) -> None:
             "beyond the whole shape; choose d below the point spacing or leave "
             "it to the automatic choice"
         )
+
+
+def bounding_diagonal(points, mask=None) -> float:
+    """The diagonal of the bounding box of ``points`` (those of ``mask``, where given)."""
+    p = np.asarray(points, float)
+    if mask is not None:
+        p = p[np.asarray(mask).astype(bool)]
+    return float(np.linalg.norm(np.ptp(p, axis=0)))
 
 
 #: Largest ratio of the floating-point resolution at the cloud's coordinates to the offset
@@ -255,13 +273,14 @@ def check_values(*, offset, eps, margin, domain) -> None:
         check_domain(domain)
 
 
-def validate_settings(points, normals, mask, *, offset, domain) -> None:
+def validate_settings(points, normals, mask, *, offset, domain, extent=None) -> None:
     """The checks of the settings against points already validated
-    (``validate_points``): the offset within the cloud's extent, the samples inside a
-    given domain. ``offset`` None (to be chosen) skips them."""
+    (``validate_points``): the offset within the cloud's extent (``extent``, where the
+    caller knows it), the samples inside a given domain. ``offset`` None (to be chosen)
+    skips them."""
     if offset is None:
         return
-    check_offset_scale(points, offset, mask)
+    check_offset_scale(points, offset, mask, extent)
     if domain is not None and is_concrete(domain, offset):
         p = np.asarray(points, dtype=float)
         n = unit_normals(np.asarray(normals, dtype=float))

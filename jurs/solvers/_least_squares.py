@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import math
 from typing import Any, ClassVar
 
 import equinox as eqx
@@ -52,7 +53,7 @@ class LeastSquaresState(eqx.Module):
 def default_linear_solver(shape: tuple[int, ...]) -> lx.AbstractLinearSolver:
     """Cholesky on the assembled matrix for small grids, CG on the stencil above
     ``DENSE_MAX_COEFFICIENTS`` coefficients."""
-    if np.prod(shape) <= DENSE_MAX_COEFFICIENTS:
+    if math.prod(shape) <= DENSE_MAX_COEFFICIENTS:
         return lx.Cholesky()
     return stencil_cg(shape)
 
@@ -345,7 +346,7 @@ class LeastSquares(AbstractSolver[LeastSquaresState]):
         """Whether ``solve_assembled`` reads the problem's samples beyond its normal
         equations (a surface's default solve: the cascade), or ``solve_without_samples``
         serves."""
-        large = int(np.prod(shape)) > DENSE_MAX_COEFFICIENTS
+        large = math.prod(shape) > DENSE_MAX_COEFFICIENTS
         return self.linear_solver is None and len(shape) == 3 and large
 
     def terminate(self, problem: Problem, state: LeastSquaresState):

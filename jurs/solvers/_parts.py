@@ -15,6 +15,9 @@ equations are a sum over the samples, and so are the metrics and the offset-sign
    check over a part, for the solved spline; per grid;
 4. ``_concluded``: the verdict and the [`jurs.Solution`][] from the sums; per grid.
 
+A cloud that is one part of ``SMALL_PART_POINTS`` points runs the four in one program
+(``_solved_small``): there each program's dispatch costs about what its work does.
+
 The parts are the problem's own points, three samples each, in one sample a slot; the
 solution equals ``solve(LeastSquares(...), problem)``'s to rounding (the sums run in
 another order). [`jurs.fit`][] takes this path at top level where it applies
@@ -78,7 +81,9 @@ def solves_in_parts(num_points: int, shape: tuple[int, ...], solver, init) -> bo
         and type(solver) is LeastSquares
         and not solver.keep_weights
         and init is None
-        and not solver.needs_samples_to_solve(shape)
+        # Through the class: a method read off a Module instance is wrapped in a new
+        # Module each time (equinox's bound methods), a cost a warm small fit notices.
+        and not LeastSquares.needs_samples_to_solve(solver, shape)
     )
 
 
@@ -195,6 +200,30 @@ def _concluded(solver: LeastSquares, control, linear_result, start_energy, sums,
 
 _concluded_jit = FlatJit(_concluded)
 
+#: The sums that ``_measured_part`` adds up over the parts.
+_SUMS = ("E_d", "on_data2", "count", "E_max", "wrong", "counted")
+
+
+def _solved_small(
+    solver: LeastSquares, points, normals, mask, offset, eps, lower, upper, stride, shape
+) -> Solution:
+    """The four programs in one, for a cloud that is one part of ``SMALL_PART_POINTS``
+    points: a small fit's compiled work is as short as the dispatch of each program, so
+    one call instead of four is what its host work comes to."""
+    dtype = points.dtype
+    channels = 7 ** len(shape) + 4 ** len(shape)
+    total = jnp.zeros((num_cells(shape), channels), dtype), jnp.zeros((), dtype)
+    part = points, normals, mask, offset, eps, lower, upper
+    moments, target_norm2 = _assembled_part(total, *part, shape, solver.chunk_size)
+    control, linear_result, column_sums = _solved(solver, moments, target_norm2, shape)
+    sums = {key: jnp.zeros((), dtype) for key in _SUMS}
+    sums = _measured_part(sums, control, *part, stride, jnp.int32(0), shape)
+    sums["column_sums"] = column_sums
+    return _concluded(solver, control, linear_result, target_norm2, sums, lower, upper)
+
+
+_solved_small_jit = FlatJit(_solved_small)
+
 
 def _jitted(fn, jitted, *args):
     """``jitted(*args)``: the default way ``solve_in_parts`` calls each program."""
@@ -215,6 +244,11 @@ def solve_in_parts(problem: Problem, solver: LeastSquares, call=_jitted) -> Solu
         return None
     shape, dtype = problem.shape, problem.samples.dtype
     box = (problem.offset, problem.eps, problem.lower, problem.upper)
+    stride = np.int32(sign_check_stride(problem.num_points))
+    if len(parts) == 1 and len(parts[0][0]) == SMALL_PART_POINTS:
+        args = (solver, *parts[0], *box, stride, shape)
+        solution = call(_solved_small, _solved_small_jit, *args)
+        return solution if np.isfinite(np.asarray(solution.metrics["E"])) else None
     zeros = functools.partial(np.zeros, dtype=dtype)
     channels = 7 ** len(shape) + 4 ** len(shape)
     total = zeros((num_cells(shape), channels)), zeros(())
@@ -225,8 +259,7 @@ def solve_in_parts(problem: Problem, solver: LeastSquares, call=_jitted) -> Solu
     control, linear_result, column_sums = call(
         _solved, _solved_jit, solver, moments, target_norm2, shape
     )
-    sums = {key: zeros(()) for key in ("E_d", "on_data2", "count", "E_max", "wrong", "counted")}
-    stride = np.int32(sign_check_stride(problem.num_points))
+    sums = {key: zeros(()) for key in _SUMS}
     for k, part in enumerate(parts):
         args = (sums, control, *part, *box, stride, np.int32(k * len(part[0])), shape)
         sums = call(_measured_part, _measured_part_jit, *args)
