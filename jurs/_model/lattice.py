@@ -120,19 +120,19 @@ class FinestSpline:
         start) and ``factors[a] (b, n_a, 4)`` (basis values or slopes); ``(k, b, n_1 ..
         n_d)``. Element-wise, four terms added in order (see the class docstring)."""
         out = windows
+        blocks = np.arange(windows.shape[1])[:, None]
         for a in range(len(relative)):
-            axis = 2 + a
+            # Axis a moved next to the blocks' axis: a block's nodes then gather their
+            # window's rows by one advanced index of two adjacent axes (take_along_axis
+            # would broadcast an index over every axis).
+            moved = np.moveaxis(out, 2 + a, 2)
             shape = [1] * out.ndim
-            shape[1] = relative[a].shape[0]
-            shape[axis] = relative[a].shape[1]
-            total = np.take_along_axis(out, relative[a].reshape(shape), axis=axis)
-            total = total * factors[a][:, :, 0].reshape(shape)
+            shape[1], shape[2] = relative[a].shape
+            total = moved[:, blocks, relative[a]] * factors[a][:, :, 0].reshape(shape)
             for m in range(1, 4):
-                index = (relative[a] + m).reshape(shape)
-                total = total + np.take_along_axis(out, index, axis=axis) * factors[a][
-                    :, :, m
-                ].reshape(shape)
-            out = total
+                term = moved[:, blocks, relative[a] + m] * factors[a][:, :, m].reshape(shape)
+                total = total + term
+            out = np.moveaxis(total, 2, 2 + a)
         return out
 
     def lattice(self, axes) -> np.ndarray:
@@ -195,15 +195,25 @@ class FinestSpline:
             shape = (1, n) + (1,) * a + (4,)
             w, s = weights.reshape(shape), slopes.reshape(shape)
             if gradients:
-                parts[a] = np.sum(parts[d] * s, axis=-1)  # before parts[d] loses axis a
+                parts[a] = _four_terms(parts[d], s)  # before parts[d] loses axis a
             for k in range(a + 1 if gradients else d, d + 1):
-                parts[k] = np.sum(parts[k] * w, axis=-1)
+                parts[k] = _four_terms(parts[k], w)
         numerator, denominator = parts[d]
         g = numerator / denominator
         if not gradients:
             return g, None
         gradient = np.stack([(p[0] - g * p[1]) / denominator for p in parts[:d]], axis=-1)
         return g, gradient
+
+
+def _four_terms(x: np.ndarray, factors: np.ndarray) -> np.ndarray:
+    """``sum(x * factors, axis=-1)`` over a last axis of four, as four products added in
+    order: the same value to the bit (NumPy adds so short an axis in order too), without
+    a reduction's per-element loop over an axis of four."""
+    total = x[..., 0] * factors[..., 0]
+    for m in range(1, 4):
+        total = total + x[..., m] * factors[..., m]
+    return total
 
 
 def spline_fields(spline, dims=(2, 3)):

@@ -60,12 +60,17 @@ def leaf_terms(
     local coordinates ``t (n, d)`` in the leaf. Differentiable in ``x`` through ``t``;
     ``xp=numpy`` computes on the host.
 
-    One sorted search of ``4^d`` keys per point: every level's function keys, shifted past
-    the previous levels' grids, form one sorted array whose positions are those of the
-    cascaded vector. (A search per level would cost ``levels * 4^d`` per point.) Where the
-    shifted keys would leave int32, a search per level it is."""
+    One sorted search of ``4^(d-1)`` keys per point: every level's function keys, shifted
+    past the previous levels' grids, form one sorted array whose positions are those of
+    the cascaded vector. (A search per level would cost ``levels * 4^d`` per point.) The
+    four functions along the last axis have consecutive keys, and all ``4^d`` functions
+    over a leaf are relevant on its level, so the four stand at consecutive positions:
+    the first is searched, the other three follow. Where the shifted keys would leave
+    int32, a search per level it is."""
     ndim = hierarchy.ndim
     offsets = xp.asarray(cube_offsets(ndim, 4), xp.int32)
+    # cube_offsets runs the last axis fastest: every fourth offset starts a row of four.
+    firsts = offsets[::4]
     levels = hierarchy.num_levels
     grids = [int(np.prod(hierarchy.functions(lev))) for lev in range(levels)]
     shifts = np.concatenate([[0], np.cumsum(grids)[:-1]]).astype(np.int64)
@@ -79,12 +84,13 @@ def leaf_terms(
         [xp.asarray(hierarchy.function_keys[lev]) + xp.int32(shifts[lev]) for lev in range(levels)]
     )
     extent = xp.asarray([hierarchy.functions(lev) for lev in range(levels)], xp.int32)[level]
-    index = cell[:, None, :] + offsets[None]
+    index = cell[:, None, :] + firsts[None]
     key = index[..., 0]
     for axis in range(1, ndim):
         key = key * extent[:, None, axis] + index[..., axis]
     key = key + xp.asarray(shifts, xp.int32)[level][:, None]
-    positions = xp.clip(xp.searchsorted(combined, key), 0, combined.shape[0] - 1)
+    first = xp.clip(xp.searchsorted(combined, key), 0, combined.shape[0] - 4)
+    positions = (first[:, :, None] + xp.arange(4, dtype=first.dtype)).reshape(key.shape[0], -1)
     return positions.astype(xp.int32), t
 
 
