@@ -179,25 +179,26 @@ class FinestSpline:
         hierarchy = self.hierarchy
         level, cell = locate_leaves(hierarchy, points, xp=np)
         positions, t = leaf_terms(hierarchy, points, level, cell, xp=np)
-        coeffs = self.cascaded[:, positions].reshape((2, n) + (4,) * d)
+        # Points on the last axis: each of the contractions below then multiplies and
+        # adds whole rows of points (a point's own four terms along an axis stand a row
+        # apart), not four neighbouring numbers at a time.
+        coeffs = self.cascaded[:, positions.T].reshape((2,) + (4,) * d + (n,))
         # Each level's cell on the host (NumPy: a jitted caller's trace reaches no array).
         cells = np.asarray([hierarchy.cells(lev) for lev in range(hierarchy.num_levels)], float)
         widths = ((self.upper - self.lower) / cells)[level]
         located = [
-            (None, cubic_weights(t[:, a], xp=np), cubic_slopes(t[:, a]) / widths[:, a, None])
+            (cubic_weights(t[:, a], xp=np).T, (cubic_slopes(t[:, a]) / widths[:, a, None]).T)
             for a in range(d)
         ]
         # Contract the last axis, then the others; `parts[k]` holds the contraction with
         # the slope along axis k (and values along the rest), `parts[d]` values only.
         parts: list = [None] * d + [coeffs]
         for a in range(d - 1, -1, -1):
-            _, weights, slopes = located[a]
-            shape = (1, n) + (1,) * a + (4,)
-            w, s = weights.reshape(shape), slopes.reshape(shape)
+            weights, slopes = located[a]
             if gradients:
-                parts[a] = _four_terms(parts[d], s)  # before parts[d] loses axis a
+                parts[a] = _four_terms(parts[d], slopes)  # before parts[d] loses axis a
             for k in range(a + 1 if gradients else d, d + 1):
-                parts[k] = _four_terms(parts[k], w)
+                parts[k] = _four_terms(parts[k], weights)
         numerator, denominator = parts[d]
         g = numerator / denominator
         if not gradients:
@@ -207,12 +208,11 @@ class FinestSpline:
 
 
 def _four_terms(x: np.ndarray, factors: np.ndarray) -> np.ndarray:
-    """``sum(x * factors, axis=-1)`` over a last axis of four, as four products added in
-    order: the same value to the bit (NumPy adds so short an axis in order too), without
-    a reduction's per-element loop over an axis of four."""
-    total = x[..., 0] * factors[..., 0]
+    """``x (..., 4, n)`` contracted with ``factors (4, n)`` over its axis of four: four
+    products added in order, row by row of the ``n`` points."""
+    total = x[..., 0, :] * factors[0]
     for m in range(1, 4):
-        total = total + x[..., m] * factors[..., m]
+        total = total + x[..., m, :] * factors[m]
     return total
 
 

@@ -568,8 +568,12 @@ def _weld(vertices, faces):
     vertices, inverse = _unique_rows(vertices)
     faces = inverse[faces]
     faces = faces[(faces != np.roll(faces, 1, axis=1)).all(axis=1)]
-    used, faces = np.unique(faces, return_inverse=True)
-    return vertices[used], faces.reshape(-1, 3)
+    # The vertices the faces use, in their order, renumbered (np.unique's result, by a
+    # mark and a running count instead of a sort).
+    used = np.zeros(len(vertices), bool)
+    used[faces] = True
+    number = np.cumsum(used) - 1
+    return vertices[used], number[faces].reshape(-1, 3)
 
 
 def _unique_rows(rows: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
