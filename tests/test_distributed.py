@@ -207,9 +207,8 @@ CHILD = textwrap.dedent(
         out[name] = entry
 
     compare_adaptive("adaptive_curve", jurs.fit, q, m, basis="adaptive")
-    compare_adaptive(
-        "adaptive_sphere", jurs.fit_adaptive, *jurs.datasets.sphere3d(800), finest=16
-    )
+    sphere = jurs.datasets.sphere3d(800)  # CG to a tight tolerance: the sums agree closely
+    compare_adaptive("adaptive_sphere", jurs.fit_adaptive, *sphere, finest=16, rtol=1e-10)
     collective = (
         r"(all-reduce|all-gather|all-to-all|reduce-scatter|collective-permute)(?:-start)?\\("
     )

@@ -56,8 +56,9 @@ def fit_adaptive(
         offset, eps, domain, smoothing: as in [`jurs.auto_settings`][]; chosen from the
             data when None. ``lam`` overrides the lambda made from ``smoothing``.
         rtol, max_steps: the conjugate gradients' stop rule; ``rtol`` None takes
-            ``DEFAULT_RTOL`` in float64 and ``FLOAT32_RTOL`` in float32 (a residual of
-            1e-10 is below float32's rounding, and CG would run to ``max_steps``).
+            ``DEFAULT_RTOL`` (1e-7) in float64 and ``FLOAT32_RTOL`` (1e-5) in float32
+            (a residual of 1e-7 is at float32's rounding, and CG would run to
+            ``max_steps``).
         method: ``"direct"`` (a sparse factorisation on the host, QDLDL), ``"cg"``
             (conjugate gradients in JAX, the path that runs on a GPU), ``"host_cg"``
             (the same conjugate gradients run by SciPy on the host, faster on a CPU),
