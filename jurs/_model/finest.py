@@ -54,15 +54,18 @@ def _subdivided(values: np.ndarray, matrix: np.ndarray) -> np.ndarray:
     """Leaves' ``4^d`` coefficients ``values (k, u, 4, .., 4)`` carried to the finer level
     of ``matrix (S, 4)`` (``subdivision_matrix``): ``(k, u, S, .., S)``, one axis at a time,
     each entry four products added in a fixed order (element-wise, no BLAS), so an entry
-    depends only on its leaf's values, never on the other leaves asked with it."""
-    out = values
-    for axis in range(2, values.ndim):
-        moved = np.moveaxis(out, axis, -1)[..., None, :]  # (..., 1, 4)
-        total = moved[..., 0] * matrix[:, 0]
+    depends only on its leaf's values, never on the other leaves asked with it. The
+    leaves run along the last axis meanwhile: each product then runs over a row of
+    leaves, not over the few finer functions of one."""
+    out = np.moveaxis(values, 1, -1)  # (k, 4, .., 4, u)
+    for axis in range(1, values.ndim - 1):
+        moved = np.moveaxis(out, axis, 0)  # (4, k, .., u)
+        column = (-1,) + (1,) * (moved.ndim - 1)
+        total = moved[0][None] * matrix[:, 0].reshape(column)
         for i in range(1, 4):
-            total = total + moved[..., i] * matrix[:, i]
-        out = np.moveaxis(total, -1, axis)
-    return out
+            total = total + moved[i][None] * matrix[:, i].reshape(column)
+        out = np.moveaxis(total, 0, axis)
+    return np.moveaxis(out, -1, 1)
 
 
 def level_offsets(hierarchy: Hierarchy) -> np.ndarray:
