@@ -187,7 +187,10 @@ class FinestSpline:
         cells = np.asarray([hierarchy.cells(lev) for lev in range(hierarchy.num_levels)], float)
         widths = ((self.upper - self.lower) / cells)[level]
         located = [
-            (cubic_weights(t[:, a], xp=np).T, (cubic_slopes(t[:, a]) / widths[:, a, None]).T)
+            (
+                np.asarray(cubic_weights(t[:, a], xp=np)).T,
+                (cubic_slopes(t[:, a]) / widths[:, a, None]).T,
+            )
             for a in range(d)
         ]
         # Contract the last axis, then the others; `parts[k]` holds the contraction with
