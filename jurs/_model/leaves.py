@@ -90,7 +90,7 @@ def leaf_terms(
         key = key * extent[:, None, axis] + index[..., axis]
     key = key + xp.asarray(shifts, xp.int32)[level][:, None]
     first = xp.clip(xp.searchsorted(combined, key), 0, combined.shape[0] - 4)
-    positions = (first[:, :, None] + xp.arange(4, dtype=first.dtype)).reshape(key.shape[0], -1)
+    positions = (first[:, :, None] + xp.arange(4, dtype=first.dtype)).reshape(-1, 4**ndim)
     return positions.astype(xp.int32), t
 
 
