@@ -828,3 +828,19 @@ def test_random_meshes_are_analysed_or_refused_by_name(num_vertices, faces, coor
     assert len(covered) == len(np.unique(np.sort(proper, axis=1), axis=0))
     for c in report.components:
         assert c.area >= 0 and (c.genus is None or c.closed)
+
+
+def test_unique_rows_are_numpy_s():
+    """The weld's row sort gives ``np.unique(axis=0)``'s rows, order and inverse, with
+    repeated rows, ties in the first columns and -0.0 beside 0.0."""
+    from jurs.levelset import _meshing
+
+    rng = np.random.default_rng(3)
+    rows = np.round(rng.normal(size=(2000, 3)), 1)
+    rows = np.concatenate(
+        [rows, rows[rng.permutation(2000)[:700]], [[0.0, -0.0, 1.0]], [[-0.0, 0.0, 1.0]]]
+    )
+    got, inverse = _meshing._unique_rows(rows)
+    want, want_inverse = np.unique(rows, axis=0, return_inverse=True)
+    np.testing.assert_array_equal(got, want)
+    np.testing.assert_array_equal(inverse, want_inverse.reshape(-1))

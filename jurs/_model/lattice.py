@@ -189,7 +189,7 @@ class FinestSpline:
         located = [
             (
                 np.asarray(cubic_weights(t[:, a], xp=np)).T,
-                (cubic_slopes(t[:, a]) / widths[:, a, None]).T,
+                (cubic_slopes(t[:, a]) / widths[:, a, None]).T if gradients else None,
             )
             for a in range(d)
         ]
@@ -198,7 +198,7 @@ class FinestSpline:
         parts: list = [None] * d + [coeffs]
         for a in range(d - 1, -1, -1):
             weights, slopes = located[a]
-            if gradients:
+            if slopes is not None:  # gradients asked for
                 parts[a] = _four_terms(parts[d], slopes)  # before parts[d] loses axis a
             for k in range(a + 1 if gradients else d, d + 1):
                 parts[k] = _four_terms(parts[k], weights)

@@ -242,14 +242,21 @@ def solve_in_parts(problem: Problem, solver: LeastSquares, call=_jitted) -> Solu
     parts = _parts(problem)
     if parts is None:
         return None
-    shape, dtype = problem.shape, problem.samples.dtype
+    shape = problem.shape
     box = (problem.offset, problem.eps, problem.lower, problem.upper)
     stride = np.int32(sign_check_stride(problem.num_points))
     if len(parts) == 1 and len(parts[0][0]) == SMALL_PART_POINTS:
         args = (solver, *parts[0], *box, stride, shape)
         solution = call(_solved_small, _solved_small_jit, *args)
-        return solution if np.isfinite(np.asarray(solution.metrics["E"])) else None
-    zeros = functools.partial(np.zeros, dtype=dtype)
+    else:
+        solution = _solved_over_parts(problem, solver, parts, box, stride, call)
+    return solution if np.isfinite(np.asarray(solution.metrics["E"])) else None
+
+
+def _solved_over_parts(problem: Problem, solver: LeastSquares, parts, box, stride, call):
+    """``solve_in_parts``' solution from its four programs, each part summed in turn."""
+    shape = problem.shape
+    zeros = functools.partial(np.zeros, dtype=problem.samples.dtype)
     channels = 7 ** len(shape) + 4 ** len(shape)
     total = zeros((num_cells(shape), channels)), zeros(())
     for part in parts:
@@ -266,7 +273,4 @@ def solve_in_parts(problem: Problem, solver: LeastSquares, call=_jitted) -> Solu
     sums["column_sums"] = column_sums
     # E at C = 0, the start's: the targets' sum of squares.
     args = (solver, control, linear_result, target_norm2, sums, problem.lower, problem.upper)
-    solution = call(_concluded, _concluded_jit, *args)
-    if not np.isfinite(np.asarray(solution.metrics["E"])):
-        return None
-    return solution
+    return call(_concluded, _concluded_jit, *args)
