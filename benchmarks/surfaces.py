@@ -151,6 +151,8 @@ def run_jurs(points, normals, max_grid, fit="uniform"):
         + (
             f"; uniform residual {sol.stats['uniform_residual']:.3f}"
             if "uniform_residual" in sol.stats
+            else f"; noise {sol.stats['noise_spacings']:.2f} spacings, no grid trial"
+            if "noise_spacings" in sol.stats
             else ""
         ),
     }
@@ -420,14 +422,17 @@ ADAPTIVE_LIMITS = (
 def default_limits() -> str:
     """What decides the default fit's basis (docs/design.md section 8), from the library's
     own constants (imported here: the parent process does not import jurs up front)."""
-    from jurs._fit.adaptive import UNIFORM_RESIDUAL_SPACINGS
+    from jurs._fit.adaptive import NOISY_SPACINGS, UNIFORM_RESIDUAL_SPACINGS
     from jurs._fit.settings import DEFAULT_MAX_GRID_3D
 
     return (
         f"`jurs.fit` fits the uniform grid (cap {DEFAULT_MAX_GRID_3D} a side) and keeps it "
         f"where 90 % of the points lie within {UNIFORM_RESIDUAL_SPACINGS} spacings of its zero "
         "set; otherwise it fits the adaptive basis (the cost table gives the uniform residual "
-        "of each escalated fit, and its time includes the grid's fit). " + ADAPTIVE_LIMITS
+        "of each escalated fit, and its time includes the grid's fit). Where the grid is "
+        f"capped and the cloud's noise is at least {NOISY_SPACINGS} spacings, it fits the "
+        "adaptive basis without the grid's trial (the cost table gives the noise). "
+        + ADAPTIVE_LIMITS
     )
 
 

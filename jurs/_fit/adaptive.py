@@ -121,6 +121,14 @@ AUTO_MAX_SURFACE_POINTS = 150_000
 #: (horse), where the hierarchy's Hausdorff distance was 2-3.5x smaller (docs/design.md
 #: section 8, "The automatic choice of basis").
 UNIFORM_RESIDUAL_SPACINGS = 0.02
+#: A cloud whose scatter about local quadratics (``Settings.noise``, sigma: noise, or
+#: detail finer than a point's neighbours) is at least this many spacings goes to the
+#: hierarchy without fitting the capped grid first: every capped trial measured at such
+#: scatter was refused, at residuals far above ``UNIFORM_RESIDUAL_SPACINGS`` (the realdata
+#: benchmark's traced outlines, sigma 0.11-0.41 spacings: 0.12-0.99; the surfaces
+#: benchmark's noisy clouds, 0.9: 2.9-4.5), while clean analytic clouds read 0.00-0.04
+#: (docs/design.md section 8, "The automatic choice of basis").
+NOISY_SPACINGS = 0.1
 
 
 def wants_adaptive(settings: Settings, points: int) -> bool:
@@ -136,6 +144,13 @@ def wants_adaptive(settings: Settings, points: int) -> bool:
     if ndim == 3 and points > AUTO_MAX_SURFACE_POINTS:
         return False
     return settings.cell_width >= AUTO_REFINEMENT * settings.data_cell
+
+
+def noise_decides(settings: Settings) -> bool:
+    """Whether the cloud's noise alone (``settings.noise``, at least ``NOISY_SPACINGS``
+    spacings) would refuse the capped grid's trial fit (``uniform_residual``), so that
+    [`jurs.fit`][] goes to the hierarchy without it."""
+    return settings.noise >= NOISY_SPACINGS * settings.spacing
 
 
 def uniform_residual(spline, cloud: Cloud, settings: Settings) -> float:

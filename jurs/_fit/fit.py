@@ -51,6 +51,7 @@ from .adaptive import (
     hierarchy_layout,
     hierarchy_rtol,
     hierarchy_solution,
+    noise_decides,
     solve_on_hierarchy,
     solver_lam,
     uniform_residual,
@@ -374,7 +375,10 @@ def fit(
             a side), the uniform grid is fitted first and kept if 90 % of the points lie
             within ``UNIFORM_RESIDUAL_SPACINGS`` (0.02) spacings of its zero set, else the
             fit is made on the adaptive basis; ``sol.stats["uniform_residual"]`` records
-            that distance. Elsewhere the uniform grid. Any of ``grid``, ``solver``, ``init``,
+            that distance. A cloud whose noise is at least ``NOISY_SPACINGS`` (0.1)
+            spacings, which no fit comes that close to, goes to the adaptive basis without
+            the grid's trial (``sol.stats["noise_spacings"]`` records its noise).
+            Elsewhere the uniform grid. Any of ``grid``, ``solver``, ``init``,
             ``mask``, ``bucket_size``, a ``callback``, points split over processes, or
             traced points keep the uniform grid; points sharded over the devices of one
             process take the same choice as unsharded (the hierarchy then fitted with the
@@ -662,6 +666,14 @@ def _fit(
             cloud, settings, finest=auto_finest(settings), offset=offset, eps=eps, lam=lam,
             checks=checks, throw=throw, solver=given_solver, noted=noted,
         )  # fmt: skip
+        return sol, None
+    if escalate and noise_decides(settings):  # the grid's trial would be refused
+        assert settings is not None  # escalate says so
+        noise = settings.noise / settings.spacing
+        noted = dict(estimated_normals=estimated, noise_spacings=noise)
+        sol = on_hierarchy(
+            cloud, settings, finest=auto_finest(settings), checks=checks, throw=throw, noted=noted
+        )
         return sol, None
     check_start(shape, solver, init)
     dtype = jnp.result_type(float)

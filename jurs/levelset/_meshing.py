@@ -37,12 +37,18 @@ from ._trimming import check_points, check_rim, check_trim, trim_mesh
 #: plotting defaults"). Five a cell makes the default mesh of a 48^3 fit about 230 nodes a
 #: side.
 SAMPLES_PER_CELL = 5
+#: The same for an adaptive spline, per finest cell. Its finest cells are chosen from the
+#: data (three point spacings on a surface), narrow beside the shape's curvature, so the
+#: flat triangles' error is far below the fit's at fewer nodes: on the 1e5-point bunny and
+#: airplane, 2.5 nodes a finest cell gave the Chamfer and Hausdorff distances of 5 to 1-2 %
+#: with a quarter of the faces (docs/performance.md, "A hierarchy's default mesh").
+ADAPTIVE_SAMPLES_PER_CELL = 2.5
 #: Bounds of the default resolution (nodes along the longest side of the box). 256 keeps a
 #: default mesh at a few hundred thousand triangles, quick to mesh (docs/performance.md,
 #: "Mesh lattice density"); pass ``resolution`` for more.
 MIN_RESOLUTION, MAX_RESOLUTION = 32, 256
 #: Bound of the default resolution of an adaptive spline, whose mesh marches only the
-#: blocks where g may reach the level (``jurs._model.band``): five nodes a finest cell
+#: blocks where g may reach the level (``jurs._model.band``): 2.5 nodes a finest cell
 #: up to a 1025^3-equivalent lattice, within ``max_nodes`` of marched nodes.
 MAX_ADAPTIVE_RESOLUTION = 1025
 #: Default lattice nodes per slab of [`mesh`][jurs.levelset.mesh]: 8 MiB of float64
@@ -144,26 +150,28 @@ def default_resolution(
 ) -> int:
     """``SAMPLES_PER_CELL`` lattice nodes per spline cell (the finest axis's) along the
     longest side of the box, within [``MIN_RESOLUTION``, ``MAX_RESOLUTION``]; for an
-    adaptive spline, per *finest* cell within [``MIN_RESOLUTION``,
-    ``MAX_ADAPTIVE_RESOLUTION``] (only the band is marched, and
+    adaptive spline, ``ADAPTIVE_SAMPLES_PER_CELL`` per *finest* cell within
+    [``MIN_RESOLUTION``, ``MAX_ADAPTIVE_RESOLUTION``] (only the band is marched, and
     [`mesh`][jurs.levelset.mesh] lowers it further when the marched nodes exceed
     ``max_nodes``)."""
     spline = grid_spline(spline, dims=(3,))
     cell = float(np.min(spline.cell_widths))
-    nodes = int(np.ceil(SAMPLES_PER_CELL * np.max(upper - lower) / cell)) + 1
-    return int(np.clip(nodes, MIN_RESOLUTION, _max_resolution(spline)))
+    per_cell, largest = _default_density(spline)
+    nodes = int(np.ceil(per_cell * np.max(upper - lower) / cell)) + 1
+    return int(np.clip(nodes, MIN_RESOLUTION, largest))
 
 
 @functools.singledispatch
-def _max_resolution(spline: AbstractSpline) -> int:
-    """The largest default resolution: the whole lattice is marched."""
-    return MAX_RESOLUTION
+def _default_density(spline: AbstractSpline) -> tuple[float, int]:
+    """``(nodes per cell, largest resolution)`` of the default lattice: the whole lattice
+    is marched."""
+    return SAMPLES_PER_CELL, MAX_RESOLUTION
 
 
-@_max_resolution.register
-def _(spline: AdaptiveSpline) -> int:
+@_default_density.register
+def _(spline: AdaptiveSpline) -> tuple[float, int]:
     # Only the band is marched (and mesh lowers the resolution to fit max_nodes).
-    return MAX_ADAPTIVE_RESOLUTION
+    return ADAPTIVE_SAMPLES_PER_CELL, MAX_ADAPTIVE_RESOLUTION
 
 
 def mesh(
@@ -193,7 +201,7 @@ def mesh(
             without evaluating the full lattice.
         resolution: lattice nodes along the longest side of the box (the other sides get
             the same spacing). Default: 5 per spline cell, between 32 and 256; for an
-            adaptive spline 5 per finest cell, between 32 and 1025, lowered until the
+            adaptive spline 2.5 per finest cell, between 32 and 1025, lowered until the
             marched nodes fit in ``max_nodes``.
         box: ``(lower, upper)`` to mesh; default the spline's own box.
         level: the level set to mesh.
