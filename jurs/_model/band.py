@@ -311,57 +311,89 @@ def band_regions(
     every = np.ones((3,) * d, bool)
     shared_nodes, shared_ids, joins = [], [], []
     edge_keys, lows, highs, mids = [], [], [], []
+    # A batch of blocks is labelled at once: no connection along the batch axis, so each
+    # block's components are its own, numbered block by block in raster order.
+    up_structure = np.zeros((3,) * (d + 1), bool)
+    up_structure[1] = faces_only
+    down_structure = np.zeros((3,) * (d + 1), bool)
+    down_structure[1] = every
     for begin in range(0, len(plan.blocks), grid.batch):
         batch = plan.blocks[begin : begin + grid.batch]
         values, real = grid.values(evaluator, batch)
-        for b, where in enumerate(batch):
-            above = values[(b,) + tuple(slice(0, n) for n in real[b])] > level
-            up: Any = ndimage.label(above, structure=faces_only)
-            down: Any = ndimage.label(~above, structure=every)
-            local = np.where(above, up[0], down[0] + int(up[1])) - 1 + next_id
-            next_id += int(up[1]) + int(down[1])
-            start = np.array([grid.first[k][where[k]] for k in range(d)])
-            for axis in range(d):
-                head = tuple(slice(0, -1) if a == axis else slice(None) for a in range(d))
-                tail = tuple(slice(1, None) if a == axis else slice(None) for a in range(d))
-                index = np.nonzero(above[head] != above[tail])
-                if len(index[0]) == 0:
-                    continue
-                node = np.stack(index, axis=1) + start
-                first_above = above[head][index]
-                a, c = local[head][index], local[tail][index]
-                lows.append(np.where(first_above, c, a))
-                highs.append(np.where(first_above, a, c))
-                edge_keys.append(np.ravel_multi_index(tuple(node.T), counts) * d + axis)
-                at = node.astype(float)
-                at[:, axis] += 0.5
-                mids.append(at)
-            # The block's boundary nodes, shared with its neighbours.
-            border = np.zeros(above.shape, bool)
-            for axis in range(d):
-                first = tuple(0 if a == axis else slice(None) for a in range(d))
-                last = tuple(-1 if a == axis else slice(None) for a in range(d))
-                border[first] = border[last] = True
-            node = np.argwhere(border) + start
-            ids = local[border]
-            shared_nodes.append(np.ravel_multi_index(tuple(node.T), counts))
-            shared_ids.append(ids)
-            # Skipped blocks holding these nodes: node i lies in block i // B and, at a
-            # block's first node, in the block before too.
-            for corner in cube_offsets(d, 2):
-                holder = np.empty_like(node)
-                ok = np.ones(len(node), bool)
-                for k in range(d):
-                    primary = np.minimum(node[:, k] // grid.block, grid.grid[k] - 1)
-                    if corner[k]:
-                        ok &= (node[:, k] % grid.block == 0) & (node[:, k] > 0)
-                        holder[:, k] = node[:, k] // grid.block - 1
-                    else:
-                        holder[:, k] = primary
-                holder = np.clip(holder, 0, np.asarray(grid.grid) - 1)
-                region = block_region[tuple(holder.T)]
-                ok &= region >= 0
-                joins.append(np.stack([ids[ok], region[ok]], 1))
+        count, side = len(batch), values.shape[1:]
+        # A block cut by the lattice's end holds its own nodes below ``real``; the rest
+        # repeat its last node and take part in nothing.
+        valid = np.ones(values.shape, bool)
+        border = np.zeros(values.shape, bool)
+        for k in range(d):
+            shape = [count] + [1] * d
+            shape[1 + k] = side[k]
+            index = np.arange(side[k])[None]
+            valid &= (index < real[:, k : k + 1]).reshape(shape)
+            border |= ((index == 0) | (index == real[:, k : k + 1] - 1)).reshape(shape)
+        border &= valid
+        positive = values > level
+        up: Any = ndimage.label(positive & valid, structure=up_structure)[0]
+        down: Any = ndimage.label(~positive & valid, structure=down_structure)[0]
+        # Region ids as if each block were labelled alone, in turn: its components above
+        # the level, then those below.
+        last_up = np.maximum.accumulate(up.reshape(count, -1).max(axis=1))
+        last_down = np.maximum.accumulate(down.reshape(count, -1).max(axis=1))
+        up_before = np.concatenate([[0], last_up[:-1]])
+        down_before = np.concatenate([[0], last_down[:-1]])
+        ups = last_up - up_before
+        sizes = ups + last_down - down_before
+        first = next_id + np.concatenate([[0], np.cumsum(sizes)[:-1]])
+        each = (count,) + (1,) * d
+        local = np.where(
+            positive,
+            (first - up_before - 1).reshape(each) + up,
+            (first + ups - down_before - 1).reshape(each) + down,
+        )
+        next_id += int(sizes.sum())
+        start = np.stack([grid.first[k][batch[:, k]] for k in range(d)], -1)
+        for axis in range(d):
+            head = (slice(None),) + tuple(
+                slice(0, -1) if a == axis else slice(None) for a in range(d)
+            )
+            tail = (slice(None),) + tuple(
+                slice(1, None) if a == axis else slice(None) for a in range(d)
+            )
+            crossed = (positive[head] != positive[tail]) & valid[head] & valid[tail]
+            index = np.nonzero(crossed)
+            if len(index[0]) == 0:
+                continue
+            node = np.stack(index[1:], axis=1) + start[index[0]]
+            first_above = positive[head][index]
+            a, c = local[head][index], local[tail][index]
+            lows.append(np.where(first_above, c, a))
+            highs.append(np.where(first_above, a, c))
+            edge_keys.append(np.ravel_multi_index(tuple(node.T), counts) * d + axis)
+            at = node.astype(float)
+            at[:, axis] += 0.5
+            mids.append(at)
+        # The blocks' boundary nodes, shared with their neighbours.
+        index = np.nonzero(border)
+        node = np.stack(index[1:], axis=1) + start[index[0]]
+        ids = local[index]
+        shared_nodes.append(np.ravel_multi_index(tuple(node.T), counts))
+        shared_ids.append(ids)
+        # Skipped blocks holding these nodes: node i lies in block i // B and, at a
+        # block's first node, in the block before too.
+        for corner in cube_offsets(d, 2):
+            holder = np.empty_like(node)
+            ok = np.ones(len(node), bool)
+            for k in range(d):
+                primary = np.minimum(node[:, k] // grid.block, grid.grid[k] - 1)
+                if corner[k]:
+                    ok &= (node[:, k] % grid.block == 0) & (node[:, k] > 0)
+                    holder[:, k] = node[:, k] // grid.block - 1
+                else:
+                    holder[:, k] = primary
+            holder = np.clip(holder, 0, np.asarray(grid.grid) - 1)
+            region = block_region[tuple(holder.T)]
+            ok &= region >= 0
+            joins.append(np.stack([ids[ok], region[ok]], 1))
     if not lows:
         empty = np.zeros(0, np.int64)
         return empty, empty, np.zeros((0, d))

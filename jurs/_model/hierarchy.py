@@ -493,8 +493,11 @@ def cascade(
     level over each level's relevant functions (module docstring). ``coeffs`` is the
     active functions' vector (leading axes carry several splines at once). Linear in
     ``coeffs``: its transpose (by JAX) spreads values back to the active functions.
-    ``xp=numpy`` on the host: the same products, with nothing compiled and no cascade
-    matrix built (``cascade_matrix`` costs about as much as assembling the fit)."""
+    ``xp=numpy`` on the host: each level's truncated subdivision as a sparse product
+    (``truncated_refinement``), nothing compiled and no cascade matrix built
+    (``cascade_matrix`` costs about as much as assembling the fit)."""
+    if xp is np:
+        return _host_cascade(hierarchy, np.asarray(coeffs))
     lead = coeffs.shape[:-1]
     out = []
     start = 0
@@ -505,11 +508,7 @@ def cascade(
         start += count
         size = hierarchy.level_sizes[level]
         active = xp.asarray(hierarchy.active[level])
-        if xp is np:  # NumPy arrays have no .at; the active positions are distinct
-            placed = np.zeros(lead + (size,), coeffs.dtype)
-            placed[..., active] = mine
-        else:
-            placed = jnp.zeros(lead + (size,), coeffs.dtype).at[..., active].add(mine)
+        placed = jnp.zeros(lead + (size,), coeffs.dtype).at[..., active].add(mine)
         if previous is None:
             current = placed
         else:
@@ -519,6 +518,42 @@ def cascade(
         out.append(current)
         previous = current
     return xp.concatenate(out, axis=-1)
+
+
+def truncated_refinement(hierarchy: Hierarchy, level: int):
+    """``keep_level * R_{level-1}`` (``level >= 1``) as a SciPy CSR matrix: rows the
+    level's relevant functions, columns the coarser level's, ``3^d`` entries a row (the
+    truncated rows zero). Built from ``parents`` as they are: no (row, column) pairs to
+    sort; repeated padding parents have weight 0 and add nothing."""
+    from scipy import sparse
+
+    parents = np.asarray(hierarchy.parents[level])
+    weights = hierarchy.parent_weights(level, np).astype(float)
+    weights *= np.asarray(hierarchy.keep[level], float)[:, None]
+    size, width = parents.shape
+    return sparse.csr_matrix(
+        (weights.ravel(), parents.ravel(), np.arange(0, size * width + 1, width)),
+        shape=(size, hierarchy.level_sizes[level - 1]),
+    )
+
+
+def _host_cascade(hierarchy: Hierarchy, coeffs: np.ndarray) -> np.ndarray:
+    """``cascade`` in NumPy and SciPy: each level's refinement one sparse product (a
+    gather of ``3^d`` parents and a sum over them allocates ``3^d`` times the level)."""
+    lead = coeffs.shape[:-1]
+    flat = coeffs.reshape(-1, coeffs.shape[-1]).T  # (n, splines)
+    out, start, previous = [], 0, None
+    for level in range(hierarchy.num_levels):
+        count = hierarchy.active_counts[level]
+        current = np.zeros((hierarchy.level_sizes[level], flat.shape[1]), flat.dtype)
+        if previous is not None:
+            current += truncated_refinement(hierarchy, level) @ previous
+        # The active positions are distinct.
+        current[np.asarray(hierarchy.active[level])] += flat[start : start + count]
+        start += count
+        out.append(current)
+        previous = current
+    return np.concatenate(out, axis=0).T.reshape(lead + (-1,))
 
 
 def cascade_matrix(hierarchy: Hierarchy):
@@ -542,18 +577,9 @@ def cascade_matrix(hierarchy: Hierarchy):
         if previous is None:
             current = placed
         else:
-            parents = np.asarray(hierarchy.parents[level])
-            weights = hierarchy.parent_weights(level, np).astype(float)
-            weights *= np.asarray(hierarchy.keep[level], float)[:, None]
-            # CSR from the arrays as they are, 3^d entries a row: no (row, column) pairs
-            # to sort (they were most of this function's memory on fine hierarchies).
-            # Repeated padding parents have weight 0 and add nothing.
-            width = parents.shape[1]
-            refine = sparse.csr_matrix(
-                (weights.ravel(), parents.ravel(), np.arange(0, size * width + 1, width)),
-                shape=(size, hierarchy.level_sizes[level - 1]),
-            )
-            current = sparse.csr_matrix(refine @ previous + placed)
+            # No (row, column) pairs to sort: they were most of this function's memory on
+            # fine hierarchies.
+            current = sparse.csr_matrix(truncated_refinement(hierarchy, level) @ previous + placed)
             current.eliminate_zeros()
         blocks.append(current)
         previous = current
