@@ -123,11 +123,14 @@ AUTO_MAX_SURFACE_POINTS = 150_000
 UNIFORM_RESIDUAL_SPACINGS = 0.02
 #: A cloud whose scatter about local quadratics (``Settings.noise``, sigma: noise, or
 #: detail finer than a point's neighbours) is at least this many spacings goes to the
-#: hierarchy without fitting the capped grid first: every capped trial measured at such
-#: scatter was refused, at residuals far above ``UNIFORM_RESIDUAL_SPACINGS`` (the realdata
-#: benchmark's traced outlines, sigma 0.11-0.41 spacings: 0.12-0.99; the surfaces
-#: benchmark's noisy clouds, 0.9: 2.9-4.5), while clean analytic clouds read 0.00-0.04
-#: (docs/design.md section 8, "The automatic choice of basis").
+#: hierarchy without fitting the capped grid first. A capped grid follows part of such
+#: scatter: the lowest residual measured against it was the clean coins' (0.030 spacings at
+#: sigma 0.082, 0.23 times 1.6 sigma, 1.6 sigma being the 90th percentile of a normal
+#: scatter's distances); at that ratio a sigma of 0.1 spacings still reads 0.037, above
+#: ``UNIFORM_RESIDUAL_SPACINGS``. Every capped trial measured at such scatter was refused
+#: (the realdata benchmark's traced outlines, sigma 0.11-0.41: residuals 0.12-0.99; the
+#: surfaces benchmark's noisy clouds, 0.9: 2.9-4.5), and every kept one read sigma 0.008 or
+#: less (docs/design.md section 8, "The automatic choice of basis").
 NOISY_SPACINGS = 0.1
 
 

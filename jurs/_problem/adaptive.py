@@ -100,6 +100,23 @@ def normal_matrices(hierarchy: Hierarchy, positions: ArrayLike, basis: ArrayLike
     return collocation, regulariser
 
 
+#: Entries of D squared at a time in ``column_squares``.
+SQUARED_CHUNK = 1 << 21
+
+
+def column_squares(matrix, columns: int) -> np.ndarray:
+    """The column sums of a CSR matrix's squared entries (the diagonal of ``D^T D``),
+    squaring ``SQUARED_CHUNK`` entries at a time: a squared copy of D's entries would be
+    the assembly's peak."""
+    out = np.zeros(columns)
+    for begin in range(0, len(matrix.data), SQUARED_CHUNK):
+        data = matrix.data[begin : begin + SQUARED_CHUNK]
+        out += np.bincount(
+            matrix.indices[begin : begin + SQUARED_CHUNK], data * data, minlength=columns
+        )
+    return out
+
+
 def normal_system(problem: AdaptiveProblem, matrices, lam: float, row_weights=None):
     """``(D^T S D + lam 2 G^T W G, D^T S b)`` on the host (SciPy sparse, float64) from the
     matrices ``(D, 2 G^T W G)`` of ``assemble_adaptive_problem``, ``S`` the samples'
@@ -182,10 +199,7 @@ def assemble_adaptive_problem(
     level, cell = locate_leaves(hierarchy, samples_np, xp=np)
     positions, local = leaf_terms(hierarchy, samples_np, level, cell, xp=np)
     collocation, regulariser = normal_matrices(hierarchy, positions, hierarchy_basis(local, xp=np))
-    # The column sums of D's squared entries, without a squared copy of D.
-    data_diagonal = np.bincount(
-        collocation.indices, collocation.data**2, minlength=hierarchy.num_active
-    )
+    data_diagonal = column_squares(collocation, hierarchy.num_active)
     regulariser_diagonal = regulariser.diagonal()
     problem = AdaptiveProblem(
         hierarchy=hierarchy,
