@@ -32,6 +32,8 @@ a division by a fitted density that could vanish (``D`` is 1 wherever data are).
 
 from __future__ import annotations
 
+import functools
+
 import equinox as eqx
 import jax
 import jax.numpy as jnp
@@ -196,12 +198,29 @@ def _checked_values(points, values, normals, ndim: int):
 
 
 def _attribute_grid(spline, grid) -> tuple[int, ...]:
+    """The attributes' grid: ``grid`` where given, else the spline's own
+    (``_own_grid``)."""
     if grid is not None:
         from .._problem.validate import normalise_grid
 
         return normalise_grid(grid, spline.ndim)
-    if isinstance(spline, ImplicitSpline):
-        return tuple(spline.shape)
+    return _own_grid(spline)
+
+
+@functools.singledispatch
+def _own_grid(spline: AbstractSpline) -> tuple[int, ...]:
+    """The default attribute grid of ``spline``, by its basis."""
+    raise TypeError(f"no attribute grid for a {type(spline).__name__}")
+
+
+@_own_grid.register
+def _(spline: ImplicitSpline) -> tuple[int, ...]:
+    return tuple(spline.shape)  # its own coefficient grid
+
+
+@_own_grid.register
+def _(spline: AdaptiveSpline) -> tuple[int, ...]:
+    # The finest level's uniform grid, capped: the attributes need no hierarchy.
     cap = ADAPTIVE_MAX_CELLS[spline.ndim]
     return tuple(min(int(c), cap) + 3 for c in spline.finest_cells)
 
