@@ -24,7 +24,7 @@ from jaxtyping import ArrayLike, Float
 from .._cloud.cloud import Cloud
 from .._model.spline import ImplicitSpline
 from .._problem.adaptive import assemble_adaptive_problem, assembled_metrics
-from .._problem.memory import check_fit_memory
+from .._problem.memory import check_fit_memory, release_freed_memory
 from .._problem.padding import padded_problem
 from .._problem.problem import make_problem
 from .._problem.sizes import DEFAULT_MARGIN
@@ -717,6 +717,8 @@ def _fit(
         if residual > UNIFORM_RESIDUAL_SPACINGS:
             noted = dict(estimated_normals=estimated, uniform_residual=residual)
             finest = auto_finest(settings)
+            del sol, extra  # the trial's arrays, freed before the hierarchy's
+            release_freed_memory()
             sol = on_hierarchy(
                 cloud, settings, finest=finest, checks=checks, throw=throw, noted=noted
             )
