@@ -182,6 +182,23 @@ def test_band_mesh_counts_marched_nodes_against_max_nodes():
     assert len(faces) and jurs.levelset.analyze_mesh(vertices, faces).components[0].genus == 1
 
 
+def test_adaptive_default_density_is_coarser_unless_trimmed():
+    """An adaptive spline's default lattice takes ``ADAPTIVE_SAMPLES_PER_CELL`` nodes a
+    finest cell, a trimmed mesh ``SAMPLES_PER_CELL`` (the trim clips along the faces);
+    ``mesh`` passes whether it trims."""
+    spline = _torus()
+    lower, upper = np.asarray(spline.lower), np.asarray(spline.upper)
+    cells = float(np.max(upper - lower) / np.min(spline.cell_widths))
+    plain = _meshing.default_resolution(spline, lower, upper)
+    trimmed = _meshing.default_resolution(spline, lower, upper, trimmed=True)
+    assert plain == int(np.ceil(_meshing.ADAPTIVE_SAMPLES_PER_CELL * cells)) + 1
+    assert trimmed == int(np.ceil(_meshing.SAMPLES_PER_CELL * cells)) + 1
+    assert plain < trimmed
+    # The mesh's lattice follows: at the plain density a default mesh is the mesh of that
+    # resolution, bit for bit.
+    _assert_same_mesh(jurs.levelset.mesh(spline), jurs.levelset.mesh(spline, plain))
+
+
 @pytest.mark.slow
 def test_band_mesh_of_an_adaptive_sphere_fit_is_watertight_and_matches_the_lattice():
     """A fit (not a constructed spline): its band-only mesh is closed, of genus 0, and the

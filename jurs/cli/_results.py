@@ -248,7 +248,7 @@ def surface_outputs(job: FitJob, args, sol, seconds: float):
     budget = getattr(args, "faces", None)  # --faces: decimated to it, None keeps every face
     t0 = time.perf_counter()
     if job.adaptive and job.resolution is None:
-        # The band mesh chooses its resolution (2.5 nodes a finest cell, lowered until
+        # The band mesh chooses its resolution (2.5 nodes a finest cell, 5 trimmed, lowered until
         # the marched nodes fit in its node limit); metrics.json records it as None.
         resolution = None
         with StageClock(f"{job.shown}: meshing", enabled=not args.quiet):

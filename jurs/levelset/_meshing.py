@@ -37,11 +37,14 @@ from ._trimming import check_points, check_rim, check_trim, trim_mesh
 #: plotting defaults"). Five a cell makes the default mesh of a 48^3 fit about 230 nodes a
 #: side.
 SAMPLES_PER_CELL = 5
-#: The same for an adaptive spline, per finest cell. Its finest cells are chosen from the
-#: data (three point spacings on a surface), narrow beside the shape's curvature, so the
-#: flat triangles' error is far below the fit's at fewer nodes: on the 1e5-point bunny and
-#: airplane, 2.5 nodes a finest cell gave the Chamfer and Hausdorff distances of 5 to 1-2 %
-#: with a quarter of the faces (docs/performance.md, "A hierarchy's default mesh").
+#: The same for an adaptive spline, per finest cell, where the mesh is not trimmed. Its
+#: finest cells are chosen from the data (three point spacings on a surface), narrow beside
+#: the shape's curvature, so the flat triangles' error is far below the fit's at fewer
+#: nodes: on four 1e5-point clouds, 2.5 nodes a finest cell gave the Chamfer distance of 5
+#: within 2 % and the Hausdorff within 3 %, with a quarter of the faces. A trimmed mesh
+#: keeps ``SAMPLES_PER_CELL``: the trim clips along the faces, and at 2.5 a scan's rim
+#: left up to 5.3 spacings of surface past the data instead of 4.1 (docs/performance.md,
+#: "A hierarchy's default mesh").
 ADAPTIVE_SAMPLES_PER_CELL = 2.5
 #: Bounds of the default resolution (nodes along the longest side of the box). 256 keeps a
 #: default mesh at a few hundred thousand triangles, quick to mesh (docs/performance.md,
@@ -146,32 +149,34 @@ def lattice_axes(
 
 
 def default_resolution(
-    spline, lower: Float[np.ndarray, " 3"], upper: Float[np.ndarray, " 3"]
+    spline, lower: Float[np.ndarray, " 3"], upper: Float[np.ndarray, " 3"], trimmed: bool = False
 ) -> int:
     """``SAMPLES_PER_CELL`` lattice nodes per spline cell (the finest axis's) along the
     longest side of the box, within [``MIN_RESOLUTION``, ``MAX_RESOLUTION``]; for an
-    adaptive spline, ``ADAPTIVE_SAMPLES_PER_CELL`` per *finest* cell within
-    [``MIN_RESOLUTION``, ``MAX_ADAPTIVE_RESOLUTION``] (only the band is marched, and
+    adaptive spline, per *finest* cell (``ADAPTIVE_SAMPLES_PER_CELL``, or
+    ``SAMPLES_PER_CELL`` for a ``trimmed`` mesh) within [``MIN_RESOLUTION``,
+    ``MAX_ADAPTIVE_RESOLUTION``] (only the band is marched, and
     [`mesh`][jurs.levelset.mesh] lowers it further when the marched nodes exceed
     ``max_nodes``)."""
     spline = grid_spline(spline, dims=(3,))
     cell = float(np.min(spline.cell_widths))
-    per_cell, largest = _default_density(spline)
+    per_cell, largest = _default_density(spline, trimmed)
     nodes = int(np.ceil(per_cell * np.max(upper - lower) / cell)) + 1
     return int(np.clip(nodes, MIN_RESOLUTION, largest))
 
 
 @functools.singledispatch
-def _default_density(spline: AbstractSpline) -> tuple[float, int]:
+def _default_density(spline: AbstractSpline, trimmed: bool) -> tuple[float, int]:
     """``(nodes per cell, largest resolution)`` of the default lattice: the whole lattice
     is marched."""
     return SAMPLES_PER_CELL, MAX_RESOLUTION
 
 
 @_default_density.register
-def _(spline: AdaptiveSpline) -> tuple[float, int]:
+def _(spline: AdaptiveSpline, trimmed: bool) -> tuple[float, int]:
     # Only the band is marched (and mesh lowers the resolution to fit max_nodes).
-    return ADAPTIVE_SAMPLES_PER_CELL, MAX_ADAPTIVE_RESOLUTION
+    per_cell = SAMPLES_PER_CELL if trimmed else ADAPTIVE_SAMPLES_PER_CELL
+    return per_cell, MAX_ADAPTIVE_RESOLUTION
 
 
 def mesh(
@@ -201,8 +206,8 @@ def mesh(
             without evaluating the full lattice.
         resolution: lattice nodes along the longest side of the box (the other sides get
             the same spacing). Default: 5 per spline cell, between 32 and 256; for an
-            adaptive spline 2.5 per finest cell, between 32 and 1025, lowered until the
-            marched nodes fit in ``max_nodes``.
+            adaptive spline 2.5 per finest cell (5 when trimmed), between 32 and 1025,
+            lowered until the marched nodes fit in ``max_nodes``.
         box: ``(lower, upper)`` to mesh; default the spline's own box.
         level: the level set to mesh.
         newton_steps: Newton steps ``x <- x - (g - level) grad g / |grad g|^2`` per vertex
@@ -295,7 +300,7 @@ def mesh(
     data = None if spacings is None else check_points(points, 3)
     chosen = resolution is None
     if resolution is None:
-        resolution = default_resolution(spline, lower, upper)
+        resolution = default_resolution(spline, lower, upper, trimmed=spacings is not None)
     if int(newton_steps) < 0:
         raise ValueError(f"newton_steps must be >= 0, got {newton_steps}")
     if int(chunk) < 1:
