@@ -375,9 +375,10 @@ def fit(
             a side), the uniform grid is fitted first and kept if 90 % of the points lie
             within ``UNIFORM_RESIDUAL_SPACINGS`` (0.02) spacings of its zero set, else the
             fit is made on the adaptive basis; ``sol.stats["uniform_residual"]`` records
-            that distance. A cloud whose noise is at least ``NOISY_SPACINGS`` (0.1)
-            spacings, which no fit comes that close to, goes to the adaptive basis without
-            the grid's trial (``sol.stats["noise_spacings"]`` records its noise).
+            that distance. A cloud whose scatter (``sol.settings.noise``) is at least
+            ``NOISY_SPACINGS`` (0.1) spacings, at which every capped grid measured was
+            refused, goes to the adaptive basis without the grid's trial
+            (``sol.stats["noise_spacings"]`` records the scatter).
             Elsewhere the uniform grid. Any of ``grid``, ``solver``, ``init``,
             ``mask``, ``bucket_size``, a ``callback``, points split over processes, or
             traced points keep the uniform grid; points sharded over the devices of one

@@ -120,10 +120,9 @@ def release_freed_memory() -> None:
     """Give the heap's freed pages back to the system (glibc's ``malloc_trim``; nothing
     elsewhere). The allocator keeps the pages of freed buffers below its mmap threshold,
     so a step that frees many (a compiled fit's working arrays) leaves the process that
-    much larger, and the next step's large arrays, mapped afresh, are added on top: on
-    the 1e5-point bunny, the capped grid's trial fit left 0.37 GB that the hierarchy's
-    assembly then piled its own on (docs/performance.md, "A hierarchy fit's host work
-    and peak")."""
+    much larger, and the next step's large arrays, mapped afresh, are added on top (a
+    capped grid's trial fit before the hierarchy's assembly: docs/performance.md, "A
+    hierarchy fit's host work and peak")."""
     trim = _malloc_trim()
     if trim is not None:
         trim(0)
