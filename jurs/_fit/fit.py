@@ -668,8 +668,8 @@ def _fit(
             checks=checks, throw=throw, solver=given_solver, noted=noted,
         )  # fmt: skip
         return sol, None
-    if escalate and noise_decides(settings):  # the grid's trial would be refused
-        assert settings is not None  # escalate says so
+    if escalate and settings is not None and noise_decides(settings):
+        # The grid's trial would be refused.
         noise = settings.noise / settings.spacing
         noted = dict(estimated_normals=estimated, noise_spacings=noise)
         sol = on_hierarchy(

@@ -333,8 +333,10 @@ def band_regions(
             border |= ((index == 0) | (index == real[:, k : k + 1] - 1)).reshape(shape)
         border &= valid
         positive = values > level
-        up: Any = ndimage.label(positive & valid, structure=up_structure)[0]
-        down: Any = ndimage.label(~positive & valid, structure=down_structure)[0]
+        # (labels, count); the stubs type it loosely.
+        up: Any = ndimage.label(positive & valid, structure=up_structure)
+        down: Any = ndimage.label(~positive & valid, structure=down_structure)
+        up, down = up[0], down[0]
         # Region ids as if each block were labelled alone, in turn: its components above
         # the level, then those below.
         last_up = np.maximum.accumulate(up.reshape(count, -1).max(axis=1))

@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import functools
 import itertools
+from typing import Any
 
 import equinox as eqx
 import jax.numpy as jnp
@@ -497,7 +498,8 @@ def cascade(
     (``truncated_refinement``), nothing compiled and no cascade matrix built
     (``cascade_matrix`` costs about as much as assembling the fit)."""
     if xp is np:
-        return _host_cascade(hierarchy, np.asarray(coeffs))
+        host: Any = _host_cascade(hierarchy, np.asarray(coeffs))  # NumPy, as xp says
+        return host
     lead = coeffs.shape[:-1]
     out = []
     start = 0
