@@ -38,8 +38,9 @@ from jurs._fit.adaptive import (  # noqa: E402
     solve_multigrid,
 )
 from jurs._fit.settings import auto_settings, scale_free_lam  # noqa: E402
+from jurs._linalg.sparse import normal_system  # noqa: E402
 from jurs._linalg.thb_multigrid import ThbMultigrid  # noqa: E402
-from jurs._problem.adaptive import assemble_adaptive_problem, normal_system  # noqa: E402
+from jurs._problem.adaptive import assemble_adaptive_problem  # noqa: E402
 from jurs._solution.verdicts import judged_points  # noqa: E402
 
 from ._common import machine, md_table, write_results  # noqa: E402
@@ -114,7 +115,7 @@ def measure(name: str, kind: str, finest: int) -> dict:
     row.update(jacobi_steps=steps, jacobi_s=time.perf_counter() - start)
 
     start = time.perf_counter()
-    matrix, rhs = normal_system(problem, matrices, lam)
+    matrix, rhs = normal_system(matrices, problem.targets, lam)
     multigrid = ThbMultigrid(hierarchy, matrix)
     setup = time.perf_counter() - start
     start = time.perf_counter()

@@ -54,8 +54,13 @@ def test_robust_least_squares_fits_a_hierarchy(flipped):
     assert _mean_distance(sol.spline, points) < 0.8 * _mean_distance(plain.spline, points)
 
 
-@pytest.mark.parametrize("method", ["host_cg", "multigrid", "host_multigrid", "cg"])
-def test_row_weighted_solves_agree_with_the_factorisation(method):
+@pytest.mark.parametrize(
+    "method", ["host_cg", "host_cg_assembled", "multigrid", "host_multigrid", "cg"]
+)
+def test_row_weighted_solves_agree_with_the_factorisation(method, monkeypatch):
+    if method == "host_cg_assembled":  # CG on the assembled normal matrix, whatever the sizes
+        monkeypatch.setattr(adaptive_fit, "ASSEMBLED_SAMPLES_PER_FUNCTION", 0.0)
+        method = "host_cg"
     points, normals = jurs.datasets.example1(150)
     cloud = jurs.Cloud(points, normals)
     settings = jurs.auto_settings(cloud)
@@ -70,6 +75,24 @@ def test_row_weighted_solves_agree_with_the_factorisation(method):
     np.testing.assert_allclose(control, exact, atol=1e-8 * np.abs(exact).max())
     unweighted, _ = adaptive_fit.solve_direct(problem, lam, matrices)
     assert np.abs(unweighted - exact).max() > 1e-6  # the weights took part
+
+
+@pytest.mark.parametrize("method", ["direct", "host_cg"])
+def test_a_search_over_lambda_keeps_the_weights_system(method, monkeypatch):
+    """``exact_solve`` keeps the assembled normal equations of the last row weights and
+    moves them by ``(lam' - lam) R`` for a new lambda: the solve equals a fresh one's."""
+    monkeypatch.setattr(adaptive_fit, "ASSEMBLED_SAMPLES_PER_FUNCTION", 0.0)
+    points, normals = jurs.datasets.example1(150)
+    settings = jurs.auto_settings(jurs.Cloud(points, normals))
+    layout = adaptive_fit.hierarchy_layout(settings, 2, None, None, None, None, None)
+    problem, matrices = assemble_adaptive_problem(points, normals, **layout)
+    weights = np.random.default_rng(2).uniform(0.1, 1.0, len(problem.targets))
+    solve = adaptive_fit.exact_solve(method, problem, matrices, 1e-3, 1e-12, 10_000, float)
+    solve(weights)
+    moved, _, residual = solve(weights, lam=1e-1)
+    fresh, _ = adaptive_fit.solve_direct(problem, 1e-1, matrices, weights)
+    assert residual <= 1e-10
+    np.testing.assert_allclose(moved, fresh, atol=1e-8 * np.abs(fresh).max())
 
 
 def test_other_solvers_are_refused_with_the_reason():

@@ -1,5 +1,6 @@
-"""The hierarchy's host solves: the normal product split over threads, and conjugate
-gradients in NumPy, against their plain forms."""
+"""The hierarchy's host solves: the normal product split over threads, the assembled
+normal equations made by blocks of rows, and conjugate gradients in NumPy, against their
+plain forms."""
 
 import jax
 import jax.numpy as jnp
@@ -7,8 +8,10 @@ import numpy as np
 import pytest
 import scipy.sparse as sp
 
+import jurs._linalg.sparse as host_sparse
 from jurs._linalg.pcg import conjugate_gradients, host_conjugate_gradients
-from jurs._linalg.sparse import normal_product, row_blocks
+from jurs._linalg.sparse import gram, normal_product, normal_system, row_blocks
+from jurs._problem.adaptive import column_squares
 
 jax.config.update("jax_enable_x64", True)
 
@@ -60,3 +63,44 @@ def test_host_cg_is_the_jax_recurrence():
     assert steps == int(jax_steps) and residual <= 1e-10
     np.testing.assert_allclose(x, np.asarray(y), rtol=1e-8, atol=1e-10)
     np.testing.assert_allclose(x, np.linalg.solve(matrix.toarray(), rhs), rtol=1e-7, atol=1e-9)
+
+
+@pytest.mark.parametrize("weighted", [False, True])
+def test_gram_by_blocks_is_the_data_term(monkeypatch, weighted):
+    """``D^T S D`` made by sorted blocks of rows in threads equals the plain product, with
+    the same bits whatever the threads; the normal system adds ``lam R`` and ``D^T S b``,
+    and its diagonal is ``column_squares``'s."""
+    collocation, regulariser, rng = _matrices(seed=5, rows=3000, n=500)
+    collocation.data[collocation.indptr[7] : collocation.indptr[9]] = 0.0  # empty rows too
+    collocation.eliminate_zeros()
+    weights = rng.uniform(0.0, 2.0, collocation.shape[0]) if weighted else None
+    scale = np.ones(collocation.shape[0]) if weights is None else weights
+    plain = (collocation.T @ sp.diags(scale) @ collocation).toarray()
+    one = gram(collocation, weights)  # below MIN_GRAM_ENTRIES: one product
+    np.testing.assert_allclose(one.toarray(), plain, rtol=1e-13, atol=1e-14)
+    monkeypatch.setattr(host_sparse, "MIN_GRAM_ENTRIES", 1000)  # several blocks
+    blocks = [gram(collocation, weights, threads) for threads in (1, 2, 3)]
+    assert collocation.nnz // 1000 >= 2
+    np.testing.assert_allclose(blocks[0].toarray(), plain, rtol=1e-13, atol=1e-14)
+    for other in blocks[1:]:
+        assert np.array_equal(other.toarray(), blocks[0].toarray())
+    targets = rng.standard_normal(collocation.shape[0])
+    matrix, rhs = normal_system((collocation, regulariser), targets, 0.3, weights)
+    np.testing.assert_allclose(
+        matrix.toarray(), plain + 0.3 * regulariser.toarray(), rtol=1e-13, atol=1e-14
+    )
+    np.testing.assert_allclose(rhs, collocation.T @ (scale * targets), rtol=1e-13)
+    np.testing.assert_allclose(
+        column_squares(collocation, collocation.shape[1], weights), np.diag(plain), rtol=1e-13
+    )
+
+
+def test_assembled_normal_product_is_the_matrix():
+    """With no collocation, ``normal_product`` multiplies by the one matrix (an assembled
+    normal matrix) over the threads."""
+    collocation, regulariser, rng = _matrices(seed=6)
+    matrix = (collocation.T @ collocation + 0.3 * regulariser).tocsr()
+    c = rng.standard_normal(matrix.shape[0])
+    for threads in (1, 3):
+        with normal_product(None, matrix, 1.0, threads=threads) as product:
+            np.testing.assert_allclose(product(c), matrix @ c, rtol=1e-12, atol=1e-12)

@@ -17,9 +17,10 @@ from jurs._fit.adaptive import (
     solve_host_multigrid,
     solve_multigrid,
 )
+from jurs._linalg.sparse import normal_system
 from jurs._linalg.thb_multigrid import ThbMultigrid, multigrid_cg, nested_prolongations
 from jurs._model.hierarchy import refined_cells
-from jurs._problem.adaptive import assemble_adaptive_problem, normal_system
+from jurs._problem.adaptive import assemble_adaptive_problem
 from jurs.internal import (
     build_hierarchy,
     hierarchy_values,
@@ -107,7 +108,7 @@ def test_functions_nothing_reaches_stay_zero():
     """A function with a zero row (no sample, no neighbour pair: here lam = 0 leaves the
     far ones so) keeps 0 under the cycle, as under Jacobi."""
     problem, matrices, _ = _problem(2, 64)
-    matrix, rhs = normal_system(problem, matrices, 0.0)
+    matrix, rhs = normal_system(matrices, problem.targets, 0.0)
     dead = matrix.diagonal() == 0
     assert dead.any()
     multigrid = ThbMultigrid(problem.hierarchy, matrix)
@@ -134,7 +135,7 @@ def test_fit_adaptive_with_the_multigrid_method_matches_the_direct_fit(method):
 
 def test_unknown_smoother_is_refused():
     problem, matrices, lam = _problem(2, 32)
-    matrix, _ = normal_system(problem, matrices, lam)
+    matrix, _ = normal_system(matrices, problem.targets, lam)
     with pytest.raises(ValueError, match="smoother"):
         ThbMultigrid(problem.hierarchy, matrix, smoother="gauss-seidel")
 
@@ -158,7 +159,7 @@ def test_a_hierarchy_of_one_level_is_solved_directly(method):
 def test_the_device_cycle_is_the_host_cycle(ndim, finest, smoother):
     """``ThbMultigrid.on_device``: the same V-cycle in JAX, its padding inert."""
     problem, matrices, lam = _problem(ndim, finest, 600 if ndim == 3 else None)
-    matrix, rhs = normal_system(problem, matrices, lam)
+    matrix, rhs = normal_system(matrices, problem.targets, lam)
     multigrid = ThbMultigrid(problem.hierarchy, matrix, smoother=smoother)
     cycle = multigrid.on_device(jnp.float64, pad=size_class)
     r = np.random.default_rng(2).normal(size=rhs.shape)

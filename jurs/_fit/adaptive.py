@@ -31,17 +31,17 @@ from jax import Array, lax
 from .._cloud.cloud import Cloud
 from .._cloud.measure import PROBES, strided_probes
 from .._linalg.pcg import conjugate_gradients, host_conjugate_gradients, jacobi_inverse
-from .._linalg.sparse import PaddedCoo, normal_product
+from .._linalg.sparse import PaddedCoo, normal_product, normal_system
 from .._linalg.thb_multigrid import ThbMultigrid, VCycle, multigrid_cg
 from .._model.adaptive import AdaptiveSpline
 from .._model.precision import on_device
 from .._problem.adaptive import (
     AdaptiveProblem,
     adaptive_metrics,
+    column_squares,
     normal_matrices,
     normal_matvec,
     normal_rhs,
-    normal_system,
     sample_basis,
 )
 from .._problem.sizes import padded_to, round_size
@@ -91,6 +91,15 @@ METHODS = ("direct", "cg", "host_cg", "multigrid", "host_multigrid")
 DEFAULT_RTOL = 1e-7
 #: CG's stop rule in float32, where ``DEFAULT_RTOL`` is below rounding.
 FLOAT32_RTOL = 1e-5
+#: ``host_cg`` multiplies by the assembled normal matrix (``normal_system``) where the
+#: samples are at least this many times the functions, and by ``D`` and ``R`` (three
+#: passes over their entries a step) otherwise. The assembled matrix holds about 120-140
+#: entries a function in 3D against ``D``'s 64 a sample, so with many samples a function
+#: its steps cost a fraction of the others and its assembly (``gram``) pays for itself
+#: within a solve; with few (a clean cloud's fine band), it holds more entries than
+#: ``D`` and ``R`` together (docs/performance.md, "The hierarchy's CG on the assembled
+#: matrix").
+ASSEMBLED_SAMPLES_PER_FUNCTION = 2.0
 #: A direct solve whose relative residual exceeds this met a singular matrix.
 DIRECT_RTOL = 1e-6
 #: [`jurs.fit`][] with ``basis="auto"`` takes the adaptive basis where the uniform grid's
@@ -244,7 +253,7 @@ def multilevel_preconditioner(
 
     basis = np.asarray(sample_basis(problem))
     matrices = normal_matrices(problem.hierarchy, np.asarray(problem.positions), basis)
-    matrix, _ = normal_system(problem, matrices, float(lam))
+    matrix, _ = normal_system(matrices, problem.targets, float(lam))
     multigrid = ThbMultigrid(problem.hierarchy, csr_matrix(matrix), **options)
     return multigrid.on_device(jnp.result_type(float) if dtype is None else dtype)
 
@@ -300,8 +309,7 @@ def normal_diagonal(problem: AdaptiveProblem, lam: float, matrices, row_weights=
     if row_weights is None:
         data = np.asarray(problem.data_diagonal, float)
     else:
-        collocation = matrices[0]
-        data = np.asarray(collocation.multiply(collocation).T @ np.asarray(row_weights, float))
+        data = column_squares(matrices[0], problem.hierarchy.num_active, row_weights)
     return data + lam * np.asarray(problem.regulariser_diagonal, float)
 
 
@@ -351,24 +359,34 @@ def solve_host_cg(
     max_steps: int,
     row_weights=None,
     start=None,
+    system=None,
 ) -> tuple[np.ndarray, int, float]:
     """``(control, steps, relative residual)``: ``solve_assembled``'s CG (the exact
     diagonal as preconditioner, the stop rule ``|r| <= rtol |D^T b|``) run on the host
     (``host_conjugate_gradients``), on the host matrices ``(D, 2 G^T W G)`` in CSR, their
     products split over the host's threads (``normal_product``). Not differentiable.
-    ``row_weights`` and ``start`` as ``solve_assembled``'s.
+    ``row_weights`` and ``start`` as ``solve_assembled``'s. ``system``: the assembled
+    ``normal_system(D, 2 G^T W G, b, lam, row_weights)``, whose matrix CG then multiplies
+    by instead (``ASSEMBLED_SAMPLES_PER_FUNCTION``: the same equations, in fewer entries
+    where samples outnumber functions).
 
     On a CPU it is the faster of the two: SciPy's products with the CSR matrices beat
     XLA's segment sums over the same entries (docs/design.md section 8,
     docs/performance.md). On a GPU, ``solve_assembled``.
     """
-    collocation, regulariser = (matrix.tocsr() for matrix in matrices)
-    diagonal = normal_diagonal(problem, lam, matrices, row_weights)
+    if system is None:
+        collocation, regulariser = (matrix.tocsr() for matrix in matrices)
+        diagonal = normal_diagonal(problem, lam, matrices, row_weights)
+        # All weights 1 multiply exactly: the unweighted fit is unchanged by them.
+        weights = 1.0 if row_weights is None else np.asarray(row_weights, float)
+        rhs = collocation.T @ (weights * np.asarray(problem.targets, float))
+        product = normal_product(collocation, regulariser, lam, row_weights)
+    else:
+        matrix, rhs = system
+        diagonal = matrix.diagonal()
+        product = normal_product(None, matrix, 1.0)
     inverse = jacobi_inverse(diagonal, np)
-    # All weights 1 multiply exactly: the unweighted fit is unchanged by them.
-    weights = 1.0 if row_weights is None else np.asarray(row_weights, float)
-    rhs = collocation.T @ (weights * np.asarray(problem.targets, float))
-    with normal_product(collocation, regulariser, lam, row_weights) as matvec:
+    with product as matvec:
         control, steps, _ = host_conjugate_gradients(
             matvec,
             rhs,
@@ -400,6 +418,7 @@ def solve_multigrid(
     dtype,
     row_weights=None,
     start=None,
+    system=None,
     **options,
 ) -> tuple[np.ndarray, int, float]:
     """``(control, steps, relative residual)`` as ``solve_host_multigrid`` returns them,
@@ -410,7 +429,7 @@ def solve_multigrid(
     ``multilevel_preconditioner`` is)."""
     from scipy.sparse import csr_matrix
 
-    matrix, rhs = normal_system(problem, matrices, lam, row_weights)
+    matrix, rhs = system or normal_system(matrices, problem.targets, lam, row_weights)
     n = matrix.shape[0]
     n_class = size_class(n)
     multigrid = ThbMultigrid(problem.hierarchy, csr_matrix(matrix), **options)
@@ -434,17 +453,18 @@ def solve_host_multigrid(
     max_steps: int,
     row_weights=None,
     start=None,
+    system=None,
     **options,
 ) -> tuple[np.ndarray, int, float]:
     """``(control, steps, relative residual)`` as ``solve_host_cg`` returns them (the stop
-    rule ``|r| <= rtol |D^T S b|``; ``row_weights`` and ``start`` as its), by CG on the
+    rule ``|r| <= rtol |D^T S b|``; ``row_weights``, ``start`` and ``system`` as its), by CG on the
     assembled normal equations (``normal_system``) preconditioned by one V-cycle a step
     over the hierarchy's nested spaces (``jurs._linalg.thb_multigrid.ThbMultigrid``;
     ``options`` go to it; docs/multigrid.md, "The multilevel solve of the hierarchy").
     Not differentiable."""
     from scipy.sparse import csr_matrix
 
-    matrix, rhs = normal_system(problem, matrices, lam, row_weights)
+    matrix, rhs = system or normal_system(matrices, problem.targets, lam, row_weights)
     return multigrid_cg(
         problem.hierarchy, csr_matrix(matrix), rhs, rtol, max_steps, start=start, **options
     )
@@ -481,7 +501,7 @@ def solve_direct(problem: AdaptiveProblem, lam: float, matrices=None, row_weight
     if matrices is None:
         basis = np.asarray(sample_basis(problem))
         matrices = normal_matrices(problem.hierarchy, np.asarray(problem.positions), basis)
-    matrix, rhs = normal_system(problem, matrices, lam, row_weights)
+    matrix, rhs = normal_system(matrices, problem.targets, lam, row_weights)
     return solve_normal(matrix.tocsc(), rhs)
 
 
@@ -506,24 +526,50 @@ def exact_solve(method: str, problem: AdaptiveProblem, matrices, lam, rtol, max_
     """The hierarchy's normal equations solved by ``method`` (one of ``METHODS``), as a
     function ``solve(row_weights=None, start=None, lam=None) -> (control, steps, relative
     residual)`` of the samples' row weights, CG's first iterate and the lambda (None:
-    ``lam``), for the solvers of ``solve_on_hierarchy``."""
-    bound = lam
+    ``lam``), for the solvers of ``solve_on_hierarchy``. The assembled normal equations
+    (``normal_system``) of the last row weights are kept: a search over lambda solves
+    with the same weights, its matrix moved by the change of lambda times ``R``."""
+    bound, kept = lam, {}
+
+    def system(row_weights, lam):
+        key = None if row_weights is None else np.asarray(row_weights, float).tobytes()
+        if kept and kept["key"] == key:
+            matrix, rhs = kept["system"]
+            if lam != kept["lam"]:
+                matrix = (matrix + (lam - kept["lam"]) * matrices[1]).tocsr()
+        else:
+            kept.clear()  # one at a time: each is about the normal matrix's size
+            matrix, rhs = normal_system(matrices, problem.targets, lam, row_weights)
+        kept.update(key=key, lam=lam, system=(matrix, rhs))
+        return matrix, rhs
 
     def solve(row_weights=None, start=None, lam=None):
         lam = bound if lam is None else float(lam)
         if method == "direct":  # a factorisation needs no start
-            control, residual = solve_direct(problem, lam, matrices, row_weights)
+            matrix, rhs = system(row_weights, lam)
+            control, residual = solve_normal(matrix.tocsc(), rhs)
             return control, 0, residual
         args = (problem, matrices, lam, rtol, max_steps)
+        weighted = dict(row_weights=row_weights, start=start)
         if method == "host_cg":
-            return solve_host_cg(*args, row_weights=row_weights, start=start)
+            assembled = assembled_pays(matrices[0])
+            return solve_host_cg(
+                *args, **weighted, system=system(row_weights, lam) if assembled else None
+            )
         if method == "host_multigrid":
-            return solve_host_multigrid(*args, row_weights=row_weights, start=start)
+            return solve_host_multigrid(*args, **weighted, system=system(row_weights, lam))
         if method == "multigrid":
-            return solve_multigrid(*args, dtype, row_weights=row_weights, start=start)
-        return solve_assembled(*args, dtype, row_weights=row_weights, start=start)
+            return solve_multigrid(*args, dtype, **weighted, system=system(row_weights, lam))
+        return solve_assembled(*args, dtype, **weighted)
 
     return solve
+
+
+def assembled_pays(collocation) -> bool:
+    """Whether ``host_cg`` multiplies by the assembled normal matrix: where ``D``'s rows
+    (the samples) are at least ``ASSEMBLED_SAMPLES_PER_FUNCTION`` times its columns."""
+    rows, functions = collocation.shape
+    return rows >= ASSEMBLED_SAMPLES_PER_FUNCTION * functions
 
 
 @functools.singledispatch

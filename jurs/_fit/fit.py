@@ -565,8 +565,10 @@ def on_hierarchy(
         control, steps, residual, state, settled = solve_on_hierarchy(
             chosen, problem, matrices, solve
         )
+        del solve  # and the assembled normal equations it keeps
         lam = lam if state is None else float(chosen.fitted_lam(state))
         metrics = assembled_metrics(problem, matrices, control, lam)
+    del matrices  # the verdicts read the spline, not the samples' matrices and positions
     # The devices the solve ran over, where the points are sharded (a direct solve: the host).
     stats = (
         {} if sharding is None else {"devices": len(sharding.device_set) if method == "cg" else 1}
@@ -575,6 +577,7 @@ def on_hierarchy(
         problem.hierarchy, control, metrics, settings, method=method, steps=steps,
         residual=residual, rtol=rtol, dtype=dtype, settled=settled, state=state, **stats,
     )  # fmt: skip
+    del problem
     if checks:
         sol = judge(sol, cloud, settings, layout["offset"])
     sol = estimate_doubt(sol, (noted or {}).get("estimated_normals"))
@@ -659,23 +662,23 @@ def _fit(
         and settings is not None
         and wants_adaptive(settings, len(cloud))
     )
+
+    def on_the_hierarchy(settings: Settings, noted: dict, **given):
+        """The fit on the hierarchy, what led to it noted in its stats."""
+        noted = dict(estimated_normals=estimated, **noted)
+        finest = auto_finest(settings)
+        sol = on_hierarchy(
+            cloud, settings, finest=finest, checks=checks, throw=throw, noted=noted, **given
+        )
+        return sol, None
+
     if settings is not None and basis == "adaptive":
         # A robust solver is refused on points sharded over devices, as fit_adaptive refuses it.
         lam = solver_lam(given_solver, None, cloud.given_points, cloud.given_normals)
-        noted = dict(estimated_normals=estimated)
-        sol = on_hierarchy(
-            cloud, settings, finest=auto_finest(settings), offset=offset, eps=eps, lam=lam,
-            checks=checks, throw=throw, solver=given_solver, noted=noted,
-        )  # fmt: skip
-        return sol, None
+        return on_the_hierarchy(settings, {}, offset=offset, eps=eps, lam=lam, solver=given_solver)
     if escalate and settings is not None and noise_decides(settings):
         # The grid's trial would be refused.
-        noise = settings.noise / settings.spacing
-        noted = dict(estimated_normals=estimated, noise_spacings=noise)
-        sol = on_hierarchy(
-            cloud, settings, finest=auto_finest(settings), checks=checks, throw=throw, noted=noted
-        )
-        return sol, None
+        return on_the_hierarchy(settings, dict(noise_spacings=settings.noise / settings.spacing))
     check_start(shape, solver, init)
     dtype = jnp.result_type(float)
     # The exact solve in parts reads one sample a slot: laid out on the host, nothing
@@ -716,14 +719,9 @@ def _fit(
             else float("inf")
         )
         if residual > UNIFORM_RESIDUAL_SPACINGS:
-            noted = dict(estimated_normals=estimated, uniform_residual=residual)
-            finest = auto_finest(settings)
             del sol, extra  # the trial's arrays, freed before the hierarchy's
             release_freed_memory()
-            sol = on_hierarchy(
-                cloud, settings, finest=finest, checks=checks, throw=throw, noted=noted
-            )
-            return sol, None
+            return on_the_hierarchy(settings, dict(uniform_residual=residual))
         sol = dataclasses.replace(sol, stats=dict(sol.stats, uniform_residual=residual))
     if top_level:
         if checks:

@@ -97,6 +97,79 @@ def row_blocks(matrix, count: int) -> list:
     return blocks
 
 
+#: ``gram`` multiplies ``D``'s rows in blocks of at least this many entries, and at most
+#: ``GRAM_BLOCKS`` of them: below, sorting the rows and summing the parts costs more than
+#: the split saves.
+MIN_GRAM_ENTRIES = 1 << 20
+GRAM_BLOCKS = 8
+
+
+def _weighted_rows(rows, weights):
+    """A CSR block with each row scaled by its weight (a copy; the block itself when None)."""
+    if weights is None:
+        return rows
+    scaled = rows.copy()
+    scaled.data *= np.repeat(weights, np.diff(rows.indptr))
+    return scaled
+
+
+def _last_columns(matrix) -> np.ndarray:
+    """Each row's largest column index (-1 for an empty row) of a SciPy CSR ``matrix``."""
+    last = np.full(matrix.shape[0], -1, np.int64)
+    filled = np.diff(matrix.indptr) > 0
+    if filled.any():
+        last[filled] = np.maximum.reduceat(matrix.indices, matrix.indptr[:-1][filled])
+    return last
+
+
+def gram(collocation, row_weights=None, threads=None):
+    """``D^T S D`` (SciPy CSR) of a SciPy CSR ``collocation`` ``D``, ``S`` the rows'
+    ``row_weights`` (None: 1): the data term of the assembled normal equations.
+
+    The rows are taken in the order of their last column and cut in up to
+    ``GRAM_BLOCKS`` blocks (one per ``MIN_GRAM_ENTRIES`` entries). A hierarchy's
+    functions are numbered level by level and, on a level, along the grid, and a
+    sample's last column is a function of its own leaf, so each block holds the samples
+    of one slab of the band: its product ``D_k^T S_k D_k`` touches about its share of the
+    functions. The blocks run in ``threads`` threads (None: ``host_threads``; SciPy's
+    sparse products release the GIL) and their products are summed pairwise in a fixed
+    order, so the result has the same bits whatever the threads. Beside one product of
+    all rows this is faster (each product works within a slab) and needs less memory at
+    once (a block's copy and its product, not all rows' products over all functions).
+    """
+    threads = host_threads() if threads is None else max(1, int(threads))
+    count = max(1, min(GRAM_BLOCKS, collocation.nnz // MIN_GRAM_ENTRIES))
+    weights = None if row_weights is None else np.asarray(row_weights, float)
+    if count == 1:
+        return (collocation.T.tocsr() @ _weighted_rows(collocation, weights)).tocsr()
+    order = np.argsort(_last_columns(collocation), kind="stable")
+
+    def part(rows):
+        block = collocation[rows]
+        return block.T.tocsr() @ _weighted_rows(block, None if weights is None else weights[rows])
+
+    with ThreadPoolExecutor(min(threads, count)) as pool:
+        parts = list(pool.map(part, np.array_split(order, count)))
+    while len(parts) > 1:
+        pairs = range(0, len(parts) - 1, 2)
+        parts = [parts[i] + parts[i + 1] for i in pairs] + parts[len(parts) - len(parts) % 2 :]
+    return parts[0].tocsr()
+
+
+def normal_system(matrices, targets, lam: float, row_weights=None):
+    """``(D^T S D + lam R, D^T S b)`` on the host (SciPy CSR, float64): the assembled
+    normal equations that a factorisation, a multilevel solve or CG on the assembled
+    matrix reads. ``matrices``: ``(D, R)`` in SciPy CSR, ``R`` the regulariser's part of
+    the normal matrix per unit lambda; ``b`` the samples' ``targets``, ``S`` their
+    ``row_weights`` (None: 1). ``D^T S D`` comes from ``gram``."""
+    collocation, regulariser = matrices
+    weights = None if row_weights is None else np.asarray(row_weights, float)
+    data = gram(collocation, weights)
+    b = np.asarray(targets, float)
+    rhs = collocation.T @ (b if weights is None else weights * b)
+    return (data + lam * regulariser).tocsr(), rhs
+
+
 @contextmanager
 def normal_product(collocation, regulariser, lam: float, row_weights=None, threads=None):
     """``c -> D^T S D c + lam R c`` on the host (float64), for a context: ``D``
@@ -104,10 +177,12 @@ def normal_product(collocation, regulariser, lam: float, row_weights=None, threa
     ``row_weights`` (None: 1). Their rows are split in ``threads`` blocks (``row_blocks``;
     None: ``host_threads``), each block's products in a thread of its own: SciPy's sparse
     products release the GIL, so the blocks run side by side. ``D^T`` is applied as the
-    product of ``D``'s transpose view (CSC), with no transposed copy of ``D``."""
+    product of ``D``'s transpose view (CSC), with no transposed copy of ``D``. With
+    ``collocation`` None, ``c -> lam R c``: the product of an assembled normal matrix
+    (``normal_system``) with ``lam = 1``."""
     threads = host_threads() if threads is None else max(1, int(threads))
     weights = None if row_weights is None else np.asarray(row_weights, float)
-    data = row_blocks(collocation, threads)
+    data = [] if collocation is None else row_blocks(collocation, threads)
     smooth = row_blocks(regulariser, threads)
     n = regulariser.shape[0]
 

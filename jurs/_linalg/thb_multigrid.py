@@ -44,7 +44,7 @@ import numpy as np
 from jax import Array
 from jaxtyping import Float
 
-from .._model.hierarchy import Hierarchy, cascade_matrix
+from .._model.hierarchy import Hierarchy, cascade_matrix, refinement_matrix
 from .._problem.sizes import padded_to
 from .sparse import PaddedCoo
 
@@ -63,20 +63,6 @@ DEFAULT_RATIO = 8.0
 POWER_STEPS = 12
 #: Margin on the estimated ``rho`` (a power estimate is from below).
 RHO_MARGIN = 1.1
-
-
-def _refinement(hierarchy: Hierarchy, level: int):
-    """The untruncated cubic subdivision ``R_level`` as a SciPy CSR matrix: rows the
-    level's relevant functions, columns the coarser level's."""
-    from scipy import sparse
-
-    parents = np.asarray(hierarchy.parents[level])
-    weights = hierarchy.parent_weights(level, np).astype(float)
-    size = hierarchy.level_sizes[level]
-    return sparse.csr_matrix(
-        (weights.ravel(), (np.repeat(np.arange(size), parents.shape[1]), parents.ravel())),
-        shape=(size, hierarchy.level_sizes[level - 1]),
-    )
 
 
 def nested_prolongations(hierarchy: Hierarchy) -> list:
@@ -105,15 +91,14 @@ def nested_prolongations(hierarchy: Hierarchy) -> list:
         )
         if level:
             previous = cascaded[row_starts[level - 1] : row_starts[level], :below]
-            keep = np.asarray(hierarchy.keep[level], float)
-            truncated = sparse.diags(keep) @ _refinement(hierarchy, level) @ previous
+            truncated = refinement_matrix(hierarchy, level) @ previous
             cascade_level = sparse.csr_matrix(
                 sparse.hstack([truncated, sparse.csr_matrix((sizes[level], own.size))]) + placed
             )
         else:
             cascade_level = placed
         finer = inside[level + 1]
-        refined = (_refinement(hierarchy, level + 1) @ cascade_level)[finer]
+        refined = (refinement_matrix(hierarchy, level + 1, truncated=False) @ cascade_level)[finer]
         # The level's functions V_{level+1} keeps active: their place among ``own``.
         active = np.asarray(hierarchy.active[level])
         kept = np.searchsorted(own, active)

@@ -495,7 +495,7 @@ def cascade(
     active functions' vector (leading axes carry several splines at once). Linear in
     ``coeffs``: its transpose (by JAX) spreads values back to the active functions.
     ``xp=numpy`` on the host: each level's truncated subdivision as a sparse product
-    (``truncated_refinement``), nothing compiled and no cascade matrix built
+    (``refinement_matrix``), nothing compiled and no cascade matrix built
     (``cascade_matrix`` costs about as much as assembling the fit)."""
     if xp is np:
         host: Any = _host_cascade(hierarchy, np.asarray(coeffs))  # NumPy, as xp says
@@ -522,16 +522,19 @@ def cascade(
     return xp.concatenate(out, axis=-1)
 
 
-def truncated_refinement(hierarchy: Hierarchy, level: int):
-    """``keep_level * R_{level-1}`` (``level >= 1``) as a SciPy CSR matrix: rows the
-    level's relevant functions, columns the coarser level's, ``3^d`` entries a row (the
-    truncated rows zero). Built from ``parents`` as they are: no (row, column) pairs to
-    sort; repeated padding parents have weight 0 and add nothing."""
+def refinement_matrix(hierarchy: Hierarchy, level: int, truncated: bool = True):
+    """The cubic subdivision ``R_{level-1}`` (``level >= 1``) as a SciPy CSR matrix: rows
+    the level's relevant functions, columns the coarser level's, ``3^d`` entries a row;
+    ``truncated``: ``keep_level * R_{level-1}``, the truncated rows zero (the cascade's
+    step), else untruncated (the nested spaces' prolongation). Built from ``parents`` as
+    they are: no (row, column) pairs to sort; repeated padding parents have weight 0 and
+    add nothing."""
     from scipy import sparse
 
     parents = np.asarray(hierarchy.parents[level])
     weights = hierarchy.parent_weights(level, np).astype(float)
-    weights *= np.asarray(hierarchy.keep[level], float)[:, None]
+    if truncated:
+        weights *= np.asarray(hierarchy.keep[level], float)[:, None]
     size, width = parents.shape
     return sparse.csr_matrix(
         (weights.ravel(), parents.ravel(), np.arange(0, size * width + 1, width)),
@@ -549,7 +552,7 @@ def _host_cascade(hierarchy: Hierarchy, coeffs: np.ndarray) -> np.ndarray:
         count = hierarchy.active_counts[level]
         current = np.zeros((hierarchy.level_sizes[level], flat.shape[1]), flat.dtype)
         if previous is not None:
-            current += truncated_refinement(hierarchy, level) @ previous
+            current += refinement_matrix(hierarchy, level) @ previous
         # The active positions are distinct.
         current[np.asarray(hierarchy.active[level])] += flat[start : start + count]
         start += count
@@ -581,7 +584,7 @@ def cascade_matrix(hierarchy: Hierarchy):
         else:
             # No (row, column) pairs to sort: they were most of this function's memory on
             # fine hierarchies.
-            current = sparse.csr_matrix(truncated_refinement(hierarchy, level) @ previous + placed)
+            current = sparse.csr_matrix(refinement_matrix(hierarchy, level) @ previous + placed)
             current.eliminate_zeros()
         blocks.append(current)
         previous = current

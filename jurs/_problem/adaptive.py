@@ -104,32 +104,21 @@ def normal_matrices(hierarchy: Hierarchy, positions: ArrayLike, basis: ArrayLike
 SQUARED_CHUNK = 1 << 21
 
 
-def column_squares(matrix, columns: int) -> np.ndarray:
-    """The column sums of a CSR matrix's squared entries (the diagonal of ``D^T D``),
-    squaring ``SQUARED_CHUNK`` entries at a time: a squared copy of D's entries would be
-    the assembly's peak."""
+def column_squares(matrix, columns: int, row_weights=None) -> np.ndarray:
+    """The column sums of a CSR matrix's squared entries, each row's weighted by its
+    ``row_weights`` (None: 1): the diagonal of ``D^T S D``. ``SQUARED_CHUNK`` entries are
+    squared at a time: a squared copy of D's entries would be the assembly's peak."""
     out = np.zeros(columns)
+    weights = None if row_weights is None else np.asarray(row_weights, float)
     for begin in range(0, len(matrix.data), SQUARED_CHUNK):
-        data = matrix.data[begin : begin + SQUARED_CHUNK]
-        out += np.bincount(
-            matrix.indices[begin : begin + SQUARED_CHUNK], data * data, minlength=columns
-        )
+        stop = min(begin + SQUARED_CHUNK, len(matrix.data))
+        data = matrix.data[begin:stop]
+        squares = data * data
+        if weights is not None:  # each entry's row: the last row starting at or before it
+            rows = np.searchsorted(matrix.indptr, np.arange(begin, stop), side="right") - 1
+            squares *= weights[rows]
+        out += np.bincount(matrix.indices[begin:stop], squares, minlength=columns)
     return out
-
-
-def normal_system(problem: AdaptiveProblem, matrices, lam: float, row_weights=None):
-    """``(D^T S D + lam 2 G^T W G, D^T S b)`` on the host (SciPy sparse, float64) from the
-    matrices ``(D, 2 G^T W G)`` of ``assemble_adaptive_problem``, ``S`` the samples'
-    ``row_weights`` (None: 1): the assembled normal equations that a factorisation or a
-    multilevel solve reads."""
-    from scipy import sparse
-
-    collocation, regulariser = matrices
-    weighted = collocation
-    if row_weights is not None:
-        weighted = sparse.diags(np.asarray(row_weights, float)) @ collocation
-    matrix = collocation.T @ weighted + lam * regulariser
-    return matrix, weighted.T @ np.asarray(problem.targets, float)
 
 
 def make_adaptive_problem(
