@@ -199,6 +199,38 @@ def test_adaptive_default_density_is_coarser_unless_trimmed():
     _assert_same_mesh(jurs.levelset.mesh(spline), jurs.levelset.mesh(spline, plain))
 
 
+def test_trimmed_mesh_skips_blocks_the_trim_cuts_whole():
+    """A trimmed mesh of an adaptive spline marches only the blocks near the data
+    (``near_support``), and is bit for bit the trim of the whole mesh at its lattice."""
+    from jurs.levelset._trimming import Support, near_support
+
+    spline = _torus()
+    t = np.random.default_rng(2).uniform(0.0, 0.8, (600, 2))  # a patch of the torus
+    cap = np.stack(
+        [
+            (0.55 + 0.22 * np.cos(t[:, 1])) * np.cos(t[:, 0]),
+            (0.55 + 0.22 * np.cos(t[:, 1])) * np.sin(t[:, 0]),
+            0.22 * np.sin(t[:, 1]),
+        ],
+        -1,
+    )
+    lower, upper = np.asarray(spline.lower, float), np.asarray(spline.upper, float)
+    resolution = _meshing.default_resolution(spline, lower, upper, trimmed=True)
+    trimmed = jurs.levelset.mesh(spline, points=cap, trim=True)
+    whole = jurs.levelset.mesh(spline, resolution)
+    again = jurs.levelset.trim_mesh(*whole, cap, True, rim=True)
+    assert len(trimmed[1]) > 0
+    np.testing.assert_array_equal(trimmed[0], again[0])
+    np.testing.assert_array_equal(trimmed[1], again[1])
+    # The filter left most of the torus's blocks out.
+    evaluator = spline.on_host()
+    axes = _meshing.lattice_axes(lower, upper, resolution)
+    near = near_support(Support(cap), jurs.levelset.DEFAULT_TRIM, 2)
+    every = plan_band(evaluator, axes, 0.0, 0.0)
+    kept = plan_band(evaluator, axes, 0.0, 0.0, near=near)
+    assert 0 < len(kept.blocks) < 0.5 * len(every.blocks)
+
+
 @pytest.mark.slow
 def test_band_mesh_of_an_adaptive_sphere_fit_is_watertight_and_matches_the_lattice():
     """A fit (not a constructed spline): its band-only mesh is closed, of genus 0, and the

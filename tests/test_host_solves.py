@@ -79,11 +79,13 @@ def test_gram_by_blocks_is_the_data_term(monkeypatch, weighted):
     one = gram(collocation, weights)  # below MIN_GRAM_ENTRIES: one product
     np.testing.assert_allclose(one.toarray(), plain, rtol=1e-13, atol=1e-14)
     monkeypatch.setattr(host_sparse, "MIN_GRAM_ENTRIES", 1000)  # several blocks
-    blocks = [gram(collocation, weights, threads) for threads in (1, 2, 3)]
-    assert collocation.nnz // 1000 >= 2
-    np.testing.assert_allclose(blocks[0].toarray(), plain, rtol=1e-13, atol=1e-14)
-    for other in blocks[1:]:
-        assert np.array_equal(other.toarray(), blocks[0].toarray())
+    assert collocation.nnz // 1000 >= 8
+    for count in (8, 5):  # a power of two, and not
+        monkeypatch.setattr(host_sparse, "GRAM_BLOCKS", count)
+        blocks = [gram(collocation, weights, threads) for threads in (1, 2, 3)]
+        np.testing.assert_allclose(blocks[0].toarray(), plain, rtol=1e-13, atol=1e-14)
+        for other in blocks[1:]:
+            assert np.array_equal(other.toarray(), blocks[0].toarray())
     targets = rng.standard_normal(collocation.shape[0])
     matrix, rhs = normal_system((collocation, regulariser), targets, 0.3, weights)
     np.testing.assert_allclose(

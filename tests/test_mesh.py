@@ -844,3 +844,17 @@ def test_unique_rows_are_numpy_s():
     want, want_inverse = np.unique(rows, axis=0, return_inverse=True)
     np.testing.assert_array_equal(got, want)
     np.testing.assert_array_equal(inverse, want_inverse.reshape(-1))
+
+
+def test_unique_edges_is_numpys_unique_of_the_pairs():
+    """The one-key unique of sorted vertex pairs: the same pairs, order, first indices,
+    inverse and counts as ``np.unique(axis=0)``."""
+    from jurs.levelset._faces import face_edges, unique_edges
+
+    faces = np.random.default_rng(0).integers(0, 50, (400, 3))
+    edges = face_edges(faces)
+    mine = unique_edges(edges, return_index=True, return_inverse=True, return_counts=True)
+    numpys = np.unique(edges, axis=0, return_index=True, return_inverse=True, return_counts=True)
+    for a, b in zip(mine, numpys):
+        np.testing.assert_array_equal(np.asarray(a).reshape(-1), np.asarray(b).reshape(-1))
+    np.testing.assert_array_equal(unique_edges(edges), np.unique(edges, axis=0))

@@ -35,6 +35,7 @@ one watertight mesh.
 from __future__ import annotations
 
 import dataclasses
+from collections.abc import Callable
 from typing import Any
 
 import numpy as np
@@ -172,11 +173,18 @@ def _ratios(both: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
 
 
 def plan_band(
-    evaluator: FinestSpline, axes, level: float, nudge: float, block: int = BLOCK_CELLS
+    evaluator: FinestSpline,
+    axes,
+    level: float,
+    nudge: float,
+    block: int = BLOCK_CELLS,
+    near: Callable[[np.ndarray, np.ndarray, np.ndarray], np.ndarray] | None = None,
 ) -> BandPlan:
     """The blocks of the lattice ``axes`` (``d`` of them, the spline's dimension) where
     ``{g = level}`` may be (module docstring); host work, no lattice-sized array (the
-    block grid is ``BLOCK_CELLS^d`` times smaller)."""
+    block grid is ``BLOCK_CELLS^d`` times smaller). ``near(lower, upper, step)``: of the
+    blocks' corner nodes' coordinates ``(b, d)`` and the lattice's step ``(d,)``, which
+    blocks to keep at all (None: every one), asked before their windows are read."""
     hierarchy = evaluator.hierarchy
     grid = BlockGrid(evaluator, axes, block)
     marked = np.zeros(grid.grid, bool)
@@ -201,6 +209,13 @@ def plan_band(
     outside = grid.outside_blocks()
     marked |= outside
     candidates = np.argwhere(marked)
+    if near is not None and len(candidates):
+        first, last = (
+            np.stack([np.asarray(axes[k])[ends[k][candidates[:, k]]] for k in range(grid.ndim)], 1)
+            for ends in (grid.first, grid.last)
+        )
+        step = np.array([(a[-1] - a[0]) / max(len(a) - 1, 1) for a in axes], float)
+        candidates = candidates[near(first, last, step)]
     chosen = []
     sizes = grid.window_sizes()
     for begin in range(0, len(candidates), grid.batch):

@@ -70,10 +70,26 @@ def face_components(faces, num_vertices: int):
     return len(used), rank[inverse.reshape(-1)]
 
 
+def face_edges(faces) -> np.ndarray:
+    """The ``(3F, 2)`` edges of ``faces``, each as its sorted vertex pair, face by face."""
+    return np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
+
+
+def unique_edges(edges, **options):
+    """``np.unique(edges, axis=0, **options)`` of sorted ``(E, 2)`` vertex pairs: the
+    same pairs, order and optional outputs, by one int64 key a pair (its lexicographic
+    order is the pairs'), a sort of numbers instead of a sort of records."""
+    edges = np.asarray(edges, dtype=np.int64)
+    span = int(edges.max()) + 1 if edges.size else 1
+    out = np.unique(edges[:, 0] * span + edges[:, 1], **options)
+    first, rest = (out[0], out[1:]) if isinstance(out, tuple) else (out, ())
+    pairs = np.stack(np.divmod(first, span), axis=1)
+    return (pairs, *rest) if rest else pairs
+
+
 def boundary_edges(faces, labels):
     """The boundary edges (edges of one face) as ``(B, 2)`` vertex pairs, and the
     component label of each."""
-    edges = np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
     edge_label = np.repeat(labels, 3)
-    unique, where, uses = np.unique(edges, axis=0, return_index=True, return_counts=True)
+    unique, where, uses = unique_edges(face_edges(faces), return_index=True, return_counts=True)
     return unique[uses == 1], edge_label[where][uses == 1]

@@ -24,7 +24,7 @@ from .._model.function import AbstractSpline
 from .._model.lattice import FinestSpline, lattice_values
 from .._model.spline import grid_spline
 from .._problem.memory import check_memory
-from ._trimming import check_points, check_rim, check_trim, trim_mesh
+from ._trimming import Support, check_points, check_rim, check_trim, near_support, trim_to_support
 
 #: Lattice nodes per spline cell along the finest axis for the default resolution: g is a
 #: cubic in each cell, and marching cubes sees at most one zero crossing per lattice edge,
@@ -296,8 +296,12 @@ def mesh(
     lower, upper = _box(spline, box)
     _check_values(spline, float(level))
     spacings = check_trim(trim, points)  # before the lattice: a bad trim fails at once
-    check_rim(rim)
-    data = None if spacings is None else check_points(points, 3)
+    rim_spacings = check_rim(rim)
+    support = near = None
+    if spacings is not None:
+        support = Support(check_points(points, 3))
+        # A trimmed mesh of an adaptive spline skips the blocks the trim would cut whole.
+        near = near_support(support, spacings, int(newton_steps))
     chosen = resolution is None
     if resolution is None:
         resolution = default_resolution(spline, lower, upper, trimmed=spacings is not None)
@@ -306,14 +310,16 @@ def mesh(
     if int(chunk) < 1:
         raise ValueError(f"chunk must be >= 1, got {chunk}")
     spacing, vertices, triangles = _march(
-        spline, lower, upper, int(resolution), float(level), max_nodes, chosen, int(chunk)
+        spline, lower, upper, int(resolution), float(level), max_nodes, chosen, int(chunk), near
     )
     if len(triangles) == 0:
         return _EMPTY
     vertices = lower + vertices * spacing
     vertices = _newton(spline, vertices, float(level), int(newton_steps), spacing.max())
-    if spacings is not None and data is not None:
-        vertices, triangles = trim_mesh(vertices, triangles, data, spacings, rim)
+    if spacings is not None and support is not None:
+        vertices, triangles = trim_to_support(vertices, triangles, support, spacings, rim_spacings)
+        if len(triangles) == 0:
+            return _EMPTY
     if simplify is None or budget is None or len(triangles) <= budget:
         return vertices, triangles
     vertices, triangles = _decimate(simplify, vertices, triangles, budget)
@@ -433,9 +439,10 @@ def _box(spline: AbstractSpline, box):
 
 
 @functools.singledispatch
-def _march(spline: AbstractSpline, lower, upper, resolution, level, max_nodes, chosen, chunk):
+def _march(spline: AbstractSpline, lower, upper, resolution, level, max_nodes, chosen, chunk, near):
     """``(spacing, vertices in index units, faces)``: marching cubes over the whole lattice
-    of ``resolution`` nodes along the longest side, in slabs of ``chunk`` nodes."""
+    of ``resolution`` nodes along the longest side, in slabs of ``chunk`` nodes (``near``,
+    an adaptive spline's filter of blocks, is not read)."""
     axes = lattice_axes(lower, upper, resolution)
     check_lattice_size([len(a) for a in axes], resolution, chunk, max_nodes)
     spacing = _spacing(axes)
@@ -445,10 +452,10 @@ def _march(spline: AbstractSpline, lower, upper, resolution, level, max_nodes, c
 
 
 @_march.register
-def _(spline: AdaptiveSpline, lower, upper, resolution, level, max_nodes, chosen, chunk):
-    # Only the blocks where g may reach the level (jurs._model.band).
+def _(spline: AdaptiveSpline, lower, upper, resolution, level, max_nodes, chosen, chunk, near):
+    # Only the blocks where g may reach the level (jurs._model.band), and near the data.
     _, spacing, vertices, faces = _mesh_band(
-        spline, lower, upper, resolution, level, max_nodes, chosen
+        spline, lower, upper, resolution, level, max_nodes, chosen, near
     )
     return spacing, vertices, faces
 
@@ -621,11 +628,14 @@ def _spacing(axes) -> np.ndarray:
     return np.array([(a[-1] - a[0]) / (len(a) - 1) for a in axes])
 
 
-def _mesh_band(spline, lower, upper, resolution: int, level: float, max_nodes, chosen: bool):
+def _mesh_band(
+    spline, lower, upper, resolution: int, level: float, max_nodes, chosen: bool, near=None
+):
     """Marching cubes over the blocks of the lattice where an adaptive spline may reach
-    the level (``jurs._model.band``); ``(axes, spacing, vertices in index units,
-    faces)``. A default resolution (``chosen``) is lowered until the marched nodes fit in
-    ``max_nodes``; a given one is refused past it (``check_band_size``)."""
+    the level (``jurs._model.band``), those ``near`` keeps (``plan_band``'s filter; None:
+    all); ``(axes, spacing, vertices in index units, faces)``. A default resolution
+    (``chosen``) is lowered until the marched nodes fit in ``max_nodes``; a given one is
+    refused past it (``check_band_size``)."""
     evaluator = spline.on_host()
     marching_cubes = skimage_marching_cubes()
     slope = finest_slope_bound(spline, evaluator)
@@ -633,7 +643,7 @@ def _mesh_band(spline, lower, upper, resolution: int, level: float, max_nodes, c
         axes = lattice_axes(lower, upper, int(resolution))
         spacing = _spacing(axes)
         nudge = NUDGE * float(np.max(spacing * slope))
-        plan = plan_band(evaluator, axes, level, nudge)
+        plan = plan_band(evaluator, axes, level, nudge, near=near)
         fits = max_nodes is None or plan.nodes <= max_nodes
         if fits or not chosen or resolution <= MIN_RESOLUTION:
             break

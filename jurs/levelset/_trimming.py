@@ -57,12 +57,14 @@ every viewpoint), where the distance rule alone (``rim=None``) ran on 3.5-4.3.
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import numpy.typing as npt
 from jaxtyping import Float, Int
 from scipy.spatial import cKDTree  # pyright: ignore[reportAttributeAccessIssue]  # no stub
 
-from ._faces import boundary_edges, face_areas, face_components
+from ._faces import boundary_edges, face_areas, face_components, face_edges, unique_edges
 
 #: Default trim amid the samples, in local spacings of the data. Random samples leave
 #: gaps: on a sphere sampled uniformly at random by area (1e3, 1e4, 1e5 points) 99.9 % of
@@ -189,7 +191,7 @@ class Support:
         dim = x.shape[1]
         k = RIM_NEIGHBOURS[dim] if neighbours is None else int(neighbours)
         k = min(k, len(self.points))
-        distance, index = self.tree.query(x, k=k)
+        distance, index = self.tree.query(x, k=k, workers=-1)
         distance, index = distance.reshape(len(x), k), index.reshape(len(x), k)
         near = self.points[index]
         centre = near.mean(axis=1)
@@ -202,13 +204,26 @@ class Support:
         reach = np.maximum(distance[:, -1], 1e-300)
         return np.minimum(np.linalg.norm(offset, axis=1) / reach, 1.0)
 
-    def spacings(self, x: Float[npt.ArrayLike, "n d"]) -> Float[np.ndarray, " n"]:
-        """Distance of each row of ``x`` to its nearest sample, in that sample's spacings."""
+    def spacings(
+        self, x: Float[npt.ArrayLike, "n d"], beyond: float = np.inf
+    ) -> Float[np.ndarray, " n"]:
+        """Distance of each row of ``x`` to its nearest sample, in that sample's spacings;
+        ``inf`` for rows farther than ``beyond`` from every sample (the tree then stops
+        searching early)."""
         x = np.asarray(x, dtype=np.float64)
         if len(x) == 0:
             return np.empty(0)
-        distance, nearest = self.tree.query(x)
-        return distance / self.spacing[nearest]
+        distance, nearest = self.nearest(x, beyond)
+        out = np.full(len(x), np.inf)
+        found = nearest < len(self.points)
+        out[found] = distance[found] / self.spacing[nearest[found]]
+        return out
+
+    def nearest(self, x, beyond: float = np.inf) -> tuple[np.ndarray, np.ndarray]:
+        """``(distance, index)`` of each row's nearest sample (``inf`` and
+        ``len(points)`` past ``beyond``), the queries over the host's cores."""
+        x = np.asarray(x, dtype=np.float64)
+        return self.tree.query(x, distance_upper_bound=beyond, workers=-1)
 
 
 def trim_mesh(
@@ -286,19 +301,51 @@ def trim_mesh(
         return vertices, faces
     if len(faces) == 0:
         return np.empty((0, 3)), np.empty((0, 3), dtype=np.int64)
-    rim_value = check_rim(rim)
-    support = Support(points)
-    level = trim_levels(support, vertices, value, rim_value)
+    return trim_to_support(vertices, faces, Support(points), value, check_rim(rim))
+
+
+def trim_to_support(vertices, faces, support: Support, trim: float, rim: float | None):
+    """``trim_mesh`` of checked arrays (``(V, 3)`` float64, ``(F, 3)`` int64, at least one
+    face) against the data's ``support``, with a checked ``trim`` and ``rim``."""
+    value, rim_value = trim, rim
+    edges = face_edges(faces)
+    # A vertex an edge away from a kept one has its level exactly (a crossing edge's
+    # clip reads it); one farther is cut, whatever its level, and reads inf.
+    reach = float(np.linalg.norm(vertices[edges[:, 0]] - vertices[edges[:, 1]], axis=1).max())
+    level = trim_levels(support, vertices, value, rim_value, reach)
     if rim_value is not None and rim_value < value:
         level = fill_holes(vertices, faces, level, support, HOLE_AREA)
         return drop_islands(*clip_mesh(vertices, faces, level), support, ISLAND_AREA)
     return clip_mesh(vertices, faces, level)
 
 
-def trim_levels(support: Support, x, trim: float, rim: float | None) -> np.ndarray:
+def near_support(support: Support, trim: float, steps: int):
+    """A ``jurs._model.band.plan_band`` filter for a mesh to be trimmed: the lattice
+    blocks that may hold a vertex of the trimmed mesh, those within ``trim`` of the
+    largest spacing, a hole's inradius (``HOLE_AREA``: a hole closed whole lies that near
+    its ring) and ``steps + 2`` lattice diagonals (how far ``steps`` Newton steps move a
+    vertex, and an edge to a kept one) of a sample. What the filter leaves out the trim
+    would cut whole, so the trimmed mesh is the same."""
+    reach = (float(trim) + math.sqrt(HOLE_AREA / math.pi)) * float(support.spacing.max())
+
+    def near(lower, upper, step):
+        slack = reach + (int(steps) + 2) * float(np.linalg.norm(step))
+        half = 0.5 * np.linalg.norm(np.asarray(upper) - np.asarray(lower), axis=1)
+        centre = 0.5 * (np.asarray(lower) + np.asarray(upper))
+        distance, _ = support.nearest(centre, slack + float(half.max(initial=0.0)))
+        return distance <= slack + half
+
+    return near
+
+
+def trim_levels(
+    support: Support, x, trim: float, rim: float | None, reach: float = np.inf
+) -> np.ndarray:
     """Per-point trim level (negative: kept): the distance in spacings less the tolerance,
-    ``trim`` amid the data and ``rim`` where the data lie to one side (module docstring)."""
-    distance = support.spacings(x)
+    ``trim`` amid the data and ``rim`` where the data lie to one side (module docstring).
+    Points farther than ``reach`` beyond the largest tolerance of any sample (``trim``
+    of the largest spacing) read ``inf``: cut, and ``reach`` from anything kept."""
+    distance = support.spacings(x, float(trim) * float(support.spacing.max()) + reach)
     tolerance = np.full(len(distance), float(trim))
     if rim is None or rim >= trim:
         return distance - tolerance
@@ -322,8 +369,7 @@ def fill_holes(vertices, faces, level, support: Support, area: float) -> np.ndar
     out = level >= 0
     if not out.any() or out[faces].all():
         return level
-    edges = np.sort(faces[:, [0, 1, 1, 2, 2, 0]].reshape(-1, 2), axis=1)
-    unique, uses = np.unique(edges, axis=0, return_counts=True)
+    unique, uses = unique_edges(face_edges(faces), return_counts=True)
     border = np.zeros(len(vertices), dtype=bool)
     border[unique[uses == 1].reshape(-1)] = True
     both = unique[out[unique].all(axis=1)]
@@ -342,10 +388,14 @@ def fill_holes(vertices, faces, level, support: Support, area: float) -> np.ndar
     size = np.bincount(owner, weights=face_areas(vertices, faces[touched]), minlength=count)
     ringed = np.bincount(owner, weights=(~out[faces[touched]]).any(axis=1), minlength=count) > 0
     bordered = np.bincount(group, weights=border[outside], minlength=count) > 0
-    _, nearest = support.tree.query(vertices[outside])
+    # A set at least ``area`` of the largest squared spacing is no hole: only the others'
+    # vertices need their nearest samples.
+    hole = ringed & ~bordered & (size < area * support.spacing.max() ** 2)
+    asked = hole[group]
+    _, nearest = support.nearest(vertices[outside[asked]])
     scale = np.zeros(count)
-    np.maximum.at(scale, group, support.spacing[nearest] ** 2)
-    hole = ringed & ~bordered & (size < area * scale)
+    np.maximum.at(scale, group[asked], support.spacing[nearest] ** 2)
+    hole &= size < area * scale
     if not hole.any():
         return level
     level = level.copy()
@@ -365,10 +415,16 @@ def drop_islands(vertices, faces, support: Support, area: float):
     size = np.bincount(owner, weights=face_areas(vertices, faces), minlength=count)
     open_piece = np.zeros(count, dtype=bool)
     open_piece[boundary_edges(faces, owner)[1]] = True
-    _, nearest = support.tree.query(vertices)
+    # As for holes: only pieces under ``area`` of the largest squared spacing may go.
+    drop = open_piece & (size < area * support.spacing.max() ** 2)
+    asked = drop[owner]
+    used = np.unique(faces[asked])
+    _, nearest = support.nearest(vertices[used])
+    squared = np.zeros(len(vertices))
+    squared[used] = support.spacing[nearest] ** 2
     scale = np.zeros(count)
-    np.maximum.at(scale, np.repeat(owner, 3), (support.spacing[nearest] ** 2)[faces].ravel())
-    drop = open_piece & (size < area * scale)
+    np.maximum.at(scale, np.repeat(owner[asked], 3), squared[faces[asked]].ravel())
+    drop &= size < area * scale
     if not drop.any():
         return vertices, faces
     return _compact(vertices, faces[~drop[owner]])
@@ -396,7 +452,7 @@ def clip_mesh(vertices, faces, level):
     # ends) so that the two faces of an edge share it.
     edges = np.concatenate([np.stack([a, b], 1), np.stack([a, c], 1)])
     keys = np.sort(edges, axis=1)
-    unique, index = np.unique(keys, axis=0, return_inverse=True)
+    unique, index = unique_edges(keys, return_inverse=True)
     index = index.reshape(-1)
     lo, hi = unique[:, 0], unique[:, 1]
     t = level[lo] / (level[lo] - level[hi])
