@@ -9,7 +9,6 @@ are gathers and segment sums, the same on any device. Used by the hierarchy's CG
 
 from __future__ import annotations
 
-import itertools
 import os
 from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
@@ -123,27 +122,9 @@ def _last_columns(matrix) -> np.ndarray:
     return last
 
 
-def _fold(parts):
-    """The sum of an iterable of sparse matrices, pairwise as they come (a binary
-    counter's merges: the same order for the same count), holding the partial sums of at
-    most one part a power of two."""
-    stack: list = []  # (parts summed, their sum)
-    for part in parts:
-        count, total = 1, part
-        while stack and stack[-1][0] == count:
-            done, previous = stack.pop()
-            count, total = count + done, previous + total
-        stack.append((count, total))
-    total = stack.pop()[1]
-    while stack:
-        total = stack.pop()[1] + total
-    return total
-
-
-def gram(collocation, row_weights=None, threads=None, plus=None):
-    """``D^T S D + plus`` (SciPy CSR) of a SciPy CSR ``collocation`` ``D``, ``S`` the
-    rows' ``row_weights`` (None: 1), ``plus`` a sparse matrix or None: the assembled
-    normal matrix's data term, and with ``plus = lam R`` the whole matrix.
+def gram(collocation, row_weights=None, threads=None):
+    """``D^T S D`` (SciPy CSR) of a SciPy CSR ``collocation`` ``D``, ``S`` the rows'
+    ``row_weights`` (None: 1): the data term of the assembled normal equations.
 
     The rows are taken in the order of their last column and cut in up to
     ``GRAM_BLOCKS`` blocks (one per ``MIN_GRAM_ENTRIES`` entries). A hierarchy's
@@ -151,18 +132,16 @@ def gram(collocation, row_weights=None, threads=None, plus=None):
     sample's last column is a function of its own leaf, so each block holds the samples
     of one slab of the band: its product ``D_k^T S_k D_k`` touches about its share of the
     functions. The blocks run in ``threads`` threads (None: ``host_threads``; SciPy's
-    sparse products release the GIL) and their products are summed pairwise as they come
-    (``_fold``), in an order fixed by the blocks, so the result has the same bits whatever
-    the threads. Beside one product of all rows this is faster (each product works within
-    a slab) and needs less memory at once (a block's copy and its product, not all rows'
-    products over all functions).
+    sparse products release the GIL) and their products are summed pairwise in a fixed
+    order, so the result has the same bits whatever the threads. Beside one product of
+    all rows this is faster (each product works within a slab) and needs less memory at
+    once (a block's copy and its product, not all rows' products over all functions).
     """
     threads = host_threads() if threads is None else max(1, int(threads))
     count = max(1, min(GRAM_BLOCKS, collocation.nnz // MIN_GRAM_ENTRIES))
     weights = None if row_weights is None else np.asarray(row_weights, float)
     if count == 1:
-        product = collocation.T.tocsr() @ _weighted_rows(collocation, weights)
-        return (product if plus is None else product + plus).tocsr()
+        return (collocation.T.tocsr() @ _weighted_rows(collocation, weights)).tocsr()
     order = np.argsort(_last_columns(collocation), kind="stable")
 
     def part(rows):
@@ -170,8 +149,11 @@ def gram(collocation, row_weights=None, threads=None, plus=None):
         return block.T.tocsr() @ _weighted_rows(block, None if weights is None else weights[rows])
 
     with ThreadPoolExecutor(min(threads, count)) as pool:
-        parts = pool.map(part, np.array_split(order, count))
-        return _fold(itertools.chain(parts, [] if plus is None else [plus])).tocsr()
+        parts = list(pool.map(part, np.array_split(order, count)))
+    while len(parts) > 1:
+        pairs = range(0, len(parts) - 1, 2)
+        parts = [parts[i] + parts[i + 1] for i in pairs] + parts[len(parts) - len(parts) % 2 :]
+    return parts[0].tocsr()
 
 
 def normal_system(matrices, targets, lam: float, row_weights=None):
@@ -179,12 +161,13 @@ def normal_system(matrices, targets, lam: float, row_weights=None):
     normal equations that a factorisation, a multilevel solve or CG on the assembled
     matrix reads. ``matrices``: ``(D, R)`` in SciPy CSR, ``R`` the regulariser's part of
     the normal matrix per unit lambda; ``b`` the samples' ``targets``, ``S`` their
-    ``row_weights`` (None: 1). The matrix comes from ``gram``."""
+    ``row_weights`` (None: 1). ``D^T S D`` comes from ``gram``."""
     collocation, regulariser = matrices
     weights = None if row_weights is None else np.asarray(row_weights, float)
+    data = gram(collocation, weights)
     b = np.asarray(targets, float)
     rhs = collocation.T @ (b if weights is None else weights * b)
-    return gram(collocation, weights, plus=lam * regulariser), rhs
+    return (data + lam * regulariser).tocsr(), rhs
 
 
 @contextmanager
