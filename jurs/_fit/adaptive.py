@@ -366,7 +366,7 @@ def solve_host_cg(
     (``host_conjugate_gradients``), on the host matrices ``(D, 2 G^T W G)`` in CSR, their
     products split over the host's threads (``normal_product``). Not differentiable.
     ``row_weights`` and ``start`` as ``solve_assembled``'s. ``system``: the assembled
-    ``normal_system(D, 2 G^T W G, b, lam, row_weights)``, whose matrix CG then multiplies
+    ``normal_system((D, 2 G^T W G), b, lam, row_weights)``, whose matrix CG then multiplies
     by instead (``ASSEMBLED_SAMPLES_PER_FUNCTION``: the same equations, in fewer entries
     where samples outnumber functions).
 
