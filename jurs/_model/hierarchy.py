@@ -509,17 +509,18 @@ def cascade(
         mine = coeffs[..., start : start + count]
         start += count
         size = hierarchy.level_sizes[level]
-        active = xp.asarray(hierarchy.active[level])
+        active = jnp.asarray(hierarchy.active[level])
         placed = jnp.zeros(lead + (size,), coeffs.dtype).at[..., active].add(mine)
         if previous is None:
             current = placed
         else:
-            parents = xp.asarray(hierarchy.parents[level])
-            refined = xp.sum(previous[..., parents] * hierarchy.parent_weights(level, xp), axis=-1)
-            current = xp.asarray(hierarchy.keep[level]) * refined + placed
+            parents = jnp.asarray(hierarchy.parents[level])
+            weights = hierarchy.parent_weights(level, jnp)
+            refined = jnp.sum(previous[..., parents] * weights, axis=-1)
+            current = jnp.asarray(hierarchy.keep[level]) * refined + placed
         out.append(current)
         previous = current
-    return xp.concatenate(out, axis=-1)
+    return jnp.concatenate(out, axis=-1)
 
 
 def refinement_matrix(hierarchy: Hierarchy, level: int, truncated: bool = True):

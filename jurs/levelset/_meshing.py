@@ -297,6 +297,10 @@ def mesh(
     _check_values(spline, float(level))
     spacings = check_trim(trim, points)  # before the lattice: a bad trim fails at once
     rim_spacings = check_rim(rim)
+    if int(newton_steps) < 0:
+        raise ValueError(f"newton_steps must be >= 0, got {newton_steps}")
+    if int(chunk) < 1:
+        raise ValueError(f"chunk must be >= 1, got {chunk}")
     support = near = None
     if spacings is not None:
         support = Support(check_points(points, 3))
@@ -305,10 +309,6 @@ def mesh(
     chosen = resolution is None
     if resolution is None:
         resolution = default_resolution(spline, lower, upper, trimmed=spacings is not None)
-    if int(newton_steps) < 0:
-        raise ValueError(f"newton_steps must be >= 0, got {newton_steps}")
-    if int(chunk) < 1:
-        raise ValueError(f"chunk must be >= 1, got {chunk}")
     spacing, vertices, triangles = _march(
         spline, lower, upper, int(resolution), float(level), max_nodes, chosen, int(chunk), near
     )

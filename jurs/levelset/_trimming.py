@@ -307,13 +307,12 @@ def trim_mesh(
 def trim_to_support(vertices, faces, support: Support, trim: float, rim: float | None):
     """``trim_mesh`` of checked arrays (``(V, 3)`` float64, ``(F, 3)`` int64, at least one
     face) against the data's ``support``, with a checked ``trim`` and ``rim``."""
-    value, rim_value = trim, rim
-    edges = face_edges(faces)
     # A vertex an edge away from a kept one has its level exactly (a crossing edge's
     # clip reads it); one farther is cut, whatever its level, and reads inf.
-    reach = float(np.linalg.norm(vertices[edges[:, 0]] - vertices[edges[:, 1]], axis=1).max())
-    level = trim_levels(support, vertices, value, rim_value, reach)
-    if rim_value is not None and rim_value < value:
+    corners = vertices[faces]
+    reach = float(np.linalg.norm(corners - np.roll(corners, 1, axis=1), axis=-1).max())
+    level = trim_levels(support, vertices, trim, rim, reach)
+    if rim is not None and rim < trim:
         level = fill_holes(vertices, faces, level, support, HOLE_AREA)
         return drop_islands(*clip_mesh(vertices, faces, level), support, ISLAND_AREA)
     return clip_mesh(vertices, faces, level)
@@ -388,19 +387,27 @@ def fill_holes(vertices, faces, level, support: Support, area: float) -> np.ndar
     size = np.bincount(owner, weights=face_areas(vertices, faces[touched]), minlength=count)
     ringed = np.bincount(owner, weights=(~out[faces[touched]]).any(axis=1), minlength=count) > 0
     bordered = np.bincount(group, weights=border[outside], minlength=count) > 0
-    # A set at least ``area`` of the largest squared spacing is no hole: only the others'
-    # vertices need their nearest samples.
-    hole = ringed & ~bordered & (size < area * support.spacing.max() ** 2)
-    asked = hole[group]
-    _, nearest = support.nearest(vertices[outside[asked]])
-    scale = np.zeros(count)
-    np.maximum.at(scale, group[asked], support.spacing[nearest] ** 2)
-    hole &= size < area * scale
+    hole = small_groups(support, area, size, ringed & ~bordered, vertices, outside, group)
     if not hole.any():
         return level
     level = level.copy()
     level[outside[hole[group]]] = -1.0
     return level
+
+
+def small_groups(support: Support, area: float, size, candidate, points, members, group):
+    """Which of ``count`` groups of points cover less than ``area`` squared local
+    spacings: ``size`` ``(count,)`` their areas, ``candidate`` ``(count,)`` those that
+    may, ``points[members]`` their points and ``group`` the group of each member; a
+    group's spacing is the largest of its points' nearest samples'. A group of at least
+    ``area`` of the largest spacing anywhere is none, so only the others' points are
+    looked up."""
+    small = candidate & (size < area * support.spacing.max() ** 2)
+    asked = small[group]
+    _, nearest = support.nearest(points[members[asked]])
+    scale = np.zeros(len(size))
+    np.maximum.at(scale, group[asked], support.spacing[nearest] ** 2)
+    return small & (size < area * scale)
 
 
 def drop_islands(vertices, faces, support: Support, area: float):
@@ -415,16 +422,11 @@ def drop_islands(vertices, faces, support: Support, area: float):
     size = np.bincount(owner, weights=face_areas(vertices, faces), minlength=count)
     open_piece = np.zeros(count, dtype=bool)
     open_piece[boundary_edges(faces, owner)[1]] = True
-    # As for holes: only pieces under ``area`` of the largest squared spacing may go.
-    drop = open_piece & (size < area * support.spacing.max() ** 2)
-    asked = drop[owner]
-    used = np.unique(faces[asked])
-    _, nearest = support.nearest(vertices[used])
-    squared = np.zeros(len(vertices))
-    squared[used] = support.spacing[nearest] ** 2
-    scale = np.zeros(count)
-    np.maximum.at(scale, np.repeat(owner[asked], 3), squared[faces[asked]].ravel())
-    drop &= size < area * scale
+    # Each used vertex lies in one piece: its faces'.
+    piece = np.full(len(vertices), -1)
+    piece[faces] = owner[:, None]
+    used = np.flatnonzero(piece >= 0)
+    drop = small_groups(support, area, size, open_piece, vertices, used, piece[used])
     if not drop.any():
         return vertices, faces
     return _compact(vertices, faces[~drop[owner]])
