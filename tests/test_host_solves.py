@@ -10,8 +10,9 @@ import scipy.sparse as sp
 
 import jurs._linalg.sparse as host_sparse
 from jurs._linalg.pcg import conjugate_gradients, host_conjugate_gradients
-from jurs._linalg.sparse import gram, normal_product, normal_system, row_blocks
+from jurs._linalg.sparse import gram, normal_product, normal_system
 from jurs._problem.adaptive import column_squares
+from jurs._threads import row_blocks
 
 jax.config.update("jax_enable_x64", True)
 

@@ -9,8 +9,6 @@ are gathers and segment sums, the same on any device. Used by the hierarchy's CG
 
 from __future__ import annotations
 
-import os
-from concurrent.futures import ThreadPoolExecutor
 from contextlib import contextmanager
 
 import equinox as eqx
@@ -19,6 +17,7 @@ import numpy as np
 from jax import Array
 
 from .._problem.sizes import padded_to
+from .._threads import host_threads, pool, row_blocks
 
 
 def padded_entries(matrix, count: int, dtype) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -56,45 +55,6 @@ class PaddedCoo(eqx.Module):
 
     def transpose_apply(self, y: Array) -> Array:
         return jax.ops.segment_sum(self.values * y[self.rows], self.cols, self.num_cols)
-
-
-#: At most this many threads for the host's sparse products (``normal_product``): each
-#: thread's transposed product writes a whole coefficient-length vector, so more threads
-#: cost memory and a longer sum for products that shrink; measured on two cores only.
-MAX_HOST_THREADS = 8
-
-
-def host_threads() -> int:
-    """The threads the host's sparse products use: the CPUs this process may run on, at
-    most ``MAX_HOST_THREADS``."""
-    try:
-        cpus = len(os.sched_getaffinity(0))
-    except AttributeError:  # no affinity on this platform
-        cpus = os.cpu_count() or 1
-    return max(1, min(cpus, MAX_HOST_THREADS))
-
-
-def row_blocks(matrix, count: int) -> list:
-    """A SciPy CSR ``matrix``'s rows in ``count`` contiguous blocks of about equal entries,
-    ``[(first row, block)]``, each block a CSR view of the matrix's own arrays: nothing
-    is copied."""
-    from scipy.sparse import csr_matrix
-
-    bounds = np.searchsorted(matrix.indptr, np.linspace(0, matrix.nnz, count + 1))
-    bounds[0], bounds[-1] = 0, matrix.shape[0]
-    blocks = []
-    for first, last in zip(bounds[:-1], bounds[1:]):
-        if last <= first:
-            continue
-        start, stop = matrix.indptr[first], matrix.indptr[last]
-        # Built empty, then given the views: SciPy's constructor copies a view of a much
-        # larger array (its prune step), which would copy the whole matrix block by block.
-        block = csr_matrix((int(last - first), matrix.shape[1]), dtype=matrix.dtype)
-        block.data = matrix.data[start:stop]
-        block.indices = matrix.indices[start:stop]
-        block.indptr = (matrix.indptr[first : last + 1] - start).astype(matrix.indptr.dtype)
-        blocks.append((int(first), block))
-    return blocks
 
 
 #: ``gram`` multiplies ``D``'s rows in blocks of at least this many entries, and at most
@@ -148,8 +108,7 @@ def gram(collocation, row_weights=None, threads=None):
         block = collocation[rows]
         return block.T.tocsr() @ _weighted_rows(block, None if weights is None else weights[rows])
 
-    with ThreadPoolExecutor(min(threads, count)) as pool:
-        parts = list(pool.map(part, np.array_split(order, count)))
+    parts = list(pool("map", min(threads, count)).map(part, np.array_split(order, count)))
     while len(parts) > 1:
         pairs = range(0, len(parts) - 1, 2)
         parts = [parts[i] + parts[i + 1] for i in pairs] + parts[len(parts) - len(parts) % 2 :]
@@ -203,13 +162,13 @@ def normal_product(collocation, regulariser, lam: float, row_weights=None, threa
     if count <= 1:
         yield lambda c: block(0, np.asarray(c, float))
         return
-    with ThreadPoolExecutor(count) as pool:
+    workers = pool("map", count)
 
-        def apply(c) -> np.ndarray:
-            c = np.asarray(c, float)
-            first, *rest = pool.map(lambda k: block(k, c), range(count))
-            for part in rest:
-                first += part
-            return first
+    def apply(c) -> np.ndarray:
+        c = np.asarray(c, float)
+        first, *rest = workers.map(lambda k: block(k, c), range(count))
+        for part in rest:
+            first += part
+        return first
 
-        yield apply
+    yield apply

@@ -40,6 +40,7 @@ from typing import Any
 
 import numpy as np
 
+from .._threads import ahead, in_threads
 from .finest import level_offsets
 from .hierarchy import cube_offsets, index_in, ravel_keys, unravel_keys
 from .lattice import FinestSpline
@@ -156,6 +157,16 @@ class BlockGrid:
         both = evaluator.contract(windows, relative, factors)
         return both[0] / both[1], np.stack(real, -1)
 
+    def batches(self, blocks: np.ndarray):
+        """``blocks (b, d)`` in batches of ``self.batch``, in order."""
+        return [blocks[begin : begin + self.batch] for begin in range(0, len(blocks), self.batch)]
+
+    def batch_values(self, evaluator: FinestSpline, blocks: np.ndarray):
+        """``(batch, values, nodes)`` for each of ``batches(blocks)`` in order, ``values``
+        and ``nodes`` as ``values`` gives them: the next batch's made in a second thread
+        while the caller works on this one (``jurs._threads.ahead``; the same values)."""
+        return ahead(lambda batch: (batch, *self.values(evaluator, batch)), self.batches(blocks))
+
 
 def _straddles(low, high, level: float, nudge: float, scale: float) -> np.ndarray:
     """Whether a range ``[low, high]`` of values may put a node's value, after the nudge,
@@ -216,10 +227,10 @@ def plan_band(
         )
         step = np.array([(a[-1] - a[0]) / max(len(a) - 1, 1) for a in axes], float)
         candidates = candidates[near(first, last, step)]
-    chosen = []
     sizes = grid.window_sizes()
-    for begin in range(0, len(candidates), grid.batch):
-        batch = candidates[begin : begin + grid.batch]
+
+    def kept(batch):
+        """The blocks of ``batch`` whose window's ratios may reach the level."""
         first, last = grid.corners(batch)
         ratio, positive = _ratios(evaluator.windows(first, sizes))
         # Only the functions over the block's cells bound it (the window is padded).
@@ -233,7 +244,10 @@ def plan_band(
         high = np.where(valid, ratio, -np.inf).reshape(len(batch), -1).max(axis=1)
         bad = (valid & ~positive).reshape(len(batch), -1).any(axis=1)
         forced = outside[tuple(batch.T)]
-        chosen.append(batch[_straddles(low, high, level, nudge, scale) | bad | forced])
+        return batch[_straddles(low, high, level, nudge, scale) | bad | forced]
+
+    # The batches are independent: shared out over the host's threads.
+    chosen = in_threads(kept, grid.batches(candidates))
     blocks = np.concatenate(chosen) if chosen else np.zeros((0, grid.ndim), np.int64)
     per_axis = [last - first + 1 for first, last in zip(grid.first, grid.last)]
     nodes = int(sum(np.prod([per_axis[k][blocks[:, k]] for k in range(grid.ndim)], axis=0)))
@@ -277,9 +291,7 @@ def band_lattice(evaluator: FinestSpline, axes, level: float, block: int = BLOCK
     owner = [np.minimum(np.arange(n) // grid.block, g - 1) for n, g in zip(grid.counts, grid.grid)]
     values = side[labels[np.ix_(*owner)]]
     evaluated = np.zeros(tuple(grid.counts), bool)
-    for begin in range(0, len(plan.blocks), grid.batch):
-        batch = plan.blocks[begin : begin + grid.batch]
-        block_values, real = grid.values(evaluator, batch)
+    for batch, block_values, real in grid.batch_values(evaluator, plan.blocks):
         for b, at in enumerate(batch):
             start = [grid.first[k][at[k]] for k in range(grid.ndim)]
             target = tuple(slice(f, f + n) for f, n in zip(start, real[b]))
@@ -332,9 +344,7 @@ def band_regions(
     up_structure[1] = faces_only
     down_structure = np.zeros((3,) * (d + 1), bool)
     down_structure[1] = every
-    for begin in range(0, len(plan.blocks), grid.batch):
-        batch = plan.blocks[begin : begin + grid.batch]
-        values, real = grid.values(evaluator, batch)
+    for batch, values, real in grid.batch_values(evaluator, plan.blocks):
         count, side = len(batch), values.shape[1:]
         # A block cut by the lattice's end holds its own nodes below ``real``; the rest
         # repeat its last node and take part in nothing.

@@ -42,6 +42,7 @@ import numpy as np
 from jax import Array
 from jaxtyping import ArrayLike, Float
 
+from .._threads import by_rows
 from .precision import on_device
 
 #: Cubic B-spline subdivision mask: ``B^l_i = sum_k SUBDIVISION[k] B^{l+1}_{2i-3+k}``.
@@ -244,7 +245,15 @@ class Hierarchy(eqx.Module):
 
 def _support_inside(functions: np.ndarray, cells: tuple[int, ...], region: _KeySet) -> np.ndarray:
     """Whether each function's support within the box lies in ``region`` (flat keys of
-    cells at the same level); ``functions (k, d)`` multi-indices."""
+    cells at the same level); ``functions (k, d)`` multi-indices. Each function's answer is
+    its own: the functions are shared out over the host's threads (``by_rows``)."""
+    return by_rows(lambda part: _support_inside_of(part, cells, region), functions)
+
+
+def _support_inside_of(
+    functions: np.ndarray, cells: tuple[int, ...], region: _KeySet
+) -> np.ndarray:
+    """``_support_inside`` of one part of the functions."""
     ndim = functions.shape[1]
     strides = [int(np.prod(cells[axis + 1 :])) for axis in range(ndim)]
     # Per axis and offset o in 0..3: the support's cell f - 3 + o, whether it lies in the

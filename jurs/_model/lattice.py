@@ -20,6 +20,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from .._threads import in_threads
 from .basis import CENTRED_POWER, cubic_weights
 from .function import AbstractSpline
 from .hierarchy import cascade
@@ -442,12 +443,16 @@ def finest_values_and_gradients(
         raise ValueError(f"points must have shape (n, {d}), got {points.shape}")
     if len(points) == 0:
         return np.empty(0), (np.empty((0, d)) if gradients else None)
-    value, gradient = [], []
-    for start in range(0, len(points), int(chunk)):
-        v, g = evaluator.values_and_gradients(points[start : start + int(chunk)], gradients)
-        value.append(v)
-        gradient.append(g)
-    return np.concatenate(value), (np.concatenate(gradient) if gradients else None)
+    # The chunks are independent: shared out over the host's threads, the same values.
+    starts = range(0, len(points), int(chunk))
+    parts = in_threads(
+        lambda start: evaluator.values_and_gradients(points[start : start + int(chunk)], gradients),
+        starts,
+    )
+    value = np.concatenate([v for v, _ in parts])
+    if not gradients:
+        return value, None
+    return value, np.concatenate([g for _, g in parts if g is not None])
 
 
 def grid_values_and_gradients(spline, points, *, chunk: int = 1 << 14, gradients: bool = True):

@@ -30,6 +30,7 @@ from .._model.hierarchy import (
 from .._model.leaves import hierarchy_basis, leaf_terms, locate_leaves
 from .._model.precision import on_device
 from .energy import metrics_from_sums
+from .memory import release_freed_memory
 from .problem import offset_samples
 
 
@@ -94,9 +95,15 @@ def normal_matrices(hierarchy: Hierarchy, positions: ArrayLike, basis: ArrayLike
         shape=(edges, total),
     )
     laplacian = sparse.csr_matrix(pair_differences.T @ pair_differences)
+    del pair_differences
+    smoothed = sparse.csr_matrix(laplacian @ cascaded)
     # M^T as a CSR view of M in CSC: a product of two CSR matrices, with no conversion
-    # of the (larger) L M or of the result.
-    regulariser = cascaded.tocsc().T @ sparse.csr_matrix(laplacian @ cascaded)
+    # of the (larger) L M or of the result. M itself goes first: the last product is
+    # the assembly's peak.
+    del laplacian
+    transposed = cascaded.tocsc().T
+    del cascaded
+    regulariser = transposed @ smoothed
     return collocation, regulariser
 
 
@@ -184,6 +191,7 @@ def assemble_adaptive_problem(
     if combine_refined is not None:
         refine = combine_refined(refine)
     hierarchy = build_hierarchy(lower, upper, base, refine, dtype=dtype)
+    release_freed_memory()  # what the build's threads freed, before the assembly's peak
     samples_np = samples_np.astype(dtype)  # leaves found in the fit's own precision
     level, cell = locate_leaves(hierarchy, samples_np, xp=np)
     positions, local = leaf_terms(hierarchy, samples_np, level, cell, xp=np)

@@ -122,7 +122,9 @@ def release_freed_memory() -> None:
     so a step that frees many (a compiled fit's working arrays) leaves the process that
     much larger, and the next step's large arrays, mapped afresh, are added on top (a
     capped grid's trial fit before the hierarchy's assembly: docs/performance.md, "A
-    hierarchy fit's host work and peak")."""
+    hierarchy fit's host work and peak"). Pages freed by the host's worker threads
+    (``jurs._threads``) sit in those threads' arenas, where the main thread's arrays
+    never reuse them; work that ran in threads releases them when it ends."""
     trim = _malloc_trim()
     if trim is not None:
         trim(0)

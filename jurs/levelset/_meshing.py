@@ -23,7 +23,7 @@ from .._model.band import BATCH_BLOCKS, BLOCK_CELLS, BandPlan, BlockGrid, plan_b
 from .._model.function import AbstractSpline
 from .._model.lattice import FinestSpline, lattice_values
 from .._model.spline import grid_spline
-from .._problem.memory import check_memory
+from .._problem.memory import check_memory, release_freed_memory
 from ._trimming import Support, check_points, check_rim, check_trim, near_support, trim_to_support
 
 #: Lattice nodes per spline cell along the finest axis for the default resolution: g is a
@@ -621,6 +621,7 @@ def _newton(spline, vertices, level: float, steps: int, longest):
             move = -((value - level) / norm2)[:, None] * gradient
         ok = np.isfinite(move).all(axis=1) & (np.sum(move * move, axis=1) <= longest**2)
         x[ok] += move[ok]
+    release_freed_memory()  # the pages the values' threads freed
     return x
 
 
@@ -654,6 +655,7 @@ def _mesh_band(
     vertices, faces = march_band(evaluator, axes, plan, level, nudge, marching_cubes)
     if len(faces):
         vertices, faces = _weld(vertices, faces)
+    release_freed_memory()  # the pages the band's threads freed
     return axes, spacing, vertices, faces
 
 
@@ -694,9 +696,7 @@ def march_band(
     grid = BlockGrid(evaluator, axes, block)
     vertex_parts, face_parts = [], []
     count = 0
-    for begin in range(0, len(plan.blocks), grid.batch):
-        batch = plan.blocks[begin : begin + grid.batch]
-        values, real = grid.values(evaluator, batch)
+    for batch, values, real in grid.batch_values(evaluator, plan.blocks):
         for b, where in enumerate(batch):
             block_values = values[b, : real[b, 0], : real[b, 1], : real[b, 2]]
             block_values = np.where(

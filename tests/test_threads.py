@@ -1,0 +1,70 @@
+"""The host's threads (``jurs._threads``): each helper gives what its plain sequential
+form gives, to the bit, with one thread or several, and the kept pools neither deadlock
+when nested nor outlive a fork."""
+
+import os
+import threading
+
+import numpy as np
+import pytest
+
+import jurs._threads as host
+
+
+@pytest.fixture(params=[1, 2, 3])
+def threads(request, monkeypatch):
+    monkeypatch.setattr(host, "host_threads", lambda: request.param)
+    return request.param
+
+
+def test_in_threads_and_by_rows_keep_the_order(threads, monkeypatch):
+    assert host.in_threads(lambda x: x * x, range(7)) == [x * x for x in range(7)]
+    assert host.in_threads(lambda x: x, []) == []
+    monkeypatch.setattr(host, "MIN_SPLIT_ROWS", 1)
+    rows = np.random.default_rng(0).standard_normal((101, 3))
+    np.testing.assert_array_equal(host.by_rows(lambda a: a.sum(axis=1), rows), rows.sum(axis=1))
+
+
+def test_ahead_yields_every_result_in_order_and_stops_early(threads):
+    made = []
+
+    def work(x):
+        made.append(x)
+        return 10 * x
+
+    assert list(host.ahead(work, range(6))) == [0, 10, 20, 30, 40, 50]
+    made.clear()
+    for value in host.ahead(work, [1, 2, 3, 4]):
+        if value == 20:
+            break
+    # At most the item after the last one taken was made ahead.
+    assert made[:2] == [1, 2] and len(made) <= 3
+    with pytest.raises(ZeroDivisionError):
+        list(host.ahead(lambda x: 1 / x, [1, 0, 2]))
+
+
+def test_work_nested_in_a_pool_thread_runs_there(monkeypatch):
+    monkeypatch.setattr(host, "host_threads", lambda: 2)
+    inner = host.in_threads(lambda x: host.in_threads(lambda y: (x, y), range(3)), range(4))
+    assert inner == [[(x, y) for y in range(3)] for x in range(4)]
+    nested = [list(host.ahead(lambda y: y + x, range(3))) for x in host.ahead(int, range(2))]
+    assert nested == [[0, 1, 2], [1, 2, 3]]
+
+
+@pytest.mark.skipif(not hasattr(os, "fork"), reason="no fork on this platform")
+def test_a_forked_child_makes_its_own_pools(monkeypatch):
+    monkeypatch.setattr(host, "host_threads", lambda: 2)
+    assert host.in_threads(lambda x: x + 1, range(3)) == [1, 2, 3]  # the parent's pool
+    read, write = os.pipe()
+    child = os.fork()
+    if child == 0:  # pragma: no cover - the child reports through the pipe
+        try:
+            ok = host.in_threads(lambda x: x + 1, range(3)) == [1, 2, 3]
+            ok = ok and threading.current_thread() is threading.main_thread()
+            os.write(write, b"1" if ok else b"0")
+        finally:
+            os._exit(0)
+    os.close(write)
+    os.waitpid(child, 0)
+    assert os.read(read, 1) == b"1"
+    os.close(read)
