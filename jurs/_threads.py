@@ -11,6 +11,7 @@ where the main thread never reuses them: callers release them
 
 from __future__ import annotations
 
+import collections
 import os
 import threading
 from collections.abc import Callable, Iterable, Iterator, Sized
@@ -130,29 +131,33 @@ def by_rows(work: Callable[[np.ndarray], np.ndarray], array: np.ndarray) -> np.n
 
 
 def ahead(work: Callable[[Any], T], items: Iterable[Any]) -> Iterator[T]:
-    """``work(item)`` for each item, in order, the next item's made in a second thread
-    while the caller handles this one's: host work in batches (a spline's values on
-    blocks of a lattice) overlaps what the caller does with each batch. At most two
-    results exist at once. With one thread (``host_threads``), or one item, a plain
-    loop."""
-    if host_threads() == 1 or (isinstance(items, Sized) and len(items) <= 1) or in_worker():
+    """``work(item)`` for each item, in order, the next items' made in ``host_threads``
+    worker threads while the caller handles this one's: host work in batches (a spline's
+    values on blocks of a lattice) overlaps itself and what the caller does with each
+    batch. At most ``host_threads() + 1`` results exist at once. With one thread
+    (``host_threads``), or one item, a plain loop."""
+    threads = host_threads()
+    if threads == 1 or (isinstance(items, Sized) and len(items) <= 1) or in_worker():
         yield from map(work, items)
         return
     iterator = iter(items)
-    second = pool("ahead", 1)
-    pending = None
-    try:
+    workers = pool("ahead", threads)
+    pending: collections.deque = collections.deque()
+
+    def submit() -> None:
         for item in iterator:
-            pending = second.submit(work, item)
-            break
-        while pending is not None:
-            done = pending.result()
-            pending = None
-            for item in iterator:
-                pending = second.submit(work, item)
-                break
+            pending.append(workers.submit(work, item))
+            return
+
+    try:
+        for _ in range(threads):
+            submit()
+        while pending:
+            done = pending.popleft().result()
+            submit()
             yield done
     finally:
-        # The caller stopped early: the item made ahead is dropped, once it is done.
-        if pending is not None and not pending.cancel():
-            pending.exception()
+        # The caller stopped early: the items made ahead are dropped, once they are done.
+        for future in pending:
+            if not future.cancel():
+                future.exception()

@@ -37,8 +37,8 @@ def test_ahead_yields_every_result_in_order_and_stops_early(threads):
     for value in host.ahead(work, [1, 2, 3, 4]):
         if value == 20:
             break
-    # At most the item after the last one taken was made ahead.
-    assert made[:2] == [1, 2] and len(made) <= 3
+    # At most one item a thread was made ahead of the last one taken.
+    assert {1, 2} <= set(made) and len(made) <= 2 + threads
     with pytest.raises(ZeroDivisionError):
         list(host.ahead(lambda x: 1 / x, [1, 0, 2]))
 
