@@ -163,8 +163,9 @@ class BlockGrid:
 
     def batch_values(self, evaluator: FinestSpline, blocks: np.ndarray):
         """``(batch, values, nodes)`` for each of ``batches(blocks)`` in order, ``values``
-        and ``nodes`` as ``values`` gives them: the next batch's made in a second thread
-        while the caller works on this one (``jurs._threads.ahead``; the same values)."""
+        and ``nodes`` as ``values`` gives them: the next batches' made by the host's
+        threads while the caller works on this one (``jurs._threads.ahead``; the same
+        values)."""
         return ahead(lambda batch: (batch, *self.values(evaluator, batch)), self.batches(blocks))
 
 
