@@ -1,6 +1,6 @@
 """The host's threads: how many the host's NumPy and SciPy work uses, kept pools of them,
 a SciPy CSR matrix's rows in blocks, independent pieces of work shared out over the
-threads, and a sequence of items worked one ahead in a second thread.
+threads, and a sequence of items worked by the threads ahead of the caller.
 
 SciPy's sparse products and NumPy's element-wise work on large arrays release the GIL,
 so threads share the cores without another process. Every helper here gives the same
@@ -28,7 +28,7 @@ MAX_HOST_THREADS = 8
 
 
 def host_threads() -> int:
-    """The threads the host's sparse products use: the CPUs this process may run on, at
+    """The threads the host's threaded work uses: the CPUs this process may run on, at
     most ``MAX_HOST_THREADS``."""
     try:
         cpus = len(os.sched_getaffinity(0))
