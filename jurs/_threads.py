@@ -6,12 +6,15 @@ SciPy's sparse products and NumPy's element-wise work on large arrays release th
 so threads share the cores without another process. Every helper here gives the same
 bits as the plain sequential loop: each piece of work is made alone, and the results
 come back in their order. The pages a worker thread frees stay in its allocator arena,
-where the main thread never reuses them: callers release them
-(``jurs._problem.memory.release_freed_memory``) when their threaded work ends."""
+where the main thread never reuses them: each helper hands them back when its threaded
+work ends (``release_freed_memory``)."""
 
 from __future__ import annotations
 
 import collections
+import ctypes
+import ctypes.util
+import functools
 import os
 import threading
 from collections.abc import Callable, Iterable, Iterator, Sized
@@ -35,6 +38,30 @@ def host_threads() -> int:
     except AttributeError:  # no affinity on this platform
         cpus = os.cpu_count() or 1
     return max(1, min(cpus, MAX_HOST_THREADS))
+
+
+@functools.cache
+def _malloc_trim():
+    """glibc's ``malloc_trim``, or None on a C library without it."""
+    name = ctypes.util.find_library("c")
+    try:
+        return getattr(ctypes.CDLL(name), "malloc_trim", None) if name else None
+    except OSError:
+        return None
+
+
+def release_freed_memory() -> None:
+    """Give the heap's freed pages back to the system (glibc's ``malloc_trim``; nothing
+    elsewhere). The allocator keeps the pages of freed buffers below its mmap threshold,
+    so a step that frees many (a compiled fit's working arrays) leaves the process that
+    much larger, and the next step's large arrays, mapped afresh, are added on top (a
+    capped grid's trial fit before the hierarchy's assembly: docs/performance.md, "A
+    hierarchy fit's host work and peak"). Pages freed by a worker thread sit in its
+    arena, where the main thread's arrays never reuse them: the helpers below call this
+    when their threaded work ends (docs/performance.md, "The host's threads")."""
+    trim = _malloc_trim()
+    if trim is not None:
+        trim(0)
 
 
 #: The process's thread pools, by role and size, made on first use and kept: each thread
@@ -113,7 +140,9 @@ def in_threads(work: Callable[[Any], T], items: Iterable[Any]) -> list[T]:
     items = list(items)
     if host_threads() == 1 or len(items) <= 1 or in_worker():
         return [work(item) for item in items]
-    return list(pool("map", host_threads()).map(work, items))
+    out = list(pool("map", host_threads()).map(work, items))
+    release_freed_memory()
+    return out
 
 
 #: ``by_rows`` splits an array only from this many rows on.
@@ -161,3 +190,4 @@ def ahead(work: Callable[[Any], T], items: Iterable[Any]) -> Iterator[T]:
         for future in pending:
             if not future.cancel():
                 future.exception()
+        release_freed_memory()

@@ -68,3 +68,16 @@ def test_a_forked_child_makes_its_own_pools(monkeypatch):
     os.waitpid(child, 0)
     assert os.read(read, 1) == b"1"
     os.close(read)
+
+
+def test_threaded_work_hands_its_freed_pages_back(threads, monkeypatch):
+    """``in_threads`` and ``ahead`` release what their workers freed when threaded work
+    ends, and only then (``release_freed_memory``)."""
+    calls = []
+    monkeypatch.setattr(host, "release_freed_memory", lambda: calls.append(1))
+    host.in_threads(lambda x: x, range(4))
+    list(host.ahead(lambda x: x, range(4)))
+    assert len(calls) == (2 if threads > 1 else 0)
+    calls.clear()
+    host.in_threads(lambda x: x, [1])
+    assert calls == []

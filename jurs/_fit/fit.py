@@ -24,7 +24,7 @@ from jaxtyping import ArrayLike, Float
 from .._cloud.cloud import Cloud
 from .._model.spline import ImplicitSpline
 from .._problem.adaptive import assemble_adaptive_problem, assembled_metrics
-from .._problem.memory import check_fit_memory, release_freed_memory
+from .._problem.memory import check_fit_memory
 from .._problem.padding import padded_problem
 from .._problem.problem import make_problem
 from .._problem.sizes import DEFAULT_MARGIN
@@ -40,6 +40,7 @@ from .._solution.solution import (
     raise_unless_reconstruction,
 )
 from .._solution.verdicts import judge, judged_points
+from .._threads import release_freed_memory
 from ..solvers import AbstractSolver, LeastSquares
 from ..solvers._parts import solves_in_parts
 from .adaptive import (

@@ -37,12 +37,9 @@ process's layout, sorted by cell), as the per-device sums onto the grid declare
 
 from __future__ import annotations
 
-import ctypes
 import dataclasses
-import functools
 import gc
 import math
-import sys
 
 import equinox as eqx
 import jax
@@ -57,6 +54,7 @@ from .._problem.layout import choose_bucket_size
 from .._problem.memory import check_memory, fit_memory
 from .._problem.problem import Problem, make_problem, offset_samples, surface_bucket_size
 from .._problem.validate import unit_normals, validate_inputs
+from .._threads import release_freed_memory
 
 
 def _point_sharding(x) -> NamedSharding | None:
@@ -439,20 +437,7 @@ def release_freed() -> None:
     otherwise stay in the resident set beneath the solve's buffers (which are mapped
     anew), and raise each process's peak (benchmarks/results/sharding.md)."""
     gc.collect()
-    trim = _malloc_trim()
-    if trim is not None:
-        trim(0)
-
-
-@functools.cache
-def _malloc_trim():
-    """glibc's ``malloc_trim``, or None where the C library has none (not Linux, musl)."""
-    if not sys.platform.startswith("linux"):
-        return None
-    try:
-        return ctypes.CDLL(None).malloc_trim
-    except (OSError, AttributeError):
-        return None
+    release_freed_memory()
 
 
 def replicate_across_processes(tree, sharding: NamedSharding):

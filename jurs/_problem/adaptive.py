@@ -30,7 +30,6 @@ from .._model.hierarchy import (
 from .._model.leaves import hierarchy_basis, leaf_terms, locate_leaves
 from .._model.precision import on_device
 from .energy import metrics_from_sums
-from .memory import release_freed_memory
 from .problem import offset_samples
 
 
@@ -191,7 +190,6 @@ def assemble_adaptive_problem(
     if combine_refined is not None:
         refine = combine_refined(refine)
     hierarchy = build_hierarchy(lower, upper, base, refine, dtype=dtype)
-    release_freed_memory()  # what the build's threads freed, before the assembly's peak
     samples_np = samples_np.astype(dtype)  # leaves found in the fit's own precision
     level, cell = locate_leaves(hierarchy, samples_np, xp=np)
     positions, local = leaf_terms(hierarchy, samples_np, level, cell, xp=np)

@@ -4,9 +4,6 @@ freed heap memory to the system between the large steps of a fit."""
 
 from __future__ import annotations
 
-import ctypes
-import ctypes.util
-import functools
 import math
 import os
 
@@ -104,27 +101,3 @@ def check_fit_memory(shape, num_points: int, solver) -> None:
     """``check_memory`` of a fit of ``num_points`` points (3 samples each) on the grid
     ``shape`` by ``solver`` (None: the default exact solve), naming the grid."""
     check_memory("grid=" + "x".join(map(str, shape)), fit_memory(shape, 3 * num_points, solver))
-
-
-@functools.cache
-def _malloc_trim():
-    """glibc's ``malloc_trim``, or None on a C library without it."""
-    name = ctypes.util.find_library("c")
-    try:
-        return getattr(ctypes.CDLL(name), "malloc_trim", None) if name else None
-    except OSError:
-        return None
-
-
-def release_freed_memory() -> None:
-    """Give the heap's freed pages back to the system (glibc's ``malloc_trim``; nothing
-    elsewhere). The allocator keeps the pages of freed buffers below its mmap threshold,
-    so a step that frees many (a compiled fit's working arrays) leaves the process that
-    much larger, and the next step's large arrays, mapped afresh, are added on top (a
-    capped grid's trial fit before the hierarchy's assembly: docs/performance.md, "A
-    hierarchy fit's host work and peak"). Pages freed by the host's worker threads
-    (``jurs._threads``) sit in those threads' arenas, where the main thread's arrays
-    never reuse them; work that ran in threads releases them when it ends."""
-    trim = _malloc_trim()
-    if trim is not None:
-        trim(0)

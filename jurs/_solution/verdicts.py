@@ -37,7 +37,6 @@ from .._model.band import band_regions, plan_band
 from .._model.function import AbstractSpline
 from .._model.spline import ImplicitSpline
 from .._problem.energy import layout_residuals
-from .._problem.memory import release_freed_memory
 from .._problem.problem import Problem, values_by_point
 from .._problem.validate import unit_normals
 from .solution import RESULTS
@@ -410,7 +409,6 @@ def _(spline: AdaptiveSpline) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.nd
             axes = _lattice_axes(lower, upper, steps)
             plan = plan_band(evaluator, axes, 0.0, 0.0)
         low, high, at = band_regions(evaluator, axes, 0.0, plan=plan)
-    release_freed_memory()  # the pages the band's threads freed
     return low, high, at, steps
 
 

@@ -23,7 +23,7 @@ from .._model.band import BATCH_BLOCKS, BLOCK_CELLS, BandPlan, BlockGrid, plan_b
 from .._model.function import AbstractSpline
 from .._model.lattice import FinestSpline, lattice_values
 from .._model.spline import grid_spline
-from .._problem.memory import check_memory, release_freed_memory
+from .._problem.memory import check_memory
 from ._trimming import Support, check_points, check_rim, check_trim, near_support, trim_to_support
 
 #: Lattice nodes per spline cell along the finest axis for the default resolution: g is a
@@ -621,7 +621,6 @@ def _newton(spline, vertices, level: float, steps: int, longest):
             move = -((value - level) / norm2)[:, None] * gradient
         ok = np.isfinite(move).all(axis=1) & (np.sum(move * move, axis=1) <= longest**2)
         x[ok] += move[ok]
-    release_freed_memory()  # the pages the values' threads freed
     return x
 
 
@@ -655,7 +654,6 @@ def _mesh_band(
     vertices, faces = march_band(evaluator, axes, plan, level, nudge, marching_cubes)
     if len(faces):
         vertices, faces = _weld(vertices, faces)
-    release_freed_memory()  # the pages the band's threads freed
     return axes, spacing, vertices, faces
 
 
