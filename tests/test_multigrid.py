@@ -217,6 +217,30 @@ def test_patches_are_principal_submatrices(shape, side, stride):
     )
 
 
+@pytest.mark.parametrize("shape", [(7, 6, 5), (4, 4, 4), (5, 6)])
+def test_block_jacobi_inverts_the_diagonal_blocks(shape):
+    """BlockJacobi applies the inverses of the matrix's diagonal blocks of 2^d neighbouring
+    points (odd sides padded), up to its ridge; a zero row (a coefficient no sample reaches)
+    is inverted as an identity row; a 3D StencilOperator chooses it, a 2D one Jacobi."""
+    d = len(shape)
+    a = random_gram(shape, 2)
+    a[0, :] = a[:, 0] = 0.0  # the first point unseen
+    stencil = jnp.asarray(dense_to_stencil(a, shape))
+    r = np.random.default_rng(3).standard_normal(shape)
+    got = np.asarray(jit(lambda s, r: _stencil.BlockJacobi(s)(r))(stencil, jnp.asarray(r)))
+    block = np.ravel_multi_index(
+        tuple(i.ravel() // 2 for i in np.indices(shape)), tuple(-(-n // 2) for n in shape)
+    )
+    expected = np.zeros(a.shape[0])
+    for b in np.unique(block):
+        members = np.flatnonzero(block == b)
+        sub = a[np.ix_(members, members)] + np.diag(a.diagonal()[members] == 0)
+        expected[members] = np.linalg.solve(sub, r.ravel()[members])
+    np.testing.assert_allclose(got.ravel(), expected, rtol=1e-4, atol=1e-4 * np.abs(expected).max())
+    chosen = _stencil.StencilOperator(stencil).preconditioner()
+    assert isinstance(chosen, _stencil.BlockJacobi) == (d == 3)
+
+
 @pytest.fixture(scope="module")
 def systems():
     """Example 1 on 24 x 24 and 48 x 48 for the lam the tests use: ``{(n, lam): (A, rhs,

@@ -33,7 +33,6 @@ import jax.numpy as jnp
 import lineax as lx
 from jax import Array
 
-from .cholesky import spd_inverse
 from .coarsen import coarsening, galerkin, prolong, restrict
 from .patches import (
     DEFAULT_PATCH,
@@ -44,6 +43,7 @@ from .patches import (
     patch_inverses,
     patch_layout,
 )
+from .spd import spd_inverse
 from .stencil import StencilOperator, probe_stencil, stencil_matvec, stencil_ndim, stencil_to_dense
 
 #: Default largest level solved by a dense inverse (19 x 19 below 128 x 128, 7^3 in 3D).

@@ -17,6 +17,7 @@ so a subclass inherits them.
 from __future__ import annotations
 
 import abc
+from collections.abc import Callable
 
 import jax
 import jax.numpy as jnp
@@ -51,6 +52,15 @@ class AbstractGridOperator(lx.AbstractLinearOperator):
     @abc.abstractmethod
     def with_grid_diagonal(self, diagonal: Array) -> AbstractGridOperator:
         """The same operator with its diagonal replaced by ``diagonal`` (grid-shaped)."""
+
+    def preconditioner(self) -> Callable[[Array], Array]:
+        """CG's preconditioner for this operator: a symmetric positive definite
+        approximation of its inverse, as a function of a grid. The inverse of the diagonal
+        (Jacobi), which must be positive; a storage that knows more of its matrix
+        overrides it (``jurs._linalg.stencil.StencilOperator``: blocks of neighbouring
+        coefficients in 3D)."""
+        inverse = 1.0 / self.grid_diagonal()
+        return lambda r: inverse * r
 
 
 @lx.linearise.register(AbstractGridOperator)

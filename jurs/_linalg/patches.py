@@ -6,7 +6,7 @@ solves every patch's principal submatrix exactly: point smoothers (Jacobi) leave
 term's local near-null modes (splines small on the samples but not smooth) to neither the
 smoother nor the coarse grid. Patches are cut from the grid by pads, reshapes and slices
 (no gathers), each patch's submatrix built from the stencil rows by a shear, and the
-inverses computed by ``jurs._linalg.cholesky.spd_inverse`` (matrix products, no LAPACK)
+inverses computed by ``jurs._linalg.spd.spd_inverse`` (matrix products, no LAPACK)
 and stored. The top of the smoother's spectrum is bounded a priori by a colouring of the
 patches (``PatchLayout.colours``; docs/multigrid.md, "Spectrum bound by colouring").
 """
@@ -21,7 +21,7 @@ import jax.numpy as jnp
 import numpy as np
 from jax import Array
 
-from .cholesky import spd_inverse
+from .spd import spd_inverse
 from .stencil import HALF, SIDE
 
 #: Default patch side and stride (points per axis) of the Schwarz smoother, by dimension.

@@ -60,7 +60,9 @@ def default_linear_solver(shape: tuple[int, ...]) -> lx.AbstractLinearSolver:
 
 def surface_linear_solver(rhs: Array) -> lx.AbstractLinearSolver:
     """The final solve of 3D (343-point stencil) systems above the dense size:
-    Jacobi-preconditioned CG on the stencil to ``SURFACE_RTOL``, started from the
+    CG on the stencil preconditioned by its diagonal blocks
+    (``jurs._linalg.stencil.BlockJacobi``, chosen by the operator) to ``SURFACE_RTOL``,
+    started from the
     cascade of coarser grids (``jurs.solvers._cascade``). No direct factorisation fits
     here (a block Cholesky of grid planes of a 64^3 grid would store 64 dense blocks of
     64^4 entries each), and ``jurs._linalg.multigrid.Multigrid`` takes several times
@@ -93,7 +95,8 @@ def solve_by_default(operator: AbstractGridOperator, rhs: Array, start: Array, r
 
 
 def stencil_cg(shape: tuple[int, ...]) -> lx.CG:
-    """The CG that solves on the stencil by default (with a Jacobi preconditioner), and where
+    """The CG that solves on the stencil by default (with the operator's preconditioner:
+    Jacobi in 2D, blocks in 3D), and where
     the block Cholesky of the stencil breaks down."""
     return lx.CG(rtol=1e-10, atol=1e-12, max_steps=10 * int(np.prod(shape)))
 
@@ -136,7 +139,9 @@ def solve_normal_equations(
     Coefficients whose diagonal is 0 are in no sample's support and (with lam = 0)
     unconstrained: they keep their value in ``start``, which makes the rest of the system
     positive definite whenever the data determine it. The solver takes the operator as it
-    is: matrix-free solvers (CG, BiCGStab, GMRES) apply it, with a Jacobi preconditioner;
+    is: matrix-free solvers (CG, BiCGStab, GMRES) apply it, with the operator's own
+    preconditioner (``AbstractGridOperator.preconditioner``: Jacobi, or blocks of 2 x 2 x 2
+    coefficients on a 3D stencil);
     the stencil's own solvers (``jurs._linalg.multigrid.Multigrid``,
     ``jurs._linalg.cholesky.BlockCholesky``) recognise its type; dense ones
     (Cholesky, LU) assemble its ``NM x NM`` matrix. ``fallback`` solves instead where the
@@ -157,8 +162,10 @@ def solve_normal_equations(
         # gradient through them (lineax refuses tangents in `options`).
         if not isinstance(linear_solver, Multigrid):  # which builds its own preconditioner
             tags = lx.positive_semidefinite_tag
-            inv_diag = jax.lax.stop_gradient(1.0 / diag)
-            options["preconditioner"] = lx.FunctionLinearOperator(lambda c: inv_diag * c, rhs, tags)
+            # The operator's own (jurs._linalg.operator.AbstractGridOperator.preconditioner):
+            # Jacobi, or blocks of neighbouring coefficients on a 3D stencil.
+            precondition = jax.lax.stop_gradient(operator).preconditioner()
+            options["preconditioner"] = lx.FunctionLinearOperator(precondition, rhs, tags)
         options["y0"] = jax.lax.stop_gradient(start)
     sol = lx.linear_solve(operator, rhs, linear_solver, throw=False, options=options)
     solved = sol.value, sol.result
@@ -205,9 +212,11 @@ class LeastSquares(AbstractSolver[LeastSquaresState]):
     above, a block Cholesky of the stencil in grid lines when ``lam > 0``
     (``jurs._linalg.cholesky.BlockCholesky``, up to
     ``jurs._linalg.cholesky.DIRECT_MAX_ENTRIES``, 256 x 256) and Jacobi-preconditioned CG
-    when ``lam = 0`` or beyond; or the lineax ``linear_solver`` given, which receives the
-    system as a ``jurs._linalg.stencil.StencilOperator``. One driver step; the result is the
-    point the paper's iterations (I-PIA, eq. 11; IURS's eq. 33 with fixed w) converge to.
+    when ``lam = 0`` or beyond (on a surface, CG preconditioned by blocks of 2 x 2 x 2
+    coefficients from the cascade's start); or the lineax ``linear_solver`` given, which
+    receives the system as a ``jurs._linalg.stencil.StencilOperator``. One driver step;
+    the result is the point the paper's iterations (I-PIA, eq. 11; IURS's eq. 33 with
+    fixed w) converge to.
 
     Args:
         lam: the objective's lambda (``E = E_d + lam R``, eq. 32), not the paper's eq. 33
