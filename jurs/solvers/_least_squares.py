@@ -59,11 +59,10 @@ def default_linear_solver(shape: tuple[int, ...]) -> lx.AbstractLinearSolver:
 
 
 def surface_linear_solver(rhs: Array) -> lx.AbstractLinearSolver:
-    """The final solve of 3D (343-point stencil) systems above the dense size:
-    CG on the stencil preconditioned by its diagonal blocks
-    (``jurs._linalg.stencil.BlockJacobi``, chosen by the operator) to ``SURFACE_RTOL``,
-    started from the
-    cascade of coarser grids (``jurs.solvers._cascade``). No direct factorisation fits
+    """The final solve of 3D (343-point stencil) systems above the dense size: CG on the
+    stencil preconditioned by its diagonal blocks (``jurs._linalg.stencil.BlockJacobi``,
+    chosen by the operator) to ``SURFACE_RTOL``, started from the cascade of coarser
+    grids (``jurs.solvers._cascade``). No direct factorisation fits
     here (a block Cholesky of grid planes of a 64^3 grid would store 64 dense blocks of
     64^4 entries each), and ``jurs._linalg.multigrid.Multigrid`` takes several times
     the memory for at most a small gain in time (docs/multigrid.md, "Measurements behind
