@@ -12,7 +12,11 @@ import jurs
 from jurs._linalg import cholesky as _cholesky
 from jurs._linalg import stencil as _stencil
 from jurs._linalg.normal import moments_to_stencil
-from jurs.solvers._least_squares import DEFAULT_RIDGE, solve_normal_equations
+from jurs.solvers._least_squares import (
+    DEFAULT_RIDGE,
+    preconditioner_scale,
+    solve_normal_equations,
+)
 
 # Every test here takes several seconds (compiles and long iterations): make test-fast skips them.
 pytestmark = pytest.mark.slow
@@ -226,6 +230,29 @@ def test_float32_runs(example1_9x9):
     assert np.isfinite(float(sol.metrics["E"]))
     # Even the ill-conditioned unregularised solve lands close in energy.
     np.testing.assert_allclose(float(sol.metrics["E"]), float(exact.metrics["E"]), rtol=1e-3)
+
+
+def test_float32_cg_on_a_large_grid_does_not_break_down():
+    """lineax's CG declares a breakdown where ``p.Ap <= 100 eps size r.z``, a threshold
+    that grows with the grid (0.78 in float32 at 256 x 256): solve_normal_equations scales
+    the preconditioner so that a float32 solve there runs to its tolerance, with the
+    iterates of the unscaled one (in float64 the scale is 1)."""
+    shape = (256, 256)
+    stencil = _stencil.laplacian_stencil(shape, jnp.float32)
+    stencil = stencil.at[..., 3, 3].add(0.01)  # positive definite
+    rhs = jnp.asarray(np.random.default_rng(0).standard_normal(shape), jnp.float32)
+    cg = lx.CG(rtol=0.0, atol=1e-3, max_steps=2000)
+
+    @jax.jit
+    def solve(stencil, rhs):
+        operator = _stencil.StencilOperator(stencil)
+        control, result = solve_normal_equations(operator, rhs, jnp.zeros_like(rhs), cg)
+        return control, result, operator.mv(control) - rhs
+
+    control, result, residual = solve(stencil, rhs)
+    assert result == lx.RESULTS.successful and bool(jnp.all(jnp.isfinite(control)))
+    assert float(jnp.max(jnp.abs(residual))) <= 2e-3
+    assert preconditioner_scale(rhs.size, np.float64) == 1.0
 
 
 def test_default_dense_solve_falls_back_to_lu():
