@@ -182,11 +182,14 @@ def solve_normal_equations(
             tags = lx.positive_semidefinite_tag
             # The operator's own (jurs._linalg.operator.AbstractGridOperator.preconditioner):
             # Jacobi, or blocks of neighbouring coefficients on a 3D stencil.
-            precondition = jax.lax.stop_gradient(operator).preconditioner()
+            unscaled = jax.lax.stop_gradient(operator).preconditioner()
             scale = preconditioner_scale(rhs.size, rhs.dtype)
-            options["preconditioner"] = lx.FunctionLinearOperator(
-                lambda r: scale * precondition(r), rhs, tags
-            )
+
+            def scaled(r: Array) -> Array:  # float32 on large grids: past lineax's test
+                return scale * unscaled(r)
+
+            precondition = unscaled if scale == 1.0 else scaled
+            options["preconditioner"] = lx.FunctionLinearOperator(precondition, rhs, tags)
         options["y0"] = jax.lax.stop_gradient(start)
     sol = lx.linear_solve(operator, rhs, linear_solver, throw=False, options=options)
     solved = sol.value, sol.result
