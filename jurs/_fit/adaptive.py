@@ -22,6 +22,7 @@ import math
 from collections.abc import Callable
 from typing import Any
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import lineax as lx
@@ -221,7 +222,18 @@ def solve_adaptive(
     """``(control, steps, relative residual, metrics)``: the minimiser of ``E_d + lam R``
     on the problem's hierarchy (w = 1) by preconditioned CG; pure JAX, differentiable in
     the problem's samples and targets and in ``lam``. ``precondition``: CG's
-    preconditioner, e.g. the V-cycle of ``multilevel_preconditioner`` (None: Jacobi)."""
+    preconditioner, e.g. the V-cycle of ``multilevel_preconditioner`` (None: Jacobi).
+
+    One compiled program for each size of problem and each ``rtol``, ``max_steps`` and
+    preconditioner: called outside ``jax.jit``, the basis, the right-hand side and the CG
+    loop would otherwise each compile op by op, several times the solve's own time.
+    """
+    # lam as a (weakly typed) array: a new value does not compile the solve again.
+    return _compiled_solve_adaptive(problem, jnp.asarray(lam), rtol, max_steps, precondition)
+
+
+@eqx.filter_jit
+def _compiled_solve_adaptive(problem, lam, rtol, max_steps, precondition):
     basis = sample_basis(problem)
     matvec = normal_matvec(problem, lam, basis)
     rhs = normal_rhs(problem, basis)

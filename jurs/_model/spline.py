@@ -392,6 +392,31 @@ def rational_values(
     return both[0], both[1] / both[0]
 
 
+def grid_rational_values(
+    control: Float[Array, "*grid"],
+    weights: Float[Array, "*grid"],
+    lower: Float[Array, " d"],
+    upper: Float[Array, " d"],
+    xy: Float[Array, "n d"],
+) -> Float[Array, " n"]:
+    """g at ``xy`` (eq. 14) for a grid spline's fields: the evaluation of
+    [`jurs.ImplicitSpline`][], one pure function of its arrays."""
+    local = local_basis(xy, lower, upper, tuple(control.shape))
+    return rational_values(local, control, weights)[1]
+
+
+# Compiled once a shape: called outside a jit, the basis and the contraction would each
+# compile op by op on a spline's first evaluation, many times the evaluation's own time.
+# Inside a caller's jit, grad or vmap they are traced like any function.
+_grid_values = jax.jit(grid_rational_values)
+_grid_gradients = jax.jit(
+    jax.vmap(
+        jax.grad(lambda c, w, lo, up, p: grid_rational_values(c, w, lo, up, p[None])[0], 4),
+        in_axes=(None, None, None, None, 0),
+    )
+)
+
+
 def rational_terms(local: LocalBasis, control: Array, weights: Array):
     """Rational evaluation with explicit rows (eq. 14 and 23), for checks and row-based
     algorithms; the solvers use the cheaper
@@ -492,14 +517,15 @@ class ImplicitSpline(AbstractSpline):
     def __call__(self, xy: Float[ArrayLike, "*n d"]) -> Float[Array, "*n"]:
         xy = jnp.asarray(xy)
         single = xy.ndim == 1
-        _, g = rational_values(self.local_basis(jnp.atleast_2d(xy)), self.control, self.weights)
+        g = _grid_values(self.control, self.weights, self.lower, self.upper, jnp.atleast_2d(xy))
         return g[0] if single else g
 
     def grad(self, xy: Float[ArrayLike, "*n d"]) -> Float[Array, "*n d"]:
         """Spatial gradient of g at ``xy (n, d)``; ``(n, d)`` (or ``(d,)`` for one point)."""
         xy = jnp.asarray(xy)
-        point_grad = jax.grad(lambda p: self(p))
-        return point_grad(xy) if xy.ndim == 1 else jax.vmap(point_grad)(xy)
+        fields = (self.control, self.weights, self.lower, self.upper)
+        gradients = _grid_gradients(*fields, jnp.atleast_2d(xy))
+        return gradients[0] if xy.ndim == 1 else gradients
 
     def lattice(self, axes) -> np.ndarray:
         """g on the tensor lattice ``axes``, contracted axis by axis on the host

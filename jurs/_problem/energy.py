@@ -13,6 +13,7 @@ sample are in the problem's slot order (see [`jurs.Problem`][]).
 
 from __future__ import annotations
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 from jax import Array
@@ -93,7 +94,13 @@ def regulariser(control: Array) -> Array:
 
 def objective(problem: Problem, control: Array, weights: Array, lam) -> Array:
     """E(C, w) + lambda R(C) (eq. 32), lambda being the objective's weight (see
-    docs/design.md section 3)."""
+    docs/design.md section 3). One compiled program a problem size (lambda enters it as
+    an array): ``jax.grad`` of it outside a jit compiles its passes whole, not op by op."""
+    return _compiled_objective(problem, control, weights, jnp.asarray(lam))
+
+
+@eqx.filter_jit
+def _compiled_objective(problem: Problem, control: Array, weights: Array, lam) -> Array:
     return data_energy(problem, control, weights) + lam * regulariser(control)
 
 

@@ -215,8 +215,19 @@ def solve(
     ([`jurs.fit`][] at top level does so by itself).
 
     It is ``start``, ``advance`` by ``solver.max_steps`` and ``finish``, one
-    after the other.
+    after the other, compiled as one program for each problem size, solver type and
+    ``throw``: the solver's float settings enter it as arrays, so a new value compiles
+    nothing.
     """
+    # Python floats as (weakly typed) arrays: traced, not static, and promoting no
+    # float32 problem to float64. Outside a jit the loop's pieces would otherwise each
+    # compile op by op on a first call, many times the solve's own time.
+    solver = jax.tree_util.tree_map(lambda x: jnp.asarray(x) if isinstance(x, float) else x, solver)
+    return _compiled_solve(solver, problem, spline, throw)
+
+
+@eqx.filter_jit
+def _compiled_solve(solver, problem, spline, throw: bool) -> Solution:
     carry = start(solver, problem, spline)
     carry = advance(solver, problem, carry, solver.max_steps)
     return finish(solver, problem, carry, throw)
