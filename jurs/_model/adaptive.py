@@ -29,13 +29,6 @@ from .leaves import (
 )
 from .precision import on_device
 
-# Traced evaluations (concrete ones run on the host: ``_host_points``): one compiled program
-# per hierarchy and point count. Run eagerly, the leaf search and the cascade compile
-# each of their few dozen operations for every new shape (a first gradient took over
-# three times as long; docs/performance.md), and a warm call is several times slower.
-_values = jax.jit(hierarchy_values)
-_values_and_gradients = jax.jit(hierarchy_values_and_gradients)
-
 #: The host evaluator (``FinestSpline``: the cascade to the finest level, done once) of
 #: each live AdaptiveSpline, by identity: a spline of JAX arrays is immutable, and its
 #: meshing, verdicts and evaluations at points all read the same one (one of NumPy
@@ -122,7 +115,7 @@ class AdaptiveSpline(AbstractSpline):
             return on_device(g[0] if x.ndim == 1 else g, self._result_dtype(xy))
         xy = jnp.asarray(xy)
         single = xy.ndim == 1
-        both = _values(
+        both = hierarchy_values(
             self.hierarchy,
             jnp.stack([self.weights * self.control, self.weights]),
             jnp.atleast_2d(xy),
@@ -142,7 +135,7 @@ class AdaptiveSpline(AbstractSpline):
         single = xy.ndim == 1
         x = jnp.atleast_2d(xy)
         # One leaf search and one cascade for numerator and denominator together.
-        both, slopes = _values_and_gradients(
+        both, slopes = hierarchy_values_and_gradients(
             self.hierarchy, jnp.stack([self.weights * self.control, self.weights]), x
         )
         out = rational_values_and_gradients(both, slopes)[1]

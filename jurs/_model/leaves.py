@@ -6,6 +6,7 @@ lookups are sorted searches of integer keys, in NumPy on the host or in JAX (``x
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import Array
@@ -114,6 +115,12 @@ def hierarchy_basis(t: Float[Array, "n d"], xp=jnp) -> Float[Array, "n k"]:
     return tensor_basis(*(cubic_weights(t[:, a], xp=xp) for a in range(t.shape[1])))
 
 
+# The traced evaluators (concrete splines evaluate on the host: AdaptiveSpline) are each
+# one compiled program a hierarchy and point count. Run op by op, the leaf search and the
+# cascade compile each of their few dozen operations for every new shape (a first gradient
+# took over three times as long; docs/performance.md), and a warm call is several times
+# slower.
+@jax.jit
 def hierarchy_values(
     hierarchy: Hierarchy, coeffs: Float[Array, "*lead n"], x: Float[Array, "m d"]
 ) -> Float[Array, "*lead m"]:
@@ -125,6 +132,7 @@ def hierarchy_values(
     return jnp.sum(a[..., positions] * hierarchy_basis(t), axis=-1)
 
 
+@jax.jit
 def hierarchy_gradient(
     hierarchy: Hierarchy, coeffs: Float[Array, " n"], x: Float[Array, "m d"]
 ) -> Float[Array, "m d"]:
@@ -133,6 +141,7 @@ def hierarchy_gradient(
     return hierarchy_values_and_gradients(hierarchy, coeffs, x)[1]
 
 
+@jax.jit
 def hierarchy_values_and_gradients(
     hierarchy: Hierarchy, coeffs: Float[Array, "*lead n"], x: Float[Array, "m d"]
 ) -> tuple[Float[Array, "*lead m"], Float[Array, "*lead m d"]]:
