@@ -399,8 +399,8 @@ def grid_rational_values(
     upper: Float[Array, " d"],
     xy: Float[Array, "n d"],
 ) -> Float[Array, " n"]:
-    """g at ``xy`` (eq. 14) for a grid spline's fields: the evaluation of
-    [`jurs.ImplicitSpline`][], one pure function of its arrays."""
+    """g at ``xy`` for a grid spline's fields (``rational_values`` on the grid's local
+    basis): the evaluation of [`jurs.ImplicitSpline`][], one pure function of its arrays."""
     local = local_basis(xy, lower, upper, tuple(control.shape))
     return rational_values(local, control, weights)[1]
 
