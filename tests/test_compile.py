@@ -358,3 +358,26 @@ def test_automatic_grids_are_rounded_up_to_the_ladder():
         == choose_grid(lower, np.array([10.0, 7.0]), 0.25, 0.0)
         == (35, 27)
     )
+
+
+def test_public_calls_outside_a_jit_compile_whole():
+    """A spline's evaluation and gradient, ``jurs.solve`` and ``jax.grad`` of
+    ``jurs.objective`` called outside a jit compile a few programs each, not one per
+    operation (op by op they compiled 40-140), and a new lambda compiles nothing. Shapes no
+    other test uses, so that nothing is compiled before."""
+    points, normals = jurs.datasets.example1(37)
+    problem = jurs.make_problem(points, normals, grid=(6, 7))
+    query = jnp.asarray(points[:11])
+    with _CompileCounter(name="") as first_solve:
+        sol = jurs.solve(jurs.IURS(tau=0.0, lam=0.002, max_steps=30, tol=0.0), problem)
+    with _CompileCounter(name="") as new_lam:
+        jurs.solve(jurs.IURS(tau=0.0, lam=0.003, max_steps=30, tol=0.0), problem)
+    spline = sol.spline
+    with _CompileCounter(name="") as evaluations:
+        values, gradients = spline(query), spline.grad(query)
+    with _CompileCounter(name="") as objective_grad:
+        jax.grad(jurs.objective, argnums=1)(problem, spline.control, spline.weights, 0.01)
+    assert first_solve.count <= 6 and new_lam.count == 0, (first_solve.count, new_lam.count)
+    assert evaluations.count <= 8 and objective_grad.count <= 8
+    assert values.shape == (11,) and gradients.shape == (11, 2)
+    np.testing.assert_allclose(spline(query[0]), values[0], rtol=1e-12)
