@@ -3,6 +3,7 @@ solve compiled whole: the same solution to rounding, the same verdicts."""
 
 import equinox as eqx
 import jax
+import lineax as lx
 import numpy as np
 import pytest
 
@@ -97,8 +98,6 @@ def test_solves_that_read_samples_are_solved_whole():
 def test_parts_give_the_whole_solve_of_a_surface(grid, linear_solver):
     """A surface's dense solve (6^3 coefficients), and one whose CG is given (so no
     cascade reads the samples), in parts as whole."""
-    import lineax as lx
-
     p, n = jurs.datasets.sphere3d(600)
     problem = jurs.make_problem(p, n, grid=grid, offset=0.05, eps=0.01)
     given = None if linear_solver is None else lx.CG(rtol=1e-12, atol=1e-14, max_steps=2000)
@@ -113,3 +112,59 @@ def test_a_surface_s_default_solve_is_solved_whole():
     assert not solves_in_parts(
         problem.num_points, problem.shape, jurs.LeastSquares(lam=1e-5), None
     )  # the cascade
+
+
+def test_the_first_try_is_the_default_s_first_solve():
+    """``LeastSquares.first_try``: the linear solve the default runs first, without its
+    fallback, for the concrete lam; the solver itself where there is nothing to spare."""
+    from jurs._linalg.cholesky import BlockCholesky
+
+    chosen = lambda solver, shape: type(solver.first_try(shape).linear_solver)  # noqa: E731
+    assert chosen(jurs.LeastSquares(lam=1e-5), (96, 96)) is BlockCholesky
+    assert chosen(jurs.LeastSquares(lam=0.0), (96, 96)) is lx.CG
+    assert chosen(jurs.LeastSquares(lam=1e-5), (9, 9)) is lx.Cholesky
+    for solver, shape in [
+        (jurs.LeastSquares(lam=1e-5, linear_solver=lx.CG(rtol=1e-8, atol=0.0)), (96, 96)),
+        (jurs.LeastSquares(lam=1e-5), (24, 24, 24)),  # the surface's cascade
+        (jurs.LeastSquares(lam=1e-5), (512, 512)),  # CG: no factor that large
+    ]:
+        assert solver.first_try(shape) is solver
+
+
+class _BreaksDown(lx.AbstractLinearSolver):
+    """A factorisation that always breaks down: its solution is NaN."""
+
+    def init(self, operator, options):
+        return None
+
+    def compute(self, state, vector, options):
+        return jax.numpy.full_like(vector, jax.numpy.nan), lx.RESULTS.breakdown, {}
+
+    def transpose(self, state, options):
+        return state, options
+
+    def conj(self, state, options):
+        return state, options
+
+    def assume_full_rank(self):
+        return True
+
+
+@pytest.mark.parametrize("points", [100, PART_POINTS + 1500])  # one small part; two parts
+def test_a_first_try_that_breaks_down_falls_back_as_the_whole_solve(points, monkeypatch):
+    """Where the first try's C is not finite, the parts run the solver's own solve, whose
+    fallback takes over (as in the whole solve's compiled ``lax.cond``)."""
+    p, n = jurs.datasets.example1(points)
+    problem = jurs.make_problem(p, n, grid=24, offset=0.05, eps=0.01)
+    solver = jurs.LeastSquares(lam=1e-5)
+    tried = []
+
+    def breaking(self, shape):
+        tried.append(shape)
+        return eqx.tree_at(
+            lambda s: s.linear_solver, self, _BreaksDown(), is_leaf=lambda x: x is None
+        )
+
+    monkeypatch.setattr(jurs.LeastSquares, "first_try", breaking)
+    _compare(problem, solver)
+    assert tried == [problem.shape]

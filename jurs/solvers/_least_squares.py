@@ -100,6 +100,14 @@ def stencil_cg(shape: tuple[int, ...]) -> lx.CG:
     return lx.CG(rtol=1e-10, atol=1e-12, max_steps=10 * int(np.prod(shape)))
 
 
+def _factors_by_lines(shape: tuple[int, ...]) -> bool:
+    """Whether the default exact solve of a curve on ``shape`` is the block Cholesky of
+    the stencil (lam > 0; CG where lam = 0): grids above the dense size whose factor
+    stays under ``DIRECT_MAX_ENTRIES``."""
+    n, m = sorted(shape, reverse=True)[:2]
+    return len(shape) == 2 and n * m > DENSE_MAX_COEFFICIENTS and n * m * m <= DIRECT_MAX_ENTRIES
+
+
 def _is_matrix_free(solver: lx.AbstractLinearSolver) -> bool:
     return isinstance(solver, (lx.CG, lx.BiCGStab, lx.GMRES, Multigrid))
 
@@ -353,13 +361,7 @@ class LeastSquares(AbstractSolver[LeastSquaresState]):
         is ``start``'s."""
         system = (normal.regularised(lam), normal.rhs, start)
         shape = start.shape
-        n, m = sorted(shape, reverse=True)[:2]
-        if (
-            self.linear_solver is None
-            and len(shape) == 2
-            and n * m > DENSE_MAX_COEFFICIENTS
-            and n * m * m <= DIRECT_MAX_ENTRIES
-        ):
+        if self.linear_solver is None and _factors_by_lines(shape):
             # lam > 0: the regulariser makes the system positive definite, and a direct
             # solve beats the tens of thousands of CG steps that sparse data need
             # (docs/multigrid.md, "Measurements behind the constants"). lam = 0:
@@ -374,6 +376,26 @@ class LeastSquares(AbstractSolver[LeastSquaresState]):
         if self.linear_solver is None:
             return solve_by_default(*system, self.ridge)
         return solve_normal_equations(*system, self.linear_solver, self.ridge)
+
+    def first_try(self, shape: tuple[int, ...]) -> LeastSquares:
+        """This solver with the linear solver that its default ``solve_without_samples``
+        runs first for its concrete ``lam`` on ``shape``, and no fallback: the block
+        Cholesky (CG where ``lam = 0``), or the dense Cholesky. Where that solve's C is
+        finite it is this solver's own; where it is not (the factorisation broke down),
+        this solver's solve runs its fallback. A caller at top level runs the first try and
+        this solver only where it must, so a fit compiles the fallback (a CG or an LU
+        beside the factorisation) only where one is needed. ``self`` where a linear solver
+        is given or the default has no fallback."""
+        if self.linear_solver is not None or self.needs_samples_to_solve(shape):
+            return self
+        if _factors_by_lines(shape):
+            lam = float(np.asarray(self.lam))
+            first = BlockCholesky() if lam > 0 else stencil_cg(shape)
+        elif math.prod(shape) <= DENSE_MAX_COEFFICIENTS:
+            first = default_linear_solver(shape)
+        else:
+            return self
+        return eqx.tree_at(lambda s: s.linear_solver, self, first, is_leaf=lambda x: x is None)
 
     def needs_samples_to_solve(self, shape: tuple[int, ...]) -> bool:
         """Whether ``solve_assembled`` reads the problem's samples beyond its normal

@@ -10,7 +10,9 @@ equations are a sum over the samples, and so are the metrics and the offset-sign
 
 1. ``_assembled_part``: the normal equations of ``part_points`` points (their three
    samples each), added to the running total; compiled per grid;
-2. ``_solved``: the solve of the summed equations; per grid and solver;
+2. ``_solved``: the solve of the summed equations; per grid and solver. The linear
+   solve that the solver runs first runs alone (``LeastSquares.first_try``): the
+   fallback where a factorisation breaks down compiles only where one did;
 3. ``_measured_part``: the sums of [`jurs.internal.metrics`][] and of the offset-sign
    check over a part, for the solved spline; per grid;
 4. ``_concluded``: the verdict and the [`jurs.Solution`][] from the sums; per grid.
@@ -246,11 +248,17 @@ def solve_in_parts(problem: Problem, solver: LeastSquares, call=_jitted) -> Solu
     box = (problem.offset, problem.eps, problem.lower, problem.upper)
     stride = np.int32(sign_check_stride(problem.num_points))
     if len(parts) == 1 and len(parts[0][0]) == SMALL_PART_POINTS:
-        args = (solver, *parts[0], *box, stride, shape)
-        solution = call(_solved_small, _solved_small_jit, *args)
+        args = (*parts[0], *box, stride, shape)
+        solution = call(_solved_small, _solved_small_jit, solver.first_try(shape), *args)
+        if not _finite(solution.spline.control):
+            solution = call(_solved_small, _solved_small_jit, solver, *args)
     else:
         solution = _solved_over_parts(problem, solver, parts, box, stride, call)
-    return solution if np.isfinite(np.asarray(solution.metrics["E"])) else None
+    return solution if _finite(solution.metrics["E"]) else None
+
+
+def _finite(values) -> bool:
+    return bool(np.all(np.isfinite(np.asarray(values))))
 
 
 def _solved_over_parts(problem: Problem, solver: LeastSquares, parts, box, stride, call):
@@ -263,9 +271,15 @@ def _solved_over_parts(problem: Problem, solver: LeastSquares, parts, box, strid
         args = (total, *part, *box, shape, solver.chunk_size)
         total = call(_assembled_part, _assembled_part_jit, *args)
     moments, target_norm2 = total
+    # The linear solve that the solver runs first, alone (``LeastSquares.first_try``):
+    # its fallback is compiled and run only where that solve's C is not finite.
     control, linear_result, column_sums = call(
-        _solved, _solved_jit, solver, moments, target_norm2, shape
+        _solved, _solved_jit, solver.first_try(shape), moments, target_norm2, shape
     )
+    if not _finite(control):
+        control, linear_result, column_sums = call(
+            _solved, _solved_jit, solver, moments, target_norm2, shape
+        )
     sums = {key: zeros(()) for key in _SUMS}
     for k, part in enumerate(parts):
         args = (sums, control, *part, *box, stride, np.int32(k * len(part[0])), shape)
