@@ -168,3 +168,30 @@ def test_a_first_try_that_breaks_down_falls_back_as_the_whole_solve(points, monk
     monkeypatch.setattr(jurs.LeastSquares, "first_try", breaking)
     _compare(problem, solver)
     assert tried == [problem.shape]
+
+
+def test_a_whole_fit_falls_back_where_its_first_try_breaks_down(monkeypatch):
+    """A top-level fit compiled whole (here: parts refused) runs ``first_try`` first, and
+    the solver itself where that fit's coefficients are not finite."""
+    import jurs._fit.call as call
+
+    p, n = jurs.datasets.example1(400)
+    settings = dict(grid=24, offset=0.05, eps=0.01, solver=jurs.LeastSquares(lam=1e-5))
+    expected = jurs.fit(p, n, **settings)
+    monkeypatch.setattr(call, "solves_in_parts", lambda *args: False)
+    tried = []
+
+    def breaking(self, shape):
+        tried.append(shape)
+        return eqx.tree_at(
+            lambda s: s.linear_solver, self, _BreaksDown(), is_leaf=lambda x: x is None
+        )
+
+    monkeypatch.setattr(jurs.LeastSquares, "first_try", breaking)
+    sol = jurs.fit(p, n, **settings)
+    assert tried == [(24, 24)]
+    assert sol.status == expected.status == "successful"
+    control = np.asarray(expected.spline.control)
+    np.testing.assert_allclose(
+        np.asarray(sol.spline.control), control, rtol=0, atol=1e-8 * np.abs(control).max()
+    )

@@ -125,7 +125,7 @@ def solve_fit(problem, solver, init, throw: bool):
     # With jurs.enable_compilation_cache, the plain compilation also goes through the
     # store of exported fits: a new process skips its tracing too (call_stored).
     if is_sharded(problem):  # the store and the parts are one-device
-        return run(problem, solver, init, False), True
+        return _first_try_first(lambda s: run(problem, s, init, False), solver, problem), True
     if solves_in_parts(problem.num_points, problem.shape, solver, init):
         # Programs compiled per grid, not per number of points: a new cloud on a grid
         # seen before compiles nothing (jurs/solvers/_parts.py).
@@ -133,5 +133,24 @@ def solve_fit(problem, solver, init, throw: bool):
         if solution is not None:
             return solution, True
     if run is _solve_reassociating:
-        return run(problem, solver, init, False), True
-    return call_stored(_run, _solve_top_level, problem, solver, init, False), True
+        return _first_try_first(lambda s: run(problem, s, init, False), solver, problem), True
+    stored = lambda s: call_stored(_run, _solve_top_level, problem, s, init, False)  # noqa: E731
+    return _first_try_first(stored, solver, problem), True
+
+
+#: The verdicts of a first try that may have broken down (non-finite coefficients: the
+#: driver keeps the last finite iterate and says ``nonfinite``; the solver's own verdict
+#: on them is ``failed``), after which the solver itself runs.
+_RETRIED = ("nonfinite", "failed")
+
+
+def _first_try_first(compiled, solver, problem):
+    """``compiled(solver)``, the solution of a top-level fit, by way of
+    ``solver.first_try``: that solver's fit, unless its verdict says it may have broken
+    down (``_RETRIED``); then ``compiled(solver)``, whose fallback is compiled only then
+    (where the first try did not break down, its answer again)."""
+    first = solver.first_try(problem.shape)
+    solution = compiled(first)
+    if first is solver or solution.status not in _RETRIED:
+        return solution
+    return compiled(solver)

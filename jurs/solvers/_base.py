@@ -66,6 +66,15 @@ class AbstractSolver(eqx.Module, Generic[State]):
         for a solver that chooses it among candidates."""
         return self.lam
 
+    def first_try(self, shape: tuple[int, ...]) -> AbstractSolver:
+        """The solver a top-level fit on the grid ``shape`` runs first: ``self``, or for a
+        solver that falls back to another linear solve only where its first one breaks
+        down ([`jurs.LeastSquares`][]) that first solve alone, so that the fallback is
+        compiled only where one is needed. A fit whose first try's coefficients are not
+        finite runs ``self``."""
+        del shape
+        return self
+
     def judged_problem(self, problem: Problem, state: State) -> Problem:
         """The problem whose points the verdicts on the fit read (the offset-sign check):
         ``problem``, except for a solver that sets points aside in ``state``."""

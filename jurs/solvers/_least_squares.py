@@ -382,10 +382,10 @@ class LeastSquares(AbstractSolver[LeastSquaresState]):
         runs first for its concrete ``lam`` on ``shape``, and no fallback: the block
         Cholesky (CG where ``lam = 0``), or the dense Cholesky. Where that solve's C is
         finite it is this solver's own; where it is not (the factorisation broke down),
-        this solver's solve runs its fallback. A caller at top level runs the first try and
-        this solver only where it must, so a fit compiles the fallback (a CG or an LU
-        beside the factorisation) only where one is needed. ``self`` where a linear solver
-        is given or the default has no fallback."""
+        this solver's solve runs its fallback. A top-level fit runs the first try and this
+        solver only where it must, so it compiles the fallback (a CG or an LU beside the
+        factorisation) only where one is needed. ``self`` where a linear solver is given,
+        the solve reads samples (a surface's cascade) or the default has no fallback."""
         if self.linear_solver is not None or self.needs_samples_to_solve(shape):
             return self
         if _factors_by_lines(shape):
