@@ -143,25 +143,38 @@ def border_negative_fraction(spline: AbstractSpline) -> float:
     box, at most ``BORDER_CHECK_NODES`` nodes, as scattered points (``AbstractSpline.on_host``'s
     ``values``, float64 on the host): a hierarchy evaluates each at its own leaf, where a
     lattice would refine its coarse border cells to the finest level."""
-    host = spline.on_host()
-    lower, upper = np.asarray(spline.lower, float), np.asarray(spline.upper, float)
-    steps = 2.0 * np.asarray(spline.finest_cells, float)
-    d = len(steps)
-    # Each of the 2 d faces holds the lattice of the other d - 1 axes.
-    nodes = 2 * d * float(np.prod(steps + 1)) / float(np.min(steps + 1))
-    if nodes > BORDER_CHECK_NODES:
-        scale = (BORDER_CHECK_NODES / nodes) ** (1.0 / max(d - 1, 1))
-        steps = np.maximum(2.0, np.floor(steps * scale))
-    axes = [np.linspace(lo, hi, int(n) + 1) for lo, hi, n in zip(lower, upper, steps)]
-    nodes = []
-    for axis in range(d):  # both faces across ``axis``
-        faces = [*axes[:axis], np.array([lower[axis], upper[axis]]), *axes[axis + 1 :]]
-        nodes.append(np.stack(np.meshgrid(*faces, indexing="ij"), -1).reshape(-1, d))
+    box = (
+        tuple(np.asarray(spline.lower, float).tolist()),
+        tuple(np.asarray(spline.upper, float).tolist()),
+    )
+    nodes = _border_nodes(*box, tuple(int(c) for c in spline.finest_cells))
     with np.errstate(invalid="ignore", divide="ignore"):
-        values = np.asarray(host.values(np.concatenate(nodes)))
+        values = np.asarray(spline.on_host().values(nodes))
     if not np.isfinite(values).all():
         return float("nan")
     return float(np.mean(values < 0))
+
+
+@functools.lru_cache(maxsize=8)
+def _border_nodes(lower: tuple, upper: tuple, cells: tuple) -> np.ndarray:
+    """``border_negative_fraction``'s nodes ``(n, d)`` on the box ``lower``-``upper`` with
+    ``cells`` finest cells a side; kept for the next fit in the same box (read-only)."""
+    lower_, upper_ = np.asarray(lower), np.asarray(upper)
+    steps = 2.0 * np.asarray(cells, float)
+    d = len(steps)
+    # Each of the 2 d faces holds the lattice of the other d - 1 axes.
+    count = 2 * d * float(np.prod(steps + 1)) / float(np.min(steps + 1))
+    if count > BORDER_CHECK_NODES:
+        scale = (BORDER_CHECK_NODES / count) ** (1.0 / max(d - 1, 1))
+        steps = np.maximum(2.0, np.floor(steps * scale))
+    axes = [np.linspace(lo, hi, int(n) + 1) for lo, hi, n in zip(lower_, upper_, steps)]
+    nodes = []
+    for axis in range(d):  # both faces across ``axis``
+        faces = [*axes[:axis], np.array([lower_[axis], upper_[axis]]), *axes[axis + 1 :]]
+        nodes.append(np.stack(np.meshgrid(*faces, indexing="ij"), -1).reshape(-1, d))
+    joined = np.concatenate(nodes)
+    joined.flags.writeable = False
+    return joined
 
 
 def _inward_doubt(cloud) -> str:

@@ -12,6 +12,7 @@ import lineax as lx
 import numpy as np
 from jax import Array
 
+from .._kept import KeptByIdentity
 from .._linalg.cholesky import DIRECT_MAX_ENTRIES, BlockCholesky
 from .._linalg.multigrid import Multigrid
 from .._linalg.normal import DEFAULT_CHUNK, normal_equations
@@ -233,6 +234,10 @@ def singular_solve(normal, lam, control: Array, result):
     return lx.RESULTS.where(bad & (result == lx.RESULTS.successful), lx.RESULTS.singular, result)
 
 
+#: ``LeastSquares.first_try``'s answers, by solver and grid.
+_FIRST_TRIES = KeptByIdentity()
+
+
 class LeastSquares(AbstractSolver[LeastSquaresState]):
     """Exact minimiser of ``E_d(C) + lam R(C)`` for fixed weights (docs/design.md section 3).
 
@@ -386,16 +391,30 @@ class LeastSquares(AbstractSolver[LeastSquaresState]):
         solver only where it must, so it compiles the fallback (a CG or an LU beside the
         factorisation) only where one is needed. ``self`` where a linear solver is given,
         the solve reads samples (a surface's cascade) or the default has no fallback."""
+        # Kept while this solver lives: a warm fit calls with the same solver (its floats
+        # converted once) and finds its compiled programs by the first try's identity.
+        # (None where it is this solver: an entry holding the solver would keep it alive.)
+        tries = _FIRST_TRIES.get(self, lambda _: {})
+        if shape not in tries:
+            first = self._first_linear_solver(shape)
+            tries[shape] = (
+                None
+                if first is None
+                else eqx.tree_at(
+                    lambda s: s.linear_solver, self, first, is_leaf=lambda x: x is None
+                )
+            )
+        return self if tries[shape] is None else tries[shape]
+
+    def _first_linear_solver(self, shape: tuple[int, ...]) -> lx.AbstractLinearSolver | None:
+        """``first_try``'s linear solver, or None where it is this solver itself."""
         if self.linear_solver is not None or self.needs_samples_to_solve(shape):
-            return self
+            return None
         if _factors_by_lines(shape):
-            lam = float(np.asarray(self.lam))
-            first = BlockCholesky() if lam > 0 else stencil_cg(shape)
-        elif math.prod(shape) <= DENSE_MAX_COEFFICIENTS:
-            first = default_linear_solver(shape)
-        else:
-            return self
-        return eqx.tree_at(lambda s: s.linear_solver, self, first, is_leaf=lambda x: x is None)
+            return BlockCholesky() if float(np.asarray(self.lam)) > 0 else stencil_cg(shape)
+        if math.prod(shape) <= DENSE_MAX_COEFFICIENTS:
+            return default_linear_solver(shape)
+        return None
 
     def needs_samples_to_solve(self, shape: tuple[int, ...]) -> bool:
         """Whether ``solve_assembled`` reads the problem's samples beyond its normal
