@@ -149,7 +149,8 @@ def _first_try_first(compiled, solver, problem):
     ``solver.first_try``: that solver's fit, unless its verdict says it may have broken
     down (``_RETRIED``); then ``compiled(solver)``, whose fallback is compiled only then
     (where the first try did not break down, its answer again)."""
-    first = solver.first_try(problem.shape)
+    # Through the class: equinox wraps a method read off a Module in a new Module.
+    first = type(solver).first_try(solver, problem.shape)
     solution = compiled(first)
     if first is solver or solution.status not in _RETRIED:
         return solution

@@ -249,12 +249,18 @@ def solve_in_parts(problem: Problem, solver: LeastSquares, call=_jitted) -> Solu
     stride = np.int32(sign_check_stride(problem.num_points))
     if len(parts) == 1 and len(parts[0][0]) == SMALL_PART_POINTS:
         args = (*parts[0], *box, stride, shape)
-        solution = call(_solved_small, _solved_small_jit, solver.first_try(shape), *args)
+        solution = call(_solved_small, _solved_small_jit, _first_try(solver, shape), *args)
         if not _finite(solution.spline.control):
             solution = call(_solved_small, _solved_small_jit, solver, *args)
     else:
         solution = _solved_over_parts(problem, solver, parts, box, stride, call)
     return solution if _finite(solution.metrics["E"]) else None
+
+
+def _first_try(solver: LeastSquares, shape: tuple[int, ...]) -> LeastSquares:
+    # Through the class: equinox wraps a method read off a Module in a new Module, a cost
+    # that a warm small fit notices.
+    return LeastSquares.first_try(solver, shape)
 
 
 def _finite(values) -> bool:
@@ -274,7 +280,7 @@ def _solved_over_parts(problem: Problem, solver: LeastSquares, parts, box, strid
     # The linear solve that the solver runs first, alone (``LeastSquares.first_try``):
     # its fallback is compiled and run only where that solve's C is not finite.
     control, linear_result, column_sums = call(
-        _solved, _solved_jit, solver.first_try(shape), moments, target_norm2, shape
+        _solved, _solved_jit, _first_try(solver, shape), moments, target_norm2, shape
     )
     if not _finite(control):
         control, linear_result, column_sums = call(
