@@ -150,13 +150,9 @@ class _BreaksDown(lx.AbstractLinearSolver):
         return True
 
 
-@pytest.mark.parametrize("points", [100, PART_POINTS + 1500])  # one small part; two parts
-def test_a_first_try_that_breaks_down_falls_back_as_the_whole_solve(points, monkeypatch):
-    """Where the first try's C is not finite, the parts run the solver's own solve, whose
-    fallback takes over (as in the whole solve's compiled ``lax.cond``)."""
-    p, n = jurs.datasets.example1(points)
-    problem = jurs.make_problem(p, n, grid=24, offset=0.05, eps=0.01)
-    solver = jurs.LeastSquares(lam=1e-5)
+def _first_tries_that_break_down(monkeypatch) -> list:
+    """``LeastSquares.first_try`` patched to a solve that breaks down; the grids it is
+    asked for are listed in the list returned."""
     tried = []
 
     def breaking(self, shape):
@@ -166,6 +162,17 @@ def test_a_first_try_that_breaks_down_falls_back_as_the_whole_solve(points, monk
         )
 
     monkeypatch.setattr(jurs.LeastSquares, "first_try", breaking)
+    return tried
+
+
+@pytest.mark.parametrize("points", [100, PART_POINTS + 1500])  # one small part; two parts
+def test_a_first_try_that_breaks_down_falls_back_as_the_whole_solve(points, monkeypatch):
+    """Where the first try's C is not finite, the parts run the solver's own solve, whose
+    fallback takes over (as in the whole solve's compiled ``lax.cond``)."""
+    p, n = jurs.datasets.example1(points)
+    problem = jurs.make_problem(p, n, grid=24, offset=0.05, eps=0.01)
+    solver = jurs.LeastSquares(lam=1e-5)
+    tried = _first_tries_that_break_down(monkeypatch)
     _compare(problem, solver)
     assert tried == [problem.shape]
 
@@ -179,15 +186,7 @@ def test_a_whole_fit_falls_back_where_its_first_try_breaks_down(monkeypatch):
     settings = dict(grid=24, offset=0.05, eps=0.01, solver=jurs.LeastSquares(lam=1e-5))
     expected = jurs.fit(p, n, **settings)
     monkeypatch.setattr(call, "solves_in_parts", lambda *args: False)
-    tried = []
-
-    def breaking(self, shape):
-        tried.append(shape)
-        return eqx.tree_at(
-            lambda s: s.linear_solver, self, _BreaksDown(), is_leaf=lambda x: x is None
-        )
-
-    monkeypatch.setattr(jurs.LeastSquares, "first_try", breaking)
+    tried = _first_tries_that_break_down(monkeypatch)
     sol = jurs.fit(p, n, **settings)
     assert tried == [(24, 24)]
     assert sol.status == expected.status == "successful"
