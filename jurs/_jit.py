@@ -1,14 +1,18 @@
-"""A jit whose per-call work is a flatten and a dictionary look-up (``FlatJit``): for the
-compiled programs that a warm top-level fit calls, where equinox's ``filter_jit``
-dispatch costs as much as a small fit's compiled work."""
+"""How jurs's compiled calls take their arguments: a jit whose per-call work is a flatten
+and a dictionary look-up (``FlatJit``), for the compiled programs that a warm top-level fit
+calls, where equinox's ``filter_jit`` dispatch costs as much as a small fit's compiled
+work; and a solver's Python floats as arrays (``as_arrays``), so that a new value
+compiles nothing."""
 
 from __future__ import annotations
 
 import equinox as eqx
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from ._kept import KeptByIdentity
+from ._problem.validate import is_concrete
 
 
 class FlatJit:
@@ -93,3 +97,27 @@ def _joined(tree, static: tuple, arrays: list):
     for i, array in zip(places, arrays, strict=True):
         everything[i] = array
     return jax.tree_util.tree_unflatten(tree, everything)
+
+
+def as_arrays(tree, dtype):
+    """Python floats -> 0-d arrays, so new hyperparameter values do not recompile. NumPy's:
+    a jit traces them as it traces JAX arrays, and making one dispatches nothing. A Module
+    (a solver) converted before, while it lives, is the same converted Module: the
+    compiled call then reuses its split (``jurs._jit.FlatJit``)."""
+    if not isinstance(tree, eqx.Module) or not is_concrete(tree):
+        return _floats_as_arrays(tree, dtype)
+    converted = _converted.get(tree, lambda _: {})
+    key = jnp.dtype(dtype).name
+    if key not in converted:
+        converted[key] = _floats_as_arrays(tree, dtype)
+    return converted[key]
+
+
+def _floats_as_arrays(tree, dtype):
+    return jax.tree_util.tree_map(
+        lambda x: np.asarray(x, jnp.dtype(dtype)) if isinstance(x, float) else x, tree
+    )
+
+
+#: The conversions made by ``as_arrays`` of each Module, by dtype.
+_converted = KeptByIdentity()

@@ -6,12 +6,10 @@ from __future__ import annotations
 
 import equinox as eqx
 import jax
-import jax.numpy as jnp
 import numpy as np
 from jax.core import Tracer
 
 from .._jit import FlatJit
-from .._kept import KeptByIdentity
 from .._model.io import SPLINE_KEYS, check_spline_arrays
 from .._model.spline import ImplicitSpline
 from .._problem.validate import is_concrete
@@ -19,30 +17,6 @@ from ..solvers import AbstractSolver, solve
 from ..solvers._parts import solve_in_parts, solves_in_parts
 from .compile import COMPILER_OPTIONS, call_stored
 from .sharding import is_sharded
-
-
-def as_arrays(tree, dtype):
-    """Python floats -> 0-d arrays, so new hyperparameter values do not recompile. NumPy's:
-    a jit traces them as it traces JAX arrays, and making one dispatches nothing. A Module
-    (a solver) converted before, while it lives, is the same converted Module: the
-    compiled call then reuses its split (``jurs._jit.FlatJit``)."""
-    if not isinstance(tree, eqx.Module) or not is_concrete(tree):
-        return _floats_as_arrays(tree, dtype)
-    converted = _converted.get(tree, lambda _: {})
-    key = jnp.dtype(dtype).name
-    if key not in converted:
-        converted[key] = _floats_as_arrays(tree, dtype)
-    return converted[key]
-
-
-def _floats_as_arrays(tree, dtype):
-    return jax.tree_util.tree_map(
-        lambda x: np.asarray(x, jnp.dtype(dtype)) if isinstance(x, float) else x, tree
-    )
-
-
-#: The conversions made by ``as_arrays`` of each Module, by dtype.
-_converted = KeptByIdentity()
 
 
 def check_start(shape, solver, init) -> None:

@@ -22,6 +22,7 @@ import numpy as np
 from jaxtyping import ArrayLike, Float
 
 from .._cloud.cloud import Cloud
+from .._jit import as_arrays
 from .._model.spline import ImplicitSpline
 from .._problem.adaptive import assemble_adaptive_problem, assembled_metrics
 from .._problem.memory import check_fit_memory
@@ -59,7 +60,7 @@ from .adaptive import (
     wants_adaptive,
 )
 from .adaptive_sharding import solve_sharded
-from .call import as_arrays, check_start, solve_fit
+from .call import check_start, solve_fit
 from .processes import fit_across_processes
 from .progress import chunked_run
 from .settings import Settings, choose_settings, default_solver, set_aside_mask

@@ -8,12 +8,13 @@ import dataclasses
 import jax.numpy as jnp
 
 from .._cloud.parts import spans_processes
+from .._jit import as_arrays
 from .._problem.validate import normalise_grid
 from .._solution.solution import raise_unless_reconstruction
 from ..solvers import LeastSquares
 from .adaptive import auto_finest, solver_lam
 from .adaptive_sharding import fit_adaptive_across_processes
-from .call import as_arrays, check_start, solve_fit
+from .call import check_start, solve_fit
 from .process_settings import check_global_arrays, settings_across_processes
 from .sharding import (
     PROCESS_SETTINGS,

@@ -19,6 +19,7 @@ import jax
 import jax.numpy as jnp
 from jax import Array
 
+from .._jit import as_arrays
 from .._model.precision import full_precision
 from .._model.spline import ImplicitSpline
 from .._problem.energy import metrics as compute_metrics
@@ -219,10 +220,11 @@ def solve(
     ``throw``: the solver's float settings enter it as arrays, so a new value compiles
     nothing.
     """
-    # Python floats as (weakly typed) arrays: traced, not static, and promoting no
-    # float32 problem to float64. Outside a jit the loop's pieces would otherwise each
-    # compile op by op on a first call, many times the solve's own time.
-    solver = jax.tree_util.tree_map(lambda x: jnp.asarray(x) if isinstance(x, float) else x, solver)
+    # Python floats as arrays of the problem's dtype (as jurs.fit passes them): traced,
+    # not static, and promoting no float32 problem to float64. Outside a jit the loop's
+    # pieces would otherwise each compile op by op on a first call, many times the
+    # solve's own time.
+    solver = as_arrays(solver, problem.samples.dtype)
     return _compiled_solve(solver, problem, spline, throw)
 
 
