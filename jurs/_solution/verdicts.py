@@ -155,10 +155,11 @@ def border_negative_fraction(spline: AbstractSpline) -> float:
     return float(np.mean(values < 0))
 
 
-@functools.lru_cache(maxsize=8)
+@functools.lru_cache(maxsize=2)
 def _border_nodes(lower: tuple, upper: tuple, cells: tuple) -> np.ndarray:
     """``border_negative_fraction``'s nodes ``(n, d)`` on the box ``lower``-``upper`` with
-    ``cells`` finest cells a side; kept for the next fit in the same box (read-only)."""
+    ``cells`` finest cells a side; kept for the next fit in the same box (read-only; two
+    boxes kept, at most ``BORDER_CHECK_NODES`` nodes each: a surface's take 6 MB)."""
     lower_, upper_ = np.asarray(lower), np.asarray(upper)
     steps = 2.0 * np.asarray(cells, float)
     d = len(steps)
