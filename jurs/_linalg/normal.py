@@ -43,7 +43,6 @@ from .._model.basis import (
 )
 from .._model.groups import map_groups
 from .._model.precision import full_precision
-from .._model.spline import rational_terms
 from .._problem.problem import Problem
 from .stencil import (
     HALF,
@@ -406,10 +405,3 @@ def normal_equations(
         stencil, rhs = rational_normal_equations(problem, weights, chunk_size)
     b = problem.mask * problem.targets
     return NormalEquations(stencil=stencil, rhs=rhs, target_norm2=jnp.sum(b * b))
-
-
-def collocation_rows(problem: Problem, weights: Array) -> Array:
-    """The 16 non-zeros of every row of D (eq. 23), masked; ``(3m, 16)``. For tests and
-    small problems (it is 16 floats a sample)."""
-    wb, denom, _ = rational_terms(problem.local, jnp.zeros_like(weights), weights)
-    return wb * (problem.mask / denom)[:, None]

@@ -102,11 +102,6 @@ def num_cells(shape: tuple[int, ...]) -> int:
     return int(np.prod(cell_shape(shape)))
 
 
-def num_local(ndim: int) -> int:
-    """Local terms per sample in ``ndim`` dimensions: ``4 ** ndim`` tensor products."""
-    return 4**ndim
-
-
 def patch_offsets(shape: tuple[int, ...]) -> np.ndarray:
     """``(4 ** d,)`` offsets, in the row-major flattened coefficient grid of ``shape``, of
     the ``4 x ... x 4`` patch a cell sees from its first coefficient, in the order of

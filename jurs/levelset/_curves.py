@@ -75,11 +75,6 @@ def evaluate_spline(spline, xy):
     return spline(xy)
 
 
-@eqx.filter_jit
-def spline_gradient(spline, xy):
-    return spline.grad(xy)
-
-
 def evaluate_grid(
     spline,
     xs: Float[npt.ArrayLike, " nx"],
