@@ -61,6 +61,7 @@ CHILD = textwrap.dedent(
     from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
     import jurs
     from jurs._fit import call as _fit
+    from jurs._jit import as_arrays
     from jurs._problem import padding as _problem
     from jurs._fit.sharding import place_fit
 
@@ -84,7 +85,7 @@ CHILD = textwrap.dedent(
     problem = _problem.padded_problem(
         np.asarray(p), np.asarray(n), None, grid, 0.005, 0.005, None, 0.1, None, jnp.float64
     )
-    dyn = _fit.as_arrays(solver, jnp.float64)
+    dyn = as_arrays(solver, jnp.float64)
     problem, dyn, _ = place_fit(p, n, problem, dyn, None)
     reassoc = _fit._reassociation_pays(problem, dyn)
     run = _fit._solve_reassociating if reassoc else _fit._solve

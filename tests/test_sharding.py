@@ -32,6 +32,7 @@ CHILD = textwrap.dedent(
     from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
     import jurs
     from jurs._fit import call as _fit
+    from jurs._jit import as_arrays
     from jurs._problem import padding as _problem
     from jurs._fit.sharding import place_fit
 
@@ -117,7 +118,7 @@ CHILD = textwrap.dedent(
 
     s3, n3 = jurs.datasets.sphere3d(24000)
     grid3 = (6, 6, 6)
-    solver = _fit.as_arrays(jurs.LeastSquares(lam=1e-4), jnp.float64)
+    solver = as_arrays(jurs.LeastSquares(lam=1e-4), jnp.float64)
     problem3 = _problem.padded_problem(
         s3, n3, None, grid3, 0.05, 0.05, None, 0.1, None, jnp.float64
     )
