@@ -14,6 +14,7 @@ from .._model.io import SPLINE_KEYS, check_spline_arrays
 from .._model.spline import ImplicitSpline
 from .._problem.validate import is_concrete
 from ..solvers import AbstractSolver, solve
+from ..solvers._base import run_first_try
 from ..solvers._parts import solve_in_parts, solves_in_parts
 from .compile import COMPILER_OPTIONS, call_stored
 from .sharding import is_sharded
@@ -120,12 +121,6 @@ _RETRIED = ("nonfinite", "failed")
 
 def _first_try_first(compiled, solver, problem):
     """``compiled(solver)``, the solution of a top-level fit, by way of
-    ``solver.first_try``: that solver's fit, unless its verdict says it may have broken
-    down (``_RETRIED``); then ``compiled(solver)``, whose fallback is compiled only then
-    (where the first try did not break down, its answer again)."""
-    # Through the class: equinox wraps a method read off a Module in a new Module.
-    first = type(solver).first_try(solver, problem.shape)
-    solution = compiled(first)
-    if first is solver or solution.status not in _RETRIED:
-        return solution
-    return compiled(solver)
+    ``solver.first_try`` (``run_first_try``): retried with the solver itself where the
+    first try's verdict says it may have broken down (``_RETRIED``)."""
+    return run_first_try(compiled, solver, problem.shape, lambda sol: sol.status in _RETRIED)

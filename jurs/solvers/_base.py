@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import abc
+from collections.abc import Callable
 from typing import Any, ClassVar, Generic, TypeVar
 
 import equinox as eqx
@@ -84,3 +85,25 @@ class AbstractSolver(eqx.Module, Generic[State]):
     def terminate(self, problem: Problem, state: State) -> tuple[Array, RESULTS]:
         """Solver-specific stop (e.g. a direct solve is done after one step)."""
         return jnp.array(False), RESULTS.successful
+
+
+Result = TypeVar("Result")
+
+
+def run_first_try(
+    run: Callable[[AbstractSolver], Result],
+    solver: AbstractSolver,
+    shape: tuple[int, ...],
+    broke_down: Callable[[Result], bool],
+) -> Result:
+    """``run(solver)`` by way of ``solver.first_try(shape)``: ``run`` of the first try, and
+    ``run(solver)`` (its fallback compiled only then) where ``broke_down`` says of that
+    result that the first try may have broken down; a single run where the first try is
+    the solver itself. For top-level callers, whose solver is concrete."""
+    # Through the class: equinox wraps a method read off a Module in a new Module, a cost
+    # that a warm small fit notices.
+    first = type(solver).first_try(solver, shape)
+    result = run(first)
+    if first is solver or not broke_down(result):
+        return result
+    return run(solver)

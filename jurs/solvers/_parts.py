@@ -44,6 +44,7 @@ from .._problem.energy import metrics_from_sums, regulariser, residual_sums
 from .._problem.problem import Problem, build_problem
 from .._solution.solution import Solution
 from .._solution.verdicts import sign_check_stride, sign_counts
+from ._base import run_first_try
 from ._driver import Carry, concluded
 from ._least_squares import LeastSquares, LeastSquaresState, singular_solve
 
@@ -249,18 +250,15 @@ def solve_in_parts(problem: Problem, solver: LeastSquares, call=_jitted) -> Solu
     stride = np.int32(sign_check_stride(problem.num_points))
     if len(parts) == 1 and len(parts[0][0]) == SMALL_PART_POINTS:
         args = (*parts[0], *box, stride, shape)
-        solution = call(_solved_small, _solved_small_jit, _first_try(solver, shape), *args)
-        if not _finite(solution.spline.control):
-            solution = call(_solved_small, _solved_small_jit, solver, *args)
+        solution = run_first_try(
+            lambda s: call(_solved_small, _solved_small_jit, s, *args),
+            solver,
+            shape,
+            lambda solved: not _finite(solved.spline.control),
+        )
     else:
         solution = _solved_over_parts(problem, solver, parts, box, stride, call)
     return solution if _finite(solution.metrics["E"]) else None
-
-
-def _first_try(solver: LeastSquares, shape: tuple[int, ...]) -> LeastSquares:
-    # Through the class: equinox wraps a method read off a Module in a new Module, a cost
-    # that a warm small fit notices.
-    return LeastSquares.first_try(solver, shape)
 
 
 def _finite(values) -> bool:
@@ -279,13 +277,12 @@ def _solved_over_parts(problem: Problem, solver: LeastSquares, parts, box, strid
     moments, target_norm2 = total
     # The linear solve that the solver runs first, alone (``LeastSquares.first_try``):
     # its fallback is compiled and run only where that solve's C is not finite.
-    control, linear_result, column_sums = call(
-        _solved, _solved_jit, _first_try(solver, shape), moments, target_norm2, shape
+    control, linear_result, column_sums = run_first_try(
+        lambda s: call(_solved, _solved_jit, s, moments, target_norm2, shape),
+        solver,
+        shape,
+        lambda solved: not _finite(solved[0]),
     )
-    if not _finite(control):
-        control, linear_result, column_sums = call(
-            _solved, _solved_jit, solver, moments, target_norm2, shape
-        )
     sums = {key: zeros(()) for key in _SUMS}
     for k, part in enumerate(parts):
         args = (sums, control, *part, *box, stride, np.int32(k * len(part[0])), shape)
