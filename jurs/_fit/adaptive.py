@@ -72,8 +72,11 @@ MAX_FINEST = {2: 4096, 3: 1024}
 #: The band, in cells of each level, around the cells that hold samples (curve, surface).
 #: On seven traced outlines (benchmarks/_realdata_cases.py, clean) a band of 1 gave the
 #: same Chamfer distance as 2 to four digits, Hausdorff within 0.7 % and every ring, with
-#: 40-45 % fewer active functions (docs/design.md section 8). A surface keeps 2 until
-#: measured.
+#: 40-45 % fewer active functions (docs/design.md section 8). A surface keeps 2: on the
+#: clean 1e5-point bunny a band of 1 halved the functions for the same Chamfer and
+#: Hausdorff distances, but its samples near the narrower band reach coarser, truncated
+#: functions, so ``D`` and ``2 G^T W G`` held more entries a row and CG's steps cost more
+#: than the functions saved (docs/performance.md, "A surface's band").
 DEFAULT_BAND = {2: 1, 3: 2}
 #: The finest cell in point spacings (curve, surface). A curve's adaptive fit takes
 #: cells of one spacing, where the uniform grid takes 1.5: on two traced outlines

@@ -136,12 +136,23 @@ def normal_product(collocation, regulariser, lam: float, row_weights=None, threa
     ``row_weights`` (None: 1). Their rows are split in ``threads`` blocks (``row_blocks``;
     None: ``host_threads``), each block's products in a thread of its own: SciPy's sparse
     products release the GIL, so the blocks run side by side. ``D^T`` is applied as the
-    product of ``D``'s transpose view (CSC), with no transposed copy of ``D``. With
+    product of ``D``'s transpose view (CSC), with no transposed copy of ``D``.
+
+    ``D``'s rows are taken in the order of their last column (as ``gram`` takes them): a
+    copy of ``D`` for the context's life. The samples come in the cloud's order, which
+    may be any, so that ``D c`` gathers and ``D^T y`` scatters all over ``c``; in this
+    order consecutive rows read neighbouring functions and each thread's block covers a
+    slab of the band (docs/performance.md, "The hierarchy's CG by rows in order"). With
     ``collocation`` None, ``c -> lam R c``: the product of an assembled normal matrix
     (``normal_system``) with ``lam = 1``."""
     threads = host_threads() if threads is None else max(1, int(threads))
     weights = None if row_weights is None else np.asarray(row_weights, float)
-    data = [] if collocation is None else row_blocks(collocation, threads)
+    if collocation is None:
+        data = []
+    else:
+        order = np.argsort(_last_columns(collocation), kind="stable")
+        data = row_blocks(collocation[order], threads)  # each block a view of the copy
+        weights = None if weights is None else weights[order]
     smooth = row_blocks(regulariser, threads)
     n = regulariser.shape[0]
 
