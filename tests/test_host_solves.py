@@ -10,7 +10,7 @@ import scipy.sparse as sp
 
 import jurs._linalg.sparse as host_sparse
 from jurs._linalg.pcg import conjugate_gradients, host_conjugate_gradients
-from jurs._linalg.sparse import gram, normal_product, normal_system
+from jurs._linalg.sparse import gram, normal_product, normal_system, rows_in_order
 from jurs._problem.adaptive import column_squares
 from jurs._threads import row_blocks
 
@@ -45,6 +45,19 @@ def test_threaded_normal_product_is_the_normal_matrix(threads, weighted):
     c = rng.standard_normal(collocation.shape[1])
     with normal_product(collocation, regulariser, 0.3, weights, threads) as product:
         np.testing.assert_allclose(product(c), matrix @ c, rtol=1e-12, atol=1e-12)
+
+
+def test_rows_in_order_by_last_column_empty_rows_first_ties_kept():
+    matrix = sp.csr_matrix(
+        np.array([[0, 1, 0, 1], [1, 0, 0, 0], [0, 0, 0, 0], [0, 0, 1, 0], [1, 1, 0, 0]])
+    )
+    # Last columns 3, 0, none, 2, 1.
+    np.testing.assert_array_equal(rows_in_order(matrix), [2, 1, 4, 3, 0])
+    collocation, _, _ = _matrices()
+    order = rows_in_order(collocation)
+    assert sorted(order) == list(range(collocation.shape[0]))
+    last = [row.indices.max() for row in collocation[order] if row.nnz]
+    assert last == sorted(last)
 
 
 def test_host_cg_is_the_jax_recurrence():

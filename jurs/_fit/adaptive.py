@@ -32,7 +32,7 @@ from jax import Array, lax
 from .._cloud.cloud import Cloud
 from .._cloud.measure import PROBES, strided_probes
 from .._linalg.pcg import conjugate_gradients, host_conjugate_gradients, jacobi_inverse
-from .._linalg.sparse import PaddedCoo, normal_product, normal_system
+from .._linalg.sparse import PaddedCoo, normal_product, normal_system, rows_in_order
 from .._linalg.thb_multigrid import ThbMultigrid, VCycle, multigrid_cg
 from .._model.adaptive import AdaptiveSpline
 from .._model.precision import on_device
@@ -350,13 +350,15 @@ def solve_assembled(
     diagonal = normal_diagonal(problem, lam, matrices, row_weights)
     weights = np.ones(count) if row_weights is None else np.asarray(row_weights, float)
     first = np.zeros(n) if start is None else np.asarray(start, float)
+    # The samples' rows in the host CG's order (normal_product): neighbours in turn.
+    order = rows_in_order(collocation)
     control, steps, residual = _assembled_cg(
         PaddedCoo.from_scipy(
-            collocation, size_class(collocation.nnz), (count_class, n_class), dtype
+            collocation[order], size_class(collocation.nnz), (count_class, n_class), dtype
         ),
         PaddedCoo.from_scipy(regulariser, size_class(regulariser.nnz), (n_class, n_class), dtype),
-        on_device(padded_to(np.asarray(problem.targets), count_class), dtype),
-        on_device(padded_to(weights, count_class), dtype),
+        on_device(padded_to(np.asarray(problem.targets)[order], count_class), dtype),
+        on_device(padded_to(weights[order], count_class), dtype),
         on_device(padded_to(diagonal, n_class), dtype),
         on_device(lam, dtype),
         on_device(rtol, dtype),

@@ -73,24 +73,27 @@ def _weighted_rows(rows, weights):
     return scaled
 
 
-def _last_columns(matrix) -> np.ndarray:
-    """Each row's largest column index (-1 for an empty row) of a SciPy CSR ``matrix``."""
+def rows_in_order(matrix) -> np.ndarray:
+    """The order in which the products with a hierarchy's collocation matrix take its
+    rows: by each row's largest column index (an empty row first), ties in their own
+    order, for a SciPy CSR ``matrix``. A hierarchy's functions are numbered level by level
+    and, on a level, along its grid, and a sample's last column is a function of its own
+    leaf: in this order consecutive rows read neighbouring functions, where the samples
+    themselves come in the cloud's order, which may be any."""
     last = np.full(matrix.shape[0], -1, np.int64)
     filled = np.diff(matrix.indptr) > 0
     if filled.any():
         last[filled] = np.maximum.reduceat(matrix.indices, matrix.indptr[:-1][filled])
-    return last
+    return np.argsort(last, kind="stable")
 
 
 def gram(collocation, row_weights=None, threads=None):
     """``D^T S D`` (SciPy CSR) of a SciPy CSR ``collocation`` ``D``, ``S`` the rows'
     ``row_weights`` (None: 1): the data term of the assembled normal equations.
 
-    The rows are taken in the order of their last column and cut in up to
-    ``GRAM_BLOCKS`` blocks (one per ``MIN_GRAM_ENTRIES`` entries). A hierarchy's
-    functions are numbered level by level and, on a level, along the grid, and a
-    sample's last column is a function of its own leaf, so each block holds the samples
-    of one slab of the band: its product ``D_k^T S_k D_k`` touches about its share of the
+    The rows are taken in ``rows_in_order``'s order and cut in up to ``GRAM_BLOCKS``
+    blocks (one per ``MIN_GRAM_ENTRIES`` entries), so each block holds the samples of one
+    slab of the band: its product ``D_k^T S_k D_k`` touches about its share of the
     functions. The blocks run in ``threads`` threads (None: ``host_threads``; SciPy's
     sparse products release the GIL) and their products are summed pairwise in a fixed
     order, so the result has the same bits whatever the threads. Beside one product of
@@ -102,7 +105,7 @@ def gram(collocation, row_weights=None, threads=None):
     weights = None if row_weights is None else np.asarray(row_weights, float)
     if count == 1:
         return (collocation.T.tocsr() @ _weighted_rows(collocation, weights)).tocsr()
-    order = np.argsort(_last_columns(collocation), kind="stable")
+    order = rows_in_order(collocation)
 
     def part(rows):
         block = collocation[rows]
@@ -138,11 +141,10 @@ def normal_product(collocation, regulariser, lam: float, row_weights=None, threa
     products release the GIL, so the blocks run side by side. ``D^T`` is applied as the
     product of ``D``'s transpose view (CSC), with no transposed copy of ``D``.
 
-    ``D``'s rows are taken in the order of their last column (as ``gram`` takes them): a
-    copy of ``D`` for the context's life. The samples come in the cloud's order, which
-    may be any, so that ``D c`` gathers and ``D^T y`` scatters all over ``c``; in this
-    order consecutive rows read neighbouring functions and each thread's block covers a
-    slab of the band (docs/performance.md, "The hierarchy's CG by rows in order"). With
+    ``D``'s rows are taken in ``rows_in_order``'s order (a copy of ``D`` for the
+    context's life): in the samples' own order ``D c`` would gather and ``D^T y``
+    scatter all over ``c``; in this one each thread's block covers a slab of the band
+    (docs/performance.md, "The hierarchy's CG by rows in order"). With
     ``collocation`` None, ``c -> lam R c``: the product of an assembled normal matrix
     (``normal_system``) with ``lam = 1``."""
     threads = host_threads() if threads is None else max(1, int(threads))
@@ -150,7 +152,7 @@ def normal_product(collocation, regulariser, lam: float, row_weights=None, threa
     if collocation is None:
         data = []
     else:
-        order = np.argsort(_last_columns(collocation), kind="stable")
+        order = rows_in_order(collocation)
         data = row_blocks(collocation[order], threads)  # each block a view of the copy
         weights = None if weights is None else weights[order]
     smooth = row_blocks(regulariser, threads)
