@@ -462,7 +462,7 @@ def test_cascade_and_multigrid_coarsen_by_one_rule(monkeypatch):
     jurs._linalg.coarsen.coarsening (each caller choosing where to stop): changing the
     rule changes both."""
     assert mg.level_shapes((20, 20, 20), 1728) == [(20, 20, 20), (12, 12, 12)]
-    assert _cascade.cascade_shapes((20, 20, 20)) == [(12, 12, 12)]
+    assert _cascade.coarse_grid((20, 20, 20)) == (12, 12, 12)
     rule = coarsen.coarse_size
 
     def narrower(n, min_side=coarsen.MIN_COARSEN_SIDE):
@@ -470,7 +470,7 @@ def test_cascade_and_multigrid_coarsen_by_one_rule(monkeypatch):
 
     monkeypatch.setattr(coarsen, "coarse_size", narrower)
     assert mg.level_shapes((20, 20, 20), 1728) == [(20, 20, 20), (11, 11, 11)]
-    assert _cascade.cascade_shapes((20, 20, 20)) == [(11, 11, 11)]
+    assert _cascade.coarse_grid((20, 20, 20)) == (11, 11, 11)
 
 
 def test_bad_input():

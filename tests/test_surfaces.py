@@ -177,11 +177,11 @@ def test_spline_refuses_mismatched_box():
 def test_cascade_reaches_the_far_field():
     """Above the dense size the final CG starts from the cascade of coarser grids: CG from 0
     left the sphere's centre at g = 0 and grew a second surface there."""
-    from jurs.solvers._cascade import cascade_shapes
+    from jurs.solvers._cascade import coarse_grid
 
     points, normals = jurs.datasets.sphere3d(1500, seed=2)
     sol = jurs.fit(points, normals, grid=20)
-    assert cascade_shapes((20, 20, 20)) == [(12, 12, 12)]
+    assert coarse_grid((20, 20, 20)) == (12, 12, 12)
     assert sol.result == jurs.RESULTS.successful
     assert float(sol.spline(jnp.zeros(3))) < -0.5 * float(sol.settings.eps)
     vertices, faces = jurs.levelset.mesh(sol.spline)
@@ -255,7 +255,7 @@ def test_cascade_levels_assemble_a_stride_of_dense_clouds(monkeypatch):
     monkeypatch.setattr(_cascade, "LEVEL_SAMPLES_PER_COEFFICIENT", 10**9)
     whole = solve()
     monkeypatch.setattr(_cascade, "LEVEL_SAMPLES_PER_COEFFICIENT", 1)
-    assert _cascade.cascade_shapes(problem.shape) == [(10, 10, 10)]
+    assert _cascade.coarse_grid(problem.shape) == (10, 10, 10)
     assert _cascade.level_stride(problem, (10, 10, 10)) == 2  # 2400 samples, 1000 coefficients
     strided = solve()
     assert np.max(np.abs(np.asarray(strided) - np.asarray(whole))) > 0  # another start

@@ -52,9 +52,7 @@ from .._problem.validate import check_nonnegative, numeric_array
 from .._solution.solution import Solution
 from ..solvers._cascade import (
     COARSEST_COEFFICIENTS,
-    LEVEL_MAX_STEPS,
-    LEVEL_RTOL,
-    cascade_shapes,
+    coarse_grid,
     level_lam,
     level_stride,
     on_grid,
@@ -334,27 +332,20 @@ def _column_solve(operator, rhs: Array, start: Array, rtol: float, max_steps: in
 
 
 def _surface_columns(problem, per_point: Array, lam) -> Array:
-    """g's final solve on surfaces for every column: CG from the cascade of coarser grids
-    (``jurs.solvers._cascade``), each level's matrix assembled and (on the coarsest)
-    factorised once for all the columns."""
-    c = per_point.shape[1]
-    samples = jnp.maximum(jnp.sum(problem.mask), 1.0)
-    start = jnp.zeros((c,) + tuple(problem.shape), per_point.dtype)
-    shapes = cascade_shapes(problem.shape)
-    for level_index, shape in enumerate(shapes):
-        level = on_grid(problem, shape, level_stride(problem, shape))
-        kept = jnp.sum(level.mask) / samples
-        operator = normal_equations(level).regularised(level_lam(lam, problem.shape, shape) * kept)
-        rhs = bspline_transpose(level.local, _slot_values(level, per_point), shape)
-        if level_index == 0:
-            start = _cholesky_columns(operator, rhs)
-        else:
-            start = jax.vmap(lambda s: greville_transfer(s, shape))(start)
-            start = _column_solve(operator, rhs, start, LEVEL_RTOL, LEVEL_MAX_STEPS)
+    """g's final solve on surfaces for every column: CG from the cascadic start
+    (``jurs.solvers._cascade``), the coarse grid's matrix assembled and factorised once
+    for all the columns."""
     operator = normal_equations(problem).regularised(lam)
     rhs = bspline_transpose(problem.local, _slot_values(problem, per_point), problem.shape)
-    if not shapes:  # a grid as small as the cascade's coarsest: solved exactly
+    shape = coarse_grid(problem.shape)
+    if shape is None:  # a grid as small as the cascade's coarse one: solved exactly
         return _cholesky_columns(operator, rhs)
+    level = on_grid(problem, shape, level_stride(problem, shape))
+    kept = jnp.sum(level.mask) / jnp.maximum(jnp.sum(problem.mask), 1.0)
+    coarse = normal_equations(level).regularised(level_lam(lam, problem.shape, shape) * kept)
+    start = _cholesky_columns(
+        coarse, bspline_transpose(level.local, _slot_values(level, per_point), shape)
+    )
     start = jax.vmap(lambda s: greville_transfer(s, problem.shape))(start)
     return _column_solve(operator, rhs, start, SURFACE_RTOL, SURFACE_MAX_STEPS)
 

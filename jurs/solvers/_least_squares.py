@@ -62,8 +62,8 @@ def default_linear_solver(shape: tuple[int, ...]) -> lx.AbstractLinearSolver:
 def surface_linear_solver(rhs: Array) -> lx.AbstractLinearSolver:
     """The final solve of 3D (343-point stencil) systems above the dense size: CG on the
     stencil preconditioned by its diagonal blocks (``jurs._linalg.stencil.BlockJacobi``,
-    chosen by the operator) to ``SURFACE_RTOL``, started from the cascade of coarser
-    grids (``jurs.solvers._cascade``). No direct factorisation fits
+    chosen by the operator) to ``SURFACE_RTOL``, started from the same fit on a coarse
+    grid (``jurs.solvers._cascade``). No direct factorisation fits
     here (a block Cholesky of grid planes of a 64^3 grid would store 64 dense blocks of
     64^4 entries each), and ``jurs._linalg.multigrid.Multigrid`` takes several times
     the memory for at most a small gain in time (docs/multigrid.md, "Measurements behind
@@ -308,7 +308,7 @@ class LeastSquares(AbstractSolver[LeastSquaresState]):
             raise TypeError(f"linear_solver must be a lineax solver, got {self.linear_solver!r}")
 
     def _level_solve(self, operator, rhs, start, linear_solver):
-        """One level of the cascade: ``solve_normal_equations`` with this solver's ridge,
+        """The cascade's coarse solve: ``solve_normal_equations`` with this solver's ridge,
         and LU where a dense Cholesky breaks down."""
         fallback = lx.LU() if isinstance(linear_solver, lx.Cholesky) else None
         return solve_normal_equations(operator, rhs, start, linear_solver, self.ridge, fallback)[0]
@@ -362,7 +362,7 @@ class LeastSquares(AbstractSolver[LeastSquaresState]):
 
     def solve_without_samples(self, normal, lam, start: Array):
         """``solve_assembled`` where it needs no samples: every solve but a surface's
-        default one, whose cascade resamples the problem on coarser grids. The grid's shape
+        default one, whose cascade resamples the problem on a coarse grid. The grid's shape
         is ``start``'s."""
         system = (normal.regularised(lam), normal.rhs, start)
         shape = start.shape

@@ -117,7 +117,7 @@ class RobustLeastSquares(AbstractSolver[RobustLeastSquaresState]):
     weights 1 (the plain least-squares fit). The energy reported to the driver is
     ``E_rob`` at the new fit, so ``tol`` (absolute, as every solver's) stops the loop
     once the reweighting has settled. Each solve after the first starts from the last
-    fit (a surface's then skips the cascade of coarser grids that supplies a cold
+    fit (a surface's then skips the coarse grid's fit that supplies a cold
     start's far field: [`LeastSquares.minimise`][jurs.LeastSquares.minimise]).
 
     The final weights are ``sol.state.point_weights``, one per point of the problem in its
