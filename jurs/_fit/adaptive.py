@@ -32,7 +32,7 @@ from jax import Array, lax
 from .._cloud.cloud import Cloud
 from .._cloud.measure import PROBES, strided_probes
 from .._linalg.pcg import conjugate_gradients, host_conjugate_gradients, jacobi_inverse
-from .._linalg.sparse import PaddedCoo, normal_product, normal_system, rows_in_order
+from .._linalg.sparse import PaddedCoo, normal_product, normal_system, ordered_rows
 from .._linalg.thb_multigrid import ThbMultigrid, VCycle, multigrid_cg
 from .._model.adaptive import AdaptiveSpline
 from .._model.precision import on_device
@@ -337,25 +337,24 @@ def solve_assembled(
     dtype,
     row_weights=None,
     start=None,
+    rows=None,
 ) -> tuple[np.ndarray, int, float]:
     """``(control, steps, relative residual)``: ``solve_adaptive``'s CG (the same
     preconditioner, the same stop rule) on the host-assembled matrices ``(D, 2 G^T W G)``
     of ``assemble_adaptive_problem``, padded to size classes (``size_class``) so that the
     compiled solve is shared between clouds. Not differentiable; the answer agrees with
     ``solve_adaptive``'s to the CG tolerance. ``row_weights`` (S,) weigh the samples'
-    rows (None: 1); ``start`` (n,) is CG's first iterate (None: 0)."""
+    rows (None: 1); ``start`` (n,) is CG's first iterate (None: 0). ``rows``: ``D`` in
+    its products' order (``ordered_rows``; None: made here)."""
     collocation, regulariser = matrices
     count, n = collocation.shape
     n_class, count_class = size_class(n), size_class(count)
     diagonal = normal_diagonal(problem, lam, matrices, row_weights)
     weights = np.ones(count) if row_weights is None else np.asarray(row_weights, float)
     first = np.zeros(n) if start is None else np.asarray(start, float)
-    # The samples' rows in the host CG's order (normal_product): neighbours in turn.
-    order = rows_in_order(collocation)
+    ordered, order = ordered_rows(collocation) if rows is None else rows
     control, steps, residual = _assembled_cg(
-        PaddedCoo.from_scipy(
-            collocation[order], size_class(collocation.nnz), (count_class, n_class), dtype
-        ),
+        PaddedCoo.from_scipy(ordered, size_class(collocation.nnz), (count_class, n_class), dtype),
         PaddedCoo.from_scipy(regulariser, size_class(regulariser.nnz), (n_class, n_class), dtype),
         on_device(padded_to(np.asarray(problem.targets)[order], count_class), dtype),
         on_device(padded_to(weights[order], count_class), dtype),
@@ -377,12 +376,13 @@ def solve_host_cg(
     row_weights=None,
     start=None,
     system=None,
+    rows=None,
 ) -> tuple[np.ndarray, int, float]:
     """``(control, steps, relative residual)``: ``solve_assembled``'s CG (the exact
     diagonal as preconditioner, the stop rule ``|r| <= rtol |D^T b|``) run on the host
     (``host_conjugate_gradients``), on the host matrices ``(D, 2 G^T W G)`` in CSR, their
     products split over the host's threads (``normal_product``). Not differentiable.
-    ``row_weights`` and ``start`` as ``solve_assembled``'s. ``system``: the assembled
+    ``row_weights``, ``start`` and ``rows`` as ``solve_assembled``'s. ``system``: the assembled
     ``normal_system((D, 2 G^T W G), b, lam, row_weights)``, whose matrix CG then multiplies
     by instead (``ASSEMBLED_SAMPLES_PER_FUNCTION``: the same equations, in fewer entries
     where samples outnumber functions).
@@ -397,7 +397,9 @@ def solve_host_cg(
         # All weights 1 multiply exactly: the unweighted fit is unchanged by them.
         weights = 1.0 if row_weights is None else np.asarray(row_weights, float)
         rhs = collocation.T @ (weights * np.asarray(problem.targets, float))
-        product = normal_product(collocation, regulariser, lam, row_weights)
+        ordered, order = ordered_rows(collocation) if rows is None else rows
+        ordered_weights = None if row_weights is None else np.asarray(row_weights, float)[order]
+        product = normal_product(ordered, regulariser, lam, ordered_weights)
     else:
         matrix, rhs = system
         diagonal = matrix.diagonal()
@@ -545,8 +547,15 @@ def exact_solve(method: str, problem: AdaptiveProblem, matrices, lam, rtol, max_
     residual)`` of the samples' row weights, CG's first iterate and the lambda (None:
     ``lam``), for the solvers of ``solve_on_hierarchy``. The assembled normal equations
     (``normal_system``) of the last row weights are kept: a search over lambda solves
-    with the same weights, its matrix moved by the change of lambda times ``R``."""
-    bound, kept = lam, {}
+    with the same weights, its matrix moved by the change of lambda times ``R``. So is
+    ``D`` in its products' order (``ordered_rows``), made for the first CG by ``D``: a
+    reweighting's or a search's solves multiply by the same rows."""
+    bound, kept, ordered = lam, {}, []
+
+    def rows():
+        if not ordered:
+            ordered.append(ordered_rows(matrices[0].tocsr()))
+        return ordered[0]
 
     def system(row_weights, lam):
         key = None if row_weights is None else np.asarray(row_weights, float).tobytes()
@@ -570,14 +579,14 @@ def exact_solve(method: str, problem: AdaptiveProblem, matrices, lam, rtol, max_
         weighted = dict(row_weights=row_weights, start=start)
         if method == "host_cg":
             assembled = assembled_pays(matrices[0])
-            return solve_host_cg(
-                *args, **weighted, system=system(row_weights, lam) if assembled else None
-            )
+            if assembled:
+                return solve_host_cg(*args, **weighted, system=system(row_weights, lam))
+            return solve_host_cg(*args, **weighted, rows=rows())
         if method == "host_multigrid":
             return solve_host_multigrid(*args, **weighted, system=system(row_weights, lam))
         if method == "multigrid":
             return solve_multigrid(*args, dtype, **weighted, system=system(row_weights, lam))
-        return solve_assembled(*args, dtype, **weighted)
+        return solve_assembled(*args, dtype, **weighted, rows=rows())
 
     return solve
 

@@ -87,6 +87,16 @@ def rows_in_order(matrix) -> np.ndarray:
     return np.argsort(last, kind="stable")
 
 
+def ordered_rows(collocation) -> tuple:
+    """``(D, order)``: a copy of the SciPy CSR ``collocation`` with its rows in
+    ``rows_in_order``'s order, and that order (the samples' targets and row weights are
+    taken through it alike). A solve keeps it for all its products with ``D``: in the
+    samples' own order ``D c`` would gather and ``D^T y`` scatter all over ``c``
+    (docs/performance.md, "The hierarchy's CG by rows in order")."""
+    order = rows_in_order(collocation)
+    return collocation[order], order
+
+
 def gram(collocation, row_weights=None, threads=None):
     """``D^T S D`` (SciPy CSR) of a SciPy CSR ``collocation`` ``D``, ``S`` the rows'
     ``row_weights`` (None: 1): the data term of the assembled normal equations.
@@ -139,22 +149,14 @@ def normal_product(collocation, regulariser, lam: float, row_weights=None, threa
     ``row_weights`` (None: 1). Their rows are split in ``threads`` blocks (``row_blocks``;
     None: ``host_threads``), each block's products in a thread of its own: SciPy's sparse
     products release the GIL, so the blocks run side by side. ``D^T`` is applied as the
-    product of ``D``'s transpose view (CSC), with no transposed copy of ``D``.
-
-    ``D``'s rows are taken in ``rows_in_order``'s order (a copy of ``D`` for the
-    context's life): in the samples' own order ``D c`` would gather and ``D^T y``
-    scatter all over ``c``; in this one each thread's block covers a slab of the band
-    (docs/performance.md, "The hierarchy's CG by rows in order"). With
+    product of ``D``'s transpose view (CSC), with no transposed copy of ``D``. A
+    hierarchy's solves pass ``D`` as ``ordered_rows`` gives it (the weights in its order),
+    so that each thread's block covers a slab of the band. With
     ``collocation`` None, ``c -> lam R c``: the product of an assembled normal matrix
     (``normal_system``) with ``lam = 1``."""
     threads = host_threads() if threads is None else max(1, int(threads))
     weights = None if row_weights is None else np.asarray(row_weights, float)
-    if collocation is None:
-        data = []
-    else:
-        order = rows_in_order(collocation)
-        data = row_blocks(collocation[order], threads)  # each block a view of the copy
-        weights = None if weights is None else weights[order]
+    data = [] if collocation is None else row_blocks(collocation, threads)
     smooth = row_blocks(regulariser, threads)
     n = regulariser.shape[0]
 

@@ -412,9 +412,9 @@ class LeastSquares(AbstractSolver[LeastSquaresState]):
             return None
         if _factors_by_lines(shape):
             return BlockCholesky() if float(np.asarray(self.lam)) > 0 else stencil_cg(shape)
-        if math.prod(shape) <= DENSE_MAX_COEFFICIENTS:
-            return default_linear_solver(shape)
-        return None
+        # ``solve_by_default``'s: a factorisation has a fallback, a CG has none to spare.
+        first = default_linear_solver(shape)
+        return None if _is_matrix_free(first) else first
 
     def needs_samples_to_solve(self, shape: tuple[int, ...]) -> bool:
         """Whether ``solve_assembled`` reads the problem's samples beyond its normal
