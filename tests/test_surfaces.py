@@ -189,6 +189,21 @@ def test_cascade_reaches_the_far_field():
     assert report.num_components == 1 and report.components[0].genus == 0
 
 
+def test_cascade_keeps_the_given_start_where_the_coarse_solve_breaks_down(sphere):
+    """A coarse Cholesky that breaks down (NaN: a system singular at rounding level) leaves
+    the start the final CG was given; a finite coarse solve replaces it."""
+    from jurs.solvers._cascade import cascadic_start
+
+    problem = jurs.make_problem(*sphere, grid=16, offset=0.05, eps=0.05)
+    start = jnp.full(problem.shape, 0.25)
+    broken = lambda system, rhs, begin, solver: jnp.full_like(begin, jnp.nan)  # noqa: E731
+    kept = cascadic_start(problem, 1e-3, broken, start)
+    np.testing.assert_array_equal(np.asarray(kept), np.asarray(start))
+    ones = lambda system, rhs, begin, solver: jnp.ones_like(begin)  # noqa: E731
+    # The transfer of the constant 1 (Greville values of a spline that is 1 everywhere).
+    np.testing.assert_allclose(np.asarray(cascadic_start(problem, 1e-3, ones, start)), 1.0)
+
+
 def test_cascade_transfer_reproduces_quadratics():
     """The transfer between levels gives the coarse spline's values at the fine grid's
     Greville points: checked on a coarse spline that is exactly x^2 along one axis."""

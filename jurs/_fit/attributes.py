@@ -50,18 +50,11 @@ from .._model.spline import ImplicitSpline, bspline_transpose, bspline_values, l
 from .._problem.problem import build_problem
 from .._problem.validate import check_nonnegative, numeric_array
 from .._solution.solution import Solution
-from ..solvers._cascade import (
-    COARSEST_COEFFICIENTS,
-    coarse_grid,
-    level_lam,
-    level_stride,
-    on_grid,
-)
+from ..solvers._cascade import COARSEST_COEFFICIENTS, coarse_system
 from ..solvers._least_squares import (
-    SURFACE_MAX_STEPS,
-    SURFACE_RTOL,
     LeastSquares,
     solve_normal_equations,
+    surface_linear_solver,
 )
 
 #: ``tau`` of the module notes: the share of the unweighted fit in an attribute's value,
@@ -319,14 +312,12 @@ def _slot_values(problem, per_point: Array) -> Array:
     return per_point[point].T * problem.mask
 
 
-def _column_solve(operator, rhs: Array, start: Array, rtol: float, max_steps: int) -> Array:
-    """Every column of ``rhs (c,) + grid`` solved against the one ``operator`` by
-    Jacobi-preconditioned CG to ``rtol`` of its largest entry, from ``start``."""
+def _column_solve(operator, rhs: Array, start: Array) -> Array:
+    """Every column of ``rhs (c,) + grid`` solved against the one ``operator`` by g's
+    final surface CG (``surface_linear_solver``), from ``start``."""
 
     def solve(column, begin):
-        scale = jnp.max(jnp.abs(column))
-        cg = lx.CG(rtol=0.0, atol=rtol * scale, max_steps=max_steps)  # pyright: ignore[reportArgumentType]
-        return solve_normal_equations(operator, column, begin, cg)[0]
+        return solve_normal_equations(operator, column, begin, surface_linear_solver(column))[0]
 
     return jax.vmap(solve)(rhs, start)
 
@@ -337,17 +328,15 @@ def _surface_columns(problem, per_point: Array, lam) -> Array:
     for all the columns."""
     operator = normal_equations(problem).regularised(lam)
     rhs = bspline_transpose(problem.local, _slot_values(problem, per_point), problem.shape)
-    shape = coarse_grid(problem.shape)
-    if shape is None:  # a grid as small as the cascade's coarse one: solved exactly
+    coarse = coarse_system(problem, lam)
+    if coarse is None:  # a grid as small as the cascade's coarse one: solved exactly
         return _cholesky_columns(operator, rhs)
-    level = on_grid(problem, shape, level_stride(problem, shape))
-    kept = jnp.sum(level.mask) / jnp.maximum(jnp.sum(problem.mask), 1.0)
-    coarse = normal_equations(level).regularised(level_lam(lam, problem.shape, shape) * kept)
+    level, _, system = coarse
     start = _cholesky_columns(
-        coarse, bspline_transpose(level.local, _slot_values(level, per_point), shape)
+        system, bspline_transpose(level.local, _slot_values(level, per_point), level.shape)
     )
     start = jax.vmap(lambda s: greville_transfer(s, problem.shape))(start)
-    return _column_solve(operator, rhs, start, SURFACE_RTOL, SURFACE_MAX_STEPS)
+    return _column_solve(operator, rhs, start)
 
 
 def _cholesky_columns(operator, rhs: Array) -> Array:

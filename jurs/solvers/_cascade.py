@@ -88,22 +88,38 @@ def level_lam(lam, fine: tuple[int, ...], coarse: tuple[int, ...]):
     return lam * ratio ** (len(fine) - 2)
 
 
+def coarse_system(problem: Problem, lam):
+    """``(level, normal, system)`` of the cascade's coarse grid (``coarse_grid``), or None
+    where the problem's grid is already that coarse: ``level`` the problem on that grid
+    with every ``level_stride``-th sample, ``normal`` its
+    [`jurs.internal.NormalEquations`][] and ``system`` the regularised operator, whose
+    lambda weighs the regulariser as ``lam`` does on the problem's grid
+    (``level_lam``), scaled by the fraction of samples kept (E_d sums those only)."""
+    shape = coarse_grid(problem.shape)
+    if shape is None:
+        return None
+    level = on_grid(problem, shape, level_stride(problem, shape))
+    normal = normal_equations(level)
+    kept = jnp.sum(level.mask) / jnp.maximum(jnp.sum(problem.mask), 1.0)
+    return level, normal, normal.regularised(level_lam(lam, problem.shape, shape) * kept)
+
+
 def cascadic_start(problem: Problem, lam, solve, start: Array) -> Array:
     """A start for the exact solve of ``problem`` on its grid: the same fit solved by dense
     Cholesky on ``coarse_grid``'s grid and transferred to the problem's; ``start``
-    itself where the grid is already that coarse. ``solve(system, rhs, start,
+    itself where the grid is already that coarse, or where the coarse Cholesky breaks down
+    (a system singular at rounding level: ``lam = 0`` on sparse data, where no start
+    carries a far field the data leave undetermined). ``solve(system, rhs, start,
     linear_solver)`` solves the coarse regularised normal equations, a lineax operator (as
     ``jurs.solvers._least_squares.solve_normal_equations``). No gradient flows through
     the start (it changes the path of the final solve, not its solution)."""
-    shape = coarse_grid(problem.shape)
-    if shape is None:
-        return start
     problem, lam = jax.lax.stop_gradient((problem, lam))
-    samples = jnp.maximum(jnp.sum(problem.mask), 1.0)
-    level = on_grid(problem, shape, level_stride(problem, shape))
-    normal = normal_equations(level)
-    # E_d sums the kept samples only: lambda scaled alike keeps the balance.
-    kept = jnp.sum(level.mask) / samples
-    system = normal.regularised(level_lam(lam, problem.shape, shape) * kept)
-    coarse = solve(system, normal.rhs, jnp.zeros(shape, normal.rhs.dtype), lx.Cholesky())
-    return greville_transfer(coarse, problem.shape)
+    coarse = coarse_system(problem, lam)
+    if coarse is None:
+        return start
+    level, normal, system = coarse
+    solved = solve(system, normal.rhs, jnp.zeros(level.shape, normal.rhs.dtype), lx.Cholesky())
+    transferred = greville_transfer(solved, problem.shape)
+    # The start decides the final CG's path, not its answer: a breakdown keeps ``start``
+    # rather than compiling a second factorisation (an LU) for a case no default fit meets.
+    return jnp.where(jnp.all(jnp.isfinite(solved)), transferred, start)

@@ -72,10 +72,22 @@ def surface_linear_solver(rhs: Array) -> lx.AbstractLinearSolver:
     The tolerance is absolute, ``SURFACE_RTOL * max |rhs|``, for every entry of the
     residual: lineax's CG tests each entry against ``atol + rtol |rhs_i|``, and the far
     field's right-hand side is 0, where a purely relative test never passes (it ran to its
-    step cap, then drifted away from the solution)."""
+    step cap, then drifted away from the solution).
+
+    In float64 the residual is the recurrence's alone, never recomputed from the iterate
+    (lineax's ``stabilise_every=None``): the drift between the two stays at rounding level,
+    far below this tolerance, and each recomputation is one more copy of the
+    343-point product in the compiled program (docs/performance.md, "What a surface
+    fit's first call compiles"). Lower precisions keep lineax's recomputation."""
     scale = jax.lax.stop_gradient(jnp.max(jnp.abs(rhs)))  # a stop rule, not a variable
+    stabilise_every = None if rhs.dtype == jnp.float64 else 10
     # lineax annotates atol as a float; an array tolerance works and can be traced.
-    return lx.CG(rtol=0.0, atol=SURFACE_RTOL * scale, max_steps=SURFACE_MAX_STEPS)  # pyright: ignore[reportArgumentType]
+    return lx.CG(
+        rtol=0.0,
+        atol=SURFACE_RTOL * scale,  # pyright: ignore[reportArgumentType]
+        max_steps=SURFACE_MAX_STEPS,
+        stabilise_every=stabilise_every,
+    )
 
 
 def solve_by_default(operator: AbstractGridOperator, rhs: Array, start: Array, ridge=0.0):
@@ -308,10 +320,9 @@ class LeastSquares(AbstractSolver[LeastSquaresState]):
             raise TypeError(f"linear_solver must be a lineax solver, got {self.linear_solver!r}")
 
     def _level_solve(self, operator, rhs, start, linear_solver):
-        """The cascade's coarse solve: ``solve_normal_equations`` with this solver's ridge,
-        and LU where a dense Cholesky breaks down."""
-        fallback = lx.LU() if isinstance(linear_solver, lx.Cholesky) else None
-        return solve_normal_equations(operator, rhs, start, linear_solver, self.ridge, fallback)[0]
+        """The cascade's coarse solve: ``solve_normal_equations`` with this solver's
+        ridge."""
+        return solve_normal_equations(operator, rhs, start, linear_solver, self.ridge)[0]
 
     def _weights(self, spline: ImplicitSpline) -> Array:
         return spline.weights if self.keep_weights else jnp.ones_like(spline.control)
