@@ -97,7 +97,7 @@ def run_case(case: str, level: float) -> dict:
         if basis == "uniform":
             out["grid"] = list(st.grid)
             out["refinement"] = st.cell_width / st.data_cell
-            out["capped"] = bool(wants_adaptive(st, len(points)))
+            out["capped"] = bool(wants_adaptive(st))
     return out
 
 

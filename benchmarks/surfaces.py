@@ -145,6 +145,11 @@ def run_jurs(points, normals, max_grid, fit="uniform"):
             f"finest {'x'.join(map(str, sol.stats['finest']))}, "
             f"{sum(sol.stats['active'])} functions, {sol.stats['num_steps']} CG steps "
             f"({sol.stats['method']})"
+            + (
+                f", one point in {sol.stats['hierarchy_stride']} ({sol.stats['hierarchy_points']})"
+                if "hierarchy_points" in sol.stats
+                else ""
+            )
             if isinstance(sol.spline, jurs.AdaptiveSpline)
             else f"grid {'x'.join(map(str, sol.settings.grid))}"
         )
@@ -422,7 +427,11 @@ ADAPTIVE_LIMITS = (
 def default_limits() -> str:
     """What decides the default fit's basis (docs/design.md section 8), from the library's
     own constants (imported here: the parent process does not import jurs up front)."""
-    from jurs._fit.adaptive import NOISY_SPACINGS, UNIFORM_RESIDUAL_SPACINGS
+    from jurs._fit.adaptive import (
+        AUTO_MAX_SURFACE_POINTS,
+        NOISY_SPACINGS,
+        UNIFORM_RESIDUAL_SPACINGS,
+    )
     from jurs._fit.settings import DEFAULT_MAX_GRID_3D
 
     return (
@@ -431,8 +440,10 @@ def default_limits() -> str:
         "set; otherwise it fits the adaptive basis (the cost table gives the uniform residual "
         "of each escalated fit, and its time includes the grid's fit). Where the grid is "
         f"capped and the cloud's noise is at least {NOISY_SPACINGS} spacings, it fits the "
-        "adaptive basis without the grid's trial (the cost table gives the noise). "
-        + ADAPTIVE_LIMITS
+        "adaptive basis without the grid's trial (the cost table gives the noise). Above "
+        f"{AUTO_MAX_SURFACE_POINTS} points the adaptive fit takes an evenly strided "
+        "subsample of at most that many, with settings chosen for it (the cost table says "
+        "which); the grid's trial fits every point. " + ADAPTIVE_LIMITS
     )
 
 

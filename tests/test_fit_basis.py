@@ -17,6 +17,7 @@ from jurs._fit.adaptive import (
     NOISY_SPACINGS,
     UNIFORM_RESIDUAL_SPACINGS,
     auto_finest,
+    hierarchy_stride,
     noise_decides,
     uniform_residual,
     wants_adaptive,
@@ -85,6 +86,25 @@ def test_detailed_dense_cloud_is_fitted_on_the_adaptive_basis(detailed):
     assert jurs.auto_settings(points, normals, grid=(16, 12)).data_cell is None
 
 
+def test_a_large_cloud_fits_a_strided_subsample_on_the_hierarchy(detailed, monkeypatch):
+    """Above the point limit (``hierarchy_stride`` > 1: surfaces only, here forced on a
+    curve) the automatic hierarchy fits every k-th point with settings chosen for them, the
+    same spline as ``fit_adaptive`` of that subsample with those settings."""
+    from jurs._fit import fit as _fit
+
+    points, normals = detailed
+    monkeypatch.setattr(_fit, "hierarchy_stride", lambda count, ndim: 2)
+    sol = jurs.fit(points, normals)
+    assert isinstance(sol.spline, jurs.AdaptiveSpline) and sol.succeeded
+    assert sol.stats["hierarchy_stride"] == 2 and sol.stats["hierarchy_points"] == 750
+    whole = jurs.auto_settings(points, normals)
+    assert sol.settings.spacing > 1.5 * whole.spacing  # the subsample's own settings
+    sub = jurs.fit_adaptive(points[::2], normals[::2], settings=sol.settings)
+    np.testing.assert_array_equal(np.asarray(sol.spline.control), np.asarray(sub.spline.control))
+    # basis="adaptive" fits every point, as asked.
+    assert "hierarchy_points" not in jurs.fit(points, normals, basis="adaptive").stats
+
+
 def test_smooth_dense_cloud_keeps_the_capped_grid(dense):
     """A capped grid whose fit follows a smooth shape closely is kept: the hierarchy would
     cost more for the same zero set."""
@@ -139,8 +159,9 @@ def test_basis_arguments_are_checked(dense):
 
 
 def test_rule_on_settings():
-    """``wants_adaptive``: grid given (no data cell) never; a surface above the point limit
-    never; ``auto_finest`` caps a surface's finest level only."""
+    """``wants_adaptive``: grid given (no data cell) never; ``auto_finest`` caps a
+    surface's finest level only; ``hierarchy_stride`` keeps at most the point limit of a
+    surface, every point of a curve."""
     settings = jurs.Settings(
         grid=(99, 99),
         offset=0.01,
@@ -152,17 +173,20 @@ def test_rule_on_settings():
         noise=0.0,
         data_cell=data_cell(2, 0.1, 0.0),
     )
-    assert wants_adaptive(settings, 1000)
-    assert not wants_adaptive(dataclasses.replace(settings, data_cell=None), 1000)
-    assert not wants_adaptive(dataclasses.replace(settings, data_cell=1.01 / AUTO_REFINEMENT), 10)
+    assert wants_adaptive(settings)
+    assert not wants_adaptive(dataclasses.replace(settings, data_cell=None))
+    assert not wants_adaptive(dataclasses.replace(settings, data_cell=1.01 / AUTO_REFINEMENT))
     assert auto_finest(settings) is None
     surface = dataclasses.replace(
         settings, grid=(51, 51, 51), domain=((0.0,) * 3, (48.0,) * 3), data_cell=0.3
     )
     assert auto_finest(surface) is None  # 48 / 0.3 = 160 cells asked for: not capped
     surface = dataclasses.replace(surface, spacing=0.03, data_cell=0.09)
-    assert wants_adaptive(surface, AUTO_MAX_SURFACE_POINTS)
-    assert not wants_adaptive(surface, AUTO_MAX_SURFACE_POINTS + 1)
+    assert wants_adaptive(surface)
+    assert hierarchy_stride(AUTO_MAX_SURFACE_POINTS, 3) == 1
+    assert hierarchy_stride(AUTO_MAX_SURFACE_POINTS + 1, 3) == 2
+    assert hierarchy_stride(10**6, 3) == 7  # 142 858 points kept
+    assert hierarchy_stride(10**6, 2) == 1
     assert auto_finest(surface) == AUTO_MAX_FINEST_3D  # 48 / 0.09 = 533 cells asked for
 
 

@@ -113,16 +113,18 @@ DIRECT_RTOL = 1e-6
 #: level 48 cells against the uniform grid's 45, fitted 4x slower for 5 % less Chamfer).
 AUTO_REFINEMENT = 1.5
 #: The automatic choice's limits on a surface: at most this many finest cells along the
-#: longest side, and clouds of at most ``AUTO_MAX_SURFACE_POINTS`` points (larger ones keep
-#: the uniform grid). At 1e5 points the hierarchy's fits (finest 64-384 cells, 87k-660k
-#: functions) beat screened Poisson at its best depth of 8, 9 and 10 in Chamfer and
-#: Hausdorff distance on all five shapes of benchmarks/surfaces.py, clean and noisy, where
-#: the uniform grid lost on the bunny and the airplane (their time and memory:
-#: benchmarks/results/surfaces_adaptive_1e5.md, docs/performance.md). Memory and time
-#: follow the active functions, which grow with the points at three spacings a cell: at
-#: 1e6 points the cells the data ask for (about 3x finer) would hold some 6 million
-#: functions, about ten times the largest measured, so there the grid is kept (docs/design.md
-#: section 8).
+#: longest side, and at most ``AUTO_MAX_SURFACE_POINTS`` points fitted on the hierarchy. At
+#: 1e5 points the hierarchy's fits (finest 64-384 cells, 87k-660k functions) beat screened
+#: Poisson at its best depth of 8, 9 and 10 in Chamfer and Hausdorff distance on all five
+#: shapes of benchmarks/surfaces.py, clean and noisy, where the uniform grid lost on the
+#: bunny and the airplane (their time and memory: benchmarks/results/surfaces_adaptive_1e5.md,
+#: docs/performance.md). Memory and time follow the active functions, which grow with the
+#: points at three spacings a cell: at 1e6 points the cells the data ask for (about 3x
+#: finer) would hold some 6 million functions, about ten times the largest measured. So a
+#: larger cloud's hierarchy fits an evenly strided subsample of at most
+#: ``AUTO_MAX_SURFACE_POINTS`` points (``hierarchy_stride``), with settings chosen for it:
+#: on the 1e6-point bunny that beat the 48-cell grid fitted to every point, clean and noisy
+#: (docs/design.md section 8, "The automatic choice of basis").
 AUTO_MAX_FINEST_3D = 384
 AUTO_MAX_SURFACE_POINTS = 150_000
 #: Where the uniform grid is capped, [`jurs.fit`][] fits it first and keeps it where its
@@ -147,19 +149,23 @@ UNIFORM_RESIDUAL_SPACINGS = 0.02
 NOISY_SPACINGS = 0.1
 
 
-def wants_adaptive(settings: Settings, points: int) -> bool:
-    """Whether [`jurs.fit`][] with ``basis="auto"`` may fit ``points`` points on the
-    adaptive basis: where the automatic uniform grid (``settings.grid``) was capped, its
+def wants_adaptive(settings: Settings) -> bool:
+    """Whether [`jurs.fit`][] with ``basis="auto"`` may fit a cloud with ``settings`` on
+    the adaptive basis: where the automatic uniform grid (``settings.grid``) was capped, its
     cells at least ``AUTO_REFINEMENT`` times wider than the data ask for
-    (``settings.data_cell``), and, on a surface, the cloud within
-    ``AUTO_MAX_SURFACE_POINTS``. It does where the capped grid's fit then leaves the data
-    (``uniform_residual``)."""
+    (``settings.data_cell``). It does where the capped grid's fit then leaves the data
+    (``uniform_residual``); a surface above ``AUTO_MAX_SURFACE_POINTS`` points then fits a
+    subsample of them (``hierarchy_stride``)."""
     if settings.data_cell is None:  # the grid was given
         return False
-    ndim = len(settings.grid)
-    if ndim == 3 and points > AUTO_MAX_SURFACE_POINTS:
-        return False
     return settings.cell_width >= AUTO_REFINEMENT * settings.data_cell
+
+
+def hierarchy_stride(points: int, ndim: int) -> int:
+    """The stride of the evenly strided subsample of ``points`` points that [`jurs.fit`][]'s
+    automatic choice fits on the hierarchy: 1 on a curve and on a surface of at most
+    ``AUTO_MAX_SURFACE_POINTS`` points, else the smallest that keeps at most that many."""
+    return 1 if ndim == 2 else max(1, -(-int(points) // AUTO_MAX_SURFACE_POINTS))
 
 
 def noise_decides(settings: Settings) -> bool:

@@ -53,6 +53,7 @@ from .adaptive import (
     hierarchy_layout,
     hierarchy_rtol,
     hierarchy_solution,
+    hierarchy_stride,
     noise_decides,
     solve_on_hierarchy,
     solver_lam,
@@ -372,15 +373,19 @@ def fit(
             transformation, the fit is checked once it has run, so this call then waits for it.
         basis: ``"auto"`` (default): where the uniform grid is capped, its cells
             ``jurs._fit.adaptive.AUTO_REFINEMENT`` times wider than the data ask for
-            (``sol.settings.data_cell``; on a surface only up to
-            ``AUTO_MAX_SURFACE_POINTS`` points, at most ``AUTO_MAX_FINEST_3D`` finest cells
-            a side), the uniform grid is fitted first and kept if 90 % of the points lie
-            within ``UNIFORM_RESIDUAL_SPACINGS`` (0.02) spacings of its zero set, else the
-            fit is made on the adaptive basis; ``sol.stats["uniform_residual"]`` records
-            that distance. A cloud whose scatter (``sol.settings.noise``) is at least
-            ``NOISY_SPACINGS`` (0.1) spacings, at which every capped grid measured was
-            refused, goes to the adaptive basis without the grid's trial
-            (``sol.stats["noise_spacings"]`` records the scatter).
+            (``sol.settings.data_cell``; on a surface at most ``AUTO_MAX_FINEST_3D``
+            finest cells a side), the uniform grid is fitted first and kept if 90 % of the
+            points lie within ``UNIFORM_RESIDUAL_SPACINGS`` (0.02) spacings of its zero
+            set, else the fit is made on the adaptive basis; ``sol.stats["uniform_residual"]``
+            records that distance. A surface of more than ``AUTO_MAX_SURFACE_POINTS``
+            (150000) points is fitted there on an evenly strided subsample of at most that
+            many, with settings chosen for it (``sol.settings`` are the subsample's;
+            ``sol.stats["hierarchy_points"]`` and ``["hierarchy_stride"]`` say which), its
+            verdicts judged on the subsample; the grid's trial fits every point. A cloud
+            whose scatter (``sol.settings.noise``) is at least ``NOISY_SPACINGS`` (0.1)
+            spacings, at which every capped grid measured was refused, goes to the
+            adaptive basis without the grid's trial (``sol.stats["noise_spacings"]``
+            records the scatter).
             Elsewhere the uniform grid. Any of ``grid``, ``solver``, ``init``,
             ``mask``, ``bucket_size``, a ``callback``, points split over processes, or
             traced points keep the uniform grid; points sharded over the devices of one
@@ -645,8 +650,8 @@ def _fit(
     automatic = solver is None and cloud.mask is None
     doubted = settings is None or solver is None  # chosen here, or the solver with them
     offset_given = offset
-    args = grid, offset, eps, domain, margin, smoothing, solver
-    settings, shape = fit_settings(cloud, settings, *args)
+    given_values = grid, offset, eps, domain, margin, smoothing, solver
+    settings, shape = fit_settings(cloud, settings, *given_values)
     if settings is not None:  # chosen before (by the caller) or here: the values not given
         offset = settings.offset if offset is None else offset
         eps = settings.eps if eps is None else eps
@@ -659,18 +664,24 @@ def _fit(
     # Where the automatic uniform grid is capped below what the data ask for, it is fitted
     # first and kept if its zero set follows the data; otherwise the hierarchy is fitted.
     escalate = (
-        basis == "auto"
-        and not uniform_only
-        and settings is not None
-        and wants_adaptive(settings, len(cloud))
+        basis == "auto" and not uniform_only and settings is not None and wants_adaptive(settings)
     )
 
     def on_the_hierarchy(settings: Settings, noted: dict, **given):
         """The fit on the hierarchy, what led to it noted in its stats."""
         noted = dict(estimated_normals=estimated, **noted)
+        fitted = cloud
+        stride = hierarchy_stride(len(cloud), cloud.ndim) if basis == "auto" else 1
+        if stride > 1:  # the automatic choice on a large surface: a subsample, its own settings
+            assert cloud.normals is not None  # fit_cloud gave it normals
+            fitted = Cloud(cloud.points[::stride], cloud.normals[::stride])
+            chosen, _ = fit_settings(fitted, None, *given_values)
+            assert chosen is not None  # no solver given: chosen
+            settings = chosen
+            noted.update(hierarchy_stride=stride, hierarchy_points=len(fitted))
         finest = auto_finest(settings)
         sol = on_hierarchy(
-            cloud, settings, finest=finest, checks=checks, throw=throw, noted=noted, **given
+            fitted, settings, finest=finest, checks=checks, throw=throw, noted=noted, **given
         )
         return sol, None
 

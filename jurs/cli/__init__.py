@@ -282,7 +282,7 @@ def prepare_fit(args) -> FitJob:
         # its zero set follows the data, else fits the adaptive basis (FitJob.settled).
         from .._fit.adaptive import auto_finest, wants_adaptive
 
-        adaptive = chooses = wants_adaptive(chosen, len(cloud))
+        adaptive = chooses = wants_adaptive(chosen)
         finest = auto_finest(chosen) if adaptive else None
     resolution = lattice_resolution(resolution, dim, adaptive)
     if adaptive:
