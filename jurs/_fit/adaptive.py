@@ -175,18 +175,19 @@ def noise_decides(settings: Settings) -> bool:
     return settings.noise >= NOISY_SPACINGS * settings.spacing
 
 
-def uniform_residual(spline, cloud: Cloud, settings: Settings) -> float:
+def uniform_residual(spline, cloud: Cloud, settings: Settings, spacing=None) -> float:
     """The 90th percentile of the data points' distances to the zero set of ``spline``, in
-    the cloud's spacings (``settings.spacing``): at most ``PROBES`` points evenly strided,
-    those set aside by the settings left out. [`jurs.fit`][] keeps a capped uniform fit
-    where this is at most ``UNIFORM_RESIDUAL_SPACINGS``, and fits on the hierarchy
-    otherwise."""
+    ``spacing``s (None: the cloud's, ``settings.spacing``; [`jurs.fit`][] passes the
+    spacing of the subsample a large surface's hierarchy would fit, ``hierarchy_stride``):
+    at most ``PROBES`` points evenly strided, those set aside by the settings left out.
+    [`jurs.fit`][] keeps a capped uniform fit where this is at most
+    ``UNIFORM_RESIDUAL_SPACINGS``, and fits on the hierarchy otherwise."""
     points = cloud.points[judged_points(cloud, settings)]
     at = strided_probes(len(points), PROBES)
     _, distance = values_and_distances(spline, points if at is None else points[at])
     # A nonfinite distance (a fit that failed) counts as far.
     distance = np.where(np.isfinite(distance), distance, np.inf)
-    return float(np.quantile(distance, 0.9) / settings.spacing)
+    return float(np.quantile(distance, 0.9) / (settings.spacing if spacing is None else spacing))
 
 
 def auto_finest(settings: Settings) -> int | None:

@@ -381,7 +381,8 @@ def fit(
             (150000) points is fitted there on an evenly strided subsample of at most that
             many, with settings chosen for it (``sol.settings`` are the subsample's;
             ``sol.stats["hierarchy_points"]`` and ``["hierarchy_stride"]`` say which), its
-            verdicts judged on the subsample; the grid's trial fits every point. A cloud
+            verdicts judged on the subsample; the grid's trial fits every point, its
+            residual and the noise below then in the subsample's spacings. A cloud
             whose scatter (``sol.settings.noise``) is at least ``NOISY_SPACINGS`` (0.1)
             spacings, at which every capped grid measured was refused, goes to the
             adaptive basis without the grid's trial (``sol.stats["noise_spacings"]``
@@ -667,31 +668,37 @@ def _fit(
         basis == "auto" and not uniform_only and settings is not None and wants_adaptive(settings)
     )
 
-    def on_the_hierarchy(settings: Settings, noted: dict, **given):
+    # A large surface's hierarchy fits an evenly strided subsample with settings of its own
+    # (``hierarchy_stride``); the noise and the grid's trial are then measured in the
+    # spacings of those points, which bound the detail that fit can resolve.
+    fitted, fitted_settings = cloud, settings
+    stride = hierarchy_stride(len(cloud), cloud.ndim) if escalate and cloud.mask is None else 1
+    if stride > 1:
+        assert cloud.normals is not None  # fit_cloud gave it normals
+        fitted = Cloud(cloud.points[::stride], cloud.normals[::stride])
+        fitted_settings, _ = fit_settings(fitted, None, *given_values)
+
+    def on_the_hierarchy(noted: dict, **given):
         """The fit on the hierarchy, what led to it noted in its stats."""
+        assert fitted_settings is not None  # escalate or basis="adaptive" say so
         noted = dict(estimated_normals=estimated, **noted)
-        fitted = cloud
-        stride = hierarchy_stride(len(cloud), cloud.ndim) if basis == "auto" else 1
-        if stride > 1:  # the automatic choice on a large surface: a subsample, its own settings
-            assert cloud.normals is not None  # fit_cloud gave it normals
-            fitted = Cloud(cloud.points[::stride], cloud.normals[::stride])
-            chosen, _ = fit_settings(fitted, None, *given_values)
-            assert chosen is not None  # no solver given: chosen
-            settings = chosen
+        if fitted is not cloud:
             noted.update(hierarchy_stride=stride, hierarchy_points=len(fitted))
-        finest = auto_finest(settings)
+        finest = auto_finest(fitted_settings)
         sol = on_hierarchy(
-            fitted, settings, finest=finest, checks=checks, throw=throw, noted=noted, **given
-        )
+            fitted, fitted_settings, finest=finest, checks=checks, throw=throw, noted=noted,
+            **given,
+        )  # fmt: skip
         return sol, None
 
     if settings is not None and basis == "adaptive":
         # A robust solver is refused on points sharded over devices, as fit_adaptive refuses it.
         lam = solver_lam(given_solver, None, cloud.given_points, cloud.given_normals)
-        return on_the_hierarchy(settings, {}, offset=offset, eps=eps, lam=lam, solver=given_solver)
-    if escalate and settings is not None and noise_decides(settings):
+        return on_the_hierarchy({}, offset=offset, eps=eps, lam=lam, solver=given_solver)
+    if escalate and fitted_settings is not None and noise_decides(fitted_settings):
         # The grid's trial would be refused.
-        return on_the_hierarchy(settings, dict(noise_spacings=settings.noise / settings.spacing))
+        scatter = fitted_settings.noise / fitted_settings.spacing
+        return on_the_hierarchy(dict(noise_spacings=scatter))
     check_start(shape, solver, init)
     dtype = jnp.result_type(float)
     # The exact solve in parts reads one sample a slot: laid out on the host, nothing
@@ -726,15 +733,16 @@ def _fit(
         sol, top_level, extra = run(problem, solver, init, throw)
     if escalate and top_level:
         assert settings is not None  # escalate says so
+        assert fitted_settings is not None
         residual = (
-            uniform_residual(sol.spline, cloud, settings)
+            uniform_residual(sol.spline, cloud, settings, fitted_settings.spacing)
             if sol.status == "successful"
             else float("inf")
         )
         if residual > UNIFORM_RESIDUAL_SPACINGS:
             del sol, extra  # the trial's arrays, freed before the hierarchy's
             release_freed_memory()
-            return on_the_hierarchy(settings, dict(uniform_residual=residual))
+            return on_the_hierarchy(dict(uniform_residual=residual))
         sol = dataclasses.replace(sol, stats=dict(sol.stats, uniform_residual=residual))
     if top_level:
         if checks:
