@@ -89,20 +89,29 @@ def test_detailed_dense_cloud_is_fitted_on_the_adaptive_basis(detailed):
 def test_a_large_cloud_fits_a_strided_subsample_on_the_hierarchy(detailed, monkeypatch):
     """Above the point limit (``hierarchy_stride`` > 1: surfaces only, here forced on a
     curve) the automatic hierarchy fits every k-th point with settings chosen for them, the
-    same spline as ``fit_adaptive`` of that subsample with those settings."""
+    same spline as ``fit_adaptive`` of that subsample with those settings; whether the
+    grid is capped is asked with the subsample's ``data_cell``."""
     from jurs._fit import fit as _fit
 
-    points, normals = detailed
+    points, normals = _wiggly_circle(3000)
     monkeypatch.setattr(_fit, "hierarchy_stride", lambda count, ndim: 2)
     sol = jurs.fit(points, normals)
     assert isinstance(sol.spline, jurs.AdaptiveSpline) and sol.succeeded
-    assert sol.stats["hierarchy_stride"] == 2 and sol.stats["hierarchy_points"] == 750
+    assert sol.stats["hierarchy_stride"] == 2 and sol.stats["hierarchy_points"] == 1500
     whole = jurs.auto_settings(points, normals)
     assert sol.settings.spacing > 1.5 * whole.spacing  # the subsample's own settings
     sub = jurs.fit_adaptive(points[::2], normals[::2], settings=sol.settings)
-    np.testing.assert_array_equal(np.asarray(sol.spline.control), np.asarray(sub.spline.control))
+    # To rounding: the fit reads the cloud's unit normals, normalised once more here.
+    np.testing.assert_allclose(sol.spline.control, sub.spline.control, rtol=0, atol=1e-12)
     # basis="adaptive" fits every point, as asked.
     assert "hierarchy_points" not in jurs.fit(points, normals, basis="adaptive").stats
+    # The 1500-point cloud's subsample of 750 asks for cells its grid's cap allows: the
+    # whole cloud's grid is fitted, though the whole cloud's own ask is capped.
+    points, normals = detailed
+    assert wants_adaptive(jurs.auto_settings(points, normals))
+    kept = jurs.fit(points, normals)
+    assert isinstance(kept.spline, jurs.ImplicitSpline) and "hierarchy_points" not in kept.stats
+    assert kept.settings == jurs.auto_settings(points, normals)
 
 
 def test_smooth_dense_cloud_keeps_the_capped_grid(dense):
@@ -183,6 +192,9 @@ def test_rule_on_settings():
     assert auto_finest(surface) is None  # 48 / 0.3 = 160 cells asked for: not capped
     surface = dataclasses.replace(surface, spacing=0.03, data_cell=0.09)
     assert wants_adaptive(surface)
+    # The data's ask measured elsewhere (a large surface's subsample) decides instead.
+    assert not wants_adaptive(surface, data_cell=1.01 / AUTO_REFINEMENT)
+    assert wants_adaptive(dataclasses.replace(surface, data_cell=1.0), data_cell=0.09)
     assert hierarchy_stride(AUTO_MAX_SURFACE_POINTS, 3) == 1
     assert hierarchy_stride(AUTO_MAX_SURFACE_POINTS + 1, 3) == 2
     assert hierarchy_stride(10**6, 3) == 7  # 142 858 points kept

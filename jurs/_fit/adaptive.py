@@ -149,16 +149,20 @@ UNIFORM_RESIDUAL_SPACINGS = 0.02
 NOISY_SPACINGS = 0.1
 
 
-def wants_adaptive(settings: Settings) -> bool:
+def wants_adaptive(settings: Settings, data_cell: float | None = None) -> bool:
     """Whether [`jurs.fit`][] with ``basis="auto"`` may fit a cloud with ``settings`` on
     the adaptive basis: where the automatic uniform grid (``settings.grid``) was capped, its
-    cells at least ``AUTO_REFINEMENT`` times wider than the data ask for
-    (``settings.data_cell``). It does where the capped grid's fit then leaves the data
-    (``uniform_residual``); a surface above ``AUTO_MAX_SURFACE_POINTS`` points then fits a
-    subsample of them (``hierarchy_stride``)."""
+    cells at least ``AUTO_REFINEMENT`` times wider than the data ask for (``data_cell``,
+    default ``settings.data_cell``). It does where the capped grid's fit then leaves the
+    data (``uniform_residual``). A surface above ``AUTO_MAX_SURFACE_POINTS`` points fits
+    a subsample on the hierarchy (``hierarchy_stride``), and [`jurs.fit`][] asks again with
+    the subsample's ``data_cell``: on a dense noisy cloud the whole cloud's noise estimate
+    reads too little noise (docs/surfaces.md, "Dense noisy clouds"), which would call the
+    grid capped where the subsample's says it is not."""
     if settings.data_cell is None:  # the grid was given
         return False
-    return settings.cell_width >= AUTO_REFINEMENT * settings.data_cell
+    asked = settings.data_cell if data_cell is None else data_cell
+    return settings.cell_width >= AUTO_REFINEMENT * asked
 
 
 def hierarchy_stride(points: int, ndim: int) -> int:

@@ -674,9 +674,11 @@ def _fit(
     fitted, fitted_settings = cloud, settings
     stride = hierarchy_stride(len(cloud), cloud.ndim) if escalate and cloud.mask is None else 1
     if stride > 1:
-        assert cloud.normals is not None  # fit_cloud gave it normals
+        assert cloud.normals is not None and settings is not None  # escalate says so
         fitted = Cloud(cloud.points[::stride], cloud.normals[::stride])
         fitted_settings, _ = fit_settings(fitted, None, *given_values)
+        assert fitted_settings is not None  # no solver given: chosen
+        escalate = wants_adaptive(settings, fitted_settings.data_cell)
 
     def on_the_hierarchy(noted: dict, **given):
         """The fit on the hierarchy, what led to it noted in its stats."""
