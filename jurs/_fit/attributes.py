@@ -42,7 +42,6 @@ import numpy as np
 from jax import Array
 from jaxtyping import ArrayLike, Float
 
-from .._linalg.coarsen import greville_transfer
 from .._linalg.normal import NormalEquations, normal_equations
 from .._model.adaptive import AdaptiveSpline
 from .._model.function import AbstractSpline
@@ -50,7 +49,7 @@ from .._model.spline import ImplicitSpline, bspline_transpose, bspline_values, l
 from .._problem.problem import build_problem
 from .._problem.validate import check_nonnegative, numeric_array
 from .._solution.solution import Solution
-from ..solvers._cascade import COARSEST_COEFFICIENTS, coarse_system
+from ..solvers._cascade import COARSEST_COEFFICIENTS, coarse_system, transferred_start
 from ..solvers._least_squares import (
     LeastSquares,
     solve_normal_equations,
@@ -325,7 +324,8 @@ def _column_solve(operator, rhs: Array, start: Array) -> Array:
 def _surface_columns(problem, per_point: Array, lam) -> Array:
     """g's final solve on surfaces for every column: CG from the cascadic start
     (``jurs.solvers._cascade``), the coarse grid's matrix assembled and factorised once
-    for all the columns."""
+    for all the columns (a column whose coarse solve broke down starts from 0, as g's
+    start keeps its own: ``transferred_start``)."""
     operator = normal_equations(problem).regularised(lam)
     rhs = bspline_transpose(problem.local, _slot_values(problem, per_point), problem.shape)
     coarse = coarse_system(problem, lam)
@@ -335,7 +335,8 @@ def _surface_columns(problem, per_point: Array, lam) -> Array:
     start = _cholesky_columns(
         system, bspline_transpose(level.local, _slot_values(level, per_point), level.shape)
     )
-    start = jax.vmap(lambda s: greville_transfer(s, problem.shape))(start)
+    zeros = jnp.zeros(problem.shape, start.dtype)
+    start = jax.vmap(lambda s: transferred_start(s, problem.shape, zeros))(start)
     return _column_solve(operator, rhs, start)
 
 

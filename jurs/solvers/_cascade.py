@@ -119,7 +119,13 @@ def cascadic_start(problem: Problem, lam, solve, start: Array) -> Array:
         return start
     level, normal, system = coarse
     solved = solve(system, normal.rhs, jnp.zeros(level.shape, normal.rhs.dtype), lx.Cholesky())
-    transferred = greville_transfer(solved, problem.shape)
-    # The start decides the final CG's path, not its answer: a breakdown keeps ``start``
-    # rather than compiling a second factorisation (an LU) for a case no default fit meets.
-    return jnp.where(jnp.all(jnp.isfinite(solved)), transferred, start)
+    return transferred_start(solved, problem.shape, start)
+
+
+def transferred_start(solved: Array, shape: tuple[int, ...], start: Array) -> Array:
+    """The coarse grid's ``solved`` coefficients transferred to the grid ``shape``
+    (``greville_transfer``), or ``start`` where they are not all finite (the coarse
+    Cholesky broke down). The start decides the final CG's path, not its answer: a
+    breakdown keeps ``start`` rather than compiling a second factorisation (an LU) for a
+    case no default fit meets."""
+    return jnp.where(jnp.all(jnp.isfinite(solved)), greville_transfer(solved, shape), start)
