@@ -56,16 +56,25 @@ class AdaptiveProblem(eqx.Module):
     eps: Array
 
 
-def normal_matrices(hierarchy: Hierarchy, positions: ArrayLike, basis: ArrayLike):
+def normal_matrices(
+    hierarchy: Hierarchy, positions: ArrayLike, basis: ArrayLike | Callable[[], ArrayLike]
+):
     """``(D, 2 G^T W G)`` as SciPy sparse matrices over the active functions, on the host:
     ``D = B M`` (rows the samples, ``B`` their ``4^d`` basis values at ``positions``,
     ``M`` the cascade matrix) and the regulariser's part of the normal matrix per unit
-    lambda, so that ``D^T D + lam 2 G^T W G`` is the matrix of the normal equations."""
+    lambda, so that ``D^T D + lam 2 G^T W G`` is the matrix of the normal equations.
+
+    ``basis``: the samples' basis values, or a function that makes them. The regulariser
+    is made first and ``basis`` asked for after it: the regulariser's products (its
+    largest intermediates) and ``B`` with ``D`` are then never held at once, which was
+    the assembly's peak (docs/performance.md, "A hierarchy fit's host work and peak")."""
     from scipy import sparse
 
-    positions, basis = np.asarray(positions), np.asarray(basis)
     cascaded = cascade_matrix(hierarchy)
     total = sum(hierarchy.level_sizes)
+    regulariser = _regulariser_matrix(hierarchy, cascaded, total)
+    positions = np.asarray(positions)
+    basis = np.asarray(basis() if callable(basis) else basis)
     count, local = positions.shape
     index = np.int32 if count * local < 2**31 else np.int64  # one index type: no upcast copy
     # Each sample's row holds its 4^d distinct terms: CSR from the arrays as they are,
@@ -74,8 +83,16 @@ def normal_matrices(hierarchy: Hierarchy, positions: ArrayLike, basis: ArrayLike
         (basis.ravel(), positions.ravel(), np.arange(0, count * local + 1, local, dtype=index)),
         shape=(count, total),
     )
+    del basis
     collocation = sparse.csr_matrix(terms @ cascaded)
-    del terms
+    return collocation, regulariser
+
+
+def _regulariser_matrix(hierarchy: Hierarchy, cascaded, total: int):
+    """``2 G^T W G`` (SciPy CSR) over the active functions, from the cascade matrix ``M``
+    (``cascaded``, kept) over ``total`` relevant functions."""
+    from scipy import sparse
+
     pairs, weights, start = [], [], 0
     for level in range(hierarchy.num_levels):
         pairs.append(np.asarray(hierarchy.edges[level]) + start)
@@ -96,14 +113,10 @@ def normal_matrices(hierarchy: Hierarchy, positions: ArrayLike, basis: ArrayLike
     laplacian = sparse.csr_matrix(pair_differences.T @ pair_differences)
     del pair_differences
     smoothed = sparse.csr_matrix(laplacian @ cascaded)
-    # M^T as a CSR view of M in CSC: a product of two CSR matrices, with no conversion
-    # of the (larger) L M or of the result. M itself goes first: the last product is
-    # the assembly's peak.
     del laplacian
-    transposed = cascaded.tocsc().T
-    del cascaded
-    regulariser = transposed @ smoothed
-    return collocation, regulariser
+    # M^T as a CSR view of M in CSC: a product of two CSR matrices, with no conversion
+    # of the (larger) L M or of the result.
+    return cascaded.tocsc().T @ smoothed
 
 
 #: Entries of D squared at a time in ``column_squares``.
@@ -193,7 +206,9 @@ def assemble_adaptive_problem(
     samples_np = samples_np.astype(dtype)  # leaves found in the fit's own precision
     level, cell = locate_leaves(hierarchy, samples_np, xp=np)
     positions, local = leaf_terms(hierarchy, samples_np, level, cell, xp=np)
-    collocation, regulariser = normal_matrices(hierarchy, positions, hierarchy_basis(local, xp=np))
+    collocation, regulariser = normal_matrices(
+        hierarchy, positions, lambda: hierarchy_basis(local, xp=np)
+    )
     data_diagonal = column_squares(collocation, hierarchy.num_active)
     regulariser_diagonal = regulariser.diagonal()
     problem = AdaptiveProblem(
