@@ -17,6 +17,7 @@ as levels are added (docs/design.md section 8).
 
 from __future__ import annotations
 
+import abc
 import functools
 import math
 from collections.abc import Callable
@@ -87,7 +88,7 @@ CELL_SPACINGS = {2: 1.0, 3: 3.0}
 #: The hierarchy's linear solves (``exact_solve``): a factorisation on the host; CG with
 #: Jacobi in JAX or on the host (SciPy); CG with a V-cycle over the nested spaces in JAX or
 #: on the host.
-METHODS = ("direct", "cg", "host_cg", "multigrid", "host_multigrid")
+METHODS = ("direct", "cg", "host_cg", "multigrid", "host_multigrid")  # SOLVES's names
 #: CG stops at this residual, relative to ``|D^T b|``. Far below what moves a fit: on a
 #: 1e5-point surface the coefficients then lie within 1e-4 eps of the converged ones
 #: (docs/performance.md, "CG's stop rule"), a shift of the zero set far below a lattice
@@ -552,54 +553,122 @@ def solve_normal(matrix, rhs: np.ndarray) -> tuple[np.ndarray, float]:
     return control, float(np.linalg.norm(matrix @ control - rhs)) / scale
 
 
-def exact_solve(method: str, problem: AdaptiveProblem, matrices, lam, rtol, max_steps, dtype):
-    """The hierarchy's normal equations solved by ``method`` (one of ``METHODS``), as a
-    function ``solve(row_weights=None, start=None, lam=None) -> (control, steps, relative
-    residual)`` of the samples' row weights, CG's first iterate and the lambda (None:
-    ``lam``), for the solvers of ``solve_on_hierarchy``. The assembled normal equations
-    (``normal_system``) of the last row weights are kept: a search over lambda solves
-    with the same weights, its matrix moved by the change of lambda times ``R``. So is
-    ``D`` in its products' order (``ordered_rows``), made for the first CG by ``D``: a
+class HierarchySolve(abc.ABC):
+    """The normal equations of one hierarchy problem, solved by one method: called as
+    ``solve(row_weights=None, start=None, lam=None) -> (control, steps, relative
+    residual)`` with the samples' row weights, CG's first iterate and the lambda (None:
+    the one it was made with), for the solvers of ``solve_on_hierarchy``. Each method is
+    a subclass (``SOLVES``, by the names of ``METHODS``), which ``exact_solve`` picks.
+
+    What a method's solves share is kept here: the assembled normal equations
+    (``normal_system``) of the last row weights, since a search over lambda solves with
+    the same weights and moves its matrix by the change of lambda times ``R``; and ``D``
+    in its products' order (``ordered_rows``), made for the first CG by ``D``, since a
     reweighting's or a search's solves multiply by the same rows."""
-    bound, kept, ordered = lam, {}, []
 
-    def rows():
-        if not ordered:
-            ordered.append(ordered_rows(matrices[0].tocsr()))
-        return ordered[0]
+    def __init__(self, problem: AdaptiveProblem, matrices, lam, rtol, max_steps, dtype):
+        self.problem, self.matrices, self.lam = problem, matrices, lam
+        self.rtol, self.max_steps, self.dtype = rtol, max_steps, dtype
+        self._kept: dict = {}
+        self._ordered: tuple | None = None
 
-    def system(row_weights, lam):
+    def __call__(self, row_weights=None, start=None, lam=None) -> tuple[np.ndarray, int, float]:
+        return self.solve(row_weights, start, self.lam if lam is None else float(lam))
+
+    @abc.abstractmethod
+    def solve(self, row_weights, start, lam: float) -> tuple[np.ndarray, int, float]:
+        """``(control, steps, relative residual)`` for these row weights, start and lam."""
+
+    def system(self, row_weights, lam: float):
+        """``(matrix, rhs)``: the assembled normal equations for ``row_weights`` and
+        ``lam``, kept for the next solve with the same weights."""
         key = None if row_weights is None else np.asarray(row_weights, float).tobytes()
+        kept = self._kept
         if kept and kept["key"] == key:
             matrix, rhs = kept["system"]
             if lam != kept["lam"]:
-                matrix = (matrix + (lam - kept["lam"]) * matrices[1]).tocsr()
+                matrix = (matrix + (lam - kept["lam"]) * self.matrices[1]).tocsr()
         else:
             kept.clear()  # one at a time: each is about the normal matrix's size
-            matrix, rhs = normal_system(matrices, problem.targets, lam, row_weights)
+            matrix, rhs = normal_system(self.matrices, self.problem.targets, lam, row_weights)
         kept.update(key=key, lam=lam, system=(matrix, rhs))
         return matrix, rhs
 
-    def solve(row_weights=None, start=None, lam=None):
-        lam = bound if lam is None else float(lam)
-        if method == "direct":  # a factorisation needs no start
-            matrix, rhs = system(row_weights, lam)
-            control, residual = solve_normal(matrix.tocsc(), rhs)
-            return control, 0, residual
-        args = (problem, matrices, lam, rtol, max_steps)
-        weighted = dict(row_weights=row_weights, start=start)
-        if method == "host_cg":
-            assembled = assembled_pays(matrices[0])
-            if assembled:
-                return solve_host_cg(*args, **weighted, system=system(row_weights, lam))
-            return solve_host_cg(*args, **weighted, rows=rows())
-        if method == "host_multigrid":
-            return solve_host_multigrid(*args, **weighted, system=system(row_weights, lam))
-        if method == "multigrid":
-            return solve_multigrid(*args, dtype, **weighted, system=system(row_weights, lam))
-        return solve_assembled(*args, dtype, **weighted, rows=rows())
+    def rows(self) -> tuple:
+        """``D`` in its products' order and that order (``ordered_rows``), made once."""
+        if self._ordered is None:
+            self._ordered = ordered_rows(self.matrices[0].tocsr())
+        return self._ordered
 
-    return solve
+    def cg_arguments(self, row_weights, start, lam: float) -> dict[str, Any]:
+        """The arguments the CG solves below share, by name."""
+        return dict(
+            problem=self.problem, matrices=self.matrices, lam=lam, rtol=self.rtol,
+            max_steps=self.max_steps, row_weights=row_weights, start=start,
+        )  # fmt: skip
+
+
+class DirectSolve(HierarchySolve):
+    """``solve_normal``'s factorisation of the assembled normal equations (no start)."""
+
+    def solve(self, row_weights, start, lam):
+        matrix, rhs = self.system(row_weights, lam)
+        control, residual = solve_normal(matrix.tocsc(), rhs)
+        return control, 0, residual
+
+
+class HostCGSolve(HierarchySolve):
+    """``solve_host_cg``: by the assembled matrix where samples outnumber functions
+    (``assembled_pays``), else by ``D`` in its products' order and ``R``."""
+
+    def solve(self, row_weights, start, lam):
+        shared = self.cg_arguments(row_weights, start, lam)
+        if assembled_pays(self.matrices[0]):
+            return solve_host_cg(**shared, system=self.system(row_weights, lam))
+        return solve_host_cg(**shared, rows=self.rows())
+
+
+class DeviceCGSolve(HierarchySolve):
+    """``solve_assembled``: the same CG compiled by JAX, on the padded matrices."""
+
+    def solve(self, row_weights, start, lam):
+        shared = self.cg_arguments(row_weights, start, lam)
+        return solve_assembled(**shared, dtype=self.dtype, rows=self.rows())
+
+
+class HostMultigridSolve(HierarchySolve):
+    """``solve_host_multigrid``: CG with a V-cycle over the nested spaces, in SciPy."""
+
+    def solve(self, row_weights, start, lam):
+        shared = self.cg_arguments(row_weights, start, lam)
+        return solve_host_multigrid(**shared, system=self.system(row_weights, lam))
+
+
+class MultigridSolve(HierarchySolve):
+    """``solve_multigrid``: CG with a V-cycle over the nested spaces, compiled by JAX."""
+
+    def solve(self, row_weights, start, lam):
+        shared = self.cg_arguments(row_weights, start, lam)
+        return solve_multigrid(**shared, dtype=self.dtype, system=self.system(row_weights, lam))
+
+
+#: Each of ``METHODS``'s solves, by name.
+SOLVES: dict[str, type[HierarchySolve]] = {
+    "direct": DirectSolve,
+    "cg": DeviceCGSolve,
+    "host_cg": HostCGSolve,
+    "multigrid": MultigridSolve,
+    "host_multigrid": HostMultigridSolve,
+}
+
+
+def exact_solve(
+    method: str, problem: AdaptiveProblem, matrices, lam, rtol, max_steps, dtype
+) -> HierarchySolve:
+    """The hierarchy's normal equations of ``problem`` (with its host ``matrices``)
+    solved by ``method`` (one of ``METHODS``): a ``HierarchySolve``, called as
+    ``solve(row_weights=None, start=None, lam=None)``."""
+    return SOLVES[method](problem, matrices, lam, rtol, max_steps, dtype)
 
 
 def assembled_pays(collocation) -> bool:
