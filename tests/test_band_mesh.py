@@ -127,6 +127,27 @@ def test_finest_coefficients_do_not_depend_on_their_grouping(monkeypatch):
     assert np.array_equal(module.finest_coefficients(hierarchy, cascaded, functions), whole)
 
 
+@pytest.mark.parametrize("ndim", [2, 3])
+def test_finest_coefficients_one_by_one_are_the_tables_entries(monkeypatch, ndim):
+    """Functions subdivided one by one (where few of a leaf's are asked) get bitwise the
+    coefficients read off their leaves' whole tables, whether a few or all are asked."""
+    from jurs._model import finest as module
+
+    rng = np.random.default_rng(3)
+    lower, upper = np.zeros(ndim), np.ones(ndim)
+    base = (3,) * ndim
+    refine = refine_near(lower, upper, base, 3, rng.uniform(0.4, 0.5, (10, ndim)), 1)
+    hierarchy = build_hierarchy(lower, upper, base, refine)
+    cascaded = rng.normal(size=(2, sum(hierarchy.level_sizes)))
+    every = np.argwhere(np.ones(np.asarray(hierarchy.cells(3)) + 3, bool))
+    for functions in (every, every[rng.choice(len(every), 40, replace=False)]):
+        answers = []
+        for few in (True, False):
+            monkeypatch.setattr(module, "_asks_few", lambda *args, few=few: few)
+            answers.append(module.finest_coefficients(hierarchy, cascaded, functions))
+        assert np.array_equal(answers[0], answers[1])
+
+
 def test_band_mesh_of_a_torus_is_the_full_lattice_mesh():
     spline = _torus()
     resolution = 61

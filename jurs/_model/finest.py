@@ -23,8 +23,8 @@ from .hierarchy import (
     unravel_keys,
 )
 
-#: Entries of one group of leaves' subdivided coefficients in ``finest_coefficients``
-#: (float64: 32 MiB).
+#: Entries of the leaves' coefficients gathered at a time for the functions asked of
+#: ``finest_coefficients`` (float64: 32 MiB).
 TABLE_ENTRIES = 1 << 22
 
 
@@ -68,6 +68,36 @@ def _subdivided(values: np.ndarray, matrix: np.ndarray) -> np.ndarray:
     return np.moveaxis(out, -1, 1)
 
 
+def _subdivided_at(values: np.ndarray, matrix: np.ndarray, relative: np.ndarray) -> np.ndarray:
+    """The finer coefficients asked of leaves: ``values (k, n, 4, .., 4)``, each asked
+    function's leaf's ``4^d`` coefficients, carried to the finer function ``relative (n,
+    d)`` of its leaf at the level of ``matrix (S, 4)`` (``subdivision_matrix``); ``(k,
+    n)``. One axis at a time, each entry four products added in a fixed order
+    (element-wise, no BLAS): an entry depends only on its leaf's values and its own
+    index, never on what else is asked with it: bitwise ``_subdivided``'s entries, for
+    the functions asked alone (``_asks_few``)."""
+    out = values
+    for axis in range(relative.shape[1]):
+        weights = matrix[relative[:, axis]]  # (n, 4)
+        column = (-1,) + (1,) * (out.ndim - 3)
+        total = out[:, :, 0] * weights[:, 0].reshape(column)
+        for i in range(1, 4):
+            total = total + out[:, :, i] * weights[:, i].reshape(column)
+        out = total
+    return out
+
+
+def _asks_few(asked: int, leaves: int, side: int, ndim: int) -> bool:
+    """Whether ``asked`` functions of ``leaves`` leaves cost fewer products one by one
+    (``_subdivided_at``: the leaf's ``4^d`` coefficients gathered, then ``4^d + ... + 4``
+    products) than through the leaves' whole tables of ``side^d`` finer functions
+    (``_subdivided``: ``4 side^j 4^(d - j)`` products for the axis j of d). A verdict's
+    lattice of half cells asks a few functions of each leaf, a mesh's lattice most."""
+    one_by_one = 4**ndim + sum(4 ** (j + 1) for j in range(ndim))
+    table = 4**ndim + sum(4 * side**j * 4 ** (ndim - j) for j in range(1, ndim + 1))
+    return asked * one_by_one < leaves * table
+
+
 def level_offsets(hierarchy: Hierarchy) -> np.ndarray:
     """Where each level starts in the concatenated cascaded vector of
     [`cascade`][jurs.internal.cascade]; ``(levels + 1,)``."""
@@ -90,12 +120,13 @@ def finest_coefficients(
     is ``a^L_j`` itself.
 
     ``cascaded``: ``(k, s)`` from [`cascade`][jurs.internal.cascade] (``k`` splines).
-    The subdivision runs per leaf, axis by axis, over all ``(2^(L-l) + 3)^d`` finer
-    functions of the leaf at once (about ``8 k`` operations a function; leaves are taken
-    in groups that bound the table's memory). Each coefficient is computed by the same
-    element-wise operations in the same order whatever else is asked with it, so one
-    function asked twice gets bitwise the same value: lattices evaluated from these
-    coefficients agree on shared nodes to the bit.
+    The subdivision runs axis by axis, per leaf over all ``(2^(L-l) + 3)^d`` finer
+    functions of the leaf at once (about ``8 k`` operations a function), or where few of
+    a level's are asked for each function alone from its leaf's ``4^d`` coefficients
+    (``_asks_few``); either way in groups that bound the memory. Each coefficient is
+    computed by the same element-wise operations in the same order whatever else is
+    asked with it, so one function asked twice gets bitwise the same value: lattices
+    evaluated from these coefficients agree on shared nodes to the bit.
     """
     cascaded = np.asarray(cascaded, np.float64)
     functions = np.asarray(functions, np.int64).reshape(-1, hierarchy.ndim)
@@ -138,6 +169,14 @@ def finest_coefficients(
         relative = functions[mine] - (leaf << steps)  # in [0, 2^steps + 3)
         matrix = subdivision_matrix(steps)
         which = which.reshape(-1)
+        if _asks_few(len(mine), len(unique), matrix.shape[0], ndim):
+            group = max(1, TABLE_ENTRIES // (cascaded.shape[0] * 4**ndim))
+            for lo in range(0, len(mine), group):
+                picked = slice(lo, lo + group)
+                out[:, mine[picked]] = _subdivided_at(
+                    values[:, which[picked]], matrix, relative[picked]
+                )
+            continue
         group = max(1, TABLE_ENTRIES // (cascaded.shape[0] * matrix.shape[0] ** ndim))
         order = np.argsort(which, kind="stable")
         bounds = np.searchsorted(which[order], np.arange(0, len(unique) + group, group))
