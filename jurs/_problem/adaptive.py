@@ -67,7 +67,7 @@ def normal_matrices(
     ``basis``: the samples' basis values, or a function that makes them. The regulariser
     is made first and ``basis`` asked for after it: the regulariser's products (its
     largest intermediates) and ``B`` with ``D`` are then never held at once, which was
-    the assembly's peak (docs/performance.md, "A hierarchy fit's host work and peak")."""
+    the assembly's peak (docs/performance.md, "A clean surface's hierarchy fit")."""
     from scipy import sparse
 
     cascaded = cascade_matrix(hierarchy)
