@@ -85,10 +85,6 @@ DEFAULT_BAND = {2: 1, 3: 2}
 #: 1.5 to 1.0 and 2-4 % more at 0.75, for 50 % more active functions. A surface keeps the
 #: uniform grid's 3 (not yet measured on the hierarchy).
 CELL_SPACINGS = {2: 1.0, 3: 3.0}
-#: The hierarchy's linear solves (``exact_solve``): a factorisation on the host; CG with
-#: Jacobi in JAX or on the host (SciPy); CG with a V-cycle over the nested spaces in JAX or
-#: on the host.
-METHODS = ("direct", "cg", "host_cg", "multigrid", "host_multigrid")  # SOLVES's names
 #: CG stops at this residual, relative to ``|D^T b|``. Far below what moves a fit: on a
 #: 1e5-point surface the coefficients then lie within 1e-4 eps of the converged ones
 #: (docs/performance.md, "CG's stop rule"), a shift of the zero set far below a lattice
@@ -278,8 +274,9 @@ def multilevel_preconditioner(
     ``ThbMultigrid``."""
     from scipy.sparse import csr_matrix
 
-    basis = np.asarray(sample_basis(problem))
-    matrices = normal_matrices(problem.hierarchy, np.asarray(problem.positions), basis)
+    positions = np.asarray(problem.positions)
+    # The basis values made after the regulariser's products (normal_matrices).
+    matrices = normal_matrices(problem.hierarchy, positions, lambda: sample_basis(problem))
     matrix, _ = normal_system(matrices, problem.targets, float(lam))
     multigrid = ThbMultigrid(problem.hierarchy, csr_matrix(matrix), **options)
     return multigrid.on_device(jnp.result_type(float) if dtype is None else dtype)
@@ -530,8 +527,9 @@ def solve_direct(problem: AdaptiveProblem, lam: float, matrices=None, row_weight
     reaches) goes to SuperLU, whose pivoting gives an answer whose residual says so.
     """
     if matrices is None:
-        basis = np.asarray(sample_basis(problem))
-        matrices = normal_matrices(problem.hierarchy, np.asarray(problem.positions), basis)
+        positions = np.asarray(problem.positions)
+        # The basis values made after the regulariser's products (normal_matrices).
+        matrices = normal_matrices(problem.hierarchy, positions, lambda: sample_basis(problem))
     matrix, rhs = normal_system(matrices, problem.targets, lam, row_weights)
     return solve_normal(matrix.tocsc(), rhs)
 
@@ -652,7 +650,9 @@ class MultigridSolve(HierarchySolve):
         return solve_multigrid(**shared, dtype=self.dtype, system=self.system(row_weights, lam))
 
 
-#: Each of ``METHODS``'s solves, by name.
+#: The hierarchy's linear solves by name (``exact_solve``): a factorisation on the host;
+#: CG with Jacobi in JAX or on the host (SciPy); CG with a V-cycle over the nested spaces
+#: in JAX or on the host.
 SOLVES: dict[str, type[HierarchySolve]] = {
     "direct": DirectSolve,
     "cg": DeviceCGSolve,
@@ -660,6 +660,8 @@ SOLVES: dict[str, type[HierarchySolve]] = {
     "multigrid": MultigridSolve,
     "host_multigrid": HostMultigridSolve,
 }
+#: The names of ``SOLVES``: the ``method`` a hierarchy fit takes.
+METHODS = tuple(SOLVES)
 
 
 def exact_solve(
