@@ -150,15 +150,24 @@ class _BreaksDown(lx.AbstractLinearSolver):
         return True
 
 
-def _first_tries_that_break_down(monkeypatch) -> list:
-    """``LeastSquares.first_try`` patched to a solve that breaks down; the grids it is
-    asked for are listed in the list returned."""
+class _FlaggedSingular(_BreaksDown):
+    """A solve that ends finite but is flagged as singular (as ``singular_solve`` flags an
+    amplified one): the fit's verdict is ``failed``, its coefficients finite."""
+
+    def compute(self, state, vector, options):
+        return jax.numpy.zeros_like(vector), lx.RESULTS.singular, {}
+
+
+def _first_tries_that_break_down(monkeypatch, linear_solver=None) -> list:
+    """``LeastSquares.first_try`` patched to a solve that breaks down (or
+    ``linear_solver``); the grids it is asked for are listed in the list returned."""
     tried = []
+    linear_solver = _BreaksDown() if linear_solver is None else linear_solver
 
     def breaking(self, shape):
         tried.append(shape)
         return eqx.tree_at(
-            lambda s: s.linear_solver, self, _BreaksDown(), is_leaf=lambda x: x is None
+            lambda s: s.linear_solver, self, linear_solver, is_leaf=lambda x: x is None
         )
 
     monkeypatch.setattr(jurs.LeastSquares, "first_try", breaking)
@@ -194,3 +203,20 @@ def test_a_whole_fit_falls_back_where_its_first_try_breaks_down(monkeypatch):
     np.testing.assert_allclose(
         np.asarray(sol.spline.control), control, rtol=0, atol=1e-8 * np.abs(control).max()
     )
+
+
+def test_a_whole_fit_keeps_a_first_try_that_failed_with_finite_coefficients(monkeypatch):
+    """A first try whose C is finite but flagged singular (verdict ``failed``) is the fit:
+    the solver's own solve would run the same first solve and, its C being finite, not
+    its fallback. (Here the patched first try differs from the solver's own, so a rerun
+    would show as a successful fit.)"""
+    import jurs._fit.call as call
+
+    p, n = jurs.datasets.example1(400)
+    settings = dict(grid=24, offset=0.05, eps=0.01, solver=jurs.LeastSquares(lam=1e-5))
+    monkeypatch.setattr(call, "solves_in_parts", lambda *args: False)
+    tried = _first_tries_that_break_down(monkeypatch, _FlaggedSingular())
+    sol = jurs.fit(p, n, throw=False, **settings)
+    assert tried == [(24, 24)]
+    assert sol.status == "failed"
+    assert np.all(np.asarray(sol.spline.control) == 0.0)

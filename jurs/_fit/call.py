@@ -113,14 +113,17 @@ def solve_fit(problem, solver, init, throw: bool):
     return _first_try_first(stored, solver, problem), True
 
 
-#: The verdicts of a first try that may have broken down (non-finite coefficients: the
-#: driver keeps the last finite iterate and says ``nonfinite``; the solver's own verdict
-#: on them is ``failed``), after which the solver itself runs.
-_RETRIED = ("nonfinite", "failed")
+#: The verdict of a first try that broke down: its coefficients were not finite (the
+#: driver keeps the last finite iterate and says ``nonfinite``), after which the solver
+#: itself runs, its fallback with it. A first try that ``failed`` with finite coefficients
+#: (a singular solve flagged by its amplification) is kept: the solver's own solve runs
+#: the same first solve, and falls back only where C is not finite, so it would repeat it
+#: to the same answer.
+_RETRIED = ("nonfinite",)
 
 
 def _first_try_first(compiled, solver, problem):
     """``compiled(solver)``, the solution of a top-level fit, by way of
     ``solver.first_try`` (``run_first_try``): retried with the solver itself where the
-    first try's verdict says it may have broken down (``_RETRIED``)."""
+    first try's verdict says it broke down (``_RETRIED``)."""
     return run_first_try(compiled, solver, problem.shape, lambda sol: sol.status in _RETRIED)
