@@ -594,6 +594,35 @@ def on_hierarchy(
     return dataclasses.replace(sol, stats=dict(sol.stats, **noted)) if noted else sol
 
 
+@dataclasses.dataclass(frozen=True)
+class _HierarchyCloud:
+    """What [`jurs.fit`][]'s fit on the hierarchy takes: ``cloud`` with ``settings`` chosen
+    for it, a large surface's evenly strided subsample (every ``stride``-th point) where
+    ``stride > 1``; ``trial``: the whole cloud's settings, which the grid's trial takes."""
+
+    cloud: Cloud
+    settings: Settings
+    trial: Settings
+    stride: int = 1
+
+
+def _hierarchy_cloud(
+    cloud: Cloud, settings: Settings, given_values, strided: bool
+) -> _HierarchyCloud:
+    """The ``_HierarchyCloud`` of ``cloud`` with ``settings``: where ``strided`` (the
+    automatic choice of basis) and the cloud has no mask, a large surface's subsample
+    (``hierarchy_stride``) with settings chosen for it from ``given_values`` (those of
+    [`jurs.fit`][] that fix settings, no solver among them)."""
+    stride = hierarchy_stride(len(cloud), cloud.ndim) if strided and cloud.mask is None else 1
+    if stride == 1 or cloud.normals is None:
+        return _HierarchyCloud(cloud, settings, settings)
+    fitted = Cloud(cloud.points[::stride], cloud.normals[::stride])
+    chosen, _ = fit_settings(fitted, None, *given_values)
+    if chosen is None:  # settings are chosen wherever no solver is given
+        raise ValueError("a strided subsample's settings need the solver left to the fit")
+    return _HierarchyCloud(fitted, chosen, settings, stride)
+
+
 def _fit(
     points,
     normals,
@@ -671,36 +700,32 @@ def _fit(
     # A large surface's hierarchy fits an evenly strided subsample with settings of its own
     # (``hierarchy_stride``); the noise and the grid's trial are then measured in the
     # spacings of those points, which bound the detail that fit can resolve.
-    fitted, fitted_settings = cloud, settings
-    stride = hierarchy_stride(len(cloud), cloud.ndim) if escalate and cloud.mask is None else 1
-    if stride > 1:
-        assert cloud.normals is not None and settings is not None  # escalate says so
-        fitted = Cloud(cloud.points[::stride], cloud.normals[::stride])
-        fitted_settings, _ = fit_settings(fitted, None, *given_values)
-        assert fitted_settings is not None  # no solver given: chosen
-        escalate = wants_adaptive(settings, fitted_settings.data_cell)
+    hierarchy = None  # what a fit on the hierarchy takes, where one may be made
+    if settings is not None and (escalate or basis == "adaptive"):
+        hierarchy = _hierarchy_cloud(cloud, settings, given_values, strided=escalate)
+        escalate = escalate and wants_adaptive(settings, hierarchy.settings.data_cell)
+    escalation = hierarchy if escalate else None  # the fit the grid's trial may give way to
 
-    def on_the_hierarchy(noted: dict, **given):
+    def on_the_hierarchy(hierarchy: _HierarchyCloud, noted: dict, **given):
         """The fit on the hierarchy, what led to it noted in its stats."""
-        assert fitted_settings is not None  # escalate or basis="adaptive" say so
         noted = dict(estimated_normals=estimated, **noted)
-        if fitted is not cloud:
-            noted.update(hierarchy_stride=stride, hierarchy_points=len(fitted))
-        finest = auto_finest(fitted_settings)
+        if hierarchy.stride > 1:
+            noted.update(hierarchy_stride=hierarchy.stride, hierarchy_points=len(hierarchy.cloud))
+        finest = auto_finest(hierarchy.settings)
         sol = on_hierarchy(
-            fitted, fitted_settings, finest=finest, checks=checks, throw=throw, noted=noted,
-            **given,
+            hierarchy.cloud, hierarchy.settings, finest=finest, checks=checks, throw=throw,
+            noted=noted, **given,
         )  # fmt: skip
         return sol, None
 
-    if settings is not None and basis == "adaptive":
+    if hierarchy is not None and basis == "adaptive":
         # A robust solver is refused on points sharded over devices, as fit_adaptive refuses it.
         lam = solver_lam(given_solver, None, cloud.given_points, cloud.given_normals)
-        return on_the_hierarchy({}, offset=offset, eps=eps, lam=lam, solver=given_solver)
-    if escalate and fitted_settings is not None and noise_decides(fitted_settings):
+        return on_the_hierarchy(hierarchy, {}, offset=offset, eps=eps, lam=lam, solver=given_solver)
+    if escalation is not None and noise_decides(escalation.settings):
         # The grid's trial would be refused.
-        scatter = fitted_settings.noise / fitted_settings.spacing
-        return on_the_hierarchy(dict(noise_spacings=scatter))
+        scatter = escalation.settings.noise / escalation.settings.spacing
+        return on_the_hierarchy(escalation, dict(noise_spacings=scatter))
     check_start(shape, solver, init)
     dtype = jnp.result_type(float)
     # The exact solve in parts reads one sample a slot: laid out on the host, nothing
@@ -730,21 +755,20 @@ def _fit(
     )
     if run is None:
         # An escalated fit's failure is the hierarchy's to raise, not the grid's.
-        (sol, top_level), extra = solve_fit(problem, solver, init, throw and not escalate), None
+        trial = escalation is not None
+        (sol, top_level), extra = solve_fit(problem, solver, init, throw and not trial), None
     else:
         sol, top_level, extra = run(problem, solver, init, throw)
-    if escalate and top_level:
-        assert settings is not None  # escalate says so
-        assert fitted_settings is not None
+    if escalation is not None and top_level:
         residual = (
-            uniform_residual(sol.spline, cloud, settings, fitted_settings.spacing)
+            uniform_residual(sol.spline, cloud, escalation.trial, escalation.settings.spacing)
             if sol.status == "successful"
             else float("inf")
         )
         if residual > UNIFORM_RESIDUAL_SPACINGS:
             del sol, extra  # the trial's arrays, freed before the hierarchy's
             release_freed_memory()
-            return on_the_hierarchy(dict(uniform_residual=residual))
+            return on_the_hierarchy(escalation, dict(uniform_residual=residual))
         sol = dataclasses.replace(sol, stats=dict(sol.stats, uniform_residual=residual))
     if top_level:
         if checks:
