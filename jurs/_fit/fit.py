@@ -223,6 +223,18 @@ def _problem_of(
     return problem
 
 
+def _forget_large_problem(cloud: Cloud, problem) -> None:
+    """Drops ``problem`` from those the cloud keeps (``_problem_of``) where the cloud has
+    more than ``KEPT_CLOUD_POINTS`` points: a grid's trial refused for the hierarchy, whose
+    laid-out samples would otherwise be held through the hierarchy's assembly and solve,
+    the fit's peak. A smaller cloud keeps it for the next fit of the same settings."""
+    if len(cloud) <= KEPT_CLOUD_POINTS:
+        return
+    kept = cloud.__dict__.get("_kept_problems", {})
+    for key in [key for key, value in kept.items() if value is problem]:
+        del kept[key]
+
+
 def _traced_fit(
     points, normals, grid, solver, offset, eps, domain, margin, init, mask, bucket_size, throw
 ):
@@ -766,7 +778,8 @@ def _fit(
             else float("inf")
         )
         if residual > UNIFORM_RESIDUAL_SPACINGS:
-            del sol, extra  # the trial's arrays, freed before the hierarchy's
+            _forget_large_problem(cloud, problem)
+            del sol, extra, problem  # the trial's arrays, freed before the hierarchy's
             release_freed_memory()
             return on_the_hierarchy(escalation, dict(uniform_residual=residual))
         sol = dataclasses.replace(sol, stats=dict(sol.stats, uniform_residual=residual))
