@@ -77,7 +77,8 @@ def test_parent_weights_are_the_subdivision_rule_and_not_stored(ndim):
 @pytest.mark.parametrize("ndim", [2, 3])
 def test_table_and_sorted_key_lookups_build_the_same_hierarchy(ndim, monkeypatch):
     """``build_hierarchy`` looks keys up in tables where their range is small and by a
-    sorted search beyond: both build the same arrays."""
+    sorted search beyond (and checks supports by a box sum where there is a table, cell by
+    cell beyond): both build the same arrays."""
     from jurs._model import hierarchy as module
 
     table = _hierarchy(ndim, levels=3)

@@ -245,9 +245,36 @@ class Hierarchy(eqx.Module):
 
 def _support_inside(functions: np.ndarray, cells: tuple[int, ...], region: _KeySet) -> np.ndarray:
     """Whether each function's support within the box lies in ``region`` (flat keys of
-    cells at the same level); ``functions (k, d)`` multi-indices. Each function's answer is
-    its own: the functions are shared out over the host's threads (``by_rows``)."""
+    cells at the same level); ``functions (k, d)`` multi-indices. Where the region has a
+    table (its level's cells at most ``TABLE_KEYS``), by counting the cells outside it
+    in each support (``_cells_outside``): ``2^d`` reads a function, not ``4^d``. Beyond,
+    each function's ``4^d`` cells looked up, the functions shared out over the host's
+    threads (``by_rows``)."""
+    if region.table is not None:
+        return _cells_outside(functions, cells, region) == 0
     return by_rows(lambda part: _support_inside_of(part, cells, region), functions)
+
+
+def _cells_outside(functions: np.ndarray, cells: tuple[int, ...], region: _KeySet) -> np.ndarray:
+    """For each function (``(k, d)`` multi-indices), how many cells of its support within
+    the box lie outside ``region``: a box sum over the level's cell grid, from its prefix
+    sums (``2^d`` corners a function). The grid is padded by 4 cells below (3 for the
+    support cells before the box, 1 for the prefix sums' zero) and 3 above, so that a
+    function ``f``'s cells ``f - 3 .. f`` are the padded ``f + 1 .. f + 4``."""
+    ndim = len(cells)
+    outside = np.ones(int(np.prod(cells)), bool)
+    outside[region.keys] = False
+    # int32: the counts are at most the cells of a table-sized level (TABLE_KEYS).
+    sums = np.zeros(tuple(n + 7 for n in cells), np.int32)
+    sums[tuple(slice(4, 4 + n) for n in cells)] = outside.reshape(cells)
+    del outside
+    for axis in range(ndim):
+        np.cumsum(sums, axis=axis, out=sums)
+    count = np.zeros(functions.shape[0], np.int64)
+    for corner in itertools.product((0, 1), repeat=ndim):
+        at = tuple(functions[:, axis] + 4 * corner[axis] for axis in range(ndim))
+        count += (-1) ** (ndim - sum(corner)) * sums[at]
+    return count
 
 
 def _support_inside_of(
