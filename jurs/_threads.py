@@ -159,6 +159,44 @@ def by_rows(work: Callable[[np.ndarray], np.ndarray], array: np.ndarray) -> np.n
     return np.concatenate(in_threads(work, np.array_split(array, threads)))
 
 
+def product_by_rows(left, right):
+    """``left @ right`` for SciPy CSR ``left`` and a SciPy sparse ``right``, as SciPy CSR
+    with the same bits: ``left``'s rows in ``host_threads`` blocks of about equal entries
+    (``row_blocks``), each block's product made in a thread (a product's row is made
+    from that row of ``left`` alone, its entries in the same order), then copied into
+    one matrix block by block, each block dropped once copied, so that the blocks and
+    the result are not held whole at once."""
+    from scipy.sparse import csr_matrix
+
+    threads = host_threads()
+    blocks = row_blocks(left, threads) if threads > 1 and not in_worker() else []
+    if len(blocks) <= 1:
+        return csr_matrix(left @ right)
+    parts = list(pool("map", len(blocks)).map(lambda block: csr_matrix(block[1] @ right), blocks))
+    del blocks
+    release_freed_memory()
+    total = sum(part.nnz for part in parts)
+    index = np.result_type(*(part.indices.dtype for part in parts))
+    if total >= np.iinfo(np.int32).max:
+        index = np.int64
+    # Allocated, not written: a page costs memory once a block is copied onto it.
+    data = np.empty(total, parts[0].dtype)
+    indices = np.empty(total, index)
+    indptr = np.zeros(left.shape[0] + 1, index)
+    at = row = 0
+    for k in range(len(parts)):
+        part, parts[k] = parts[k], None
+        count, rows = part.nnz, part.shape[0]
+        data[at : at + count] = part.data
+        indices[at : at + count] = part.indices
+        indptr[row + 1 : row + rows + 1] = part.indptr[1:] + at
+        at, row = at + count, row + rows
+        del part
+    out = csr_matrix((left.shape[0], right.shape[1]), dtype=data.dtype)
+    out.data, out.indices, out.indptr = data, indices, indptr
+    return out
+
+
 def ahead(work: Callable[[Any], T], items: Iterable[Any]) -> Iterator[T]:
     """``work(item)`` for each item, in order, the next items' made in ``host_threads``
     worker threads while the caller handles this one's: host work in batches (a spline's

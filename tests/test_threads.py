@@ -25,6 +25,24 @@ def test_in_threads_and_by_rows_keep_the_order(threads, monkeypatch):
     np.testing.assert_array_equal(host.by_rows(lambda a: a.sum(axis=1), rows), rows.sum(axis=1))
 
 
+def test_product_by_rows_is_the_product_to_the_bit(threads):
+    """``product_by_rows`` against SciPy's one product: the same entries in the same
+    order in each row, the same index type, rows left empty included."""
+    from scipy import sparse
+
+    rng = np.random.default_rng(1)
+    left = sparse.random(257, 90, density=0.05, format="csr", random_state=rng)
+    left = sparse.csr_matrix(left.multiply((np.arange(257) % 7 != 0)[:, None]))  # empty rows
+    right = sparse.random(90, 60, density=0.1, format="csr", random_state=rng)
+    for a, b in [(left, right), (left, right.tocsc()), (right.T.tocsr(), left.T.tocsr())]:
+        expected = sparse.csr_matrix(a @ b)
+        got = host.product_by_rows(a, b)
+        assert got.shape == expected.shape
+        for name in ("data", "indices", "indptr"):
+            np.testing.assert_array_equal(getattr(got, name), getattr(expected, name))
+            assert getattr(got, name).dtype == getattr(expected, name).dtype
+
+
 def test_ahead_yields_every_result_in_order_and_stops_early(threads):
     made = []
 

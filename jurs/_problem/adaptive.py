@@ -29,6 +29,7 @@ from .._model.hierarchy import (
 )
 from .._model.leaves import hierarchy_basis, leaf_terms, locate_leaves
 from .._model.precision import on_device
+from .._threads import product_by_rows
 from .energy import metrics_from_sums
 from .problem import offset_samples
 
@@ -84,7 +85,7 @@ def normal_matrices(
         shape=(count, total),
     )
     del basis
-    collocation = sparse.csr_matrix(terms @ cascaded)
+    collocation = product_by_rows(terms, cascaded)
     return collocation, regulariser
 
 
@@ -116,7 +117,7 @@ def _regulariser_matrix(hierarchy: Hierarchy, cascaded, total: int):
     del laplacian
     # M^T as a CSR view of M in CSC: a product of two CSR matrices, with no conversion
     # of the (larger) L M or of the result.
-    return cascaded.tocsc().T @ smoothed
+    return product_by_rows(cascaded.tocsc().T, smoothed)
 
 
 #: Entries of D squared at a time in ``column_squares``.
