@@ -172,7 +172,8 @@ def product_by_rows(left, right):
     blocks = row_blocks(left, threads) if threads > 1 and not in_worker() else []
     if len(blocks) <= 1:
         return csr_matrix(left @ right)
-    parts = list(pool("map", len(blocks)).map(lambda block: csr_matrix(block[1] @ right), blocks))
+    products = pool("map", len(blocks)).map(lambda block: csr_matrix(block[1] @ right), blocks)
+    parts: list[Any] = list(products)
     del blocks
     release_freed_memory()
     total = sum(part.nnz for part in parts)
