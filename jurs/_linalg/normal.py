@@ -48,7 +48,7 @@ from .stencil import (
     HALF,
     SIDE,
     StencilOperator,
-    laplacian_stencil,
+    plus_laplacian,
     stencil_matvec,
     stencil_to_dense,
 )
@@ -381,8 +381,7 @@ class NormalEquations(eqx.Module):
     def regularised(self, lam) -> StencilOperator:
         """``D^T D + 2 lam L``, the Hessian / 2 of ``E_d + lam R`` (docs/design.md section
         3), as a lineax operator holding its stencil."""
-        lap = laplacian_stencil(self.rhs.shape, self.stencil.dtype)
-        return StencilOperator(self.stencil + 2.0 * lam * lap)
+        return StencilOperator(plus_laplacian(self.stencil, 2.0 * lam))
 
     def to_dense(self) -> Array:
         return stencil_to_dense(self.stencil)
