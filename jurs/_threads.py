@@ -172,10 +172,8 @@ def product_by_rows(left, right):
     blocks = row_blocks(left, threads) if threads > 1 and not in_worker() else []
     if len(blocks) <= 1:
         return csr_matrix(left @ right)
-    products = pool("map", len(blocks)).map(lambda block: csr_matrix(block[1] @ right), blocks)
-    parts: list[Any] = list(products)
+    parts: list[Any] = in_threads(lambda block: csr_matrix(block[1] @ right), blocks)
     del blocks
-    release_freed_memory()
     total = sum(part.nnz for part in parts)
     index = np.result_type(*(part.indices.dtype for part in parts))
     if total >= np.iinfo(np.int32).max:

@@ -41,9 +41,9 @@ from .._problem.adaptive import (
     AdaptiveProblem,
     adaptive_metrics,
     column_squares,
-    normal_matrices,
     normal_matvec,
     normal_rhs,
+    problem_matrices,
     sample_basis,
 )
 from .._problem.sizes import padded_to, round_size
@@ -274,10 +274,7 @@ def multilevel_preconditioner(
     ``ThbMultigrid``."""
     from scipy.sparse import csr_matrix
 
-    positions = np.asarray(problem.positions)
-    # The basis values made after the regulariser's products (normal_matrices).
-    matrices = normal_matrices(problem.hierarchy, positions, lambda: sample_basis(problem))
-    matrix, _ = normal_system(matrices, problem.targets, float(lam))
+    matrix, _ = normal_system(problem_matrices(problem), problem.targets, float(lam))
     multigrid = ThbMultigrid(problem.hierarchy, csr_matrix(matrix), **options)
     return multigrid.on_device(jnp.result_type(float) if dtype is None else dtype)
 
@@ -527,9 +524,7 @@ def solve_direct(problem: AdaptiveProblem, lam: float, matrices=None, row_weight
     reaches) goes to SuperLU, whose pivoting gives an answer whose residual says so.
     """
     if matrices is None:
-        positions = np.asarray(problem.positions)
-        # The basis values made after the regulariser's products (normal_matrices).
-        matrices = normal_matrices(problem.hierarchy, positions, lambda: sample_basis(problem))
+        matrices = problem_matrices(problem)
     matrix, rhs = normal_system(matrices, problem.targets, lam, row_weights)
     return solve_normal(matrix.tocsc(), rhs)
 

@@ -120,6 +120,13 @@ def _regulariser_matrix(hierarchy: Hierarchy, cascaded, total: int):
     return product_by_rows(cascaded.tocsc().T, smoothed)
 
 
+def problem_matrices(problem: AdaptiveProblem):
+    """``normal_matrices`` of a laid-out ``problem``: ``(D, 2 G^T W G)`` from its samples'
+    positions and basis values (the latter made after the regulariser)."""
+    positions = np.asarray(problem.positions)
+    return normal_matrices(problem.hierarchy, positions, lambda: sample_basis(problem))
+
+
 #: Entries of D squared at a time in ``column_squares``.
 SQUARED_CHUNK = 1 << 21
 
