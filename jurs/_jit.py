@@ -12,6 +12,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from ._kept import KeptByIdentity
+from ._model.precision import scalar_array
 from ._problem.validate import is_concrete
 
 
@@ -115,7 +116,7 @@ def as_arrays(tree, dtype):
 
 def _floats_as_arrays(tree, dtype):
     return jax.tree_util.tree_map(
-        lambda x: np.asarray(x, jnp.dtype(dtype)) if isinstance(x, float) else x, tree
+        lambda x: scalar_array(x, dtype) if isinstance(x, float) else x, tree
     )
 
 

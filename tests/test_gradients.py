@@ -231,3 +231,14 @@ def test_metrics_match_their_definitions(rng, layout):
     }
     for name, value in expected.items():
         np.testing.assert_allclose(float(got[name]), value, rtol=1e-11, err_msg=name)
+
+
+def test_objective_takes_lambda_in_the_problems_dtype(data):
+    """A lambda given as a Python or NumPy number enters the objective in the problem's
+    dtype, as a solver's floats do (``as_arrays``): a float32 problem's objective is
+    float32 for a float64 NumPy lambda and an integer one too."""
+    problem = jurs.make_problem(*data, grid=(5, 5), dtype=jnp.float32)
+    control = jnp.zeros((5, 5), jnp.float32)
+    weights = jnp.ones((5, 5), jnp.float32)
+    for lam in (0.3, np.float64(0.3), 1):
+        assert jurs.objective(problem, control, weights, lam).dtype == jnp.float32, lam

@@ -36,7 +36,7 @@ from .._linalg.pcg import conjugate_gradients, host_conjugate_gradients, jacobi_
 from .._linalg.sparse import PaddedCoo, normal_product, normal_system, ordered_rows
 from .._linalg.thb_multigrid import ThbMultigrid, VCycle, multigrid_cg
 from .._model.adaptive import AdaptiveSpline
-from .._model.precision import on_device
+from .._model.precision import on_device, scalar_array
 from .._problem.adaptive import (
     AdaptiveProblem,
     adaptive_metrics,
@@ -239,8 +239,8 @@ def solve_adaptive(
     preconditioner: called outside ``jax.jit``, the basis, the right-hand side and the CG
     loop would otherwise each compile op by op, several times the solve's own time.
     """
-    # lam as a (weakly typed) array: a new value does not compile the solve again.
-    return _compiled_solve_adaptive(problem, jnp.asarray(lam), rtol, max_steps, precondition)
+    lam = scalar_array(lam, problem.targets.dtype)  # a new value compiles nothing
+    return _compiled_solve_adaptive(problem, lam, rtol, max_steps, precondition)
 
 
 @eqx.filter_jit
@@ -803,7 +803,7 @@ def _(
     control, steps, residual = solve(None, control, lam)
     state = HeldOutLeastSquaresState(
         control=jnp.asarray(control),
-        lam=jnp.asarray(lam),
+        lam=jnp.asarray(lam, problem.targets.dtype),
         scores=jnp.asarray(scores),
         done=jnp.asarray(True),
         result=lx.RESULTS.successful,

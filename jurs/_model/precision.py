@@ -1,10 +1,12 @@
-"""Full float32 precision for jurs's matrix products on every device."""
+"""The fit's precision: full float32 precision for jurs's matrix products on every device,
+and host values handed to compiled calls in the dtype the fit runs in."""
 
 from __future__ import annotations
 
 import functools
 
 import jax
+import numpy as np
 
 
 def full_precision(fn):
@@ -32,6 +34,15 @@ def on_device(array, dtype=None) -> jax.Array:
     (JAX 0.10), and a conversion to another dtype one more; an adaptive fit hands over
     some thirty arrays whose shapes change with every cloud. ``jax.device_put`` of a
     NumPy array compiles nothing."""
-    import numpy as np
-
     return jax.device_put(np.asarray(array, dtype))
+
+
+def scalar_array(value, dtype):
+    """A hyperparameter passed to a compiled call on its own (lambda): a Python or NumPy
+    number as a 0-d NumPy array of ``dtype``, the problem's, as ``jurs._jit.as_arrays``
+    converts a solver's floats (a new value compiles nothing, and a float32 problem's
+    lambda is float32); a JAX array, traced or not, as it is (a derivative in it stays
+    one)."""
+    if isinstance(value, jax.Array):
+        return value
+    return np.asarray(value, np.dtype(dtype))

@@ -20,6 +20,7 @@ from jax import Array
 
 from .._model.basis import num_cells, patches_to_grid
 from .._model.local import LocalBasis
+from .._model.precision import scalar_array
 from .._model.spline import (
     ImplicitSpline,
     bspline_transpose,
@@ -96,7 +97,7 @@ def objective(problem: Problem, control: Array, weights: Array, lam) -> Array:
     """E(C, w) + lambda R(C) (eq. 32), lambda being the objective's weight (see
     docs/design.md section 3). One compiled program a problem size (lambda enters it as
     an array): ``jax.grad`` of it outside a jit compiles its passes whole, not op by op."""
-    return _compiled_objective(problem, control, weights, jnp.asarray(lam))
+    return _compiled_objective(problem, control, weights, scalar_array(lam, problem.samples.dtype))
 
 
 @eqx.filter_jit
