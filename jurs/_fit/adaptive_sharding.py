@@ -10,8 +10,10 @@ own block of points (``[P, P + d n, P - d n]`` of them); the coefficients, the r
 ``D^T D c`` is a per-device product (``D_k c``, then its transpose, a scatter-add onto the
 active functions) and one all-reduce of an active-function-sized vector; the right-hand
 side ``D^T b``, the Jacobi diagonal of ``D^T D`` and the data term of the metrics reduce
-the same way once. No sample-sized array leaves its device (``shard_map``: the program
-says so, not a partitioner's choice; docs/sharding.md, "Adaptive fits").
+the same way once. The placement is a grid fit's (``jurs._fit.sharding``): arrays put on
+the point axis's ``NamedSharding`` and JAX's partitioner, with each device's rows one
+element of a ``vmap`` so that no sample-sized array leaves its device (``_sharded_cg``;
+docs/sharding.md, "Adaptive fits").
 
 The direct path (a curve's default) factorises ``D^T D + lam 2 G^T W G`` on the host: in
 one process every shard is addressable there, so it reads the whole cloud and solves
@@ -29,7 +31,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax import lax
-from jax.sharding import Mesh, NamedSharding, PartitionSpec
+from jax.sharding import NamedSharding, PartitionSpec
 
 from .._cloud.parts import agree, allgather, gather_ragged
 from .._linalg.pcg import conjugate_gradients, jacobi_inverse
@@ -93,60 +95,58 @@ def split_rows(collocation, targets: np.ndarray, points: int, devices: int, dtyp
     return coo, np.concatenate(values).astype(dtype), np.concatenate(data)
 
 
-@functools.partial(jax.jit, static_argnames=("mesh", "names"))
+@functools.partial(jax.jit, static_argnames=("sharding",))
 def _sharded_cg(
     collocation, targets, is_data, regulariser, regulariser_diagonal, lam, rtol, max_steps,
-    *, mesh: Mesh, names,
+    *, sharding: NamedSharding,
 ):  # fmt: skip
     """``(control, steps, relative residual, E_d, sum of g(P)^2, E_max)``: ``_assembled_cg``'s solve
-    with ``D``'s rows (``collocation``, local row indices), ``targets`` and ``is_data``
-    split over ``mesh``'s ``names`` axis, everything else replicated. The data term runs
-    per device under ``shard_map``; its sums onto the active functions are all-reduced."""
+    with ``D``'s rows (``collocation``, row indices local to each device's part),
+    ``targets`` and ``is_data`` placed on ``sharding`` (split over its point axis,
+    each device's part laid end to end), everything else replicated.
+
+    Placed data and JAX's partitioner, as a grid fit's (``jurs._fit.sharding``): the
+    parts are viewed as ``(devices, rows a device)``, each device's part one element of a
+    ``vmap``, so the partitioner keeps every product on the device that holds its rows and
+    sums over the leading axis alone (an all-reduce of an active-function-sized vector, or
+    of a scalar). A flat row axis would not tell it that a device's row indices are its
+    own: the sample-sized ``D c`` would then be all-reduced every step."""
     reg_rows, reg_cols, reg_values = regulariser
     n = regulariser_diagonal.shape[0]
-    split, whole = PartitionSpec(names), PartitionSpec()
-    on_parts = functools.partial(jax.shard_map, mesh=mesh, check_vma=False)
+    names = sharding.spec[0]
+    by_device = NamedSharding(sharding.mesh, PartitionSpec(names, None))
+    shards = point_axis_size(sharding)
 
-    def apply(entries, c, count):  # this device's D_k c
-        rows, cols, values = entries
-        return jax.ops.segment_sum(values * c[cols], rows, count)
+    def parts(x):  # (devices, rows a device), the leading axis the placed one
+        return lax.with_sharding_constraint(x.reshape(shards, -1), by_device)
 
-    def transpose(entries, v):  # this device's D_k^T v: active-function-sized
-        rows, cols, values = entries
-        return jax.ops.segment_sum(values * v[rows], cols, n)
+    rows, cols, values = (parts(a) for a in collocation)
+    b, data = parts(targets), parts(is_data)
+    local = b.shape[1]
+    # Each device's D_k c (sample rows) and D_k^T v (active-function-sized).
+    apply = jax.vmap(lambda r, k, v, c: jax.ops.segment_sum(v * c[k], r, local), (0, 0, 0, None))
+    transpose = jax.vmap(lambda r, k, v, y: jax.ops.segment_sum(v * y[r], k, n))
 
-    local = targets.shape[0] // point_axis_size(NamedSharding(mesh, split))  # rows a device
-
-    @functools.partial(on_parts, in_specs=(split, whole), out_specs=whole)
-    def data_normal(entries, c):  # D^T D c = sum_k D_k^T D_k c
-        return lax.psum(transpose(entries, apply(entries, c, local)), names)
-
-    @functools.partial(on_parts, in_specs=(split, split), out_specs=(whole, whole))
-    def once(entries, b):  # D^T b and the diagonal of D^T D
-        rows, cols, values = entries
-        diagonal = jax.ops.segment_sum(values * values, cols, n)
-        return lax.psum(transpose(entries, b), names), lax.psum(diagonal, names)
-
-    @functools.partial(on_parts, in_specs=(split, split, split, whole), out_specs=(whole, whole))
-    def data_metrics(entries, b, data, c):  # E_d, sum of g(P)^2 (for E_ave) and E_max
-        r = apply(entries, c, b.shape[0]) - b
-        on_data = jnp.where(data, r, 0.0)
-        largest = jnp.max(jnp.abs(on_data))
-        sums = lax.psum(jnp.stack([jnp.sum(r * r), jnp.sum(on_data * on_data)]), names)
-        return sums, lax.pmax(largest, names)
-
-    def matvec(c):
+    def matvec(c):  # D^T D c = sum_k D_k^T D_k c, plus lam times the regulariser's product
         regular = jax.ops.segment_sum(reg_values * c[reg_cols], reg_rows, n)
-        return data_normal(collocation, c) + lam * regular
+        return transpose(rows, cols, values, apply(rows, cols, values, c)).sum(0) + lam * regular
 
-    rhs, data_diagonal = once(collocation, targets)
-    diagonal = data_diagonal + lam * regulariser_diagonal
-    inverse = jacobi_inverse(diagonal)
+    rhs = transpose(rows, cols, values, b).sum(0)  # D^T b
+    squares = jax.vmap(lambda k, v: jax.ops.segment_sum(v * v, k, n))  # diagonal of D_k^T D_k
+    inverse = jacobi_inverse(squares(cols, values).sum(0) + lam * regulariser_diagonal)
     control, steps, residual = conjugate_gradients(
         matvec, rhs, precondition=lambda r: inverse * r, rtol=rtol, max_steps=max_steps
     )
-    sums, largest = data_metrics(collocation, targets, is_data, control)
-    return control, steps, residual, sums[0], sums[1], largest
+    r = apply(rows, cols, values, control) - b  # E_d, sum of g(P)^2 (for E_ave) and E_max
+    on_data = jnp.where(data, r, 0.0)
+    return (
+        control,
+        steps,
+        residual,
+        jnp.sum(r * r),
+        jnp.sum(on_data * on_data),
+        jnp.max(jnp.abs(on_data)),
+    )
 
 
 def solve_sharded(
@@ -205,8 +205,7 @@ def solve_sharded(
         put_whole(np.asarray(lam, dtype)),
         put_whole(np.asarray(rtol, dtype)),
         put_whole(np.asarray(max_steps, np.int32)),
-        mesh=mesh,
-        names=names,
+        sharding=split,
     )
     c = np.asarray(control.addressable_data(0))[:n]  # replicated: every device holds it
     reg = float(c @ (regulariser @ c))
