@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import functools
 import warnings
+from collections import OrderedDict
 from typing import TYPE_CHECKING, Any
 
 import jax
@@ -78,7 +79,9 @@ class Cloud:
             None if normals is None else unit_normals(np.asarray(normals, float))
         )
         self.mask: np.ndarray | None = None if mask is None else np.asarray(mask).astype(bool)
-        self._problems: dict = {}
+        #: Problems laid out on this cloud, by their settings, the latest last: ``jurs.fit``
+        #: keeps a few there (``KEPT_PROBLEMS``) for fits that repeat their settings.
+        self.kept_problems: OrderedDict = OrderedDict()
         #: Exact repeats dropped (see the class docstring).
         self.repeated: int = 0
         check_narrow_type(self.points, _given_dtype(points))

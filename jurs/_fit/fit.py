@@ -198,7 +198,7 @@ def _problem_of(
         )
     except (TypeError, ValueError):  # traced settings (under grad): nothing to keep
         key = None
-    kept: OrderedDict = cloud.__dict__.setdefault("_kept_problems", OrderedDict())
+    kept = cloud.kept_problems
     if key is not None and key in kept:
         kept.move_to_end(key)
         return kept[key]
@@ -230,7 +230,7 @@ def _forget_large_problem(cloud: Cloud, problem) -> None:
     the fit's peak. A smaller cloud keeps it for the next fit of the same settings."""
     if len(cloud) <= KEPT_CLOUD_POINTS:
         return
-    kept = cloud.__dict__.get("_kept_problems", {})
+    kept = cloud.kept_problems
     for key in [key for key, value in kept.items() if value is problem]:
         del kept[key]
 
